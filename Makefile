@@ -1,0 +1,62 @@
+# gdal_gf4cal — two commands do everything on a fresh Debian 12 machine:
+#   make demo   install what is missing, then run the main job on a built-in scene
+#   make test   install what is missing, then run every test (QGIS ones included)
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+
+APT_PACKAGES := gdal-bin python3-gdal python3-numpy python3-scipy python3-pyproj python3-shapely \
+                python3-geopandas python3-matplotlib python3-pytest proj-bin qgis python3-qgis qgis-providers python3-venv
+VENV   := .venv
+PY     := $(VENV)/bin/python
+SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+STAMP  := $(VENV)/.installed
+# QGIS headless and the Debian qgis_process pitfalls (see README "Running in QGIS").
+export QT_QPA_PLATFORM := offscreen
+export PROJ_DATA := /usr/share/proj
+export PYTHONWARNINGS :=
+DEMO_OUT ?= demo_out
+
+.PHONY: help system venv install demo test test-engine test-qgis plugin bench clean
+
+help:
+	@echo "make demo   - install what is missing, then run the GF4 look-angle calibration demo"
+	@echo "make test   - install what is missing, then run every test (QGIS ones included)"
+	@echo "make plugin - build dist/gdal_gf4cal_plugin.zip and build/plugin/gdal_gf4cal_plugin/"
+	@echo "make bench  - run the benchmarks under bench/"
+
+# System packages: installed only when one is missing (dpkg-query is fast when all are there).
+system:
+	@missing=$$(for p in $(APT_PACKAGES); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q 'install ok installed' || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+	  echo "Installing Debian packages:" $$missing; \
+	  $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
+	  $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $$missing; \
+	fi
+
+# The venv sees Debian's numpy/GDAL/SciPy; constraints.txt pins numpy to Debian's so pip never replaces it.
+$(STAMP): pyproject.toml | system
+	@[ -x $(PY) ] || /usr/bin/python3 -m venv --system-site-packages $(VENV)
+	@/usr/bin/python3 -c "import numpy; print('numpy==' + numpy.__version__)" > $(VENV)/constraints.txt
+	$(PY) -m pip install -q --no-build-isolation --no-deps -e . -c $(VENV)/constraints.txt
+	$(PY) -c "import gdal_gf4cal, osgeo.gdal_array, scipy, geopandas"
+	@touch $(STAMP)
+
+venv install: system $(STAMP)
+
+demo: install
+	$(VENV)/bin/gf4cal info tests/data/shareloc/phr_ventoux_rpc.tif --dem tests/data/shareloc/N44E005.hgt
+
+test: install
+	$(PY) -m pytest -q -p no:cacheprovider tests
+
+test-engine: install
+	$(PY) -m pytest -q -p no:cacheprovider tests --ignore=tests/qgis
+
+plugin: install
+	$(PY) tools/build_plugin.py
+
+bench: install
+	@for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf build dist $(DEMO_OUT) test-artifacts

@@ -1,0 +1,29 @@
+"""gdal_gf4cal: geometric calibration of optical satellite images from their RPC, a DEM and control points.
+
+See DESIGN.md for the module map and ../shared/METHODS.md (METHODS §n in docstrings) for the equations.
+"""
+from __future__ import annotations
+
+from .errors import (
+    CancelledError,
+    ConvergenceError,
+    DEMError,
+    DegenerateGeometryError,
+    GCPError,
+    Gf4calError,
+    InputOverwriteError,
+    RPCFormatError,
+)
+
+from .rpc import RPCModel
+from .dem import DEM
+from .camera import LookAngleModel
+from .gcp import make_gcps, read_gcps, write_gcps
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "CancelledError", "ConvergenceError", "DEMError", "DegenerateGeometryError", "GCPError", "Gf4calError",
+    "InputOverwriteError", "RPCFormatError", "__version__",
+    "RPCModel", "DEM", "LookAngleModel", "make_gcps", "read_gcps", "write_gcps",
+]

@@ -1,0 +1,821 @@
+"""Image-space bias compensation of an RPC and detector-position polynomials (METHODS §4).
+
+The observation model of every GCP (METHODS §4) is::
+
+    line_meas   = line_rpc(lon, lat, h)   + dl(s', l')
+    sample_meas = sample_rpc(lon, lat, h) + ds(s', l')
+
+where ``(s', l') = rpc.project(lon, lat, h)`` are the RPC's own (GDAL-convention) image coordinates. Taking the
+correction as a function of the *predicted* coordinates keeps the estimation linear and makes applying it an
+explicit composition ``image = rpc(ground) + d(rpc(ground))``: translation and per-axis scale then fold exactly into
+``SAMP_OFF/SAMP_SCALE`` and ``LINE_OFF/LINE_SCALE`` (METHODS §4.2). The difference to evaluating ``d`` at the
+measured coordinates is second order in the (small) correction.
+
+Internally both image axes are normalised, ``u = (s - s0) / ss`` and ``v = (l - l0) / ls`` with ``(s0, ss, l0, ls)``
+taken from the RPC (``SAMP_OFF + 0.5``, ``SAMP_SCALE``, ...) unless given, so every model is a polynomial
+``sum c_ij u^i v^j`` per axis with coefficients in pixels.
+
+Estimating (:func:`fit_compensation` -> :class:`CompensationResult`) is separate from applying
+(:func:`apply_compensation` -> :class:`AppliedCompensation`) and from writing (:func:`write_refined_rpc`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .errors import ConvergenceError, DegenerateGeometryError, GCPError, Gf4calError, InputOverwriteError
+
+__all__ = [
+    "MODEL_NAMES", "CompensationModel", "CompensationResult", "CompensatedRPC", "AppliedCompensation",
+    "fit_compensation", "apply_compensation", "write_refined_rpc", "ground_offsets_m",
+]
+
+#: Model names accepted by :meth:`CompensationModel.from_name` (and ``gf4cal refine --model``).
+MODEL_NAMES = ("translation", "shift-drift", "affine", "poly2", "detector-poly")
+
+# Exponents (i, j) of u^i v^j per axis for the base models of METHODS §4.1 (u: sample, v: line).
+_BASE_TERMS = {
+    "translation": (((0, 0),), ((0, 0),)),
+    # shift + drift = translation + per-axis scale: ds depends on s only, dl on l only (folds exactly).
+    "shift-drift": (((0, 0), (1, 0)), ((0, 0), (0, 1))),
+    "affine": (((0, 0), (1, 0), (0, 1)), ((0, 0), (1, 0), (0, 1))),
+    "poly2": (((0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2)),) * 2,
+}
+
+_SEMI_MAJOR = 6378137.0
+_E2 = 6.69437999014e-3
+
+
+@dataclass(frozen=True)
+class CompensationModel:
+    """Which image-space terms are estimated (METHODS §4.1, §4.3).
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`MODEL_NAMES`.
+    order : int
+        Order (1..6) of the detector-position polynomial; only for ``detector-poly``.
+    along : str
+        For ``detector-poly``: the base model whose terms are combined with the polynomial (default
+        ``translation``: one along-track shift). The polynomial ``k0 + k1 y + ... + kn y^n`` of the normalised
+        detector position ``y`` is added to the cross-track axis.
+    ccd_axis : {'sample', 'line'}
+        Image axis along the CCD line (push-broom: ``sample``). The cross-track correction is on this axis.
+    """
+
+    name: str
+    order: int = 0
+    along: str = "translation"
+    ccd_axis: str = "sample"
+
+    @classmethod
+    def from_name(cls, name: str, order: Optional[int] = None, along: Optional[str] = None,
+                  ccd_axis: str = "sample") -> "CompensationModel":
+        """Build and validate a model from its CLI name (``order`` only for ``detector-poly``)."""
+        name = str(name).strip().lower().replace("_", "-")
+        if name in ("shift", "shift+drift", "shiftdrift"):
+            name = "shift-drift"
+        if name not in MODEL_NAMES:
+            raise GCPError(f"unknown compensation model {name!r}; choose one of {', '.join(MODEL_NAMES)}")
+        if name == "detector-poly":
+            if order is None:
+                raise GCPError("model 'detector-poly' needs an order 1..6 (--order N)")
+            along = "translation" if along is None else str(along).strip().lower()
+            if along not in _BASE_TERMS:
+                raise GCPError(f"--along must be one of {', '.join(_BASE_TERMS)}, got {along!r}")
+            model = cls(name, int(order), along, ccd_axis)
+        else:
+            if order not in (None, 0):
+                raise GCPError(f"--order applies only to model 'detector-poly', not {name!r}")
+            model = cls(name, 0, "translation", ccd_axis)
+        model._validate()
+        return model
+
+    def _validate(self) -> None:
+        if self.name not in MODEL_NAMES:
+            raise GCPError(f"unknown compensation model {self.name!r}; choose one of {', '.join(MODEL_NAMES)}")
+        if self.ccd_axis not in ("sample", "line"):
+            raise GCPError(f"ccd_axis must be 'sample' or 'line', got {self.ccd_axis!r}")
+        if self.name == "detector-poly" and not 1 <= int(self.order) <= 6:
+            raise GCPError(f"detector-poly order must be 1..6, got {self.order}")
+
+    def __post_init__(self) -> None:
+        self._validate()
+
+    @property
+    def label(self) -> str:
+        """Short label, e.g. ``affine`` or ``detector-poly3+affine``."""
+        if self.name != "detector-poly":
+            return self.name
+        return f"detector-poly{self.order}" + ("" if self.along == "translation" else f"+{self.along}")
+
+    @property
+    def terms(self) -> Tuple[Tuple[Tuple[int, int], ...], Tuple[Tuple[int, int], ...]]:
+        """Exponents ``(i, j)`` of ``u^i v^j`` for the sample axis and for the line axis."""
+        if self.name != "detector-poly":
+            return _BASE_TERMS[self.name]
+        ts, tl = (list(t) for t in _BASE_TERMS[self.along])
+        if self.ccd_axis == "sample":
+            poly = [(k, 0) for k in range(self.order + 1)]
+            ts = ts + [t for t in poly if t not in ts]
+        else:
+            poly = [(0, k) for k in range(self.order + 1)]
+            tl = tl + [t for t in poly if t not in tl]
+        return tuple(ts), tuple(tl)
+
+    @property
+    def n_params(self) -> int:
+        """Total number of parameters (both axes)."""
+        ts, tl = self.terms
+        return len(ts) + len(tl)
+
+    @property
+    def min_gcps(self) -> int:
+        """Minimum number of control GCPs (each gives one observation per axis)."""
+        ts, tl = self.terms
+        return max(len(ts), len(tl))
+
+    @property
+    def foldable(self) -> bool:
+        """True if the correction folds exactly into the RPC offsets/scales (METHODS §4.2)."""
+        ts, tl = self.terms
+        return set(ts) <= {(0, 0), (1, 0)} and set(tl) <= {(0, 0), (0, 1)}
+
+
+def _monomials(terms, u, v):
+    return np.stack([u ** i * v ** j for (i, j) in terms], axis=-1)
+
+
+def _monomial_derivatives(terms, u, v):
+    """d/du and d/dv of each monomial, shape (..., n_terms) each."""
+    du = np.stack([(i * u ** (i - 1) * v ** j) if i else np.zeros_like(u) for (i, j) in terms], axis=-1)
+    dv = np.stack([(j * u ** i * v ** (j - 1)) if j else np.zeros_like(u) for (i, j) in terms], axis=-1)
+    return du, dv
+
+
+def _term_name(axis: str, term: Tuple[int, int]) -> str:
+    i, j = term
+    parts = ([] if i == 0 else ["u" if i == 1 else f"u{i}"]) + ([] if j == 0 else ["v" if j == 1 else f"v{j}"])
+    return f"{axis}_{'*'.join(parts) if parts else '1'}"
+
+
+@dataclass
+class CompensationResult:
+    """Estimated image-space correction and its statistics (METHODS §4, §6).
+
+    Attributes
+    ----------
+    model : CompensationModel
+    frame : tuple of float
+        ``(s0, ss, l0, ls)``: the correction is a polynomial of ``u = (s' - s0)/ss``, ``v = (l' - l0)/ls``
+        (GDAL pixel convention).
+    coef_sample, coef_line : ndarray
+        Coefficients (px) of the terms ``model.terms[0]`` / ``model.terms[1]``.
+    cov_sample, cov_line : ndarray
+        Their covariance (px^2), scaled by the a-posteriori variance of unit weight of each axis.
+    sigma0_px : tuple of float
+        A-posteriori standard deviation of unit weight (sample, line); a GCP with ``sigma = 1`` px has it in px.
+    gcps : pandas.DataFrame
+        The input table with added columns ``pred_sample_before, pred_line_before`` (RPC), ``res_sample_before,
+        res_line_before``, ``pred_sample, pred_line, res_sample, res_line`` (corrected), ``norm_res_sample,
+        norm_res_line`` (residual / its standard deviation), ``outlier`` (bool), ``used`` (in the estimate),
+        and with ``leave_one_out=True`` ``res_sample_loo, res_line_loo``. Residuals are measured - predicted, px.
+    redundancy : int
+        Observations minus parameters of the final estimate.
+    iterations : int
+        Robust reweighting iterations.
+    """
+
+    model: CompensationModel
+    frame: Tuple[float, float, float, float]
+    coef_sample: np.ndarray
+    coef_line: np.ndarray
+    cov_sample: np.ndarray
+    cov_line: np.ndarray
+    sigma0_px: Tuple[float, float]
+    gcps: Any
+    redundancy: int = 0
+    iterations: int = 0
+    condition_number: float = 1.0
+    notes: List[str] = field(default_factory=list)
+
+    # -- evaluating the correction -----------------------------------------------------------------------------
+    def _uv(self, sample, line):
+        s0, ss, l0, ls = self.frame
+        return (np.asarray(sample, dtype=float) - s0) / ss, (np.asarray(line, dtype=float) - l0) / ls
+
+    def correction(self, sample, line) -> Tuple[np.ndarray, np.ndarray]:
+        """``(ds, dl)`` in px at RPC-predicted image coordinates ``(sample, line)`` (GDAL convention)."""
+        u, v = self._uv(sample, line)
+        ts, tl = self.model.terms
+        return _monomials(ts, u, v) @ self.coef_sample, _monomials(tl, u, v) @ self.coef_line
+
+    def correction_jacobian(self, sample, line) -> np.ndarray:
+        """``d(ds, dl)/d(s', l')``, shape (..., 2, 2)."""
+        s0, ss, l0, ls = self.frame
+        u, v = self._uv(sample, line)
+        ts, tl = self.model.terms
+        dsu, dsv = _monomial_derivatives(ts, u, v)
+        dlu, dlv = _monomial_derivatives(tl, u, v)
+        jac = np.empty(np.shape(u) + (2, 2))
+        jac[..., 0, 0] = dsu @ self.coef_sample / ss
+        jac[..., 0, 1] = dsv @ self.coef_sample / ls
+        jac[..., 1, 0] = dlu @ self.coef_line / ss
+        jac[..., 1, 1] = dlv @ self.coef_line / ls
+        return jac
+
+    def correction_std(self, sample, line) -> Tuple[np.ndarray, np.ndarray]:
+        """Standard deviation (px) of the estimated correction at ``(sample, line)``: the noise-propagation floor.
+
+        This is what the GCP noise necessarily leaves in the corrected RPC: ``sigma0 * sqrt(a^T N^-1 a)`` per axis.
+        """
+        u, v = self._uv(sample, line)
+        ts, tl = self.model.terms
+        a_s, a_l = _monomials(ts, u, v), _monomials(tl, u, v)
+        var_s = np.einsum("...i,ij,...j->...", a_s, self.cov_sample, a_s)
+        var_l = np.einsum("...i,ij,...j->...", a_l, self.cov_line, a_l)
+        return np.sqrt(np.maximum(var_s, 0.0)), np.sqrt(np.maximum(var_l, 0.0))
+
+    def invert_correction(self, sample, line, tol: float = 1e-10, max_iter: int = 30):
+        """RPC coordinates ``(s', l')`` such that ``(s', l') + d(s', l') = (sample, line)`` (vectorised Newton)."""
+        s = np.asarray(sample, dtype=float)
+        l = np.asarray(line, dtype=float)
+        ds, dl = self.correction(s, l)
+        sp, lp = s - ds, l - dl
+        for _ in range(max_iter):
+            ds, dl = self.correction(sp, lp)
+            fs, fl = sp + ds - s, lp + dl - l
+            jac = self.correction_jacobian(sp, lp)
+            a, b = 1.0 + jac[..., 0, 0], jac[..., 0, 1]
+            c, d = jac[..., 1, 0], 1.0 + jac[..., 1, 1]
+            det = a * d - b * c
+            step_s = (d * fs - b * fl) / det
+            step_l = (a * fl - c * fs) / det
+            sp, lp = sp - step_s, lp - step_l
+            if np.all(~np.isfinite(step_s) | (np.abs(step_s) + np.abs(step_l) < tol)):
+                break
+        return sp, lp
+
+    # -- parameters and statistics -----------------------------------------------------------------------------
+    @property
+    def parameter_names(self) -> List[str]:
+        ts, tl = self.model.terms
+        return [_term_name("sample", t) for t in ts] + [_term_name("line", t) for t in tl]
+
+    @property
+    def parameters(self) -> Dict[str, float]:
+        """Coefficients by name (px), e.g. ``{'sample_1': 3.2, 'sample_u': -0.4, 'line_1': ...}``."""
+        vals = list(self.coef_sample) + list(self.coef_line)
+        return {n: float(x) for n, x in zip(self.parameter_names, vals)}
+
+    @property
+    def parameter_std(self) -> Dict[str, float]:
+        sd = list(np.sqrt(np.diag(self.cov_sample))) + list(np.sqrt(np.diag(self.cov_line)))
+        return {n: float(x) for n, x in zip(self.parameter_names, sd)}
+
+    @property
+    def outliers(self):
+        """Rows of :attr:`gcps` flagged as blunders."""
+        return self.gcps[self.gcps["outlier"].to_numpy(bool)]
+
+    def accuracy(self, rpc=None) -> Dict[str, Any]:
+        """Per role (control, check), before and after: n and per axis mean/rms/rmse/max (px), CE90 (m).
+
+        Flagged outliers are left out of both (so before/after compare the same points) and counted in
+        ``n_outliers``. With ``rpc`` the planar CE90 in metres is computed through the RPC's ground Jacobian.
+        """
+        return accuracy_by_role(self.gcps, rpc=rpc)
+
+    def to_dict(self, rpc=None) -> Dict[str, Any]:
+        """JSON-ready summary: model, parameters, accuracy per role, outliers (METHODS §6)."""
+        out: Dict[str, Any] = {
+            "model": {"name": self.model.name, "label": self.model.label,
+                      "order": int(self.model.order) if self.model.name == "detector-poly" else None,
+                      "along": self.model.along if self.model.name == "detector-poly" else None,
+                      "ccd_axis": self.model.ccd_axis, "min_gcps": self.model.min_gcps,
+                      "frame": {"s0": self.frame[0], "ss": self.frame[1], "l0": self.frame[2], "ls": self.frame[3]},
+                      "parameters_px": self.parameters, "parameter_std_px": self.parameter_std,
+                      "sigma0_px": {"sample": self.sigma0_px[0], "line": self.sigma0_px[1]},
+                      "redundancy": int(self.redundancy), "iterations": int(self.iterations),
+                      "condition_number": float(self.condition_number)},
+        }
+        out.update(self.accuracy(rpc))
+        out["outliers"] = [
+            {"id": str(r["id"]), "role": str(r["role"]),
+             "norm_res_sample": _f(r["norm_res_sample"]), "norm_res_line": _f(r["norm_res_line"]),
+             "res_sample_px": _f(r["res_sample"]), "res_line_px": _f(r["res_line"])}
+            for _, r in self.outliers.iterrows()]
+        out["notes"] = list(self.notes)
+        return out
+
+
+def _f(x) -> Optional[float]:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# statistics helpers (METHODS §6)
+# ----------------------------------------------------------------------------------------------------------------
+def _axis_stats(x) -> Dict[str, Optional[float]]:
+    x = np.asarray(x, dtype=float)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return {"mean": None, "rms": None, "rmse": None, "max": None}
+    return {"mean": float(x.mean()), "rms": float(np.sqrt(np.mean(x ** 2))),
+            "rmse": float(x.std()), "max": float(np.abs(x).max())}
+
+
+def ground_offsets_m(rpc, lon, lat, h, dsample, dline) -> Tuple[np.ndarray, np.ndarray]:
+    """East/north ground offsets (m) equivalent to image offsets ``(dsample, dline)`` (px) at ``(lon, lat, h)``.
+
+    Uses the RPC ground Jacobian ``d(s, l)/d(lon, lat)`` at fixed height; for CE90 of image residuals (METHODS §6).
+    """
+    lon, lat, h = (np.asarray(a, dtype=float) for a in (lon, lat, h))
+    jac = _jacobian(rpc, lon, lat, h)[..., :2]          # (..., 2, 2): d(s,l)/d(lon,lat)
+    rhs = np.stack([np.asarray(dsample, float), np.asarray(dline, float)], axis=-1)[..., None]
+    with np.errstate(all="ignore"):
+        dll = np.linalg.solve(jac, rhs)[..., 0]
+    phi = np.radians(lat)
+    w = np.sqrt(1.0 - _E2 * np.sin(phi) ** 2)
+    rn = _SEMI_MAJOR / w
+    rm = _SEMI_MAJOR * (1.0 - _E2) / w ** 3
+    east = np.radians(dll[..., 0]) * (rn + h) * np.cos(phi)
+    north = np.radians(dll[..., 1]) * (rm + h)
+    return east, north
+
+
+def _jacobian(model, lon, lat, h):
+    """``d(sample, line)/d(lon, lat, h)`` from ``model.project_jacobian`` or central differences."""
+    if hasattr(model, "project_jacobian"):
+        return np.asarray(model.project_jacobian(lon, lat, h), dtype=float)
+    steps = (1e-6, 1e-6, 1.0)
+    cols = []
+    for k, st in enumerate(steps):
+        args_p = [lon, lat, h]
+        args_m = [lon, lat, h]
+        args_p[k] = args_p[k] + st
+        args_m[k] = args_m[k] - st
+        sp, lp = model.project(*args_p)
+        sm, lm = model.project(*args_m)
+        cols.append(np.stack([(np.asarray(sp) - sm) / (2 * st), (np.asarray(lp) - lm) / (2 * st)], axis=-1))
+    return np.stack(cols, axis=-1)
+
+
+def _ce90(east, north) -> Optional[float]:
+    r = np.hypot(east, north)
+    r = r[np.isfinite(r)]
+    return float(np.percentile(r, 90)) if r.size else None
+
+
+def accuracy_by_role(gcps, rpc=None) -> Dict[str, Any]:
+    """``{control: {before, after, n_outliers}, check: {...}}`` from a table with before/after residual columns."""
+    out: Dict[str, Any] = {}
+    role = gcps["role"].astype(str).to_numpy()
+    outl = gcps["outlier"].to_numpy(bool)
+    for name in ("control", "check"):
+        sel = (role == name) & ~outl
+        entry: Dict[str, Any] = {"n_outliers": int(((role == name) & outl).sum())}
+        for when, suf in (("before", "_before"), ("after", "")):
+            rs = gcps[f"res_sample{suf}"].to_numpy(float)[sel]
+            rl = gcps[f"res_line{suf}"].to_numpy(float)[sel]
+            st: Dict[str, Any] = {"n": int(sel.sum()), "line": _axis_stats(rl), "sample": _axis_stats(rs)}
+            ce = None
+            if rpc is not None and sel.any():
+                e, n_ = ground_offsets_m(rpc, gcps["lon"].to_numpy(float)[sel], gcps["lat"].to_numpy(float)[sel],
+                                         gcps["h"].to_numpy(float)[sel], rs, rl)
+                ce = _ce90(e, n_)
+            st["ce90_m"] = ce
+            entry[when] = st
+        out[name] = entry
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# estimation
+# ----------------------------------------------------------------------------------------------------------------
+def _frame_from_rpc(rpc) -> Tuple[float, float, float, float]:
+    try:
+        # RPC00B offsets are raw (first pixel centre at 0); GDAL convention adds half a pixel.
+        return (float(rpc.samp_off) + 0.5, float(abs(rpc.samp_scale)) or 1.0,
+                float(rpc.line_off) + 0.5, float(abs(rpc.line_scale)) or 1.0)
+    except AttributeError:
+        return (0.0, 1.0, 0.0, 1.0)
+
+
+def _table(gcps):
+    import pandas as pd
+    if isinstance(gcps, pd.DataFrame):
+        tab = gcps.copy()
+    elif isinstance(gcps, dict):
+        tab = pd.DataFrame(gcps)
+    else:
+        raise GCPError("GCPs must be a table (GeoDataFrame/DataFrame) with columns lon, lat, h, sample, line")
+    missing = [c for c in ("lon", "lat", "sample", "line") if c not in tab.columns]
+    if missing:
+        raise GCPError(f"GCP table lacks column(s) {', '.join(missing)}; expected id, lon, lat, h, sample, line, role")
+    tab = tab.reset_index(drop=True)
+    if "id" not in tab.columns:
+        tab["id"] = [str(i + 1) for i in range(len(tab))]
+    if "role" not in tab.columns:
+        tab["role"] = "control"
+    tab["role"] = tab["role"].fillna("control").astype(str).str.strip().str.lower()
+    bad = sorted(set(tab["role"]) - {"control", "check"})
+    if bad:
+        raise GCPError(f"GCP role must be 'control' or 'check', found {bad}")
+    if "sigma" not in tab.columns:
+        tab["sigma"] = 1.0
+    tab["sigma"] = tab["sigma"].astype(float).fillna(1.0)
+    if (tab["sigma"] <= 0).any():
+        raise GCPError("GCP sigma must be > 0 px")
+    if "h" not in tab.columns:
+        tab["h"] = np.nan
+    return tab
+
+
+def _solve_axis(a, y, w):
+    """Weighted LS: returns (coef, N^-1) for weights ``w`` (zeros drop a row)."""
+    sw = np.sqrt(w)[:, None]
+    aw = a * sw
+    n_mat = aw.T @ aw
+    n_inv = np.linalg.pinv(n_mat, rcond=1e-13, hermitian=True)
+    coef = n_inv @ (aw.T @ (y * sw[:, 0]))
+    return coef, n_inv
+
+
+def _check_rank(a_list, model: CompensationModel, n_ctrl: int) -> float:
+    """Raise DegenerateGeometryError if any axis design is rank deficient; return the worst condition number."""
+    worst = 1.0
+    for a in a_list:
+        sv = np.linalg.svd(a / np.maximum(np.linalg.norm(a, axis=0), 1e-300), compute_uv=False)
+        cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+        worst = max(worst, cond)
+    if worst > 1e8:
+        hint = {"translation": "", "shift-drift": " (both axes need GCPs at different lines and samples)",
+                "affine": " (the GCPs are collinear)", "poly2": " (the GCPs lie on one line or conic)",
+                "detector-poly": " (too few distinct detector positions)"}[model.name]
+        raise DegenerateGeometryError(
+            f"the {n_ctrl} control GCPs do not determine model {model.label!r}{hint}; spread GCPs over the image "
+            f"or choose a simpler model")
+    return worst
+
+
+def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, along: Optional[str] = None,
+                     ccd_axis: str = "sample", dem=None, frame: Optional[Sequence[float]] = None,
+                     robust: bool = True, outlier_threshold: float = 4.0, max_iter: int = 20,
+                     leave_one_out: bool = False) -> CompensationResult:
+    """Estimate an image-space correction of ``rpc`` from GCPs (METHODS §4).
+
+    Parameters
+    ----------
+    rpc : RPCModel or any object with ``project(lon, lat, h) -> (sample, line)`` (GDAL pixel convention)
+    gcps : GeoDataFrame / DataFrame
+        Columns ``lon, lat, h`` (ellipsoidal m), ``sample, line`` (GDAL convention), optional ``id``, ``role``
+        (``control`` points are estimated from, ``check`` points only evaluated; default all control) and
+        ``sigma`` (px, relative weights).
+    model : str or CompensationModel
+        ``translation`` (min 1 GCP), ``shift-drift`` (2), ``affine`` (3), ``poly2`` (6), ``detector-poly``
+        (``order`` + 1 with the default ``along='translation'``).
+    dem : DEM, optional
+        Fills missing heights (``h`` NaN) with ``dem.height(lon, lat)``.
+    frame : (s0, ss, l0, ls), optional
+        Normalisation of image coordinates; default from the RPC offsets and scales.
+    robust : bool
+        Robust estimation: Huber then Tukey reweighting on standardised residuals, then blunders are flagged
+        while their normalised residual (residual / its standard deviation, Baarda's w) exceeds
+        ``outlier_threshold`` and left out of the estimate. Needs redundancy; with none it is skipped.
+    leave_one_out : bool
+        Also compute leave-one-out residuals of each control point (``res_*_loo``; exact for linear LS).
+
+    Returns
+    -------
+    CompensationResult
+
+    Raises
+    ------
+    GCPError
+        Fewer control GCPs than the model needs, missing columns or heights.
+    DegenerateGeometryError
+        The control layout does not determine the model (e.g. collinear GCPs for ``affine``).
+    """
+    if not isinstance(model, CompensationModel):
+        model = CompensationModel.from_name(model, order=order, along=along, ccd_axis=ccd_axis)
+    tab = _table(gcps)
+    h = tab["h"].to_numpy(float)
+    if np.isnan(h).any():
+        if dem is None:
+            raise GCPError(f"{int(np.isnan(h).sum())} GCP(s) have no height; give a DEM (--dem) to take it from")
+        fill = np.asarray(dem.height(tab["lon"].to_numpy(float)[np.isnan(h)], tab["lat"].to_numpy(float)[np.isnan(h)]),
+                          dtype=float)
+        if np.isnan(fill).any():
+            raise GCPError("the DEM has no height under some GCPs; give their height or a DEM that covers them")
+        h = h.copy()
+        h[np.isnan(h)] = fill
+        tab["h"] = h
+    lon, lat = tab["lon"].to_numpy(float), tab["lat"].to_numpy(float)
+    s_meas, l_meas = tab["sample"].to_numpy(float), tab["line"].to_numpy(float)
+    finite = np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h) & np.isfinite(s_meas) & np.isfinite(l_meas)
+    if not finite.all():
+        raise GCPError(f"{int((~finite).sum())} GCP(s) have non-numeric coordinates; fix or remove them")
+    s_pred, l_pred = (np.asarray(x, dtype=float) for x in rpc.project(lon, lat, h))
+    if not (np.isfinite(s_pred) & np.isfinite(l_pred)).all():
+        raise GCPError("the RPC cannot project some GCPs (outside its validity domain); check their coordinates")
+
+    fr = tuple(float(x) for x in (frame if frame is not None else _frame_from_rpc(rpc)))
+    u, v = (s_pred - fr[0]) / fr[1], (l_pred - fr[2]) / fr[3]
+    ts, tl = model.terms
+    a_s, a_l = _monomials(ts, u, v), _monomials(tl, u, v)
+    y_s, y_l = s_meas - s_pred, l_meas - l_pred                # residuals before = what the correction explains
+    ctrl = (tab["role"] == "control").to_numpy()
+    n_ctrl = int(ctrl.sum())
+    if n_ctrl < model.min_gcps:
+        raise GCPError(f"model {model.label!r} needs at least {model.min_gcps} control GCP(s), got {n_ctrl}; add "
+                       f"control points or choose a simpler model (translation needs 1)")
+    cond = _check_rank([a_s[ctrl], a_l[ctrl]], model, n_ctrl)
+    w0 = 1.0 / tab["sigma"].to_numpy(float) ** 2
+    p_s, p_l = a_s.shape[1], a_l.shape[1]
+    notes: List[str] = []
+
+    def solve(weights):
+        cs, ns = _solve_axis(a_s, y_s, weights)
+        cl, nl = _solve_axis(a_l, y_l, weights)
+        return cs, ns, cl, nl
+
+    used = ctrl.copy()
+    iterations = 0
+    redundancy_min = n_ctrl - max(p_s, p_l)
+    if robust and redundancy_min >= 2:
+        # Phase 1: robust start (Huber, then redescending Tukey) so that several blunders cannot mask each other.
+        rw = np.where(ctrl, 1.0, 0.0)
+        for it in range(max_iter):
+            iterations = it + 1
+            cs, _, cl, _ = solve(w0 * rw)
+            us = (y_s - a_s @ cs) * np.sqrt(w0)
+            ul = (y_l - a_l @ cl) * np.sqrt(w0)
+            scale_s = max(1.4826 * np.median(np.abs(us[ctrl])), 1e-9)
+            scale_l = max(1.4826 * np.median(np.abs(ul[ctrl])), 1e-9)
+            z = np.maximum(np.abs(us) / scale_s, np.abs(ul) / scale_l)
+            if it < 3:
+                new = np.minimum(1.0, 1.345 / np.maximum(z, 1e-12))
+            else:
+                new = np.where(z < 4.685, (1.0 - (z / 4.685) ** 2) ** 2, 0.0)
+            new = np.where(ctrl, new, 0.0)
+            if (new > 0).sum() < model.min_gcps:
+                break
+            done = np.max(np.abs(new - rw)) < 1e-4
+            rw = new
+            if done and it >= 3:
+                break
+        used = ctrl & (rw > 0)
+        # Phase 2: data snooping with normalised residuals on the robust inlier set until it is stable.
+        for _ in range(max_iter):
+            if used.sum() < model.min_gcps:
+                used = ctrl.copy()
+                break
+            norm_s, norm_l, *_ = _normalised(a_s, a_l, y_s, y_l, w0, used)
+            z = np.maximum(np.abs(norm_s), np.abs(norm_l))
+            new_used = ctrl & (z <= outlier_threshold)
+            if new_used.sum() < model.min_gcps or (new_used.sum() - max(p_s, p_l)) < 1:
+                notes.append("too many GCPs look like blunders for a robust estimate; all control points kept")
+                new_used = ctrl.copy()
+            if np.array_equal(new_used, used):
+                break
+            used = new_used
+    elif robust:
+        notes.append(f"no robust estimation: redundancy {max(redundancy_min, 0)} is too small to detect blunders")
+
+    try:
+        _check_rank([a_s[used], a_l[used]], model, int(used.sum()))
+    except DegenerateGeometryError:
+        used = ctrl.copy()
+        notes.append("rejecting blunders would leave the model undetermined; all control points kept")
+    norm_s, norm_l, cs, cl, ns, nl, sig_s, sig_l, red = _normalised(a_s, a_l, y_s, y_l, w0, used)
+    outlier = ~used & ctrl
+    if robust and red >= 2:
+        # Check points are never in the estimate; flag those that are blunders by the same test.
+        outlier |= (~ctrl) & (np.maximum(np.abs(norm_s), np.abs(norm_l)) > outlier_threshold)
+    elif not robust:
+        outlier[:] = False
+
+    ds, dl = a_s @ cs, a_l @ cl
+    tab["pred_sample_before"], tab["pred_line_before"] = s_pred, l_pred
+    tab["res_sample_before"], tab["res_line_before"] = y_s, y_l
+    tab["pred_sample"], tab["pred_line"] = s_pred + ds, l_pred + dl
+    tab["res_sample"], tab["res_line"] = y_s - ds, y_l - dl
+    tab["norm_res_sample"], tab["norm_res_line"] = norm_s, norm_l
+    tab["outlier"] = outlier
+    tab["used"] = used
+    if leave_one_out:
+        # Exact LOO residual of linear LS: v_i / (1 - h_ii) for points in the fit; others are already independent.
+        hs = w0 * np.einsum("ij,jk,ik->i", a_s, ns, a_s)
+        hl = w0 * np.einsum("ij,jk,ik->i", a_l, nl, a_l)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tab["res_sample_loo"] = np.where(used, (y_s - ds) / (1.0 - hs), y_s - ds)
+            tab["res_line_loo"] = np.where(used, (y_l - dl) / (1.0 - hl), y_l - dl)
+    return CompensationResult(model=model, frame=fr, coef_sample=cs, coef_line=cl,
+                              cov_sample=sig_s ** 2 * ns, cov_line=sig_l ** 2 * nl, sigma0_px=(sig_s, sig_l),
+                              gcps=tab, redundancy=red, iterations=iterations, condition_number=cond, notes=notes)
+
+
+def _normalised(a_s, a_l, y_s, y_l, w0, used):
+    """LS on ``used``; normalised residuals of every point and a-posteriori sigma per axis."""
+    wu = np.where(used, w0, 0.0)
+    cs, ns = _solve_axis(a_s, y_s, wu)
+    cl, nl = _solve_axis(a_l, y_l, wu)
+    vs, vl = y_s - a_s @ cs, y_l - a_l @ cl
+    n_used = int(used.sum())
+    red_s, red_l = n_used - a_s.shape[1], n_used - a_l.shape[1]
+    # With no redundancy the a-priori sigma (weights) is all we know: sigma0 = 1.
+    sig_s = float(np.sqrt(np.sum(wu * vs ** 2) / red_s)) if red_s > 0 else 1.0
+    sig_l = float(np.sqrt(np.sum(wu * vl ** 2) / red_l)) if red_l > 0 else 1.0
+    if red_s > 0 and red_l > 0 and min(red_s, red_l) < 10:
+        # Few redundant observations per axis: pool both axes for a steadier scale.
+        pooled = float(np.sqrt((np.sum(wu * vs ** 2) + np.sum(wu * vl ** 2)) / (red_s + red_l)))
+        sig_s = sig_l = pooled
+    q_s = np.einsum("ij,jk,ik->i", a_s, ns, a_s)
+    q_l = np.einsum("ij,jk,ik->i", a_l, nl, a_l)
+    # var(v) = sigma^2 (1/w - q) in the fit, sigma^2 (1/w + q) outside it.
+    qv_s = np.where(used, 1.0 / w0 - q_s, 1.0 / w0 + q_s)
+    qv_l = np.where(used, 1.0 / w0 - q_l, 1.0 / w0 + q_l)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm_s = np.where(qv_s > 1e-10, vs / (max(sig_s, 1e-12) * np.sqrt(np.abs(qv_s))), np.nan)
+        norm_l = np.where(qv_l > 1e-10, vl / (max(sig_l, 1e-12) * np.sqrt(np.abs(qv_l))), np.nan)
+    norm_s = np.nan_to_num(norm_s, nan=0.0)
+    norm_l = np.nan_to_num(norm_l, nan=0.0)
+    return norm_s, norm_l, cs, cl, ns, nl, sig_s, sig_l, min(red_s, red_l)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# applying
+# ----------------------------------------------------------------------------------------------------------------
+class CompensatedRPC:
+    """An RPC composed with an image-space correction: ``project = rpc.project + d(rpc.project)`` (METHODS §4).
+
+    Offers the model verbs of :class:`~gdal_gf4cal.rpc.RPCModel` (``project``, ``project_jacobian``,
+    ``localize``, ``localize_dem``) in the GDAL pixel convention, so it can be refitted (METHODS §3), intersected
+    (METHODS §7) or compared with a truth model. Other attributes (offsets, scales, ``height_range``) are the RPC's.
+    """
+
+    def __init__(self, rpc, result: CompensationResult):
+        self.rpc = rpc
+        self.result = result
+
+    def __getattr__(self, name):
+        if name in ("rpc", "result"):
+            raise AttributeError(name)
+        return getattr(self.rpc, name)
+
+    def project(self, lon, lat, h):
+        s, l = self.rpc.project(lon, lat, h)
+        ds, dl = self.result.correction(s, l)
+        return np.asarray(s) + ds, np.asarray(l) + dl
+
+    def project_jacobian(self, lon, lat, h):
+        s, l = self.rpc.project(lon, lat, h)
+        jac = _jacobian(self.rpc, lon, lat, h)
+        dcorr = self.result.correction_jacobian(s, l)
+        return jac + dcorr @ jac
+
+    def localize(self, sample, line, h, **kw):
+        sp, lp = self.result.invert_correction(sample, line)
+        return self.rpc.localize(sp, lp, h, **kw)
+
+    def localize_dem(self, sample, line, dem, **kw):
+        sp, lp = self.result.invert_correction(sample, line)
+        return self.rpc.localize_dem(sp, lp, dem, **kw)
+
+
+@dataclass
+class AppliedCompensation:
+    """A refined RPC and how it was made (METHODS §4.2).
+
+    ``exact`` is True when the correction folded exactly into offsets/scales; otherwise the RPC was refitted on
+    the corrected model and ``refit_max_px`` / ``refit_rms_px`` are its check errors (independent grid, METHODS §3).
+    """
+
+    rpc: Any
+    exact: bool
+    refit_max_px: float = 0.0
+    refit_rms_px: float = 0.0
+    fit_report: Any = None
+
+    def to_dict(self) -> Dict[str, Any]:
+        return {"exact": bool(self.exact), "method": "fold" if self.exact else "refit",
+                "refit_max_px": float(self.refit_max_px), "refit_rms_px": float(self.refit_rms_px)}
+
+
+def _fold(rpc, result: CompensationResult):
+    """Fold translation + per-axis scale into SAMP/LINE_OFF and _SCALE (exact; METHODS §4.2)."""
+    s0, ss, l0, ls = result.frame
+    coef = {"sample": dict(zip(result.model.terms[0], result.coef_sample)),
+            "line": dict(zip(result.model.terms[1], result.coef_line))}
+    # In GDAL pixels: x_new = c + m x'  with  m = 1 + a1/scale,  c = a0 - a1 x0/scale.
+    cs_ = coef["sample"].get((0, 0), 0.0) - coef["sample"].get((1, 0), 0.0) * s0 / ss
+    ms = 1.0 + coef["sample"].get((1, 0), 0.0) / ss
+    cl_ = coef["line"].get((0, 0), 0.0) - coef["line"].get((0, 1), 0.0) * l0 / ls
+    ml = 1.0 + coef["line"].get((0, 1), 0.0) / ls
+    # Raw RPC pixels are GDAL - 0.5:  raw_new = c + m (raw' + 0.5) - 0.5 = OFF_new + SCALE_new * r.
+    return dataclasses.replace(
+        rpc,
+        samp_off=float(cs_ + ms * (float(rpc.samp_off) + 0.5) - 0.5), samp_scale=float(ms * float(rpc.samp_scale)),
+        line_off=float(cl_ + ml * (float(rpc.line_off) + 0.5) - 0.5), line_scale=float(ml * float(rpc.line_scale)))
+
+
+def apply_compensation(rpc, result: CompensationResult, *, image_size: Optional[Tuple[int, int]] = None,
+                       progress=None, **fit_kw) -> AppliedCompensation:
+    """Write the correction into a new RPC (METHODS §4.2); the input RPC object is not modified.
+
+    Translation and per-axis scale fold exactly into the offsets/scales (``dataclasses.replace``). Other terms are
+    applied by refitting an RPC (METHODS §3, :func:`gdal_gf4cal.rpc_fit.fit_rpc_from_model`) on the composition of
+    the RPC and the correction, over the image extent (``image_size`` = (width, height), default from the RPC
+    offsets/scales) and the RPC's height range; the refit's check error is reported.
+    """
+    if result.model.foldable:
+        return AppliedCompensation(rpc=_fold(rpc, result), exact=True)
+    from . import rpc_fit
+    comp = CompensatedRPC(rpc, result)
+    kw = dict(fit_kw)
+    if image_size is not None:
+        kw.setdefault("image_size", tuple(int(x) for x in image_size))
+    if progress is not None:
+        kw.setdefault("progress", progress)
+    new_rpc, report = rpc_fit.fit_rpc_from_model(comp, rpc, **kw) if _takes_template() else \
+        rpc_fit.fit_rpc_from_model(comp, **kw)
+    mx, rms = _report_errors(report)
+    return AppliedCompensation(rpc=new_rpc, exact=False, refit_max_px=mx, refit_rms_px=rms, fit_report=report)
+
+
+def _takes_template() -> bool:
+    import inspect
+    from . import rpc_fit
+    params = list(inspect.signature(rpc_fit.fit_rpc_from_model).parameters)
+    return len(params) > 1 and params[1] in ("rpc", "template", "like", "reference")
+
+
+def _report_errors(report) -> Tuple[float, float]:
+    """Max and RMS check error (px) from a FitReport, whatever its field names."""
+    for mx_name, rms_name in (("check_max_px", "check_rms_px"), ("max_check_px", "rms_check_px"),
+                              ("max_px", "rms_px")):
+        if hasattr(report, mx_name):
+            return float(getattr(report, mx_name)), float(getattr(report, rms_name, np.nan))
+    if isinstance(report, dict):
+        for k in ("check_max_px", "max_check_px", "max_px"):
+            if k in report:
+                return float(report[k]), float(report.get(k.replace("max", "rms"), np.nan))
+    raise Gf4calError("cannot read the refit error from rpc_fit's report")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# writing
+# ----------------------------------------------------------------------------------------------------------------
+def _same_file(a: str, b: str) -> bool:
+    try:
+        return os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def output_kind(path: str) -> str:
+    """'rpb', 'rpc_txt' or 'vrt' from an output path; GCPError-free ValueError subclass otherwise."""
+    low = os.path.basename(str(path)).lower()
+    if low.endswith(".rpb"):
+        return "rpb"
+    if low.endswith("_rpc.txt") or low.endswith(".txt"):
+        return "rpc_txt"
+    if low.endswith(".vrt"):
+        return "vrt"
+    raise GCPError(f"output {path!r}: use a name ending in .RPB, _RPC.TXT or .vrt")
+
+
+def write_refined_rpc(rpc, out_path: str, *, image: Optional[str] = None, inputs: Sequence[str] = (),
+                      overwrite: bool = False) -> str:
+    """Write a refined RPC as ``.RPB``, ``_RPC.TXT`` or (with ``image``) a VRT over the untouched image.
+
+    Refuses to write over any of ``inputs`` (and over ``image``) and, unless ``overwrite``, over an existing file.
+    Writing is atomic (the writers of :mod:`gdal_gf4cal.rpc` / :mod:`gdal_gf4cal.rpc_io`).
+    """
+    out_path = str(out_path)
+    kind = output_kind(out_path)
+    for src in list(inputs) + ([image] if image else []):
+        if src and (_same_file(out_path, src) or os.path.abspath(out_path) == os.path.abspath(str(src))):
+            raise InputOverwriteError(f"output {out_path!r} is an input; choose a new output path")
+    if os.path.exists(out_path):
+        if not overwrite:
+            raise InputOverwriteError(f"output {out_path!r} exists; remove it or choose a new path")
+        os.remove(out_path)
+    if kind == "vrt":
+        if not image:
+            raise GCPError("a .vrt output needs an image input; for an RPC file write .RPB or _RPC.TXT")
+        from .rpc_io import write_rpc_vrt
+        write_rpc_vrt(image, rpc, out_path)
+    elif kind == "rpb":
+        rpc.write_rpb(out_path)
+    else:
+        rpc.write_rpc_txt(out_path)
+    return out_path

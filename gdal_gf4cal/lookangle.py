@@ -1,0 +1,652 @@
+"""Look-angle calibration of an area-array camera from the RPC alone (METHODS §5, seed 000: GF4 PMS).
+
+The camera is a :class:`~gdal_gf4cal.camera.LookAngleModel`: ``tan(phi_x)``, ``tan(phi_y)`` as cubic polynomials of
+the detector numbers ``(s, l)`` (= image ``(sample, line)``, GDAL pixel convention). A scene's RPC was fitted from the
+rigorous model built with the *current* camera ``(c, d)``. For a GCP ``(lon, lat, h) <-> (s, l)``:
+
+1. virtual image point ``(s', l') = RPC(lon, lat, h)``;
+2. the ray the current camera assigns to it, ``V = tan_old(s', l')``, is the ray to the ground point (the exterior
+   orientation is unchanged, so the rigorous model's object space is the same);
+3. the new camera ``(a, b)`` must give that ray at the *measured* detector: ``tan_new(s, l) = V`` (paper eq. 1, 5).
+
+:func:`calibrate_lookangle` solves step 3 by Gauss-Newton on residuals in **pixels**
+(``(s, l) - tan_new^-1(V)``), in coordinates normalised to the frame for conditioning, with robust reweighting (Huber,
+then hard rejection at ``k`` robust sigmas). :func:`recalibrate_rpc` makes the new RPC of any scene whose RPC was made
+with the current camera (step 4), :func:`compare_lookangle` compares two cameras in pixels (paper Table 2).
+
+Why no rigorous model is needed: everything above uses only the image-space mapping
+``(s', l') -> tan_new^-1(tan_old(s', l'))``. With the vendor's camera file the result is a true camera update; with
+a nominal camera (:meth:`LookAngleModel.from_nominal`) the recalibrated RPCs are just as right, and the new camera
+file is meaningful relative to that nominal model only.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .errors import ConvergenceError, DegenerateGeometryError, GCPError
+from .progress import report, scaled
+
+__all__ = [
+    "LookAngleCalibration", "LookAngleConditionWarning", "calibrate_lookangle", "recalibrate_rpc",
+    "compare_lookangle", "lookangle_monomials", "MIN_GCPS",
+]
+
+#: Exponents ``(p, q)`` of ``s^p l^q`` for the 10 terms, in the camera file's order
+#: ``1, s, l, s·l, s², l², s²·l, s·l², s³, l³`` (METHODS §5; the paper's eq. 4 typo fixed).
+POWERS: Tuple[Tuple[int, int], ...] = ((0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2), (2, 1), (1, 2), (3, 0), (0, 3))
+
+#: 10 coefficients per axis: fewer control points leave the cubic undetermined.
+MIN_GCPS = 10
+
+#: Condition number (normal matrix of the cubic basis over the frame-normalised control points, per point) above
+#: which the layout is refused, and above which a warning is given. A uniform layout gives ~1e2; half the frame
+#: ~2e4; one 3000 px corner of a 10240 px frame ~3e6; points on a line ~1e16.
+MAX_CONDITION = 1e6
+WARN_CONDITION = 1e4
+
+_HUBER_C = 2.5        # radial normalised residual where Huber down-weighting starts
+_REJECT_K = 4.0       # hard rejection; P(Rayleigh > 4 sigma) = 3e-4, so ~no good point is lost
+_RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))   # median of |r|/sigma for a 2-D normal residual
+_MIN_ROBUST_GCPS = 20  # below this the redundancy is too small to estimate a robust scale
+
+
+class LookAngleConditionWarning(UserWarning):
+    """The control points constrain the look-angle model poorly (condition number given in the message)."""
+
+
+# ---------------------------------------------------------------------------------------------------- basis
+def lookangle_monomials(u, v) -> np.ndarray:
+    """The 10 look-angle terms of ``(u, v)``, shape ``(..., 10)`` (order of :data:`POWERS`)."""
+    u = np.asarray(u, dtype=float)
+    v = np.asarray(v, dtype=float)
+    uu, vv = u * u, v * v
+    return np.stack([np.ones_like(u), u, v, u * v, uu, vv, uu * v, u * vv, uu * u, vv * v], axis=-1)
+
+
+def _basis_change(a_s: float, b_s: float, a_l: float, b_l: float) -> np.ndarray:
+    """Matrix ``R`` with ``m_c(x) = sum_r R[r, c] m_r(y)`` for ``x_s = a_s + b_s y_s``, ``x_l = a_l + b_l y_l``.
+
+    The 10 terms are the complete bivariate cubic, so the space is closed under this affine change: coefficients
+    ``alpha`` in the ``x`` basis are ``R @ alpha`` in the ``y`` basis, exactly.
+    """
+    index = {pq: i for i, pq in enumerate(POWERS)}
+    R = np.zeros((10, 10))
+    for c, (p, q) in enumerate(POWERS):
+        for i in range(p + 1):
+            ci = math.comb(p, i) * a_s ** (p - i) * b_s ** i
+            for j in range(q + 1):
+                R[index[(i, j)], c] += ci * math.comb(q, j) * a_l ** (q - j) * b_l ** j
+    return R
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """Frame normalisation ``u = (s - s0) / ks``, ``v = (l - l0) / kl`` (the detector array maps onto [-1, 1]²)."""
+
+    s0: float
+    l0: float
+    ks: float
+    kl: float
+
+    @classmethod
+    def of(cls, camera) -> "_Frame":
+        width, height = (float(x) for x in camera.size)
+        return cls(width / 2.0, height / 2.0, max(width / 2.0, 0.5), max(height / 2.0, 0.5))
+
+    def uv(self, s, l):
+        return (np.asarray(s, dtype=float) - self.s0) / self.ks, (np.asarray(l, dtype=float) - self.l0) / self.kl
+
+    @property
+    def to_raw(self) -> np.ndarray:
+        """Normalised-basis coefficients -> raw detector-number coefficients."""
+        return _basis_change(-self.s0 / self.ks, 1.0 / self.ks, -self.l0 / self.kl, 1.0 / self.kl)
+
+    @property
+    def to_norm(self) -> np.ndarray:
+        """Raw detector-number coefficients -> normalised-basis coefficients."""
+        return _basis_change(self.s0, self.ks, self.l0, self.kl)
+
+
+def _camera_class():
+    from .camera import LookAngleModel
+    return LookAngleModel
+
+
+def _coefficients(camera) -> Tuple[np.ndarray, np.ndarray]:
+    return np.asarray(camera.x, dtype=float).reshape(10), np.asarray(camera.y, dtype=float).reshape(10)
+
+
+def _with_coefficients(template, x, y, name: Optional[str] = None):
+    """A LookAngleModel like ``template`` with new raw coefficients."""
+    cls = _camera_class()
+    kwargs = dict(size=tuple(template.size), x=np.asarray(x, dtype=float), y=np.asarray(y, dtype=float))
+    kwargs["name"] = name if name is not None else getattr(template, "name", None)
+    return cls(**kwargs)
+
+
+def _invert(camera, tx, ty, s_guess, l_guess, *, tol_px: float = 1e-9, max_iter: int = 30):
+    """Detector ``(s, l)`` with ``camera.tan_angles(s, l) == (tx, ty)``: 2-D Newton seeded at a nearby guess.
+
+    Vectorised; NaN where it does not converge. The seed (the virtual or measured point) is within a few pixels,
+    so Newton converges in 2-3 steps even with strong distortion.
+    """
+    s = np.array(s_guess, dtype=float, copy=True)
+    l = np.array(l_guess, dtype=float, copy=True)
+    tx = np.asarray(tx, dtype=float)
+    ty = np.asarray(ty, dtype=float)
+    active = np.isfinite(s) & np.isfinite(l) & np.isfinite(tx) & np.isfinite(ty)
+    done = ~active
+    for _ in range(max_iter):
+        idx = np.flatnonzero(~done)
+        if idx.size == 0:
+            break
+        fx, fy = camera.tan_angles(s[idx], l[idx])
+        J = camera.jacobian(s[idx], l[idx])
+        ex, ey = tx[idx] - fx, ty[idx] - fy
+        det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ds = (J[..., 1, 1] * ex - J[..., 0, 1] * ey) / det
+            dl = (-J[..., 1, 0] * ex + J[..., 0, 0] * ey) / det
+        s[idx] += ds
+        l[idx] += dl
+        bad = ~(np.isfinite(ds) & np.isfinite(dl))
+        conv = (np.abs(ds) < tol_px) & (np.abs(dl) < tol_px)
+        done[idx[conv | bad]] = True
+        s[idx[bad]] = np.nan
+        l[idx[bad]] = np.nan
+    s[~done] = np.nan
+    l[~done] = np.nan
+    s[~active] = np.nan
+    l[~active] = np.nan
+    return s, l
+
+
+def _inverse_jacobian(camera, s, l) -> np.ndarray:
+    """``(N, 2, 2)`` d(s, l)/d(tan_x, tan_y) at detector points."""
+    return np.linalg.inv(np.asarray(camera.jacobian(s, l), dtype=float).reshape(-1, 2, 2))
+
+
+def _design(camera, frame: _Frame, s, l) -> np.ndarray:
+    """``(N, 2, 20)`` d(predicted s, l)/d(normalised coefficients), up to sign: ``J^-1 · blockdiag(m(u, v))``.
+
+    With ``tan_new(p) = V`` fixed, ``dp = -J^-1 m dalpha``; residuals are ``measured - p`` so ``dr = +J^-1 m dalpha``.
+    """
+    m = lookangle_monomials(*frame.uv(s, l))                # (N, 10)
+    Jinv = _inverse_jacobian(camera, s, l)                  # (N, 2, 2)
+    A = np.empty((m.shape[0], 2, 20))
+    A[:, :, :10] = Jinv[:, :, 0:1] * m[:, None, :]
+    A[:, :, 10:] = Jinv[:, :, 1:2] * m[:, None, :]
+    return A
+
+
+def layout_condition(sample, line, size, weights=None) -> float:
+    """Condition number of the cubic look-angle basis over frame-normalised points (METHODS §5).
+
+    ``cond(M^T W M / sum W)`` with ``M`` the 10 terms at ``u, v`` in [-1, 1]² over the frame: ~1e2 for points
+    spread over the frame, large when they leave the cubic unconstrained (one line, one corner, too few).
+    """
+    width, height = (float(x) for x in size)
+    frame = _Frame(width / 2.0, height / 2.0, width / 2.0, height / 2.0)
+    m = lookangle_monomials(*frame.uv(sample, line))
+    w = np.ones(m.shape[0]) if weights is None else np.asarray(weights, dtype=float).reshape(m.shape[0], -1).mean(1)
+    N = (m * w[:, None]).T @ m / max(float(w.sum()), 1e-300)
+    with np.errstate(all="ignore"):
+        cond = float(np.linalg.cond(N))
+    return cond if math.isfinite(cond) else float("inf")
+
+
+# ---------------------------------------------------------------------------------------------------- result
+@dataclass
+class LookAngleCalibration:
+    """Result of :func:`calibrate_lookangle` (METHODS §5). Writing files is a separate step.
+
+    Attributes
+    ----------
+    camera : the recalibrated LookAngleModel (raw detector-number coefficients, camera-file units).
+    current : the camera the scene's RPC was made with.
+    iterations : Gauss-Newton / reweighting iterations used; ``converged`` whether the last correction was below
+        ``tol_px`` with a stable outlier set.
+    corrections : ``(iterations, 20)`` coefficient corrections per iteration, raw units, ``[a0..a9, b0..b9]``.
+    correction_px : ``(iterations,)`` largest change of a predicted control point per iteration (px).
+    history : per-iteration dicts (iteration, max_correction_px, rms_px, n_outliers).
+    covariance : ``(20, 20)`` covariance of ``[a0..a9, b0..b9]`` (raw units), ``sigma0² N^-1``.
+    covariance_normalised : the same for the coefficients of the frame-normalised basis (what is solved).
+    sigma0 : a-posteriori standard deviation of unit weight (px when GCP sigmas are in px and correct, ~1).
+    condition_number : :func:`layout_condition` of the control points.
+    gcps : copy of the input table with columns ``virtual_sample, virtual_line`` (``RPC(ground)``),
+        ``res_sample_before, res_line_before`` (measured - RPC(ground)), ``pred_sample, pred_line``
+        (``tan_new^-1(tan_old(s', l'))``), ``res_sample_after, res_line_after``, ``norm_residual`` (radial residual
+        / robust sigma), ``weight`` (final robust weight, 0 if rejected), ``outlier`` (bool; control only).
+    control_stats, check_stats : ``{"before"|"after": {"sample"|"line": axis_stats}}``; outliers excluded;
+        ``check_stats`` is None without check points.
+    """
+
+    camera: Any
+    current: Any
+    iterations: int
+    converged: bool
+    corrections: np.ndarray
+    correction_px: np.ndarray
+    history: List[Dict[str, float]]
+    covariance: np.ndarray
+    covariance_normalised: np.ndarray
+    sigma0: float
+    robust_sigma_px: float
+    condition_number: float
+    gcps: Any
+    control_stats: Dict[str, Any]
+    check_stats: Optional[Dict[str, Any]]
+    n_control: int
+    n_outliers: int
+    warnings: List[str] = field(default_factory=list)
+
+    @property
+    def residuals_before(self) -> np.ndarray:
+        """``(N, 2)`` measured - RPC(ground), columns (sample, line), px."""
+        return self.gcps[["res_sample_before", "res_line_before"]].to_numpy(float)
+
+    @property
+    def residuals_after(self) -> np.ndarray:
+        """``(N, 2)`` measured - recalibrated prediction, columns (sample, line), px."""
+        return self.gcps[["res_sample_after", "res_line_after"]].to_numpy(float)
+
+    @property
+    def outliers(self) -> np.ndarray:
+        return self.gcps["outlier"].to_numpy(bool)
+
+    @property
+    def coefficient_std(self) -> np.ndarray:
+        """Standard deviations of ``[a0..a9, b0..b9]`` (raw units)."""
+        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+
+    def to_dict(self) -> Dict[str, Any]:
+        """JSON-friendly summary (for report.json)."""
+        return {
+            "method": "lookangle-from-rpc (METHODS §5)",
+            "iterations": int(self.iterations),
+            "converged": bool(self.converged),
+            "history": self.history,
+            "sigma0": float(self.sigma0),
+            "robust_sigma_px": float(self.robust_sigma_px),
+            "condition_number": float(self.condition_number),
+            "n_control": int(self.n_control),
+            "n_outliers": int(self.n_outliers),
+            "outlier_ids": [str(i) for i in self.gcps.loc[self.outliers, "id"]] if "id" in self.gcps else [],
+            "control": self.control_stats,
+            "check": self.check_stats,
+            "camera_new": {"x": [float(v) for v in self.camera.x], "y": [float(v) for v in self.camera.y]},
+            "coefficient_std": [float(v) for v in self.coefficient_std],
+            "warnings": list(self.warnings),
+        }
+
+
+# ---------------------------------------------------------------------------------------------------- helpers
+def _axis_pair_stats(res_sample, res_line) -> Dict[str, Any]:
+    from .stats import axis_stats
+    return {"sample": axis_stats(np.asarray(res_sample, float)), "line": axis_stats(np.asarray(res_line, float))}
+
+
+def _gcp_columns(gcps):
+    missing = [c for c in ("lon", "lat", "h", "sample", "line") if c not in getattr(gcps, "columns", ())]
+    if missing:
+        raise GCPError(f"GCP table lacks column(s) {', '.join(missing)}; read it with gdal_gf4cal.gcp.read_gcps")
+    cols = {c: np.asarray(gcps[c], dtype=float) for c in ("lon", "lat", "h", "sample", "line")}
+    n = cols["lon"].size
+    if "role" in gcps.columns:
+        role = np.asarray(gcps["role"]).astype(str)
+        control = role == "control"
+    else:
+        control = np.ones(n, bool)
+    sigma = np.asarray(gcps["sigma"], dtype=float) if "sigma" in gcps.columns else np.ones(n)
+    if np.any(~np.isfinite(sigma[control]) | (sigma[control] <= 0)):
+        raise GCPError("GCP sigma must be positive and finite; fix the 'sigma' column (pixels)")
+    return cols, control, sigma
+
+
+def _robust_weights(r: np.ndarray, sigma: np.ndarray, n_params: int):
+    """Huber weights, hard rejection and the robust scale from radial normalised residuals (control only).
+
+    Returns (weights, outlier mask, robust sigma of unit weight, normalised radial residuals).
+    """
+    radial = np.hypot(r[:, 0], r[:, 1]) / sigma
+    n_obs = 2 * radial.size
+    # MAD-type scale of a 2-D residual (median of a Rayleigh), corrected for the fitted parameters' absorption.
+    scale = float(np.median(radial)) / _RAYLEIGH_MEDIAN * math.sqrt(n_obs / max(n_obs - n_params, 1))
+    scale = max(scale, 1e-12)
+    z = radial / scale
+    w = np.where(z <= _HUBER_C, 1.0, _HUBER_C / np.maximum(z, 1e-300))
+    outlier = z > _REJECT_K
+    w[outlier] = 0.0
+    return w, outlier, scale, z
+
+
+# ---------------------------------------------------------------------------------------------------- calibrate
+def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10, robust: bool = True,
+                        progress=None, tol_px: float = 1e-3, max_condition: float = MAX_CONDITION,
+                        ) -> LookAngleCalibration:
+    """Recalibrate the look-angle model of an area-array camera from a scene's RPC and GCPs (METHODS §5).
+
+    Parameters
+    ----------
+    rpc : :class:`~gdal_gf4cal.rpc.RPCModel` of the scene, fitted from the rigorous model with ``current``. Any
+        object with ``project(lon, lat, h) -> (sample, line)`` (GDAL convention) works: passing the rigorous
+        current sensor model gives the rigorous baseline (the virtual point then comes from the rigorous model).
+    gcps : GCP GeoDataFrame (:mod:`gdal_gf4cal.gcp` schema): ``lon, lat, h, sample, line`` (GDAL convention),
+        optional ``role`` ('control' rows are used, 'check' rows are only evaluated), ``sigma`` (px), ``id``.
+    current : :class:`~gdal_gf4cal.camera.LookAngleModel`, the camera the RPC was made with (initial values).
+    weights : optional per-GCP weights ``(N,)`` or ``(N, 2)`` (sample, line) replacing ``1 / sigma²``.
+    max_iter : iteration limit; ``ConvergenceError`` if not converged (corrections still above ``tol_px``).
+    robust : Huber reweighting then hard rejection at 4 robust sigmas (MAD scale of the radial residual).
+    progress : ``progress(fraction, message)``; may raise CancelledError.
+    tol_px : convergence: the largest change of a predicted control point in one iteration, px.
+    max_condition : refuse layouts whose :func:`layout_condition` exceeds it (DegenerateGeometryError).
+
+    Returns
+    -------
+    LookAngleCalibration
+        Residuals ``after`` are exact: ``(s, l) - tan_new^-1(tan_old(RPC(ground)))``, i.e. the ground point
+        re-projected through the recalibrated model, in pixels.
+
+    Raises
+    ------
+    GCPError : fewer than 10 usable control points, missing columns, bad sigma.
+    DegenerateGeometryError : control points that leave the cubic unconstrained (condition number in the message).
+    ConvergenceError : no convergence within ``max_iter``.
+    """
+    cols, control, sigma = _gcp_columns(gcps)
+    n = control.size
+    report(progress, 0.0, "virtual image points")
+    sv, lv = rpc.project(cols["lon"], cols["lat"], cols["h"])
+    sv = np.asarray(sv, dtype=float).reshape(n)
+    lv = np.asarray(lv, dtype=float).reshape(n)
+    obs = np.column_stack([cols["sample"], cols["line"]])
+    usable = np.isfinite(sv) & np.isfinite(lv) & np.all(np.isfinite(obs), axis=1) & np.isfinite(
+        cols["h"]) & np.isfinite(cols["lon"]) & np.isfinite(cols["lat"])
+    ctrl = control & usable
+    n_ctrl = int(ctrl.sum())
+    if n_ctrl < MIN_GCPS:
+        raise GCPError(f"look-angle calibration needs at least {MIN_GCPS} control GCPs (20 coefficients), got "
+                       f"{n_ctrl} usable of {int(control.sum())}; add control points spread over the image")
+
+    if weights is None:
+        base_w = np.repeat((1.0 / sigma ** 2)[:, None], 2, axis=1)
+    else:
+        base_w = np.asarray(weights, dtype=float)
+        base_w = np.repeat(base_w.reshape(n, 1), 2, axis=1) if base_w.size == n else base_w.reshape(n, 2)
+        if np.any(~np.isfinite(base_w[ctrl])) or np.any(base_w[ctrl] < 0):
+            raise GCPError("weights must be finite and non-negative")
+    eff_sigma = 1.0 / np.sqrt(np.maximum(base_w.mean(axis=1), 1e-300))
+
+    cond = layout_condition(obs[ctrl, 0], obs[ctrl, 1], current.size, base_w[ctrl])
+    msgs: List[str] = []
+    hint = ("the control points leave the cubic look-angle model unconstrained (all on one line, in one corner "
+            "or too few); spread them over the whole image")
+    if not cond <= max_condition:
+        raise DegenerateGeometryError(f"condition number {cond:.3g} > {max_condition:.3g}: {hint}")
+    if cond > WARN_CONDITION:
+        msg = (f"condition number {cond:.3g} of the control-point layout is high (> {WARN_CONDITION:.0e}): the "
+               "look-angle model is poorly constrained away from the control points; spread them over the image")
+        msgs.append(msg)
+        warnings.warn(msg, LookAngleConditionWarning, stacklevel=2)
+
+    frame = _Frame.of(current)
+    to_raw, to_norm = frame.to_raw, frame.to_norm
+    cx, cy = _coefficients(current)
+    alpha = np.concatenate([to_norm @ cx, to_norm @ cy])
+    Vx, Vy = current.tan_angles(sv[usable], lv[usable])
+    Vx = np.asarray(Vx, float)
+    Vy = np.asarray(Vy, float)
+    u_idx = np.flatnonzero(usable)
+    ctrl_u = ctrl[u_idx]                   # control among usable
+    obs_u = obs[u_idx]
+    w_base_u = base_w[u_idx]
+    sig_u = eff_sigma[u_idx]
+
+    def camera_of(a):
+        return _with_coefficients(current, to_raw @ a[:10], to_raw @ a[10:])
+
+    use_robust = robust and n_ctrl >= _MIN_ROBUST_GCPS
+    robust_w = np.ones(u_idx.size)
+    outlier_u = np.zeros(u_idx.size, bool)
+    z_u = np.full(u_idx.size, np.nan)
+    scale = float("nan")
+    corrections: List[np.ndarray] = []
+    correction_px: List[float] = []
+    history: List[Dict[str, float]] = []
+    converged = False
+    prev_outliers = None
+    cam = current
+    # Predictions of the current camera are the virtual points themselves (tan_old^-1(tan_old(s', l')) = (s', l')).
+    pred = np.column_stack([sv[usable], lv[usable]])
+    N = None
+    iteration = 0
+    for iteration in range(1, max_iter + 1):
+        report(progress, 0.05 + 0.85 * (iteration - 1) / max_iter, f"iteration {iteration}")
+        r = obs_u - pred
+        if use_robust and iteration > 1:
+            # Robust weights only from fitted residuals: before the first solve they carry the systematic error.
+            w_c, out_c, scale, z_c = _robust_weights(r[ctrl_u], sig_u[ctrl_u], 20)
+            robust_w[:] = 0.0
+            robust_w[ctrl_u] = w_c
+            outlier_u[:] = False
+            outlier_u[ctrl_u] = out_c
+            z_u[:] = np.nan
+            z_u[ctrl_u] = z_c
+        w = (w_base_u * robust_w[:, None])[ctrl_u]                 # (n, 2)
+        A = _design(cam, frame, pred[ctrl_u, 0], pred[ctrl_u, 1])  # (n, 2, 20)
+        Aw = A * w[:, :, None]
+        N = np.einsum("nij,nik->jk", Aw, A)
+        b = np.einsum("nij,ni->j", Aw, r[ctrl_u])
+        d = np.sqrt(np.diag(N))
+        if not np.all(d > 0):
+            raise DegenerateGeometryError(f"condition number inf: {hint}")
+        Ns = N / d[:, None] / d[None, :]
+        try:
+            delta = -np.linalg.solve(Ns, b / d) / d
+        except np.linalg.LinAlgError:
+            raise DegenerateGeometryError(f"condition number inf (singular normal matrix): {hint}") from None
+        alpha = alpha + delta
+        cam = camera_of(alpha)
+        dpx = np.einsum("nij,j->ni", A, delta)    # first-order change of the predictions (px)
+        step = float(np.max(np.abs(dpx)))
+        pred = np.column_stack(_invert(cam, Vx, Vy, obs_u[:, 0], obs_u[:, 1]))
+        if np.any(~np.isfinite(pred[ctrl_u])):
+            raise ConvergenceError("the recalibrated camera cannot be inverted at some control points; check the "
+                                   "GCPs (gross errors?) and the camera file")
+        r_new = obs_u - pred
+        good = ctrl_u & ~outlier_u
+        rms = float(np.sqrt(np.mean(r_new[good] ** 2)))
+        corrections.append(np.concatenate([to_raw @ delta[:10], to_raw @ delta[10:]]))
+        correction_px.append(step)
+        history.append({"iteration": iteration, "max_correction_px": step, "rms_px": rms,
+                        "n_outliers": int(outlier_u.sum())})
+        stable = prev_outliers is not None and np.array_equal(prev_outliers, outlier_u)
+        prev_outliers = outlier_u.copy()
+        if step < tol_px and (stable or not use_robust or iteration == 1):
+            converged = True
+            break
+        if iteration == 1 and not use_robust and step < tol_px:
+            converged = True
+            break
+    if not converged:
+        raise ConvergenceError(f"look-angle calibration did not converge in {max_iter} iterations (last correction "
+                               f"{correction_px[-1]:.3g} px); check the GCPs for gross errors or raise max_iter")
+
+    # Final statistics at the solution: the normal matrix with the final weights at the final predictions.
+    r = obs_u - pred
+    if use_robust:
+        w_c, out_c, scale, z_c = _robust_weights(r[ctrl_u], sig_u[ctrl_u], 20)
+        z_u[:] = np.nan
+        z_u[ctrl_u] = z_c
+    good = ctrl_u & ~outlier_u
+    w = (w_base_u * robust_w[:, None])[ctrl_u]
+    A = _design(cam, frame, pred[ctrl_u, 0], pred[ctrl_u, 1])
+    N = np.einsum("nij,nik->jk", A * w[:, :, None], A)
+    dof = 2 * int(good.sum()) - 20
+    vtpv = float(np.sum(w * r[ctrl_u] ** 2))
+    sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
+    d = np.sqrt(np.diag(N))
+    Ninv = np.linalg.inv(N / d[:, None] / d[None, :]) / d[:, None] / d[None, :]
+    cov_norm = (sigma0 ** 2 if dof > 0 else 1.0) * Ninv
+    T = np.zeros((20, 20))
+    T[:10, :10] = to_raw
+    T[10:, 10:] = to_raw
+    cov_raw = T @ cov_norm @ T.T
+    if not use_robust:
+        radial = np.hypot(r[ctrl_u, 0], r[ctrl_u, 1]) / sig_u[ctrl_u]
+        scale = float(np.sqrt(np.mean(radial ** 2) / 2.0 * (2 * n_ctrl) / max(dof, 1)))
+        z_u[:] = np.nan
+        z_u[ctrl_u] = radial / max(scale, 1e-12)
+
+    # Output table.
+    out = gcps.copy()
+    full = lambda vals_u, fill=np.nan: _scatter(n, u_idx, vals_u, fill)  # noqa: E731
+    out["virtual_sample"] = sv
+    out["virtual_line"] = lv
+    out["res_sample_before"] = obs[:, 0] - sv
+    out["res_line_before"] = obs[:, 1] - lv
+    out["pred_sample"] = full(pred[:, 0])
+    out["pred_line"] = full(pred[:, 1])
+    out["res_sample_after"] = obs[:, 0] - out["pred_sample"].to_numpy(float)
+    out["res_line_after"] = obs[:, 1] - out["pred_line"].to_numpy(float)
+    out["norm_residual"] = full(z_u)
+    out["weight"] = full(robust_w * ctrl_u, 0.0)
+    out["outlier"] = full(outlier_u, False).astype(bool)
+    good_full = ctrl & ~out["outlier"].to_numpy(bool)
+    control_stats = {
+        "before": _axis_pair_stats(out["res_sample_before"][good_full], out["res_line_before"][good_full]),
+        "after": _axis_pair_stats(out["res_sample_after"][good_full], out["res_line_after"][good_full]),
+        "n": int(good_full.sum()),
+    }
+    check = ~control & usable
+    check_stats = None
+    if check.any():
+        check_stats = {
+            "before": _axis_pair_stats(out["res_sample_before"][check], out["res_line_before"][check]),
+            "after": _axis_pair_stats(out["res_sample_after"][check], out["res_line_after"][check]),
+            "n": int(check.sum()),
+        }
+    report(progress, 1.0, "look-angle calibration done")
+    name = getattr(current, "name", None)
+    cam = _with_coefficients(current, cam.x, cam.y, name=(f"{name} recalibrated" if name else "recalibrated"))
+    return LookAngleCalibration(
+        camera=cam, current=current, iterations=iteration, converged=converged,
+        corrections=np.array(corrections), correction_px=np.array(correction_px), history=history,
+        covariance=cov_raw, covariance_normalised=cov_norm, sigma0=sigma0, robust_sigma_px=float(scale),
+        condition_number=cond, gcps=out, control_stats=control_stats, check_stats=check_stats,
+        n_control=n_ctrl, n_outliers=int(outlier_u.sum()), warnings=msgs)
+
+
+def _scatter(n: int, idx: np.ndarray, values: np.ndarray, fill=np.nan) -> np.ndarray:
+    values = np.asarray(values)
+    out = np.full(n, fill, dtype=values.dtype if values.dtype == bool else float)
+    out[idx] = values
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------- compare
+def compare_lookangle(a, b, grid_px: float = 50) -> Dict[str, Any]:
+    """Difference of two look-angle models in pixels over the whole array (METHODS §5, paper Table 2).
+
+    At the centres of a ``grid_px`` grid over the detector array, ``tan_a - tan_b`` is turned into pixels with the
+    local inverse Jacobian of ``b`` (the local angular size of a detector, rotation included):
+    ``J_b^-1 (tan_a - tan_b)``. Returns ``{"sample": {mean, rms, max}, "line": {...}, "n": N, "grid_px": g}``
+    (``max`` unsigned).
+    """
+    if tuple(a.size) != tuple(b.size):
+        raise ValueError(f"cameras have different sizes {tuple(a.size)} and {tuple(b.size)}")
+    width, height = (float(x) for x in b.size)
+    g = float(grid_px)
+    if not g > 0:
+        raise ValueError("grid_px must be positive")
+    ss = np.arange(g / 2.0, width, g)
+    ll = np.arange(g / 2.0, height, g)
+    S, L = (x.ravel() for x in np.meshgrid(ss, ll))
+    ax, ay = a.tan_angles(S, L)
+    bx, by = b.tan_angles(S, L)
+    Jinv = _inverse_jacobian(b, S, L)
+    d = np.einsum("nij,nj->ni", Jinv, np.column_stack([np.asarray(ax) - bx, np.asarray(ay) - by]))
+
+    def st(x):
+        return {"mean": float(np.mean(x)), "rms": float(np.sqrt(np.mean(x ** 2))), "max": float(np.max(np.abs(x)))}
+
+    return {"sample": st(d[:, 0]), "line": st(d[:, 1]), "n": int(S.size), "grid_px": g}
+
+
+# ---------------------------------------------------------------------------------------------------- recalibrate
+class RecalibratedSensor:
+    """The scene's geometry with the recalibrated camera, as an image-space composition over the old RPC.
+
+    ``project(lon, lat, h) = tan_new^-1(tan_old(RPC(lon, lat, h)))`` and
+    ``localize(s, l, h) = RPC.localize(tan_old^-1(tan_new(s, l)), h)`` (METHODS §5 step 4), GDAL convention.
+    This is what :func:`recalibrate_rpc` fits a new RPC to.
+    """
+
+    def __init__(self, rpc, current, new):
+        if tuple(current.size) != tuple(new.size):
+            raise ValueError(f"current and new cameras have different sizes {tuple(current.size)} and "
+                             f"{tuple(new.size)}")
+        self.rpc, self.current, self.new = rpc, current, new
+        self.size = tuple(new.size)
+
+    @property
+    def height_range(self):
+        return self.rpc.height_range
+
+    def project(self, lon, lat, h):
+        lon, lat, h = np.broadcast_arrays(np.asarray(lon, float), np.asarray(lat, float), np.asarray(h, float))
+        shape = lon.shape
+        sv, lv = self.rpc.project(lon.ravel(), lat.ravel(), h.ravel())
+        sv = np.asarray(sv, float).ravel()
+        lv = np.asarray(lv, float).ravel()
+        tx, ty = self.current.tan_angles(sv, lv)
+        s, l = _invert(self.new, tx, ty, sv, lv)
+        if shape == ():
+            return float(s[0]), float(l[0])
+        return s.reshape(shape), l.reshape(shape)
+
+    def localize(self, sample, line, h):
+        sample, line, h = np.broadcast_arrays(np.asarray(sample, float), np.asarray(line, float),
+                                              np.asarray(h, float))
+        shape = sample.shape
+        s = sample.ravel()
+        l = line.ravel()
+        tx, ty = self.new.tan_angles(s, l)
+        sv, lv = _invert(self.current, tx, ty, s, l)
+        lon, lat = self.rpc.localize(sv, lv, h.ravel())
+        lon = np.asarray(lon, float)
+        lat = np.asarray(lat, float)
+        if shape == ():
+            return float(lon.ravel()[0]), float(lat.ravel()[0])
+        return lon.reshape(shape), lat.reshape(shape)
+
+
+def recalibrate_rpc(rpc, current, new, height_range=None, *, grid=(21, 21, 7), progress=None):
+    """New RPC of a scene whose RPC was made with camera ``current``, for the recalibrated camera ``new`` (METHODS §5
+    step 4, fitted terrain-independently as in METHODS §3).
+
+    Ground points come from the old RPC (localised over an image grid x height layers); ``(s', l') = RPC(ground)``,
+    ``V = tan_old(s', l')``, ``(s, l) = tan_new^-1(V)`` (2-D Newton), and a new RPC is fitted on ``ground <-> (s, l)``.
+
+    Parameters
+    ----------
+    rpc : the scene's RPCModel; current, new : LookAngleModel (same size).
+    height_range : (min, max) ellipsoidal heights (m); default the RPC's ``HEIGHT_OFF ± HEIGHT_SCALE``.
+    grid : ``(n_sample, n_line, n_height)`` of the fitting grid (METHODS §3: >= 20 x 20 x 6).
+    progress : ``progress(fraction, message)``.
+
+    Returns
+    -------
+    (RPCModel, FitReport) from :func:`gdal_gf4cal.rpc_fit.fit_rpc_from_model`.
+    """
+    from .rpc_fit import fit_rpc_from_model
+    sensor = RecalibratedSensor(rpc, current, new)
+    if height_range is None:
+        height_range = rpc.height_range
+    return fit_rpc_from_model(sensor, size=sensor.size, height_range=tuple(height_range), grid=grid,
+                              progress=progress)

@@ -1,0 +1,487 @@
+"""The RPC00B rational polynomial camera model (METHODS §1).
+
+Pixel convention
+----------------
+Every public function takes and returns image coordinates in **GDAL's convention**: the centre of the first
+pixel is at ``(0.5, 0.5)``. The RPC00B coefficients themselves (``LINE_OFF``/``SAMP_OFF``) use the raw convention
+in which the centre of the first pixel is ``(0, 0)``; so ``gdal = raw + 0.5``. Pass ``pixel_convention="rpc"`` to
+work in the raw convention instead.
+
+Ground coordinates are geodetic longitude, latitude (degrees, WGS84) and ellipsoidal height (m), always in the
+order ``(lon, lat, h)``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Dict, Optional, Tuple, Union
+
+import numpy as np
+
+from .errors import RPCFormatError
+
+log = logging.getLogger(__name__)
+
+#: Offset between GDAL's pixel convention and the raw RPC00B convention (gdal = raw + GDAL_PIXEL_OFFSET).
+GDAL_PIXEL_OFFSET = 0.5
+
+#: The 20 terms in RPC00B order (P = normalised latitude, L = longitude, H = height).
+TERMS = ("1", "L", "P", "H", "LP", "LH", "PH", "L2", "P2", "H2", "PLH", "L3", "LP2", "LH2", "L2P", "P3", "PH2",
+         "L2H", "P2H", "H3")
+
+_SCALARS = ("line_off", "samp_off", "lat_off", "long_off", "height_off",
+            "line_scale", "samp_scale", "lat_scale", "long_scale", "height_scale")
+_GDAL_SCALAR_KEYS = {name: name.upper() for name in _SCALARS}
+_GDAL_COEFF_KEYS = {"line_num": "LINE_NUM_COEFF", "line_den": "LINE_DEN_COEFF",
+                    "samp_num": "SAMP_NUM_COEFF", "samp_den": "SAMP_DEN_COEFF"}
+_GDAL_OPTIONAL = {"err_bias": "ERR_BIAS", "err_rand": "ERR_RAND", "min_long": "MIN_LONG", "min_lat": "MIN_LAT",
+                  "max_long": "MAX_LONG", "max_lat": "MAX_LAT"}
+
+#: Chunk of points processed at once: keeps the (20, chunk) monomial block in cache.
+_CHUNK = 16384
+
+ArrayLike = Union[float, np.ndarray]
+
+
+def monomials(L: np.ndarray, P: np.ndarray, H: np.ndarray) -> np.ndarray:
+    """The 20 RPC00B monomials of normalised (L, P, H), shape ``(20, N)`` (term-major, METHODS §1).
+
+    Term-major layout makes each row a contiguous vector, so ``coeffs @ monomials(...)`` evaluates several
+    polynomials at once with one BLAS call. Use ``.T`` for a point-major ``(N, 20)`` design matrix.
+    """
+    L = np.asarray(L, dtype=float).ravel()
+    P = np.asarray(P, dtype=float).ravel()
+    H = np.asarray(H, dtype=float).ravel()
+    m = np.empty((20, L.size))
+    m[0] = 1.0
+    m[1] = L
+    m[2] = P
+    m[3] = H
+    np.multiply(L, P, out=m[4])
+    np.multiply(L, H, out=m[5])
+    np.multiply(P, H, out=m[6])
+    np.multiply(L, L, out=m[7])
+    np.multiply(P, P, out=m[8])
+    np.multiply(H, H, out=m[9])
+    np.multiply(m[4], H, out=m[10])      # PLH
+    np.multiply(m[7], L, out=m[11])      # L3
+    np.multiply(m[8], L, out=m[12])      # LP2
+    np.multiply(m[9], L, out=m[13])      # LH2
+    np.multiply(m[7], P, out=m[14])      # L2P
+    np.multiply(m[8], P, out=m[15])      # P3
+    np.multiply(m[9], P, out=m[16])      # PH2
+    np.multiply(m[7], H, out=m[17])      # L2H
+    np.multiply(m[8], H, out=m[18])      # P2H
+    np.multiply(m[9], H, out=m[19])      # H3
+    return m
+
+
+def monomial_derivatives(L: np.ndarray, P: np.ndarray, H: np.ndarray, with_h: bool = True):
+    """Partial derivatives of :func:`monomials` with respect to L, P and H, each ``(20, N)``.
+
+    With ``with_h=False`` the third item is ``None`` (saves a third of the work when H is fixed).
+    """
+    L = np.asarray(L, dtype=float).ravel()
+    P = np.asarray(P, dtype=float).ravel()
+    H = np.asarray(H, dtype=float).ravel()
+    n = L.size
+    one, zero = np.ones(n), np.zeros(n)
+    LL, PP, HH, LP, LH, PH = L * L, P * P, H * H, L * P, L * H, P * H
+    dL = np.stack([zero, one, zero, zero, P, H, zero, 2 * L, zero, zero, PH, 3 * LL, PP, HH, 2 * LP, zero, zero,
+                   2 * LH, zero, zero])
+    dP = np.stack([zero, zero, one, zero, L, zero, H, zero, 2 * P, zero, LH, zero, 2 * LP, zero, LL, 3 * PP, HH,
+                   zero, 2 * PH, zero])
+    if not with_h:
+        return dL, dP, None
+    dH = np.stack([zero, zero, zero, one, zero, L, P, zero, zero, 2 * H, LP, zero, zero, 2 * LH, zero, zero, 2 * PH,
+                   LL, PP, 3 * HH])
+    return dL, dP, dH
+
+
+def _as_float_array(x) -> np.ndarray:
+    return np.asarray(x, dtype=float)
+
+
+def _shape_out(values: np.ndarray, shape: tuple):
+    """Return a scalar for scalar input, else reshape to the broadcast input shape."""
+    if shape == ():
+        return float(values.reshape(-1)[0])
+    return values.reshape(shape)
+
+
+@dataclass(frozen=True)
+class LocalizationStats:
+    """How a vectorised localisation went: number of points and of points that did not converge (NaN)."""
+
+    n_points: int
+    n_failed: int
+    max_iterations: int
+
+
+@dataclass(frozen=True, eq=False)
+class RPCModel:
+    """An RPC00B model (METHODS §1), immutable.
+
+    ``line_off``/``samp_off`` are stored in the raw RPC00B convention (as in the files); :meth:`project` and
+    :meth:`localize` speak GDAL's pixel convention unless ``pixel_convention="rpc"``.
+    Build one with :meth:`from_file`, :meth:`from_gdal_metadata` or directly from coefficients.
+    """
+
+    line_off: float
+    samp_off: float
+    lat_off: float
+    long_off: float
+    height_off: float
+    line_scale: float
+    samp_scale: float
+    lat_scale: float
+    long_scale: float
+    height_scale: float
+    line_num: np.ndarray
+    line_den: np.ndarray
+    samp_num: np.ndarray
+    samp_den: np.ndarray
+    err_bias: Optional[float] = None
+    err_rand: Optional[float] = None
+    min_long: Optional[float] = None
+    min_lat: Optional[float] = None
+    max_long: Optional[float] = None
+    max_lat: Optional[float] = None
+    source: Optional[str] = field(default=None, compare=False)
+
+    def __post_init__(self):
+        for name in _SCALARS:
+            value = float(getattr(self, name))
+            if not math.isfinite(value):
+                raise RPCFormatError(f"RPC{self._where()}: {name.upper()} is not a finite number ({value!r})")
+            object.__setattr__(self, name, value)
+        for name in ("line_scale", "samp_scale", "lat_scale", "long_scale", "height_scale"):
+            if getattr(self, name) == 0.0:
+                raise RPCFormatError(f"RPC{self._where()}: {name.upper()} is zero; the RPC cannot be normalised")
+        for name in _GDAL_COEFF_KEYS:
+            arr = np.array(getattr(self, name), dtype=float).ravel()
+            if arr.size != 20:
+                raise RPCFormatError(f"RPC{self._where()}: {_GDAL_COEFF_KEYS[name]} has {arr.size} coefficients, "
+                                     "20 are needed")
+            if not np.all(np.isfinite(arr)):
+                raise RPCFormatError(f"RPC{self._where()}: {_GDAL_COEFF_KEYS[name]} contains a non-finite value")
+            arr.flags.writeable = False
+            object.__setattr__(self, name, arr)
+        if not (np.any(self.line_den) and np.any(self.samp_den)):
+            raise RPCFormatError(f"RPC{self._where()}: a denominator is all zeros")
+
+    def _where(self) -> str:
+        return f" in {self.source}" if self.source else ""
+
+    # ------------------------------------------------------------------ construction / serialisation
+    @classmethod
+    def from_gdal_metadata(cls, metadata: Dict[str, str], source: Optional[str] = None) -> "RPCModel":
+        """Build from a GDAL ``RPC`` metadata-domain dict (``ds.GetMetadata('RPC')``).
+
+        Raises :class:`RPCFormatError` naming the missing or malformed key.
+        """
+        where = f" in {source}" if source else ""
+        if not metadata:
+            raise RPCFormatError(f"no RPC metadata{where}")
+        md = {str(k).upper(): v for k, v in metadata.items()}
+        kwargs = {}
+        for name, key in _GDAL_SCALAR_KEYS.items():
+            if key not in md:
+                raise RPCFormatError(f"RPC{where}: missing key {key}")
+            kwargs[name] = _parse_number(md[key], key, where)
+        for name, key in _GDAL_COEFF_KEYS.items():
+            if key not in md:
+                raise RPCFormatError(f"RPC{where}: missing key {key}")
+            text = md[key]
+            items = text.replace(",", " ").split() if isinstance(text, str) else list(text)
+            values = [_parse_number(v, key, where) for v in items]
+            if len(values) != 20:
+                raise RPCFormatError(f"RPC{where}: {key} has {len(values)} coefficients, 20 are needed")
+            kwargs[name] = np.array(values)
+        for name, key in _GDAL_OPTIONAL.items():
+            if key in md and str(md[key]).strip() not in ("", "nan"):
+                try:
+                    kwargs[name] = float(str(md[key]).split()[0])
+                except ValueError:
+                    pass  # optional informative keys: ignore garbage rather than refuse the RPC
+        return cls(source=source, **kwargs)
+
+    @classmethod
+    def from_file(cls, path) -> "RPCModel":
+        """Read an RPC from an image (TIFF tags, .RPB, _RPC.TXT, NITF) or a standalone sidecar / vendor XML / JSON.
+
+        The format is detected by content as well as by name (see :mod:`gdal_gf4cal.rpc_io`).
+        """
+        from .rpc_io import read_rpc_metadata
+        return cls.from_gdal_metadata(read_rpc_metadata(path), source=str(path))
+
+    def to_gdal_metadata(self) -> Dict[str, str]:
+        """The GDAL ``RPC`` metadata-domain dict, numbers written with 17 significant digits."""
+        md = {key: _fmt(getattr(self, name)) for name, key in _GDAL_SCALAR_KEYS.items()}
+        for name, key in _GDAL_COEFF_KEYS.items():
+            md[key] = " ".join(_fmt(v) for v in getattr(self, name))
+        for name, key in _GDAL_OPTIONAL.items():
+            value = getattr(self, name)
+            if value is not None:
+                md[key] = _fmt(value)
+        return md
+
+    def replace(self, **changes) -> "RPCModel":
+        """A copy with some fields changed (``dataclasses.replace``); caches are not carried over."""
+        return dataclasses.replace(self, **changes)
+
+    def write_rpb(self, path, overwrite: bool = False) -> str:
+        """Write a ``.RPB`` sidecar atomically (see :func:`gdal_gf4cal.rpc_io.write_rpb`)."""
+        from .rpc_io import write_rpb
+        return write_rpb(self, path, overwrite=overwrite)
+
+    def write_rpc_txt(self, path, overwrite: bool = False) -> str:
+        """Write a ``_RPC.TXT`` sidecar atomically (see :func:`gdal_gf4cal.rpc_io.write_rpc_txt`)."""
+        from .rpc_io import write_rpc_txt
+        return write_rpc_txt(self, path, overwrite=overwrite)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def height_range(self) -> Tuple[float, float]:
+        """Valid height range ``HEIGHT_OFF ± HEIGHT_SCALE`` (m)."""
+        return (self.height_off - abs(self.height_scale), self.height_off + abs(self.height_scale))
+
+    @property
+    def image_size(self) -> Tuple[int, int]:
+        """Approximate image size (samples, lines) implied by the offsets and scales."""
+        return (int(round(self.samp_off + abs(self.samp_scale))) + 1,
+                int(round(self.line_off + abs(self.line_scale))) + 1)
+
+    @cached_property
+    def _coeffs(self) -> np.ndarray:
+        """(4, 20) matrix: sample num, sample den, line num, line den."""
+        return np.vstack([self.samp_num, self.samp_den, self.line_num, self.line_den])
+
+    # ------------------------------------------------------------------ normalisation
+    def _normalise_ground(self, lon, lat, h):
+        dlon = np.asarray(lon, dtype=float) - self.long_off
+        # Longitudes are compared modulo 360 so that scenes across the antimeridian work.
+        dlon = np.where(np.abs(dlon) > 180.0, (dlon + 180.0) % 360.0 - 180.0, dlon)
+        L = dlon / self.long_scale
+        P = (np.asarray(lat, dtype=float) - self.lat_off) / self.lat_scale
+        H = (np.asarray(h, dtype=float) - self.height_off) / self.height_scale
+        return L, P, H
+
+    def _pixel_shift(self, pixel_convention: str) -> float:
+        if pixel_convention == "gdal":
+            return GDAL_PIXEL_OFFSET
+        if pixel_convention == "rpc":
+            return 0.0
+        raise ValueError(f"pixel_convention must be 'gdal' or 'rpc', not {pixel_convention!r}")
+
+    # ------------------------------------------------------------------ ground -> image
+    def _project_normalised(self, L, P, H):
+        """Normalised (x, y) = (sample, line) ratios for flat normalised inputs, chunked."""
+        n = L.size
+        x = np.empty(n)
+        y = np.empty(n)
+        C = self._coeffs
+        for i in range(0, n, _CHUNK):
+            sl = slice(i, i + _CHUNK)
+            v = C @ monomials(L[sl], P[sl], H[sl])
+            np.divide(v[0], v[1], out=x[sl])
+            np.divide(v[2], v[3], out=y[sl])
+        return x, y
+
+    def project(self, lon: ArrayLike, lat: ArrayLike, h: ArrayLike, *, pixel_convention: str = "gdal"):
+        """Ground to image (METHODS §1): ``(lon, lat, h) -> (sample, line)``.
+
+        Parameters
+        ----------
+        lon, lat : degrees WGS84; h : ellipsoidal height in metres. Scalars or arrays (broadcast).
+        pixel_convention : ``"gdal"`` (centre of the first pixel at 0.5, default) or ``"rpc"`` (at 0).
+        """
+        lon, lat, h = np.broadcast_arrays(_as_float_array(lon), _as_float_array(lat), _as_float_array(h))
+        shape = lon.shape
+        L, P, H = (a.ravel() for a in self._normalise_ground(lon, lat, h))
+        x, y = self._project_normalised(L, P, H)
+        shift = self._pixel_shift(pixel_convention)
+        sample = x * self.samp_scale + (self.samp_off + shift)
+        line = y * self.line_scale + (self.line_off + shift)
+        return _shape_out(sample, shape), _shape_out(line, shape)
+
+    def _normalised_jacobian(self, L, P, H, with_h: bool = True):
+        """x, y and their derivatives w.r.t. normalised L, P (and H), for flat inputs."""
+        C = self._coeffs
+        m = monomials(L, P, H)
+        dL, dP, dH = monomial_derivatives(L, P, H, with_h=with_h)
+        v = C @ m
+        vL = C @ dL
+        vP = C @ dP
+        x = v[0] / v[1]
+        y = v[2] / v[3]
+        out = {"x": x, "y": y,
+               "x_L": (vL[0] - x * vL[1]) / v[1], "x_P": (vP[0] - x * vP[1]) / v[1],
+               "y_L": (vL[2] - y * vL[3]) / v[3], "y_P": (vP[2] - y * vP[3]) / v[3]}
+        if with_h:
+            vH = C @ dH
+            out["x_H"] = (vH[0] - x * vH[1]) / v[1]
+            out["y_H"] = (vH[2] - y * vH[3]) / v[3]
+        return out
+
+    def project_jacobian(self, lon: ArrayLike, lat: ArrayLike, h: ArrayLike) -> np.ndarray:
+        """Analytic Jacobian ``d(sample, line) / d(lon, lat, h)`` in pixels per degree / per metre.
+
+        Returns an array of shape ``(..., 2, 3)``: rows (sample, line), columns (lon, lat, h).
+        """
+        lon, lat, h = np.broadcast_arrays(_as_float_array(lon), _as_float_array(lat), _as_float_array(h))
+        shape = lon.shape
+        L, P, H = (a.ravel() for a in self._normalise_ground(lon, lat, h))
+        d = self._normalised_jacobian(L, P, H)
+        J = np.empty((L.size, 2, 3))
+        J[:, 0, 0] = d["x_L"] * self.samp_scale / self.long_scale
+        J[:, 0, 1] = d["x_P"] * self.samp_scale / self.lat_scale
+        J[:, 0, 2] = d["x_H"] * self.samp_scale / self.height_scale
+        J[:, 1, 0] = d["y_L"] * self.line_scale / self.long_scale
+        J[:, 1, 1] = d["y_P"] * self.line_scale / self.lat_scale
+        J[:, 1, 2] = d["y_H"] * self.line_scale / self.height_scale
+        return J.reshape(shape + (2, 3))
+
+    # ------------------------------------------------------------------ image -> ground
+    @cached_property
+    def _approximate_inverse(self) -> np.ndarray:
+        """Cubic polynomial (normalised x, y, H) -> (L, P), least-squares fit over the normalised cube.
+
+        It gives Newton a starting point within a small fraction of a pixel, so localisation needs 1-3 steps.
+        """
+        g = np.linspace(-1.0, 1.0, 11)
+        L, P, H = (a.ravel() for a in np.meshgrid(g, g, np.linspace(-1.0, 1.0, 5), indexing="ij"))
+        with np.errstate(all="ignore"):
+            x, y = self._project_normalised(L, P, H)
+        ok = np.isfinite(x) & np.isfinite(y) & (np.abs(x) < 10) & (np.abs(y) < 10)
+        A = monomials(x[ok], y[ok], H[ok]).T
+        coef, *_ = np.linalg.lstsq(A, np.column_stack([L[ok], P[ok]]), rcond=None)
+        return coef.T  # (2, 20)
+
+    def _localize_normalised(self, x, y, H, tol, max_iter):
+        """Solve x(L, P, H) = x, y(L, P, H) = y for (L, P); returns L, P, converged mask, iterations.
+
+        Chord-Newton: the Jacobian is evaluated at the starting point (within a fraction of a pixel of the
+        solution thanks to the approximate inverse) and refreshed only every third step, so most steps cost
+        a single projection. Steps longer than half the normalised cube are damped.
+        """
+        with np.errstate(all="ignore"):
+            LP = self._approximate_inverse @ monomials(x, y, H)
+        L, P = LP[0].copy(), LP[1].copy()
+        n = x.size
+        converged = np.zeros(n, dtype=bool)
+        tol_x = tol / abs(self.samp_scale)   # tolerances in pixels -> normalised units per axis
+        tol_y = tol / abs(self.line_scale)
+        active = np.arange(n)
+        iterations = 0
+        with np.errstate(all="ignore"):
+            d = self._normalised_jacobian(L, P, H, with_h=False)
+            cx, cy = d["x"], d["y"]
+            a, b, c, e = d["x_L"], d["x_P"], d["y_L"], d["y_P"]
+            for iterations in range(1, max_iter + 1):
+                rx = x[active] - cx
+                ry = y[active] - cy
+                done = (np.abs(rx) <= tol_x) & (np.abs(ry) <= tol_y)
+                converged[active[done]] = True
+                keep = ~done & np.isfinite(rx) & np.isfinite(ry)
+                if not np.any(keep):
+                    active = active[:0]
+                    break
+                active, rx, ry = active[keep], rx[keep], ry[keep]
+                a, b, c, e = a[keep], b[keep], c[keep], e[keep]
+                det = a * e - b * c
+                dL_ = (e * rx - b * ry) / det
+                dP_ = (a * ry - c * rx) / det
+                step = np.maximum(np.abs(dL_), np.abs(dP_))
+                f = np.where(step > 0.5, 0.5 / step, 1.0)
+                L[active] += f * dL_
+                P[active] += f * dP_
+                if iterations % 3 == 0:
+                    d = self._normalised_jacobian(L[active], P[active], H[active], with_h=False)
+                    cx, cy = d["x"], d["y"]
+                    a, b, c, e = d["x_L"], d["x_P"], d["y_L"], d["y_P"]
+                else:
+                    cx, cy = self._project_normalised(L[active], P[active], H[active])
+        # Solutions far outside the model's normalised domain are polynomial artefacts, not localisations.
+        converged &= (np.abs(L) <= 3.0) & (np.abs(P) <= 3.0)
+        return L, P, converged, iterations
+
+    def localize(self, sample: ArrayLike, line: ArrayLike, h: ArrayLike, *, pixel_convention: str = "gdal",
+                 tol_px: float = 1e-8, max_iter: int = 20, full_output: bool = False):
+        """Image to ground at a given height (METHODS §1): ``(sample, line, h) -> (lon, lat)``.
+
+        Vectorised Newton iteration on the 2x2 system, started from a cubic approximate inverse.
+        Points that do not converge to ``tol_px`` within ``max_iter`` steps are returned as NaN and counted
+        (logged, and returned as :class:`LocalizationStats` when ``full_output=True``).
+        """
+        sample, line, h = np.broadcast_arrays(_as_float_array(sample), _as_float_array(line), _as_float_array(h))
+        shape = sample.shape
+        shift = self._pixel_shift(pixel_convention)
+        x = (sample.ravel() - shift - self.samp_off) / self.samp_scale
+        y = (line.ravel() - shift - self.line_off) / self.line_scale
+        H = (h.ravel() - self.height_off) / self.height_scale
+        L, P, ok, iters = self._localize_normalised(x, y, H, tol_px, max_iter)
+        lon = L * self.long_scale + self.long_off
+        lat = P * self.lat_scale + self.lat_off
+        lon[~ok] = np.nan
+        lat[~ok] = np.nan
+        n_failed = int(np.count_nonzero(~ok))
+        if n_failed:
+            log.info("RPC localisation: %d of %d points did not converge (NaN)", n_failed, ok.size)
+        out = (_shape_out(lon, shape), _shape_out(lat, shape))
+        if full_output:
+            return out + (LocalizationStats(ok.size, n_failed, iters),)
+        return out
+
+    def localize_dem(self, sample: ArrayLike, line: ArrayLike, dem, *, pixel_convention: str = "gdal",
+                     tol_m: float = 1e-4, max_iter: int = 30, full_output: bool = False):
+        """Intersect the line of sight of image points with a DEM: ``(sample, line, dem) -> (lon, lat, h)``.
+
+        ``dem`` is a :class:`gdal_gf4cal.dem.DEM` or a constant height in metres. See
+        :func:`gdal_gf4cal.localization.localize_dem` for the algorithm (height iteration, then bracketing and
+        refinement where it oscillates on steep terrain).
+        """
+        from .localization import localize_dem
+        return localize_dem(self, sample, line, dem, pixel_convention=pixel_convention, tol_m=tol_m,
+                            max_iter=max_iter, full_output=full_output)
+
+    # ------------------------------------------------------------------ image-space corrections
+    def with_image_affine(self, sample_shift: float = 0.0, line_shift: float = 0.0, sample_scale: float = 1.0,
+                          line_scale: float = 1.0, *, pixel_convention: str = "gdal") -> "RPCModel":
+        """Fold an exact image-space shift and per-axis scale into the offsets and scales (METHODS §4.2).
+
+        The new model returns ``sample' = sample_shift + sample_scale * sample`` (and likewise for line), where
+        ``sample`` is what this model returns, both in ``pixel_convention``.
+        """
+        # In the chosen convention s = SAMP_OFF + c0 + SAMP_SCALE * x, with c0 the convention's shift.
+        c0 = self._pixel_shift(pixel_convention)
+        new_samp_off = sample_shift + sample_scale * (self.samp_off + c0) - c0
+        new_line_off = line_shift + line_scale * (self.line_off + c0) - c0
+        return self.replace(samp_off=new_samp_off, line_off=new_line_off,
+                            samp_scale=self.samp_scale * sample_scale, line_scale=self.line_scale * line_scale,
+                            source=None)
+
+    def __repr__(self) -> str:
+        return (f"RPCModel(lon={self.long_off:.6f}±{abs(self.long_scale):.4f}, lat={self.lat_off:.6f}±"
+                f"{abs(self.lat_scale):.4f}, h={self.height_off:.1f}±{abs(self.height_scale):.1f}, "
+                f"size~{self.image_size[0]}x{self.image_size[1]}" + (f", source={self.source!r})" if self.source
+                                                                    else ")"))
+
+
+def _parse_number(value, key: str, where: str) -> float:
+    try:
+        text = str(value).strip().split()[0] if isinstance(value, str) else value
+        number = float(text)
+    except (ValueError, IndexError, TypeError):
+        raise RPCFormatError(f"RPC{where}: {key} is not a number ({str(value)[:40]!r})") from None
+    if not math.isfinite(number):
+        raise RPCFormatError(f"RPC{where}: {key} is not a finite number ({value!r})")
+    return number
+
+
+def _fmt(value: float) -> str:
+    """17 significant digits: enough for a float64 to read back bit-identical."""
+    return repr(float(value)) if abs(float(value)) >= 1e-4 or value == 0 else f"{float(value):.17g}"
