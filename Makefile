@@ -44,7 +44,7 @@ $(STAMP): pyproject.toml | system
 venv install: system $(STAMP)
 
 demo: install
-	$(VENV)/bin/gf4cal info tests/data/shareloc/phr_ventoux_rpc.tif --dem tests/data/shareloc/N44E005.hgt
+	$(VENV)/bin/gf4cal info tests/data/rpc/RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML --dem tests/data/dem/N44E005.hgt --geoid egm96
 
 test: install
 	$(PY) -m pytest -q -p no:cacheprovider tests

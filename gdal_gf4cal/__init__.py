@@ -16,14 +16,17 @@ from .errors import (
 )
 
 from .rpc import RPCModel
+from .rpc_io import read_rpc_metadata, write_rpc_vrt
 from .dem import DEM
 from .camera import LookAngleModel
 from .gcp import make_gcps, read_gcps, write_gcps
+from .rpc_fit import FitReport, fit_rpc, fit_rpc_from_model
 
 __version__ = "0.1.0"
 
 __all__ = [
     "CancelledError", "ConvergenceError", "DEMError", "DegenerateGeometryError", "GCPError", "Gf4calError",
     "InputOverwriteError", "RPCFormatError", "__version__",
-    "RPCModel", "DEM", "LookAngleModel", "make_gcps", "read_gcps", "write_gcps",
+    "RPCModel", "read_rpc_metadata", "write_rpc_vrt", "DEM", "LookAngleModel", "make_gcps", "read_gcps", "write_gcps",
+    "FitReport", "fit_rpc", "fit_rpc_from_model",
 ]

@@ -158,7 +158,7 @@ def write_gcps(gdf, path, *, layer: str = "gcps", overwrite: bool = True) -> str
     try:
         if ext == ".csv":
             df = gdf.drop(columns="geometry") if "geometry" in gdf.columns else gdf
-            df.to_csv(tmp, index=False, float_format="%.10g")
+            df.to_csv(tmp, index=False)   # shortest repr: floats read back identical
         elif ext == ".gpkg":
             _to_geodataframe(gdf.drop(columns="geometry", errors="ignore")).to_file(tmp, layer=layer, driver="GPKG")
         elif ext in (".geojson", ".json"):

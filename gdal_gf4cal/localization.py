@@ -69,22 +69,31 @@ def localize_dem(model, sample, line, dem, *, pixel_convention: str = "gdal", to
         return _finish(lon, lat, hgt, shape, full_output)
 
     h_lo_dem, h_hi_dem = _dem_height_bounds(dem)
-    # Stage 1: fixed-point height iteration from the middle of the DEM's range.
+    # Stage 1: height iteration from the middle of the DEM's range: a fixed-point step, then secant steps on
+    # f(h) = DEM(localize(h)) - h (superlinear; the plain fixed point is only linear and fails where |f'+1| >= 1).
     idx = np.arange(n)
     h = np.full(n, 0.5 * (h_lo_dem + h_hi_dem))
-    prev_step = np.full(n, np.inf)
+    h_prev = np.full(n, np.nan)
+    f_prev = np.full(n, np.nan)
     for _ in range(max_iter):
         if idx.size == 0:
             break
-        lo, la = loc(idx, h[idx])
+        hi = h[idx]
+        lo, la = loc(idx, hi)
         z = terrain(lo, la)
-        step = z - h[idx]
-        done = np.abs(step) <= tol_m
-        lon[idx[done]], lat[idx[done]], hgt[idx[done]] = lo[done], la[done], z[done]
-        # Keep iterating points that converge; drop those that oscillate/diverge or leave the DEM to stage 2.
-        good = ~done & np.isfinite(step) & (np.abs(step) < 0.9 * prev_step[idx] + tol_m)
-        prev_step[idx[good]] = np.abs(step[good])
-        h[idx[good]] = z[good]
+        f = z - hi
+        done = np.abs(f) <= tol_m
+        # Return the height the point was localised at (|DEM - h| <= tol_m): re-projection is then exact.
+        lon[idx[done]], lat[idx[done]], hgt[idx[done]] = lo[done], la[done], hi[done]
+        fp, hp = f_prev[idx], h_prev[idx]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            secant = hi - f * (hi - hp) / (f - fp)
+        use_secant = np.isfinite(secant) & (np.abs(f) < np.abs(fp))
+        h_new = np.where(use_secant, secant, z)
+        # Points that stop improving (oscillation on steep slopes) or leave the DEM go to stage 2.
+        good = ~done & np.isfinite(f) & (np.isnan(fp) | (np.abs(f) < 0.9 * np.abs(fp) + tol_m))
+        f_prev[idx], h_prev[idx] = f, hi
+        h[idx[good]] = h_new[good]
         idx = idx[good]
     todo = np.flatnonzero(~np.isfinite(hgt))
     if todo.size:
@@ -155,7 +164,7 @@ def _bracket_and_refine(loc, terrain, todo, h_lo, h_hi, tol_m, max_iter, scan_st
         fc = z - c
         done = np.isfinite(fc) & (np.abs(fc) <= tol_m)
         tk = todo[k[done]]
-        lon[tk], lat[tk], hgt[tk] = lo_[done], la_[done], z[done]
+        lon[tk], lat[tk], hgt[tk] = lo_[done], la_[done], c[done]
         bad = ~np.isfinite(fc)
         left = np.sign(fc) == np.sign(fak)   # root between c and b
         # Replace the end with the same sign as fc; halve the other end's value when it is kept twice (Illinois).

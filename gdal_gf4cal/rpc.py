@@ -40,6 +40,27 @@ _GDAL_COEFF_KEYS = {"line_num": "LINE_NUM_COEFF", "line_den": "LINE_DEN_COEFF",
 _GDAL_OPTIONAL = {"err_bias": "ERR_BIAS", "err_rand": "ERR_RAND", "min_long": "MIN_LONG", "min_lat": "MIN_LAT",
                   "max_long": "MAX_LONG", "max_lat": "MAX_LAT"}
 
+#: Exponents (of L, P, H) of the 20 terms, in RPC00B order.
+_EXPONENTS = ((0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1), (2, 0, 0), (0, 2, 0),
+              (0, 0, 2), (1, 1, 1), (3, 0, 0), (1, 2, 0), (1, 0, 2), (2, 1, 0), (0, 3, 0), (0, 1, 2), (2, 0, 1),
+              (0, 2, 1), (0, 0, 3))
+
+
+def _derivative_matrix(axis: int) -> np.ndarray:
+    """D (20, 20) with d(term_j)/d(axis) = sum_k D[j, k] term_k: derivatives stay in the 20-term basis."""
+    index = {e: k for k, e in enumerate(_EXPONENTS)}
+    D = np.zeros((20, 20))
+    for j, e in enumerate(_EXPONENTS):
+        if e[axis]:
+            lowered = list(e)
+            lowered[axis] -= 1
+            D[j, index[tuple(lowered)]] = e[axis]
+    return D
+
+
+#: d/dL, d/dP, d/dH as (20, 20) basis maps: coefficients of the derivative polynomial = coeffs @ D.
+DERIVATIVE_MATRICES = tuple(_derivative_matrix(a) for a in range(3))
+
 #: Chunk of points processed at once: keeps the (20, chunk) monomial block in cache.
 _CHUNK = 16384
 
@@ -308,21 +329,31 @@ class RPCModel:
         line = y * self.line_scale + (self.line_off + shift)
         return _shape_out(sample, shape), _shape_out(line, shape)
 
-    def _normalised_jacobian(self, L, P, H, with_h: bool = True):
-        """x, y and their derivatives w.r.t. normalised L, P (and H), for flat inputs."""
+    @cached_property
+    def _coeffs_with_derivatives(self) -> np.ndarray:
+        """(16, 20): the four polynomials, then their d/dL, d/dP and d/dH, all in the monomial basis."""
         C = self._coeffs
-        m = monomials(L, P, H)
-        dL, dP, dH = monomial_derivatives(L, P, H, with_h=with_h)
-        v = C @ m
-        vL = C @ dL
-        vP = C @ dP
+        return np.vstack([C] + [C @ D for D in DERIVATIVE_MATRICES])
+
+    def _normalised_jacobian(self, L, P, H, with_h: bool = True):
+        """x, y and their derivatives w.r.t. normalised L, P (and H), for flat inputs.
+
+        One monomial evaluation per chunk: the derivative polynomials are expressed in the same basis.
+        """
+        Cx = self._coeffs_with_derivatives if with_h else self._coeffs_with_derivatives[:12]
+        n = L.size
+        V = np.empty((Cx.shape[0], n))
+        for i in range(0, n, _CHUNK):
+            sl = slice(i, i + _CHUNK)
+            V[:, sl] = Cx @ monomials(L[sl], P[sl], H[sl])
+        v, vL, vP = V[0:4], V[4:8], V[8:12]
         x = v[0] / v[1]
         y = v[2] / v[3]
         out = {"x": x, "y": y,
                "x_L": (vL[0] - x * vL[1]) / v[1], "x_P": (vP[0] - x * vP[1]) / v[1],
                "y_L": (vL[2] - y * vL[3]) / v[3], "y_P": (vP[2] - y * vP[3]) / v[3]}
         if with_h:
-            vH = C @ dH
+            vH = V[12:16]
             out["x_H"] = (vH[0] - x * vH[1]) / v[1]
             out["y_H"] = (vH[2] - y * vH[3]) / v[3]
         return out

@@ -16,6 +16,8 @@ from ..errors import CancelledError, Gf4calError
 # Sub-command modules, in help order. Each defines NAME, HELP, add_parser(parser) and run(args) -> int.
 COMMANDS = [
     "info",
+    "refine",
+    "intersect",
 ]
 
 

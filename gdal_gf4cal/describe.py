@@ -1,0 +1,98 @@
+"""A summary of an RPC: size, footprint localised on a DEM (or at HEIGHT_OFF), approximate GSD, height range.
+
+Used by ``gf4cal info`` and the QGIS ``rpcinfo`` algorithm.
+"""
+from __future__ import annotations
+
+import os
+from typing import Optional
+
+import numpy as np
+
+from .dem import DEM
+from .errors import DEMError
+from .rpc import RPCModel
+
+
+def image_size_of(path) -> Optional[tuple]:
+    """(width, height) of a raster GDAL opens, or None for a sidecar / non-raster."""
+    from osgeo import gdal
+    try:
+        with gdal.ExceptionMgr(useExceptions=False):
+            ds = gdal.OpenEx(os.fspath(path), gdal.OF_RASTER)
+    except AttributeError:  # GDAL < 3.7 has no ExceptionMgr
+        gdal.PushErrorHandler("CPLQuietErrorHandler")
+        try:
+            ds = gdal.OpenEx(os.fspath(path), gdal.OF_RASTER)
+        except RuntimeError:
+            ds = None
+        finally:
+            gdal.PopErrorHandler()
+    if ds is None:
+        return None
+    return (ds.RasterXSize, ds.RasterYSize)
+
+
+def describe_rpc(source, dem=None, geoid=None, rpc: Optional[RPCModel] = None) -> dict:
+    """Describe the RPC of ``source`` (image or RPC file).
+
+    Parameters
+    ----------
+    source : path of an image with an RPC or of a standalone RPC file.
+    dem : optional DEM (path or :class:`DEM`); the footprint corners are localised on it, else at HEIGHT_OFF.
+    geoid : the DEM's vertical datum when it is a path (``"egm96"``, ...).
+
+    Returns
+    -------
+    dict with ``source``, ``format``, ``size`` (w, h), ``corners`` [(lon, lat, h)] clockwise from upper-left
+    (GDAL pixel corners), ``footprint_wkt``, ``gsd_m`` {sample, line}, ``height_range_m``, ``rpc`` (offsets/scales).
+    """
+    from .rpc_io import rpc_file_format
+    rpc = rpc or RPCModel.from_file(source)
+    fmt = rpc_file_format(source)
+    size = image_size_of(source) if fmt == "gdal" else None
+    size_from_image = size is not None
+    if size is None:
+        size = rpc.image_size
+    W, H = size
+    s = np.array([0.0, W, W, 0.0])
+    l = np.array([0.0, 0.0, H, H])
+    if dem is not None:
+        dem_obj = dem if isinstance(dem, DEM) else DEM.from_file(dem, geoid=geoid)
+        lon, lat, h = rpc.localize_dem(s, l, dem_obj)
+        if not np.all(np.isfinite(h)):
+            raise DEMError(f"the footprint of {source} is not covered by the DEM {getattr(dem_obj, 'path', dem)}; "
+                           "use a DEM covering the scene or omit --dem")
+        where = f"DEM {getattr(dem_obj, 'path', dem)}"
+    else:
+        h = np.full(4, rpc.height_off)
+        lon, lat = rpc.localize(s, l, h)
+        where = f"constant height HEIGHT_OFF = {rpc.height_off:.1f} m"
+    # GSD at the image centre from the localisation Jacobian: metres on the ground per pixel along each axis.
+    cs, cl = W / 2.0, H / 2.0
+    hc = rpc.height_off
+    lo, la = rpc.localize(np.array([cs, cs + 1, cs]), np.array([cl, cl, cl + 1]), hc)
+    m_per_deg_lat = 111132.954 - 559.822 * np.cos(2 * np.radians(la[0]))
+    m_per_deg_lon = 111412.84 * np.cos(np.radians(la[0]))
+    gsd_s = float(np.hypot((lo[1] - lo[0]) * m_per_deg_lon, (la[1] - la[0]) * m_per_deg_lat))
+    gsd_l = float(np.hypot((lo[2] - lo[0]) * m_per_deg_lon, (la[2] - la[0]) * m_per_deg_lat))
+    md = rpc.to_gdal_metadata()
+    info = {
+        "source": os.fspath(source),
+        "format": fmt,
+        "size": [int(W), int(H)],
+        "size_from_image": size_from_image,
+        "footprint_height": where,
+        "corners": [[float(a), float(b), float(c)] for a, b, c in zip(lon, lat, h)],
+        "footprint_wkt": "POLYGON ((" + ", ".join(f"{a:.9f} {b:.9f}" for a, b in
+                                                  list(zip(lon, lat)) + [(lon[0], lat[0])]) + "))",
+        "gsd_m": {"sample": gsd_s, "line": gsd_l},
+        "height_range_m": list(rpc.height_range),
+        "rpc": {k: float(md[k]) for k in ("LINE_OFF", "SAMP_OFF", "LAT_OFF", "LONG_OFF", "HEIGHT_OFF",
+                                          "LINE_SCALE", "SAMP_SCALE", "LAT_SCALE", "LONG_SCALE", "HEIGHT_SCALE")},
+        "err_bias": rpc.err_bias,
+        "err_rand": rpc.err_rand,
+    }
+    if dem is not None:
+        info["dem_height_range_m"] = [float(np.min(h)), float(np.max(h))]
+    return info

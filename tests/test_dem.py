@@ -1,0 +1,116 @@
+"""DEM sampling: bilinear like GDAL, any CRS, windowed reads, geoid, nodata policies (METHODS §2)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from osgeo import gdal, osr
+
+from gdal_gf4cal import DEM, DEMError
+
+gdal.UseExceptions()
+
+
+def _write_dem(path, array, gt, epsg=4326, nodata=None):
+    ds = gdal.GetDriverByName("GTiff").Create(str(path), array.shape[1], array.shape[0], 1, gdal.GDT_Float32)
+    ds.SetGeoTransform(gt)
+    srs = osr.SpatialReference()
+    srs.ImportFromEPSG(epsg)
+    ds.SetProjection(srs.ExportToWkt())
+    band = ds.GetRasterBand(1)
+    if nodata is not None:
+        band.SetNoDataValue(nodata)
+    band.WriteArray(array)
+    ds = None
+    return str(path)
+
+
+def test_constant_dem():
+    dem = DEM.constant(123.5)
+    assert dem.height(10.0, 20.0) == 123.5
+    np.testing.assert_array_equal(dem.height(np.zeros(3), np.zeros(3)), 123.5)
+
+
+def test_bilinear_is_exact_on_a_plane(tmp_path):
+    y, x = np.mgrid[0:50, 0:60]
+    plane = 100 + 2.0 * x - 3.0 * y
+    path = _write_dem(tmp_path / "plane.tif", plane.astype(np.float32), (10.0, 0.01, 0, 45.0, 0, -0.01))
+    dem = DEM.from_file(path)
+    rng = np.random.default_rng(0)
+    px, py = rng.uniform(0.5, 59.5, 500), rng.uniform(0.5, 49.5, 500)   # between outer pixel centres
+    lon, lat = 10.0 + px * 0.01, 45.0 - py * 0.01
+    np.testing.assert_allclose(dem.height(lon, lat), 100 + 2.0 * (px - 0.5) - 3.0 * (py - 0.5), atol=1e-4)
+
+
+def test_matches_gdal_bilinear_on_real_srtm(srtm_path):
+    """Our windowed bilinear sampling equals GDAL's (gdal.Warp bilinear onto the exact points)."""
+    dem = DEM.from_file(srtm_path, nodata="nan")   # the tile has real SRTM voids
+    ds = gdal.Open(str(srtm_path))
+    gt = ds.GetGeoTransform()
+    arr = ds.ReadAsArray().astype(float)
+    arr[arr == ds.GetRasterBand(1).GetNoDataValue()] = np.nan
+    rng = np.random.default_rng(1)
+    px, py = rng.uniform(1, 1199, 2000), rng.uniform(1, 1199, 2000)
+    lon, lat = gt[0] + px * gt[1], gt[3] + py * gt[5]
+    x, y = px - 0.5, py - 0.5
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    ref = (arr[y0, x0] * (1 - fx) + arr[y0, x0 + 1] * fx) * (1 - fy) + (arr[y0 + 1, x0] * (1 - fx)
+                                                                         + arr[y0 + 1, x0 + 1] * fx) * fy
+    ours = dem.height(lon, lat)
+    np.testing.assert_array_equal(np.isnan(ours), np.isnan(ref))   # voids propagate, never interpolated over
+    assert np.isfinite(ref).mean() > 0.95
+    np.testing.assert_allclose(ours[np.isfinite(ref)], ref[np.isfinite(ref)], atol=1e-6)
+
+
+def test_projected_crs_dem_agrees_with_geographic(srtm_path, data_dir):
+    """The UTM copy of the tile gives the same terrain (to the resampling's precision) through pyproj."""
+    geo = DEM.from_file(srtm_path, nodata="nan")
+    utm = DEM.from_file(data_dir / "dem" / "N44E005_UTM.tif", nodata="nan")
+    rng = np.random.default_rng(2)
+    lon, lat = rng.uniform(5.1, 5.9, 300), rng.uniform(44.1, 44.9, 300)
+    d = utm.height(lon, lat) - geo.height(lon, lat)
+    assert np.isfinite(d).mean() > 0.9
+    assert np.nanmedian(np.abs(d)) < 15.0      # 90 m resampled relief vs 3" original
+
+
+def test_geoid_egm96_adds_the_undulation(srtm_path):
+    """Shareloc's reference: SRTM + EGM96 at the Ventoux point is 503.51202 m ellipsoidal."""
+    lon, lat = 5.193406151946084, 44.20805807814395
+    ortho = DEM.from_file(srtm_path).height(lon, lat)
+    ellipsoidal = DEM.from_file(srtm_path, geoid="egm96").height(lon, lat)
+    assert ellipsoidal == pytest.approx(503.51202179, abs=1e-3)
+    assert 45 < ellipsoidal - ortho < 55    # EGM96 undulation in Provence is ~50 m
+
+
+def test_nodata_policies(tmp_path):
+    arr = np.full((20, 20), 50.0, dtype=np.float32)
+    arr[5:10, 5:10] = -9999
+    path = _write_dem(tmp_path / "holes.tif", arr, (0.0, 0.1, 0, 2.0, 0, -0.1), nodata=-9999)
+    inside_hole, outside = (0.75, 1.25), (5.0, 5.0)
+    with pytest.raises(DEMError, match="outside the DEM or on no-data"):
+        DEM.from_file(path).height(*inside_hole)
+    with pytest.raises(DEMError):
+        DEM.from_file(path).height(*outside)
+    assert np.isnan(DEM.from_file(path, nodata="nan").height(*inside_hole))
+    assert DEM.from_file(path, nodata=12.0).height(*outside) == 12.0
+    assert DEM.from_file(path).height(0.05 + 1.5, 1.5) == pytest.approx(50.0)
+
+
+def test_windowed_reads_touch_only_needed_tiles(tmp_path):
+    arr = np.arange(3000 * 3000, dtype=np.float32).reshape(3000, 3000)
+    path = _write_dem(tmp_path / "big.tif", arr, (0.0, 0.001, 0, 3.0, 0, -0.001))
+    dem = DEM.from_file(path)
+    dem.height(np.array([0.1, 0.2]), np.array([2.9, 2.8]))
+    assert len(dem._cache) == 1                       # one 1024 px tile, not the 9 Mpx raster
+
+
+def test_bad_inputs(tmp_path):
+    with pytest.raises(DEMError, match="not found"):
+        DEM.from_file(tmp_path / "missing.tif")
+    ds = gdal.GetDriverByName("GTiff").Create(str(tmp_path / "nogeo.tif"), 4, 4, 1)
+    ds = None
+    with pytest.raises(DEMError, match="geotransform|CRS"):
+        DEM.from_file(tmp_path / "nogeo.tif")
+    with pytest.raises(DEMError, match="geoid grid"):
+        DEM.from_file(_write_dem(tmp_path / "d.tif", np.zeros((4, 4), np.float32), (0, 1, 0, 4, 0, -1)),
+                      geoid=str(tmp_path / "nogrid.gtx"))

@@ -1,0 +1,217 @@
+"""RPCModel: construction errors, projection, Jacobians, localisation, pathological real RPCs (METHODS §1)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from osgeo import gdal
+
+from gdal_gf4cal import RPCFormatError, RPCModel
+from gdal_gf4cal.rpc import DERIVATIVE_MATRICES, monomial_derivatives, monomials
+
+gdal.UseExceptions()
+
+REAL_RPCS = [
+    "rpc/RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML",   # Pleiades DIMAP v2
+    "rpc/PHR1B_P_201709281038393_SEN_PRG_FC_178609-001.tif",   # Pleiades, GeoTIFF RPC tags
+    "rpc/rpc.vrt",                                              # QuickBird-2
+    "rpc/md_dg.RPB",                                            # WorldView-3
+    "rpc/rpc_IKONOS.txt",                                       # IKONOS
+    "rpc/rpc_SPOT6.xml",                                        # SPOT-6
+    "rpc/20191015_073816_ssc1d3_0011_basic_l1a_panchromatic_dn_RPC.TXT",  # SkySat L1A
+]
+
+
+def _read_kv(path):
+    with open(path) as fh:
+        return dict(line.split("=", 1) for line in fh.read().splitlines() if "=" in line)
+
+
+@pytest.fixture(params=REAL_RPCS, ids=lambda p: p.split("/")[-1][:28])
+def real_rpc(request, data_dir):
+    return RPCModel.from_file(data_dir / request.param)
+
+
+def _mem_dataset(rpc):
+    """A raster carrying ``rpc``, so GDAL's own RPC transformer can be compared with ours."""
+    w, h = rpc.image_size
+    ds = gdal.GetDriverByName("MEM").Create("", w, h)
+    ds.SetMetadata(rpc.to_gdal_metadata(), "RPC")
+    return ds
+
+
+def _image_grid(rpc, n=25, margin=0.02):
+    w, h = rpc.image_size
+    s, l = np.meshgrid(np.linspace(margin * w, (1 - margin) * w, n), np.linspace(margin * h, (1 - margin) * h, n))
+    return s.ravel(), l.ravel()
+
+
+# ---------------------------------------------------------------------------------------------- construction
+def test_metadata_round_trip_is_exact(real_rpc):
+    again = RPCModel.from_gdal_metadata(real_rpc.to_gdal_metadata())
+    for name in ("line_off", "samp_off", "lat_off", "long_off", "height_off", "line_scale", "samp_scale",
+                 "lat_scale", "long_scale", "height_scale"):
+        assert getattr(again, name) == getattr(real_rpc, name)
+    for name in ("line_num", "line_den", "samp_num", "samp_den"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(real_rpc, name))
+
+
+@pytest.mark.parametrize("mutation, key", [
+    (lambda md: md.pop("LINE_OFF"), "LINE_OFF"),
+    (lambda md: md.__setitem__("SAMP_NUM_COEFF", " ".join(md["SAMP_NUM_COEFF"].split()[:19])), "SAMP_NUM_COEFF"),
+    (lambda md: md.__setitem__("LAT_SCALE", "abc"), "LAT_SCALE"),
+    (lambda md: md.__setitem__("LONG_SCALE", "0"), "LONG_SCALE"),
+    (lambda md: md.__setitem__("HEIGHT_OFF", "nan"), "HEIGHT_OFF"),
+])
+def test_malformed_metadata_names_the_key(data_dir, mutation, key):
+    md = RPCModel.from_file(data_dir / REAL_RPCS[0]).to_gdal_metadata()
+    mutation(md)
+    with pytest.raises(RPCFormatError, match=key):
+        RPCModel.from_gdal_metadata(md, source="scene.RPB")
+
+
+def test_empty_metadata_is_a_clear_error():
+    with pytest.raises(RPCFormatError, match="no RPC"):
+        RPCModel.from_gdal_metadata({}, source="plain.tif")
+
+
+# ---------------------------------------------------------------------------------------------- polynomials
+def test_derivative_matrices_match_analytic_monomial_derivatives():
+    rng = np.random.default_rng(3)
+    L, P, H = rng.uniform(-1, 1, (3, 50))
+    m = monomials(L, P, H)
+    for D, d in zip(DERIVATIVE_MATRICES, monomial_derivatives(L, P, H)):
+        np.testing.assert_allclose(D @ m, d, atol=1e-14)
+
+
+def test_project_matches_gdal_transformer(real_rpc):
+    """GDAL's RPC transformer is the reference for ground -> image (METHODS §0)."""
+    ds = _mem_dataset(real_rpc)
+    tr = gdal.Transformer(ds, None, ["METHOD=RPC"])
+    s, l = _image_grid(real_rpc, 12)
+    h = np.linspace(*real_rpc.height_range, s.size)
+    lon, lat = real_rpc.localize(s, l, h)
+    ok = np.isfinite(lon)
+    assert ok.mean() > 0.95
+    out, _ = tr.TransformPoints(1, np.column_stack([lon[ok], lat[ok], h[ok]]))
+    out = np.asarray(out)
+    ps, pl = real_rpc.project(lon[ok], lat[ok], h[ok])
+    assert np.max(np.abs(out[:, 0] - ps)) < 1e-6
+    assert np.max(np.abs(out[:, 1] - pl)) < 1e-6
+
+
+def test_scalar_and_array_shapes(real_rpc):
+    s, l = real_rpc.project(real_rpc.long_off, real_rpc.lat_off, real_rpc.height_off)
+    assert isinstance(s, float) and isinstance(l, float)
+    lon = np.full((3, 4), real_rpc.long_off)
+    s, l = real_rpc.project(lon, real_rpc.lat_off, real_rpc.height_off)
+    assert s.shape == (3, 4) and l.shape == (3, 4)
+    lo, la = real_rpc.localize(s, l, real_rpc.height_off)
+    assert lo.shape == (3, 4)
+
+
+def test_pixel_conventions_differ_by_half_a_pixel(real_rpc):
+    args = (real_rpc.long_off, real_rpc.lat_off, real_rpc.height_off)
+    sg, lg = real_rpc.project(*args)
+    sr, lr = real_rpc.project(*args, pixel_convention="rpc")
+    assert sg - sr == pytest.approx(0.5, abs=1e-9) and lg - lr == pytest.approx(0.5, abs=1e-9)
+    # At the offsets the raw convention returns exactly SAMP_OFF/LINE_OFF plus the constant terms' ratio.
+    with pytest.raises(ValueError, match="pixel_convention"):
+        real_rpc.project(*args, pixel_convention="centre")
+
+
+def test_jacobian_matches_finite_differences(real_rpc):
+    s, l = _image_grid(real_rpc, 5)
+    h = np.full(s.size, real_rpc.height_off)
+    lon, lat = real_rpc.localize(s, l, h)
+    J = real_rpc.project_jacobian(lon, lat, h)
+    steps = (1e-6, 1e-6, 1e-2)
+    for k, step in enumerate(steps):
+        d = [np.zeros_like(lon), np.zeros_like(lon), np.zeros_like(lon)]
+        d[k] = np.full_like(lon, step)
+        sp, lp = real_rpc.project(lon + d[0], lat + d[1], h + d[2])
+        sm, lm = real_rpc.project(lon - d[0], lat - d[1], h - d[2])
+        np.testing.assert_allclose(J[:, 0, k], (sp - sm) / (2 * step), rtol=1e-5, atol=1e-6 * np.abs(J).max())
+        np.testing.assert_allclose(J[:, 1, k], (lp - lm) / (2 * step), rtol=1e-5, atol=1e-6 * np.abs(J).max())
+
+
+# ---------------------------------------------------------------------------------------------- localisation
+def test_localize_round_trip_below_1e6_px(real_rpc):
+    s, l = _image_grid(real_rpc, 30)
+    for h in (real_rpc.height_range[0], real_rpc.height_off, real_rpc.height_range[1]):
+        lon, lat, stats = real_rpc.localize(s, l, h, full_output=True)
+        assert stats.n_failed == 0
+        s2, l2 = real_rpc.project(lon, lat, h)
+        assert np.max(np.hypot(s2 - s, l2 - l)) <= 1e-6
+
+
+def test_localize_agrees_with_gdal(real_rpc):
+    ds = _mem_dataset(real_rpc)
+    tr = gdal.Transformer(ds, None, ["METHOD=RPC", "RPC_PIXEL_ERROR_THRESHOLD=1e-9", f"RPC_HEIGHT={real_rpc.height_off}"])
+    s, l = _image_grid(real_rpc, 10)
+    out, ok = tr.TransformPoints(0, np.column_stack([s, l, np.zeros(s.size)]))
+    out, ok = np.asarray(out), np.asarray(ok, dtype=bool)
+    lon, lat = real_rpc.localize(s, l, real_rpc.height_off)
+    assert ok.mean() > 0.9
+    J = real_rpc.project_jacobian(lon[ok], lat[ok], real_rpc.height_off)[:, :, :2]
+    d_px = np.einsum("nij,nj->ni", J, np.column_stack([out[ok, 0] - lon[ok], out[ok, 1] - lat[ok]]))
+    assert np.max(np.hypot(*d_px.T)) < 1e-3
+
+
+def test_negative_lat_scale_rpc_gdal_6162(data_dir):
+    """GDAL autotest test_transformer_11: fails at h=4000 (far outside HEIGHT_SCALE), exact at h=1150."""
+    rpc = RPCModel.from_gdal_metadata(_read_kv(data_dir / "rpc_edge" / "transformer_11_rpc.txt"))
+    assert rpc.lat_scale < 0
+    lon, lat, stats = rpc.localize(0.0, 0.0, 4000.0, full_output=True)
+    assert np.isnan(lon) and np.isnan(lat) and stats.n_failed == 1
+    lon, lat = rpc.localize(0.0, 0.0, 1150.0)
+    assert lon == pytest.approx(77.350939956024618, abs=1e-7)
+    assert lat == pytest.approx(38.739703990877814, abs=1e-7)
+
+
+def test_gdal_5395_convergence_case(data_dir):
+    rpc = RPCModel.from_file(data_dir / "rpc" / "rpc_5395.vrt")
+    lon, lat = rpc.localize(0.5, 0.5, 0.0)
+    assert lon == pytest.approx(28.26163232, abs=1e-4) and lat == pytest.approx(-27.79853245, abs=1e-4)
+
+
+def test_quickbird_expected_values_from_gdal_autotest(data_dir):
+    rpc = RPCModel.from_file(data_dir / "rpc" / "rpc.vrt")
+    lon, lat = rpc.localize(20.5, 10.5, 0.0)
+    assert lon == pytest.approx(125.64830100509131, abs=1e-6) and lat == pytest.approx(39.869433991997553, abs=1e-6)
+    lon, lat = rpc.localize(20.5, 10.5, 30.0)
+    assert lon == pytest.approx(125.64828521533849, abs=1e-6) and lat == pytest.approx(39.869345204440144, abs=1e-6)
+
+
+def test_skysat_corner_localises_like_gdal_at_70_and_90_m(data_dir):
+    """rpcm's test expects its own iteration to fail at h=70 m for this SkySat RPC. The RPC is regular there:
+    GDAL converges and so do we, to the same point, with an exact round trip. A wrong NaN is no better than a
+    wrong number, so we return the solution and check it against GDAL."""
+    rpc = RPCModel.from_file(data_dir / "rpc" / "20191015_073816_ssc1d3_0011_basic_l1a_panchromatic_dn_RPC.TXT")
+    ds = _mem_dataset(rpc)
+    for h in (70.0, 90.0):
+        lon, lat = rpc.localize(0.5, 0.5, h)
+        s, l = rpc.project(lon, lat, h)
+        assert abs(s - 0.5) < 1e-6 and abs(l - 0.5) < 1e-6
+        tr = gdal.Transformer(ds, None, ["METHOD=RPC", f"RPC_HEIGHT={h}", "RPC_PIXEL_ERROR_THRESHOLD=1e-9"])
+        ok, (glon, glat, _) = tr.TransformPoint(0, 0.5, 0.5, 0.0)
+        assert ok
+        assert abs(glon - lon) < 1e-9 and abs(glat - lat) < 1e-9
+
+
+def test_far_outside_points_come_back_nan_and_counted(real_rpc):
+    w, h = real_rpc.image_size
+    lon, lat, stats = real_rpc.localize(np.array([w / 2, 1e9]), np.array([h / 2, -1e9]), real_rpc.height_off,
+                                        full_output=True)
+    assert np.isfinite(lon[0]) and np.isnan(lon[1]) and stats.n_failed == 1
+
+
+# ---------------------------------------------------------------------------------------------- corrections
+@pytest.mark.parametrize("convention", ["gdal", "rpc"])
+def test_with_image_affine_folds_shift_and_scale_exactly(real_rpc, convention):
+    s, l = _image_grid(real_rpc, 6)
+    lon, lat = real_rpc.localize(s, l, real_rpc.height_off)
+    new = real_rpc.with_image_affine(3.25, -7.5, 1.0002, 0.9997, pixel_convention=convention)
+    s0, l0 = real_rpc.project(lon, lat, real_rpc.height_off, pixel_convention=convention)
+    s1, l1 = new.project(lon, lat, real_rpc.height_off, pixel_convention=convention)
+    np.testing.assert_allclose(s1, 3.25 + 1.0002 * s0, atol=1e-8)
+    np.testing.assert_allclose(l1, -7.5 + 0.9997 * l0, atol=1e-8)

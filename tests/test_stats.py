@@ -1,0 +1,41 @@
+"""Accuracy statistics (METHODS §6) against hand-computed values."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gdal_gf4cal.stats import axis_stats, ce90, internal_accuracy, planar_stats, share_within
+
+
+def test_axis_stats_definitions():
+    r = np.array([1.0, -2.0, 3.0, 6.0])
+    s = axis_stats(r)
+    assert s["mean"] == 2.0
+    assert s["rms"] == pytest.approx(np.sqrt((1 + 4 + 9 + 36) / 4))
+    assert s["rmse"] == pytest.approx(np.sqrt(((1 - 2) ** 2 + 16 + 1 + 16) / 4))
+    assert s["max"] == 6.0 and s["n"] == 4
+    # rms² = mean² + rmse² (the relation behind seed 000's Table 3: 9.90² = 2.52² + 9.57²)
+    assert s["rms"] ** 2 == pytest.approx(s["mean"] ** 2 + s["rmse"] ** 2)
+    assert axis_stats([np.nan])["n"] == 0
+
+
+def test_ce90_and_share():
+    dx = np.r_[np.zeros(9), 10.0]
+    assert ce90(dx, np.zeros(10)) == pytest.approx(1.0)       # 90th percentile with linear interpolation
+    assert share_within(dx, np.zeros(10), 0.25) == 0.9
+    assert planar_stats([3.0], [4.0])["rms"] == 5.0
+
+
+def test_internal_accuracy_removes_rotation_and_translation():
+    rng = np.random.default_rng(0)
+    s, l = rng.uniform(0, 10000, (2, 200))
+    theta = 2e-3
+    c, sn = np.cos(theta), np.sin(theta)
+    noise = rng.normal(0, 0.5, (2, 200))
+    sm = c * (s - 5000) - sn * (l - 5000) + 5000 + 4.0 + noise[0]
+    lm = sn * (s - 5000) + c * (l - 5000) + 5000 - 7.0 + noise[1]
+    out = internal_accuracy(sm, lm, s, l)
+    assert out["theta_rad"] == pytest.approx(theta, abs=2e-5)
+    assert out["sample"]["rms"] == pytest.approx(0.5, rel=0.15)
+    assert out["line"]["rms"] == pytest.approx(0.5, rel=0.15)
+    assert abs(out["sample"]["mean"]) < 1e-9
