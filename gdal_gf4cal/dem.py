@@ -79,6 +79,9 @@ class DEM:
             import pyproj
             self._to_dem = pyproj.Transformer.from_crs("EPSG:4326", pyproj.CRS.from_wkt(wkt), always_xy=True)
         self._lon_wrap = srs.IsGeographic() == 1
+        # A DEM of up to 16 Mpx (128 MB as float64) is read once and sampled without tiling.
+        self._whole = None
+        self._whole_limit = 16 * 1024 * 1024
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -172,6 +175,8 @@ class DEM:
         px = (x - gt[0]) / gt[1] - 0.5
         py = (y - gt[3]) / gt[5] - 0.5
         W, H = self.width, self.height_px
+        if W * H <= self._whole_limit:
+            return self._sample_whole(px, py)
         out = np.full(px.size, np.nan)
         inside = np.isfinite(px) & np.isfinite(py) & (px >= -0.5) & (py >= -0.5) & (px <= W - 0.5) & (py <= H - 0.5)
         if not np.any(inside):
@@ -204,6 +209,26 @@ class DEM:
         out[idx] = values
         return out
 
+    def _sample_whole(self, px, py):
+        """Bilinear sampling of a small DEM held in memory (one compiled call)."""
+        from scipy.ndimage import map_coordinates
+        if self._whole is None:
+            block = self._band.ReadAsArray().astype(float)
+            if self._nodata_value is not None:
+                block[block == self._nodata_value] = np.nan
+            self._whole = block
+        W, H = self.width, self.height_px
+        with np.errstate(invalid="ignore"):
+            outside = ~((px >= -0.5) & (py >= -0.5) & (px <= W - 0.5) & (py <= H - 0.5))
+        coords = np.empty((2, px.size))
+        # Between the outermost pixel centre and the raster edge the edge value holds (mode="nearest").
+        np.nan_to_num(py, copy=False, nan=-1e9)
+        np.nan_to_num(px, copy=False, nan=-1e9)
+        coords[0], coords[1] = py, px
+        out = map_coordinates(self._whole, coords, order=1, mode="nearest", prefilter=False)
+        out[outside] = np.nan
+        return out
+
     def _read_tile(self, tile_x: int, tile_y: int) -> np.ndarray:
         """Read tile (tile_x, tile_y) with a one-pixel overlap to the right and below (LRU cached)."""
         key = (tile_x, tile_y)
@@ -230,12 +255,16 @@ class DEM:
 
 
 def _bilinear(block: np.ndarray, lx, ly, fx, fy) -> np.ndarray:
-    """Bilinear interpolation in ``block`` at integer corners (lx, ly) plus fractions (fx, fy)."""
-    lx1 = np.minimum(lx + 1, block.shape[1] - 1)
-    ly1 = np.minimum(ly + 1, block.shape[0] - 1)
-    v00, v01 = block[ly, lx], block[ly, lx1]
-    v10, v11 = block[ly1, lx], block[ly1, lx1]
-    return (v00 * (1 - fx) + v01 * fx) * (1 - fy) + (v10 * (1 - fx) + v11 * fx) * fy
+    """Bilinear interpolation in ``block`` at integer corners (lx, ly) plus fractions (fx, fy).
+
+    SciPy's compiled ``map_coordinates`` (order 1) does the gather and weighting in one pass; a NaN neighbour
+    (no-data) with a non-zero weight gives NaN, as it should.
+    """
+    from scipy.ndimage import map_coordinates
+    coords = np.empty((2, lx.size))
+    np.add(ly, fy, out=coords[0])
+    np.add(lx, fx, out=coords[1])
+    return map_coordinates(block, coords, order=1, mode="nearest", prefilter=False)
 
 
 def _geoid_transformer(geoid):

@@ -273,8 +273,9 @@ class RPCModel:
     @property
     def image_size(self) -> Tuple[int, int]:
         """Approximate image size (samples, lines) implied by the offsets and scales."""
-        return (int(round(self.samp_off + abs(self.samp_scale))) + 1,
-                int(round(self.line_off + abs(self.line_scale))) + 1)
+        # Vendors centre the offsets: SAMP_OFF = (W - 1) / 2 (raw convention), SAMP_SCALE ~ W / 2.
+        return (max(1, int(np.floor(self.samp_off + 0.5 + abs(self.samp_scale) + 0.5))),
+                max(1, int(np.floor(self.line_off + 0.5 + abs(self.line_scale) + 0.5))))
 
     @cached_property
     def _coeffs(self) -> np.ndarray:
@@ -399,10 +400,13 @@ class RPCModel:
         solution thanks to the approximate inverse) and refreshed only every third step, so most steps cost
         a single projection. Steps longer than half the normalised cube are damped.
         """
-        with np.errstate(all="ignore"):
-            LP = self._approximate_inverse @ monomials(x, y, H)
-        L, P = LP[0].copy(), LP[1].copy()
         n = x.size
+        L, P = np.empty(n), np.empty(n)
+        A = self._approximate_inverse
+        with np.errstate(all="ignore"):
+            for i in range(0, n, _CHUNK):
+                sl = slice(i, i + _CHUNK)
+                L[sl], P[sl] = A @ monomials(x[sl], y[sl], H[sl])
         converged = np.zeros(n, dtype=bool)
         tol_x = tol / abs(self.samp_scale)   # tolerances in pixels -> normalised units per axis
         tol_y = tol / abs(self.line_scale)
@@ -471,13 +475,113 @@ class RPCModel:
                      tol_m: float = 1e-4, max_iter: int = 30, full_output: bool = False):
         """Intersect the line of sight of image points with a DEM: ``(sample, line, dem) -> (lon, lat, h)``.
 
-        ``dem`` is a :class:`gdal_gf4cal.dem.DEM` or a constant height in metres. See
-        :func:`gdal_gf4cal.localization.localize_dem` for the algorithm (height iteration, then bracketing and
-        refinement where it oscillates on steep terrain).
+        ``dem`` is a :class:`gdal_gf4cal.dem.DEM` or a constant height in metres. The returned point satisfies
+        ``project(lon, lat, h) == (sample, line)`` to 1e-8 px and ``|DEM(lon, lat) - h| <= tol_m``; NaN where
+        there is no intersection (off the DEM, in a void), counted with ``full_output=True``.
+
+        Most points are solved by an RPC-specific fast path (the line of sight is linearised around one exact
+        localisation, the height is found on it with DEM samples only, then polished exactly); the rest go to
+        the generic :func:`gdal_gf4cal.localization.localize_dem` (height iteration, bracketing on steep terrain).
         """
+        from .dem import DEM
         from .localization import localize_dem
-        return localize_dem(self, sample, line, dem, pixel_convention=pixel_convention, tol_m=tol_m,
-                            max_iter=max_iter, full_output=full_output)
+        dem = DEM.coerce(dem)
+        if dem.is_constant:
+            return localize_dem(self, sample, line, dem, pixel_convention=pixel_convention, tol_m=tol_m,
+                                max_iter=max_iter, full_output=full_output)
+        sample, line = np.broadcast_arrays(_as_float_array(sample), _as_float_array(line))
+        shape = sample.shape
+        s, l = sample.ravel(), line.ravel()
+        lon, lat, h = self._localize_dem_fast(s, l, dem, self._pixel_shift(pixel_convention), tol_m)
+        todo = np.flatnonzero(~np.isfinite(h))
+        if todo.size:
+            lo, la, hh = localize_dem(self, s[todo], l[todo], dem, pixel_convention=pixel_convention, tol_m=tol_m,
+                                      max_iter=max_iter)
+            lon[todo], lat[todo], h[todo] = lo, la, hh
+        n_failed = int(np.count_nonzero(~np.isfinite(h)))
+        out = (_shape_out(lon, shape), _shape_out(lat, shape), _shape_out(h, shape))
+        return out + (n_failed,) if full_output else out
+
+    def _localize_dem_fast(self, s, l, dem, shift, tol_m, ray_iter: int = 12, polish_iter: int = 4):
+        """Fast path of :meth:`localize_dem`; NaN where it did not settle (the caller retries those)."""
+        n = s.size
+        lon_out, lat_out, h_out = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+        x = (s - shift - self.samp_off) / self.samp_scale
+        y = (l - shift - self.line_off) / self.line_scale
+        lo_dem, hi_dem = dem.height_range()
+        h_mid = 0.5 * (lo_dem + hi_dem) + 0.0 * x
+        Hm = (h_mid - self.height_off) / self.height_scale
+        with np.errstate(all="ignore"):
+            L, P, ok, _ = self._localize_normalised(x, y, Hm, 1e-8, 20)
+            d = self._normalised_jacobian(L, P, Hm, with_h=True)
+            a, b, c, e = d["x_L"], d["x_P"], d["y_L"], d["y_P"]
+            det = a * e - b * c
+            # Direction of the line of sight: d(L, P)/dH keeping (x, y) fixed.
+            dL = -(e * d["x_H"] - b * d["y_H"]) / det
+            dP = -(a * d["y_H"] - c * d["x_H"]) / det
+            k_lon = self.long_scale / self.height_scale
+            k_lat = self.lat_scale / self.height_scale
+            lon_m = L * self.long_scale + self.long_off
+            lat_m = P * self.lat_scale + self.lat_off
+
+            def ray(idx, hh):
+                dh = hh - h_mid[idx]
+                return lon_m[idx] + dL[idx] * k_lon * dh, lat_m[idx] + dP[idx] * k_lat * dh
+
+            # Stage A: f(h) = DEM(ray(h)) - h on the linearised ray, DEM samples only (fixed point, then secant).
+            idx = np.flatnonzero(ok)
+            h = h_mid.copy()
+            h_prev, f_prev = np.full(n, np.nan), np.full(n, np.nan)
+            slope = np.full(n, np.nan)
+            settled = np.zeros(n, dtype=bool)
+            for _ in range(ray_iter):
+                if idx.size == 0:
+                    break
+                hi = h[idx]
+                f = _dem_nan(dem, *ray(idx, hi)) - hi
+                fp, hp = f_prev[idx], h_prev[idx]
+                secant_slope = (f - fp) / (hi - hp)
+                has = np.isfinite(secant_slope) & (secant_slope != 0)
+                slope[idx[has]] = secant_slope[has]
+                step = np.where(has & (np.abs(f) < np.abs(fp)), -f / secant_slope, f)
+                done = np.abs(f) <= tol_m
+                settled[idx[done]] = True
+                good = ~done & np.isfinite(f) & (np.isnan(fp) | (np.abs(f) < 0.9 * np.abs(fp)))
+                f_prev[idx], h_prev[idx] = f, hi
+                h[idx[good]] = hi[good] + step[good]
+                idx = idx[good]
+            # Stage B: exact localisation at h by chord Newton (Jacobian of the mid-height solution, still accurate),
+            # starting from the ray; then Newton on h with the secant slope until |DEM - h| <= tol_m.
+            idx = np.flatnonzero(settled)
+            tol_x, tol_y = 1e-8 / abs(self.samp_scale), 1e-8 / abs(self.line_scale)
+            for _ in range(polish_iter):
+                if idx.size == 0:
+                    break
+                H = (h[idx] - self.height_off) / self.height_scale
+                Li = L[idx] + dL[idx] * (H - Hm[idx])
+                Pi = P[idx] + dP[idx] * (H - Hm[idx])
+                ai, bi, ci, ei, di = a[idx], b[idx], c[idx], e[idx], det[idx]
+                exact = np.zeros(idx.size, dtype=bool)
+                for _ in range(4):
+                    cx, cy = self._project_normalised(Li, Pi, H)
+                    rx, ry = x[idx] - cx, y[idx] - cy
+                    exact = (np.abs(rx) <= tol_x) & (np.abs(ry) <= tol_y)
+                    if exact.all():
+                        break
+                    Li += (ei * rx - bi * ry) / di
+                    Pi += (ai * ry - ci * rx) / di
+                lon_i = Li * self.long_scale + self.long_off
+                lat_i = Pi * self.lat_scale + self.lat_off
+                f = _dem_nan(dem, lon_i, lat_i) - h[idx]
+                done = exact & (np.abs(f) <= tol_m)
+                j = idx[done]
+                lon_out[j], lat_out[j], h_out[j] = lon_i[done], lat_i[done], h[j]
+                sl = slope[idx]
+                newton = np.where(np.isfinite(sl) & (sl != 0), -f / sl, f)
+                keep = ~done & np.isfinite(f)
+                h[idx[keep]] += newton[keep]
+                idx = idx[keep]
+        return lon_out, lat_out, h_out
 
     # ------------------------------------------------------------------ image-space corrections
     def with_image_affine(self, sample_shift: float = 0.0, line_shift: float = 0.0, sample_scale: float = 1.0,
@@ -500,6 +604,12 @@ class RPCModel:
                 f"{abs(self.lat_scale):.4f}, h={self.height_off:.1f}±{abs(self.height_scale):.1f}, "
                 f"size~{self.image_size[0]}x{self.image_size[1]}" + (f", source={self.source!r})" if self.source
                                                                     else ")"))
+
+
+def _dem_nan(dem, lon, lat):
+    """DEM heights with NaN off the DEM / in voids, whatever the DEM's own policy (used inside iterations)."""
+    from .localization import _dem_height_nan
+    return _dem_height_nan(dem, lon, lat)
 
 
 def _parse_number(value, key: str, where: str) -> float:

@@ -96,12 +96,28 @@ def test_nodata_policies(tmp_path):
     assert DEM.from_file(path).height(0.05 + 1.5, 1.5) == pytest.approx(50.0)
 
 
+def test_windowed_and_whole_raster_sampling_agree(tmp_path):
+    rng = np.random.default_rng(5)
+    arr = rng.normal(500, 100, (1500, 1300)).astype(np.float32)
+    arr[700:720, 600:640] = -32768
+    path = _write_dem(tmp_path / "r.tif", arr, (10.0, 0.001, 0, 46.0, 0, -0.001), nodata=-32768)
+    whole = DEM.from_file(path, nodata="nan")
+    tiled = DEM.from_file(path, nodata="nan")
+    tiled._whole_limit = 0
+    lon, lat = rng.uniform(9.999, 11.301, 20000), rng.uniform(44.499, 46.001, 20000)
+    a, b = whole.height(lon, lat), tiled.height(lon, lat)
+    np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+    assert np.isnan(a).any() and np.isfinite(a).mean() > 0.95
+    np.testing.assert_allclose(a[np.isfinite(a)], b[np.isfinite(b)], atol=1e-9)
+
+
 def test_windowed_reads_touch_only_needed_tiles(tmp_path):
     arr = np.arange(3000 * 3000, dtype=np.float32).reshape(3000, 3000)
     path = _write_dem(tmp_path / "big.tif", arr, (0.0, 0.001, 0, 3.0, 0, -0.001))
     dem = DEM.from_file(path)
+    dem._whole_limit = 1_000_000          # treat it as a large DEM (the real limit is 16 Mpx)
     dem.height(np.array([0.1, 0.2]), np.array([2.9, 2.8]))
-    assert len(dem._cache) == 1                       # one 1024 px tile, not the 9 Mpx raster
+    assert len(dem._cache) == 1 and dem._whole is None   # one 1024 px tile, not the raster
 
 
 def test_bad_inputs(tmp_path):
