@@ -45,12 +45,17 @@ venv install: system $(STAMP)
 
 demo: install
 	$(VENV)/bin/gf4cal info tests/data/rpc/RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML --dem tests/data/dem/N44E005.hgt --geoid egm96
+	$(VENV)/bin/gf4cal experiment gf4 --out $(DEMO_OUT)/gf4
+	@echo "Demo outputs (report.json, residual plots, GeoPackage, RPCs) are in $(DEMO_OUT)/gf4"
 
 test: install
 	$(PY) -m pytest -q -p no:cacheprovider tests
 
 test-engine: install
 	$(PY) -m pytest -q -p no:cacheprovider tests --ignore=tests/qgis
+
+test-qgis: install
+	$(PY) -m pytest -q -p no:cacheprovider tests/qgis
 
 plugin: install
 	$(PY) tools/build_plugin.py

@@ -21,6 +21,10 @@ from .dem import DEM
 from .camera import LookAngleModel
 from .gcp import make_gcps, read_gcps, write_gcps
 from .rpc_fit import FitReport, fit_rpc, fit_rpc_from_model
+from .lookangle import LookAngleCalibration, calibrate_lookangle, compare_lookangle, recalibrate_rpc
+from .compensation import (CompensatedRPC, CompensationModel, CompensationResult, apply_compensation,
+                           fit_compensation, refine_rpc)
+from .intersection import IntersectionResult, intersect
 
 __version__ = "0.1.0"
 
@@ -29,4 +33,7 @@ __all__ = [
     "InputOverwriteError", "RPCFormatError", "__version__",
     "RPCModel", "read_rpc_metadata", "write_rpc_vrt", "DEM", "LookAngleModel", "make_gcps", "read_gcps", "write_gcps",
     "FitReport", "fit_rpc", "fit_rpc_from_model",
+    "LookAngleCalibration", "calibrate_lookangle", "compare_lookangle", "recalibrate_rpc",
+    "CompensatedRPC", "CompensationModel", "CompensationResult", "apply_compensation", "fit_compensation",
+    "refine_rpc", "IntersectionResult", "intersect",
 ]

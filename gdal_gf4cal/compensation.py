@@ -28,11 +28,12 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .errors import ConvergenceError, DegenerateGeometryError, GCPError, Gf4calError, InputOverwriteError
+from .errors import DegenerateGeometryError, GCPError, Gf4calError, InputOverwriteError
 
 __all__ = [
     "MODEL_NAMES", "CompensationModel", "CompensationResult", "CompensatedRPC", "AppliedCompensation",
-    "fit_compensation", "apply_compensation", "write_refined_rpc", "ground_offsets_m",
+    "fit_compensation", "apply_compensation", "write_refined_rpc", "refine_rpc", "ground_offsets_m",
+    "accuracy_by_role", "output_kind",
 ]
 
 #: Model names accepted by :meth:`CompensationModel.from_name` (and ``gf4cal refine --model``).
@@ -183,7 +184,8 @@ class CompensationResult:
         A-posteriori standard deviation of unit weight (sample, line); a GCP with ``sigma = 1`` px has it in px.
     gcps : pandas.DataFrame
         The input table with added columns ``pred_sample_before, pred_line_before`` (RPC), ``res_sample_before,
-        res_line_before``, ``pred_sample, pred_line, res_sample, res_line`` (corrected), ``norm_res_sample,
+        res_line_before``, ``pred_sample_after, pred_line_after, res_sample_after, res_line_after`` (corrected),
+        ``norm_res_sample,
         norm_res_line`` (residual / its standard deviation), ``outlier`` (bool), ``used`` (in the estimate),
         and with ``leave_one_out=True`` ``res_sample_loo, res_line_loo``. Residuals are measured - predicted, px.
     redundancy : int
@@ -204,6 +206,25 @@ class CompensationResult:
     iterations: int = 0
     condition_number: float = 1.0
     notes: List[str] = field(default_factory=list)
+
+    @classmethod
+    def from_coefficients(cls, model, frame: Sequence[float], coef_sample, coef_line) -> "CompensationResult":
+        """A known correction (no GCPs): ``coef_*`` for the terms of ``model.terms`` in px, ``frame`` as above.
+
+        Useful to apply a correction estimated elsewhere, or to simulate a biased RPC from a true one.
+        """
+        import pandas as pd
+        if not isinstance(model, CompensationModel):
+            model = CompensationModel.from_name(model)
+        ts, tl = model.terms
+        cs, cl = np.asarray(coef_sample, float).ravel(), np.asarray(coef_line, float).ravel()
+        if cs.size != len(ts) or cl.size != len(tl):
+            raise GCPError(f"model {model.label!r} has {len(ts)} sample and {len(tl)} line terms; got "
+                           f"{cs.size} and {cl.size} coefficients")
+        cols = ["id", "lon", "lat", "h", "sample", "line", "role", "outlier"]
+        return cls(model=model, frame=tuple(float(x) for x in frame), coef_sample=cs, coef_line=cl,
+                   cov_sample=np.zeros((cs.size, cs.size)), cov_line=np.zeros((cl.size, cl.size)),
+                   sigma0_px=(0.0, 0.0), gcps=pd.DataFrame({c: [] for c in cols}))
 
     # -- evaluating the correction -----------------------------------------------------------------------------
     def _uv(self, sample, line):
@@ -309,7 +330,7 @@ class CompensationResult:
         out["outliers"] = [
             {"id": str(r["id"]), "role": str(r["role"]),
              "norm_res_sample": _f(r["norm_res_sample"]), "norm_res_line": _f(r["norm_res_line"]),
-             "res_sample_px": _f(r["res_sample"]), "res_line_px": _f(r["res_line"])}
+             "res_sample_px": _f(r["res_sample_after"]), "res_line_px": _f(r["res_line_after"])}
             for _, r in self.outliers.iterrows()]
         out["notes"] = list(self.notes)
         return out
@@ -382,9 +403,9 @@ def accuracy_by_role(gcps, rpc=None) -> Dict[str, Any]:
     for name in ("control", "check"):
         sel = (role == name) & ~outl
         entry: Dict[str, Any] = {"n_outliers": int(((role == name) & outl).sum())}
-        for when, suf in (("before", "_before"), ("after", "")):
-            rs = gcps[f"res_sample{suf}"].to_numpy(float)[sel]
-            rl = gcps[f"res_line{suf}"].to_numpy(float)[sel]
+        for when in ("before", "after"):
+            rs = gcps[f"res_sample_{when}"].to_numpy(float)[sel]
+            rl = gcps[f"res_line_{when}"].to_numpy(float)[sel]
             st: Dict[str, Any] = {"n": int(sel.sum()), "line": _axis_stats(rl), "sample": _axis_stats(rs)}
             ce = None
             if rpc is not None and sel.any():
@@ -449,14 +470,25 @@ def _solve_axis(a, y, w):
     return coef, n_inv
 
 
-def _check_rank(a_list, model: CompensationModel, n_ctrl: int) -> float:
-    """Raise DegenerateGeometryError if any axis design is rank deficient; return the worst condition number."""
+def _check_rank(a_list, model: CompensationModel, n_ctrl: int, terms=None) -> float:
+    """Raise DegenerateGeometryError if the control layout does not determine the model over the image.
+
+    Two tests per axis: the column-equilibrated design is (numerically) rank deficient, or GCP noise would be
+    amplified more than ``_MAX_AMPLIFICATION`` times at the image corners (u, v = +-1), e.g. GCPs spread over one
+    pixel in line for a model with a line drift. Returns the worst condition number.
+    """
     worst = 1.0
-    for a in a_list:
+    amp = 0.0
+    corners = np.array([[-1.0, -1.0], [1.0, -1.0], [-1.0, 1.0], [1.0, 1.0], [0.0, 0.0]])
+    for k, a in enumerate(a_list):
         sv = np.linalg.svd(a / np.maximum(np.linalg.norm(a, axis=0), 1e-300), compute_uv=False)
         cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
         worst = max(worst, cond)
-    if worst > 1e8:
+        if terms is not None and math.isfinite(cond) and cond < 1e8:
+            q = _monomials(terms[k], corners[:, 0], corners[:, 1])
+            n_inv = np.linalg.pinv(a.T @ a, hermitian=True)
+            amp = max(amp, float(np.sqrt(np.max(np.einsum("ij,jk,ik->i", q, n_inv, q)))))
+    if worst > 1e8 or amp > _MAX_AMPLIFICATION:
         hint = {"translation": "", "shift-drift": " (both axes need GCPs at different lines and samples)",
                 "affine": " (the GCPs are collinear)", "poly2": " (the GCPs lie on one line or conic)",
                 "detector-poly": " (too few distinct detector positions)"}[model.name]
@@ -464,6 +496,10 @@ def _check_rank(a_list, model: CompensationModel, n_ctrl: int) -> float:
             f"the {n_ctrl} control GCPs do not determine model {model.label!r}{hint}; spread GCPs over the image "
             f"or choose a simpler model")
     return worst
+
+
+#: Largest tolerated amplification of GCP noise at the image corners before a layout counts as degenerate.
+_MAX_AMPLIFICATION = 1000.0
 
 
 def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, along: Optional[str] = None,
@@ -537,7 +573,7 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
     if n_ctrl < model.min_gcps:
         raise GCPError(f"model {model.label!r} needs at least {model.min_gcps} control GCP(s), got {n_ctrl}; add "
                        f"control points or choose a simpler model (translation needs 1)")
-    cond = _check_rank([a_s[ctrl], a_l[ctrl]], model, n_ctrl)
+    cond = _check_rank([a_s[ctrl], a_l[ctrl]], model, n_ctrl, (ts, tl))
     w0 = 1.0 / tab["sigma"].to_numpy(float) ** 2
     p_s, p_l = a_s.shape[1], a_l.shape[1]
     notes: List[str] = []
@@ -591,7 +627,7 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
         notes.append(f"no robust estimation: redundancy {max(redundancy_min, 0)} is too small to detect blunders")
 
     try:
-        _check_rank([a_s[used], a_l[used]], model, int(used.sum()))
+        _check_rank([a_s[used], a_l[used]], model, int(used.sum()), (ts, tl))
     except DegenerateGeometryError:
         used = ctrl.copy()
         notes.append("rejecting blunders would leave the model undetermined; all control points kept")
@@ -606,8 +642,8 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
     ds, dl = a_s @ cs, a_l @ cl
     tab["pred_sample_before"], tab["pred_line_before"] = s_pred, l_pred
     tab["res_sample_before"], tab["res_line_before"] = y_s, y_l
-    tab["pred_sample"], tab["pred_line"] = s_pred + ds, l_pred + dl
-    tab["res_sample"], tab["res_line"] = y_s - ds, y_l - dl
+    tab["pred_sample_after"], tab["pred_line_after"] = s_pred + ds, l_pred + dl
+    tab["res_sample_after"], tab["res_line_after"] = y_s - ds, y_l - dl
     tab["norm_res_sample"], tab["norm_res_line"] = norm_s, norm_l
     tab["outlier"] = outlier
     tab["used"] = used
@@ -721,8 +757,9 @@ def _fold(rpc, result: CompensationResult):
     cl_ = coef["line"].get((0, 0), 0.0) - coef["line"].get((0, 1), 0.0) * l0 / ls
     ml = 1.0 + coef["line"].get((0, 1), 0.0) / ls
     # Raw RPC pixels are GDAL - 0.5:  raw_new = c + m (raw' + 0.5) - 0.5 = OFF_new + SCALE_new * r.
+    extra = {"source": None} if any(f.name == "source" for f in dataclasses.fields(rpc)) else {}
     return dataclasses.replace(
-        rpc,
+        rpc, **extra,
         samp_off=float(cs_ + ms * (float(rpc.samp_off) + 0.5) - 0.5), samp_scale=float(ms * float(rpc.samp_scale)),
         line_off=float(cl_ + ml * (float(rpc.line_off) + 0.5) - 0.5), line_scale=float(ml * float(rpc.line_scale)))
 
@@ -738,37 +775,13 @@ def apply_compensation(rpc, result: CompensationResult, *, image_size: Optional[
     """
     if result.model.foldable:
         return AppliedCompensation(rpc=_fold(rpc, result), exact=True)
-    from . import rpc_fit
+    from .rpc_fit import fit_rpc_from_model
     comp = CompensatedRPC(rpc, result)
-    kw = dict(fit_kw)
-    if image_size is not None:
-        kw.setdefault("image_size", tuple(int(x) for x in image_size))
-    if progress is not None:
-        kw.setdefault("progress", progress)
-    new_rpc, report = rpc_fit.fit_rpc_from_model(comp, rpc, **kw) if _takes_template() else \
-        rpc_fit.fit_rpc_from_model(comp, **kw)
-    mx, rms = _report_errors(report)
-    return AppliedCompensation(rpc=new_rpc, exact=False, refit_max_px=mx, refit_rms_px=rms, fit_report=report)
-
-
-def _takes_template() -> bool:
-    import inspect
-    from . import rpc_fit
-    params = list(inspect.signature(rpc_fit.fit_rpc_from_model).parameters)
-    return len(params) > 1 and params[1] in ("rpc", "template", "like", "reference")
-
-
-def _report_errors(report) -> Tuple[float, float]:
-    """Max and RMS check error (px) from a FitReport, whatever its field names."""
-    for mx_name, rms_name in (("check_max_px", "check_rms_px"), ("max_check_px", "rms_check_px"),
-                              ("max_px", "rms_px")):
-        if hasattr(report, mx_name):
-            return float(getattr(report, mx_name)), float(getattr(report, rms_name, np.nan))
-    if isinstance(report, dict):
-        for k in ("check_max_px", "max_check_px", "max_px"):
-            if k in report:
-                return float(report[k]), float(report.get(k.replace("max", "rms"), np.nan))
-    raise Gf4calError("cannot read the refit error from rpc_fit's report")
+    size = tuple(image_size) if image_size is not None else tuple(rpc.image_size)
+    fit_kw.setdefault("height_range", tuple(rpc.height_range))
+    new_rpc, report = fit_rpc_from_model(comp, size=size, progress=progress, **fit_kw)
+    return AppliedCompensation(rpc=new_rpc, exact=False, refit_max_px=float(report.max_px),
+                               refit_rms_px=float(report.rms_px), fit_report=report)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -805,17 +818,135 @@ def write_refined_rpc(rpc, out_path: str, *, image: Optional[str] = None, inputs
     for src in list(inputs) + ([image] if image else []):
         if src and (_same_file(out_path, src) or os.path.abspath(out_path) == os.path.abspath(str(src))):
             raise InputOverwriteError(f"output {out_path!r} is an input; choose a new output path")
-    if os.path.exists(out_path):
-        if not overwrite:
-            raise InputOverwriteError(f"output {out_path!r} exists; remove it or choose a new path")
-        os.remove(out_path)
+    if os.path.exists(out_path) and not overwrite:
+        raise InputOverwriteError(f"output {out_path!r} exists; remove it or choose a new path")
     if kind == "vrt":
         if not image:
             raise GCPError("a .vrt output needs an image input; for an RPC file write .RPB or _RPC.TXT")
         from .rpc_io import write_rpc_vrt
-        write_rpc_vrt(image, rpc, out_path)
+        write_rpc_vrt(image, rpc, out_path, overwrite=overwrite)
     elif kind == "rpb":
-        rpc.write_rpb(out_path)
+        rpc.write_rpb(out_path, overwrite=overwrite)
     else:
-        rpc.write_rpc_txt(out_path)
+        rpc.write_rpc_txt(out_path, overwrite=overwrite)
     return out_path
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the whole job: read, estimate, apply, write, report (what `gf4cal refine` and the QGIS algorithm call)
+# ----------------------------------------------------------------------------------------------------------------
+def _open_image(path: str):
+    """``((width, height), files)`` if GDAL opens ``path`` as a raster with pixels (``files``: the image and its
+    sidecars, all inputs), else ``(None, [path])`` (a standalone RPC file)."""
+    from osgeo import gdal
+    gdal.UseExceptions()
+    low = str(path).lower()
+    if low.endswith((".rpb", "_rpc.txt", ".txt", ".json", ".geom")):
+        return None, [str(path)]
+    try:
+        gdal.PushErrorHandler("CPLQuietErrorHandler")
+        try:
+            ds = gdal.Open(str(path))
+        finally:
+            gdal.PopErrorHandler()
+    except RuntimeError:
+        return None, [str(path)]
+    if ds is None or ds.RasterCount == 0 or ds.RasterXSize <= 1:
+        return None, [str(path)]
+    return (ds.RasterXSize, ds.RasterYSize), [str(path)] + list(ds.GetFileList() or [])
+
+
+def refine_rpc(source: str, gcps, model="affine", *, out: str, order: Optional[int] = None,
+               along: Optional[str] = None, ccd_axis: str = "sample", dem=None, geoid=None, gcp_crs=None,
+               check_fraction: Optional[float] = None, seed: int = 0, leave_one_out: bool = False,
+               robust: bool = True, outlier_threshold: float = 4.0, report: Optional[str] = None,
+               residuals: Optional[str] = None, plot: Optional[str] = None, overwrite: bool = False,
+               progress=None) -> Dict[str, Any]:
+    """Refine the RPC of an image or sidecar with GCPs and write it (METHODS §4, §6); ``gf4cal refine``.
+
+    Parameters
+    ----------
+    source : image with an RPC (tags, .RPB, _RPC.TXT, NITF, ...) or a standalone RPC file
+    gcps : path of a GCP file (CSV, GeoPackage/GeoJSON in any CRS, QGIS .points, raster with GCPs) or a table
+    model, order, along, ccd_axis, robust, outlier_threshold, leave_one_out : see :func:`fit_compensation`
+    dem : DEM path / :class:`~gdal_gf4cal.dem.DEM` / number; supplies missing GCP heights (``geoid`` converts
+        geoid heights to ellipsoidal ones)
+    check_fraction : if given, that share of the GCPs becomes check points (seeded with ``seed``, spread over the
+        image); otherwise the file's roles are used (all control if it has none)
+    out : ``.RPB``, ``_RPC.TXT`` or (image input only) ``.vrt`` over the untouched image; never an input
+    report, residuals, plot : optional ``report.json``, residual GeoPackage and PNG
+
+    Returns
+    -------
+    dict
+        The report (also written to ``report``): ``model``, ``control``/``check`` with ``before``/``after``
+        statistics, ``outliers``, ``apply`` (fold or refit and its error), ``outputs``.
+    """
+    from . import progress as _progress
+    from .dem import DEM
+    from .gcp_formats import assign_roles, read_gcps_any
+    from .rpc import RPCModel
+
+    source = os.fspath(source)
+    out = os.fspath(out)
+    kind = output_kind(out)
+    image_size, inputs = _open_image(source)
+    inputs += [os.fspath(gcps)] if isinstance(gcps, (str, os.PathLike)) else []
+    for p in [out] + [os.fspath(x) for x in (report, residuals, plot) if x]:
+        if any(os.path.abspath(p) == os.path.abspath(i) or _same_file(p, i) for i in inputs):
+            raise InputOverwriteError(f"output {p!r} is an input; choose a new output path")
+    if kind == "vrt" and image_size is None:
+        raise GCPError(f"{source} is not an image: write the refined RPC as .RPB or _RPC.TXT, or give the image "
+                       "to get a .vrt")
+    if os.path.exists(out) and not overwrite:
+        raise InputOverwriteError(f"output {out!r} exists; remove it or choose a new path")
+    _progress.report(progress, 0.0, "reading the RPC and GCPs")
+    rpc = RPCModel.from_file(source)
+    dem_obj = None
+    if dem is not None:
+        dem_obj = DEM.from_file(dem, geoid=geoid) if isinstance(dem, (str, os.PathLike)) else DEM.coerce(dem)
+    if isinstance(gcps, (str, os.PathLike)):
+        table = read_gcps_any(os.fspath(gcps), dem=dem_obj, crs=gcp_crs,
+                              image=source if image_size is not None else None)
+    else:
+        from .gcp import validate_gcps
+        table = validate_gcps(gcps, dem=dem_obj)
+    table = assign_roles(table, check_fraction, seed=seed)
+    _progress.report(progress, 0.1, "estimating the compensation")
+    result = fit_compensation(rpc, table, model, order=order, along=along, ccd_axis=ccd_axis, dem=dem_obj,
+                              robust=robust, outlier_threshold=outlier_threshold, leave_one_out=leave_one_out)
+    _progress.report(progress, 0.2, "applying the compensation")
+    applied = apply_compensation(rpc, result, image_size=image_size,
+                                 progress=_progress.scaled(progress, 0.2, 0.9))
+    write_refined_rpc(applied.rpc, out, image=source if kind == "vrt" else None, inputs=inputs,
+                      overwrite=overwrite)
+    rep: Dict[str, Any] = {"input": source, "gcps": os.fspath(gcps) if isinstance(gcps, (str, os.PathLike))
+                           else None, "output": out}
+    rep.update(result.to_dict(rpc))
+    rep["apply"] = applied.to_dict()
+    if leave_one_out:
+        tab = result.gcps
+        sel = (tab["role"] == "control").to_numpy() & ~tab["outlier"].to_numpy(bool)
+        rep["leave_one_out"] = {"n": int(sel.sum()),
+                                "line": _axis_stats(tab["res_line_loo"].to_numpy(float)[sel]),
+                                "sample": _axis_stats(tab["res_sample_loo"].to_numpy(float)[sel])}
+    outputs = {"rpc": out}
+    if residuals:
+        from .report import footprint_from_rpc, write_residuals_gpkg
+        try:
+            fp = footprint_from_rpc(applied.rpc, image_size or rpc.image_size, h=float(rpc.height_off))
+        except Gf4calError:
+            fp = None
+        write_residuals_gpkg(result.gcps, residuals, footprint=fp, title=f"GCP residuals, {result.model.label}")
+        outputs["residuals"] = os.fspath(residuals)
+    if plot:
+        from .report import plot_residuals
+        plot_residuals(result.gcps, plot, image_size=image_size, title=f"GCP residuals, {result.model.label}")
+        outputs["plot"] = os.fspath(plot)
+    rep["outputs"] = outputs
+    if report:
+        from .report import write_report_json
+        outputs["report"] = os.fspath(report)
+        write_report_json(rep, report)
+    _progress.report(progress, 1.0, "done")
+    return rep

@@ -33,7 +33,8 @@ from .progress import report, scaled
 
 __all__ = [
     "LookAngleCalibration", "LookAngleConditionWarning", "calibrate_lookangle", "recalibrate_rpc",
-    "compare_lookangle", "lookangle_monomials", "MIN_GCPS",
+    "compare_lookangle", "lookangle_monomials", "layout_condition", "RecalibratedSensor", "MIN_GCPS",
+    "calibrate_lookangle_files", "apply_calibration", "calibrate_lookangle_rigorous",
 ]
 
 #: Exponents ``(p, q)`` of ``s^p l^q`` for the 10 terms, in the camera file's order
@@ -52,6 +53,7 @@ WARN_CONDITION = 1e4
 _HUBER_C = 2.5        # radial normalised residual where Huber down-weighting starts
 _REJECT_K = 4.0       # hard rejection; P(Rayleigh > 4 sigma) = 3e-4, so ~no good point is lost
 _RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))   # median of |r|/sigma for a 2-D normal residual
+_MIN_SCALE_PX = 0.01  # floor of the robust scale in pixels (an RPC reproduces its model to ~1e-3 px)
 _MIN_ROBUST_GCPS = 20  # below this the redundancy is too small to estimate a robust scale
 
 
@@ -129,50 +131,13 @@ def _with_coefficients(template, x, y, name: Optional[str] = None):
     return cls(**kwargs)
 
 
-def _invert(camera, tx, ty, s_guess, l_guess, *, tol_px: float = 1e-9, max_iter: int = 30):
-    """Detector ``(s, l)`` with ``camera.tan_angles(s, l) == (tx, ty)``: 2-D Newton seeded at a nearby guess.
-
-    Vectorised; NaN where it does not converge. The seed (the virtual or measured point) is within a few pixels,
-    so Newton converges in 2-3 steps even with strong distortion.
-    """
-    s = np.array(s_guess, dtype=float, copy=True)
-    l = np.array(l_guess, dtype=float, copy=True)
-    tx = np.asarray(tx, dtype=float)
-    ty = np.asarray(ty, dtype=float)
-    active = np.isfinite(s) & np.isfinite(l) & np.isfinite(tx) & np.isfinite(ty)
-    done = ~active
-    for _ in range(max_iter):
-        idx = np.flatnonzero(~done)
-        if idx.size == 0:
-            break
-        fx, fy = camera.tan_angles(s[idx], l[idx])
-        J = camera.jacobian(s[idx], l[idx])
-        ex, ey = tx[idx] - fx, ty[idx] - fy
-        det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ds = (J[..., 1, 1] * ex - J[..., 0, 1] * ey) / det
-            dl = (-J[..., 1, 0] * ex + J[..., 0, 0] * ey) / det
-        s[idx] += ds
-        l[idx] += dl
-        bad = ~(np.isfinite(ds) & np.isfinite(dl))
-        conv = (np.abs(ds) < tol_px) & (np.abs(dl) < tol_px)
-        done[idx[conv | bad]] = True
-        s[idx[bad]] = np.nan
-        l[idx[bad]] = np.nan
-    s[~done] = np.nan
-    l[~done] = np.nan
-    s[~active] = np.nan
-    l[~active] = np.nan
-    return s, l
-
-
 def _inverse_jacobian(camera, s, l) -> np.ndarray:
     """``(N, 2, 2)`` d(s, l)/d(tan_x, tan_y) at detector points."""
     return np.linalg.inv(np.asarray(camera.jacobian(s, l), dtype=float).reshape(-1, 2, 2))
 
 
-def _design(camera, frame: _Frame, s, l) -> np.ndarray:
-    """``(N, 2, 20)`` d(predicted s, l)/d(normalised coefficients), up to sign: ``J^-1 · blockdiag(m(u, v))``.
+def _design(camera, frame: _Frame, s, l) -> Tuple[np.ndarray, np.ndarray]:
+    """``(N, 2, 20)`` d(residual s, l)/d(normalised coefficients) ``= J^-1 · blockdiag(m(u, v))``, and ``J^-1``.
 
     With ``tan_new(p) = V`` fixed, ``dp = -J^-1 m dalpha``; residuals are ``measured - p`` so ``dr = +J^-1 m dalpha``.
     """
@@ -181,7 +146,7 @@ def _design(camera, frame: _Frame, s, l) -> np.ndarray:
     A = np.empty((m.shape[0], 2, 20))
     A[:, :, :10] = Jinv[:, :, 0:1] * m[:, None, :]
     A[:, :, 10:] = Jinv[:, :, 1:2] * m[:, None, :]
-    return A
+    return A, Jinv
 
 
 def layout_condition(sample, line, size, weights=None) -> float:
@@ -264,6 +229,23 @@ class LookAngleCalibration:
         """Standard deviations of ``[a0..a9, b0..b9]`` (raw units)."""
         return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
 
+    def precision_px(self, grid_px: float = 250.0) -> Dict[str, Dict[str, float]]:
+        """Propagated standard deviation of the new camera's look angles over the whole array, in pixels.
+
+        ``J^-1 m(u, v)`` times the covariance, on a ``grid_px`` grid: ``{"sample"|"line": {"rms", "max"}}``. The
+        RMS is the least-squares floor the recalibrated RPC can reach with these GCPs (``~sigma sqrt(10 / n)`` for
+        points spread uniformly; larger where the layout leaves corners uncovered, which ``max`` shows).
+        """
+        frame = _Frame.of(self.camera)
+        width, height = (float(v) for v in self.camera.size)
+        S, L = (a.ravel() for a in np.meshgrid(np.arange(grid_px / 2, width, grid_px),
+                                                np.arange(grid_px / 2, height, grid_px)))
+        A, _ = _design(self.camera, frame, S, L)
+        var = np.einsum("nij,jk,nik->ni", A, self.covariance_normalised, A)
+        sd = np.sqrt(np.clip(var, 0.0, None))
+        return {axis: {"rms": float(np.sqrt(np.mean(var[:, k]))), "max": float(np.max(sd[:, k]))}
+                for k, axis in enumerate(("sample", "line"))}
+
     def to_dict(self) -> Dict[str, Any]:
         """JSON-friendly summary (for report.json)."""
         return {
@@ -281,6 +263,7 @@ class LookAngleCalibration:
             "check": self.check_stats,
             "camera_new": {"x": [float(v) for v in self.camera.x], "y": [float(v) for v in self.camera.y]},
             "coefficient_std": [float(v) for v in self.coefficient_std],
+            "precision_px": self.precision_px(),
             "warnings": list(self.warnings),
         }
 
@@ -309,20 +292,91 @@ def _gcp_columns(gcps):
 
 
 def _robust_weights(r: np.ndarray, sigma: np.ndarray, n_params: int):
-    """Huber weights, hard rejection and the robust scale from radial normalised residuals (control only).
+    """Huber weights, hard-rejection mask, robust scale and normalised radial residuals (control points).
 
-    Returns (weights, outlier mask, robust sigma of unit weight, normalised radial residuals).
+    The scale is MAD-like: the median radial residual ``|r| / sigma`` of a 2-D normal residual is
+    ``sqrt(2 ln 2)`` sigma; it is corrected for the parameters' absorption of residual degrees of freedom.
     """
-    radial = np.hypot(r[:, 0], r[:, 1]) / sigma
+    radial_px = np.hypot(r[:, 0], r[:, 1])
+    radial = radial_px / sigma
     n_obs = 2 * radial.size
-    # MAD-type scale of a 2-D residual (median of a Rayleigh), corrected for the fitted parameters' absorption.
     scale = float(np.median(radial)) / _RAYLEIGH_MEDIAN * math.sqrt(n_obs / max(n_obs - n_params, 1))
     scale = max(scale, 1e-12)
-    z = radial / scale
+    # Residuals below the RPC's own fitting accuracy (~0.01 px) are never evidence of a blunder, however small
+    # the scale of noise-free data is.
+    z = radial_px / np.maximum(sigma * scale, _MIN_SCALE_PX)
     w = np.where(z <= _HUBER_C, 1.0, _HUBER_C / np.maximum(z, 1e-300))
-    outlier = z > _REJECT_K
-    w[outlier] = 0.0
-    return w, outlier, scale, z
+    return w, z > _REJECT_K, scale, z
+
+
+def _solve_normal(A2: np.ndarray, w2: np.ndarray, r2: np.ndarray, hint: str) -> Tuple[np.ndarray, np.ndarray]:
+    """Weighted least squares ``min |sqrt(w) (r + A delta)|``: returns delta and the normal matrix (column-scaled
+    solve for conditioning)."""
+    Aw = A2 * w2[:, None]
+    N = Aw.T @ A2
+    b = Aw.T @ r2
+    d = np.sqrt(np.diag(N))
+    if not np.all(d > 0):
+        raise DegenerateGeometryError(f"condition number inf: {hint}")
+    try:
+        delta = -np.linalg.solve(N / d[:, None] / d[None, :], b / d) / d
+    except np.linalg.LinAlgError:
+        raise DegenerateGeometryError(f"condition number inf (singular normal matrix): {hint}") from None
+    return delta, N
+
+
+@dataclass
+class _RobustSolution:
+    delta: np.ndarray
+    N: np.ndarray
+    weights: np.ndarray      # robust factor per point (0 = rejected)
+    outlier: np.ndarray
+    scale: float
+    z: np.ndarray
+    steps: int
+
+
+def _robust_solve(A: np.ndarray, r0: np.ndarray, w_base: np.ndarray, sigma: np.ndarray, robust: bool,
+                  hint: str, tol_px: float = 1e-6, max_steps: int = 100) -> _RobustSolution:
+    """Solve the linearised problem ``r(delta) = r0 + A delta`` (pixels) by IRLS.
+
+    Phase 1: Huber reweighting (bounded influence, no rejection) to convergence, so the scale and residuals are
+    not distorted by the blunders' pull on a plain least-squares fit. Phase 2: hard rejection at 4 robust sigmas,
+    Huber on the rest, until the outlier set is stable and the solution no longer moves (METHODS §5 step 3).
+    """
+    n = r0.shape[0]
+    A2 = A.reshape(2 * n, -1)
+    r2 = r0.reshape(2 * n)
+    rw = np.ones(n)
+    delta, N = _solve_normal(A2, (w_base * rw[:, None]).reshape(-1), r2, hint)
+    outlier = np.zeros(n, bool)
+    z = np.full(n, np.nan)
+    scale = float("nan")
+    steps = 1
+    if not robust:
+        return _RobustSolution(delta, N, rw, outlier, scale, z, steps)
+    phase = 1
+    for _ in range(max_steps):
+        r = r0 + np.einsum("nij,j->ni", A, delta)
+        hub, out, scale, z = _robust_weights(r, sigma, A.shape[-1])
+        if phase == 1:
+            out = np.zeros(n, bool)
+        rw_new = np.where(out, 0.0, hub)
+        if int((~out).sum()) < MIN_GCPS:
+            raise GCPError(f"only {int((~out).sum())} control GCPs left after rejecting outliers; the GCPs are "
+                           "inconsistent (check the camera file and the RPC belong to this scene)")
+        new_delta, N = _solve_normal(A2, (w_base * rw_new[:, None]).reshape(-1), r2, hint)
+        steps += 1
+        change = float(np.max(np.abs(np.einsum("nij,j->ni", A, new_delta - delta))))
+        stable = np.array_equal(out, outlier)
+        delta, rw, outlier = new_delta, rw_new, out
+        if change < tol_px and stable:
+            if phase == 2:
+                break
+            phase = 2
+    r = r0 + np.einsum("nij,j->ni", A, delta)
+    _, _, scale, z = _robust_weights(r, sigma, A.shape[-1])
+    return _RobustSolution(delta, N, rw, outlier, scale, z, steps)
 
 
 # ---------------------------------------------------------------------------------------------------- calibrate
@@ -340,10 +394,11 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
         optional ``role`` ('control' rows are used, 'check' rows are only evaluated), ``sigma`` (px), ``id``.
     current : :class:`~gdal_gf4cal.camera.LookAngleModel`, the camera the RPC was made with (initial values).
     weights : optional per-GCP weights ``(N,)`` or ``(N, 2)`` (sample, line) replacing ``1 / sigma²``.
-    max_iter : iteration limit; ``ConvergenceError`` if not converged (corrections still above ``tol_px``).
-    robust : Huber reweighting then hard rejection at 4 robust sigmas (MAD scale of the radial residual).
+    max_iter : Gauss-Newton iteration limit; ``ConvergenceError`` if the correction is still above ``tol_px``.
+    robust : robust reweighting inside each iteration: Huber, then hard rejection at 4 robust sigmas (MAD-type
+        scale of the radial residual); flagged points get ``outlier=True``.
     progress : ``progress(fraction, message)``; may raise CancelledError.
-    tol_px : convergence: the largest change of a predicted control point in one iteration, px.
+    tol_px : convergence: largest change of a predicted control point in one iteration, px.
     max_condition : refuse layouts whose :func:`layout_condition` exceeds it (DegenerateGeometryError).
 
     Returns
@@ -351,6 +406,14 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
     LookAngleCalibration
         Residuals ``after`` are exact: ``(s, l) - tan_new^-1(tan_old(RPC(ground)))``, i.e. the ground point
         re-projected through the recalibrated model, in pixels.
+
+    Notes
+    -----
+    Each Gauss-Newton iteration linearises the pixel residual at the measured points,
+    ``r = J^-1 (tan_new(s, l) - V)`` with ``J = d tan / d(s, l)`` of the current estimate: linear in the 20
+    coefficients for a fixed ``J``, so the robust reweighting runs on that linear problem, and the next iteration
+    only refreshes ``J`` (the correction drops by ~1e3 per iteration). The unknowns are the coefficients of the
+    frame-normalised basis (``u, v`` in [-1, 1]); the result is converted exactly to raw detector numbers.
 
     Raises
     ------
@@ -365,8 +428,8 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
     sv = np.asarray(sv, dtype=float).reshape(n)
     lv = np.asarray(lv, dtype=float).reshape(n)
     obs = np.column_stack([cols["sample"], cols["line"]])
-    usable = np.isfinite(sv) & np.isfinite(lv) & np.all(np.isfinite(obs), axis=1) & np.isfinite(
-        cols["h"]) & np.isfinite(cols["lon"]) & np.isfinite(cols["lat"])
+    usable = (np.isfinite(sv) & np.isfinite(lv) & np.all(np.isfinite(obs), axis=1) & np.isfinite(cols["h"])
+              & np.isfinite(cols["lon"]) & np.isfinite(cols["lat"]))
     ctrl = control & usable
     n_ctrl = int(ctrl.sum())
     if n_ctrl < MIN_GCPS:
@@ -398,125 +461,90 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
     to_raw, to_norm = frame.to_raw, frame.to_norm
     cx, cy = _coefficients(current)
     alpha = np.concatenate([to_norm @ cx, to_norm @ cy])
-    Vx, Vy = current.tan_angles(sv[usable], lv[usable])
-    Vx = np.asarray(Vx, float)
-    Vy = np.asarray(Vy, float)
-    u_idx = np.flatnonzero(usable)
-    ctrl_u = ctrl[u_idx]                   # control among usable
-    obs_u = obs[u_idx]
-    w_base_u = base_w[u_idx]
-    sig_u = eff_sigma[u_idx]
+    # The rays of the virtual points (paper eq. 4-5: constants during the adjustment).
+    Vx, Vy = (np.asarray(v, dtype=float) for v in current.tan_angles(sv[ctrl], lv[ctrl]))
+    obs_c = obs[ctrl]
+    w_c = base_w[ctrl]
+    sig_c = eff_sigma[ctrl]
+    use_robust = robust and n_ctrl >= _MIN_ROBUST_GCPS
 
     def camera_of(a):
         return _with_coefficients(current, to_raw @ a[:10], to_raw @ a[10:])
 
-    use_robust = robust and n_ctrl >= _MIN_ROBUST_GCPS
-    robust_w = np.ones(u_idx.size)
-    outlier_u = np.zeros(u_idx.size, bool)
-    z_u = np.full(u_idx.size, np.nan)
-    scale = float("nan")
+    cam = current
     corrections: List[np.ndarray] = []
     correction_px: List[float] = []
     history: List[Dict[str, float]] = []
     converged = False
-    prev_outliers = None
-    cam = current
-    # Predictions of the current camera are the virtual points themselves (tan_old^-1(tan_old(s', l')) = (s', l')).
-    pred = np.column_stack([sv[usable], lv[usable]])
-    N = None
+    sol = None
     iteration = 0
     for iteration in range(1, max_iter + 1):
         report(progress, 0.05 + 0.85 * (iteration - 1) / max_iter, f"iteration {iteration}")
-        r = obs_u - pred
-        if use_robust and iteration > 1:
-            # Robust weights only from fitted residuals: before the first solve they carry the systematic error.
-            w_c, out_c, scale, z_c = _robust_weights(r[ctrl_u], sig_u[ctrl_u], 20)
-            robust_w[:] = 0.0
-            robust_w[ctrl_u] = w_c
-            outlier_u[:] = False
-            outlier_u[ctrl_u] = out_c
-            z_u[:] = np.nan
-            z_u[ctrl_u] = z_c
-        w = (w_base_u * robust_w[:, None])[ctrl_u]                 # (n, 2)
-        A = _design(cam, frame, pred[ctrl_u, 0], pred[ctrl_u, 1])  # (n, 2, 20)
-        Aw = A * w[:, :, None]
-        N = np.einsum("nij,nik->jk", Aw, A)
-        b = np.einsum("nij,ni->j", Aw, r[ctrl_u])
-        d = np.sqrt(np.diag(N))
-        if not np.all(d > 0):
-            raise DegenerateGeometryError(f"condition number inf: {hint}")
-        Ns = N / d[:, None] / d[None, :]
-        try:
-            delta = -np.linalg.solve(Ns, b / d) / d
-        except np.linalg.LinAlgError:
-            raise DegenerateGeometryError(f"condition number inf (singular normal matrix): {hint}") from None
-        alpha = alpha + delta
+        A, Jinv = _design(cam, frame, obs_c[:, 0], obs_c[:, 1])
+        tx, ty = cam.tan_angles(obs_c[:, 0], obs_c[:, 1])
+        r0 = np.einsum("nij,nj->ni", Jinv, np.column_stack([tx - Vx, ty - Vy]))
+        sol = _robust_solve(A, r0, w_c, sig_c, use_robust, hint)
+        alpha = alpha + sol.delta
         cam = camera_of(alpha)
-        dpx = np.einsum("nij,j->ni", A, delta)    # first-order change of the predictions (px)
-        step = float(np.max(np.abs(dpx)))
-        pred = np.column_stack(_invert(cam, Vx, Vy, obs_u[:, 0], obs_u[:, 1]))
-        if np.any(~np.isfinite(pred[ctrl_u])):
-            raise ConvergenceError("the recalibrated camera cannot be inverted at some control points; check the "
-                                   "GCPs (gross errors?) and the camera file")
-        r_new = obs_u - pred
-        good = ctrl_u & ~outlier_u
-        rms = float(np.sqrt(np.mean(r_new[good] ** 2)))
-        corrections.append(np.concatenate([to_raw @ delta[:10], to_raw @ delta[10:]]))
+        step = float(np.max(np.abs(np.einsum("nij,j->ni", A, sol.delta))))
+        r_lin = r0 + np.einsum("nij,j->ni", A, sol.delta)
+        good = ~sol.outlier
+        corrections.append(np.concatenate([to_raw @ sol.delta[:10], to_raw @ sol.delta[10:]]))
         correction_px.append(step)
-        history.append({"iteration": iteration, "max_correction_px": step, "rms_px": rms,
-                        "n_outliers": int(outlier_u.sum())})
-        stable = prev_outliers is not None and np.array_equal(prev_outliers, outlier_u)
-        prev_outliers = outlier_u.copy()
-        if step < tol_px and (stable or not use_robust or iteration == 1):
-            converged = True
-            break
-        if iteration == 1 and not use_robust and step < tol_px:
+        history.append({"iteration": iteration, "max_correction_px": step,
+                        "rms_px": float(np.sqrt(np.mean(r_lin[good] ** 2))),
+                        "n_outliers": int(sol.outlier.sum()), "reweighting_steps": int(sol.steps)})
+        if step < tol_px:
             converged = True
             break
     if not converged:
         raise ConvergenceError(f"look-angle calibration did not converge in {max_iter} iterations (last correction "
                                f"{correction_px[-1]:.3g} px); check the GCPs for gross errors or raise max_iter")
 
-    # Final statistics at the solution: the normal matrix with the final weights at the final predictions.
-    r = obs_u - pred
-    if use_robust:
-        w_c, out_c, scale, z_c = _robust_weights(r[ctrl_u], sig_u[ctrl_u], 20)
-        z_u[:] = np.nan
-        z_u[ctrl_u] = z_c
-    good = ctrl_u & ~outlier_u
-    w = (w_base_u * robust_w[:, None])[ctrl_u]
-    A = _design(cam, frame, pred[ctrl_u, 0], pred[ctrl_u, 1])
-    N = np.einsum("nij,nik->jk", A * w[:, :, None], A)
-    dof = 2 * int(good.sum()) - 20
-    vtpv = float(np.sum(w * r[ctrl_u] ** 2))
-    sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
+    # Exact residuals of every usable point through the recalibrated model: tan_new^-1(tan_old(s', l')).
+    u_idx = np.flatnonzero(usable)
+    Vux, Vuy = current.tan_angles(sv[u_idx], lv[u_idx])
+    pred = np.column_stack(cam.detector_of(Vux, Vuy, obs[u_idx, 0], obs[u_idx, 1]))
+    if np.any(~np.isfinite(pred[ctrl[u_idx]])):
+        raise ConvergenceError("the recalibrated camera cannot be inverted at some control points; check the GCPs "
+                               "(gross errors?) and the camera file")
+
+    # Precision: sigma0 from the weighted inlier residuals, covariance sigma0² N^-1 (normalised basis -> raw).
+    r_c = obs_c - np.column_stack(cam.detector_of(Vx, Vy, obs_c[:, 0], obs_c[:, 1]))
+    wr = w_c * sol.weights[:, None]
+    dof = int(np.count_nonzero(wr)) - 20       # observations that carry weight, minus the 20 coefficients
+    sigma0 = math.sqrt(float(np.sum(wr * r_c ** 2)) / dof) if dof > 0 else float("nan")
+    A, _ = _design(cam, frame, obs_c[:, 0], obs_c[:, 1])
+    A2 = A.reshape(-1, 20)
+    N = (A2 * wr.reshape(-1)[:, None]).T @ A2
     d = np.sqrt(np.diag(N))
-    Ninv = np.linalg.inv(N / d[:, None] / d[None, :]) / d[:, None] / d[None, :]
-    cov_norm = (sigma0 ** 2 if dof > 0 else 1.0) * Ninv
+    cov_norm = (sigma0 ** 2 if dof > 0 else 1.0) * (np.linalg.inv(N / d[:, None] / d[None, :]) / d[:, None]
+                                                     / d[None, :])
     T = np.zeros((20, 20))
     T[:10, :10] = to_raw
     T[10:, 10:] = to_raw
     cov_raw = T @ cov_norm @ T.T
+    scale = sol.scale
+    z_c = sol.z
     if not use_robust:
-        radial = np.hypot(r[ctrl_u, 0], r[ctrl_u, 1]) / sig_u[ctrl_u]
-        scale = float(np.sqrt(np.mean(radial ** 2) / 2.0 * (2 * n_ctrl) / max(dof, 1)))
-        z_u[:] = np.nan
-        z_u[ctrl_u] = radial / max(scale, 1e-12)
+        radial = np.hypot(r_c[:, 0], r_c[:, 1]) / sig_c
+        scale = float(np.sqrt(np.sum(radial ** 2) / max(dof, 1)))
+        z_c = radial / max(scale, 1e-12)
 
     # Output table.
     out = gcps.copy()
-    full = lambda vals_u, fill=np.nan: _scatter(n, u_idx, vals_u, fill)  # noqa: E731
     out["virtual_sample"] = sv
     out["virtual_line"] = lv
     out["res_sample_before"] = obs[:, 0] - sv
     out["res_line_before"] = obs[:, 1] - lv
-    out["pred_sample"] = full(pred[:, 0])
-    out["pred_line"] = full(pred[:, 1])
+    out["pred_sample"] = _scatter(n, u_idx, pred[:, 0])
+    out["pred_line"] = _scatter(n, u_idx, pred[:, 1])
     out["res_sample_after"] = obs[:, 0] - out["pred_sample"].to_numpy(float)
     out["res_line_after"] = obs[:, 1] - out["pred_line"].to_numpy(float)
-    out["norm_residual"] = full(z_u)
-    out["weight"] = full(robust_w * ctrl_u, 0.0)
-    out["outlier"] = full(outlier_u, False).astype(bool)
+    c_idx = np.flatnonzero(ctrl)
+    out["norm_residual"] = _scatter(n, c_idx, z_c)
+    out["weight"] = _scatter(n, c_idx, sol.weights, 0.0)
+    out["outlier"] = _scatter(n, c_idx, sol.outlier, False).astype(bool)
     good_full = ctrl & ~out["outlier"].to_numpy(bool)
     control_stats = {
         "before": _axis_pair_stats(out["res_sample_before"][good_full], out["res_line_before"][good_full]),
@@ -532,14 +560,26 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
             "n": int(check.sum()),
         }
     report(progress, 1.0, "look-angle calibration done")
-    name = getattr(current, "name", None)
+    name = getattr(current, "name", "") or ""
     cam = _with_coefficients(current, cam.x, cam.y, name=(f"{name} recalibrated" if name else "recalibrated"))
     return LookAngleCalibration(
         camera=cam, current=current, iterations=iteration, converged=converged,
         corrections=np.array(corrections), correction_px=np.array(correction_px), history=history,
         covariance=cov_raw, covariance_normalised=cov_norm, sigma0=sigma0, robust_sigma_px=float(scale),
         condition_number=cond, gcps=out, control_stats=control_stats, check_stats=check_stats,
-        n_control=n_ctrl, n_outliers=int(outlier_u.sum()), warnings=msgs)
+        n_control=n_ctrl, n_outliers=int(sol.outlier.sum()), warnings=msgs)
+
+
+def calibrate_lookangle_rigorous(model, gcps, current=None, **kwargs) -> LookAngleCalibration:
+    """The rigorous baseline (for comparison only): the same calibration with the virtual points taken from the
+    rigorous *current* sensor model instead of the RPC, ``V = current.tan_angles(model.project(P))`` =
+    ``model.look_angles(P)`` (METHODS §5; the paper's "calibration based on the physical imaging model").
+
+    ``model`` is a rigorous frame model (e.g. the simulator's ``image.current``) whose camera is the current one
+    (``current`` defaults to ``model.camera``); other arguments as :func:`calibrate_lookangle`. Its calibrated
+    rigorous model is ``model.with_camera(result.camera)``.
+    """
+    return calibrate_lookangle(model, gcps, model.camera if current is None else current, **kwargs)
 
 
 def _scatter(n: int, idx: np.ndarray, values: np.ndarray, fill=np.nan) -> np.ndarray:
@@ -605,7 +645,7 @@ class RecalibratedSensor:
         sv = np.asarray(sv, float).ravel()
         lv = np.asarray(lv, float).ravel()
         tx, ty = self.current.tan_angles(sv, lv)
-        s, l = _invert(self.new, tx, ty, sv, lv)
+        s, l = self.new.detector_of(tx, ty, sv, lv)
         if shape == ():
             return float(s[0]), float(l[0])
         return s.reshape(shape), l.reshape(shape)
@@ -617,7 +657,7 @@ class RecalibratedSensor:
         s = sample.ravel()
         l = line.ravel()
         tx, ty = self.new.tan_angles(s, l)
-        sv, lv = _invert(self.current, tx, ty, s, l)
+        sv, lv = self.current.detector_of(tx, ty, s, l)
         lon, lat = self.rpc.localize(sv, lv, h.ravel())
         lon = np.asarray(lon, float)
         lat = np.asarray(lat, float)
@@ -626,27 +666,181 @@ class RecalibratedSensor:
         return lon.reshape(shape), lat.reshape(shape)
 
 
-def recalibrate_rpc(rpc, current, new, height_range=None, *, grid=(21, 21, 7), progress=None):
-    """New RPC of a scene whose RPC was made with camera ``current``, for the recalibrated camera ``new`` (METHODS §5
-    step 4, fitted terrain-independently as in METHODS §3).
+def recalibrate_rpc(rpc, current, new, height_range=None, *, grid=(21, 21), n_layers: int = 7, progress=None):
+    """New RPC of a scene whose RPC was made with camera ``current``, for the recalibrated camera ``new``
+    (METHODS §5 step 4, fitted terrain-independently as in METHODS §3).
 
     Ground points come from the old RPC (localised over an image grid x height layers); ``(s', l') = RPC(ground)``,
-    ``V = tan_old(s', l')``, ``(s, l) = tan_new^-1(V)`` (2-D Newton), and a new RPC is fitted on ``ground <-> (s, l)``.
+    ``V = tan_old(s', l')``, ``(s, l) = tan_new^-1(V)`` (2-D Newton, :meth:`LookAngleModel.detector_of`), and a new
+    RPC is fitted on ``ground <-> (s, l)``; it is checked on a second grid offset by half a cell at intermediate
+    heights (see :class:`RecalibratedSensor`).
 
     Parameters
     ----------
     rpc : the scene's RPCModel; current, new : LookAngleModel (same size).
     height_range : (min, max) ellipsoidal heights (m); default the RPC's ``HEIGHT_OFF ± HEIGHT_SCALE``.
-    grid : ``(n_sample, n_line, n_height)`` of the fitting grid (METHODS §3: >= 20 x 20 x 6).
-    progress : ``progress(fraction, message)``.
+    grid, n_layers : fitting grid ``(n_sample, n_line)`` and number of height layers (METHODS §3: >= 20 x 20, >= 6).
+    progress : ``progress(fraction, message)``; may raise CancelledError.
 
     Returns
     -------
-    (RPCModel, FitReport) from :func:`gdal_gf4cal.rpc_fit.fit_rpc_from_model`.
+    (RPCModel, FitReport) as from :func:`gdal_gf4cal.rpc_fit.fit_rpc_from_model`; ``FitReport.check`` is the error
+    of the new RPC against the exact composition (px).
     """
     from .rpc_fit import fit_rpc_from_model
     sensor = RecalibratedSensor(rpc, current, new)
     if height_range is None:
         height_range = rpc.height_range
-    return fit_rpc_from_model(sensor, size=sensor.size, height_range=tuple(height_range), grid=grid,
-                              progress=progress)
+    return fit_rpc_from_model(sensor, size=sensor.size, height_range=tuple(height_range), grid=tuple(grid),
+                              n_layers=n_layers, progress=progress)
+
+
+# ---------------------------------------------------------------------------------------------------- file workflows
+def _scene_stem(path) -> str:
+    """``scene.tif`` / ``scene.RPB`` / ``scene_RPC.TXT`` -> ``scene``."""
+    import os
+    name = os.path.basename(os.fspath(path))
+    stem = name.split(".")[0] if not name.startswith(".") else name
+    if stem.upper().endswith("_RPC"):
+        stem = stem[:-4]
+    return stem or "scene"
+
+
+def _check_outputs(paths, inputs, overwrite: bool) -> None:
+    """Refuse before anything is written: an output that is an input, or exists without ``overwrite``."""
+    import os
+    from .errors import InputOverwriteError
+    real_inputs = {os.path.realpath(os.fspath(p)) for p in inputs if p is not None}
+    for p in paths:
+        rp = os.path.realpath(os.fspath(p))
+        if rp in real_inputs:
+            raise InputOverwriteError(f"{p} is an input; choose another output folder")
+        if os.path.exists(rp) and not overwrite:
+            raise InputOverwriteError(f"{p} exists; choose another output folder or pass --overwrite")
+
+
+def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, image=None, dem=None, geoid=None,
+                              robust: bool = True, max_condition: float = MAX_CONDITION, overwrite: bool = False,
+                              progress=None) -> Dict[str, Any]:
+    """File workflow of ``gf4cal calibrate-lookangle`` (METHODS §5): calibrate, recalibrate the RPC, write outputs.
+
+    Everything is computed before anything is written, so a refused input (too few GCPs, an unconstrained layout)
+    leaves ``out_dir`` untouched. Writes into ``out_dir``: ``camera_new.json``, ``<scene>.RPB`` (the recalibrated
+    RPC), ``<image>.vrt`` over the untouched ``image`` when given, ``residuals.gpkg`` (GCPs with residuals before /
+    after, outlier flags and residual vectors), ``residuals.png`` (before/after vectors, like the paper's Fig. 5)
+    and ``report.json``. Returns the report dict (with ``outputs``).
+    """
+    import os
+    from .camera import LookAngleModel
+    from .gcp import read_gcps
+    from .report import footprint_from_rpc, plot_residuals, write_report_json, write_residuals_gpkg
+    from .rpc import RPCModel
+    from .rpc_io import write_rpb, write_rpc_vrt
+
+    rpc = RPCModel.from_file(rpc_path)
+    current = LookAngleModel.from_json(camera_path)
+    dem_obj = None
+    if dem is not None:
+        from .dem import DEM
+        dem_obj = DEM.from_file(dem, geoid=geoid)
+    gcps = read_gcps(gcps_path, dem=dem_obj)
+    out = os.fspath(out_dir)
+    stem = _scene_stem(image if image is not None else rpc_path)
+    paths = {"camera": os.path.join(out, "camera_new.json"), "rpb": os.path.join(out, f"{stem}.RPB"),
+             "residuals_gpkg": os.path.join(out, "residuals.gpkg"), "residuals_png": os.path.join(out, "residuals.png"),
+             "report": os.path.join(out, "report.json")}
+    if image is not None:
+        paths["vrt"] = os.path.join(out, f"{stem}.vrt")
+    _check_outputs(paths.values(), [rpc_path, gcps_path, camera_path, image, dem], overwrite)
+
+    res = calibrate_lookangle(rpc, gcps, current, robust=robust, max_condition=max_condition,
+                              progress=scaled(progress, 0.0, 0.4))
+    new_rpc, fit_report = recalibrate_rpc(rpc, current, res.camera, progress=scaled(progress, 0.4, 0.85))
+
+    os.makedirs(out, exist_ok=True)
+    report(progress, 0.85, "writing outputs")
+    res.camera.to_json(paths["camera"])
+    write_rpb(new_rpc, paths["rpb"], overwrite=overwrite)
+    if image is not None:
+        write_rpc_vrt(image, new_rpc, paths["vrt"], overwrite=overwrite)
+    size = tuple(current.size)
+    try:
+        footprint = footprint_from_rpc(rpc, size, h=rpc.height_off)
+    except Exception:  # a footprint is a convenience layer; the residuals matter
+        footprint = None
+    write_residuals_gpkg(res.gcps, paths["residuals_gpkg"], footprint=footprint, overwrite=True,
+                         title="Look-angle calibration residuals")
+    plot_residuals(res.gcps, paths["residuals_png"], image_size=size,
+                   title=f"{stem}: GCP residuals before / after look-angle calibration")
+    rep = {"command": "calibrate-lookangle",
+           "inputs": {"rpc": os.fspath(rpc_path), "gcps": os.fspath(gcps_path), "camera": os.fspath(camera_path),
+                      "image": None if image is None else os.fspath(image), "dem": dem},
+           "calibration": res.to_dict(),
+           "camera_change_px": compare_lookangle(res.camera, current),
+           "recalibrated_rpc": fit_report.to_dict(),
+           "outputs": paths}
+    write_report_json(rep, paths["report"])
+    report(progress, 1.0, "done")
+    return rep
+
+
+def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: bool = False,
+                      progress=None) -> Dict[str, Any]:
+    """Recalibrate the RPCs of other scenes made with camera ``current`` for camera ``new`` (METHODS §5 step 4).
+
+    ``current``/``new`` are LookAngleModels or camera-file paths; ``scenes`` images or RPC files. Writes
+    ``out_dir/<scene>.RPB`` for each (plus ``out_dir/<scene>.vrt`` over the untouched image when the scene is a
+    raster) and ``out_dir/report.json`` with each fit report. Every RPC is refitted before anything is written.
+    """
+    import os
+    from .camera import LookAngleModel
+    from .report import write_report_json
+    from .rpc import RPCModel
+    from .rpc_io import rpc_file_format, write_rpb, write_rpc_vrt
+
+    cur = current if hasattr(current, "tan_angles") else LookAngleModel.from_json(current)
+    nw = new if hasattr(new, "tan_angles") else LookAngleModel.from_json(new)
+    if tuple(cur.size) != tuple(nw.size):
+        raise GCPError(f"the cameras have different sizes {tuple(cur.size)} and {tuple(nw.size)}; give the "
+                       "current camera the new one was calibrated from")
+    scenes = [os.fspath(s) for s in scenes]
+    if not scenes:
+        raise ValueError("no scene given")
+    out = os.fspath(out_dir)
+    stems = [_scene_stem(s) for s in scenes]
+    if len(set(stems)) != len(stems):
+        raise ValueError("two scenes have the same name; recalibrate them into different folders")
+    plans = []
+    for s, stem in zip(scenes, stems):
+        is_image = rpc_file_format(s) == "gdal"
+        plans.append((s, stem, os.path.join(out, f"{stem}.RPB"), os.path.join(out, f"{stem}.vrt") if is_image
+                      else None))
+    outputs = [p for _, _, rpb, vrt in plans for p in (rpb, vrt) if p] + [os.path.join(out, "report.json")]
+    inputs = scenes + [current if isinstance(current, (str, os.PathLike)) else None,
+                       new if isinstance(new, (str, os.PathLike)) else None]
+    _check_outputs(outputs, inputs, overwrite)
+    results = []
+    for i, (s, stem, rpb, vrt) in enumerate(plans):
+        rpc = RPCModel.from_file(s)
+        new_rpc, fit_report = recalibrate_rpc(rpc, cur, nw, progress=scaled(progress, i / len(plans),
+                                                                            (i + 0.9) / len(plans)))
+        results.append((s, stem, rpb, vrt, rpc, new_rpc, fit_report))
+    os.makedirs(out, exist_ok=True)
+    entries = []
+    for s, stem, rpb, vrt, rpc, new_rpc, fit_report in results:
+        write_rpb(new_rpc, rpb, overwrite=overwrite)
+        if vrt:
+            write_rpc_vrt(s, new_rpc, vrt, overwrite=overwrite)
+        S, L = (a.ravel() for a in np.meshgrid(np.linspace(0, cur.size[0], 11), np.linspace(0, cur.size[1], 11)))
+        lon, lat = rpc.localize(S, L, np.full(S.shape, rpc.height_off))
+        ns, nl = new_rpc.project(lon, lat, rpc.height_off)
+        shift = np.hypot(ns - S, nl - L)
+        entries.append({"scene": s, "rpb": rpb, "vrt": vrt, "fit": fit_report.to_dict(),
+                        "image_shift_px": {"mean": float(np.nanmean(shift)), "max": float(np.nanmax(shift))}})
+    rep = {"command": "apply-calibration",
+           "current": current if isinstance(current, str) else getattr(cur, "name", ""),
+           "new": new if isinstance(new, str) else getattr(nw, "name", ""),
+           "scenes": entries, "outputs": {"report": os.path.join(out, "report.json")}}
+    write_report_json(rep, os.path.join(out, "report.json"))
+    report(progress, 1.0, "done")
+    return rep

@@ -18,6 +18,11 @@ COMMANDS = [
     "info",
     "refine",
     "intersect",
+    "simulate",
+    "calibrate_lookangle",
+    "apply_calibration",
+    "experiment",
+    "collect_gcps",
 ]
 
 

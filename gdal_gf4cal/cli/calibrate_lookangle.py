@@ -48,6 +48,10 @@ def print_summary(rep: dict, stream=None) -> None:
         b, a = st["before"], st["after"]
         print(f"{role:8} {st['n']:>4}  {_f(b['sample']['rms']):>10} / {_f(b['line']['rms']):<8}"
               f"  {_f(a['sample']['rms']):>10} / {_f(a['line']['rms']):<8}", file=out)
+    pr = cal["precision_px"]
+    print(f"precision of the new camera over the array (propagated GCP noise): rms {_f(pr['sample']['rms'])} / "
+          f"{_f(pr['line']['rms'])} px, max {_f(pr['sample']['max'])} / {_f(pr['line']['max'])} px (sample/line)",
+          file=out)
     ch = rep["camera_change_px"]
     print(f"camera change over the array: max {_f(ch['sample']['max'], '.2f')} px (sample), "
           f"{_f(ch['line']['max'], '.2f')} px (line)", file=out)

@@ -1,0 +1,78 @@
+"""``gf4cal collect-gcps``: automatic GCPs by matching a raw image against a reference orthophoto + DEM (issue 7)."""
+from __future__ import annotations
+
+NAME = "collect-gcps"
+HELP = ("Collect GCPs automatically: sub-pixel matching of the raw image (with its RPC) against a reference "
+        "orthophoto and a DEM; writes a GCP table that refine and calibrate-lookangle read directly.")
+
+
+def add_parser(parser):
+    parser.add_argument("image", metavar="IMAGE", help="raw image with an RPC (TIFF tags, .RPB, _RPC.TXT, NITF)")
+    parser.add_argument("--reference", required=True, metavar="ORTHO",
+                        help="reference orthophoto: any GDAL raster with a CRS (overviews are used when finer)")
+    parser.add_argument("--dem", required=True, help="DEM (any GDAL raster, any CRS) or a constant height in metres")
+    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path")
+    parser.add_argument("--rpc", help="read the RPC from this file instead of the image")
+    parser.add_argument("--out", required=True, help="output GCP table: .gpkg, .csv or .geojson")
+    parser.add_argument("--spacing", type=int, default=256, metavar="PX", help="grid step in pixels (default 256)")
+    parser.add_argument("--window", type=int, default=64, metavar="PX", help="window size in pixels (default 64)")
+    parser.add_argument("--search", type=float, default=64, metavar="PX",
+                        help="largest initial offset to find, pixels (default 64)")
+    parser.add_argument("--workers", type=int, help="parallel processes (default: all cores; 1 = no pool)")
+    parser.add_argument("--min-peak", type=float, default=0.2, help="correlation peak threshold (default 0.2)")
+    parser.add_argument("--outlier-model", default="affine", choices=("translation", "affine", "poly2", "poly3"),
+                        help="low-order model for RANSAC + MAD outlier rejection (default affine)")
+    parser.add_argument("--seed", type=int, default=0, help="RANSAC seed (default 0)")
+    parser.add_argument("--band", type=int, default=1, help="image band (default 1)")
+    parser.add_argument("--reference-band", type=int, default=1, help="reference band (default 1)")
+    parser.add_argument("--keep-outliers", action="store_true",
+                        help="also write the flagged outliers (column outlier=True); by default only inliers")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
+
+
+def run(args) -> int:
+    import os
+
+    from ..dem import DEM
+    from ..errors import Gf4calError, InputOverwriteError
+    from ..gcp import write_gcps
+    from ..matching import collect_gcps
+    from ..progress import TextProgressBar
+    from ..rpc import RPCModel
+
+    out = os.path.abspath(args.out)
+    for src in (args.image, args.reference, args.dem, args.rpc):
+        if src and os.path.exists(str(src)) and os.path.abspath(str(src)) == out:
+            raise InputOverwriteError(f"output {args.out!r} is an input; choose a new output path")
+    if os.path.exists(out) and not args.overwrite:
+        raise InputOverwriteError(f"output {args.out!r} exists; remove it, choose another path or --overwrite")
+    if os.path.splitext(out)[1].lower() not in (".gpkg", ".csv", ".geojson", ".json"):
+        raise Gf4calError(f"output {args.out!r}: use a name ending in .gpkg, .csv or .geojson")
+    if not os.path.exists(args.image):
+        raise Gf4calError(f"image not found: {args.image}")
+    rpc = RPCModel.from_file(args.rpc or args.image)
+    try:
+        dem = DEM.constant(float(args.dem))
+    except ValueError:
+        dem = DEM.from_file(args.dem, geoid=args.geoid)
+    gcps = collect_gcps(args.image, rpc, args.reference, dem, spacing_px=args.spacing, window_px=args.window,
+                        workers=args.workers, min_peak=args.min_peak, search_px=args.search,
+                        outlier_model=args.outlier_model, seed=args.seed, band=args.band,
+                        reference_band=args.reference_band, progress=TextProgressBar())
+    w = gcps.attrs["windows"]
+    table = gcps if args.keep_outliers else gcps[~gcps["outlier"].to_numpy(bool)]
+    if len(table) == 0:
+        raise Gf4calError(f"no GCP found in {w['total']} windows ({w['featureless']} featureless, "
+                          f"{w['weak_correlation']} weak, {w['nodata'] + w['outside_image']} without data); check "
+                          "that the reference and DEM cover the image, or raise --search")
+    write_gcps(table, out)
+    inl = ~gcps["outlier"].to_numpy(bool)
+    print(f"windows {w['total']}: accepted {w['accepted']}, featureless {w['featureless']}, weak correlation "
+          f"{w['weak_correlation']}, cloud/change {w['cloud_or_change']}, no data {w['nodata']}, outside "
+          f"{w['outside_image']}; outliers {w['outliers']}")
+    if inl.any():
+        ds, dl = gcps["dsample"].to_numpy()[inl], gcps["dline"].to_numpy()[inl]
+        print(f"offset measured - RPC: mean {ds.mean():+.3f} / {dl.mean():+.3f} px (sample/line), "
+              f"median precision {float(gcps['precision_px'][inl].median()):.3f} px")
+    print(f"wrote {len(table)} GCPs: {args.out}")
+    return 0

@@ -1,0 +1,323 @@
+"""Multi-image least-squares forward intersection with RPC models (METHODS §7).
+
+A ground point seen in two or more images is the ``(lon, lat, h)`` minimising the weighted image residuals
+``measured - model.project(lon, lat, h)`` over all images that observe it. The models are anything with
+``project`` (and preferably ``project_jacobian``) in the GDAL pixel convention: plain RPCs or RPCs with their
+compensation (:class:`gdal_gf4cal.compensation.CompensatedRPC`). Gauss-Newton runs on all points at once, with the
+unknowns in local metres (east, north, up) so that the 3x3 normal equations are well conditioned and their inverse
+is directly the covariance in m^2.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Dict, Optional, Sequence
+
+import numpy as np
+
+from .errors import DegenerateGeometryError, GCPError
+from .progress import report as _report
+
+__all__ = ["IntersectionResult", "intersect", "ground_errors_m", "intersection_accuracy", "read_tie_points",
+           "intersect_files"]
+
+_A = 6378137.0
+_E2 = 6.69437999014e-3
+
+
+def _radii(lat_deg, h):
+    """Metres per degree of longitude and of latitude at ``lat`` and height ``h`` (WGS84)."""
+    phi = np.radians(lat_deg)
+    w = np.sqrt(1.0 - _E2 * np.sin(phi) ** 2)
+    rn = _A / w
+    rm = _A * (1.0 - _E2) / w ** 3
+    return np.radians(1.0) * (rn + h) * np.cos(phi), np.radians(1.0) * (rm + h)
+
+
+def ground_errors_m(lon, lat, h, lon_ref, lat_ref, h_ref):
+    """East, north, up differences (m) of ``(lon, lat, h)`` from a reference (small-offset local frame)."""
+    lon, lat, h, lon_ref, lat_ref, h_ref = (np.asarray(a, dtype=float) for a in (lon, lat, h, lon_ref, lat_ref, h_ref))
+    mx, my = _radii(lat_ref, h_ref)
+    dlon = (lon - lon_ref + 180.0) % 360.0 - 180.0
+    return dlon * mx, (lat - lat_ref) * my, h - h_ref
+
+
+def _jacobian(model, lon, lat, h):
+    if hasattr(model, "project_jacobian"):
+        return np.asarray(model.project_jacobian(lon, lat, h), dtype=float)
+    from .compensation import _jacobian as numeric
+    return numeric(model, lon, lat, h)
+
+
+@dataclass
+class IntersectionResult:
+    """Intersected ground points and their quality (METHODS §7).
+
+    Attributes
+    ----------
+    lon, lat, h : ndarray (N,)
+        Ground coordinates (deg, deg, ellipsoidal m); NaN where fewer than 2 images observe the point or
+        Gauss-Newton did not converge.
+    residuals : ndarray (n_images, N, 2)
+        ``(sample, line)`` residuals, measured - predicted (px); NaN where not observed.
+    n_images : ndarray (N,) of int
+        Images observing each point.
+    cov_enu_m2 : ndarray (N, 3, 3)
+        Covariance of (east, north, up) in m^2 for image-measurement sigma ``sigma_px`` (a-priori).
+    sigma0 : ndarray (N,)
+        A-posteriori RMS of weighted residuals per point (redundancy = 2 n_images - 3), NaN without redundancy.
+    converged : ndarray (N,) of bool
+    """
+
+    lon: np.ndarray
+    lat: np.ndarray
+    h: np.ndarray
+    residuals: np.ndarray
+    n_images: np.ndarray
+    cov_enu_m2: np.ndarray
+    sigma0: np.ndarray
+    converged: np.ndarray
+
+    @property
+    def sigma_planar_m(self) -> np.ndarray:
+        """Predicted planar standard error sqrt(var_e + var_n) (m)."""
+        return np.sqrt(self.cov_enu_m2[:, 0, 0] + self.cov_enu_m2[:, 1, 1])
+
+    @property
+    def sigma_height_m(self) -> np.ndarray:
+        """Predicted height standard error (m)."""
+        return np.sqrt(self.cov_enu_m2[:, 2, 2])
+
+
+def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional[float] = None,
+              max_iter: int = 30, tol_m: float = 1e-4, progress=None) -> IntersectionResult:
+    """Least-squares forward intersection from ``>= 2`` images (METHODS §7).
+
+    Parameters
+    ----------
+    models : sequence of RPCModel / CompensatedRPC
+        One ground-to-image model per image (GDAL pixel convention).
+    image_points : array_like (n_images, N, 2)
+        ``(sample, line)`` of each point in each image (GDAL convention); NaN where an image does not see it.
+    sigma_px : float or array_like (n_images,) or (n_images, N)
+        Image measurement standard deviation (px) -> weights and the a-priori covariance.
+    h0 : float, optional
+        Starting height (default: the first model's height offset, else 0).
+
+    Returns
+    -------
+    IntersectionResult
+    """
+    models = list(models)
+    pts = np.asarray(image_points, dtype=float)
+    if pts.ndim == 2 and pts.shape[-1] == 2:
+        pts = pts[:, None, :]
+    if pts.ndim != 3 or pts.shape[0] != len(models) or pts.shape[2] != 2:
+        raise GCPError(f"image_points must have shape (n_images={len(models)}, N, 2), got {pts.shape}")
+    if len(models) < 2:
+        raise DegenerateGeometryError("forward intersection needs at least 2 images; give two or more RPCs")
+    n_img, n_pts = pts.shape[:2]
+    obs = np.all(np.isfinite(pts), axis=2)                        # (n_img, N)
+    n_obs = obs.sum(axis=0)
+    sig = np.broadcast_to(np.asarray(sigma_px, dtype=float).reshape(
+        (n_img, -1) if np.ndim(sigma_px) >= 1 else (1, 1)), (n_img, n_pts))
+    wgt = np.where(obs, 1.0 / sig ** 2, 0.0)
+    if h0 is None:
+        h0 = float(getattr(models[0], "height_off", 0.0))
+    # Start: localise in the first image observing each point at h0.
+    lon = np.full(n_pts, np.nan)
+    lat = np.full(n_pts, np.nan)
+    h = np.full(n_pts, float(h0))
+    for k in range(n_img):
+        todo = np.isnan(lon) & obs[k]
+        if todo.any():
+            lo, la = models[k].localize(pts[k, todo, 0], pts[k, todo, 1], h[todo])
+            lon[todo], lat[todo] = lo, la
+    active = (n_obs >= 2) & np.isfinite(lon) & np.isfinite(lat)
+    converged = np.zeros(n_pts, bool)
+    nmat = np.zeros((n_pts, 3, 3))
+    for it in range(max_iter):
+        _report(progress, it / max_iter, "intersecting")
+        idx = np.flatnonzero(active & ~converged)
+        if idx.size == 0:
+            break
+        mx, my = _radii(lat[idx], h[idx])
+        nm = np.zeros((idx.size, 3, 3))
+        rhs = np.zeros((idx.size, 3))
+        for k in range(n_img):
+            s, l = models[k].project(lon[idx], lat[idx], h[idx])
+            r = np.stack([pts[k, idx, 0] - s, pts[k, idx, 1] - l], axis=-1)
+            jac = _jacobian(models[k], lon[idx], lat[idx], h[idx]) / np.stack([mx, my, np.ones_like(mx)], -1)[:, None, :]
+            w = wgt[k, idx]
+            r = np.where(obs[k, idx, None], r, 0.0)
+            jac = np.where(obs[k, idx, None, None], jac, 0.0)
+            nm += w[:, None, None] * np.einsum("nai,naj->nij", jac, jac)
+            rhs += w[:, None] * np.einsum("nai,na->ni", jac, r)
+        ok = np.abs(np.linalg.det(nm)) > 1e-30
+        step = np.full((idx.size, 3), np.nan)
+        step[ok] = np.linalg.solve(nm[ok], rhs[ok][..., None])[..., 0]
+        bad = ~ok | ~np.all(np.isfinite(step), axis=1)
+        active[idx[bad]] = False
+        good = ~bad
+        g = idx[good]
+        lon[g] += step[good, 0] / mx[good]
+        lat[g] += step[good, 1] / my[good]
+        h[g] += step[good, 2]
+        nmat[g] = nm[good]
+        converged[g] = np.linalg.norm(step[good], axis=1) < tol_m
+    # Final residuals and covariance at the solution.
+    res = np.full((n_img, n_pts, 2), np.nan)
+    nmat_final = np.zeros((n_pts, 3, 3))
+    fin = active & converged
+    idx = np.flatnonzero(fin)
+    if idx.size:
+        mx, my = _radii(lat[idx], h[idx])
+        for k in range(n_img):
+            s, l = models[k].project(lon[idx], lat[idx], h[idx])
+            r = np.stack([pts[k, idx, 0] - s, pts[k, idx, 1] - l], axis=-1)
+            res[k, idx] = np.where(obs[k, idx, None], r, np.nan)
+            jac = _jacobian(models[k], lon[idx], lat[idx], h[idx]) / np.stack([mx, my, np.ones_like(mx)], -1)[:, None, :]
+            jac = np.where(obs[k, idx, None, None], jac, 0.0)
+            nmat_final[idx] += wgt[k, idx, None, None] * np.einsum("nai,naj->nij", jac, jac)
+    cov = np.full((n_pts, 3, 3), np.nan)
+    if idx.size:
+        cov[idx] = np.linalg.inv(nmat_final[idx])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        wr2 = np.nansum(wgt[..., None] * np.nan_to_num(res) ** 2, axis=(0, 2))
+        red = 2 * n_obs - 3
+        sigma0 = np.where((red > 0) & fin, np.sqrt(wr2 / np.maximum(red, 1)), np.nan)
+    lon = np.where(fin, lon, np.nan)
+    lat = np.where(fin, lat, np.nan)
+    h = np.where(fin, h, np.nan)
+    _report(progress, 1.0, "intersected")
+    return IntersectionResult(lon=lon, lat=lat, h=h, residuals=res, n_images=n_obs.astype(int),
+                              cov_enu_m2=cov, sigma0=sigma0, converged=fin)
+
+
+def intersection_accuracy(result: IntersectionResult, lon_true, lat_true, h_true) -> Dict[str, Any]:
+    """Planar and height errors (m) of intersected points against known ground truth (METHODS §6, §7).
+
+    Returns ``n``, per-axis ``east/north/height`` mean/rms/max, ``planar_rms_m`` (sqrt(mean(e^2 + n^2))),
+    ``height_rms_m``, ``ce90_m`` and ``le90_m``.
+    """
+    e, n, u = ground_errors_m(result.lon, result.lat, result.h, lon_true, lat_true, h_true)
+    ok = np.isfinite(e) & np.isfinite(n) & np.isfinite(u)
+    e, n, u = e[ok], n[ok], u[ok]
+    if not ok.any():
+        return {"n": 0, "planar_rms_m": None, "height_rms_m": None, "ce90_m": None, "le90_m": None}
+
+    def ax(x):
+        return {"mean": float(x.mean()), "rms": float(np.sqrt(np.mean(x ** 2))), "max": float(np.abs(x).max())}
+
+    rad = np.hypot(e, n)
+    return {"n": int(ok.sum()), "east": ax(e), "north": ax(n), "height": ax(u),
+            "planar_rms_m": float(np.sqrt(np.mean(rad ** 2))), "height_rms_m": float(np.sqrt(np.mean(u ** 2))),
+            "ce90_m": float(np.percentile(rad, 90)), "le90_m": float(np.percentile(np.abs(u), 90))}
+
+
+def read_tie_points(path, n_images: int, names: Sequence[str] = ()):
+    """Read image points of ``n_images`` images from a CSV (GDAL pixel convention).
+
+    Two layouts (header required):
+
+    * wide: ``id, sample_1, line_1, sample_2, line_2, ...`` (1-based image numbers in the order of the RPCs);
+      an empty cell means the image does not see the point;
+    * long: ``id, image, sample, line`` with ``image`` = 1-based number or the RPC file's name/stem.
+
+    Optional ``lon, lat, h`` columns are ground truth (reported as errors). Returns ``(ids, points, truth)`` with
+    ``points`` of shape (n_images, N, 2) and ``truth`` a (3, N) array or None.
+    """
+    import pandas as pd
+    try:
+        df = pd.read_csv(path, skipinitialspace=True, comment="#")
+    except Exception as exc:  # pandas raises several types
+        raise GCPError(f"cannot read tie points from {path}: {str(exc).splitlines()[0]}") from None
+    df.columns = [str(c).strip().lower() for c in df.columns]
+    if "id" not in df.columns:
+        df["id"] = [str(i + 1) for i in range(len(df))]
+    truth_cols = ("lon", "lat", "h")
+    if {"image", "sample", "line"} <= set(df.columns):
+        import os
+        keys = {}
+        for k, nm in enumerate(names):
+            base = os.path.basename(str(nm))
+            for key in (str(k + 1), base, os.path.splitext(base)[0]):
+                keys[key.lower()] = k
+        img = df["image"].astype(str).str.strip().str.lower()
+        bad = sorted(set(img) - set(keys) - {str(k + 1) for k in range(n_images)})
+        if bad:
+            raise GCPError(f"{path}: unknown image {bad[0]!r}; use 1..{n_images} or the RPC file names")
+        idx = np.array([keys.get(v, int(v) - 1 if v.isdigit() else -1) for v in img])
+        ids = list(dict.fromkeys(df["id"].astype(str)))
+        pos = {v: i for i, v in enumerate(ids)}
+        pts = np.full((n_images, len(ids), 2), np.nan)
+        col = np.array([pos[v] for v in df["id"].astype(str)])
+        pts[idx, col, 0] = df["sample"].to_numpy(float)
+        pts[idx, col, 1] = df["line"].to_numpy(float)
+        truth = None
+        if all(c in df.columns for c in truth_cols):
+            first = df.groupby(df["id"].astype(str), sort=False)[list(truth_cols)].first().loc[ids]
+            truth = first.to_numpy(float).T
+        return ids, pts, truth
+    pts = np.full((n_images, len(df), 2), np.nan)
+    for k in range(n_images):
+        cs, cl = f"sample_{k + 1}", f"line_{k + 1}"
+        if cs not in df.columns or cl not in df.columns:
+            raise GCPError(f"{path}: columns {cs}, {cl} missing; expected id,sample_1,line_1,sample_2,line_2,... "
+                           "or id,image,sample,line")
+        pts[k, :, 0] = pd.to_numeric(df[cs], errors="coerce").to_numpy(float)
+        pts[k, :, 1] = pd.to_numeric(df[cl], errors="coerce").to_numpy(float)
+    truth = df[list(truth_cols)].to_numpy(float).T if all(c in df.columns for c in truth_cols) else None
+    return list(df["id"].astype(str)), pts, truth
+
+
+def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional[str] = None, sigma_px: float = 1.0,
+                    report: Optional[str] = None, overwrite: bool = False, progress=None) -> Dict[str, Any]:
+    """``gf4cal intersect``: read RPCs and tie points, intersect (METHODS §7), write points and a report.
+
+    ``out`` (``.csv``, ``.gpkg`` or ``.geojson``) gets one row per point: ``id, lon, lat, h, n_images,
+    sigma_planar_m, sigma_height_m, sigma0`` and, with ground truth, ``err_east_m, err_north_m, err_h_m``.
+    """
+    import os
+    import pandas as pd
+    from .errors import InputOverwriteError
+    from .rpc import RPCModel
+    paths = [os.fspath(p) for p in rpc_paths]
+    if len(paths) < 2:
+        raise DegenerateGeometryError("forward intersection needs at least 2 RPCs (--rpc A B [C ...])")
+    for o in (out, report):
+        if o and any(os.path.abspath(o) == os.path.abspath(p) for p in paths + [os.fspath(points_path)]):
+            raise InputOverwriteError(f"output {o!r} is an input; choose a new output path")
+        if o and os.path.exists(o) and not overwrite:
+            raise InputOverwriteError(f"output {o!r} exists; remove it or choose a new path")
+    models = [RPCModel.from_file(p) for p in paths]
+    ids, pts, truth = read_tie_points(points_path, len(models), paths)
+    res = intersect(models, pts, sigma_px=sigma_px, progress=progress)
+    table = pd.DataFrame({"id": ids, "lon": res.lon, "lat": res.lat, "h": res.h, "n_images": res.n_images,
+                          "sigma_planar_m": res.sigma_planar_m,
+                          "sigma_height_m": res.sigma_height_m, "sigma0": res.sigma0})
+    rep: Dict[str, Any] = {"rpcs": paths, "points": os.fspath(points_path), "n_points": len(ids),
+                           "n_intersected": int(np.isfinite(res.lon).sum()), "sigma_px": float(sigma_px),
+                           "predicted": {"sigma_planar_m_median": float(np.nanmedian(res.sigma_planar_m))
+                                         if np.isfinite(res.sigma_planar_m).any() else None,
+                                         "sigma_height_m_median": float(np.nanmedian(res.sigma_height_m))
+                                         if np.isfinite(res.sigma_height_m).any() else None}}
+    if truth is not None:
+        e, n, u = ground_errors_m(res.lon, res.lat, res.h, *truth)
+        table["err_east_m"], table["err_north_m"], table["err_h_m"] = e, n, u
+        rep["accuracy"] = intersection_accuracy(res, *truth)
+    if out:
+        from .gcp import write_gcps
+        if out.lower().endswith(".csv"):
+            tmp = out + ".tmp.csv"
+            table.to_csv(tmp, index=False, float_format="%.10g")
+            os.replace(tmp, out)
+        else:
+            import geopandas as gpd
+            gdf = gpd.GeoDataFrame(table, geometry=gpd.points_from_xy(table["lon"], table["lat"]), crs="EPSG:4326")
+            write_gcps(gdf, out)
+        rep["output"] = out
+    if report:
+        from .report import write_report_json
+        write_report_json(rep, report)
+    rep["table"] = table
+    return rep
