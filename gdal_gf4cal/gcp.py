@@ -115,8 +115,8 @@ def validate_gcps(gdf, *, source: str = "GCPs", dem=None, need_height: bool = Tr
 def read_gcps(path, *, dem=None, layer: Optional[str] = None, need_height: bool = True):
     """Read a GCP table from CSV (header required), GeoPackage or GeoJSON; see the module docstring.
 
-    Point layers in another CRS take their lon/lat from the geometry reprojected to EPSG:4326 when the table has
-    no lon/lat columns. Other formats: :func:`gdal_gf4cal.gcp_formats.read_gcps_any`.
+    Vector layers go through :func:`gdal_gf4cal.gcp_formats.read_gcp_layer` (any CRS, field aliases, Z heights);
+    other formats (QGIS ``.points``, rasters with GCPs) through :func:`gdal_gf4cal.gcp_formats.read_gcps_any`.
     """
     import pandas as pd
     path = os.fspath(path)
@@ -127,18 +127,14 @@ def read_gcps(path, *, dem=None, layer: Optional[str] = None, need_height: bool 
         if ext in (".csv", ".txt"):
             df = pd.read_csv(path, skipinitialspace=True, comment="#")
         elif ext in (".gpkg", ".geojson", ".json", ".shp", ".fgb"):
-            import geopandas as gpd
-            df = gpd.read_file(path, layer=layer) if layer else gpd.read_file(path)
-            if ("lon" not in df.columns or "lat" not in df.columns) and df.geometry is not None:
-                g = df.to_crs("EPSG:4326").geometry if df.crs is not None else df.geometry
-                df["lon"], df["lat"] = g.x.to_numpy(), g.y.to_numpy()
+            # Vector layers in any CRS, field-name aliases (col/row, x/y, ...), heights from a Z geometry.
+            from .gcp_formats import read_gcp_layer
+            return read_gcp_layer(path, layer=layer, dem=dem)
         else:
-            from .gcp_formats import read_gcps_any  # noqa: WPS433 (optional module of more formats)
+            from .gcp_formats import read_gcps_any  # .points files, rasters with embedded GCPs
             return read_gcps_any(path, dem=dem)
     except GCPError:
         raise
-    except ImportError:
-        raise GCPError(f"{path}: unsupported GCP format {ext!r}; use CSV, GeoPackage or GeoJSON") from None
     except Exception as exc:  # pandas/fiona raise many types; report one line
         raise GCPError(f"cannot read GCPs from {path}: {str(exc).splitlines()[0]}") from None
     return validate_gcps(df, source=path, dem=dem, need_height=need_height)
