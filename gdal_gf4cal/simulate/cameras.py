@@ -147,11 +147,19 @@ def write_json_atomic(path, obj) -> str:
             json.dump(obj, fh, indent=2, default=_json_default)
             fh.write("\n")
         os.replace(tmp, path)
+        fix_mode(path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
     return path
+
+
+def fix_mode(path):
+    """Give a file written through mkstemp (mode 0600) the usual permissions (0666 & ~umask)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(path, 0o666 & ~mask)
 
 
 def _json_default(o):

@@ -1,0 +1,25 @@
+"""Rigorous sensor simulator: the test bed with known truth (METHODS §10).
+
+``make_scene`` builds the rigorous models (a *current* and a *true* one per image) and the terrain in memory;
+``write_scene`` also fits the scene RPC from the current model, draws GCPs from the true model and writes the
+files. See DESIGN.md, section "Simulator API".
+"""
+from .cameras import PiecewiseCamera, camera_from_dict, crop_camera, shift_coefficients
+from .models import Attitude, CircularOrbit, FrameModel, PushbroomModel
+from .scene import ImageResult, SceneResult, check_grid, simulate_gcps, write_placeholder_tif, write_scene
+from .sensors import SENSORS, SimImage, SimScene, SimulationError, make_scene
+
+__all__ = [
+    "Attitude", "CircularOrbit", "FrameModel", "ImageResult", "PiecewiseCamera", "PushbroomModel", "SENSORS",
+    "SceneResult", "SimImage", "SimScene", "SimulationError", "camera_from_dict", "check_grid", "crop_camera",
+    "make_scene", "render_image", "shift_coefficients", "simulate_gcps", "texture_value", "write_placeholder_tif",
+    "write_reference_ortho", "write_scene",
+]
+
+
+def __getattr__(name):
+    # Rendering pulls in more machinery; load it on first use.
+    if name in ("render_image", "texture_value", "write_reference_ortho"):
+        from . import render
+        return getattr(render, name)
+    raise AttributeError(name)

@@ -1,0 +1,286 @@
+"""Scene writer of the simulator (METHODS §10): RPC from the current model, GCPs from the true model, files.
+
+Per image: ``scene.tif`` (placeholder or rendered), ``scene.RPB`` (fitted from the *current* model, METHODS §3),
+``gcps.csv``/``gcps.gpkg`` (measured = true + noise + outliers), ``check_grid.csv``, ``camera_current.json``,
+``camera_true.json``; per scene: ``dem.tif`` and ``truth.json``.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Dict, Optional
+
+import numpy as np
+
+from ..errors import CancelledError, Gf4calError
+from ..progress import report, scaled
+from .cameras import fix_mode, write_json_atomic
+from .sensors import SimImage, SimScene, SimulationError, make_scene
+
+#: Sensors whose images cover the same ground (GCPs drawn once, from the first image).
+_SHARED_COVERAGE = {"zy3", "gf7"}
+
+
+@dataclass
+class ImageResult:
+    """What :func:`write_scene` wrote for one image."""
+
+    name: str
+    dir: str
+    rpc: object
+    fit_report: object
+    gcps: object
+    check_grid: object
+    paths: Dict[str, str] = field(default_factory=dict)
+
+
+@dataclass
+class SceneResult:
+    scene: SimScene
+    out_dir: str
+    images: Dict[str, ImageResult]
+    truth_path: str
+    dem_path: str
+    elapsed_s: float = 0.0
+
+
+def _draw_ground_points(image: SimImage, dem, n: int, rng):
+    """``n`` ground points on the DEM seen at uniformly random true image positions of ``image``."""
+    W, H = image.true.size
+    s = rng.uniform(0.0, W, n)
+    l = rng.uniform(0.0, H, n)
+    lon, lat, h = image.true.localize_dem(s, l, dem)
+    ok = np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h)
+    return np.asarray(lon)[ok], np.asarray(lat)[ok], np.asarray(h)[ok]
+
+
+def simulate_gcps(scene: SimScene, *, n_gcps: int = 200, gcp_noise_px: float = 0.6, outlier_fraction: float = 0.0,
+                  check_fraction: float = 0.3, seed: Optional[int] = None, outlier_range_px=(5.0, 30.0)):
+    """GCP tables (one GeoDataFrame per image name) with known truth (METHODS §10).
+
+    Ground points lie on the scene DEM; ``truth_sample, truth_line`` = the true model's exact image position;
+    ``sample, line`` = truth + Gaussian noise of ``gcp_noise_px`` per axis, plus, for ``outlier_fraction`` of the
+    points, an offset of 5-30 px in a random direction (``outlier`` = True). ``role`` is "check" for
+    ``check_fraction`` of the ground points (the same in every image), else "control". Ids are shared between
+    images: the same id is the same ground point.
+    """
+    from ..gcp import make_gcps
+    if n_gcps < 1:
+        raise SimulationError("n_gcps must be at least 1")
+    if not (0.0 <= outlier_fraction < 1.0) or not (0.0 <= check_fraction < 1.0) or gcp_noise_px < 0:
+        raise SimulationError("need 0 <= outlier_fraction < 1, 0 <= check_fraction < 1 and gcp_noise_px >= 0")
+    rng = np.random.default_rng((scene.seed if seed is None else seed) + 104729)
+    sources = scene.images[:1] if scene.sensor in _SHARED_COVERAGE else scene.images
+    pts = [_draw_ground_points(im, scene.dem, n_gcps, rng) for im in sources]
+    lon, lat, h = (np.concatenate(c) for c in zip(*pts))
+    ids = np.array([f"G{i + 1:05d}" for i in range(lon.size)])
+    roles = np.where(rng.random(lon.size) < check_fraction, "check", "control").astype(object)
+    out = {}
+    for im in scene.images:
+        ts, tl = im.true.project(lon, lat, h)
+        W, H = im.size
+        inside = np.isfinite(ts) & np.isfinite(tl) & (ts >= 0) & (ts <= W) & (tl >= 0) & (tl <= H)
+        k = int(inside.sum())
+        noise_s = rng.normal(0.0, gcp_noise_px, k) if gcp_noise_px > 0 else np.zeros(k)
+        noise_l = rng.normal(0.0, gcp_noise_px, k) if gcp_noise_px > 0 else np.zeros(k)
+        outlier = rng.random(k) < outlier_fraction
+        mag = rng.uniform(*outlier_range_px, k)
+        ang = rng.uniform(0, 2 * np.pi, k)
+        ms = ts[inside] + noise_s + np.where(outlier, mag * np.cos(ang), 0.0)
+        ml = tl[inside] + noise_l + np.where(outlier, mag * np.sin(ang), 0.0)
+        gdf = make_gcps(lon[inside], lat[inside], h[inside], ms, ml, ids=ids[inside], role=roles[inside],
+                        sigma=max(gcp_noise_px, 1e-3), truth_sample=ts[inside], truth_line=tl[inside],
+                        outlier=outlier)
+        out[im.name] = gdf
+    return out
+
+
+def check_grid(image: SimImage, dem, n: int = 41):
+    """Dense check grid: ``n x n`` image points of the current model on the DEM, projected by both models.
+
+    Returns a DataFrame ``lon, lat, h, sample_current, line_current, sample_true, line_true``.
+    """
+    import pandas as pd
+    W, H = image.size
+    s, l = np.meshgrid((np.arange(n) + 0.5) * W / n, (np.arange(n) + 0.5) * H / n)
+    lon, lat, h = image.current.localize_dem(s.ravel(), l.ravel(), dem)
+    sc, lc = image.current.project(lon, lat, h)
+    st, lt = image.true.project(lon, lat, h)
+    df = pd.DataFrame({"lon": lon, "lat": lat, "h": h, "sample_current": sc, "line_current": lc,
+                       "sample_true": st, "line_true": lt})
+    return df[np.isfinite(df.to_numpy()).all(axis=1)].reset_index(drop=True)
+
+
+def write_placeholder_tif(path: str, size, dtype: str = "Byte") -> str:
+    """A sparse tiled GeoTIFF of the image size: unwritten blocks cost nothing (10240^2 in a few kB)."""
+    from osgeo import gdal
+    gdal.UseExceptions()
+    folder = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".scene-", suffix=".tif", dir=folder)
+    os.close(fd)
+    ds = gdal.GetDriverByName("GTiff").Create(tmp, int(size[0]), int(size[1]), 1, gdal.GetDataTypeByName(dtype),
+                                              ["TILED=YES", "BLOCKXSIZE=512", "BLOCKYSIZE=512", "SPARSE_OK=TRUE",
+                                               "COMPRESS=DEFLATE"])
+    ds.GetRasterBand(1).SetNoDataValue(0)
+    ds.SetMetadataItem("GF4CAL_PLACEHOLDER", "YES: pixels not rendered (gf4cal simulate --render renders them)")
+    ds = None
+    os.replace(tmp, path)
+    fix_mode(path)
+    return path
+
+
+def _write_csv(df, path):
+    folder = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".csv", dir=folder)
+    os.close(fd)
+    try:
+        df.to_csv(tmp, index=False, float_format="%.12g")
+        os.replace(tmp, path)
+        fix_mode(path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None, n_gcps: int = 200,
+                gcp_noise_px: float = 0.6, outlier_fraction: float = 0.0, dem=None, render: bool = False,
+                reference=None, progress=None, *, check_fraction: float = 0.3, paint_clouds: float = 0.0,
+                workers: int = 2, tile: int = 512, check_grid_n: int = 41) -> SceneResult:
+    """Simulate a scene and write every file (METHODS §10). See DESIGN.md "Simulator API" for the layout.
+
+    Parameters
+    ----------
+    sensor_name : "gf4", "zy3", "hj1", "jl1" or "gf7".
+    out_dir : output folder (created); multi-image sensors get one sub-folder per image.
+    seed, center, size, dem : see :func:`make_scene`.
+    n_gcps, gcp_noise_px, outlier_fraction, check_fraction : see :func:`simulate_gcps`.
+    render : render ``scene.tif`` through the TRUE model (from ``reference``, any GDAL raster in any CRS, or the
+        built-in seeded texture); otherwise a sparse placeholder of the right size.
+    paint_clouds : fraction (0..1) of the image covered by bright clouds when rendering (``cloud_mask.tif`` too).
+    progress : callback ``(fraction, message)``; raising :class:`CancelledError` from it cancels (files written by
+        this call are removed).
+    """
+    from ..dem import DEM
+    from ..rpc_fit import fit_rpc_from_model
+    t0 = time.perf_counter()
+    out_dir = os.fspath(out_dir)
+    if reference is not None and not render:
+        raise SimulationError("--reference only makes sense with --render")
+    if not (0.0 <= paint_clouds < 1.0):
+        raise SimulationError("paint_clouds must be a fraction in [0, 1)")
+    os.makedirs(out_dir, exist_ok=True)
+    written = []
+    try:
+        dem_path = os.path.join(out_dir, "dem.tif")
+        if dem is not None:
+            dem_obj = dem if isinstance(dem, DEM) else DEM.coerce(dem)
+            if not dem_obj.is_constant and dem_obj.path and os.path.abspath(dem_obj.path) == os.path.abspath(dem_path):
+                raise SimulationError(f"the input DEM {dem_path} is where the simulator writes its dem.tif; "
+                                      "use another --out folder")
+            scene = make_scene(sensor_name, seed=seed, center=center, size=size, dem=dem_obj,
+                               progress=scaled(progress, 0.0, 0.1))
+            _copy_dem(scene, dem_path)
+        else:
+            scene = make_scene(sensor_name, seed=seed, center=center, size=size, dem_path=dem_path,
+                               progress=scaled(progress, 0.0, 0.1))
+        written.append(dem_path)
+        report(progress, 0.1, "control points")
+        gcps = simulate_gcps(scene, n_gcps=n_gcps, gcp_noise_px=gcp_noise_px, outlier_fraction=outlier_fraction,
+                             check_fraction=check_fraction)
+        results = {}
+        n_im = len(scene.images)
+        truth = dict(scene.truth)
+        truth["gcps"] = {"n_gcps": n_gcps, "gcp_noise_px": gcp_noise_px, "outlier_fraction": outlier_fraction,
+                         "check_fraction": check_fraction, "outlier_range_px": [5.0, 30.0],
+                         "measured": "truth (true model) + N(0, gcp_noise_px) per axis + outlier offset"}
+        truth["files"] = {}
+        for k, im in enumerate(scene.images):
+            p = scaled(progress, 0.1 + 0.9 * k / n_im, 0.1 + 0.9 * (k + 1) / n_im)
+            d = os.path.join(out_dir, im.name) if im.name else out_dir
+            os.makedirs(d, exist_ok=True)
+            report(p, 0.0, f"{im.name or sensor_name}: fitting the RPC")
+            rpc, rep = fit_rpc_from_model(im.current)
+            paths = {k_: os.path.join(d, f) for k_, f in (
+                ("image", "scene.tif"), ("rpc", "scene.RPB"), ("gcps_csv", "gcps.csv"), ("gcps_gpkg", "gcps.gpkg"),
+                ("check_grid", "check_grid.csv"), ("camera_current", "camera_current.json"),
+                ("camera_true", "camera_true.json"))}
+            if render:
+                from .render import render_image
+                cloud_path = os.path.join(d, "cloud_mask.tif") if paint_clouds > 0 else None
+                render_image(im.true, scene.dem, paths["image"], reference=reference, seed=seed, gsd_m=im.gsd_m,
+                             paint_clouds=paint_clouds, cloud_mask_path=cloud_path, workers=workers, tile=tile,
+                             progress=scaled(p, 0.1, 0.9))
+                if cloud_path:
+                    paths["cloud_mask"] = cloud_path
+                    written.append(cloud_path)
+            else:
+                write_placeholder_tif(paths["image"], im.size)
+            written.append(paths["image"])
+            rpc.write_rpb(paths["rpc"], overwrite=True)
+            written.append(paths["rpc"])
+            report(p, 0.92, f"{im.name or sensor_name}: GCPs and check grid")
+            from ..gcp import write_gcps
+            g = gcps[im.name]
+            with warnings.catch_warnings():
+                # geopandas warns when writing an empty table (a tiny crop may contain no GCP); that is fine.
+                warnings.simplefilter("ignore", UserWarning)
+                write_gcps(g, paths["gcps_csv"])
+                write_gcps(g, paths["gcps_gpkg"])
+            written += [paths["gcps_csv"], paths["gcps_gpkg"]]
+            grid = check_grid(im, scene.dem, check_grid_n)
+            _write_csv(grid, paths["check_grid"])
+            written.append(paths["check_grid"])
+            for key_, cam in (("camera_current", im.current.camera), ("camera_true", im.true.camera)):
+                cam.to_json(paths[key_])
+                fix_mode(paths[key_])
+            written += [paths["camera_current"], paths["camera_true"]]
+            results[im.name] = ImageResult(im.name, d, rpc, rep, g, grid, paths)
+            key = im.name or "scene"
+            truth["images"][key]["rpc_fit"] = rep.to_dict()
+            truth["images"][key]["n_gcps"] = int(len(g))
+            truth["files"][key] = {k_: os.path.relpath(v, out_dir) for k_, v in paths.items()}
+        truth["files"]["dem"] = "dem.tif"
+        truth["elapsed_s"] = time.perf_counter() - t0
+        truth_path = os.path.join(out_dir, "truth.json")
+        write_json_atomic(truth_path, truth)
+        report(progress, 1.0, "scene written")
+        return SceneResult(scene, out_dir, results, truth_path, dem_path, time.perf_counter() - t0)
+    except (CancelledError, Gf4calError, OSError, ValueError, KeyboardInterrupt):
+        for path in written:
+            if os.path.exists(path):
+                os.unlink(path)
+        raise
+
+
+def _copy_dem(scene: SimScene, dem_path: str):
+    """dem.tif for a user DEM: the DEM resampled (as ellipsoidal heights) over the footprint, or a constant."""
+    from .terrain import write_dem_tif
+    hr = scene.truth["height_range_m"]
+    bounds = None
+    lons, lats = [], []
+    for im in scene.images:
+        W, H = im.size
+        s = np.array([0, W, W, 0, W / 2])
+        l = np.array([0, 0, H, H, H / 2])
+        for h in hr:
+            lo, la = im.current.localize(s, l, np.full(5, h))
+            lons.append(lo)
+            lats.append(la)
+    lo, la = np.concatenate(lons), np.concatenate(lats)
+    mx, my = 0.05 * (lo.max() - lo.min()) + 0.005, 0.05 * (la.max() - la.min()) + 0.005
+    bounds = (lo.min() - mx, la.min() - my, lo.max() + mx, la.max() + my)
+    n = 1024
+    cell = max(bounds[2] - bounds[0], bounds[3] - bounds[1]) / n
+    xs = bounds[0] + (np.arange(int(np.ceil((bounds[2] - bounds[0]) / cell))) + 0.5) * cell
+    ys = bounds[3] - (np.arange(int(np.ceil((bounds[3] - bounds[1]) / cell))) + 0.5) * cell
+    X, Y = np.meshgrid(xs, ys)
+    from ..dem import DEM
+    dem = scene.dem
+    if not dem.is_constant and dem.path:
+        dem = DEM.from_file(dem.path, geoid=getattr(dem, "_geoid_name", None), nodata="nan")
+    heights = np.asarray(dem.height(X, Y), dtype=np.float32)
+    write_dem_tif(dem_path, heights, (bounds[0], cell, 0.0, bounds[3], 0.0, -cell))

@@ -1,0 +1,561 @@
+"""The simulated sensors (METHODS §10): GF4, ZY-3, HJ-1, Jilin-1 KF01A, GF7 -- each with a *current* and a *true*
+rigorous model per image, a DEM and a record of every injected error.
+
+* ``current``: the model the ground segment uses; the scene RPC is fitted from it (it carries the systematic
+  errors relative to the truth).
+* ``true``: the physical truth; GCP image positions and rendered pixels come from it.
+
+GF4 (the look-angle calibration test bed, METHODS §5): both states share the exterior orientation exactly and
+differ only by the camera, ``V_true = Rot(theta) V_current + t + D`` with ``D`` cubic in the detector numbers,
+so the true camera is itself a cubic look-angle model and ``V_true(s, l) = V_current(s', l')`` holds exactly for
+the true image point (s, l) and the current one (s', l') of any ground point.
+"""
+from __future__ import annotations
+
+import uuid
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List, Optional, Tuple
+
+import numpy as np
+
+from ..errors import DEMError, Gf4calError
+from .cameras import PiecewiseCamera, camera_from_normalised_polys, crop_camera
+from .geodesy import (GEO_RADIUS, WGS84_A, enu_basis, geodetic_to_ecef, rot_x)
+from .models import CAMERA_TO_BODY, Attitude, CircularOrbit, FrameModel, PushbroomModel
+
+ARCSEC = np.pi / 180 / 3600
+
+
+class SimulationError(Gf4calError, ValueError):
+    """Invalid simulation parameters (unknown sensor, bad size or centre)."""
+
+
+@dataclass
+class SimImage:
+    """One image of a simulated scene: its two rigorous models and what differs between them.
+
+    ``name`` is the sub-folder ("" for single-image sensors); ``current``/``true`` are :class:`FrameModel` or
+    :class:`PushbroomModel` objects with ``project``/``localize``/``localize_dem``/``look_angles``/``size``/
+    ``height_range``/``camera``; ``errors`` describes the injected errors; ``gsd_m`` the nominal ground sample
+    distance at the image centre.
+    """
+
+    name: str
+    current: object
+    true: object
+    gsd_m: float
+    errors: Dict = field(default_factory=dict)
+    info: Dict = field(default_factory=dict)
+
+    @property
+    def size(self) -> Tuple[int, int]:
+        return self.current.size
+
+    def virtual_image_point(self, lon, lat, h):
+        """The current rigorous model's image point of ground points: the exact analogue of ``RPC(B, L, H)``
+        (METHODS §5 step 1). Same as ``current.project``."""
+        return self.current.project(lon, lat, h)
+
+
+@dataclass
+class SimScene:
+    """A simulated scene: images, DEM and the full truth record (``truth`` is what truth.json holds)."""
+
+    sensor: str
+    seed: int
+    center: Tuple[float, float]
+    images: List[SimImage]
+    dem: object                      # gdal_gf4cal.dem.DEM
+    dem_path: Optional[str]
+    truth: Dict
+
+    def image(self, name: str = "") -> SimImage:
+        for im in self.images:
+            if im.name == name:
+                return im
+        raise SimulationError(f"no image {name!r} in this {self.sensor} scene; "
+                              f"choose one of {[im.name for im in self.images]}")
+
+    @property
+    def is_multi_image(self) -> bool:
+        return len(self.images) > 1 or self.images[0].name != ""
+
+
+# ------------------------------------------------------------------------------------------------ sensor specs
+@dataclass
+class SensorSpec:
+    name: str
+    description: str
+    default_center: Tuple[float, float]
+    relief_m: Tuple[float, float]
+    build: Callable
+    images: Tuple[str, ...]
+
+
+def _crop(full: Tuple[int, int], size: Optional[Tuple[int, int]]):
+    if size is None:
+        return tuple(full), (0, 0)
+    W, H = int(size[0]), int(size[1])
+    if W < 16 or H < 16:
+        raise SimulationError(f"--size {W} {H} is too small; use at least 16 x 16 pixels")
+    if W > full[0] or H > full[1]:
+        raise SimulationError(f"--size {W} {H} exceeds the detector array {full[0]} x {full[1]}; "
+                              "choose a smaller crop")
+    return (W, H), ((full[0] - W) // 2, (full[1] - H) // 2)
+
+
+def _scale_size(full, size, ref_full):
+    """Crop of a secondary image matching a crop of the reference image in ground extent."""
+    if size is None:
+        return None
+    return (max(16, int(round(size[0] * full[0] / ref_full[0]))), max(16, int(round(size[1] * full[1] / ref_full[1]))))
+
+
+# ------------------------------------------------------------------------------------------------------- GF4
+def _build_gf4(rng, center, size, h_mid):
+    full = (10240, 10240)
+    (W, H), (x0, y0) = _crop(full, size)
+    sat_lon = 105.6
+    sat = geodetic_to_ecef(sat_lon, 0.0, GEO_RADIUS - WGS84_A)
+    target = geodetic_to_ecef(center[0], center[1], h_mid)
+    z = target - sat
+    z /= np.linalg.norm(z)
+    east, _, _ = enu_basis(center[0], center[1])
+    x = east - np.dot(east, z) * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    # Exterior orientation (identical in both states): the pointing as commanded, plus a small unknown yaw/
+    # pitch/roll that the current camera file absorbs anyway (METHODS §5: exterior errors act like interior ones).
+    R = np.column_stack([x, y, z])
+    ifov = 50.0 / 35786e3                     # 50 m at the sub-satellite point
+    hs, hl = full[0] / 2.0, full[1] / 2.0
+    k3_model = 0.8                            # modelled radial distortion in the current camera (px at r = 1)
+
+    def cur_x(u, v):
+        return ifov * (hs * u + k3_model * u * (u * u + v * v))
+
+    def cur_y(u, v):
+        return ifov * (hl * v + k3_model * v * (u * u + v * v))
+
+    theta = rng.choice([-1.0, 1.0]) * rng.uniform(3.0e-3, 3.4e-3)     # yaw: ~10 px RMS of rotation
+    t_px = (rng.uniform(1.5, 3.0) * rng.choice([-1, 1]), rng.uniform(1.5, 3.0) * rng.choice([-1, 1]))
+    kx, ky = rng.uniform(2.2, 2.5), rng.uniform(1.8, 2.1)             # per-axis scale (focal/pitch), px at edge
+    k3 = rng.uniform(0.25, 0.4)                                       # unmodelled cubic radial, px at r = 1
+    c, s_ = np.cos(theta), np.sin(theta)
+
+    def true_x(u, v):
+        return c * cur_x(u, v) - s_ * cur_y(u, v) + ifov * (t_px[0] + kx * u + k3 * u * (u * u + v * v))
+
+    def true_y(u, v):
+        return s_ * cur_x(u, v) + c * cur_y(u, v) + ifov * (t_px[1] + ky * v + k3 * v * (u * u + v * v))
+
+    cam_cur = camera_from_normalised_polys(full, cur_x, cur_y, name="gf4-pms current")
+    cam_true = camera_from_normalised_polys(full, true_x, true_y, name="gf4-pms true")
+    if (x0, y0) != (0, 0) or (W, H) != full:
+        cam_cur = crop_camera(cam_cur, (x0, y0), (W, H))
+        cam_true = crop_camera(cam_true, (x0, y0), (W, H))
+    current = FrameModel(cam_cur, sat, R, name="gf4 current")
+    true = FrameModel(cam_true, sat, R, name="gf4 true")
+    errors = {
+        "description": "true look angles = Rot(theta) * current + ifov * (translation + scale + cubic radial), "
+                       "exterior orientation identical (METHODS §5)",
+        "rotation_rad": theta, "translation_px": list(t_px), "scale_px_at_edge": [kx, ky],
+        "radial_cubic_px_at_edge": k3, "modelled_radial_cubic_px_at_edge": k3_model,
+        "ifov_rad": ifov, "exterior_identical": True,
+    }
+    info = {"satellite_lon_deg": sat_lon, "orbit": "geostationary", "full_size": list(full), "crop_offset": [x0, y0]}
+    return [SimImage("", current, true, 0.0, errors, info)]
+
+
+# ---------------------------------------------------------------------------------------------- push-brooms
+def _orbit_over(lon, lat, altitude, incl_deg):
+    """Circular orbit whose sub-satellite point at t = 0 is near geodetic (lon, lat), descending."""
+    phi_c = np.arctan((1 - 0.00669437999014) * np.tan(np.radians(lat)))
+    i = np.radians(incl_deg)
+    u = np.pi - np.arcsin(np.clip(np.sin(phi_c) / np.sin(i), -1, 1))
+    raan = np.radians(lon) - np.arctan2(np.sin(u) * np.cos(i), np.cos(u))
+    return CircularOrbit(WGS84_A + altitude, incl_deg, float(raan), float(u))
+
+
+def _probe(orbit, attitude, install, camera):
+    return PushbroomModel(camera, orbit, attitude, install, t_center=0.0, line_center=0.0, line_period=1.0)
+
+
+def _align_orbit(center, h, altitude, incl, camera, install, s_ref):
+    """Orbit such that detector ``s_ref`` of ``camera`` (mounted with ``install``) sees ``center`` at t = 0."""
+    target = np.array(center, dtype=float)
+    att = Attitude()
+    for _ in range(6):
+        orbit = _orbit_over(target[0], target[1], altitude, incl)
+        lon, lat = _probe(orbit, att, install, camera).localize(s_ref, 0.0, h)
+        target = target - (np.array([lon, lat]) - np.array(center))
+    return orbit
+
+
+def _center_time(orbit, install, camera, center, h, s_ref, attitude=None):
+    """Time at which detector ``s_ref`` sees the along-track position of ``center``; and the ground speed."""
+    probe = _probe(orbit, attitude or Attitude(), install, camera)
+    C = geodetic_to_ecef(center[0], center[1], h)
+    t = 0.0
+    for _ in range(6):
+        g0 = geodetic_to_ecef(*probe.localize(s_ref, t, h), h)
+        g1 = geodetic_to_ecef(*probe.localize(s_ref, t + 1.0, h), h)
+        v = g1 - g0
+        speed = np.linalg.norm(v)
+        t -= float(np.dot(g0 - C, v / speed) / speed)
+    return t, speed
+
+
+def _linear_camera(full, ifov, tx0, ty0, name, extra_x=None, extra_y=None):
+    hs = full[0] / 2.0
+
+    def fx(u, v):
+        return tx0 + ifov * hs * u + (ifov * extra_x(u) if extra_x else 0.0)
+
+    def fy(u, v):
+        return ty0 + 0.0 * u + (ifov * extra_y(u) if extra_y else 0.0)
+
+    return camera_from_normalised_polys(full, fx, fy, name=name)
+
+
+def _poly_px(coeffs):
+    """u -> sum c_k u^k (pixels), ascending coefficients."""
+    return lambda u: np.polyval(list(coeffs)[::-1], u)
+
+
+def _pushbroom(name, full, size, cam_cur, cam_true, orbit, att_cur, att_true, install, center, h_mid, gsd,
+               errors, info):
+    """Assemble one push-broom image (crop, timing) from full-array cameras."""
+    (W, H), (x0, y0) = _crop(full, size)
+    s_ref = full[0] / 2.0
+    t_c, speed = _center_time(orbit, install, cam_cur, center, h_mid, s_ref, att_cur)
+    period = gsd / speed
+    if (W, H) != tuple(full):
+        # Crops are centred on the scene centre's image point (the views of a stereo/pan-MS set see it at
+        # slightly different detectors because the Earth turns between the looks).
+        probe = PushbroomModel(cam_cur, orbit, att_cur, install, t_center=t_c, line_center=full[1] / 2.0,
+                               line_period=period)
+        s_c, l_c = probe.project(center[0], center[1], h_mid)
+        x0 = int(np.clip(round(s_c - W / 2.0), 0, full[0] - W))
+        y0 = int(np.clip(round(l_c - H / 2.0), 0, full[1] - H))
+    if (x0, y0) != (0, 0) or (W, H) != full:
+        cam_cur = _crop_any(cam_cur, (x0, y0), (W, H))
+        cam_true = _crop_any(cam_true, (x0, y0), (W, H))
+    line_center = full[1] / 2.0 - y0
+    kw = dict(t_center=t_c, line_center=line_center, line_period=period)
+    current = PushbroomModel(cam_cur, orbit, att_cur, install, name=f"{name} current", **kw)
+    true = PushbroomModel(cam_true, orbit, att_true, install, name=f"{name} true", **kw)
+    info = dict(info, full_size=list(full), crop_offset=[x0, y0], t_center_s=t_c, line_period_s=period,
+                ground_speed_m_s=speed, line_center=line_center)
+    return current, true, info
+
+
+def _crop_any(cam, offset, size):
+    if isinstance(cam, PiecewiseCamera):
+        return PiecewiseCamera(size, [crop_camera(p, offset, size) for p in cam.pieces], cam.edges - offset[0],
+                               cam.name, cam.notes)
+    return crop_camera(cam, offset, size)
+
+
+def _build_zy3(rng, center, size, h_mid):
+    alt, incl = 505e3, 97.42
+    ref_full = (24576, 24576)
+    views = [("nadir", (24576, 24576), 2.1, 0.0), ("fwd", (16384, 16384), 3.5, np.tan(np.radians(22.0))),
+             ("bwd", (16384, 16384), 3.5, -np.tan(np.radians(22.0)))]
+    nad_cam = _linear_camera(ref_full, 2.1 / alt, 0.0, 0.0, "zy3 nadir")
+    orbit = _align_orbit(center, h_mid, alt, incl, nad_cam, CAMERA_TO_BODY, ref_full[0] / 2)
+    # Yaw steering: compensates the Earth's rotation between the forward and backward looks so that the three
+    # views cover the same ground (as ZY-3 does).
+    yaw0 = _yaw_steering(orbit, center, h_mid, views[1][1], 3.5 / alt, views[1][3])
+    att_cur = Attitude(yaw=(yaw0,))
+    # Platform attitude errors (shared by the three cameras): bias + drift, about 1-6 px.
+    att_true = Attitude(roll=(rng.normal(0, 3) * ARCSEC, rng.normal(0, 0.05) * ARCSEC),
+                        pitch=(rng.normal(0, 3) * ARCSEC, rng.normal(0, 0.05) * ARCSEC),
+                        yaw=(yaw0 + rng.normal(0, 10) * ARCSEC,))
+    images = []
+    for name, full, gsd, ty0 in views:
+        slant = alt / np.cos(np.arctan(ty0)) * (1.0 + 0.02 * abs(ty0))
+        ifov = gsd / slant
+        cam_cur = _linear_camera(full, ifov, 0.0, ty0, f"zy3 {name} current")
+        # Camera installation / interior errors per view: offsets, scale, slight CCD bending (a few px).
+        ex = (rng.normal(0, 2), rng.normal(0, 1.0), 0.0, rng.normal(0, 0.5))
+        ey = (rng.normal(0, 2), rng.normal(0, 0.5), rng.normal(0, 0.5), 0.0)
+        cam_true = _linear_camera(full, ifov, 0.0, ty0, f"zy3 {name} true", _poly_px(ex), _poly_px(ey))
+        s = _scale_size(full, size, ref_full) if name != "nadir" else size
+        cur, tru, info = _pushbroom(f"zy3 {name}", full, s, cam_cur, cam_true, orbit, att_cur, att_true,
+                                    CAMERA_TO_BODY, center, h_mid, gsd,
+                                    None, {"view_tan_y": ty0, "ifov_rad": ifov})
+        errors = {"camera_cross_track_px_poly": list(ex), "camera_along_track_px_poly": list(ey),
+                  "poly_variable": "u = (s - W/2) / (W/2) of the full array"}
+        images.append(SimImage(name, cur, tru, gsd, errors, info))
+    shared = {"attitude_true": att_true.to_dict(), "attitude_current": att_cur.to_dict(), "orbit": orbit.to_dict()}
+    for im in images:
+        im.info.update(shared)
+    return images
+
+
+def _yaw_steering(orbit, center, h, full, ifov, ty0):
+    """Constant yaw that makes a camera looking ``ty0`` along track see ``center`` with its central detector."""
+    cam = _linear_camera(full, ifov, 0.0, ty0, "probe")
+    C = geodetic_to_ecef(center[0], center[1], h)
+
+    def offset(yaw):
+        att = Attitude(yaw=(yaw,))
+        t, _ = _center_time(orbit, CAMERA_TO_BODY, cam, center, h, full[0] / 2.0, att)
+        probe = _probe(orbit, att, CAMERA_TO_BODY, cam)
+        g0 = geodetic_to_ecef(*probe.localize(full[0] / 2.0, t, h), h)
+        g1 = geodetic_to_ecef(*probe.localize(full[0] / 2.0 + 1.0, t, h), h)
+        across = (g1 - g0) / np.linalg.norm(g1 - g0)
+        return float(np.dot(g0 - C, across))
+
+    yaw, d = 0.0, 1e-3
+    for _ in range(5):
+        f0 = offset(yaw)
+        yaw -= f0 * d / (offset(yaw + d) - f0)
+    return yaw
+
+
+def _build_hj1(rng, center, size, h_mid):
+    alt, incl = 650e3, 97.95
+    full = (12000, 12000)
+    gsd, tilt = 30.0, np.radians(15.0)
+    ifov = gsd * np.cos(tilt) ** 2 / alt
+    install = rot_x(tilt) @ CAMERA_TO_BODY
+    cam_cur = _linear_camera(full, ifov, 0.0, 0.0, "hj1 ccd current")
+    # Strong cross-track distortion (up to ~70 px at one edge) as a cubic of the detector position (seed 002);
+    # along-track CCD bending of a few px.
+    cx = (rng.normal(0, 3), rng.normal(-6, 2), rng.uniform(15, 22), rng.uniform(45, 52))
+    cy = (rng.normal(0, 3), rng.normal(0, 1), rng.normal(4, 1), 0.0)
+    cam_true = _linear_camera(full, ifov, 0.0, 0.0, "hj1 ccd true", _poly_px(cx), _poly_px(cy))
+    orbit = _align_orbit(center, h_mid, alt, incl, cam_cur, install, full[0] / 2)
+    # HJ-1's attitude is poorly stabilised: biases and a slow roll oscillation across the scene (not a function of
+    # the detector position, so no detector polynomial removes it -- the paper's "order 6 no better").
+    t_scene = full[1] * gsd / 6.7e3
+    px = ifov
+    att_true = Attitude(roll=(rng.normal(0, 15) * px, rng.normal(0, 0.1) * px),
+                        pitch=(rng.normal(0, 10) * px,), yaw=(rng.normal(0, 2e-4),),
+                        jitter=[("roll", 14 * px, 1.3 / t_scene, rng.uniform(0, 2 * np.pi)),
+                                ("pitch", 4 * px, 0.9 / t_scene, rng.uniform(0, 2 * np.pi))])
+    cur, tru, info = _pushbroom("hj1", full, size, cam_cur, cam_true, orbit, Attitude(), att_true, install, center,
+                                h_mid, gsd, None, {"tilt_deg": 15.0, "ifov_rad": ifov})
+    info.update(attitude_true=att_true.to_dict(), orbit=orbit.to_dict())
+    errors = {"cross_track_distortion_px_poly": list(cx), "along_track_distortion_px_poly": list(cy),
+              "poly_variable": "u = (s - W/2) / (W/2) of the full array",
+              "cross_track_edge_px": [float(np.polyval(cx[::-1], -1)), float(np.polyval(cx[::-1], 1))],
+              "attitude": "biases + slow roll/pitch oscillation (see attitude_true)"}
+    return [SimImage("", cur, tru, gsd, errors, info)]
+
+
+def _build_jl1(rng, center, size, h_mid, n_ccd: int = 4):
+    alt, incl = 535e3, 97.5
+    full = (8192, 8192)
+    gsd = 0.75
+    ifov = gsd / alt
+    overlap = 200
+    speed0 = 7.0e3
+    dty = 0.6 * speed0 / alt                     # ~0.6 s between adjacent CCDs (staggered focal plane)
+    ref = _linear_camera(full, ifov, 0.0, 0.0, "jl1 ref")
+    orbit = _align_orbit(center, h_mid, alt, incl, ref, CAMERA_TO_BODY, full[0] / 2)
+    att_true = Attitude(roll=(rng.normal(0, 8) * ifov,), pitch=(rng.normal(0, 8) * ifov,),
+                        yaw=(rng.normal(0, 3e-5),))
+    images = []
+    for k in range(n_ccd):
+        off = (k - (n_ccd - 1) / 2.0) * (full[0] - overlap)
+        tx0 = ifov * off
+        ty0 = dty / 2 if k % 2 == 0 else -dty / 2
+        cam_cur = _linear_camera(full, ifov, tx0, ty0, f"jl1 ccd{k + 1} current")
+        ex = (rng.normal(0, 2), rng.normal(0, 1), rng.normal(0, 0.8), rng.normal(0, 1.2))
+        ey = (rng.normal(0, 2), rng.normal(0, 1), rng.normal(0, 0.8), rng.normal(0, 0.4))
+        cam_true = _linear_camera(full, ifov, tx0, ty0, f"jl1 ccd{k + 1} true", _poly_px(ex), _poly_px(ey))
+        cur, tru, info = _pushbroom(f"jl1 ccd{k + 1}", full, size, cam_cur, cam_true, orbit, Attitude(), att_true,
+                                    CAMERA_TO_BODY, _shift_center(center, orbit, off * gsd), h_mid, gsd, None,
+                                    {"ccd": k + 1, "cross_track_offset_px": off, "view_tan_y": ty0, "ifov_rad": ifov})
+        errors = {"camera_cross_track_px_poly": list(ex), "camera_along_track_px_poly": list(ey),
+                  "poly_variable": "u = (s - W/2) / (W/2) of the full CCD"}
+        info.update(attitude_true=att_true.to_dict(), orbit=orbit.to_dict())
+        images.append(SimImage(f"ccd{k + 1}", cur, tru, gsd, errors, info))
+    return images
+
+
+def _shift_center(center, orbit, cross_m):
+    """The scene centre moved ``cross_m`` metres to the left of the flight direction (camera +x)."""
+    pos, vel = orbit.inertial(0.0)
+    east, north, _ = enu_basis(center[0], center[1])
+    fwd = np.array([np.dot(vel, east), np.dot(vel, north)])
+    fwd /= np.linalg.norm(fwd)
+    left = np.array([-fwd[1], fwd[0]])
+    lat_m = 111320.0
+    return (center[0] + cross_m * left[0] / (lat_m * np.cos(np.radians(center[1]))),
+            center[1] + cross_m * left[1] / lat_m)
+
+
+def _build_gf7(rng, center, size, h_mid):
+    alt, incl = 505e3, 97.4
+    back = -np.tan(np.radians(5.0))
+    bands = [("pan", (30720, 30720), 0.65, back), ("ms", (7680, 7680), 2.6, back - 0.4 * 7.0e3 / alt)]
+    ref = _linear_camera(bands[0][1], 0.65 / alt, 0.0, back, "ref")
+    orbit = _align_orbit(center, h_mid, alt, incl, ref, CAMERA_TO_BODY, bands[0][1][0] / 2)
+    ms_px = 2.6 / alt
+    # Shared exterior errors (linear in the image) and jitter (< 0.1 MS px between pan and MS).
+    att_true = Attitude(roll=(rng.normal(0, 6) * ms_px, rng.normal(0, 0.05) * ms_px),
+                        pitch=(rng.normal(0, 6) * ms_px,), yaw=(rng.normal(0, 2e-5),),
+                        jitter=[("roll", 0.05 * ms_px, 0.71, rng.uniform(0, 2 * np.pi)),
+                                ("pitch", 0.04 * ms_px, 1.27, rng.uniform(0, 2 * np.pi))])
+    images = []
+    ref_full = bands[0][1]
+    for name, full, gsd, ty0 in bands:
+        ifov = gsd * np.cos(np.arctan(ty0)) ** 2 / alt
+        cam_cur = _linear_camera(full, ifov, 0.0, ty0, f"gf7 {name} current")
+        # Three sub-CCDs per band, each with its own placement error and distortion (in this band's pixels).
+        edges = np.linspace(0, full[0], 4)
+        pieces, piece_err = [], []
+        for k in range(3):
+            ex = (rng.normal(0, 0.3), rng.normal(0, 0.15), rng.normal(0, 0.1), rng.normal(0, 0.1))
+            ey = (rng.normal(0, 0.3), rng.normal(0, 0.15), rng.normal(0, 0.1), 0.0)
+            if name == "pan":
+                ex, ey = tuple(4 * e for e in ex), tuple(4 * e for e in ey)
+            pieces.append(_linear_camera(full, ifov, 0.0, ty0, f"gf7 {name} sub-ccd{k + 1} true",
+                                         _poly_px(ex), _poly_px(ey)))
+            piece_err.append({"cross_track_px_poly": list(ex), "along_track_px_poly": list(ey)})
+        cam_true = PiecewiseCamera(full, pieces, edges, name=f"gf7 {name} true")
+        s = _scale_size(full, size, ref_full) if name != "pan" else size
+        cur, tru, info = _pushbroom(f"gf7 {name}", full, s, cam_cur, cam_true, orbit, Attitude(), att_true,
+                                    CAMERA_TO_BODY, center, h_mid, gsd, None, {"view_tan_y": ty0, "ifov_rad": ifov})
+        info.update(attitude_true=att_true.to_dict(), orbit=orbit.to_dict())
+        errors = {"sub_ccd_edges_px": edges.tolist(), "sub_ccd_errors": piece_err,
+                  "poly_variable": "u = (s - W/2) / (W/2) of the full band", "jitter": att_true.jitter}
+        images.append(SimImage(name, cur, tru, gsd, errors, info))
+    return images
+
+
+SENSORS: Dict[str, SensorSpec] = {
+    "gf4": SensorSpec("gf4", "Gaofen-4 PMS, geostationary area array 10240 x 10240, 50 m nadir", (88.0, 31.0),
+                      (3500.0, 6500.0), _build_gf4, ("",)),
+    "zy3": SensorSpec("zy3", "ZiYuan-3 three-line push-broom: nadir 2.1 m 24576 px, fwd/bwd +-22 deg 3.5 m "
+                      "16384 px", (121.7, 31.45), (0.0, 600.0), _build_zy3, ("nadir", "fwd", "bwd")),
+    "hj1": SensorSpec("hj1", "HJ-1A CCD, push-broom tilted 15 deg, 360 km swath, 30 m, 12000 px", (117.5, 36.5),
+                      (0.0, 1500.0), _build_hj1, ("",)),
+    "jl1": SensorSpec("jl1", "Jilin-1 KF01A, staggered TDI CCDs (4 x 8192 px, 0.75 m, 0.6 s apart)", (125.3, 43.9),
+                      (150.0, 700.0), _build_jl1, ("ccd1", "ccd2", "ccd3", "ccd4")),
+    "gf7": SensorSpec("gf7", "Gaofen-7 backward camera, pan 0.65 m + MS 2.6 m, three sub-CCDs, jitter",
+                      (113.3, 23.1), (0.0, 1200.0), _build_gf7, ("pan", "ms")),
+}
+
+
+# ------------------------------------------------------------------------------------------- scene assembly
+def _footprint(images, heights):
+    lons, lats = [], []
+    for im in images:
+        for model in (im.current, im.true):
+            W, H = model.size
+            e = np.linspace(0, 1, 9)
+            s = np.concatenate([e * W, np.full(9, W), e[::-1] * W, np.zeros(9)])
+            l = np.concatenate([np.zeros(9), e * H, np.full(9, H), e[::-1] * H])
+            for h in heights:
+                lo, la = model.localize(s, l, np.full(s.shape, h))
+                lons.append(lo)
+                lats.append(la)
+    lons, lats = np.concatenate(lons), np.concatenate(lats)
+    if not (np.all(np.isfinite(lons)) and np.all(np.isfinite(lats))):
+        raise SimulationError("the simulated image does not see the Earth everywhere; choose a centre closer to "
+                              "the sub-satellite point")
+    return float(lons.min()), float(lats.min()), float(lons.max()), float(lats.max())
+
+
+def _gsd(model):
+    W, H = model.size
+    s, l = np.array([W / 2, W / 2 + 1, W / 2]), np.array([H / 2, H / 2, H / 2 + 1])
+    h = float(np.mean(model.height_range))
+    from .geodesy import geodetic_to_ecef as g2e
+    P = g2e(*model.localize(s, l, np.full(3, h)), np.full(3, h))
+    return float(np.linalg.norm(P[1] - P[0])), float(np.linalg.norm(P[2] - P[0]))
+
+
+def make_scene(sensor: str, *, seed: int = 0, center=None, size=None, dem=None, dem_path: Optional[str] = None,
+               progress=None) -> SimScene:
+    """Build a simulated scene in memory (METHODS §10).
+
+    Parameters
+    ----------
+    sensor : one of :data:`SENSORS` ("gf4", "zy3", "hj1", "jl1", "gf7").
+    seed : seeds every random draw (errors, terrain).
+    center : (lon, lat) of the scene centre (default: the sensor's, e.g. Tibet (88, 31) for GF4).
+    size : (W, H) crop of the detector array around its centre (of the reference image for multi-image sensors;
+        the other images get the crop of the same ground extent); geometry unchanged.
+    dem : None (synthetic seeded fractal terrain), a path, a number or a :class:`gdal_gf4cal.dem.DEM`.
+    dem_path : where to write the synthetic DEM (default: an in-memory ``/vsimem/`` file).
+    """
+    from ..dem import DEM
+    from ..progress import report
+    if sensor not in SENSORS:
+        raise SimulationError(f"unknown sensor {sensor!r}; choose one of {', '.join(SENSORS)}")
+    spec = SENSORS[sensor]
+    center = tuple(float(v) for v in (center if center is not None else spec.default_center))
+    if len(center) != 2 or not (-180 <= center[0] <= 360 and -85 <= center[1] <= 85):
+        raise SimulationError(f"centre {center} is not a valid (lon, lat) in degrees")
+    if size is not None:
+        size = (int(size[0]), int(size[1]))
+    rng = np.random.default_rng(seed)
+    report(progress, 0.0, "building sensor models")
+    user_dem = DEM.coerce(dem) if dem is not None else None
+    relief = spec.relief_m
+    if user_dem is not None:
+        h_mid = float(np.clip(user_dem.height(*center), -500, 9000)) if not user_dem.is_constant \
+            else user_dem.constant_height
+    else:
+        h_mid = 0.5 * (relief[0] + relief[1])
+    images = spec.build(rng, center, size, h_mid)
+    report(progress, 0.3, "terrain")
+    if user_dem is None:
+        # The terrain covers the full detector array's footprint even for a crop: a crop sees the same ground
+        # (and the same slopes) as the full scene.
+        full_images = images if size is None else spec.build(np.random.default_rng(seed), center, None, h_mid)
+        bounds = _footprint(full_images, relief)
+        mx, my = 0.1 * (bounds[2] - bounds[0]) + 0.01, 0.1 * (bounds[3] - bounds[1]) + 0.01
+        bounds = (bounds[0] - mx, bounds[1] - my, bounds[2] + mx, bounds[3] + my)
+        gsd_min = min(_nominal_gsd(im) for im in full_images)
+        cell = max((bounds[2] - bounds[0]) / 1500, (bounds[3] - bounds[1]) / 1500, 4 * gsd_min / 111320.0)
+        from .terrain import synthetic_dem_array, write_dem_tif
+        heights, gt = synthetic_dem_array(bounds, cell, seed + 7919, relief)
+        path = dem_path or f"/vsimem/gf4cal_sim_{uuid.uuid4().hex}.tif"
+        write_dem_tif(path, heights, gt)
+        the_dem = DEM.from_file(path)
+        h_lo, h_hi = float(heights.min()), float(heights.max())
+        dem_info = {"type": "synthetic fractal", "seed": seed + 7919, "bounds": list(bounds), "cell_deg": cell,
+                    "height_range_m": [h_lo, h_hi]}
+    else:
+        the_dem = user_dem
+        path = getattr(user_dem, "path", None)
+        if user_dem.is_constant:
+            h_lo = h_hi = user_dem.constant_height
+        else:
+            bounds = _footprint(images, (h_mid,))
+            g = np.linspace(0, 1, 60)
+            lo, la = np.meshgrid(bounds[0] + g * (bounds[2] - bounds[0]), bounds[1] + g * (bounds[3] - bounds[1]))
+            hh = np.asarray(DEM.from_file(user_dem.path, nodata="nan").height(lo, la)) if user_dem.path else \
+                np.asarray(user_dem.height(lo, la))
+            if not np.any(np.isfinite(hh)):
+                raise DEMError(f"DEM {user_dem.path} does not cover the simulated footprint {bounds}; "
+                               "use a DEM covering the scene or another --center")
+            h_lo, h_hi = float(np.nanmin(hh)), float(np.nanmax(hh))
+        dem_info = {"type": "user", "path": path, "height_range_m": [h_lo, h_hi]}
+    margin = max(50.0, 0.1 * (h_hi - h_lo))
+    hr = (h_lo - margin, h_hi + margin)
+    for im in images:
+        im.current.height_range = hr
+        im.true.height_range = hr
+        gx, gy = _gsd(im.current)
+        im.info["gsd_center_m"] = [gx, gy]
+        if im.gsd_m == 0.0:
+            im.gsd_m = 0.5 * (gx + gy)
+    truth = {"sensor": sensor, "description": spec.description, "seed": seed, "center": list(center),
+             "size": list(size) if size else None, "dem": dem_info, "height_range_m": list(hr),
+             "pixel_convention": "gdal (centre of the first pixel at 0.5, 0.5)",
+             "images": {im.name or "scene": {"size": list(im.size), "gsd_m": im.gsd_m, "errors": im.errors,
+                                             "info": im.info} for im in images}}
+    report(progress, 1.0, "scene built")
+    return SimScene(sensor, seed, center, images, the_dem, path, truth)
+
+
+def _nominal_gsd(im):
+    return im.gsd_m if im.gsd_m > 0 else 50.0
