@@ -25,6 +25,7 @@ from .lookangle import LookAngleCalibration, calibrate_lookangle, compare_lookan
 from .compensation import (CompensatedRPC, CompensationModel, CompensationResult, apply_compensation,
                            fit_compensation, refine_rpc)
 from .intersection import IntersectionResult, intersect
+from .matching import collect_gcps
 
 __version__ = "0.1.0"
 
@@ -36,4 +37,5 @@ __all__ = [
     "LookAngleCalibration", "calibrate_lookangle", "compare_lookangle", "recalibrate_rpc",
     "CompensatedRPC", "CompensationModel", "CompensationResult", "apply_compensation", "fit_compensation",
     "refine_rpc", "IntersectionResult", "intersect",
+    "collect_gcps",
 ]

@@ -37,7 +37,7 @@ import numpy as np
 from .errors import GCPError, Gf4calError
 
 __all__ = [
-    "write_residuals_gpkg", "plot_residuals", "write_report_json", "footprint_from_rpc",
+    "write_residuals_gpkg", "plot_residuals", "write_report_json", "footprint_from_rpc", "assess_accuracy",
     "RESIDUAL_FIELDS", "STANDARD_BEFORE", "STANDARD_AFTER",
 ]
 
@@ -235,7 +235,8 @@ def _marker_symbol(name: str, shape: str, colour: str, size: float) -> str:
     return _symbol("marker", name, _layer("SimpleMarker", {
         "name": shape, "color": _rgba(colour), "outline_color": "0,0,0,255", "outline_style": "solid",
         "outline_width": "0.2", "outline_width_unit": "MM", "size": f"{size:g}", "size_unit": "MM", "angle": "0",
-        "joinstyle": "bevel", "scale_method": "diameter", "vertical_anchor_point": "1", "horizontal_anchor_point": "1"}))
+        "joinstyle": "bevel", "scale_method": "diameter", "vertical_anchor_point": "1",
+        "horizontal_anchor_point": "1"}))
 
 
 def _qml(renderer: str) -> str:
@@ -259,7 +260,8 @@ def _vector_style(breaks, alpha: float = 1.0) -> Tuple[str, str]:
     for i in range(len(breaks) - 1):
         lo, hi = breaks[i], breaks[i + 1]
         label = f"{lo:g} - {hi:g} px" if i < len(breaks) - 2 else f">= {lo:g} px"
-        ranges.append(f'<range lower="{lo:.10g}" upper="{hi:.10g}" symbol="{i}" label={quoteattr(label)} render="true"/>')
+        ranges.append(f'<range lower="{lo:.10g}" upper="{hi:.10g}" symbol="{i}" label={quoteattr(label)} '
+                      'render="true"/>')
         symbols.append(_arrow_symbol(str(i), _RAMP[i], alpha))
         rules.append(
             f"<se:Rule><se:Name>{escape(label)}</se:Name><ogc:Filter><ogc:And>"
@@ -294,7 +296,8 @@ def _points_style() -> Tuple[str, str]:
     ]
     qrules, symbols, sld = [], [], []
     for i, (flt, label, shape, colour, size) in enumerate(rules):
-        qrules.append(f'<rule key="{{gf4cal-rule-{i}}}" symbol="{i}" label={quoteattr(label)} filter={quoteattr(flt)}/>')
+        qrules.append(f'<rule key="{{gf4cal-rule-{i}}}" symbol="{i}" label={quoteattr(label)} '
+                      f'filter={quoteattr(flt)}/>')
         symbols.append(_marker_symbol(str(i), shape, colour, size))
     sld_filter = {
         "control": "<ogc:And><ogc:PropertyIsEqualTo><ogc:PropertyName>role</ogc:PropertyName><ogc:Literal>control"
@@ -332,7 +335,8 @@ def _footprint_style() -> Tuple[str, str]:
            f'<se:SvgParameter name="fill-opacity">0.12</se:SvgParameter></se:Fill><se:Stroke>'
            f'<se:SvgParameter name="stroke">{_FOOTPRINT_COLOUR}</se:SvgParameter>'
            f'<se:SvgParameter name="stroke-width">1</se:SvgParameter>'
-           f'<se:SvgParameter name="stroke-dasharray">4 2</se:SvgParameter></se:Stroke></se:PolygonSymbolizer></se:Rule>')
+           f'<se:SvgParameter name="stroke-dasharray">4 2</se:SvgParameter></se:Stroke>'
+           f'</se:PolygonSymbolizer></se:Rule>')
     return qml, sld
 
 
@@ -341,7 +345,8 @@ def _sld(layer: str, rules: str) -> str:
             '<StyledLayerDescriptor xmlns="http://www.opengis.net/sld" xmlns:ogc="http://www.opengis.net/ogc" '
             'xmlns:se="http://www.opengis.net/se" xmlns:xlink="http://www.w3.org/1999/xlink" '
             'xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance" version="1.1.0" '
-            'xsi:schemaLocation="http://www.opengis.net/sld http://schemas.opengis.net/sld/1.1.0/StyledLayerDescriptor.xsd">'
+            'xsi:schemaLocation="http://www.opengis.net/sld '
+            'http://schemas.opengis.net/sld/1.1.0/StyledLayerDescriptor.xsd">'
             f"<NamedLayer><se:Name>{escape(layer)}</se:Name><UserStyle><se:Name>{escape(layer)}</se:Name>"
             f"<se:FeatureTypeStyle>{rules}</se:FeatureTypeStyle></UserStyle></NamedLayer></StyledLayerDescriptor>\n")
 
@@ -482,9 +487,10 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
     ``residual_vectors``
         One line per GCP from its ground position in the residual direction (sample -> east, line -> south),
         length = residual x ground pixel size x ``exaggeration``; the *after* residuals when given, else the
-        *before*. Fields ``id, role, epoch, res_sample, res_line, res_px, outlier, exaggeration,
+        *before*. Fields ``id, role, epoch, res_sample, res_line, res_px, outlier, clipped, exaggeration,
         map_units_per_px``; the factor is also in the layer description and metadata (``EXAGGERATION``).
-        Drawn as arrows coloured by ``res_px`` (graduated, 6 classes).
+        Drawn as arrows coloured by ``res_px`` (graduated, 6 classes from 0 to the largest non-outlier
+        residual; larger ones fall in the last, open class).
     ``residual_vectors_before``
         Same for the *before* residuals, only when both before and after are given (its own factor).
     ``footprint``
@@ -500,8 +506,9 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
     footprint : shapely geometry (lon/lat) or GeoSeries/GeoDataFrame, optional
         Scene footprint, see :func:`footprint_from_rpc`.
     exaggeration : float, optional
-        Factor applied to the residuals' ground size. Default: chosen per layer so that the longest vector is about
-        10 % of the extent of the GCPs (and footprint), rounded to two significant digits.
+        Factor applied to the residuals' ground size. Default: chosen per layer so that the longest vector of a
+        point not flagged ``outlier`` is about 10 % of the extent of the GCPs (and footprint), rounded to two
+        significant digits; then longer (blunder) arrows are shortened to 3x that length and flagged ``clipped``.
     before, after : (str, str) or None
         Names of the (sample, line) residual columns in ``gcps``, in pixels (``measured - predicted``). Missing
         columns are skipped; the output fields always have the standard names.
@@ -566,7 +573,8 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         columns[f"res_sample_{epoch}"], columns[f"res_line_{epoch}"] = s_, l_
         columns[f"res_px_{epoch}"] = np.hypot(s_, l_)
     columns["outlier"] = outlier
-    text_t, real_t, bool_t = (ogr.OFTString, ogr.OFSTNone), (ogr.OFTReal, ogr.OFSTNone), (ogr.OFTInteger, ogr.OFSTBoolean)
+    text_t, real_t = (ogr.OFTString, ogr.OFSTNone), (ogr.OFTReal, ogr.OFSTNone)
+    bool_t = (ogr.OFTInteger, ogr.OFSTBoolean)
     fields = [(k, text_t if k in ("id", "role") else bool_t if k == "outlier" else real_t) for k in columns]
     skip = set(columns) | {"geometry"} | {c for pair in (before, after) if pair for c in pair}
     for col in df.columns:
@@ -599,38 +607,47 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         s_, l_ = res[epoch]
         dx, dy = s_ * ps, -l_ * pl  # sample -> east, line -> south (image rows go down)
         length = np.hypot(dx, dy)
-        longest = float(np.nanmax(length)) if np.isfinite(length).any() else 0.0
+        mag = np.hypot(s_, l_)
+        finite = np.isfinite(length) & np.isfinite(x) & np.isfinite(y)
+        # Scale and classes follow the ordinary points: one blunder must not shrink every other arrow to nothing.
+        regular = finite & ~outlier if (finite & ~outlier).any() else finite
+        longest = float(length[regular].max()) if regular.any() else 0.0
+        clip_at = np.inf
         if exaggeration is not None:
             factor = float(exaggeration)
         else:
             factor = _nice(0.1 * extent / longest) if longest > 0 else 1.0
+            clip_at = 3.0 * longest * factor  # auto mode: blunders drawn at most 3x the longest regular arrow
         name = "residual_vectors" if k == 0 else "residual_vectors_before"
-        mag = np.hypot(s_, l_)
         scale = factor * math.sqrt(ps * pl)
+        drawn = factor * length
+        shrink = np.where(drawn > clip_at, clip_at / np.where(drawn > 0, drawn, 1.0), 1.0)
+        clipped = drawn > clip_at
         geoms = []
-        for i in range(n):
-            if not all(math.isfinite(v) for v in (x[i], y[i], dx[i], dy[i])):
-                geoms.append(None)
-                continue
+        for i in np.flatnonzero(finite):
             g = ogr.Geometry(ogr.wkbLineString)
             g.AddPoint_2D(float(x[i]), float(y[i]))
-            g.AddPoint_2D(float(x[i] + factor * dx[i]), float(y[i] + factor * dy[i]))
+            g.AddPoint_2D(float(x[i] + factor * shrink[i] * dx[i]), float(y[i] + factor * shrink[i] * dy[i]))
             geoms.append(g.ExportToWkb())
-        keep = np.array([g is not None for g in geoms], bool)
+        keep = finite
         cols = {"id": ids[keep], "role": role[keep], "epoch": np.full(keep.sum(), epoch, dtype=object),
                 "res_sample": s_[keep], "res_line": l_[keep], "res_px": mag[keep], "outlier": outlier[keep],
-                "exaggeration": np.full(keep.sum(), factor), "map_units_per_px": np.full(keep.sum(), scale)}
+                "clipped": clipped[keep], "exaggeration": np.full(keep.sum(), factor),
+                "map_units_per_px": np.full(keep.sum(), scale)}
         vfields = [("id", (ogr.OFTString, ogr.OFSTNone)), ("role", (ogr.OFTString, ogr.OFSTNone)),
                    ("epoch", (ogr.OFTString, ogr.OFSTNone))] + \
                   [(c, (ogr.OFTReal, ogr.OFSTNone)) for c in ("res_sample", "res_line", "res_px")] + \
-                  [("outlier", (ogr.OFTInteger, ogr.OFSTBoolean)), ("exaggeration", (ogr.OFTReal, ogr.OFSTNone)),
-                   ("map_units_per_px", (ogr.OFTReal, ogr.OFSTNone))]
+                  [("outlier", (ogr.OFTInteger, ogr.OFSTBoolean)), ("clipped", (ogr.OFTInteger, ogr.OFSTBoolean)),
+                   ("exaggeration", (ogr.OFTReal, ogr.OFSTNone)), ("map_units_per_px", (ogr.OFTReal, ogr.OFSTNone))]
         desc = (f"{title}: {epoch} residuals (measured - predicted, px) drawn from each GCP's ground position with "
                 f"sample -> east and line -> south, exaggerated {factor:g}x (1 px of residual = {scale:.6g} map "
                 f"units; pixel size {ps:.6g} x {pl:.6g} map units from {ps_source})")
+        if clipped.any():
+            desc += f"; {int(clipped.sum())} blunder arrow(s) shortened to 3x the longest other one (clipped = 1)"
         meta = {"EXAGGERATION": f"{factor:g}", "MAP_UNITS_PER_PX": f"{scale:.10g}", "EPOCH": epoch,
                 "DIRECTION": "sample->east, line->south", "PIXEL_SIZE_MAP_UNITS": f"{ps:.10g} {pl:.10g}"}
-        vector_layers.append((name, vfields, cols, [g for g in geoms if g is not None], desc, meta, mag))
+        mag = mag[regular]  # class breaks from the regular points; blunders fall in the open last class
+        vector_layers.append((name, vfields, cols, geoms, desc, meta, mag))
 
     if path.exists() and not overwrite:  # pragma: no cover - checked above; re-checked for races
         raise Gf4calError(f"{path} exists")
@@ -786,7 +803,8 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
                           scale=1.0 / factor, width=0.004, label=f"other ({int(m.sum())})")
             if (outlier & finite).any():
                 ax.scatter(s[outlier & finite], l[outlier & finite], s=60, facecolors="none",
-                           edgecolors=_OUTLIER_COLOUR, linewidths=1.2, label=f"outlier ({int((outlier & finite).sum())})")
+                           edgecolors=_OUTLIER_COLOUR, linewidths=1.2,
+                           label=f"outlier ({int((outlier & finite).sum())})")
             ref = _nice_scale(longest) if longest > 0 else 1.0
             # Scale arrow in the lower-left corner.
             x0 = xlim[0] + 0.05 * (xlim[1] - xlim[0])
@@ -812,3 +830,88 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
     finally:
         _cleanup(tmp)
     return path
+
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# accuracy of an RPC against GCPs (what the QGIS `assessaccuracy` algorithm reports)
+# ----------------------------------------------------------------------------------------------------------------
+def assess_accuracy(source, gcps, *, dem=None, residuals: Optional[PathLike] = None,
+                    plot: Optional[PathLike] = None, report: Optional[PathLike] = None,
+                    image_size: Optional[Tuple[int, int]] = None, progress=None) -> dict:
+    """Accuracy of an RPC against GCPs (METHODS §6): residuals, per-axis and planar statistics, CE90, internal
+    accuracy, per role; optionally written as a styled GeoPackage, a plot and ``report.json``.
+
+    Residuals are ``measured - predicted`` with ``predicted = rpc.project(lon, lat, h)`` (GDAL pixel convention).
+    In the GeoPackage and plot they are the *before* residuals (the RPC as given, before any correction).
+
+    Parameters
+    ----------
+    source : path or RPCModel
+        Image with an RPC, RPC file, or a model.
+    gcps : GCP table (DESIGN.md schema; :func:`gdal_gf4cal.gcp.validate_gcps` is applied) or a GCP file path.
+    dem : DEM, optional
+        Fills missing GCP heights.
+    residuals, plot, report : optional output paths (``.gpkg``, ``.png``, ``.json``), written atomically.
+
+    Returns
+    -------
+    dict
+        ``{"n", "all"|"control"|"check": {"n", "line", "sample", "planar", "ce90_m", "internal"}, "outputs"}``;
+        a role without points is absent. ``ce90_m`` converts residuals to ground metres through the RPC's ground
+        Jacobian at each GCP; ``internal`` removes a rotation + translation first (seed 000 eq. 8; needs >= 2 points).
+    """
+    from . import stats
+    from .compensation import ground_offsets_m
+    from .gcp import read_gcps, validate_gcps
+    from .progress import report as _report
+    from .rpc import RPCModel
+
+    rpc = source if isinstance(source, RPCModel) else RPCModel.from_file(source)
+    src_name = None if isinstance(source, RPCModel) else os.fspath(source)
+    if isinstance(gcps, (str, os.PathLike)):
+        table = read_gcps(gcps, dem=dem)
+    else:
+        table = validate_gcps(gcps, dem=dem)
+    _report(progress, 0.2, "projecting the GCPs")
+    lon, lat, h = (table[c].to_numpy(float) for c in ("lon", "lat", "h"))
+    s_pred, l_pred = (np.asarray(v, float) for v in rpc.project(lon, lat, h))
+    table = table.copy()
+    table["pred_sample"], table["pred_line"] = s_pred, l_pred
+    table["res_sample"] = table["sample"].to_numpy(float) - s_pred
+    table["res_line"] = table["line"].to_numpy(float) - l_pred
+    east, north = ground_offsets_m(rpc, lon, lat, h, table["res_sample"].to_numpy(), table["res_line"].to_numpy())
+    table["res_east_m"], table["res_north_m"] = east, north
+    out: dict = {"source": src_name, "n": int(len(table)), "residuals": "measured - RPC(ground), px"}
+    roles = {"all": np.ones(len(table), bool)}
+    for role in ("control", "check"):
+        m = (table["role"] == role).to_numpy()
+        if m.any() and not m.all():
+            roles[role] = m
+    for key, m in roles.items():
+        rs, rl = table["res_sample"].to_numpy()[m], table["res_line"].to_numpy()[m]
+        entry = stats.residual_report(rs, rl)
+        entry["ce90_m"] = stats.ce90(east[m], north[m])
+        if m.sum() >= 2:
+            entry["internal"] = stats.internal_accuracy(table["sample"].to_numpy()[m], table["line"].to_numpy()[m],
+                                                        s_pred[m], l_pred[m])
+        out[key] = entry
+    _report(progress, 0.6, "writing outputs")
+    outputs = {}
+    if residuals:
+        footprint = None
+        if image_size is not None:
+            footprint = footprint_from_rpc(rpc, image_size, h=float(rpc.height_off))
+        write_residuals_gpkg(table, residuals, footprint=footprint, before=("res_sample", "res_line"), after=None,
+                             title="RPC accuracy")
+        outputs["residuals"] = os.fspath(residuals)
+    if plot:
+        plot_residuals(table, plot, before=("res_sample", "res_line"), after=None, image_size=image_size,
+                       title="RPC residuals at the GCPs")
+        outputs["plot"] = os.fspath(plot)
+    if report:
+        outputs["report"] = os.fspath(report)
+        write_report_json(dict(out, outputs=outputs), report)
+    out["outputs"] = outputs
+    _report(progress, 1.0, "done")
+    return out

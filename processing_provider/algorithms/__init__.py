@@ -1,0 +1,10 @@
+"""One module per algorithm; ALGORITHMS lists the classes the provider registers, in menu order."""
+from .applycalibration import ApplyCalibration
+from .assessaccuracy import AssessAccuracy
+from .calibratelookangle import CalibrateLookAngle
+from .collectgcps import CollectGcps
+from .refinerpc import RefineRpc
+from .rpcinfo import RpcInfo
+from .simulatescene import SimulateScene
+
+ALGORITHMS = [RpcInfo, SimulateScene, CollectGcps, RefineRpc, CalibrateLookAngle, ApplyCalibration, AssessAccuracy]

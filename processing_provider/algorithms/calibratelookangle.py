@@ -1,0 +1,109 @@
+"""``gf4cal:calibratelookangle`` - calibrate an area-array camera's look angles from a scene's RPC and GCPs
+(METHODS §5, seed 000) and write the new camera file and the recalibrated RPC."""
+from __future__ import annotations
+
+import os
+
+from qgis.core import (
+    QgsProcessingOutputFile,
+    QgsProcessingOutputNumber,
+    QgsProcessingOutputRasterLayer,
+    QgsProcessingOutputVectorLayer,
+    QgsProcessingParameterBoolean,
+    QgsProcessingParameterFile,
+    QgsProcessingParameterFolderDestination,
+)
+
+from ..base import Gf4calAlgorithm
+
+
+def _planar(st):
+    if not st or not st.get("n"):
+        return float("nan")
+    return float((st["sample"]["rms"] ** 2 + st["line"]["rms"] ** 2) ** 0.5)
+
+
+class CalibrateLookAngle(Gf4calAlgorithm):
+    NAME = "calibratelookangle"
+    DISPLAY = "Calibrate camera look angles from the RPC (GF4 method)"
+    GROUP = "RPC calibration"
+    GROUP_ID = "calibration"
+    HELP = ("On-orbit calibration of an area-array camera's detector look-angle model (cubic in the detector "
+            "numbers) from one scene's RPC, the camera file the RPC was made with and GCPs (METHODS §5). Writes "
+            "camera_new.json, the recalibrated RPC (<scene>.RPB, and <scene>.vrt over the untouched image when "
+            "INPUT is an image), residuals.gpkg (styled GCPs and residual arrows), residuals.png, report.json and "
+            "the GCPs used (gcps_used.csv). Without a vendor camera file, a nominal one (focal length, pixel size) "
+            "gives an equally good recalibrated RPC.")
+
+    CAMERA = "CAMERA"
+    ROBUST = "ROBUST"
+    OUTPUT_FOLDER = "OUTPUT_FOLDER"
+
+    def initAlgorithm(self, config=None):
+        self.add_input_rpc("Scene image or RPC file")
+        self.add_gcp_parameters()
+        self._add(QgsProcessingParameterFile(self.CAMERA, self.tr("Current camera file (JSON)"),
+                                             behavior=QgsProcessingParameterFile.File, extension="json"),
+                  'The look-angle camera the RPC was made with: {"model": "lookangle-cubic", "size": [W, H], '
+                  '"x": [...], "y": [...]}.')
+        self.add_dem_parameters()
+        p = self._add(QgsProcessingParameterBoolean(self.ROBUST, self.tr("Robust estimation (flag blunders)"),
+                                                    defaultValue=True),
+                      "Reweight iteratively and flag blunders; off = plain least squares.")
+        p.setFlags(p.flags() | p.FlagAdvanced)
+        self._add(QgsProcessingParameterFolderDestination(self.OUTPUT_FOLDER, self.tr("Output folder")),
+                  "Folder receiving camera_new.json, the recalibrated RPC, residuals and report.")
+        self.addOutput(QgsProcessingOutputFile("OUTPUT_CAMERA", self.tr("New camera file")))
+        self.addOutput(QgsProcessingOutputFile(self.OUTPUT_RPC, self.tr("Recalibrated RPC (.RPB)")))
+        self.addOutput(QgsProcessingOutputRasterLayer("OUTPUT_VRT", self.tr("Image with the recalibrated RPC")))
+        self.addOutput(QgsProcessingOutputVectorLayer(self.OUTPUT_GPKG, self.tr("Residuals GeoPackage")))
+        self.addOutput(QgsProcessingOutputFile(self.OUTPUT_PLOT, self.tr("Residual plot")))
+        self.addOutput(QgsProcessingOutputFile(self.OUTPUT_REPORT, self.tr("Report (JSON)")))
+        for key, label in (("CONTROL_RMS_BEFORE", "Control RMS before (px, planar)"),
+                           ("CONTROL_RMS_AFTER", "Control RMS after (px, planar)"),
+                           ("CHECK_RMS_BEFORE", "Check RMS before (px, planar)"),
+                           ("CHECK_RMS_AFTER", "Check RMS after (px, planar)"),
+                           ("N_OUTLIERS", "Number of flagged outliers"), ("ITERATIONS", "Iterations"),
+                           ("CONDITION_NUMBER", "Condition number of the GCP layout")):
+            self.addOutput(QgsProcessingOutputNumber(key, self.tr(label)))
+
+    def run_algorithm(self, parameters, context, feedback, progress):
+        from gdal_gf4cal.describe import image_size_of
+        from gdal_gf4cal.gcp import write_gcps
+        from gdal_gf4cal.lookangle import calibrate_lookangle_files
+
+        source = self.input_path(parameters, context)
+        camera = self.parameterAsFile(parameters, self.CAMERA, context)
+        if not camera or not os.path.exists(camera):
+            raise self.error("Give the camera file the RPC was made with (CAMERA).")
+        dem = self.read_dem(parameters, context)
+        gcps = self.read_gcps(parameters, context, feedback, dem=dem)  # heights filled from the DEM here
+        folder = self.parameterAsString(parameters, self.OUTPUT_FOLDER, context)
+        os.makedirs(folder, exist_ok=True)
+        used = os.path.join(folder, "gcps_used.csv")
+        existed = os.path.exists(used)
+        # The engine's file workflow reads GCP files: give it the layer's GCPs (WGS84, heights filled) as CSV.
+        write_gcps(gcps.drop(columns="geometry"), used)
+        if not existed:
+            self._created.append(used)
+        image = source if image_size_of(source) is not None else None
+        rep = calibrate_lookangle_files(source, used, camera, folder, image=image, robust=self.parameterAsBool(
+            parameters, self.ROBUST, context), overwrite=True, progress=progress)
+        cal, paths = rep["calibration"], rep["outputs"]
+        feedback.pushInfo(f"{cal['n_control']} control GCPs, {cal['n_outliers']} outliers, {cal['iterations']} "
+                          f"iterations, condition number {cal['condition_number']:.3g}")
+        for ident in cal.get("outlier_ids", []):
+            feedback.pushWarning(f"outlier {ident}")
+        self.load_gpkg_on_completion(paths["residuals_gpkg"])
+        if paths.get("vrt"):
+            self.load_on_completion(paths["vrt"], "Recalibrated image (VRT)", "raster")
+        out = {self.OUTPUT_FOLDER: folder, "OUTPUT_CAMERA": paths["camera"], self.OUTPUT_RPC: paths["rpb"],
+               "OUTPUT_VRT": paths.get("vrt"), self.OUTPUT_GPKG: paths["residuals_gpkg"],
+               self.OUTPUT_PLOT: paths["residuals_png"], self.OUTPUT_REPORT: paths["report"],
+               "N_OUTLIERS": cal["n_outliers"], "ITERATIONS": cal["iterations"],
+               "CONDITION_NUMBER": cal["condition_number"]}
+        for role in ("control", "check"):
+            st = cal.get(role) or {}
+            out[f"{role.upper()}_RMS_BEFORE"] = _planar(dict(st.get("before", {}), n=st.get("n")))
+            out[f"{role.upper()}_RMS_AFTER"] = _planar(dict(st.get("after", {}), n=st.get("n")))
+        return out

@@ -1,0 +1,118 @@
+"""``gf4cal:collectgcps`` - automatic GCPs: sub-pixel matching of the raw image against a reference orthophoto and
+a DEM (issue 7). The output feeds refinerpc and calibratelookangle directly."""
+from __future__ import annotations
+
+import numpy as np
+from qgis.core import (
+    QgsProcessingOutputNumber,
+    QgsProcessingParameterBoolean,
+    QgsProcessingParameterEnum,
+    QgsProcessingParameterFileDestination,
+    QgsProcessingParameterNumber,
+    QgsProcessingParameterRasterLayer,
+)
+
+from ..base import Gf4calAlgorithm
+
+OUTLIER_MODELS = ["translation", "affine", "poly2", "poly3"]
+
+
+class CollectGcps(Gf4calAlgorithm):
+    NAME = "collectgcps"
+    DISPLAY = "Collect GCPs by matching a reference orthophoto"
+    GROUP = "Control points"
+    GROUP_ID = "gcps"
+    HELP = ("Finds GCPs automatically: on a grid of windows of the raw image, the reference orthophoto (any raster, "
+            "any CRS and resolution) is resampled into the raw image's geometry through the RPC and the DEM and "
+            "matched by sub-pixel phase correlation (coarse to fine, so initial offsets of 50 px and more are "
+            "found). Windows on no-data, water, clouds or featureless texture are skipped; outliers are rejected "
+            "against a low-order model (RANSAC + MAD, seeded). The GCP table (fields id, lon, lat, h, sample, line, "
+            "role, sigma + quality: peak, peak_ratio, ncc, precision_px) feeds 'Refine RPC' directly.")
+
+    REFERENCE = "REFERENCE"
+    SPACING = "SPACING"
+    WINDOW = "WINDOW"
+    SEARCH = "SEARCH"
+    OUTLIER_MODEL = "OUTLIER_MODEL"
+    KEEP_OUTLIERS = "KEEP_OUTLIERS"
+    THREADS = "THREADS"
+    SEED = "SEED"
+    OUTPUT = "OUTPUT"
+
+    def initAlgorithm(self, config=None):
+        Num = QgsProcessingParameterNumber
+        self.add_input_rpc("Raw image (with RPC)")
+        self._add(QgsProcessingParameterRasterLayer(self.REFERENCE, self.tr("Reference orthophoto")),
+                  "Georeferenced reference image (any GDAL raster, any CRS); overviews are used when it is finer.")
+        self.add_dem_parameters(optional=False)
+        self._add(Num(self.SPACING, self.tr("Grid spacing (px)"), Num.Integer, 256, minValue=8),
+                  "Distance between window centres in raw image pixels.")
+        self._add(Num(self.WINDOW, self.tr("Window size (px)"), Num.Integer, 64, minValue=16, maxValue=1024),
+                  "Matching window size in raw image pixels (even).")
+        p = self._add(Num(self.SEARCH, self.tr("Largest initial offset (px)"), Num.Double, 64.0, minValue=1.0),
+                      "Largest offset between the RPC's prediction and the truth to search for.")
+        p.setFlags(p.flags() | p.FlagAdvanced)
+        p = self._add(QgsProcessingParameterEnum(self.OUTLIER_MODEL, self.tr("Outlier rejection model"),
+                                                 OUTLIER_MODELS, defaultValue=1),
+                      "Low-order image model for RANSAC + MAD outlier rejection.")
+        p.setFlags(p.flags() | p.FlagAdvanced)
+        p = self._add(Num(self.SEED, self.tr("RANSAC seed"), Num.Integer, 0, minValue=0),
+                      "Seed of the RANSAC outlier filter (same seed, same result).")
+        p.setFlags(p.flags() | p.FlagAdvanced)
+        p = self._add(Num(self.THREADS, self.tr("Threads"), Num.Integer, 2, minValue=1),
+                      "Matching threads (QGIS runs the tiles in a thread pool).")
+        p.setFlags(p.flags() | p.FlagAdvanced)
+        self._add(QgsProcessingParameterBoolean(self.KEEP_OUTLIERS, self.tr("Keep flagged outliers"),
+                                                defaultValue=False),
+                  "Also write the rejected matches (field outlier = true); by default only the inliers.")
+        self._add(QgsProcessingParameterFileDestination(
+            self.OUTPUT, self.tr("GCPs"), self.tr("GeoPackage (*.gpkg);;CSV (*.csv);;GeoJSON (*.geojson)")),
+            "GCP table written in the project's GCP schema.")
+        for key, label in (("N_GCPS", "GCPs written"), ("N_WINDOWS", "Windows tried"),
+                           ("N_OUTLIERS", "Outliers rejected"), ("MEAN_DSAMPLE", "Mean offset sample (px)"),
+                           ("MEAN_DLINE", "Mean offset line (px)")):
+            self.addOutput(QgsProcessingOutputNumber(key, self.tr(label)))
+
+    def run_algorithm(self, parameters, context, feedback, progress):
+        from concurrent.futures import ThreadPoolExecutor
+
+        from gdal_gf4cal.gcp import write_gcps
+        from gdal_gf4cal.matching import collect_gcps
+        from gdal_gf4cal.rpc import RPCModel
+
+        image = self.input_path(parameters, context)
+        ref_layer = self.parameterAsRasterLayer(parameters, self.REFERENCE, context)
+        if ref_layer is None:
+            raise self.error("Give the reference orthophoto (REFERENCE).")
+        dem = self.read_dem(parameters, context)
+        out = self.output_file(parameters, self.OUTPUT, context)
+        rpc = RPCModel.from_file(image)
+        # Threads, not processes: inside QGIS a process pool would start QGIS executables.
+        with ThreadPoolExecutor(max_workers=self.parameterAsInt(parameters, self.THREADS, context)) as pool:
+            gcps = collect_gcps(image, rpc, ref_layer.source(), dem,
+                                spacing_px=self.parameterAsInt(parameters, self.SPACING, context),
+                                window_px=self.parameterAsInt(parameters, self.WINDOW, context),
+                                search_px=self.parameterAsDouble(parameters, self.SEARCH, context),
+                                outlier_model=OUTLIER_MODELS[self.parameterAsEnum(parameters, self.OUTLIER_MODEL,
+                                                                                  context)],
+                                seed=self.parameterAsInt(parameters, self.SEED, context), executor=pool,
+                                progress=progress)
+        w = gcps.attrs["windows"]
+        inliers = ~gcps["outlier"].to_numpy(bool) if "outlier" in gcps.columns else np.ones(len(gcps), bool)
+        table = gcps if self.parameterAsBool(parameters, self.KEEP_OUTLIERS, context) else gcps[inliers]
+        feedback.pushInfo(f"windows {w['total']}: accepted {w['accepted']}, featureless {w['featureless']}, weak "
+                          f"correlation {w['weak_correlation']}, cloud/change {w['cloud_or_change']}, no data "
+                          f"{w['nodata']}, outside {w['outside_image']}; outliers {w['outliers']}")
+        if len(table) == 0:
+            raise self.error(f"No GCP found in {w['total']} windows; check that the reference and the DEM cover the "
+                             "image, or raise the largest initial offset.")
+        write_gcps(table, out)
+        self.load_on_completion(out, "GCPs (matched)", "vector")
+        if {"dsample", "dline"} <= set(gcps.columns):
+            ds, dl = gcps["dsample"].to_numpy()[inliers], gcps["dline"].to_numpy()[inliers]
+        else:  # offset measured - RPC prediction
+            ps, pl = rpc.project(gcps["lon"].to_numpy(), gcps["lat"].to_numpy(), gcps["h"].to_numpy())
+            ds, dl = (gcps["sample"].to_numpy() - ps)[inliers], (gcps["line"].to_numpy() - pl)[inliers]
+        return {self.OUTPUT: out, "N_GCPS": len(table), "N_WINDOWS": w["total"], "N_OUTLIERS": w["outliers"],
+                "MEAN_DSAMPLE": float(ds.mean()) if ds.size else float("nan"),
+                "MEAN_DLINE": float(dl.mean()) if dl.size else float("nan")}

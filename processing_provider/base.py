@@ -1,0 +1,350 @@
+"""What every gf4cal algorithm shares: naming, the progress/cancel adapter, reading GCP layers, and the single place
+where engine errors become ``QgsProcessingException`` (with no partial outputs left behind).
+"""
+from __future__ import annotations
+
+import os
+import warnings
+from typing import Any, Dict, List, Optional
+
+from qgis.core import (
+    QgsCoordinateReferenceSystem,
+    QgsCoordinateTransform,
+    QgsFeatureRequest,
+    QgsProcessing,
+    QgsProcessingAlgorithm,
+    QgsProcessingException,
+    QgsProcessingParameterEnum,
+    QgsProcessingParameterFeatureSource,
+    QgsProcessingParameterField,
+    QgsProcessingParameterFile,
+    QgsProcessingParameterRasterLayer,
+    QgsWkbTypes,
+)
+from qgis.PyQt.QtCore import QCoreApplication
+
+from gdal_gf4cal.errors import CancelledError, Gf4calError
+
+GEOID_OPTIONS = ["Ellipsoidal heights (no conversion)", "Heights above EGM96", "Heights above EGM2008"]
+_GEOIDS = [None, "egm96", "egm2008"]
+
+
+def one_line(exc: BaseException) -> str:
+    """The first line of an exception's message (the engine's messages say what to do in one line)."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+class FeedbackProgress:
+    """Engine progress callback over a ``QgsProcessingFeedback``: fraction -> percent, cancel -> CancelledError."""
+
+    def __init__(self, feedback, start: float = 0.0, stop: float = 1.0):
+        self.feedback = feedback
+        self.start, self.stop = start, stop
+        self._last_message = None
+
+    def __call__(self, fraction: float, message: str = "") -> None:
+        if self.feedback is None:
+            return
+        if self.feedback.isCanceled():
+            raise CancelledError("cancelled by the user")
+        self.feedback.setProgress(100.0 * (self.start + (self.stop - self.start) * min(max(fraction, 0.0), 1.0)))
+        if message and message != self._last_message:
+            self._last_message = message
+            self.feedback.setProgressText(message)
+
+    def sub(self, start: float, stop: float) -> "FeedbackProgress":
+        """A callback mapping [0, 1] of a sub-task onto [start, stop] of this one."""
+        a = self.start + (self.stop - self.start) * start
+        b = self.start + (self.stop - self.start) * stop
+        return FeedbackProgress(self.feedback, a, b)
+
+
+class Gf4calAlgorithm(QgsProcessingAlgorithm):
+    """Base of the gf4cal algorithms.
+
+    Subclasses set ``NAME`` (stable lowercase id), ``DISPLAY``, ``GROUP``/``GROUP_ID`` and ``HELP``, define
+    ``initAlgorithm`` and implement :meth:`run_algorithm` (instead of ``processAlgorithm``). Output files are
+    registered with
+    :meth:`output_file` so that a failed or cancelled run removes the files it created.
+    """
+
+    NAME = ""
+    DISPLAY = ""
+    GROUP = "RPC calibration"
+    GROUP_ID = "calibration"
+    HELP = ""
+
+    # Parameter names shared by the algorithms (same name = same meaning).
+    INPUT = "INPUT"
+    GCPS = "GCPS"
+    SAMPLE_FIELD = "SAMPLE_FIELD"
+    LINE_FIELD = "LINE_FIELD"
+    HEIGHT_FIELD = "HEIGHT_FIELD"
+    ID_FIELD = "ID_FIELD"
+    ROLE_FIELD = "ROLE_FIELD"
+    SIGMA_FIELD = "SIGMA_FIELD"
+    DEM = "DEM"
+    GEOID = "GEOID"
+    OUTPUT_RPC = "OUTPUT_RPC"
+    OUTPUT_GPKG = "OUTPUT_GPKG"
+    OUTPUT_PLOT = "OUTPUT_PLOT"
+    OUTPUT_REPORT = "OUTPUT_REPORT"
+
+    def __init__(self):
+        super().__init__()
+        self._created: List[str] = []
+        self._to_load: List[tuple] = []
+
+    # ---- identity ------------------------------------------------------------------------------------------
+    def tr(self, text: str) -> str:
+        return QCoreApplication.translate("gf4cal", text)
+
+    def name(self) -> str:
+        return self.NAME
+
+    def displayName(self) -> str:
+        return self.tr(self.DISPLAY)
+
+    def group(self) -> str:
+        return self.tr(self.GROUP)
+
+    def groupId(self) -> str:
+        return self.GROUP_ID
+
+    def shortHelpString(self) -> str:
+        return self.tr(self.HELP)
+
+    def helpUrl(self) -> str:
+        return "https://github.com/gdal-gf4cal/gdal_gf4cal"
+
+    def createInstance(self):
+        return type(self)()
+
+    # ---- common parameters ---------------------------------------------------------------------------------
+    def _add(self, param, help_text: str):
+        param.setHelp(self.tr(help_text))
+        self.addParameter(param)
+        return param
+
+    def add_input_rpc(self, description="Image or RPC file"):
+        self._add(QgsProcessingParameterFile(self.INPUT, self.tr(description),
+                                             behavior=QgsProcessingParameterFile.File),
+                  "A raster carrying an RPC (TIFF tags, .RPB, _RPC.TXT, NITF) or a standalone RPC sidecar.")
+
+    def add_gcp_parameters(self, optional_sigma=True):
+        self._add(QgsProcessingParameterFeatureSource(self.GCPS, self.tr("Ground control points"),
+                                                      [QgsProcessing.TypeVectorPoint]),
+                  "Point layer: the geometry is the ground position (any CRS); fields give the image position.")
+        fields = [
+            (self.SAMPLE_FIELD, "Image column (sample) field", "sample", False,
+             "Field holding the image column of each GCP, in pixels, GDAL convention (first pixel centre 0.5)."),
+            (self.LINE_FIELD, "Image row (line) field", "line", False,
+             "Field holding the image row of each GCP, in pixels, GDAL convention (first pixel centre 0.5)."),
+            (self.HEIGHT_FIELD, "Ellipsoidal height field", "h", True,
+             "Field holding each GCP's ellipsoidal height (m); empty or missing heights are taken from the DEM."),
+            (self.ID_FIELD, "GCP id field", "id", True, "Field naming each GCP (default: feature order)."),
+            (self.ROLE_FIELD, "Role field (control/check)", "role", True,
+             "Field with 'control' (used in the estimate) or 'check' (only evaluated); default: all control."),
+        ]
+        if optional_sigma:
+            fields.append((self.SIGMA_FIELD, "Measurement precision field (px)", "sigma", True,
+                           "Field with each GCP's a priori precision in pixels (relative weights); default 1."))
+        for name, desc, default, _required, help_text in fields:
+            # Optional for Processing even when the engine needs the field: a missing value then means the default
+            # name (qgis_process / processing.run need not repeat it); read_gcps checks that the field exists.
+            p = QgsProcessingParameterField(name, self.tr(desc), default, self.GCPS,
+                                            QgsProcessingParameterField.Any, optional=True)
+            self._add(p, help_text)
+
+    def add_dem_parameters(self, optional=True):
+        self._add(QgsProcessingParameterRasterLayer(self.DEM, self.tr("DEM"), optional=optional),
+                  "Height model (any GDAL raster, any CRS) for GCP heights and line-of-sight intersections.")
+        p = QgsProcessingParameterEnum(self.GEOID, self.tr("DEM heights are"), GEOID_OPTIONS, defaultValue=0,
+                                       optional=True)
+        p.setFlags(p.flags() | p.FlagAdvanced)
+        self._add(p, "Vertical reference of the DEM: geoid heights are converted to ellipsoidal heights.")
+
+    def error(self, message: str):
+        """A QgsProcessingException with a translated one-line message (raise it)."""
+        return QgsProcessingException(self.tr(message))
+
+    # ---- reading parameters --------------------------------------------------------------------------------
+    def input_path(self, parameters, context) -> str:
+        path = self.parameterAsFile(parameters, self.INPUT, context)
+        if not path:
+            raise QgsProcessingException(self.tr("No input given: choose an image with an RPC or an RPC file."))
+        if not os.path.exists(path):
+            raise QgsProcessingException(self.tr(f"Input not found: {path}"))
+        return path
+
+    def read_dem(self, parameters, context):
+        """The DEM parameter as an engine :class:`gdal_gf4cal.dem.DEM`, or None."""
+        layer = self.parameterAsRasterLayer(parameters, self.DEM, context)
+        if layer is None:
+            return None
+        from gdal_gf4cal.dem import DEM
+        geoid = _GEOIDS[self.parameterAsEnum(parameters, self.GEOID, context)] \
+            if self.parameterDefinition(self.GEOID) is not None else None
+        return DEM.from_file(layer.source(), geoid=geoid)
+
+    def read_gcps(self, parameters, context, feedback, dem=None):
+        """The GCP layer as an engine GCP table (DESIGN.md schema, EPSG:4326).
+
+        The ground position is the point geometry (reprojected to WGS84); sample, line, height, id, role and sigma
+        come from the chosen fields. A chosen field that the layer lacks is an error naming the parameter.
+        """
+        from gdal_gf4cal.gcp import make_gcps, validate_gcps
+
+        source = self.parameterAsSource(parameters, self.GCPS, context)
+        if source is None:
+            raise QgsProcessingException(self.invalidSourceError(parameters, self.GCPS))
+        if QgsWkbTypes.geometryType(source.wkbType()) != QgsWkbTypes.PointGeometry:
+            raise QgsProcessingException(self.tr("The GCP layer must be a point layer (ground positions)."))
+        names = source.fields().names()
+        chosen = {}
+        for param, key, required in ((self.SAMPLE_FIELD, "sample", True), (self.LINE_FIELD, "line", True),
+                                     (self.HEIGHT_FIELD, "h", False), (self.ID_FIELD, "id", False),
+                                     (self.ROLE_FIELD, "role", False), (self.SIGMA_FIELD, "sigma", False)):
+            if self.parameterDefinition(param) is None:
+                continue
+            field = self.parameterAsString(parameters, param, context)
+            if not field:
+                if required:
+                    raise QgsProcessingException(self.tr(f"Choose the GCP layer's {key} field ({param})."))
+                continue
+            if field not in names:
+                explicit = param in parameters and parameters[param] not in (None, "")
+                if required or explicit:
+                    raise QgsProcessingException(self.tr(
+                        f"The GCP layer has no field '{field}' ({param}); its fields are: {', '.join(names)}. "
+                        f"Choose the field holding the {key} values."))
+                continue  # an optional field left at its default name that the layer does not have
+            chosen[key] = field
+        wgs84 = QgsCoordinateReferenceSystem("EPSG:4326")
+        xform = QgsCoordinateTransform(source.sourceCrs(), wgs84, context.transformContext())
+        request = QgsFeatureRequest().setSubsetOfAttributes(list(chosen.values()), source.fields())
+        cols: Dict[str, list] = {k: [] for k in chosen}
+        lon, lat = [], []
+        for feat in source.getFeatures(request):
+            if feedback is not None and feedback.isCanceled():
+                raise CancelledError("cancelled by the user")
+            geom = feat.geometry()
+            if geom.isNull() or geom.isEmpty():
+                raise QgsProcessingException(self.tr(f"GCP feature {feat.id()} has no geometry; remove it or fix it."))
+            geom.transform(xform)
+            pt = geom.asPoint() if not geom.isMultipart() else geom.asMultiPoint()[0]
+            lon.append(pt.x())
+            lat.append(pt.y())
+            for key, field in chosen.items():
+                v = feat[field]
+                cols[key].append(None if v is None or (hasattr(v, "isNull") and v.isNull()) else v)
+        if not lon:
+            raise QgsProcessingException(self.tr("The GCP layer has no features."))
+
+        def numbers(key):
+            out = []
+            for i, v in enumerate(cols[key]):
+                try:
+                    out.append(float("nan") if v in (None, "") else float(v))
+                except (TypeError, ValueError):
+                    raise QgsProcessingException(self.tr(
+                        f"GCP field '{chosen[key]}' has a non-numeric value {v!r} (feature {i + 1}).")) from None
+            return out
+
+        h = numbers("h") if "h" in chosen else [float("nan")] * len(lon)
+        missing_h = sum(1 for x in h if x != x)
+        if missing_h and dem is None:
+            raise QgsProcessingException(self.tr(
+                f"{missing_h} GCP(s) have no height (no or empty {self.HEIGHT_FIELD}); choose the height field or "
+                f"give a DEM to take the heights from."))
+        gcps = make_gcps(lon, lat, h, numbers("sample"), numbers("line"),
+                         ids=[str(v) for v in cols["id"]] if "id" in chosen else None,
+                         role=[("control" if v in (None, "") else str(v)) for v in cols["role"]]
+                         if "role" in chosen else "control",
+                         sigma=[(1.0 if (x != x) else x) for x in numbers("sigma")] if "sigma" in chosen else 1.0)
+        return validate_gcps(gcps, source=f"GCP layer {source.sourceName()!r}", dem=dem)
+
+    # ---- outputs -------------------------------------------------------------------------------------------
+    def output_file(self, parameters, name, context) -> Optional[str]:
+        """A file destination's path (None when optional and unset); removed again if the run fails."""
+        path = self.parameterAsFileOutput(parameters, name, context)
+        if not path:
+            return None
+        if not os.path.exists(path):
+            self._created.append(path)
+        folder = os.path.dirname(os.path.abspath(path))
+        os.makedirs(folder, exist_ok=True)
+        return path
+
+    def load_on_completion(self, uri: str, name: str, kind: str = "vector") -> None:
+        """Open ``uri`` as a layer (with its default style) in the project when the algorithm finishes."""
+        self._to_load.append((uri, name, kind))
+
+    def load_gpkg_on_completion(self, path: str, layers=("footprint", "residual_vectors_before",
+                                                         "residual_vectors", "gcps")) -> None:
+        """Load the residual GeoPackage's layers (those present), bottom to top, with their stored styles."""
+        from osgeo import ogr
+        ds = ogr.Open(path)
+        present = {ds.GetLayer(i).GetName() for i in range(ds.GetLayerCount())} if ds is not None else set()
+        ds = None
+        for layer in layers:
+            if layer in present:
+                self._to_load.append((f"{path}|layername={layer}", layer, "vector"))
+
+    def postProcessAlgorithm(self, context, feedback):
+        # Runs in the main thread after processAlgorithm: layers are created here, not in the worker thread.
+        from qgis.core import QgsProcessingContext, QgsRasterLayer, QgsVectorLayer
+        for uri, name, kind in getattr(self, "_to_load", []):
+            layer = QgsRasterLayer(uri, name, "gdal") if kind == "raster" else QgsVectorLayer(uri, name, "ogr")
+            if not layer.isValid():
+                feedback.pushWarning(self.tr(f"Could not open {uri} as a layer"))
+                continue
+            context.temporaryLayerStore().addMapLayer(layer)
+            context.addLayerToLoadOnCompletion(layer.id(), QgsProcessingContext.LayerDetails(
+                name, context.project(), name))
+        self._to_load = []
+        return {}
+
+    def _remove_partial_outputs(self) -> None:
+        self._to_load = []
+        for path in self._created:
+            for p in (path, path + ".aux.xml"):
+                try:
+                    os.remove(p)
+                except OSError:
+                    pass
+        self._created = []
+
+    # ---- running -------------------------------------------------------------------------------------------
+    def run_algorithm(self, parameters: Dict[str, Any], context, feedback,
+                      progress: FeedbackProgress) -> Dict[str, Any]:
+        raise NotImplementedError
+
+    def processAlgorithm(self, parameters, context, feedback):
+        self._created, self._to_load = [], []
+        progress = FeedbackProgress(feedback)
+        try:
+            # Engine warnings (e.g. a poorly conditioned GCP layout) go to the Processing log, not to stderr.
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                warnings.filterwarnings("ignore", category=DeprecationWarning)
+                result = self.run_algorithm(parameters, context, feedback, progress)
+            for w in caught:
+                feedback.pushWarning(f"{w.category.__name__}: {w.message}")
+        except CancelledError:
+            self._remove_partial_outputs()
+            raise QgsProcessingException(self.tr("Cancelled; no output was written.")) from None
+        except QgsProcessingException:
+            self._remove_partial_outputs()
+            raise
+        except Gf4calError as exc:
+            self._remove_partial_outputs()
+            raise QgsProcessingException(one_line(exc)) from None
+        except (OSError, ValueError, ArithmeticError, RuntimeError) as exc:
+            # GDAL (RuntimeError), file-system and numeric errors: still one line, the type says where.
+            self._remove_partial_outputs()
+            raise QgsProcessingException(f"{type(exc).__name__}: {one_line(exc)}") from None
+        feedback.setProgress(100)
+        self._created = []
+        return result
