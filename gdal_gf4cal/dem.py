@@ -209,25 +209,40 @@ class DEM:
         out[idx] = values
         return out
 
-    def _sample_whole(self, px, py):
-        """Bilinear sampling of a small DEM held in memory (one compiled call)."""
-        from scipy.ndimage import map_coordinates
+    def _sample_whole(self, px, py, gradient: bool = False):
+        """Bilinear sampling of a small DEM held in memory, at pixel coordinates (pixel centres at integers).
+
+        NaN outside the raster or where a neighbour is no-data. With ``gradient=True`` also returns the
+        derivatives of the bilinear surface, ``(z, dz/dpx, dz/dpy)`` in metres per pixel (used by Newton steps of
+        the DEM intersection; in the half-pixel border where the edge value is held they are those of the edge
+        cell). Points are processed in cache-sized chunks with four flat gathers each (faster than scipy's
+        generic ``map_coordinates``).
+        """
         if self._whole is None:
             block = self._band.ReadAsArray().astype(float)
             if self._nodata_value is not None:
                 block[block == self._nodata_value] = np.nan
             self._whole = block
         W, H = self.width, self.height_px
-        with np.errstate(invalid="ignore"):
-            outside = ~((px >= -0.5) & (py >= -0.5) & (px <= W - 0.5) & (py <= H - 0.5))
-        coords = np.empty((2, px.size))
-        # Between the outermost pixel centre and the raster edge the edge value holds (mode="nearest").
-        np.nan_to_num(py, copy=False, nan=-1e9)
-        np.nan_to_num(px, copy=False, nan=-1e9)
-        coords[0], coords[1] = py, px
-        out = map_coordinates(self._whole, coords, order=1, mode="nearest", prefilter=False)
-        out[outside] = np.nan
-        return out
+        px = np.asarray(px, dtype=float).ravel()
+        py = np.asarray(py, dtype=float).ravel()
+        n = px.size
+        if W < 2 or H < 2:        # degenerate one-row/column raster: scipy handles the edge modes
+            from scipy.ndimage import map_coordinates
+            coords = np.vstack([np.nan_to_num(py, nan=-1e9), np.nan_to_num(px, nan=-1e9)])
+            out = map_coordinates(self._whole, coords, order=1, mode="nearest", prefilter=False)
+            with np.errstate(invalid="ignore"):
+                out[~((px >= -0.5) & (py >= -0.5) & (px <= W - 0.5) & (py <= H - 0.5))] = np.nan
+            return (out, np.zeros(n), np.zeros(n)) if gradient else out
+        flat = self._whole.ravel()
+        z = np.empty(n)
+        gx = np.empty(n) if gradient else None
+        gy = np.empty(n) if gradient else None
+        for i in range(0, n, _SAMPLE_CHUNK):
+            sl = slice(i, i + _SAMPLE_CHUNK)
+            _bilinear_flat(flat, W, H, px[sl], py[sl], z[sl], None if gx is None else gx[sl],
+                           None if gy is None else gy[sl])
+        return (z, gx, gy) if gradient else z
 
     def _read_tile(self, tile_x: int, tile_y: int) -> np.ndarray:
         """Read tile (tile_x, tile_y) with a one-pixel overlap to the right and below (LRU cached)."""
@@ -265,6 +280,50 @@ def _bilinear(block: np.ndarray, lx, ly, fx, fy) -> np.ndarray:
     np.add(ly, fy, out=coords[0])
     np.add(lx, fx, out=coords[1])
     return map_coordinates(block, coords, order=1, mode="nearest", prefilter=False)
+
+
+#: Points per chunk in :meth:`DEM._sample_whole` (keeps the temporaries in L1/L2 cache).
+_SAMPLE_CHUNK = 8192
+
+
+def _bilinear_flat(flat, W, H, px, py, z, gx=None, gy=None):
+    """Bilinear value (and gradient) of the (H, W) raster ``flat`` (raveled) at pixel coordinates px, py.
+
+    Writes into ``z`` (and ``gx``, ``gy``). Outside ``[-0.5, W - 0.5] x [-0.5, H - 0.5]`` (or NaN input) the result
+    is NaN; between the outermost pixel centre and the raster edge the edge value holds (coordinates clipped),
+    like ``map_coordinates(mode="nearest")``. A no-data (NaN) corner makes the result NaN.
+    """
+    with np.errstate(invalid="ignore"):
+        outside = ~((px >= -0.5) & (py >= -0.5) & (px <= W - 0.5) & (py <= H - 0.5))
+    x = np.clip(px, 0.0, W - 1.0)
+    y = np.clip(py, 0.0, H - 1.0)
+    x[outside] = 0.0
+    y[outside] = 0.0
+    x0 = np.minimum(x.astype(np.intp), W - 2)
+    y0 = np.minimum(y.astype(np.intp), H - 2)
+    x -= x0                                   # fractions in [0, 1]
+    y -= y0
+    k = y0 * W
+    k += x0
+    z00 = flat.take(k)
+    z01 = flat.take(k + 1)
+    k += W
+    z10 = flat.take(k)
+    z11 = flat.take(k + 1)
+    z01 -= z00                                # d/dx along the top edge
+    z11 -= z10                                # d/dx along the bottom edge
+    top = z00 + x * z01
+    bottom = z10 + x * z11
+    bottom -= top                             # d/dy
+    np.multiply(y, bottom, out=z)
+    z += top
+    z[outside] = np.nan
+    if gx is not None:
+        z11 -= z01
+        np.multiply(y, z11, out=gx)
+        gx += z01
+        gy[:] = bottom
+    return z
 
 
 def _geoid_transformer(geoid):

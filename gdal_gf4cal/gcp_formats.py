@@ -271,6 +271,11 @@ def read_gcp_layer(path, *, layer: Optional[str] = None, dem=None, sample_field:
         f = _find(cols, (extra,))
         if f is not None:
             df[extra] = gdf[f].to_numpy()
+    # Every other field (truth, quality, flags) is carried through, as the CSV reader does.
+    used = {fs, fl, fh, fid} | {_find(cols, (e,)) for e in ("role", "sigma")} | {"lon", "lat"}
+    for c in cols:
+        if c not in used and c not in df.columns:
+            df[c] = gdf[c].to_numpy()
     return _finish(df, path, dem)
 
 

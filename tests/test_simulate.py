@@ -218,7 +218,7 @@ def test_write_scene_files(tmp_path):
         assert col in g.columns
     assert set(g.role) <= {"control", "check"}
     noise = np.hypot(g["sample"] - g.truth_sample, g["line"] - g.truth_line)
-    assert noise[g.outlier].min() >= 4.0 and noise[~g.outlier].max() < 3.0
+    assert noise[g.truth_outlier].min() >= 4.0 and noise[~g.truth_outlier].max() < 3.0
     # truth positions come from the true model exactly
     ts, tl = res.scene.images[0].true.project(g.lon.to_numpy(), g.lat.to_numpy(), g.h.to_numpy())
     assert np.max(np.hypot(ts - g.truth_sample, tl - g.truth_line)) < 1e-6

@@ -41,8 +41,12 @@ def _fmt(x):
 
 
 def run(args) -> int:
+    import os
     from ..compensation import refine_rpc
     from ..progress import TextProgressBar
+    for out in (args.out, args.report, args.residuals, args.plot):
+        if out and os.path.dirname(os.path.abspath(out)):
+            os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)   # like simulate/calibrate do
     rep = refine_rpc(args.source, args.gcps, args.model, out=args.out, order=args.order, along=args.along,
                      ccd_axis=args.ccd_axis, dem=args.dem, geoid=args.geoid, gcp_crs=args.gcp_crs,
                      check_fraction=args.check_fraction, seed=args.seed, leave_one_out=args.leave_one_out,

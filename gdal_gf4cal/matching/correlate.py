@@ -31,9 +31,16 @@ from typing import Tuple
 import numpy as np
 
 #: Variance inflation of the phase-regression precision for the taper's correlation between frequencies.
-_PRECISION_GAIN = 1.0
+_PRECISION_GAIN = 6.5
 
-__all__ = ["CorrelationResult", "phase_correlate", "taper", "texture_strength", "block_reduce"]
+#: Noise floor of the texture tests, as a fraction of the window's standard deviation: a noise-free reference
+#: (flat water but for interpolation ripples) is judged against this contrast instead of a zero noise level.
+_FLOOR = 0.005
+
+#: Windows per batch inside phase_correlate.
+_CHUNK = 64
+
+__all__ = ["CorrelationResult", "phase_correlate", "taper", "texture_strength", "flat_fraction", "block_reduce"]
 
 
 @dataclass(frozen=True)
@@ -101,6 +108,15 @@ def _freq_grids(h: int, w: int, sigma: float):
     return fy, fx, weight, mult, norm
 
 
+@lru_cache(maxsize=16)
+def _grad_weights(h: int, w: int, sigma: float):
+    """``W (2 pi f_x)^2 m`` and ``W (2 pi f_y)^2 m`` on the half spectrum (m: Hermitian multiplicity)."""
+    fy, fx, weight, mult, _ = _freq_grids(h, w, sigma)
+    wx = weight * (2 * np.pi * fx) ** 2 * mult[None, :]
+    wy = weight * (2 * np.pi * fy) ** 2 * mult[None, :]
+    return wx, wy
+
+
 def _logparabola(cm: np.ndarray, c0: np.ndarray, cp: np.ndarray) -> np.ndarray:
     """Sub-pixel vertex offset from three samples: Gaussian (log-parabola) fit, parabola where a value is <= 0."""
     with np.errstate(all="ignore"):
@@ -139,6 +155,12 @@ def phase_correlate(fixed: np.ndarray, moving: np.ndarray, *, window: str = "han
     h, w = fixed.shape[-2:]
     fixed = fixed.reshape((-1, h, w))
     moving = moving.reshape((-1, h, w))
+    if fixed.shape[0] > _CHUNK:
+        # Chunks keep the spectra of a batch in cache: large stacks are no slower per window than small ones.
+        parts = [phase_correlate(fixed[k:k + _CHUNK], moving[k:k + _CHUNK], window=window, sigma_px=sigma_px,
+                                 exclude_px=exclude_px) for k in range(0, fixed.shape[0], _CHUNK)]
+        return CorrelationResult(*(np.concatenate([getattr(q, f) for q in parts]).reshape(lead)
+                                   for f in ("dx", "dy", "peak", "peak_ratio", "ncc", "precision_px")))
     n = fixed.shape[0]
     win = taper((h, w), window)
     F = np.fft.rfft2(_prepare(fixed, win))
@@ -148,8 +170,8 @@ def phase_correlate(fixed: np.ndarray, moving: np.ndarray, *, window: str = "han
     mag = np.abs(cross)
     # Relative floor: frequencies with (numerically) no energy get no vote instead of a random phase.
     floor = 1e-12 * mag.reshape(n, -1).max(axis=1)[:, None, None] + 1e-300
-    spec = cross / np.maximum(mag, floor) * weight
-    surf = np.fft.irfft2(spec, s=(h, w)) / norm
+    unit = cross / np.maximum(mag, floor)
+    surf = np.fft.irfft2(unit * weight, s=(h, w)) / norm
 
     flat = surf.reshape(n, -1)
     idx = np.argmax(flat, axis=1)
@@ -168,38 +190,37 @@ def phase_correlate(fixed: np.ndarray, moving: np.ndarray, *, window: str = "han
     dx = np.where(ix > w // 2, ix - w, ix) + ox
     dy = np.where(iy > h // 2, iy - h, iy) + oy
 
-    # Second peak: the maximum outside the main lobe (circular distance, wrap-around aware).
-    r = (3.0 * sigma_px + 1.0) if exclude_px is None else float(exclude_px)
-    yy = np.arange(h)[None, :, None]
-    xx = np.arange(w)[None, None, :]
-    ddy = np.abs(yy - iy[:, None, None])
-    ddx = np.abs(xx - ix[:, None, None])
-    ddy = np.minimum(ddy, h - ddy)
-    ddx = np.minimum(ddx, w - ddx)
-    outside = (ddx ** 2 + ddy ** 2) > r ** 2
-    second = np.where(outside, surf, -np.inf).reshape(n, -1).max(axis=1)
+    # Second peak: the maximum outside the main lobe (a box of half-size r around the peak, wrap-around aware).
+    r = int(np.ceil((3.0 * sigma_px + 1.0) if exclude_px is None else float(exclude_px)))
+    off = np.arange(-r, r + 1)
+    ly = (iy[:, None, None] + off[None, :, None]) % h
+    lx = (ix[:, None, None] + off[None, None, :]) % w
+    masked = surf.copy()
+    masked[rows[:, None, None], ly, lx] = -np.inf
+    second = masked.reshape(n, -1).max(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         peak_ratio = np.where(second > 0, c0 / np.maximum(second, 1e-12), np.inf)
 
-    # NCC of the tapered windows at the sub-pixel shift, by Parseval on the half spectrum.
-    phase = np.exp(2j * np.pi * (fx[None] * dx[:, None, None] + fy[None] * dy[:, None, None]))
+    # NCC of the tapered windows at the sub-pixel shift, by Parseval on the half spectrum. The phase ramp is
+    # separable: two 1-D exponentials instead of one over the whole spectrum.
+    phase = (np.exp(2j * np.pi * fy[None] * dy[:, None, None])
+             * np.exp(2j * np.pi * fx[None] * dx[:, None, None]))
+    z = unit * phase                      # unit phasors of the residual phase: cos = Re, sin = Im
+    zc, zs = z.real, z.imag
     m = mult[None, None, :]
-    num = (np.real(cross * phase) * m).sum(axis=(1, 2))
-    ef = (np.abs(F) ** 2 * m).sum(axis=(1, 2))
-    eg = (np.abs(G) ** 2 * m).sum(axis=(1, 2))
+    num = (mag * zc * m).sum(axis=(1, 2))
+    ef = ((F.real ** 2 + F.imag ** 2) * m).sum(axis=(1, 2))
+    eg = ((G.real ** 2 + G.imag ** 2) * m).sum(axis=(1, 2))
     with np.errstate(divide="ignore", invalid="ignore"):
         ncc = np.clip(num / np.sqrt(ef * eg), -1.0, 1.0)
         # Precision from the residual phases: the peak maximises sum W cos(phi - 2 pi f.d); linearising at the
         # optimum gives var(d_x) = sum W^2 (2 pi f_x)^2 sin^2(res) / (sum W (2 pi f_x)^2 cos(res))^2, the
         # sandwich variance of a weighted phase regression. The taper correlates neighbouring frequencies,
         # which _PRECISION_GAIN (calibrated on simulated noisy textures, see tests) accounts for.
-        res = np.angle(cross * phase)
-        s2 = np.sin(res) ** 2
-        c1 = np.cos(res)
-        wx = weight[None] * (2 * np.pi * fx[None]) ** 2 * m
-        wy = weight[None] * (2 * np.pi * fy[None]) ** 2 * m
-        var_x = (wx * weight[None] * s2).sum(axis=(1, 2)) / (wx * c1).sum(axis=(1, 2)) ** 2
-        var_y = (wy * weight[None] * s2).sum(axis=(1, 2)) / (wy * c1).sum(axis=(1, 2)) ** 2
+        wx, wy = _grad_weights(h, w, float(sigma_px))
+        s2 = zs * zs
+        var_x = (wx * weight * s2).sum(axis=(1, 2)) / (wx * zc).sum(axis=(1, 2)) ** 2
+        var_y = (wy * weight * s2).sum(axis=(1, 2)) / (wy * zc).sum(axis=(1, 2)) ** 2
         var = _PRECISION_GAIN * (var_x + var_y) / 2.0
         precision = np.sqrt(np.where(np.isfinite(var) & (var >= 0), var, np.inf))
     shape = lead
@@ -207,14 +228,16 @@ def phase_correlate(fixed: np.ndarray, moving: np.ndarray, *, window: str = "han
                              peak_ratio.reshape(shape), ncc.reshape(shape), precision.reshape(shape))
 
 
-def texture_strength(windows: np.ndarray) -> np.ndarray:
+def texture_strength(windows: np.ndarray, noise_floor=None) -> np.ndarray:
     """Texture-to-noise ratio of each window of a stack ``(..., h, w)``: larger means better to match.
 
     The weaker eigenvalue of the mean structure tensor (gradient energy in the worst direction, so a single
-    straight edge scores low) divided by the gradient variance that white noise of the window's own noise level
-    would give. The noise level is Immerkaer's Laplacian-based estimate, so the ratio does not depend on the
-    radiometric scale: ~1 or less on featureless areas (water, flat cloud) whatever the gain; texture scores
-    well above. A window with no variation at all scores 0.
+    straight edge scores low) divided by the gradient variance that white noise of the window's noise level
+    would give. The noise level is Immerkaer's Laplacian-based estimate, floored at ``noise_floor`` (per window;
+    default 0.5% of the window's standard deviation) so that noise-free images (a clean orthophoto, where water is
+    exactly flat but for interpolation ripples) are judged against a sensible contrast. The ratio does not depend
+    on the radiometric scale: ~1 or less on featureless areas (water, flat cloud); texture scores well above.
+    A window with no variation at all scores 0.
     """
     a = np.asarray(windows, dtype=np.float64)
     gx = a[..., 1:-1, 2:] - a[..., 1:-1, :-2]
@@ -223,17 +246,44 @@ def texture_strength(windows: np.ndarray) -> np.ndarray:
     syy = (gy * gy).mean(axis=(-1, -2))
     sxy = (gx * gy).mean(axis=(-1, -2))
     lam_min = 0.5 * (sxx + syy) - np.sqrt(0.25 * (sxx - syy) ** 2 + sxy ** 2)
-    # Immerkaer (1996): sigma = sqrt(pi/2) / 6 * mean|I * [[1,-2,1],[-2,4,-2],[1,-2,1]]|.
-    lap = (a[..., :-2, :-2] - 2 * a[..., :-2, 1:-1] + a[..., :-2, 2:]
-           - 2 * a[..., 1:-1, :-2] + 4 * a[..., 1:-1, 1:-1] - 2 * a[..., 1:-1, 2:]
-           + a[..., 2:, :-2] - 2 * a[..., 2:, 1:-1] + a[..., 2:, 2:])
-    sigma = np.sqrt(np.pi / 2.0) / 6.0 * np.abs(lap).mean(axis=(-1, -2))
-    # Central differences of white noise have variance 2 sigma^2; a quantisation floor keeps noise-free
-    # synthetic images finite.
-    noise_var = 2.0 * np.maximum(sigma, 1e-3 * np.sqrt(np.maximum(sxx + syy, 0)) + 1e-12) ** 2
+    sigma = _noise_sigma(a)
+    floor = _FLOOR * a.std(axis=(-1, -2)) if noise_floor is None else np.asarray(noise_floor, dtype=float)
+    # Central differences of white noise have variance 2 sigma^2.
+    noise_var = 2.0 * np.maximum(np.maximum(sigma, floor), 1e-12) ** 2
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.where(sxx + syy > 0, np.maximum(lam_min, 0) / noise_var, 0.0)
     return out
+
+
+def _noise_sigma(a: np.ndarray) -> np.ndarray:
+    """Immerkaer's (1996) noise estimate per window: sqrt(pi/2) / 6 * mean|I * Laplacian-difference kernel|."""
+    lap = (a[..., :-2, :-2] - 2 * a[..., :-2, 1:-1] + a[..., :-2, 2:]
+           - 2 * a[..., 1:-1, :-2] + 4 * a[..., 1:-1, 1:-1] - 2 * a[..., 1:-1, 2:]
+           + a[..., 2:, :-2] - 2 * a[..., 2:, 1:-1] + a[..., 2:, 2:])
+    return np.sqrt(np.pi / 2.0) / 6.0 * np.abs(lap).mean(axis=(-1, -2))
+
+
+def flat_fraction(windows: np.ndarray, region=None, box: int = 5, ratio: float = 0.05) -> np.ndarray:
+    """Fraction of featureless pixels (water, flat cloud) in each window of a stack ``(N, h, w)``.
+
+    A pixel is flat when its local gradient energy (``box x box`` mean of ``gx^2 + gy^2``) is below ``ratio``
+    times the window's 90th percentile of it: water or cloud next to land, whose gradients are at the noise
+    level (or exactly zero in a clean orthophoto), fall far below the land's texture, while smooth land does
+    not. A window that is flat *everywhere* has no contrast to compare with: :func:`texture_strength` judges it.
+    ``region = (r0, r1)`` restricts the count to ``[r0:r1, r0:r1]`` (e.g. the window centre, where the GCP is).
+    """
+    from scipy import ndimage
+    a = np.asarray(windows, dtype=np.float64)
+    g2 = np.zeros_like(a)
+    g2[..., 1:-1, 1:-1] = ((a[..., 1:-1, 2:] - a[..., 1:-1, :-2]) ** 2
+                           + (a[..., 2:, 1:-1] - a[..., :-2, 1:-1]) ** 2) / 4.0
+    local = ndimage.uniform_filter(g2, size=(1,) * (a.ndim - 2) + (box, box), mode="nearest")
+    level = np.percentile(local[..., 1:-1, 1:-1].reshape(local.shape[:-2] + (-1,)), 90, axis=-1)
+    flat = local <= ratio * level[..., None, None]
+    if region is not None:
+        r0, r1 = region
+        flat = flat[..., r0:r1, r0:r1]
+    return flat.mean(axis=(-1, -2))
 
 
 def block_reduce(a: np.ndarray, factor: int) -> np.ndarray:

@@ -62,8 +62,9 @@ def simulate_gcps(scene: SimScene, *, n_gcps: int = 200, gcp_noise_px: float = 0
     """GCP tables (one GeoDataFrame per image name) with known truth (METHODS §10).
 
     Ground points lie on the scene DEM; ``truth_sample, truth_line`` = the true model's exact image position;
-    ``sample, line`` = truth + Gaussian noise of ``gcp_noise_px`` per axis, plus, for ``outlier_fraction`` of the
-    points, an offset of 5-30 px in a random direction (``outlier`` = True). ``role`` is "check" for
+    ``sample, line`` = truth + Gaussian noise of ``gcp_noise_px`` per axis, plus, for ``round(outlier_fraction * n)``
+    of the points, an offset of 5-30 px in a random direction (``truth_outlier`` = True: ground truth, named apart
+    from the ``outlier`` flag that estimators set). ``role`` is "check" for
     ``check_fraction`` of the ground points (the same in every image), else "control". Ids are shared between
     images: the same id is the same ground point.
     """
@@ -86,14 +87,16 @@ def simulate_gcps(scene: SimScene, *, n_gcps: int = 200, gcp_noise_px: float = 0
         k = int(inside.sum())
         noise_s = rng.normal(0.0, gcp_noise_px, k) if gcp_noise_px > 0 else np.zeros(k)
         noise_l = rng.normal(0.0, gcp_noise_px, k) if gcp_noise_px > 0 else np.zeros(k)
-        outlier = rng.random(k) < outlier_fraction
+        # Exactly round(fraction * k) blunders (a Bernoulli draw per point may give none on small sets).
+        outlier = np.zeros(k, dtype=bool)
+        outlier[rng.permutation(k)[:int(round(outlier_fraction * k))]] = True
         mag = rng.uniform(*outlier_range_px, k)
         ang = rng.uniform(0, 2 * np.pi, k)
         ms = ts[inside] + noise_s + np.where(outlier, mag * np.cos(ang), 0.0)
         ml = tl[inside] + noise_l + np.where(outlier, mag * np.sin(ang), 0.0)
         gdf = make_gcps(lon[inside], lat[inside], h[inside], ms, ml, ids=ids[inside], role=roles[inside],
                         sigma=max(gcp_noise_px, 1e-3), truth_sample=ts[inside], truth_line=tl[inside],
-                        outlier=outlier)
+                        truth_outlier=outlier)
         out[im.name] = gdf
     return out
 

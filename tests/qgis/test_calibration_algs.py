@@ -70,7 +70,7 @@ def test_calibratelookangle_removes_the_systematic_error(gf4):
     assert cal["ITERATIONS"] <= 5
     # the blunders the simulator injected on control points are the ones flagged
     src, res = ogr.Open(sim["GCPS"]), ogr.Open(cal["OUTPUT_GPKG"])
-    injected = {f["id"]: f["role"] for f in src.GetLayer(0) if f["outlier"]}
+    injected = {f["id"]: f["role"] for f in src.GetLayer(0) if f["truth_outlier"]}
     rows = {f["id"]: (f["role"], bool(f["outlier"]), f["res_sample_after"], f["res_line_after"])
             for f in res.GetLayerByName("gcps")}
     flagged = {i for i, r in rows.items() if r[1]}

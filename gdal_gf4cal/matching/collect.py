@@ -1,0 +1,471 @@
+"""Automatic GCP collection: match the raw image against a reference orthophoto + DEM (issue 7).
+
+For each window of a regular grid over the raw image (GDAL pixel convention throughout):
+
+1. Its centre ``c`` is localised on the DEM through the RPC: ground point ``X = (lon, lat, h)``; the RPC predicts
+   ``X`` at ``c``.
+2. The reference is resampled into the raw geometry around ``c`` (:mod:`.resample`), so it shows the ground the
+   RPC *claims* each raw pixel sees.
+3. Coarse to fine: the windows are first correlated on an ``f x f`` block-averaged level covering ``f`` times the
+   window, which finds offsets up to ~``window * f / 4`` px (``search_px``); the raw window is then re-read at the
+   integer offset found, and a full-resolution phase correlation (:mod:`.correlate`) gives the residual shift
+   (a second full-resolution pass runs where the residual exceeds half a pixel). Re-centring keeps the final
+   correlation near zero shift, where window overlap is complete and the sub-pixel estimate unbiased.
+4. ``X`` is truly imaged at ``c + d``: that is the GCP ``(lon, lat, h, sample, line)``; ``d`` is the RPC error.
+5. Windows on no-data, with featureless texture (water, flat cloud: :func:`.correlate.texture_strength`) in
+   either image, with a weak or ambiguous correlation, or with a textured quarter of the reference that the raw
+   image does not reproduce (cloud over land) are skipped, never guessed.
+6. The accepted offsets are checked against a low-order model with seeded RANSAC + MAD (:mod:`.filters`);
+   inconsistent ones are flagged ``outlier=True``.
+
+The work is split into tiles of windows. :func:`match_tile` is a plain top-level function of one picklable
+:class:`TileSpec` returning plain arrays, so it runs unchanged in a process pool (default), a thread pool, or as
+Dask tasks on a cluster::
+
+    >>> import dask                                            # doctest: +SKIP
+    >>> from gdal_gf4cal.matching import plan_tiles, match_tile, assemble_gcps
+    >>> specs, ctx = plan_tiles("raw.tif", rpc, "ortho.tif", "dem.tif", spacing_px=256, window_px=64)
+    >>> results = dask.compute(*[dask.delayed(match_tile)(s) for s in specs])
+    >>> gcps = assemble_gcps(results, ctx)
+
+or simply ``collect_gcps(..., executor=client.get_executor())`` with a ``distributed.Client``. Memory per task is
+bounded by the tile (windows x their search footprint), whatever the image size.
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import math
+import os
+import threading
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from ..errors import CancelledError, Gf4calError
+from ..progress import report
+from .correlate import block_reduce, flat_fraction, phase_correlate, texture_strength
+from .filters import reject_outliers
+from .resample import ReferenceImage, reference_on_grids
+
+__all__ = ["TileSpec", "STATUS", "collect_gcps", "plan_tiles", "match_tile", "assemble_gcps"]
+
+#: Status codes of windows, as returned by :func:`match_tile` and counted in ``gcps.attrs['windows']``.
+STATUS = {0: "accepted", 1: "nodata", 2: "featureless", 3: "weak_correlation", 4: "cloud_or_change",
+          5: "outside_image"}
+
+
+@dataclass(frozen=True)
+class TileSpec:
+    """Everything :func:`match_tile` needs for one tile: plain, picklable data (paths, not open datasets)."""
+
+    image: str
+    band: int
+    image_nodata: Optional[float]
+    rpc: Any                                  # RPCModel (frozen dataclass of floats/arrays: picklable)
+    reference: str
+    reference_band: int
+    dem: Tuple                                # ("constant", h) or ("file", path, geoid, nodata)
+    centers: np.ndarray                       # (N, 2) window centres (sample, line), GDAL convention
+    window_px: int
+    factor: int                               # coarse level's block size (1 = no coarse level)
+    params: Dict[str, float] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------------- worker side
+_CACHE: Dict[Tuple, Any] = {}
+_CACHE_LOCK = threading.Lock()
+
+
+def _cached(key, make):
+    """Per-process, per-thread cache of opened datasets/DEMs (GDAL handles are not shared across threads)."""
+    key = key + (threading.get_ident(), os.getpid())
+    with _CACHE_LOCK:
+        obj = _CACHE.get(key)
+    if obj is None:
+        obj = make()
+        with _CACHE_LOCK:
+            if len(_CACHE) > 32:
+                _CACHE.clear()
+            _CACHE[key] = obj
+    return obj
+
+
+def _dem_from_spec(spec: Tuple):
+    from ..dem import DEM
+    if spec[0] == "constant":
+        return DEM.constant(spec[1])
+    return _cached(("dem",) + tuple(spec), lambda: DEM.from_file(spec[1], geoid=spec[2], nodata=spec[3]))
+
+
+def _dem_spec(dem) -> Tuple:
+    from ..dem import DEM
+    if isinstance(dem, (int, float, np.integer, np.floating)):
+        return ("constant", float(dem))
+    if isinstance(dem, DEM):
+        if dem.is_constant:
+            return ("constant", float(dem.constant_height))
+        return ("file", dem.path, dem._geoid_name, dem.nodata_policy)
+    return ("file", os.fspath(dem), None, "nan")
+
+
+def _read_boxes(ds, band: int, nodata, x0: np.ndarray, y0: np.ndarray, size: int) -> np.ndarray:
+    """Stack of ``size x size`` raw blocks with top-left corners ``(x0, y0)`` (ints); outside/no-data -> NaN."""
+    b = ds.GetRasterBand(band)
+    W, H = ds.RasterXSize, ds.RasterYSize
+    out = np.full((x0.size, size, size), np.nan, dtype=np.float32)
+    for i in range(x0.size):  # one windowed read per window: I/O, not arithmetic
+        a0, b0 = max(int(x0[i]), 0), max(int(y0[i]), 0)
+        a1, b1 = min(int(x0[i]) + size, W), min(int(y0[i]) + size, H)
+        if a1 <= a0 or b1 <= b0:
+            continue
+        arr = b.ReadAsArray(a0, b0, a1 - a0, b1 - b0).astype(np.float32)
+        if nodata is not None and np.isfinite(nodata):
+            arr[arr == np.float32(nodata)] = np.nan
+        out[i, b0 - int(y0[i]):b1 - int(y0[i]), a0 - int(x0[i]):a1 - int(x0[i])] = arr
+    return out
+
+
+def _take(stack: np.ndarray, oy: np.ndarray, ox: np.ndarray, size: int) -> np.ndarray:
+    """Per-window sub-blocks ``stack[i, oy:oy+size, ox:ox+size]`` (offsets clipped by the caller)."""
+    r = np.arange(size)
+    return stack[np.arange(stack.shape[0])[:, None, None], (oy[:, None, None] + r[None, :, None]),
+                 (ox[:, None, None] + r[None, None, :])]
+
+
+def _quadrant_ok(ref: np.ndarray, raw: np.ndarray, min_ncc: float) -> np.ndarray:
+    """Every quarter of the window where the reference has texture must correlate with the raw image.
+
+    Catches a cloud (or a changed area) covering part of a window whose remaining texture still produces a
+    correlation peak. Quarters flat in the reference (water, flat land) are not judged.
+    """
+    n, h, w = ref.shape
+    hh, hw = h // 2, w // 2
+    q_ref = ref[:, :2 * hh, :2 * hw].reshape(n, 2, hh, 2, hw).transpose(0, 1, 3, 2, 4).reshape(n, 4, hh, hw)
+    q_raw = raw[:, :2 * hh, :2 * hw].reshape(n, 2, hh, 2, hw).transpose(0, 1, 3, 2, 4).reshape(n, 4, hh, hw)
+    a = q_ref - q_ref.mean(axis=(2, 3), keepdims=True)
+    b = q_raw - q_raw.mean(axis=(2, 3), keepdims=True)
+    va, vb = (a * a).sum(axis=(2, 3)), (b * b).sum(axis=(2, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ncc = (a * b).sum(axis=(2, 3)) / np.sqrt(va * vb)
+    grad = np.abs(np.diff(q_ref, axis=3)).mean(axis=(2, 3)) + np.abs(np.diff(q_ref, axis=2)).mean(axis=(2, 3))
+    textured = grad >= 0.25 * grad.mean(axis=1, keepdims=True)
+    return np.all(~textured | (np.nan_to_num(ncc, nan=-1.0) >= min_ncc), axis=1)
+
+
+def match_tile(spec: TileSpec) -> Dict[str, np.ndarray]:
+    """Match every window of one tile (the unit of parallel work; see the module docstring).
+
+    Returns a dict of arrays, one entry per window: ``center_sample, center_line`` (the RPC-predicted position
+    of the ground point), ``lon, lat, h``, ``dsample, dline`` (offset ``matched - predicted``, px), ``peak,
+    peak_ratio, ncc, precision_px, texture`` and ``status`` (see :data:`STATUS`).
+    """
+    from osgeo import gdal
+    gdal.UseExceptions()
+    p = spec.params
+    w = int(spec.window_px)
+    f = int(spec.factor)
+    c = np.asarray(spec.centers, dtype=float).reshape(-1, 2)
+    n = c.shape[0]
+    out = {k: np.full(n, np.nan) for k in ("lon", "lat", "h", "dsample", "dline", "peak", "peak_ratio", "ncc",
+                                          "precision_px", "texture")}
+    out["center_sample"], out["center_line"] = c[:, 0].copy(), c[:, 1].copy()
+    status = np.zeros(n, dtype=np.int8)
+    out["status"] = status
+    if n == 0:
+        return out
+    rpc = spec.rpc
+    dem = _dem_from_spec(spec.dem)
+    ref = _cached(("ref", spec.reference, spec.reference_band),
+                  lambda: ReferenceImage(spec.reference, spec.reference_band))
+    ds = _cached(("img", spec.image), lambda: gdal.Open(spec.image))
+    lon, lat, h = rpc.localize_dem(c[:, 0], c[:, 1], dem)
+    out["lon"], out["lat"], out["h"] = np.atleast_1d(lon), np.atleast_1d(lat), np.atleast_1d(h)
+    status[~np.isfinite(out["lon"]) | ~np.isfinite(out["h"])] = 1
+    step = int(p.get("geometry_step", 4))
+
+    # ---- raw blocks: one read per window covering the coarse footprint and the fine search range.
+    search = int(math.ceil(p["search_px"]))
+    half = max(w * f // 2, w // 2 + search + 2)
+    bx0 = np.round(c[:, 0]).astype(int) - half
+    by0 = np.round(c[:, 1]).astype(int) - half
+    # Window corners: centres are placed so that c - w/2 is integer (see plan_tiles).
+    wx0 = np.round(c[:, 0] - w / 2).astype(int)
+    wy0 = np.round(c[:, 1] - w / 2).astype(int)
+    raw = _read_boxes(ds, spec.band, spec.image_nodata, bx0, by0, 2 * half)
+
+    # ---- coarse level: offsets up to ~ w f / 4.
+    shift_x = np.zeros(n)
+    shift_y = np.zeros(n)
+    live = status == 0
+    if f > 1 and live.any():
+        cw = w * f
+        # The coarse footprint is kept inside the image where possible (the error field is smooth, so the
+        # offset found a little aside still guides the fine level); it can stick out of a small image.
+        W, H = ds.RasterXSize, ds.RasterYSize
+        cx0 = np.clip(wx0 + w // 2 - cw // 2, 0, max(W - cw, 0))
+        cy0 = np.clip(wy0 + w // 2 - cw // 2, 0, max(H - cw, 0))
+        cx0 = np.clip(cx0, bx0, bx0 + 2 * half - cw)
+        cy0 = np.clip(cy0, by0, by0 + 2 * half - cw)
+        idx = np.flatnonzero(live)
+        ref_c = reference_on_grids(rpc, dem, ref, cx0[idx], cy0[idx], w, spacing=f, geometry_step=step)
+        raw_c = block_reduce(_take(raw[idx], cy0[idx] - by0[idx], cx0[idx] - bx0[idx], cw), f)
+        # The coarse level only has to land within a few pixels: fill small gaps instead of giving up.
+        bad_ref = np.isnan(ref_c).mean(axis=(1, 2))
+        bad_raw = np.isnan(raw_c).mean(axis=(1, 2))
+        usable = (bad_ref < 0.5) & (bad_raw < 0.5)
+        # Gaps are filled with the window mean in *both* images at the same places, so a no-data border does
+        # not become a one-sided edge that would attract the peak.
+        gaps_both = np.isnan(ref_c) | np.isnan(raw_c)
+        for arr in (ref_c, raw_c):
+            gaps = gaps_both
+            cnt = (~gaps).sum(axis=(1, 2))
+            mean = np.where(gaps, 0.0, arr).sum(axis=(1, 2)) / np.maximum(cnt, 1)
+            arr[gaps] = np.broadcast_to(mean[:, None, None], arr.shape)[gaps]
+        rc = phase_correlate(ref_c, raw_c, sigma_px=p.get("sigma_px", 1.0))
+        good = usable & (rc.peak_ratio >= p["min_peak_ratio"]) & (rc.peak >= p["min_peak"])
+        shift_x[idx] = np.where(usable, rc.dx * f, 0.0)
+        shift_y[idx] = np.where(usable, rc.dy * f, 0.0)
+        # Windows whose coarse match is ambiguous borrow the tile's median offset (errors are smooth).
+        if good.any() and not good.all():
+            shift_x[idx[~good]] = np.median(shift_x[idx[good]])
+            shift_y[idx[~good]] = np.median(shift_y[idx[good]])
+
+    # ---- fine level: the reference window at c, the raw window at c + the integer offset found so far.
+    idx = np.flatnonzero(status == 0)
+    if idx.size == 0:
+        return out
+    ref_f = reference_on_grids(rpc, dem, ref, wx0[idx], wy0[idx], w, spacing=1.0, geometry_step=step)
+    nan_ref = np.isnan(ref_f).any(axis=(1, 2))
+    ox = np.round(shift_x[idx]).astype(int)
+    oy = np.round(shift_y[idx]).astype(int)
+    res = None
+    for _ in range(3):
+        lo = 0
+        hi = 2 * half - w
+        offx = wx0[idx] + ox - bx0[idx]
+        offy = wy0[idx] + oy - by0[idx]
+        outside = (offx < lo) | (offx > hi) | (offy < lo) | (offy > hi)
+        raw_f = _take(raw[idx], np.clip(offy, lo, hi), np.clip(offx, lo, hi), w).astype(np.float64)
+        nan_raw = np.isnan(raw_f).any(axis=(1, 2)) | outside
+        okw = ~(nan_ref | nan_raw)
+        a = np.where(okw[:, None, None], ref_f, 0.0)
+        b = np.where(okw[:, None, None], raw_f, 0.0)
+        res = phase_correlate(a, b, sigma_px=p.get("sigma_px", 1.0))
+        jump_x = np.where(okw & (np.abs(res.dx) > 0.5), np.round(res.dx), 0).astype(int)
+        jump_y = np.where(okw & (np.abs(res.dy) > 0.5), np.round(res.dy), 0).astype(int)
+        if not (jump_x.any() or jump_y.any()):
+            break
+        ox += jump_x
+        oy += jump_y
+    st = status[idx]
+    # Fine window beyond the raster: the ground point is (truly) not in the image.
+    W, H = ds.RasterXSize, ds.RasterYSize
+    fx0, fy0 = wx0[idx] + ox, wy0[idx] + oy
+    beyond = outside | (fx0 < 0) | (fy0 < 0) | (fx0 + w > W) | (fy0 + w > H)
+    st[nan_ref | nan_raw] = np.where(beyond[nan_ref | nan_raw], 5, 1)
+    # Texture over the whole window, and no more than half of its central half flat: a GCP is the window centre,
+    # so a window centred on water or on a flat cloud is skipped even when a shoreline elsewhere would correlate.
+    q0, q1 = w // 4, w - w // 4
+    tex = np.minimum(texture_strength(a), texture_strength(b))
+    flat = np.maximum(flat_fraction(a, (q0, q1)), flat_fraction(b, (q0, q1)))
+    st[(st == 0) & ((tex < p["min_texture"]) | (flat > 0.5))] = 2
+    weak = (res.peak < p["min_peak"]) | (res.peak_ratio < p["min_peak_ratio"]) | (res.ncc < p["min_ncc"]) | \
+        (np.abs(res.dx) > 0.75) | (np.abs(res.dy) > 0.75)
+    st[(st == 0) & weak] = 3
+    # Quarter check at the integer alignment (the residual is < 1 px; the threshold is far from 1 anyway).
+    quad = _quadrant_ok(a, b, p["min_quadrant_ncc"])
+    st[(st == 0) & ~quad] = 4
+    status[idx] = st
+    out["dsample"][idx] = ox + res.dx
+    out["dline"][idx] = oy + res.dy
+    out["peak"][idx] = res.peak
+    out["peak_ratio"][idx] = res.peak_ratio
+    out["ncc"][idx] = res.ncc
+    out["precision_px"][idx] = res.precision_px
+    out["texture"][idx] = tex
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- planning side
+DEFAULTS = dict(min_peak=0.2, min_peak_ratio=2.0, min_ncc=0.3, min_texture=1.5, min_quadrant_ncc=0.2,
+                sigma_px=1.0, geometry_step=4)
+
+
+def _image_info(image, band: int):
+    from osgeo import gdal
+    gdal.UseExceptions()
+    path = image.GetDescription() if hasattr(image, "GetDescription") else os.fspath(image)
+    try:
+        ds = gdal.Open(path)
+    except RuntimeError as exc:
+        raise Gf4calError(f"cannot open image {path}: {str(exc).splitlines()[0]}") from None
+    if band < 1 or band > ds.RasterCount:
+        raise Gf4calError(f"image {path} has no band {band}")
+    return path, ds.RasterXSize, ds.RasterYSize, ds.GetRasterBand(band).GetNoDataValue()
+
+
+def plan_tiles(image, rpc, reference, dem, spacing_px: int = 256, window_px: int = 64, *, search_px: float = 64,
+               tile_windows: int = 64, band: int = 1, reference_band: int = 1, margin_px: Optional[int] = None,
+               **params) -> Tuple[List[TileSpec], Dict[str, Any]]:
+    """The window grid and its tiles: ``(specs, context)`` for :func:`match_tile` and :func:`assemble_gcps`.
+
+    Window centres form a regular grid of step ``spacing_px`` kept ``margin_px`` (default half a window) from
+    the image edges; they are grouped into square tiles of about ``tile_windows`` windows.
+    """
+    from ..rpc import RPCModel
+    path, W, H, nodata = _image_info(image, band)
+    if rpc is None:
+        rpc = RPCModel.from_file(path)
+    w = int(window_px)
+    if w < 16 or w % 2:
+        raise Gf4calError(f"window must be an even number of pixels >= 16 (got {window_px})")
+    spacing = int(spacing_px)
+    if spacing < 1:
+        raise Gf4calError(f"spacing must be a positive number of pixels (got {spacing_px})")
+    ref_path = os.fspath(reference)
+    if not os.path.exists(ref_path) and not ref_path.startswith("/vsi"):
+        raise Gf4calError(f"reference not found: {ref_path}")
+    ReferenceImage(ref_path, reference_band)  # fail early with a clear message
+    dem_spec = _dem_spec(dem)
+    if dem_spec[0] == "file" and not os.path.exists(str(dem_spec[1])) and not str(dem_spec[1]).startswith("/vsi"):
+        raise Gf4calError(f"DEM not found: {dem_spec[1]}")
+    # Coarse factor: smallest power of two whose level sees offsets of search_px (a quarter of its footprint).
+    f = 1
+    while w * f / 4.0 < search_px and f < 64:
+        f *= 2
+    margin = w // 2 if margin_px is None else int(margin_px)
+    xs = np.arange(margin + w / 2, W - margin - w / 2 + 1e-9, spacing)
+    ys = np.arange(margin + w / 2, H - margin - w / 2 + 1e-9, spacing)
+    if xs.size == 0 or ys.size == 0:
+        raise Gf4calError(f"image {W}x{H} is too small for {w}-px windows; use a smaller --window")
+    # Centre the grid; centres at integer + w/2 so that window corners are whole pixels.
+    xs = np.floor(xs + (W - margin - w / 2 - xs[-1]) / 2 - w / 2) + w / 2
+    ys = np.floor(ys + (H - margin - w / 2 - ys[-1]) / 2 - w / 2) + w / 2
+    per_side = max(1, int(round(math.sqrt(tile_windows))))
+    specs = []
+    p = dict(DEFAULTS)
+    p.update({k: v for k, v in params.items() if v is not None})
+    p["search_px"] = float(search_px)
+    for ty in range(0, ys.size, per_side):
+        for tx in range(0, xs.size, per_side):
+            gx, gy = np.meshgrid(xs[tx:tx + per_side], ys[ty:ty + per_side])
+            centers = np.column_stack([gx.ravel(), gy.ravel()])
+            specs.append(TileSpec(image=path, band=band, image_nodata=nodata, rpc=rpc, reference=ref_path,
+                                  reference_band=reference_band, dem=dem_spec, centers=centers, window_px=w,
+                                  factor=f, params=p))
+    ctx = dict(rpc=rpc, image=path, reference=ref_path, n_windows=int(xs.size * ys.size), window_px=w,
+               spacing_px=spacing, factor=f)
+    return specs, ctx
+
+
+def assemble_gcps(results: Sequence[Dict[str, np.ndarray]], ctx: Dict[str, Any], *, outlier_model: str = "affine",
+                  outlier_threshold_px: float = 3.0, seed: int = 0, min_sigma_px: float = 0.05):
+    """Concatenate tile results, flag outliers (:func:`.filters.reject_outliers`) and build the GCP table.
+
+    Returns a GeoDataFrame in the project's GCP schema (``id, lon, lat, h, sample, line, role, sigma``) plus
+    ``peak, peak_ratio, ncc, precision_px, texture, dsample, dline, outlier`` for the accepted windows;
+    ``gdf.attrs['windows']`` counts windows per status (:data:`STATUS`) and outliers.
+    """
+    from ..gcp import make_gcps
+    keys = results[0].keys() if results else []
+    allr = {k: np.concatenate([np.atleast_1d(r[k]) for r in results]) for k in keys}
+    st = allr.get("status", np.zeros(0, dtype=np.int8))
+    counts = {name: int(np.count_nonzero(st == code)) for code, name in STATUS.items()}
+    acc = np.flatnonzero(st == 0)
+    sel = {k: v[acc] for k, v in allr.items()}
+    n = acc.size
+    if n:
+        # Row-major order of the grid (tiles come back in any order).
+        order = np.lexsort((sel["center_sample"], sel["center_line"]))
+        sel = {k: v[order] for k, v in sel.items()}
+        flt = reject_outliers(sel["center_sample"], sel["center_line"], sel["dsample"], sel["dline"],
+                              model=outlier_model, threshold_px=outlier_threshold_px, seed=seed)
+        outlier = flt.outlier
+    else:
+        outlier = np.zeros(0, dtype=bool)
+    counts["outliers"] = int(outlier.sum())
+    counts["total"] = int(st.size)
+    sample = sel.get("center_sample", np.zeros(0)) + sel.get("dsample", np.zeros(0))
+    line = sel.get("center_line", np.zeros(0)) + sel.get("dline", np.zeros(0))
+    prec = sel.get("precision_px", np.zeros(0))
+    gdf = make_gcps(sel.get("lon", np.zeros(0)), sel.get("lat", np.zeros(0)), sel.get("h", np.zeros(0)), sample, line,
+                    ids=[f"m{i + 1:05d}" for i in range(n)], role="control",
+                    sigma=np.maximum(np.nan_to_num(prec, nan=1.0, posinf=1.0), min_sigma_px),
+                    peak=sel.get("peak", np.zeros(0)), peak_ratio=sel.get("peak_ratio", np.zeros(0)),
+                    ncc=sel.get("ncc", np.zeros(0)), precision_px=prec, texture=sel.get("texture", np.zeros(0)),
+                    dsample=sel.get("dsample", np.zeros(0)), dline=sel.get("dline", np.zeros(0)),
+                    outlier=np.asarray(outlier, dtype=bool))
+    gdf.attrs["windows"] = counts
+    return gdf
+
+
+def collect_gcps(image, rpc, reference, dem, spacing_px: int = 256, window_px: int = 64, *,
+                 workers: Optional[int] = None, executor: Optional[cf.Executor] = None, min_peak: float = 0.2,
+                 min_peak_ratio: float = 2.0, min_ncc: float = 0.3, min_texture: float = 1.5,
+                 search_px: float = 64, outlier_model: str = "affine", outlier_threshold_px: float = 3.0,
+                 seed: int = 0, tile_windows: int = 64, band: int = 1, reference_band: int = 1,
+                 geometry_step: int = 4, progress=None):
+    """Collect GCPs by sub-pixel matching of a raw image against a reference orthophoto + DEM (issue 7).
+
+    Parameters
+    ----------
+    image : path of the raw image (any GDAL raster) or an open dataset.
+    rpc : its :class:`gdal_gf4cal.RPCModel` (possibly biased: that is what the GCPs measure), or ``None`` to read
+        it from the image.
+    reference : path of the reference orthophoto (any GDAL raster, any CRS, any resolution; overviews are used
+        when it is much finer than the raw image).
+    dem : :class:`gdal_gf4cal.DEM`, DEM path (ellipsoidal heights; give a ``DEM(geoid=...)`` otherwise) or a
+        constant height in metres.
+    spacing_px, window_px : grid step and (even) window size, raw pixels.
+    workers : processes (default: CPU count; 1 runs in this process). ``executor`` : any
+        :class:`concurrent.futures.Executor` (thread pool, ``distributed.Client.get_executor()``...) instead.
+    min_peak, min_peak_ratio, min_ncc : correlation check (peak of the phase-correlation surface in [0, 1],
+        peak over second peak, correlation coefficient at the sub-pixel shift).
+    min_texture : texture-to-noise ratio below which a window is featureless (:func:`.texture_strength`).
+    search_px : largest initial offset to find (px); sets the coarse level (``>= 50`` px by default).
+    outlier_model : ``'translation'``, ``'affine'``, ``'poly2'`` or ``'poly3'`` for the RANSAC + MAD filter;
+        ``outlier_threshold_px`` its RANSAC inlier distance; ``seed`` its random seed.
+    progress : ``callable(fraction, message)``; raise :class:`gdal_gf4cal.CancelledError` in it to cancel.
+
+    Returns
+    -------
+    geopandas.GeoDataFrame in the GCP schema (DESIGN.md): ``id, lon, lat, h`` (the ground point, from the RPC and
+    the DEM at the window centre), ``sample, line`` (where the raw image truly shows it, GDAL convention),
+    ``role='control'``, ``sigma`` (= estimated precision, px) plus ``peak, peak_ratio, ncc, precision_px,
+    texture, dsample, dline`` (offset measured - RPC-predicted) and ``outlier``. Only windows that passed the
+    checks are rows; ``gdf.attrs['windows']`` counts all windows by outcome.
+    """
+    specs, ctx = plan_tiles(image, rpc, reference, dem, spacing_px, window_px, search_px=search_px,
+                            tile_windows=tile_windows, band=band, reference_band=reference_band,
+                            min_peak=min_peak, min_peak_ratio=min_peak_ratio, min_ncc=min_ncc,
+                            min_texture=min_texture, geometry_step=geometry_step)
+    report(progress, 0.0, f"matching {ctx['n_windows']} windows in {len(specs)} tiles")
+    results: List[Dict[str, np.ndarray]] = []
+    own = None
+    if executor is None and (workers is None or workers > 1) and len(specs) > 1:
+        nw = min(workers or os.cpu_count() or 1, len(specs))
+        if nw > 1:
+            own = executor = cf.ProcessPoolExecutor(max_workers=nw)
+    try:
+        if executor is None:
+            for i, spec in enumerate(specs):
+                results.append(match_tile(spec))
+                report(progress, 0.95 * (i + 1) / len(specs), f"tile {i + 1}/{len(specs)}")
+        else:
+            futures = [executor.submit(match_tile, s) for s in specs]
+            try:
+                for i, fut in enumerate(cf.as_completed(futures)):
+                    results.append(fut.result())
+                    report(progress, 0.95 * (i + 1) / len(specs), f"tile {i + 1}/{len(specs)}")
+            except (CancelledError, KeyboardInterrupt):
+                for fut in futures:
+                    fut.cancel()
+                raise
+    finally:
+        if own is not None:
+            own.shutdown(wait=True, cancel_futures=True)
+    gdf = assemble_gcps(results, ctx, outlier_model=outlier_model, outlier_threshold_px=outlier_threshold_px,
+                        seed=seed)
+    report(progress, 1.0, f"{len(gdf)} GCPs ({gdf.attrs['windows']['outliers']} outliers)")
+    return gdf

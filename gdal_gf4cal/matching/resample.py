@@ -1,0 +1,238 @@
+"""Resample a reference orthophoto into the raw image's geometry through RPC + DEM (automatic GCP collection).
+
+For a stack of regular grids of raw-image positions (one grid per matching window) every grid node is localised
+on the DEM through the RPC (``localize_dem``), transformed to the reference's CRS (pyproj) and to reference pixel
+coordinates (inverse geotransform), and the reference is sampled there with a cubic spline. The result shows, at
+raw position ``u``, the ground that the RPC says is imaged at ``u``: comparing it with the raw image measures the
+RPC's error (see :mod:`gdal_gf4cal.matching.collect`).
+
+- Geometry is exact on a sub-grid of nodes (every ``geometry_step`` samples) and interpolated bilinearly in
+  between: the mapping is smooth at the scale of a few pixels, and localisation is the expensive part.
+- Reads are windowed: one ``ReadAsArray`` of the bounding box the grids need, never the whole reference.
+- A reference much finer than the grid spacing is first read decimated by GDAL (``average`` resampling, which
+  uses its overviews when present) and then low-passed with a Gaussian, so the resampled window has about the
+  raw image's bandwidth instead of aliasing (the raw pixel itself integrates the ground).
+"""
+from __future__ import annotations
+
+import math
+import os
+from typing import Optional, Tuple
+
+import numpy as np
+
+from ..errors import Gf4calError
+
+__all__ = ["ReferenceImage", "grid_nodes", "reference_on_grids"]
+
+#: Standard deviation (in grid spacings) of the anti-alias low-pass applied to a finer reference: about the
+#: Gaussian equivalent of a pixel's box integration (1/sqrt(12) ~= 0.29) plus optics.
+ANTIALIAS_SIGMA = 0.45
+
+
+class ReferenceImage:
+    """Windowed reader of one band of a reference orthophoto (any GDAL raster with a geotransform and CRS).
+
+    ``lonlat_to_pixel(lon, lat)`` gives continuous pixel coordinates (GDAL convention: the centre of the first
+    pixel at 0.5, 0.5); ``read(x0, y0, nx, ny, decimation)`` returns float32 with NaN on no-data.
+    Objects are cheap; the dataset is opened lazily and not pickled (a worker reopens it from ``path``).
+    """
+
+    def __init__(self, path, band: int = 1):
+        self.path = os.fspath(path)
+        self.band = int(band)
+        self._ds = None
+        ds = self._open()
+        self.width, self.height = ds.RasterXSize, ds.RasterYSize
+        gt = ds.GetGeoTransform(can_return_null=True)
+        if gt is None:
+            raise Gf4calError(f"reference {self.path} has no geotransform; give an orthorectified, "
+                              "georeferenced image (e.g. a GeoTIFF)")
+        from osgeo import gdal
+        self.geotransform = tuple(gt)
+        self._inv = gdal.InvGeoTransform(gt)
+        if self._inv is None:
+            raise Gf4calError(f"reference {self.path} has a degenerate geotransform")
+        wkt = ds.GetProjection()
+        if not wkt:
+            raise Gf4calError(f"reference {self.path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:...)")
+        self.crs_wkt = wkt
+        b = ds.GetRasterBand(self.band)
+        self.nodata = b.GetNoDataValue()
+        self._transformer = None
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_ds"] = None
+        state["_transformer"] = None
+        return state
+
+    def _open(self):
+        if self._ds is None:
+            from osgeo import gdal
+            gdal.UseExceptions()
+            try:
+                self._ds = gdal.Open(self.path)
+            except RuntimeError as exc:
+                raise Gf4calError(f"cannot open reference {self.path}: {str(exc).splitlines()[0]}") from None
+            if self.band < 1 or self.band > self._ds.RasterCount:
+                raise Gf4calError(f"reference {self.path} has no band {self.band}")
+        return self._ds
+
+    @property
+    def transformer(self):
+        if self._transformer is None:
+            import pyproj
+            self._transformer = pyproj.Transformer.from_crs("EPSG:4326", pyproj.CRS.from_wkt(self.crs_wkt),
+                                                            always_xy=True)
+        return self._transformer
+
+    def lonlat_to_pixel(self, lon, lat) -> Tuple[np.ndarray, np.ndarray]:
+        """Continuous reference pixel coordinates (GDAL convention) of WGS84 (lon, lat); NaN stays NaN."""
+        lon = np.asarray(lon, dtype=float)
+        lat = np.asarray(lat, dtype=float)
+        X, Y = self.transformer.transform(lon, lat)
+        X = np.asarray(X, dtype=float)
+        Y = np.asarray(Y, dtype=float)
+        g = self._inv
+        return g[0] + g[1] * X + g[2] * Y, g[3] + g[4] * X + g[5] * Y
+
+    def read(self, x0: int, y0: int, nx: int, ny: int, decimation: int = 1) -> np.ndarray:
+        """Block ``[x0, x0 + nx) x [y0, y0 + ny)`` (full-resolution pixels), averaged by ``decimation``.
+
+        Parts outside the raster and no-data are NaN. The output has ``ceil(n / decimation)`` pixels per axis;
+        decimated pixel ``i`` covers full-resolution pixels ``[x0 + i*d, x0 + (i+1)*d)``.
+        """
+        from osgeo import gdal
+        d = max(int(decimation), 1)
+        ox, oy = -(-nx // d), -(-ny // d)
+        out = np.full((oy, ox), np.nan, dtype=np.float32)
+        # Snap the readable part to whole decimated cells so every output cell averages complete pixels.
+        cx0 = max(0, -(-(0 - x0) // d)) if x0 < 0 else 0
+        cy0 = max(0, -(-(0 - y0) // d)) if y0 < 0 else 0
+        cx1 = min(ox, (self.width - x0) // d)
+        cy1 = min(oy, (self.height - y0) // d)
+        if cx1 <= cx0 or cy1 <= cy0:
+            return out
+        band = self._open().GetRasterBand(self.band)
+        arr = band.ReadAsArray(x0 + cx0 * d, y0 + cy0 * d, (cx1 - cx0) * d, (cy1 - cy0) * d,
+                               buf_xsize=cx1 - cx0, buf_ysize=cy1 - cy0,
+                               resample_alg=gdal.GRIORA_Average if d > 1 else gdal.GRIORA_NearestNeighbour)
+        arr = arr.astype(np.float32)
+        if self.nodata is not None and np.isfinite(self.nodata):
+            arr[arr == np.float32(self.nodata)] = np.nan
+        out[cy0:cy1, cx0:cx1] = arr
+        return out
+
+
+def grid_nodes(n: int, step: int) -> np.ndarray:
+    """Indices ``0, step, 2 step, ..., n - 1`` of the exact-geometry nodes along an axis of ``n`` samples."""
+    nodes = np.arange(0, n, max(int(step), 1))
+    if nodes[-1] != n - 1:
+        nodes = np.append(nodes, n - 1)
+    return nodes
+
+
+def _interp_matrix(n: int, nodes: np.ndarray) -> np.ndarray:
+    """(n, len(nodes)) linear interpolation weights from node values to every index 0..n-1."""
+    m = np.zeros((n, nodes.size))
+    i = np.arange(n)
+    k = np.clip(np.searchsorted(nodes, i, side="right") - 1, 0, nodes.size - 2) if nodes.size > 1 else 0
+    if nodes.size == 1:
+        m[:, 0] = 1.0
+        return m
+    t = (i - nodes[k]) / (nodes[k + 1] - nodes[k])
+    m[i, k] = 1 - t
+    m[i, k + 1] = t
+    return m
+
+
+def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, spacing: float = 1.0, *,
+                       geometry_step: int = 4, order: int = 3, lonlat=None) -> np.ndarray:
+    """The reference resampled on ``N`` square grids of the raw image (METHODS §1 localisation, §2 DEM).
+
+    Grid ``i`` has ``size x size`` nodes at raw positions ``(x0[i] + spacing * (j + 0.5), y0[i] + spacing *
+    (k + 0.5))`` (GDAL convention; ``x0, y0`` are the grids' top-left corners), i.e. the centres of
+    ``spacing x spacing`` blocks of raw pixels. Returns float64 ``(N, size, size)``, NaN where the DEM, the
+    localisation or the reference has no value.
+
+    ``geometry_step`` : nodes between exact localisations (bilinear in between); ``order`` spline order (3 =
+    cubic). ``lonlat`` : optional precomputed ``(lon, lat)`` at the exact nodes (shape ``(N, m, m)``).
+    """
+    x0 = np.atleast_1d(np.asarray(x0, dtype=float))
+    y0 = np.atleast_1d(np.asarray(y0, dtype=float))
+    n = x0.size
+    nodes = grid_nodes(size, geometry_step)
+    pos = spacing * (nodes + 0.5)
+    S = x0[:, None, None] + pos[None, None, :] + 0 * pos[None, :, None]
+    L = y0[:, None, None] + pos[None, :, None] + 0 * pos[None, None, :]
+    if lonlat is None:
+        lon, lat, _ = rpc.localize_dem(S, L, dem)
+    else:
+        lon, lat = lonlat
+    rx, ry = reference.lonlat_to_pixel(lon, lat)
+    rx = np.asarray(rx, dtype=float).reshape(n, nodes.size, nodes.size)
+    ry = np.asarray(ry, dtype=float).reshape(n, nodes.size, nodes.size)
+    out = np.full((n, size, size), np.nan)
+    ok_win = np.all(np.isfinite(rx) & np.isfinite(ry), axis=(1, 2))
+    if not ok_win.any():
+        return out
+    M = _interp_matrix(size, nodes)
+    # Full-resolution reference coordinates of every grid node: M @ nodes @ M.T per window.
+    fx = M @ np.where(np.isfinite(rx), rx, 0.0) @ M.T
+    fy = M @ np.where(np.isfinite(ry), ry, 0.0) @ M.T
+    # Reference pixels per grid spacing (median over windows): decides decimation and low-pass.
+    step_len = np.hypot(np.diff(rx, axis=2), np.diff(ry, axis=2)) / (np.diff(nodes)[None, None, :])
+    ratio = float(np.nanmedian(step_len[ok_win])) if np.isfinite(step_len[ok_win]).any() else 1.0
+    ratio = max(ratio, 1e-6)
+    dec = max(1, int(math.floor(ratio / 2.0)))
+    sigma = math.sqrt(max((ANTIALIAS_SIGMA * ratio / dec) ** 2 - (1.0 / 12.0 if dec > 1 else 0.0), 0.0))
+    sigma = sigma if ratio > 1.25 else 0.0  # a reference at about the raw resolution is used as it is
+    margin = int(math.ceil(3 * sigma + 3)) * dec + dec
+    ok_idx = np.flatnonzero(ok_win)
+    lo_x = np.floor(fx[ok_idx].min(axis=(1, 2))).astype(int) - margin
+    hi_x = np.ceil(fx[ok_idx].max(axis=(1, 2))).astype(int) + margin
+    lo_y = np.floor(fy[ok_idx].min(axis=(1, 2))).astype(int) - margin
+    hi_y = np.ceil(fy[ok_idx].max(axis=(1, 2))).astype(int) + margin
+    own = float(np.sum((hi_x - lo_x) * (hi_y - lo_y)))
+    union = float((hi_x.max() - lo_x.min()) * (hi_y.max() - lo_y.min()))
+    # Dense windows share one read of their union; sparse ones are read (and filtered) one by one, so the work
+    # is proportional to the windows' area and not to the area they are spread over.
+    groups = [ok_idx] if union <= 2.0 * own else [ok_idx[k:k + 1] for k in range(ok_idx.size)]
+    for grp in groups:
+        out[grp] = _sample_reference(reference, fx[grp], fy[grp], dec, sigma, margin, order)
+    return out
+
+
+def _sample_reference(reference: ReferenceImage, fx: np.ndarray, fy: np.ndarray, dec: int, sigma: float,
+                      margin: int, order: int) -> np.ndarray:
+    """Sample the reference at continuous pixel coordinates ``fx, fy`` (one read of their bounding box)."""
+    from scipy import ndimage
+    out = np.full(fx.shape, np.nan)
+    bx0 = int(math.floor(fx.min())) - margin
+    by0 = int(math.floor(fy.min())) - margin
+    bx1 = int(math.ceil(fx.max())) + margin
+    by1 = int(math.ceil(fy.max())) + margin
+    # Align the box on the decimation lattice of the raster so overview reads are reused across tiles.
+    bx0 -= bx0 % dec
+    by0 -= by0 % dec
+    block = reference.read(bx0, by0, bx1 - bx0, by1 - by0, dec).astype(np.float64)
+    valid = np.isfinite(block)
+    if not valid.any():
+        return out
+    filled = np.where(valid, block, float(np.mean(block[valid])))
+    if sigma > 0:
+        filled = ndimage.gaussian_filter(filled, sigma, mode="nearest")
+    # Continuous pixel coordinate x (GDAL) -> index in the decimated block: cell i is centred at x0 + (i + 0.5) d.
+    coords = np.stack([((fy - by0) / dec - 0.5).ravel(), ((fx - bx0) / dec - 0.5).ravel()])
+    vals = ndimage.map_coordinates(filled, coords, order=order, mode="nearest", prefilter=True)
+    # A sample is invalid when any no-data cell (or the outside) is within the interpolation support.
+    reach = (2 if order >= 2 else 1) + int(math.ceil(3 * sigma))
+    bad = ~valid
+    if bad.any():
+        bad = ndimage.binary_dilation(bad, iterations=reach)
+    inside = (coords[0] >= 0) & (coords[0] <= block.shape[0] - 1) & (coords[1] >= 0) & \
+        (coords[1] <= block.shape[1] - 1)
+    ci = np.clip(np.rint(coords[0]).astype(int), 0, block.shape[0] - 1)
+    cj = np.clip(np.rint(coords[1]).astype(int), 0, block.shape[1] - 1)
+    return np.where(inside & ~bad[ci, cj], vals, np.nan).reshape(fx.shape)

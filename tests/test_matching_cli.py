@@ -1,0 +1,101 @@
+"""``gf4cal collect-gcps`` and the end-to-end chain collect -> refine -> gdalwarp -rpc -> ortho vs reference."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from osgeo import gdal
+
+from gdal_gf4cal.cli import main
+from gdal_gf4cal.gcp import read_gcps
+from gdal_gf4cal.matching.correlate import phase_correlate
+
+from test_matching_scene import build_scene, error_affine
+
+SIZE = (320, 320)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("cli")
+    # Shift + scale + a small rotation: an affine error, ~55 px.
+    sc = build_scene(folder, texture="pleiades", size=SIZE, seed=3,
+                     error=error_affine(shift=(42.2, -35.4), rotation_rad=0.0015, scale=0.9985, center=(160, 160)))
+    sc.rpc.write_rpb(str(folder / "raw.RPB"))  # the biased RPC travels with the image, as in a product
+    return sc
+
+
+def test_cli_writes_gcps_that_refine_reads(scene, tmp_path, capsys):
+    out = tmp_path / "gcps.gpkg"
+    rc = main([("collect-gcps"), scene.image, "--reference", scene.reference, "--dem", scene.dem_path,
+               "--out", str(out), "--spacing", "40", "--window", "64", "--workers", "1"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "wrote" in text and "windows" in text
+    g = read_gcps(out)  # the project's reader accepts it (schema, GDAL convention)
+    import geopandas as gpd
+    assert len(g) >= 25 and not gpd.read_file(out)["outlier"].any()  # inliers only by default
+    ts, tl = scene.truth(g["lon"].to_numpy(), g["lat"].to_numpy(), g["h"].to_numpy())
+    assert np.sqrt(np.mean((g["sample"] - ts) ** 2 + (g["line"] - tl) ** 2)) <= 0.1
+    # Existing output: refused, one line, exit 2.
+    assert main(["collect-gcps", scene.image, "--reference", scene.reference, "--dem", scene.dem_path,
+                 "--out", str(out)]) == 2
+    assert "exists" in capsys.readouterr().err
+
+
+def test_cli_bad_input_is_one_line(scene, tmp_path):
+    r = subprocess.run([sys.executable, "-m", "gdal_gf4cal.cli", "collect-gcps", scene.image, "--reference",
+                        str(tmp_path / "missing.tif"), "--dem", scene.dem_path, "--out", str(tmp_path / "g.gpkg")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0 and "reference not found" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+@pytest.mark.slow
+def test_end_to_end_collect_refine_orthorectify(scene, tmp_path):
+    """collect -> refine (affine, gdal_gf4cal.compensation) -> gdalwarp -rpc with the refined RPC: the
+    orthoimage matches the reference within 0.2 px (phase correlation), while the biased RPC is ~50 px off."""
+    from gdal_gf4cal.compensation import refine_rpc
+    from gdal_gf4cal.gcp import write_gcps
+    from gdal_gf4cal.matching import collect_gcps
+    g = collect_gcps(scene.image, None, scene.reference, scene.dem, spacing_px=32, window_px=64, workers=1)
+    g = g[~g["outlier"].to_numpy(bool)]
+    gpath = write_gcps(g, tmp_path / "gcps.gpkg")
+    vrt = str(tmp_path / "refined.vrt")
+    rep = refine_rpc(scene.image, gpath, "affine", out=vrt, dem=scene.dem_path)
+    assert rep["control"]["after"]["sample"]["rms"] < 0.1
+
+    ref = gdal.Open(scene.reference)
+    gt = ref.GetGeoTransform()
+    te = [str(gt[0]), str(gt[3] + gt[5] * ref.RasterYSize), str(gt[0] + gt[1] * ref.RasterXSize), str(gt[3])]
+    refarr = ref.ReadAsArray().astype(float)
+
+    def ortho(src, name):
+        out = str(tmp_path / name)
+        subprocess.run(["gdalwarp", "-q", "-rpc", "-to", f"RPC_DEM={scene.dem_path}", "-t_srs", "EPSG:32631",
+                        "-te", *te, "-ts", str(ref.RasterXSize), str(ref.RasterYSize), "-r", "cubic",
+                        "-dstnodata", "0", src, out], check=True)
+        return gdal.Open(out).ReadAsArray().astype(float)
+
+    def shifts(o):
+        # 96-px windows on a grid over the orthoimage's valid area.
+        wins_r, wins_o = [], []
+        for y in range(60, o.shape[0] - 156, 48):
+            for x in range(60, o.shape[1] - 156, 48):
+                a, b = refarr[y:y + 96, x:x + 96], o[y:y + 96, x:x + 96]
+                if np.all(b > 0):
+                    wins_r.append(a)
+                    wins_o.append(b)
+        r = phase_correlate(np.array(wins_r), np.array(wins_o))
+        return r, len(wins_r)
+
+    before, n0 = shifts(ortho(scene.image, "ortho_before.tif"))      # image + biased .RPB
+    after, n1 = shifts(ortho(vrt, "ortho_after.tif"))                  # VRT carrying the refined RPC
+    assert n1 >= 9
+    assert np.median(np.hypot(before.dx, before.dy)) > 10 or np.median(before.peak) < 0.3
+    err = np.hypot(after.dx, after.dy)
+    assert np.all(after.ncc > 0.8)
+    assert np.max(err) <= 0.2, err
