@@ -25,13 +25,17 @@ help:
 	@echo "make bench  - run the benchmarks under bench/"
 
 # System packages: installed only when one is missing (dpkg-query is fast when all are there).
-system:
-	@missing=$$(for p in $(APT_PACKAGES); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q 'install ok installed' || echo $$p; done); \
+define apt_install_missing
+	@missing=$$(for p in $(1); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q 'install ok installed' || echo $$p; done); \
 	if [ -n "$$missing" ]; then \
 	  echo "Installing Debian packages:" $$missing; \
 	  $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
 	  $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $$missing; \
 	fi
+endef
+
+system:
+	$(call apt_install_missing,$(APT_PACKAGES))
 
 # The venv sees Debian's numpy/GDAL/SciPy; constraints.txt pins numpy to Debian's so pip never replaces it.
 $(STAMP): pyproject.toml | system
@@ -60,7 +64,11 @@ test-qgis: install
 plugin: install
 	$(PY) tools/build_plugin.py
 
+# The benchmarks also compare against skimage's phase_cross_correlation (Debian's python3-skimage).
+BENCH_APT_PACKAGES := python3-skimage
+
 bench: install
+	$(call apt_install_missing,$(BENCH_APT_PACKAGES))
 	@for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:
