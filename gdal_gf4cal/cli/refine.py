@@ -44,15 +44,29 @@ def run(args) -> int:
     import os
     from ..compensation import refine_rpc
     from ..progress import TextProgressBar
+    created = []          # output folders made here, like simulate/calibrate do; removed again on failure
     for out in (args.out, args.report, args.residuals, args.plot):
-        if out and os.path.dirname(os.path.abspath(out)):
-            os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)   # like simulate/calibrate do
-    rep = refine_rpc(args.source, args.gcps, args.model, out=args.out, order=args.order, along=args.along,
-                     ccd_axis=args.ccd_axis, dem=args.dem, geoid=args.geoid, gcp_crs=args.gcp_crs,
-                     check_fraction=args.check_fraction, seed=args.seed, leave_one_out=args.leave_one_out,
-                     robust=not args.no_robust, outlier_threshold=args.outlier_threshold, report=args.report,
-                     residuals=args.residuals, plot=args.plot, overwrite=args.overwrite,
-                     progress=TextProgressBar())
+        folder = os.path.dirname(os.path.abspath(out)) if out else ""
+        if folder and not os.path.isdir(folder):
+            os.makedirs(folder)
+            created.append(folder)
+    try:
+        rep = refine_rpc(args.source, args.gcps, args.model, out=args.out, order=args.order, along=args.along,
+                         ccd_axis=args.ccd_axis, dem=args.dem, geoid=args.geoid, gcp_crs=args.gcp_crs,
+                         check_fraction=args.check_fraction, seed=args.seed, leave_one_out=args.leave_one_out,
+                         robust=not args.no_robust, outlier_threshold=args.outlier_threshold, report=args.report,
+                         residuals=args.residuals, plot=args.plot, overwrite=args.overwrite,
+                         progress=TextProgressBar())
+    except BaseException:
+        for folder in reversed(created):
+            if os.path.isdir(folder) and not os.listdir(folder):
+                os.rmdir(folder)
+        raise
+    _print_report(rep)
+    return 0
+
+
+def _print_report(rep) -> None:
     m = rep["model"]
     print(f"model {m['label']}: {len(m['parameters_px'])} parameters, sigma0 "
           f"{_fmt(m['sigma0_px']['sample'])}/{_fmt(m['sigma0_px']['line'])} px (sample/line)")
@@ -77,4 +91,3 @@ def run(args) -> int:
         print(f"applied by refitting the RPC: max error {ap['refit_max_px']:.2e} px, rms {ap['refit_rms_px']:.2e} px")
     for k, v in rep["outputs"].items():
         print(f"wrote {k}: {v}")
-    return 0
