@@ -29,6 +29,9 @@ def add_parser(parser):
                              "default: built-in seeded texture")
     parser.add_argument("--clouds", type=float, default=0.0, metavar="F",
                         help="with --render: fraction of the image covered by clouds (default 0)")
+    parser.add_argument("--no-reference-ortho", action="store_true",
+                        help="with --render from the built-in texture: do not write reference.tif (the same "
+                             "texture as an EPSG:4326 orthophoto, for collect-gcps --reference)")
     parser.add_argument("--workers", type=int, default=2, help="rendering threads (default 2)")
 
 
@@ -38,10 +41,13 @@ def run(args) -> int:
     res = write_scene(args.sensor, args.out, seed=args.seed, center=args.center, size=args.size,
                       n_gcps=args.n_gcps, gcp_noise_px=args.gcp_noise, outlier_fraction=args.outlier_fraction,
                       dem=args.dem, render=args.render, reference=args.reference, progress=TextProgressBar(),
-                      check_fraction=args.check_fraction, paint_clouds=args.clouds, workers=args.workers)
+                      check_fraction=args.check_fraction, paint_clouds=args.clouds, workers=args.workers,
+                      reference_ortho=not args.no_reference_ortho)
     print(f"{args.sensor} scene written to {res.out_dir} in {res.elapsed_s:.1f} s")
     for name, im in res.images.items():
         chk = im.fit_report.check
         print(f"  {name or 'scene'}: {len(im.gcps)} GCPs; RPC fit on the check grid: max {chk.max_px:.2e} px, "
               f"RMS {chk.rms_px:.2e} px  ({im.dir})")
+        if "reference" in im.paths:
+            print(f"  reference orthophoto of the same ground: {im.paths['reference']}")
     return 0

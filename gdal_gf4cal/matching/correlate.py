@@ -263,13 +263,20 @@ def _noise_sigma(a: np.ndarray) -> np.ndarray:
     return np.sqrt(np.pi / 2.0) / 6.0 * np.abs(lap).mean(axis=(-1, -2))
 
 
-def flat_fraction(windows: np.ndarray, region=None, box: int = 5, ratio: float = 0.05) -> np.ndarray:
+def flat_fraction(windows: np.ndarray, region=None, box: int = 5, ratio: float = 0.05,
+                  noise_factor: float = 3.0) -> np.ndarray:
     """Fraction of featureless pixels (water, flat cloud) in each window of a stack ``(N, h, w)``.
 
-    A pixel is flat when its local gradient energy (``box x box`` mean of ``gx^2 + gy^2``) is below ``ratio``
-    times the window's 90th percentile of it: water or cloud next to land, whose gradients are at the noise
-    level (or exactly zero in a clean orthophoto), fall far below the land's texture, while smooth land does
-    not. A window that is flat *everywhere* has no contrast to compare with: :func:`texture_strength` judges it.
+    A pixel is flat when its local gradient energy (``box x box`` mean of ``gx^2 + gy^2``, over 4) is both
+
+    - below ``ratio`` times the window's 90th percentile of it: water or cloud next to land, whose gradients are
+      at the noise level (or exactly zero in a clean orthophoto), fall far below the land's texture; and
+    - below ``noise_factor`` times the window's noise variance (Immerkaer's estimate, floored like
+      :func:`texture_strength`): flat water or cloud has the local energy of noise (~sigma^2), while ordinary land
+      texture next to a few much stronger edges (a road, a field border) also falls below the relative threshold
+      but stays well above the noise. Without this second test a road crossing a window made its land "flat".
+
+    A window that is flat *everywhere* has no contrast to compare with: :func:`texture_strength` judges it.
     ``region = (r0, r1)`` restricts the count to ``[r0:r1, r0:r1]`` (e.g. the window centre, where the GCP is).
     """
     from scipy import ndimage
@@ -279,7 +286,10 @@ def flat_fraction(windows: np.ndarray, region=None, box: int = 5, ratio: float =
                            + (a[..., 2:, 1:-1] - a[..., :-2, 1:-1]) ** 2) / 4.0
     local = ndimage.uniform_filter(g2, size=(1,) * (a.ndim - 2) + (box, box), mode="nearest")
     level = np.percentile(local[..., 1:-1, 1:-1].reshape(local.shape[:-2] + (-1,)), 90, axis=-1)
-    flat = local <= ratio * level[..., None, None]
+    # Central differences of white noise of std sigma have variance 2 sigma^2: local energy ~ sigma^2.
+    sigma = np.maximum(_noise_sigma(a), _FLOOR * a.std(axis=(-1, -2)))
+    thresh = np.minimum(ratio * level, noise_factor * sigma ** 2)
+    flat = local <= thresh[..., None, None]
     if region is not None:
         r0, r1 = region
         flat = flat[..., r0:r1, r0:r1]

@@ -50,13 +50,42 @@ def value_noise(x, y, wavelength: float, salt: int):
     return (v00 * (1 - fx) + v10 * fx) * (1 - fy) + (v01 * (1 - fx) + v11 * fx) * fy
 
 
-def texture_value(lon, lat, seed: int = 0, scale_m: float = 150.0):
+def _value_noise_grad(x, y, wavelength: float, salt: int):
+    """:func:`value_noise` and the norm of its gradient (per unit of x, y), from the same four lattice values."""
+    gx, gy = x / wavelength, y / wavelength
+    ix, iy = np.floor(gx), np.floor(gy)
+    tx, ty = gx - ix, gy - iy
+    fx, fy = tx * tx * (3 - 2 * tx), ty * ty * (3 - 2 * ty)
+    dfx, dfy = 6 * tx * (1 - tx), 6 * ty * (1 - ty)
+    v00, v10 = _hash01(ix, iy, salt), _hash01(ix + 1, iy, salt)
+    v01, v11 = _hash01(ix, iy + 1, salt), _hash01(ix + 1, iy + 1, salt)
+    v = (v00 * (1 - fx) + v10 * fx) * (1 - fy) + (v01 * (1 - fx) + v11 * fx) * fy
+    dvx = dfx * ((v10 - v00) * (1 - fy) + (v11 - v01) * fy) / wavelength
+    dvy = dfy * ((v01 - v00) * (1 - fx) + (v11 - v10) * fx) / wavelength
+    return v, np.hypot(dvx, dvy)
+
+
+def _box_step(d, width):
+    """A unit step at signed distance ``d = 0`` averaged over a box of ``width`` (a detector's footprint)."""
+    if width <= 0:
+        return (d >= 0).astype(float)
+    return np.clip(0.5 + d / width, 0.0, 1.0)
+
+
+def texture_value(lon, lat, seed: int = 0, scale_m: float = 150.0, edge_m: Optional[float] = None):
     """Built-in ground texture at (lon, lat), values in [0, 1] (deterministic in seed and scale).
 
     Multi-scale noise (finest wavelength ``scale_m``, in spherical-Mercator metres, i.e. ground metres divided by
     cos(lat)) + patchy "fields" with sharp edges + thin dark "roads",
     so that phase correlation / matching works at every scale from ``scale_m`` to ~100 ``scale_m``. Use the same
     ``seed`` and ``scale_m`` in :func:`write_reference_ortho` to get a reference DOM of the same ground.
+
+    The sharp edges of fields and roads are averaged over a box of ``edge_m`` (default ``scale_m / 3``, the pixel
+    size of the images rendered from it): the value at a point is what a detector of that size centred there
+    integrates (analytically, from the local gradient of the noise that places the edge). Point-sampling the
+    hard edges instead aliased them: an edge moved by up to half a pixel between two samplings of the same ground
+    (the raw image and the reference), i.e. local shifts of ~0.5-1 px where edges dominate a window's texture.
+    ``edge_m=0`` gives the hard edges.
     """
     lon = np.asarray(lon, dtype=float)
     lat = np.asarray(lat, dtype=float)
@@ -64,23 +93,38 @@ def texture_value(lon, lat, seed: int = 0, scale_m: float = 150.0):
     x = np.radians(lon) * 6378137.0
     y = np.log(np.tan(np.pi / 4 + np.radians(np.clip(lat, -85, 85)) / 2)) * 6378137.0
     s = int(seed) * 1000
+    width = scale_m / 3.0 if edge_m is None else float(edge_m)
     fbm, amp, total = 0.0, 1.0, 0.0
     for k in range(6):
         fbm = fbm + amp * value_noise(x, y, scale_m * 2.0 ** k, s + k)
         total += amp
         amp *= 0.75
     fbm = fbm / total
-    fields = np.floor(value_noise(x, y, 25 * scale_m, s + 50) * 7) / 6.0
-    roads = np.abs(value_noise(x, y, 60 * scale_m, s + 60) - 0.5) < 0.006
+    tiny = 1e-12
+    # Fields: levels floor(7 n) / 6; near the closest level boundary b (n = b / 7) the step from (b - 1) / 6 to
+    # b / 6 is box-averaged across the signed distance to the boundary.
+    n, gn = _value_noise_grad(x, y, 25 * scale_m, s + 50)
+    n7 = n * 7
+    b = np.round(n7)
+    d = (n7 - b) / np.maximum(7 * gn, tiny)
+    fields = np.clip((b - 1 + _box_step(d, width)) / 6.0, 0.0, 1.0)
+    # Roads: the band |r - 0.5| < 0.006 (half-width 0.006 / |grad r| across the centre line), box-averaged.
+    r, gr = _value_noise_grad(x, y, 60 * scale_m, s + 60)
+    gr = np.maximum(gr, tiny)
+    dc = (r - 0.5) / gr
+    hw = 0.006 / gr
+    road = _box_step(dc + hw, width) - _box_step(dc - hw, width)
     v = 0.5 * fields + 0.6 * (fbm - 0.5) + 0.25
-    v = np.where(roads, 0.1, v)
+    v = v * (1 - road) + 0.1 * road
     return np.clip(v, 0.0, 1.0)
 
 
 def write_reference_ortho(path, bounds, resolution_deg: float, seed: int = 0, scale_m: float = 150.0,
-                          block: int = 1024) -> str:
+                          block: int = 1024, workers: int = 2) -> str:
     """Write the built-in texture as an EPSG:4326 Byte GeoTIFF over ``bounds = (min_lon, min_lat, max_lon,
-    max_lat)`` at ``resolution_deg``: a reference DOM for matching tests (values at pixel centres)."""
+    max_lat)`` at ``resolution_deg``: a reference DOM for matching tests (values at pixel centres).
+
+    Blocks are computed by ``workers`` threads (NumPy releases the GIL), at most ``2 * workers`` in flight."""
     from osgeo import gdal, osr
     from .cameras import fix_mode
     gdal.UseExceptions()
@@ -101,14 +145,30 @@ def write_reference_ortho(path, bounds, resolution_deg: float, seed: int = 0, sc
         srs.ImportFromEPSG(4326)
         ds.SetProjection(srs.ExportToWkt())
         band = ds.GetRasterBand(1)
-        for j in range(0, ny, block):
-            h = min(block, ny - j)
+
+        def do_block(i, j):
+            w, h = min(block, nx - i), min(block, ny - j)
             lat = y1 - (j + np.arange(h) + 0.5) * resolution_deg
-            for i in range(0, nx, block):
-                w = min(block, nx - i)
-                lon = x0 + (i + np.arange(w) + 0.5) * resolution_deg
-                LON, LAT = np.meshgrid(lon, lat)
-                band.WriteArray(_to_byte(texture_value(LON, LAT, seed, scale_m)), i, j)
+            lon = x0 + (i + np.arange(w) + 0.5) * resolution_deg
+            LON, LAT = np.meshgrid(lon, lat)
+            return i, j, _to_byte(texture_value(LON, LAT, seed, scale_m))
+
+        blocks = iter([(i, j) for j in range(0, ny, block) for i in range(0, nx, block)])
+        nw = max(1, int(workers))
+        with ThreadPoolExecutor(max_workers=nw) as pool:
+            pending = set()
+            while True:
+                while len(pending) < 2 * nw:
+                    nxt = next(blocks, None)
+                    if nxt is None:
+                        break
+                    pending.add(pool.submit(do_block, *nxt))
+                if not pending:
+                    break
+                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for fut in finished:
+                    i, j, arr = fut.result()
+                    band.WriteArray(arr, i, j)
         ds = None
         os.replace(tmp, path)
         fix_mode(path)

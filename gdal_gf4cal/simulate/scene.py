@@ -2,7 +2,8 @@
 
 Per image: ``scene.tif`` (placeholder or rendered), ``scene.RPB`` (fitted from the *current* model, METHODS §3),
 ``gcps.csv``/``gcps.gpkg`` (measured = true + noise + outliers), ``check_grid.csv``, ``camera_current.json``,
-``camera_true.json``; per scene: ``dem.tif`` and ``truth.json``.
+``camera_true.json``, ``reference.tif`` (rendered from the built-in texture: a reference orthophoto of the same
+ground, for ``gf4cal collect-gcps``); per scene: ``dem.tif`` and ``truth.json``.
 """
 from __future__ import annotations
 
@@ -152,7 +153,8 @@ def _write_csv(df, path):
 def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None, n_gcps: int = 200,
                 gcp_noise_px: float = 0.6, outlier_fraction: float = 0.0, dem=None, render: bool = False,
                 reference=None, progress=None, *, check_fraction: float = 0.3, paint_clouds: float = 0.0,
-                workers: int = 2, tile: int = 512, check_grid_n: int = 41) -> SceneResult:
+                workers: int = 2, tile: int = 512, check_grid_n: int = 41,
+                reference_ortho: bool = True) -> SceneResult:
     """Simulate a scene and write every file (METHODS §10). See DESIGN.md "Simulator API" for the layout.
 
     Parameters
@@ -164,6 +166,10 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
     render : render ``scene.tif`` through the TRUE model (from ``reference``, any GDAL raster in any CRS, or the
         built-in seeded texture); otherwise a sparse placeholder of the right size.
     paint_clouds : fraction (0..1) of the image covered by bright clouds when rendering (``cloud_mask.tif`` too).
+    reference_ortho : when rendering from the built-in texture, also write ``reference.tif`` next to each
+        ``scene.tif``: the same texture as an EPSG:4326 orthophoto (:func:`.render.write_reference_ortho`, pixel =
+        the image's nominal GSD, covering its footprint plus a margin), i.e. what ``gf4cal collect-gcps
+        --reference`` needs to match the scene. Without clouds.
     progress : callback ``(fraction, message)``; raising :class:`CancelledError` from it cancels (files written by
         this call are removed).
     """
@@ -220,6 +226,17 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
                 if cloud_path:
                     paths["cloud_mask"] = cloud_path
                     written.append(cloud_path)
+                if reference is None and reference_ortho:
+                    from .render import model_bounds, write_reference_ortho
+                    report(p, 0.9, f"{im.name or sensor_name}: reference orthophoto")
+                    paths["reference"] = os.path.join(d, "reference.tif")
+                    written.append(paths["reference"])
+                    # The footprint plus >= 128 px on each side: a biased RPC (tests shift it by 50+ px) still
+                    # finds ground under every window of the image.
+                    W_, H_ = im.size
+                    margin = max(0.03, 128.0 / max(1, min(W_, H_)))
+                    write_reference_ortho(paths["reference"], model_bounds(im.true, margin=margin),
+                                          im.gsd_m / 111320.0, seed=seed, scale_m=3.0 * im.gsd_m, workers=workers)
             else:
                 write_placeholder_tif(paths["image"], im.size)
             written.append(paths["image"])
