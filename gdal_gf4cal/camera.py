@@ -27,7 +27,7 @@ from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
-from .errors import Gf4calError
+from .errors import Gf4calError, InputOverwriteError
 
 MODEL_NAME = "lookangle-cubic"
 N_TERMS = 10
@@ -276,16 +276,23 @@ class LookAngleModel:
             raise CameraFormatError(f"{source}: {exc}") from None
 
     def to_json(self, path, overwrite: bool = True) -> str:
-        """Write the camera file atomically."""
+        """Write the camera file atomically (temporary file in the same folder, then ``os.replace``).
+
+        Raises :class:`~gdal_gf4cal.errors.InputOverwriteError` if ``path`` exists and ``overwrite`` is false.
+        """
         path = os.fspath(path)
         if not overwrite and os.path.exists(path):
-            raise FileExistsError(f"{path} exists; choose another output")
+            raise InputOverwriteError(f"{path} exists; choose another output")
         folder = os.path.dirname(os.path.abspath(path))
         fd, tmp = tempfile.mkstemp(prefix=".camera-", suffix=".json", dir=folder)
         try:
             with os.fdopen(fd, "w") as fh:
                 json.dump(self.to_dict(), fh, indent=2)
                 fh.write("\n")
+            # mkstemp creates the file 0600; give the camera file the usual permissions (0666 & ~umask).
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)
             os.replace(tmp, path)
         except BaseException:
             if os.path.exists(tmp):
@@ -303,4 +310,8 @@ class LookAngleModel:
             raise CameraFormatError(f"camera file not found: {path}") from None
         except json.JSONDecodeError as exc:
             raise CameraFormatError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+        except (OSError, UnicodeDecodeError) as exc:    # a folder, no permission, a binary file
+            raise CameraFormatError(f"{path}: cannot read the camera file "
+                                    f"({getattr(exc, 'strerror', None) or exc.__class__.__name__}); "
+                                    "give a lookangle-cubic JSON file") from None
         return cls.from_dict(d, source=path)

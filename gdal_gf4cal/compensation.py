@@ -20,7 +20,6 @@ Estimating (:func:`fit_compensation` -> :class:`CompensationResult`) is separate
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 from dataclasses import dataclass, field
@@ -189,9 +188,13 @@ class CompensationResult:
         norm_res_line`` (residual / its standard deviation), ``outlier`` (bool), ``used`` (in the estimate),
         and with ``leave_one_out=True`` ``res_sample_loo, res_line_loo``. Residuals are measured - predicted, px.
     redundancy : int
-        Observations minus parameters of the final estimate.
+        Observations minus parameters of the final estimate (the smaller axis).
     iterations : int
         Robust reweighting iterations.
+    condition_number : float
+        Worst condition number of the column-equilibrated control design (both axes).
+    notes : list of str
+        What the caller should know (robust estimation skipped, blunder threshold raised, ...).
     """
 
     model: CompensationModel
@@ -345,12 +348,9 @@ def _f(x) -> Optional[float]:
 # statistics helpers (METHODS §6)
 # ----------------------------------------------------------------------------------------------------------------
 def _axis_stats(x) -> Dict[str, Optional[float]]:
-    x = np.asarray(x, dtype=float)
-    x = x[np.isfinite(x)]
-    if x.size == 0:
-        return {"mean": None, "rms": None, "rmse": None, "max": None}
-    return {"mean": float(x.mean()), "rms": float(np.sqrt(np.mean(x ** 2))),
-            "rmse": float(x.std()), "max": float(np.abs(x).max())}
+    """``{mean, rms, rmse, max}`` (px) of one axis, :func:`gdal_gf4cal.stats.axis_stats`; None when empty."""
+    from .stats import axis_stats
+    return {k: _f(v) for k, v in axis_stats(x).items() if k != "n"}
 
 
 def ground_offsets_m(rpc, lon, lat, h, dsample, dline) -> Tuple[np.ndarray, np.ndarray]:
@@ -389,14 +389,13 @@ def _jacobian(model, lon, lat, h):
     return np.stack(cols, axis=-1)
 
 
-def _ce90(east, north) -> Optional[float]:
-    r = np.hypot(east, north)
-    r = r[np.isfinite(r)]
-    return float(np.percentile(r, 90)) if r.size else None
-
-
 def accuracy_by_role(gcps, rpc=None) -> Dict[str, Any]:
-    """``{control: {before, after, n_outliers}, check: {...}}`` from a table with before/after residual columns."""
+    """``{control|check: {n_outliers, before|after: {n, line|sample: {mean, rms, rmse, max}, ce90_m}}}`` (METHODS §6).
+
+    From a table with ``res_{sample,line}_{before,after}`` columns (px); flagged outliers are left out. ``ce90_m``
+    is the planar CE90 (m) of the image residuals taken to the ground through ``rpc`` (None without ``rpc``).
+    """
+    from .stats import ce90
     out: Dict[str, Any] = {}
     role = gcps["role"].astype(str).to_numpy()
     outl = gcps["outlier"].to_numpy(bool)
@@ -411,7 +410,7 @@ def accuracy_by_role(gcps, rpc=None) -> Dict[str, Any]:
             if rpc is not None and sel.any():
                 e, n_ = ground_offsets_m(rpc, gcps["lon"].to_numpy(float)[sel], gcps["lat"].to_numpy(float)[sel],
                                          gcps["h"].to_numpy(float)[sel], rs, rl)
-                ce = _ce90(e, n_)
+                ce = _f(ce90(e, n_))
             st["ce90_m"] = ce
             entry[when] = st
         out[name] = entry
@@ -490,7 +489,8 @@ def _check_rank(a_list, model: CompensationModel, n_ctrl: int, terms=None) -> fl
             amp = max(amp, float(np.sqrt(np.max(np.einsum("ij,jk,ik->i", q, n_inv, q)))))
     if worst > 1e8 or amp > _MAX_AMPLIFICATION:
         hint = {"translation": "", "shift-drift": " (both axes need GCPs at different lines and samples)",
-                "affine": " (the GCPs are collinear)", "poly2": " (the GCPs lie on one line or conic)",
+                "affine": " (the GCPs are collinear or too close together)",
+                "poly2": " (the GCPs lie on one line or conic, or too close together)",
                 "detector-poly": " (too few distinct detector positions)"}[model.name]
         raise DegenerateGeometryError(
             f"the {n_ctrl} control GCPs do not determine model {model.label!r}{hint}; spread GCPs over the image "
@@ -526,6 +526,10 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
         Robust estimation: Huber then Tukey reweighting on standardised residuals, then blunders are flagged
         while their normalised residual (residual / its standard deviation, Baarda's w) exceeds
         ``outlier_threshold`` and left out of the estimate. Needs redundancy; with none it is skipped.
+    outlier_threshold : float
+        Critical normalised residual for a large redundancy (a standard-normal quantile); with few redundant
+        observations it is raised to the Student-t quantile of the same probability, because sigma is estimated
+        from the same GCPs (the report's ``notes`` say so).
     leave_one_out : bool
         Also compute leave-one-out residuals of each control point (``res_*_loo``; exact for linear LS).
 
@@ -614,9 +618,8 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
             if used.sum() < model.min_gcps:
                 used = ctrl.copy()
                 break
-            norm_s, norm_l, *_ = _normalised(a_s, a_l, y_s, y_l, w0, used)
-            z = np.maximum(np.abs(norm_s), np.abs(norm_l))
-            new_used = ctrl & (z <= outlier_threshold)
+            norm_s, norm_l, *_, dof = _normalised(a_s, a_l, y_s, y_l, w0, used)
+            new_used = ctrl & ~_exceeds(norm_s, norm_l, outlier_threshold, dof)
             if new_used.sum() < model.min_gcps or (new_used.sum() - max(p_s, p_l)) < 1:
                 notes.append("too many GCPs look like blunders for a robust estimate; all control points kept")
                 new_used = ctrl.copy()
@@ -631,11 +634,15 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
     except DegenerateGeometryError:
         used = ctrl.copy()
         notes.append("rejecting blunders would leave the model undetermined; all control points kept")
-    norm_s, norm_l, cs, cl, ns, nl, sig_s, sig_l, red = _normalised(a_s, a_l, y_s, y_l, w0, used)
+    norm_s, norm_l, cs, cl, ns, nl, sig_s, sig_l, red, dof = _normalised(a_s, a_l, y_s, y_l, w0, used)
     outlier = ~used & ctrl
     if robust and red >= 2:
         # Check points are never in the estimate; flag those that are blunders by the same test.
-        outlier |= (~ctrl) & (np.maximum(np.abs(norm_s), np.abs(norm_l)) > outlier_threshold)
+        outlier |= (~ctrl) & _exceeds(norm_s, norm_l, outlier_threshold, dof)
+        crit = _critical_value(outlier_threshold, min(dof))
+        if crit > 1.05 * outlier_threshold:
+            notes.append(f"few redundant observations: blunder threshold raised from {outlier_threshold:g} to "
+                         f"{crit:.3g} (Student-t, {min(dof)} degrees of freedom)")
     elif not robust:
         outlier[:] = False
 
@@ -659,8 +666,29 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
                               gcps=tab, redundancy=red, iterations=iterations, condition_number=cond, notes=notes)
 
 
+def _critical_value(threshold: float, dof: int) -> float:
+    """Critical normalised residual for ``dof`` degrees of freedom of the estimated sigma (METHODS §4, §6).
+
+    ``threshold`` is read as a standard-normal quantile (large redundancy, Baarda's w-test). The residuals here are
+    normalised with an *estimated* sigma, so with few redundant observations they follow Student's t: the
+    threshold becomes the t quantile of the same two-sided probability (a fixed 4 flagged a few percent of good
+    GCPs in sets of 4-10).
+    """
+    if dof <= 0:
+        return math.inf
+    from scipy import stats
+    return float(stats.t.isf(stats.norm.sf(threshold), dof))
+
+
+def _exceeds(norm_s, norm_l, threshold: float, dof: Tuple[int, int]) -> np.ndarray:
+    """True where either axis' normalised residual exceeds its critical value (:func:`_critical_value`)."""
+    return (np.abs(norm_s) > _critical_value(threshold, dof[0])) | \
+        (np.abs(norm_l) > _critical_value(threshold, dof[1]))
+
+
 def _normalised(a_s, a_l, y_s, y_l, w0, used):
-    """LS on ``used``; normalised residuals of every point and a-posteriori sigma per axis."""
+    """LS on ``used``; normalised residuals of every point, a-posteriori sigma per axis, redundancy and the
+    degrees of freedom ``(sample, line)`` of the sigma estimates."""
     wu = np.where(used, w0, 0.0)
     cs, ns = _solve_axis(a_s, y_s, wu)
     cl, nl = _solve_axis(a_l, y_l, wu)
@@ -670,10 +698,12 @@ def _normalised(a_s, a_l, y_s, y_l, w0, used):
     # With no redundancy the a-priori sigma (weights) is all we know: sigma0 = 1.
     sig_s = float(np.sqrt(np.sum(wu * vs ** 2) / red_s)) if red_s > 0 else 1.0
     sig_l = float(np.sqrt(np.sum(wu * vl ** 2) / red_l)) if red_l > 0 else 1.0
+    dof = (red_s, red_l)
     if red_s > 0 and red_l > 0 and min(red_s, red_l) < 10:
         # Few redundant observations per axis: pool both axes for a steadier scale.
         pooled = float(np.sqrt((np.sum(wu * vs ** 2) + np.sum(wu * vl ** 2)) / (red_s + red_l)))
         sig_s = sig_l = pooled
+        dof = (red_s + red_l,) * 2
     q_s = np.einsum("ij,jk,ik->i", a_s, ns, a_s)
     q_l = np.einsum("ij,jk,ik->i", a_l, nl, a_l)
     # var(v) = sigma^2 (1/w - q) in the fit, sigma^2 (1/w + q) outside it.
@@ -684,7 +714,7 @@ def _normalised(a_s, a_l, y_s, y_l, w0, used):
         norm_l = np.where(qv_l > 1e-10, vl / (max(sig_l, 1e-12) * np.sqrt(np.abs(qv_l))), np.nan)
     norm_s = np.nan_to_num(norm_s, nan=0.0)
     norm_l = np.nan_to_num(norm_l, nan=0.0)
-    return norm_s, norm_l, cs, cl, ns, nl, sig_s, sig_l, min(red_s, red_l)
+    return norm_s, norm_l, cs, cl, ns, nl, sig_s, sig_l, min(red_s, red_l), dof
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -742,36 +772,34 @@ class AppliedCompensation:
     fit_report: Any = None
 
     def to_dict(self) -> Dict[str, Any]:
-        return {"exact": bool(self.exact), "method": "fold" if self.exact else "refit",
-                "refit_max_px": float(self.refit_max_px), "refit_rms_px": float(self.refit_rms_px)}
+        out = {"exact": bool(self.exact), "method": "fold" if self.exact else "refit",
+               "refit_max_px": float(self.refit_max_px), "refit_rms_px": float(self.refit_rms_px)}
+        if self.fit_report is not None:
+            out["refit_notes"] = list(getattr(self.fit_report, "notes", ()))
+        return out
 
 
 def _fold(rpc, result: CompensationResult):
     """Fold translation + per-axis scale into SAMP/LINE_OFF and _SCALE (exact; METHODS §4.2)."""
     s0, ss, l0, ls = result.frame
-    coef = {"sample": dict(zip(result.model.terms[0], result.coef_sample)),
-            "line": dict(zip(result.model.terms[1], result.coef_line))}
-    # In GDAL pixels: x_new = c + m x'  with  m = 1 + a1/scale,  c = a0 - a1 x0/scale.
-    cs_ = coef["sample"].get((0, 0), 0.0) - coef["sample"].get((1, 0), 0.0) * s0 / ss
-    ms = 1.0 + coef["sample"].get((1, 0), 0.0) / ss
-    cl_ = coef["line"].get((0, 0), 0.0) - coef["line"].get((0, 1), 0.0) * l0 / ls
-    ml = 1.0 + coef["line"].get((0, 1), 0.0) / ls
-    # Raw RPC pixels are GDAL - 0.5:  raw_new = c + m (raw' + 0.5) - 0.5 = OFF_new + SCALE_new * r.
-    extra = {"source": None} if any(f.name == "source" for f in dataclasses.fields(rpc)) else {}
-    return dataclasses.replace(
-        rpc, **extra,
-        samp_off=float(cs_ + ms * (float(rpc.samp_off) + 0.5) - 0.5), samp_scale=float(ms * float(rpc.samp_scale)),
-        line_off=float(cl_ + ml * (float(rpc.line_off) + 0.5) - 0.5), line_scale=float(ml * float(rpc.line_scale)))
+    cs = dict(zip(result.model.terms[0], result.coef_sample))
+    cl = dict(zip(result.model.terms[1], result.coef_line))
+    # x_new = x' + a0 + a1 (x' - x0) / scale = c + m x'  with  m = 1 + a1/scale,  c = a0 - a1 x0/scale (GDAL px);
+    # RPCModel.with_image_affine does the exact half-pixel bookkeeping of the raw RPC00B offsets.
+    return rpc.with_image_affine(cs.get((0, 0), 0.0) - cs.get((1, 0), 0.0) * s0 / ss,
+                                 cl.get((0, 0), 0.0) - cl.get((0, 1), 0.0) * l0 / ls,
+                                 1.0 + cs.get((1, 0), 0.0) / ss, 1.0 + cl.get((0, 1), 0.0) / ls,
+                                 pixel_convention="gdal")
 
 
 def apply_compensation(rpc, result: CompensationResult, *, image_size: Optional[Tuple[int, int]] = None,
                        progress=None, **fit_kw) -> AppliedCompensation:
     """Write the correction into a new RPC (METHODS §4.2); the input RPC object is not modified.
 
-    Translation and per-axis scale fold exactly into the offsets/scales (``dataclasses.replace``). Other terms are
-    applied by refitting an RPC (METHODS §3, :func:`gdal_gf4cal.rpc_fit.fit_rpc_from_model`) on the composition of
-    the RPC and the correction, over the image extent (``image_size`` = (width, height), default from the RPC
-    offsets/scales) and the RPC's height range; the refit's check error is reported.
+    Translation and per-axis scale fold exactly into the offsets/scales (``RPCModel.with_image_affine``). Other
+    terms are applied by refitting an RPC (METHODS §3, :func:`gdal_gf4cal.rpc_fit.fit_rpc_from_model`) on the
+    composition of the RPC and the correction, over the image extent (``image_size`` = (width, height), default from
+    the RPC offsets/scales) and the RPC's height range; the refit's check error (independent grid) is reported.
     """
     if result.model.foldable:
         return AppliedCompensation(rpc=_fold(rpc, result), exact=True)
@@ -794,8 +822,36 @@ def _same_file(a: str, b: str) -> bool:
         return False
 
 
+def _rpc_stem(path: str) -> str:
+    """``dir/name`` without ``.RPB`` / ``_RPC.TXT`` (sidecars) or the extension (images), lower case."""
+    full = os.path.abspath(str(path))
+    low = full.lower()
+    for suffix in (".rpb", "_rpc.txt"):
+        if low.endswith(suffix):
+            return low[:-len(suffix)]
+    return os.path.splitext(low)[0]
+
+
+def _check_not_a_shadowing_sidecar(out_path: str, sources: Sequence[str]) -> None:
+    """Refuse an ``.RPB`` / ``_RPC.TXT`` output that GDAL would read as the RPC of an input image.
+
+    GDAL looks for ``<stem>.RPB`` and ``<stem>_RPC.TXT`` (any case) next to an image and prefers them to the RPC in
+    its TIFF tags, so writing one there silently changes the input's RPC (METHODS §4.2: never overwrite the input).
+    """
+    if output_kind(out_path) == "vrt":
+        return
+    stem = _rpc_stem(out_path)
+    for src in sources:
+        if src and not str(src).lower().endswith((".csv", ".points", ".geojson")) and _rpc_stem(src) == stem:
+            name = os.path.basename(str(out_path))
+            n = len(os.path.basename(stem))
+            raise InputOverwriteError(
+                f"output {out_path!r} would be read by GDAL as the RPC of the input {src!r}; choose another name "
+                f"(e.g. {name[:n]}_refined{name[n:]}) or write a .vrt")
+
+
 def output_kind(path: str) -> str:
-    """'rpb', 'rpc_txt' or 'vrt' from an output path; GCPError-free ValueError subclass otherwise."""
+    """'rpb', 'rpc_txt' or 'vrt' from an output path (case-insensitive); GCPError for any other name."""
     low = os.path.basename(str(path)).lower()
     if low.endswith(".rpb"):
         return "rpb"
@@ -808,9 +864,10 @@ def output_kind(path: str) -> str:
 
 def write_refined_rpc(rpc, out_path: str, *, image: Optional[str] = None, inputs: Sequence[str] = (),
                       overwrite: bool = False) -> str:
-    """Write a refined RPC as ``.RPB``, ``_RPC.TXT`` or (with ``image``) a VRT over the untouched image.
+    """Write a refined RPC as ``.RPB``, ``_RPC.TXT`` or (with ``image``) a VRT over the untouched image (METHODS §4.2).
 
-    Refuses to write over any of ``inputs`` (and over ``image``) and, unless ``overwrite``, over an existing file.
+    Refuses to write over any of ``inputs`` (and over ``image``), to write a sidecar that GDAL would read as the RPC
+    of one of them, and, unless ``overwrite``, over an existing file.
     Writing is atomic (the writers of :mod:`gdal_gf4cal.rpc` / :mod:`gdal_gf4cal.rpc_io`).
     """
     out_path = str(out_path)
@@ -818,6 +875,7 @@ def write_refined_rpc(rpc, out_path: str, *, image: Optional[str] = None, inputs
     for src in list(inputs) + ([image] if image else []):
         if src and (_same_file(out_path, src) or os.path.abspath(out_path) == os.path.abspath(str(src))):
             raise InputOverwriteError(f"output {out_path!r} is an input; choose a new output path")
+    _check_not_a_shadowing_sidecar(out_path, list(inputs) + ([image] if image else []))
     if os.path.exists(out_path) and not overwrite:
         raise InputOverwriteError(f"output {out_path!r} exists; remove it or choose a new path")
     if kind == "vrt":
@@ -891,10 +949,11 @@ def refine_rpc(source: str, gcps, model="affine", *, out: str, order: Optional[i
     out = os.fspath(out)
     kind = output_kind(out)
     image_size, inputs = _open_image(source)
-    inputs += [os.fspath(gcps)] if isinstance(gcps, (str, os.PathLike)) else []
+    inputs += [os.fspath(x) for x in (gcps, dem) if isinstance(x, (str, os.PathLike))]
     for p in [out] + [os.fspath(x) for x in (report, residuals, plot) if x]:
         if any(os.path.abspath(p) == os.path.abspath(i) or _same_file(p, i) for i in inputs):
             raise InputOverwriteError(f"output {p!r} is an input; choose a new output path")
+    _check_not_a_shadowing_sidecar(out, [source])
     if kind == "vrt" and image_size is None:
         raise GCPError(f"{source} is not an image: write the refined RPC as .RPB or _RPC.TXT, or give the image "
                        "to get a .vrt")

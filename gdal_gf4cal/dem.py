@@ -78,7 +78,10 @@ class DEM:
         if not geographic_wgs84:
             import pyproj
             self._to_dem = pyproj.Transformer.from_crs("EPSG:4326", pyproj.CRS.from_wkt(wkt), always_xy=True)
+        # Geographic DEMs: longitudes are compared modulo 360 (see :meth:`_wrap_lon`), so a DEM in the 0..360
+        # convention or one crossing the antimeridian serves points given in -180..180, and the reverse.
         self._lon_wrap = srs.IsGeographic() == 1
+        self._west = min(gt[0], gt[0] + gt[1] * self.width)
         # A DEM of up to 16 Mpx (128 MB as float64) is read once and sampled without tiling.
         self._whole = None
         self._whole_limit = 16 * 1024 * 1024
@@ -122,15 +125,34 @@ class DEM:
         return (float(np.min(xs)), float(np.min(ys)), float(np.max(xs)), float(np.max(ys)))
 
     def height_range(self) -> Tuple[float, float]:
-        """(min, max) of the stored heights (approximate statistics; geoid not applied)."""
+        """(min, max) of the stored heights (approximate statistics; geoid not applied).
+
+        Raises :class:`DEMError` if the raster holds no valid height at all (every pixel no-data).
+        """
         if self.is_constant:
             return (self.constant_height, self.constant_height)
-        lo, hi = self._band.ComputeRasterMinMax(True)
-        return (float(lo), float(hi))
+        for approx in (True, False):       # approximate statistics may sample only voids: then scan it all
+            try:
+                lo_hi = self._band.ComputeRasterMinMax(approx)
+            except RuntimeError:
+                lo_hi = None
+            if lo_hi is not None and all(np.isfinite(lo_hi)):
+                return (float(lo_hi[0]), float(lo_hi[1]))
+        raise DEMError(f"DEM {self.path} has no valid height (every pixel is no-data); use a DEM with data over "
+                       "the scene")
 
     # ------------------------------------------------------------------ sampling
     def height(self, lon, lat) -> np.ndarray:
-        """Ellipsoidal height (m) at (lon, lat) degrees WGS84, bilinear; scalars or arrays."""
+        """Ellipsoidal height (m) at (lon, lat) degrees WGS84, bilinear; scalars or arrays (METHODS §2).
+
+        Bilinear between pixel centres (GDAL convention: the centre of the first pixel is at (0.5, 0.5) pixel
+        coordinates); between the outermost centres and the raster edge the edge value holds. Outside the raster
+        or next to no-data the DEM's ``nodata`` policy applies.
+        """
+        return self._height(lon, lat, self.nodata_policy)
+
+    def _height(self, lon, lat, policy: NodataPolicy) -> np.ndarray:
+        """:meth:`height` with an explicit no-data policy (iterations ask for NaN without touching the DEM)."""
         lon = np.asarray(lon, dtype=float)
         lat = np.asarray(lat, dtype=float)
         lon, lat = np.broadcast_arrays(lon, lat)
@@ -143,20 +165,29 @@ class DEM:
         if self._to_dem is not None:
             x, y = self._to_dem.transform(x, y)
             x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        if self._lon_wrap:
+            x = self._wrap_lon(x)
         h = self._sample_bilinear(x, y)
         if self._geoid is not None:
             ok = np.isfinite(h)
             if np.any(ok):
                 _, _, h_ell = self._geoid.transform(lon.ravel()[ok], lat.ravel()[ok], h[ok])
                 h[ok] = h_ell
-        h = self._apply_nodata(h, lon.ravel(), lat.ravel())
+        h = self._apply_nodata(h, lon.ravel(), lat.ravel(), policy)
         return h.reshape(shape) if shape else float(h[0])
 
-    def _apply_nodata(self, h, lon, lat):
+    def _wrap_lon(self, x):
+        """Longitudes (DEM CRS degrees) outside ``[west, west + 360)`` moved into it by whole turns."""
+        with np.errstate(invalid="ignore"):
+            off = (x < self._west) | (x >= self._west + 360.0)
+        if not np.any(off):
+            return x
+        return np.where(off, self._west + np.mod(x - self._west, 360.0), x)
+
+    def _apply_nodata(self, h, lon, lat, policy):
         bad = ~np.isfinite(h)
         if not np.any(bad):
             return h
-        policy = self.nodata_policy
         if isinstance(policy, str):
             if policy == "nan":
                 return h

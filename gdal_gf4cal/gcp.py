@@ -17,7 +17,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .errors import GCPError
+from .errors import GCPError, InputOverwriteError
 
 REQUIRED = ("lon", "lat", "sample", "line")
 SCHEMA = ("id", "lon", "lat", "h", "sample", "line", "role", "sigma")
@@ -72,11 +72,12 @@ def validate_gcps(gdf, *, source: str = "GCPs", dem=None, need_height: bool = Tr
     if len(df) == 0:
         raise GCPError(f"{source}: no GCPs")
     for c in ("lon", "lat", "sample", "line") + (("h",) if "h" in df.columns else ()):
-        values = pd.to_numeric(df[c], errors="coerce")
-        if c != "h" and values.isna().any():
-            row = int(np.flatnonzero(values.isna().to_numpy())[0])
-            raise GCPError(f"{source}: column {c} has a missing or non-numeric value (row {row + 1})")
-        df[c] = values.astype(float)
+        values = pd.to_numeric(df[c], errors="coerce").astype(float)
+        bad = ~np.isfinite(values.to_numpy())
+        if c != "h" and bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise GCPError(f"{source}: column {c} has a missing, non-numeric or infinite value (row {row + 1})")
+        df[c] = values
     if "id" not in df.columns:
         df["id"] = [str(i) for i in range(1, len(df) + 1)]
     df["id"] = df["id"].astype(str)
@@ -84,14 +85,15 @@ def validate_gcps(gdf, *, source: str = "GCPs", dem=None, need_height: bool = Tr
         raise GCPError(f"{source}: duplicate GCP id {df['id'][df['id'].duplicated()].iloc[0]!r}")
     if "h" not in df.columns:
         df["h"] = np.nan
-    if df["h"].isna().any():
+    if not np.all(np.isfinite(df["h"].to_numpy())):
         if dem is None:
             if need_height:
-                raise GCPError(f"{source}: {int(df['h'].isna().sum())} GCP(s) without height; give a DEM "
-                               "(--dem) to take heights from it")
+                raise GCPError(f"{source}: {int((~np.isfinite(df['h'].to_numpy())).sum())} GCP(s) without height; "
+                               "give a DEM (--dem) to take heights from it")
         else:
-            miss = df["h"].isna().to_numpy()
-            df.loc[miss, "h"] = dem.height(df.loc[miss, "lon"].to_numpy(), df.loc[miss, "lat"].to_numpy())
+            # Errors when the DEM has no value under a GCP (never a NaN height from a nodata="nan" DEM).
+            from .gcp_formats import fill_heights
+            df = fill_heights(df, dem, source=source)
     if ((df["lat"].abs() > 90) | (df["lon"].abs() > 360)).any():
         raise GCPError(f"{source}: lon/lat out of range; GCP ground coordinates must be WGS84 degrees "
                        "(reproject the layer to EPSG:4326 or give its CRS)")
@@ -141,10 +143,14 @@ def read_gcps(path, *, dem=None, layer: Optional[str] = None, need_height: bool 
 
 
 def write_gcps(gdf, path, *, layer: str = "gcps", overwrite: bool = True) -> str:
-    """Write a GCP table to ``.csv``, ``.gpkg`` or ``.geojson`` (by extension), atomically."""
+    """Write a GCP table to ``.csv``, ``.gpkg`` or ``.geojson`` (by extension), atomically.
+
+    ``sample, line`` are written as they are (GDAL convention). Raises
+    :class:`~gdal_gf4cal.errors.InputOverwriteError` if ``path`` exists and ``overwrite`` is false.
+    """
     path = os.fspath(path)
     if not overwrite and os.path.exists(path):
-        raise FileExistsError(f"{path} exists; choose another output")
+        raise InputOverwriteError(f"{path} exists; choose another output or allow overwriting")
     ext = os.path.splitext(path)[1].lower()
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)

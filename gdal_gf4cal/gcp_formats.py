@@ -61,8 +61,7 @@ def _to_lonlat(x, y, crs):
 
 def _finish(df, source, dem, need_height=True):
     from .gcp import validate_gcps
-    return validate_gcps(fill_heights(df, dem, source=source) if dem is not None else df, source=source, dem=dem,
-                         need_height=need_height)
+    return validate_gcps(df, source=source, dem=dem, need_height=need_height)   # fills heights from the DEM
 
 
 def fill_heights(gcps, dem, *, source: str = "GCPs"):
@@ -147,10 +146,10 @@ def read_points_file(path, *, dem=None, crs=None, image: Optional[str] = None, d
             raise GCPError(f"{path}: the map coordinates' CRS is unknown (no '#CRS:' line); give it (--gcp-crs)")
     lon, lat = _to_lonlat(mx, my, use_crs)
     sample, line = _source_to_pixel(sx, sy, image)
+    if disabled not in ("drop", "check"):
+        raise GCPError(f"disabled must be 'drop' or 'check', not {disabled!r}")
     role = np.where(enabled, "control", "check")
     keep = enabled | (disabled == "check")
-    if disabled not in ("drop", "check"):
-        raise GCPError("disabled must be 'drop' or 'check'")
     out = pd.DataFrame({"id": [str(i + 1) for i in range(len(df))], "lon": lon, "lat": lat, "h": np.nan,
                         "sample": sample, "line": line, "role": role})[keep].reset_index(drop=True)
     if len(out) == 0:
@@ -164,7 +163,11 @@ def _source_to_pixel(sx, sy, image):
         return sx, -sy
     from osgeo import gdal
     gdal.UseExceptions()
-    ds = gdal.Open(str(image))
+    try:
+        ds = gdal.Open(str(image))
+    except RuntimeError as exc:
+        raise GCPError(f"cannot open the image the .points were taken on ({image}): "
+                       f"{str(exc).splitlines()[0]}; give the raster GDAL opens") from None
     gt = ds.GetGeoTransform(can_return_null=True)
     if gt is None:
         return sx, -sy
@@ -259,7 +262,7 @@ def read_gcp_layer(path, *, layer: Optional[str] = None, dem=None, sample_field:
     if fh is not None:
         h = pd.to_numeric(gdf[fh], errors="coerce").to_numpy(float)
     elif geom.has_z.all():
-        h = np.array([p.z for p in geom], float)
+        h = geom.z.to_numpy(float)
     else:
         h = np.full(len(gdf), np.nan)
     fid = _find(cols, _ID_ALIASES)

@@ -141,12 +141,14 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
         if idx.size == 0:
             break
         mx, my = _radii(lat[idx], h[idx])
+        to_m = np.stack([mx, my, np.ones_like(mx)], -1)
         nm = np.zeros((idx.size, 3, 3))
         rhs = np.zeros((idx.size, 3))
         for k in range(n_img):
             s, l = models[k].project(lon[idx], lat[idx], h[idx])
             r = np.stack([pts[k, idx, 0] - s, pts[k, idx, 1] - l], axis=-1)
-            jac = _jacobian(models[k], lon[idx], lat[idx], h[idx]) / np.stack([mx, my, np.ones_like(mx)], -1)[:, None, :]
+            # d(sample, line)/d(east, north, up) in px per metre.
+            jac = _jacobian(models[k], lon[idx], lat[idx], h[idx]) / to_m[:, None, :]
             w = wgt[k, idx]
             r = np.where(obs[k, idx, None], r, 0.0)
             jac = np.where(obs[k, idx, None, None], jac, 0.0)
@@ -171,11 +173,12 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
     idx = np.flatnonzero(fin)
     if idx.size:
         mx, my = _radii(lat[idx], h[idx])
+        to_m = np.stack([mx, my, np.ones_like(mx)], -1)
         for k in range(n_img):
             s, l = models[k].project(lon[idx], lat[idx], h[idx])
             r = np.stack([pts[k, idx, 0] - s, pts[k, idx, 1] - l], axis=-1)
             res[k, idx] = np.where(obs[k, idx, None], r, np.nan)
-            jac = _jacobian(models[k], lon[idx], lat[idx], h[idx]) / np.stack([mx, my, np.ones_like(mx)], -1)[:, None, :]
+            jac = _jacobian(models[k], lon[idx], lat[idx], h[idx]) / to_m[:, None, :]
             jac = np.where(obs[k, idx, None, None], jac, 0.0)
             nmat_final[idx] += wgt[k, idx, None, None] * np.einsum("nai,naj->nij", jac, jac)
     cov = np.full((n_pts, 3, 3), np.nan)
@@ -284,6 +287,9 @@ def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional
     paths = [os.fspath(p) for p in rpc_paths]
     if len(paths) < 2:
         raise DegenerateGeometryError("forward intersection needs at least 2 RPCs (--rpc A B [C ...])")
+    out = os.fspath(out) if out else None
+    if out and not out.lower().endswith((".csv", ".gpkg", ".geojson")):
+        raise GCPError(f"output {out!r}: use a name ending in .csv, .gpkg or .geojson")
     for o in (out, report):
         if o and any(os.path.abspath(o) == os.path.abspath(p) for p in paths + [os.fspath(points_path)]):
             raise InputOverwriteError(f"output {o!r} is an input; choose a new output path")
@@ -307,14 +313,7 @@ def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional
         rep["accuracy"] = intersection_accuracy(res, *truth)
     if out:
         from .gcp import write_gcps
-        if out.lower().endswith(".csv"):
-            tmp = out + ".tmp.csv"
-            table.to_csv(tmp, index=False, float_format="%.10g")
-            os.replace(tmp, out)
-        else:
-            import geopandas as gpd
-            gdf = gpd.GeoDataFrame(table, geometry=gpd.points_from_xy(table["lon"], table["lat"]), crs="EPSG:4326")
-            write_gcps(gdf, out)
+        write_gcps(table, out)        # atomic; a point layer (EPSG:4326) for .gpkg/.geojson
         rep["output"] = out
     if report:
         from .report import write_report_json

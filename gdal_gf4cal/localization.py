@@ -112,15 +112,10 @@ def _finish(lon, lat, hgt, shape, full_output):
 
 
 def _dem_height_nan(dem: DEM, lon, lat):
-    """DEM heights with NaN (not an exception) off the DEM, then the caller's nodata policy applied once."""
+    """DEM heights inside iterations: NaN off the DEM / in voids for the 'error' and 'nan' policies (a point
+    without intersection is NaN, never an exception), the fallback height for a numeric policy."""
     policy = dem.nodata_policy
-    if isinstance(policy, str):
-        dem.nodata_policy = "nan"
-        try:
-            return dem.height(lon, lat)
-        finally:
-            dem.nodata_policy = policy
-    return dem.height(lon, lat)
+    return dem._height(lon, lat, "nan" if isinstance(policy, str) else policy)
 
 
 def _dem_height_bounds(dem: DEM):

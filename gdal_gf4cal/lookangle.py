@@ -28,7 +28,8 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .errors import ConvergenceError, DegenerateGeometryError, GCPError
+from .camera import CameraFormatError
+from .errors import ConvergenceError, DegenerateGeometryError, GCPError, InputOverwriteError
 from .progress import report, scaled
 
 __all__ = [
@@ -440,6 +441,9 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
         base_w = np.repeat((1.0 / sigma ** 2)[:, None], 2, axis=1)
     else:
         base_w = np.asarray(weights, dtype=float)
+        if base_w.size not in (n, 2 * n):
+            raise GCPError(f"weights must have one value per GCP ({n}) or two (sample, line; {2 * n} values), got "
+                           f"{base_w.size}; give one weight per row of the GCP table")
         base_w = np.repeat(base_w.reshape(n, 1), 2, axis=1) if base_w.size == n else base_w.reshape(n, 2)
         if np.any(~np.isfinite(base_w[ctrl])) or np.any(base_w[ctrl] < 0):
             raise GCPError("weights must be finite and non-negative")
@@ -599,7 +603,7 @@ def compare_lookangle(a, b, grid_px: float = 50) -> Dict[str, Any]:
     (``max`` unsigned).
     """
     if tuple(a.size) != tuple(b.size):
-        raise ValueError(f"cameras have different sizes {tuple(a.size)} and {tuple(b.size)}")
+        raise CameraFormatError(f"cameras have different sizes {tuple(a.size)} and {tuple(b.size)}")
     width, height = (float(x) for x in b.size)
     g = float(grid_px)
     if not g > 0:
@@ -629,7 +633,7 @@ class RecalibratedSensor:
 
     def __init__(self, rpc, current, new):
         if tuple(current.size) != tuple(new.size):
-            raise ValueError(f"current and new cameras have different sizes {tuple(current.size)} and "
+            raise CameraFormatError(f"current and new cameras have different sizes {tuple(current.size)} and "
                              f"{tuple(new.size)}")
         self.rpc, self.current, self.new = rpc, current, new
         self.size = tuple(new.size)
@@ -697,10 +701,14 @@ def recalibrate_rpc(rpc, current, new, height_range=None, *, grid=(21, 21), n_la
 
 # ---------------------------------------------------------------------------------------------------- file workflows
 def _scene_stem(path) -> str:
-    """``scene.tif`` / ``scene.RPB`` / ``scene_RPC.TXT`` -> ``scene``."""
+    """``scene.tif`` / ``scene.RPB`` / ``scene_RPC.TXT`` -> ``scene``.
+
+    Only the last extension goes: product names carry dots (``GF4_PMS_E88.5_N32.5_...``) and two scenes must not
+    collapse to one output name.
+    """
     import os
     name = os.path.basename(os.fspath(path))
-    stem = name.split(".")[0] if not name.startswith(".") else name
+    stem = os.path.splitext(name)[0] if not name.startswith(".") else name
     if stem.upper().endswith("_RPC"):
         stem = stem[:-4]
     return stem or "scene"
@@ -805,11 +813,11 @@ def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: boo
                        "current camera the new one was calibrated from")
     scenes = [os.fspath(s) for s in scenes]
     if not scenes:
-        raise ValueError("no scene given")
+        raise GCPError("no scene given; name the scenes (images or RPC files) to recalibrate")
     out = os.fspath(out_dir)
     stems = [_scene_stem(s) for s in scenes]
     if len(set(stems)) != len(stems):
-        raise ValueError("two scenes have the same name; recalibrate them into different folders")
+        raise InputOverwriteError("two scenes have the same name; recalibrate them into different folders")
     plans = []
     for s, stem in zip(scenes, stems):
         is_image = rpc_file_format(s) == "gdal"

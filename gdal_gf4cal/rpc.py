@@ -17,6 +17,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from functools import cached_property
+from pathlib import Path
 from typing import Dict, Optional, Tuple, Union
 
 import numpy as np
@@ -254,12 +255,12 @@ class RPCModel:
         """A copy with some fields changed (``dataclasses.replace``); caches are not carried over."""
         return dataclasses.replace(self, **changes)
 
-    def write_rpb(self, path, overwrite: bool = False) -> str:
+    def write_rpb(self, path, overwrite: bool = False) -> "Path":
         """Write a ``.RPB`` sidecar atomically (see :func:`gdal_gf4cal.rpc_io.write_rpb`)."""
         from .rpc_io import write_rpb
         return write_rpb(self, path, overwrite=overwrite)
 
-    def write_rpc_txt(self, path, overwrite: bool = False) -> str:
+    def write_rpc_txt(self, path, overwrite: bool = False) -> "Path":
         """Write a ``_RPC.TXT`` sidecar atomically (see :func:`gdal_gf4cal.rpc_io.write_rpc_txt`)."""
         from .rpc_io import write_rpc_txt
         return write_rpc_txt(self, path, overwrite=overwrite)
@@ -360,7 +361,9 @@ class RPCModel:
         return out
 
     def project_jacobian(self, lon: ArrayLike, lat: ArrayLike, h: ArrayLike) -> np.ndarray:
-        """Analytic Jacobian ``d(sample, line) / d(lon, lat, h)`` in pixels per degree / per metre.
+        """Analytic Jacobian ``d(sample, line) / d(lon, lat, h)`` in pixels per degree / per metre (METHODS §1).
+
+        The same in either pixel convention (they differ by a constant shift).
 
         Returns an array of shape ``(..., 2, 3)``: rows (sample, line), columns (lon, lat, h).
         """
@@ -473,8 +476,9 @@ class RPCModel:
 
     def localize_dem(self, sample: ArrayLike, line: ArrayLike, dem, *, pixel_convention: str = "gdal",
                      tol_m: float = 1e-4, max_iter: int = 30, full_output: bool = False):
-        """Intersect the line of sight of image points with a DEM: ``(sample, line, dem) -> (lon, lat, h)``.
+        """Intersect the lines of sight with a DEM (METHODS §1-§2): ``(sample, line, dem) -> (lon, lat, h)``.
 
+        ``sample, line`` in GDAL's convention (centre of the first pixel at 0.5) unless ``pixel_convention="rpc"``.
         ``dem`` is a :class:`gdal_gf4cal.dem.DEM` or a constant height in metres. The returned point satisfies
         ``project(lon, lat, h) == (sample, line)`` to 1e-8 px and ``|DEM(lon, lat) - h| <= tol_m``; NaN where
         there is no intersection (off the DEM, in a void), counted with ``full_output=True``.

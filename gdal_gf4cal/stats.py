@@ -56,14 +56,23 @@ def share_within(res_sample, res_line, threshold_px: float) -> float:
 
 
 def residual_report(res_sample, res_line, *, ground_m_per_px: Optional[float] = None) -> Dict[str, object]:
-    """Per-axis (``line``, ``sample``) stats and ``planar`` stats; ``ce90_m`` when a GSD is given."""
-    report = {"n": int(np.count_nonzero(np.isfinite(np.asarray(res_sample, float)) &
-                                         np.isfinite(np.asarray(res_line, float)))),
+    """Per-axis (``line``, ``sample``) stats and ``planar`` stats; ``ce90_m`` when a GSD is given (METHODS §6).
+
+    A point counts only where both residuals are finite, so every block describes the same ``n`` points.
+    """
+    rs, rl = np.broadcast_arrays(np.asarray(res_sample, dtype=float).ravel(), np.asarray(res_line, dtype=float).ravel())
+    both = np.isfinite(rs) & np.isfinite(rl)
+    res_sample, res_line = rs[both], rl[both]
+    report = {"n": int(np.count_nonzero(both)),
               "line": axis_stats(res_line), "sample": axis_stats(res_sample),
               "planar": planar_stats(res_sample, res_line)}
     if ground_m_per_px is not None:
         report["ce90_m"] = report["planar"]["ce90"] * float(ground_m_per_px)
     return report
+
+
+#: The name DESIGN.md gives the per-axis + planar report (METHODS §6).
+accuracy_report = residual_report
 
 
 def fit_rotation_translation(sample_meas, line_meas, sample_pred, line_pred):

@@ -4,6 +4,8 @@ where engine errors become ``QgsProcessingException`` (with no partial outputs l
 from __future__ import annotations
 
 import os
+import shutil
+import traceback
 import warnings
 from typing import Any, Dict, List, Optional
 
@@ -18,6 +20,7 @@ from qgis.core import (
     QgsProcessingParameterFeatureSource,
     QgsProcessingParameterField,
     QgsProcessingParameterFile,
+    QgsProcessingParameterFileDestination,
     QgsProcessingParameterRasterLayer,
     QgsWkbTypes,
 )
@@ -27,12 +30,20 @@ from gdal_gf4cal.errors import CancelledError, Gf4calError
 
 GEOID_OPTIONS = ["Ellipsoidal heights (no conversion)", "Heights above EGM96", "Heights above EGM2008"]
 _GEOIDS = [None, "egm96", "egm2008"]
+TRACKER = "https://github.com/gdal-gf4cal/gdal_gf4cal/issues"
 
 
 def one_line(exc: BaseException) -> str:
     """The first line of an exception's message (the engine's messages say what to do in one line)."""
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
+
+
+def planar_rms(stats) -> float:
+    """Planar RMS (px) from an engine statistics dict's per-axis RMS; NaN when the role has no points."""
+    if not stats or not stats.get("n"):
+        return float("nan")
+    return float((stats["sample"]["rms"] ** 2 + stats["line"]["rms"] ** 2) ** 0.5)
 
 
 class FeedbackProgress:
@@ -66,7 +77,8 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
     Subclasses set ``NAME`` (stable lowercase id), ``DISPLAY``, ``GROUP``/``GROUP_ID`` and ``HELP``, define
     ``initAlgorithm`` and implement :meth:`run_algorithm` (instead of ``processAlgorithm``). Output files are
     registered with
-    :meth:`output_file` so that a failed or cancelled run removes the files it created.
+    :meth:`output_file` (folders with :meth:`output_folder`) so that a failed or cancelled run removes what it
+    created.
     """
 
     NAME = ""
@@ -94,6 +106,7 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
     def __init__(self):
         super().__init__()
         self._created: List[str] = []
+        self._created_dirs: List[str] = []
         self._to_load: List[tuple] = []
 
     # ---- identity ------------------------------------------------------------------------------------------
@@ -165,6 +178,16 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         p.setFlags(p.flags() | p.FlagAdvanced)
         self._add(p, "Vertical reference of the DEM: geoid heights are converted to ellipsoidal heights.")
 
+    def add_plot_output(self, help_text: str):
+        self._add(QgsProcessingParameterFileDestination(self.OUTPUT_PLOT, self.tr("Residual plot"),
+                                                        self.tr("PNG image (*.png)"), optional=True,
+                                                        createByDefault=False), help_text)
+
+    def add_report_output(self, help_text: str):
+        self._add(QgsProcessingParameterFileDestination(self.OUTPUT_REPORT, self.tr("Report (JSON)"),
+                                                        self.tr("JSON files (*.json)"), optional=True,
+                                                        createByDefault=False), help_text)
+
     def error(self, message: str):
         """A QgsProcessingException with a translated one-line message (raise it)."""
         return QgsProcessingException(self.tr(message))
@@ -175,7 +198,8 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         if not path:
             raise QgsProcessingException(self.tr("No input given: choose an image with an RPC or an RPC file."))
         if not os.path.exists(path):
-            raise QgsProcessingException(self.tr(f"Input not found: {path}"))
+            raise QgsProcessingException(self.tr(f"Input not found: {path}; choose an existing image or RPC file "
+                                                 f"(INPUT)."))
         return path
 
     def read_dem(self, parameters, context):
@@ -277,6 +301,21 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         os.makedirs(folder, exist_ok=True)
         return path
 
+    def output_folder(self, parameters, name, context) -> str:
+        """A folder destination's path, created if needed; a folder this run created is removed again (with
+        everything in it, all written by this run) if the run fails."""
+        folder = self.parameterAsString(parameters, name, context)
+        if not folder:
+            raise QgsProcessingException(self.tr(f"Choose an output folder ({name})."))
+        folder = os.path.abspath(folder)
+        top = folder
+        while not os.path.exists(os.path.dirname(top)) and os.path.dirname(top) != top:
+            top = os.path.dirname(top)
+        if not os.path.exists(folder):
+            os.makedirs(folder)
+            self._created_dirs.append(top)
+        return folder
+
     def load_on_completion(self, uri: str, name: str, kind: str = "vector") -> None:
         """Open ``uri`` as a layer (with its default style) in the project when the algorithm finishes."""
         self._to_load.append((uri, name, kind))
@@ -314,7 +353,9 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
                     os.remove(p)
                 except OSError:
                     pass
-        self._created = []
+        for folder in self._created_dirs:
+            shutil.rmtree(folder, ignore_errors=True)
+        self._created, self._created_dirs = [], []
 
     # ---- running -------------------------------------------------------------------------------------------
     def run_algorithm(self, parameters: Dict[str, Any], context, feedback,
@@ -322,16 +363,16 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         raise NotImplementedError
 
     def processAlgorithm(self, parameters, context, feedback):
-        self._created, self._to_load = [], []
+        self._created, self._created_dirs, self._to_load = [], [], []
         progress = FeedbackProgress(feedback)
+        caught: list = []
         try:
-            # Engine warnings (e.g. a poorly conditioned GCP layout) go to the Processing log, not to stderr.
+            # Engine warnings (e.g. a poorly conditioned GCP layout) go to the Processing log, not to stderr;
+            # also when the run fails, where they often explain why.
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 warnings.filterwarnings("ignore", category=DeprecationWarning)
                 result = self.run_algorithm(parameters, context, feedback, progress)
-            for w in caught:
-                feedback.pushWarning(f"{w.category.__name__}: {w.message}")
         except CancelledError:
             self._remove_partial_outputs()
             raise QgsProcessingException(self.tr("Cancelled; no output was written.")) from None
@@ -345,6 +386,19 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
             # GDAL (RuntimeError), file-system and numeric errors: still one line, the type says where.
             self._remove_partial_outputs()
             raise QgsProcessingException(f"{type(exc).__name__}: {one_line(exc)}") from None
-        feedback.setProgress(100)
-        self._created = []
+        except Exception as exc:
+            # A bug, not bad input: the traceback goes to the log (for the report), the user gets one line, and
+            # partial outputs are removed like for any other failure.
+            if feedback is not None:
+                feedback.pushDebugInfo(traceback.format_exc())
+            self._remove_partial_outputs()
+            raise QgsProcessingException(self.tr(
+                f"Internal error ({type(exc).__name__}: {one_line(exc)}); no output was written. Please report it "
+                f"with the log at {TRACKER}")) from None
+        finally:
+            for w in caught if feedback is not None else ():
+                feedback.pushWarning(f"{w.category.__name__}: {w.message}")
+        if feedback is not None:
+            feedback.setProgress(100)
+        self._created, self._created_dirs = [], []
         return result

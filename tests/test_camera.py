@@ -86,3 +86,19 @@ def test_json_round_trip_and_errors(distorted, tmp_path):
         LookAngleModel.from_json(tmp_path / "short.json")
     with pytest.raises(CameraFormatError, match="not found"):
         LookAngleModel.from_json(tmp_path / "none.json")
+
+
+def test_camera_file_errors_are_project_errors(distorted, tmp_path):
+    from gdal_gf4cal import Gf4calError
+    path = distorted.to_json(tmp_path / "camera.json")
+    import os
+    umask = os.umask(0)
+    os.umask(umask)
+    assert os.stat(path).st_mode & 0o777 == 0o666 & ~umask      # not mkstemp's private 0600
+    with pytest.raises(Gf4calError, match="exists"):
+        distorted.to_json(path, overwrite=False)
+    (tmp_path / "binary.json").write_bytes(b"\xff\xfe\x00\x01garbage")
+    with pytest.raises(CameraFormatError, match="binary.json"):
+        LookAngleModel.from_json(tmp_path / "binary.json")
+    with pytest.raises(CameraFormatError, match="cannot read"):
+        LookAngleModel.from_json(tmp_path)            # a folder

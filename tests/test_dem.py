@@ -130,3 +130,22 @@ def test_bad_inputs(tmp_path):
     with pytest.raises(DEMError, match="geoid grid"):
         DEM.from_file(_write_dem(tmp_path / "d.tif", np.zeros((4, 4), np.float32), (0, 1, 0, 4, 0, -1)),
                       geoid=str(tmp_path / "nogrid.gtx"))
+
+
+def test_geographic_dem_longitudes_wrap_across_the_antimeridian(tmp_path):
+    """A -180..180 DEM answers for lon 180.3 and a 0..360 one for lon -179.5 (same place, one turn apart)."""
+    y, x = np.mgrid[0:180, 0:360]
+    world = _write_dem(tmp_path / "world.tif", (10.0 * x + y).astype(np.float32), (-180.0, 1.0, 0, 90.0, 0, -1.0))
+    dem = DEM.from_file(world)
+    np.testing.assert_allclose(dem.height([180.3, 540.3, -539.7], [0.2, 0.2, 0.2]), dem.height(-179.7, 0.2))
+    across = _write_dem(tmp_path / "across.tif", np.full((20, 20), 50.0, np.float32), (179.0, 0.1, 0, 1.0, 0, -0.1))
+    assert DEM.from_file(across).height(-179.5, 0.5) == DEM.from_file(across).height(180.5, 0.5) == 50.0
+    with pytest.raises(DEMError, match="outside the DEM"):
+        DEM.from_file(across).height(-178.5, 0.5)           # 181.5: still east of the raster
+
+
+def test_all_nodata_dem_is_a_clear_error(tmp_path):
+    path = _write_dem(tmp_path / "void.tif", np.full((8, 8), -9999, np.float32), (5.0, 0.1, 0, 45.0, 0, -0.1),
+                      nodata=-9999)
+    with pytest.raises(DEMError, match="no valid height"):
+        DEM.from_file(path, nodata="nan").height_range()

@@ -60,3 +60,23 @@ def test_split_roles_is_seeded(gcps):
     b = split_roles(gcps, 0.25, seed=3)
     assert (a["role"] == "check").sum() == 3
     assert list(a["role"]) == list(b["role"])
+
+
+def test_heights_missing_under_a_nan_policy_dem_are_an_error_not_nan(tmp_path, srtm_path):
+    """A DEM opened with nodata="nan" must not hand a GCP a NaN height silently."""
+    (tmp_path / "g.csv").write_text("id,lon,lat,sample,line\nA,5.2,44.2,10,20\nB,9.5,44.3,30,40\n")
+    with pytest.raises(GCPError, match="no height under 1 GCP"):
+        read_gcps(tmp_path / "g.csv", dem=DEM.from_file(srtm_path, nodata="nan"))
+
+
+def test_infinite_image_coordinates_are_rejected(tmp_path):
+    (tmp_path / "g.csv").write_text("id,lon,lat,h,sample,line\nA,5.2,44.2,0,inf,20\n")
+    with pytest.raises(GCPError, match="column sample"):
+        read_gcps(tmp_path / "g.csv")
+
+
+def test_write_refuses_an_existing_file_with_a_project_error(gcps, tmp_path):
+    from gdal_gf4cal import Gf4calError
+    path = write_gcps(gcps, tmp_path / "g.csv")
+    with pytest.raises(Gf4calError, match="exists"):
+        write_gcps(gcps, path, overwrite=False)

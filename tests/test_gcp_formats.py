@@ -72,6 +72,8 @@ def test_points_file_without_crs(tmp_path, truth):
     bad.write_text("a,b,c\n1,2,3\n")
     with pytest.raises(GCPError, match="not a QGIS .points"):
         read_points_file(bad)
+    with pytest.raises(GCPError, match="cannot open the image"):            # one line, not a GDAL traceback
+        read_points_file(p, dem=DEM.constant(0.0), image=str(tmp_path / "missing.tif"))
 
 
 def test_raster_gcps(tmp_path, truth):

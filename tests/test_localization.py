@@ -121,3 +121,33 @@ def test_constant_height_and_off_dem_points(ventoux, srtm_path):
     lon, lat, h, n_failed = ventoux.localize_dem(np.array([5000.0, 4e6]), np.array([5000.0, 5000.0]),
                                                  DEM.from_file(srtm_path), full_output=True)
     assert np.isfinite(h[0]) and np.isnan(h[1]) and n_failed == 1
+
+
+def test_localize_dem_across_the_antimeridian_on_a_world_dem(tmp_path):
+    """A scene centred on 180 deg: points east of it localise to lon > 180 and must still find the -180..180 DEM."""
+    from osgeo import osr
+    zeros = np.zeros(20)
+    samp_num, line_num, den = zeros.copy(), zeros.copy(), zeros.copy()
+    den[0] = 1.0
+    samp_num[1], samp_num[3] = 1.0, 0.05
+    line_num[2] = -1.0
+    rpc = RPCModel(line_off=500, samp_off=500, lat_off=-16.0, long_off=179.95, height_off=200.0, line_scale=500,
+                   samp_scale=500, lat_scale=0.2, long_scale=0.2, height_scale=500.0, line_num=line_num,
+                   line_den=den, samp_num=samp_num, samp_den=den)
+    yy, xx = np.mgrid[0:40, 0:3600]          # a band all around the globe, 14..18 S
+    arr = (100.0 + 50.0 * np.sin(xx / 7.0) * np.cos(yy / 5.0)).astype(np.float32)
+    path = str(tmp_path / "world.tif")
+    ds = gdal.GetDriverByName("GTiff").Create(path, 3600, 40, 1, gdal.GDT_Float32)
+    ds.SetGeoTransform((-180.0, 0.1, 0, -14.0, 0, -0.1))
+    srs = osr.SpatialReference()
+    srs.ImportFromEPSG(4326)
+    ds.SetProjection(srs.ExportToWkt())
+    ds.GetRasterBand(1).WriteArray(arr)
+    ds = None
+    dem = DEM.from_file(path)
+    s, l = np.meshgrid(np.linspace(10, 990, 15), np.linspace(10, 990, 15))
+    lon, lat, h, n_failed = rpc.localize_dem(s.ravel(), l.ravel(), dem, full_output=True)
+    assert n_failed == 0 and np.any(lon > 180.0) and np.any(lon < 180.0)
+    s2, l2 = rpc.project(lon, lat, h)
+    assert np.max(np.hypot(s2 - s.ravel(), l2 - l.ravel())) <= 1e-6
+    assert np.max(np.abs(dem.height(lon, lat) - h)) <= 1e-3

@@ -329,3 +329,20 @@ def test_progress_is_reported_and_cancellation_propagates(scene):
             raise CancelledError("stop")
     with pytest.raises(CancelledError):
         calibrate_lookangle(scene["rpc"], gcps, scene["current"], progress=cancel)
+
+
+def test_apply_calibration_keeps_dotted_product_names(scene, tmp_path):
+    """GF4 product names carry dotted coordinates (GF4_PMS_E88.5_N32.5_...): output names keep the whole stem."""
+    from gdal_gf4cal.lookangle import apply_calibration
+    names = ["GF4_PMS_E88.5_N32.5_20210109", "GF4_PMS_E88.9_N27.3_20210109"]
+    paths = [scene["rpc"].write_rpb(str(tmp_path / f"{n}.RPB")) for n in names]
+    rep = apply_calibration(scene["current"], scene["true"], paths, tmp_path / "out")
+    for n in names:
+        assert (tmp_path / "out" / f"{n}.RPB").is_file()
+    assert len(rep["scenes"]) == 2
+
+
+def test_weights_of_the_wrong_shape_are_a_gcp_error(scene):
+    gcps, _ = make_gcps(scene["m_true"], 30, 0.3, seed=16)
+    with pytest.raises(GCPError, match="weights"):
+        calibrate_lookangle(scene["rpc"], gcps, scene["current"], weights=np.ones(7))

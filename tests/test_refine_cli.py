@@ -199,3 +199,24 @@ def test_refine_from_qgis_points_with_heights_from_dem(scene, tmp_path):
                  str(scene["dem"]), "--out", str(out), "--report", str(rep)]) == 0
     r = json.loads(rep.read_text())
     assert r["control"]["before"]["sample"]["rms"] > 5 and r["control"]["after"]["sample"]["rms"] < 1e-3
+
+
+def test_refine_refuses_a_sidecar_that_would_shadow_the_input_rpc(scene, tmp_path, capsys):
+    """An image with its RPC in TIFF tags: GDAL would read a new ``<stem>.RPB`` / ``<stem>_RPC.TXT`` next to it
+    as *the image's* RPC, silently changing the input. Refused, nothing written, the image reads as before."""
+    img = tmp_path / "tagged.tif"
+    gdal.Translate(str(img), str(scene["image"]))          # RPC from chip.RPB copied into the TIFF tags
+    assert gdal.Open(str(img)).GetFileList() == [str(img)]
+    md = gdal.Open(str(img)).GetMetadata("RPC")
+    for name in ("tagged.RPB", "tagged_RPC.TXT", "TAGGED.rpb", "tagged_rpc.txt"):
+        code = main(["refine", str(img), "--gcps", str(scene["gcps"]), "--model", "translation", "--out",
+                     str(tmp_path / name)])
+        assert code == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "would be read by GDAL as the RPC of" in err[0], err
+        assert not (tmp_path / name).exists()
+    assert gdal.Open(str(img)).GetMetadata("RPC") == md
+    # Any other name is fine.
+    assert main(["refine", str(img), "--gcps", str(scene["gcps"]), "--model", "translation", "--out",
+                 str(tmp_path / "tagged_refined.RPB")]) == 0
+    assert gdal.Open(str(img)).GetMetadata("RPC") == md

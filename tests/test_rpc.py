@@ -114,7 +114,11 @@ def test_pixel_conventions_differ_by_half_a_pixel(real_rpc):
     sg, lg = real_rpc.project(*args)
     sr, lr = real_rpc.project(*args, pixel_convention="rpc")
     assert sg - sr == pytest.approx(0.5, abs=1e-9) and lg - lr == pytest.approx(0.5, abs=1e-9)
-    # At the offsets the raw convention returns exactly SAMP_OFF/LINE_OFF plus the constant terms' ratio.
+    # At the offsets (L = P = H = 0) the raw convention returns SAMP_OFF/LINE_OFF plus the constant terms' ratio.
+    assert sr == pytest.approx(real_rpc.samp_off + real_rpc.samp_scale * real_rpc.samp_num[0] / real_rpc.samp_den[0],
+                               abs=1e-9)
+    assert lr == pytest.approx(real_rpc.line_off + real_rpc.line_scale * real_rpc.line_num[0] / real_rpc.line_den[0],
+                               abs=1e-9)
     with pytest.raises(ValueError, match="pixel_convention"):
         real_rpc.project(*args, pixel_convention="centre")
 

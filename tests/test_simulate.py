@@ -316,3 +316,54 @@ def test_every_sensor_small_crop(sensor, tmp_path):
             assert _round_trip(model, n=100) <= 1e-6
         _, rep = fit_rpc_from_model(im.current)
         assert rep.check.max_px <= 0.01 and rep.check.rms_px <= 0.002
+
+
+def test_earth_rotation_sign_of_the_platform():
+    """Independent physics: the ECEF velocity of the platform is the inertial one minus omega x r (the Earth turns
+    eastward under the orbit, so the ground track drifts west)."""
+    from gdal_gf4cal.simulate.geodesy import OMEGA_EARTH
+    im = make_scene("zy3", seed=0, size=(64, 64)).image("nadir")
+    m = im.current
+    pos_i, vel_i = m.orbit.inertial(0.0)               # inertial frame = ECEF at t = 0
+    dt = 1e-3
+    (p0, _), (p1, _) = m.platform(np.array([-dt])), m.platform(np.array([dt]))
+    vel_ecef = (p1[0] - p0[0]) / (2 * dt)
+    expected = vel_i - np.cross([0.0, 0.0, OMEGA_EARTH], pos_i)
+    assert np.max(np.abs(vel_ecef - expected)) < 1e-3          # m/s (omega x r is ~460 m/s)
+    assert np.max(np.abs(vel_ecef - vel_i)) > 100
+
+
+def test_user_dem_above_the_geoid_gives_an_ellipsoidal_height_range(tmp_path, data_dir):
+    """A DEM with geoid='egm96' (undulation ~50 m in Provence): the scene's height range is ellipsoidal."""
+    from gdal_gf4cal.dem import DEM
+    from gdal_gf4cal.simulate.terrain import write_dem_tif
+    path = str(tmp_path / "flat_ortho.tif")
+    write_dem_tif(path, np.full((60, 60), 100.0, dtype=np.float32), (4.5, 0.03, 0.0, 45.4, 0.0, -0.03))
+    dem = DEM.from_file(path, geoid="egm96")
+    sc = make_scene("hj1", seed=0, size=(200, 200), dem=dem, center=(5.4, 44.5))
+    lo, hi = sc.truth["dem"]["height_range_m"]
+    assert 145 < lo <= hi < 155
+
+
+def test_write_scene_refuses_to_overwrite_its_reference(tmp_path):
+    from gdal_gf4cal.simulate.render import write_reference_ortho
+    out = tmp_path / "sc"
+    out.mkdir()
+    ref = out / "scene.tif"
+    write_reference_ortho(ref, (87.9, 30.9, 88.1, 31.1), 0.002, seed=1)
+    before = ref.read_bytes()
+    with pytest.raises(SimulationError, match="input"):
+        write_scene("gf4", out, seed=1, size=(64, 64), n_gcps=10, render=True, reference=str(ref))
+    assert ref.read_bytes() == before
+    from gdal_gf4cal.simulate.terrain import write_dem_tif
+    dem = write_dem_tif(str(out / "dem.tif"), np.full((20, 20), 4000.0, dtype=np.float32),
+                        (87.0, 0.1, 0.0, 32.0, 0.0, -0.1))
+    before = (out / "dem.tif").read_bytes()
+    with pytest.raises(SimulationError, match="input"):
+        write_scene("gf4", out, seed=1, size=(64, 64), n_gcps=10, dem=dem)
+    assert (out / "dem.tif").read_bytes() == before
+
+
+def test_clouds_without_render_are_refused(tmp_path):
+    with pytest.raises(SimulationError, match="--render"):
+        write_scene("gf4", tmp_path / "c", seed=1, size=(64, 64), n_gcps=10, paint_clouds=0.2)

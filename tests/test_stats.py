@@ -39,3 +39,10 @@ def test_internal_accuracy_removes_rotation_and_translation():
     assert out["sample"]["rms"] == pytest.approx(0.5, rel=0.15)
     assert out["line"]["rms"] == pytest.approx(0.5, rel=0.15)
     assert abs(out["sample"]["mean"]) < 1e-9
+
+
+def test_accuracy_report_splits_axes_and_reports_ce90_in_metres():
+    from gdal_gf4cal.stats import accuracy_report
+    rep = accuracy_report([3.0, -3.0, np.nan], [4.0, 4.0, 1.0], ground_m_per_px=50.0)
+    assert rep["n"] == 2 and rep["line"]["mean"] == 4.0 and rep["sample"]["rmse"] == 3.0
+    assert rep["planar"]["max"] == 5.0 and rep["ce90_m"] == 250.0

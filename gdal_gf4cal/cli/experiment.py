@@ -8,6 +8,8 @@ from __future__ import annotations
 import importlib
 import pkgutil
 
+from ..errors import Gf4calError
+
 NAME = "experiment"
 HELP = "Run a paper's experiment on simulated scenes (e.g. 'gf4': look-angle calibration, Tables 2-4)."
 
@@ -29,7 +31,7 @@ def run(args) -> int:
     from ..progress import TextProgressBar
     names = available()
     if args.name not in names:
-        raise ValueError(f"unknown experiment {args.name!r}; choose one of: {', '.join(names)}")
+        raise Gf4calError(f"unknown experiment {args.name!r}; choose one of: {', '.join(names)}")
     mod = importlib.import_module(f"gdal_gf4cal.experiments.{args.name}")
     kwargs = {"progress": None if args.quiet else TextProgressBar()}
     if args.seed is not None:

@@ -1,4 +1,4 @@
-"""``gf4cal info``: summary of an image's or sidecar's RPC, its footprint, GSD and height range."""
+"""``gf4cal info``: summary of an image's or sidecar's RPC (METHODS §1), its footprint, GSD and height range."""
 from __future__ import annotations
 
 import json

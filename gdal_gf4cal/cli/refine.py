@@ -68,8 +68,9 @@ def run(args) -> int:
 
 def _print_report(rep) -> None:
     m = rep["model"]
+    # sigma0 is the a-posteriori factor of the GCPs' sigma: in px only when their sigma is 1 px.
     print(f"model {m['label']}: {len(m['parameters_px'])} parameters, sigma0 "
-          f"{_fmt(m['sigma0_px']['sample'])}/{_fmt(m['sigma0_px']['line'])} px (sample/line)")
+          f"{_fmt(m['sigma0_px']['sample'])}/{_fmt(m['sigma0_px']['line'])} (sample/line, x GCP sigma)")
     print(f"{'':8} {'n':>4} {'before rms s/l (px)':>22} {'after rms s/l (px)':>22} {'CE90 before/after (m)':>24}")
     for role in ("control", "check"):
         b, a = rep[role]["before"], rep[role]["after"]
@@ -89,5 +90,7 @@ def _print_report(rep) -> None:
         print("applied exactly (offsets/scales)")
     else:
         print(f"applied by refitting the RPC: max error {ap['refit_max_px']:.2e} px, rms {ap['refit_rms_px']:.2e} px")
+    for note in rep.get("notes", []):
+        print(f"note: {note}")
     for k, v in rep["outputs"].items():
         print(f"wrote {k}: {v}")

@@ -24,6 +24,7 @@ from typing import Any, Dict, Optional, Sequence
 
 import numpy as np
 
+from ..errors import DegenerateGeometryError, GCPError
 from ..progress import report as _report
 
 VIEWS = ("nadir", "fwd", "bwd")
@@ -58,10 +59,11 @@ def _accuracy(models_by_view, pts_by_view, truth, combo, sel, sigma_px):
     pts = np.stack([pts_by_view[v][sel] for v in combo])
     res = intersect(models, pts, sigma_px=sigma_px)
     acc = intersection_accuracy(res, *(t[sel] for t in truth))
+    ok = res.converged
     return {"n_check": acc["n"], "planar_rms_m": acc["planar_rms_m"], "height_rms_m": acc["height_rms_m"],
             "ce90_m": acc.get("ce90_m"), "le90_m": acc.get("le90_m"),
-            "predicted_planar_m": float(np.sqrt(np.nanmean(res.sigma_planar_m ** 2))),
-            "predicted_height_m": float(np.sqrt(np.nanmean(res.sigma_height_m ** 2)))}
+            "predicted_planar_m": float(np.sqrt(np.mean(res.sigma_planar_m[ok] ** 2))) if ok.any() else None,
+            "predicted_height_m": float(np.sqrt(np.mean(res.sigma_height_m[ok] ** 2))) if ok.any() else None}
 
 
 def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOISE_PX, n_field: int = N_FIELD,
@@ -94,7 +96,8 @@ def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOIS
         common &= set(tables[v]["id"])
     ids = [i for i in tables[VIEWS[0]]["id"] if i in common][:n_field]
     if len(ids) < max(4, max_control + 2):
-        raise RuntimeError(f"only {len(ids)} test-field points are seen by all three views")
+        raise GCPError(f"only {len(ids)} test-field points are seen by all three views; use a larger scene (size) "
+                       f"or fewer control points (max_control < {len(ids) - 1})")
     field = {v: tables[v].set_index("id").loc[ids].reset_index() for v in VIEWS}
     base = field["nadir"]
     truth = tuple(base[c].to_numpy(float) for c in ("lon", "lat", "h"))
@@ -120,7 +123,7 @@ def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOIS
                 for v in VIEWS:
                     g = field[v].assign(role=np.where(ctrl, "control", "check"))
                     comp[v] = CompensatedRPC(rpcs[v], fit_compensation(rpcs[v], g, model, robust=False))
-            except (ValueError, ArithmeticError) as exc:   # too few / degenerate GCPs for this model
+            except (GCPError, DegenerateGeometryError) as exc:   # too few / degenerate GCPs for this model
                 table[model][str(n_ctrl)] = {"skipped": str(exc).splitlines()[0]}
                 continue
             table[model][str(n_ctrl)] = {c: _accuracy(comp, pts, truth, combo, ~ctrl, gcp_noise_px)

@@ -91,11 +91,22 @@ def _cached(key, make):
     return obj
 
 
+def _file_key(path: str) -> Tuple:
+    """``(path, mtime, size)``: a file rewritten at the same path (a re-run in a long-lived QGIS session, whose
+    thread ids are reused) is reopened instead of being read through a stale cached handle."""
+    try:
+        st = os.stat(path)
+    except (OSError, TypeError, ValueError):  # /vsi paths, URLs
+        return (path,)
+    return (path, st.st_mtime_ns, st.st_size)
+
+
 def _dem_from_spec(spec: Tuple):
     from ..dem import DEM
     if spec[0] == "constant":
         return DEM.constant(spec[1])
-    return _cached(("dem",) + tuple(spec), lambda: DEM.from_file(spec[1], geoid=spec[2], nodata=spec[3]))
+    return _cached(("dem",) + _file_key(spec[1]) + tuple(spec[2:]),
+                   lambda: DEM.from_file(spec[1], geoid=spec[2], nodata=spec[3]))
 
 
 def _dem_spec(dem) -> Tuple:
@@ -176,9 +187,9 @@ def match_tile(spec: TileSpec) -> Dict[str, np.ndarray]:
         return out
     rpc = spec.rpc
     dem = _dem_from_spec(spec.dem)
-    ref = _cached(("ref", spec.reference, spec.reference_band),
+    ref = _cached(("ref", spec.reference_band) + _file_key(spec.reference),
                   lambda: ReferenceImage(spec.reference, spec.reference_band))
-    ds = _cached(("img", spec.image), lambda: gdal.Open(spec.image))
+    ds = _cached(("img",) + _file_key(spec.image), lambda: gdal.Open(spec.image))
     lon, lat, h = rpc.localize_dem(c[:, 0], c[:, 1], dem)
     out["lon"], out["lat"], out["h"] = np.atleast_1d(lon), np.atleast_1d(lat), np.atleast_1d(h)
     status[~np.isfinite(out["lon"]) | ~np.isfinite(out["h"])] = 1
@@ -240,7 +251,7 @@ def match_tile(spec: TileSpec) -> Dict[str, np.ndarray]:
     ox = np.round(shift_x[idx]).astype(int)
     oy = np.round(shift_y[idx]).astype(int)
     res = None
-    for _ in range(3):
+    for it in range(3):
         lo = 0
         hi = 2 * half - w
         offx = wx0[idx] + ox - bx0[idx]
@@ -254,7 +265,10 @@ def match_tile(spec: TileSpec) -> Dict[str, np.ndarray]:
         res = phase_correlate(a, b, sigma_px=p.get("sigma_px", 1.0))
         jump_x = np.where(okw & (np.abs(res.dx) > 0.5), np.round(res.dx), 0).astype(int)
         jump_y = np.where(okw & (np.abs(res.dy) > 0.5), np.round(res.dy), 0).astype(int)
-        if not (jump_x.any() or jump_y.any()):
+        # The last pass must not move the raw window: `res` (and a, b, outside) belong to the alignment they were
+        # measured at, and ox + res.dx is only right for that one. A window still oscillating about a half
+        # pixel keeps its last |residual| <= 0.75 px (accepted, consistent) or is flagged weak below.
+        if it == 2 or not (jump_x.any() or jump_y.any()):
             break
         ox += jump_x
         oy += jump_y
@@ -301,7 +315,7 @@ def _image_info(image, band: int):
     except RuntimeError as exc:
         raise Gf4calError(f"cannot open image {path}: {str(exc).splitlines()[0]}") from None
     if band < 1 or band > ds.RasterCount:
-        raise Gf4calError(f"image {path} has no band {band}")
+        raise Gf4calError(f"image {path} has no band {band}; choose a band from 1 to {ds.RasterCount}")
     return path, ds.RasterXSize, ds.RasterYSize, ds.GetRasterBand(band).GetNoDataValue()
 
 

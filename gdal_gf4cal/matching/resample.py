@@ -52,7 +52,8 @@ class ReferenceImage:
         self.geotransform = tuple(gt)
         self._inv = gdal.InvGeoTransform(gt)
         if self._inv is None:
-            raise Gf4calError(f"reference {self.path} has a degenerate geotransform")
+            raise Gf4calError(f"reference {self.path} has a degenerate geotransform (zero pixel size); fix it "
+                              "with gdal_edit.py -a_ullr or use a properly georeferenced orthophoto")
         wkt = ds.GetProjection()
         if not wkt:
             raise Gf4calError(f"reference {self.path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:...)")
@@ -76,7 +77,8 @@ class ReferenceImage:
             except RuntimeError as exc:
                 raise Gf4calError(f"cannot open reference {self.path}: {str(exc).splitlines()[0]}") from None
             if self.band < 1 or self.band > self._ds.RasterCount:
-                raise Gf4calError(f"reference {self.path} has no band {self.band}")
+                raise Gf4calError(f"reference {self.path} has no band {self.band}; choose a band from 1 to "
+                                  f"{self._ds.RasterCount}")
         return self._ds
 
     @property

@@ -56,18 +56,6 @@ def camera_from_normalised_polys(size, fx, fy, name="", notes="") -> LookAngleMo
     return LookAngleModel.from_normalised_coefficients((W, H), cx, cy, name=name, notes=notes)
 
 
-def camera_difference_px(cam_a, cam_b, step: int = 50):
-    """Max difference (px, both axes) of two cameras' look angles on a grid, in units of the local detector size."""
-    W, H = cam_a.size
-    s = np.arange(step / 2, W, step)
-    l = np.arange(step / 2, H, step) if H > 1 else np.array([0.5])
-    S, L = np.meshgrid(s, l)
-    ax, ay = cam_a.tan_angles(S, L)
-    bx, by = cam_b.tan_angles(S, L)
-    J = cam_a.jacobian(S, L)
-    return np.abs(ax - bx) / np.abs(J[..., 0, 0]), np.abs(ay - by) / np.maximum(np.abs(J[..., 1, 1]), np.abs(J[..., 0, 0]))
-
-
 class PiecewiseCamera:
     """Sub-CCD cubics joined along the sample axis of one image (push-broom only: no l dependence).
 
@@ -125,10 +113,6 @@ class PiecewiseCamera:
 
     def to_json(self, path) -> str:
         return write_json_atomic(path, self.to_dict())
-
-
-def camera_to_dict(cam) -> dict:
-    return cam.to_dict()
 
 
 def camera_from_dict(d: dict):

@@ -76,9 +76,6 @@ class _ModelBase:
         kw.setdefault("tol_m", 1e-5)
         return localize_dem(self, sample, line, dem, **kw)
 
-    def _detector_from_tan(self, tx, ty, l_hint=None):
-        raise NotImplementedError
-
 
 class FrameModel(_ModelBase):
     """Area-array camera exposed at one instant (GF4 from geostationary orbit).

@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 import tempfile
 import threading
+from contextlib import closing
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from typing import Optional
 
@@ -153,22 +154,9 @@ def write_reference_ortho(path, bounds, resolution_deg: float, seed: int = 0, sc
             LON, LAT = np.meshgrid(lon, lat)
             return i, j, _to_byte(texture_value(LON, LAT, seed, scale_m))
 
-        blocks = iter([(i, j) for j in range(0, ny, block) for i in range(0, nx, block)])
-        nw = max(1, int(workers))
-        with ThreadPoolExecutor(max_workers=nw) as pool:
-            pending = set()
-            while True:
-                while len(pending) < 2 * nw:
-                    nxt = next(blocks, None)
-                    if nxt is None:
-                        break
-                    pending.add(pool.submit(do_block, *nxt))
-                if not pending:
-                    break
-                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-                for fut in finished:
-                    i, j, arr = fut.result()
-                    band.WriteArray(arr, i, j)
+        blocks = [(i, j) for j in range(0, ny, block) for i in range(0, nx, block)]
+        for i, j, arr in _bounded_map(do_block, blocks, workers):
+            band.WriteArray(arr, i, j)
         ds = None
         os.replace(tmp, path)
         fix_mode(path)
@@ -176,6 +164,34 @@ def write_reference_ortho(path, bounds, resolution_deg: float, seed: int = 0, sc
         if os.path.exists(tmp):
             os.unlink(tmp)
     return path
+
+
+def _bounded_map(fn, jobs, workers: int):
+    """Yield ``fn(*job)`` for every job, in completion order, from ``workers`` threads (NumPy releases the GIL).
+
+    At most ``2 * workers`` jobs are in flight, so memory stays at a few tiles whatever the raster size. If the
+    consumer raises (e.g. CancelledError from a progress callback), jobs not yet started are cancelled.
+    """
+    nw = max(1, int(workers))
+    it = iter(jobs)
+    with ThreadPoolExecutor(max_workers=nw) as pool:
+        pending = set()
+        try:
+            while True:
+                while len(pending) < 2 * nw:
+                    nxt = next(it, None)
+                    if nxt is None:
+                        break
+                    pending.add(pool.submit(fn, *nxt))
+                if not pending:
+                    return
+                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for fut in finished:
+                    yield fut.result()
+        except BaseException:
+            for fut in pending:
+                fut.cancel()
+            raise
 
 
 def _to_byte(v):
@@ -473,31 +489,13 @@ def render_image(model, dem, path, *, reference=None, seed: int = 0, gsd_m: Opti
             mds = gdal.GetDriverByName("GTiff").Create(tmpm, W, H, 1, gdal.GDT_Byte, opts)
             mband = mds.GetRasterBand(1)
         tiles = [(x, y, min(tile, W - x), min(tile, H - y)) for y in range(0, H, tile) for x in range(0, W, tile)]
-        done = 0
-        with ThreadPoolExecutor(max_workers=max(1, int(workers))) as pool:
-            pending = set()
-            it = iter(tiles)
-            try:
-                while True:
-                    while len(pending) < 2 * max(1, int(workers)):
-                        nxt = next(it, None)
-                        if nxt is None:
-                            break
-                        pending.add(pool.submit(do_tile, *nxt))
-                    if not pending:
-                        break
-                    finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    for fut in finished:
-                        x0, y0, arr, mask = fut.result()
-                        band.WriteArray(arr, x0, y0)
-                        if mband is not None and mask is not None:
-                            mband.WriteArray(mask, x0, y0)
-                        done += 1
-                        report(progress, done / len(tiles), f"rendering tile {done}/{len(tiles)}")
-            except BaseException:
-                for fut in pending:
-                    fut.cancel()
-                raise
+        # closing(): a cancel raised by report() stops the pool at once, not when the generator is collected.
+        with closing(_bounded_map(do_tile, tiles, workers)) as results:
+            for done, (x0, y0, arr, mask) in enumerate(results, start=1):
+                band.WriteArray(arr, x0, y0)
+                if mband is not None and mask is not None:
+                    mband.WriteArray(mask, x0, y0)
+                report(progress, done / len(tiles), f"rendering tile {done}/{len(tiles)}")
         ds.SetMetadataItem("GF4CAL_RENDERED", "true model; " + (f"reference {reference}" if reference else
                                                                   f"built-in texture seed {seed}"))
         ds = None

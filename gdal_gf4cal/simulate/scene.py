@@ -181,15 +181,15 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
         raise SimulationError("--reference only makes sense with --render")
     if not (0.0 <= paint_clouds < 1.0):
         raise SimulationError("paint_clouds must be a fraction in [0, 1)")
+    if paint_clouds > 0 and not render:
+        raise SimulationError("--clouds only makes sense with --render")
+    _refuse_inputs_among_outputs(sensor_name, out_dir, [reference, getattr(dem, "path", dem)])
     os.makedirs(out_dir, exist_ok=True)
     written = []
     try:
         dem_path = os.path.join(out_dir, "dem.tif")
         if dem is not None:
             dem_obj = dem if isinstance(dem, DEM) else DEM.coerce(dem)
-            if not dem_obj.is_constant and dem_obj.path and os.path.abspath(dem_obj.path) == os.path.abspath(dem_path):
-                raise SimulationError(f"the input DEM {dem_path} is where the simulator writes its dem.tif; "
-                                      "use another --out folder")
             scene = make_scene(sensor_name, seed=seed, center=center, size=size, dem=dem_obj,
                                progress=scaled(progress, 0.0, 0.1))
             _copy_dem(scene, dem_path)
@@ -274,6 +274,25 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
             if os.path.exists(path):
                 os.unlink(path)
         raise
+
+
+#: Files write_scene may write per image folder (see DESIGN.md "Simulator API").
+_IMAGE_FILES = ("scene.tif", "scene.RPB", "gcps.csv", "gcps.gpkg", "check_grid.csv", "camera_current.json",
+                "camera_true.json", "reference.tif", "cloud_mask.tif")
+
+
+def _refuse_inputs_among_outputs(sensor_name: str, out_dir: str, inputs) -> None:
+    """Refuse, before anything is written, an input file (reference image, DEM) that is one of the outputs."""
+    from .sensors import SENSORS
+    if sensor_name not in SENSORS:
+        return                                   # make_scene gives the error naming the sensors
+    outputs = {os.path.realpath(os.path.join(out_dir, f)) for f in ("dem.tif", "truth.json")}
+    for name in SENSORS[sensor_name].images:
+        outputs |= {os.path.realpath(os.path.join(out_dir, name, f)) for f in _IMAGE_FILES}
+    for p in inputs:
+        if isinstance(p, (str, os.PathLike)) and os.path.realpath(os.fspath(p)) in outputs:
+            raise SimulationError(f"the input {os.fspath(p)} is where the simulator writes an output; "
+                                  "use another --out folder")
 
 
 def _copy_dem(scene: SimScene, dem_path: str):

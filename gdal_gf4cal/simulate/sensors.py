@@ -563,8 +563,10 @@ def make_scene(sensor: str, *, seed: int = 0, center=None, size=None, dem=None, 
             bounds = _footprint(images, (h_mid,))
             g = np.linspace(0, 1, 60)
             lo, la = np.meshgrid(bounds[0] + g * (bounds[2] - bounds[0]), bounds[1] + g * (bounds[3] - bounds[1]))
-            hh = np.asarray(DEM.from_file(user_dem.path, nodata="nan").height(lo, la)) if user_dem.path else \
-                np.asarray(user_dem.height(lo, la))
+            # Re-opened with nodata="nan" (the footprint may overhang the DEM) but the same geoid: the range must
+            # be ellipsoidal like every height the models use.
+            hh = np.asarray(DEM.from_file(user_dem.path, geoid=user_dem._geoid_name, nodata="nan").height(lo, la)) \
+                if user_dem.path else np.asarray(user_dem.height(lo, la))
             if not np.any(np.isfinite(hh)):
                 raise DEMError(f"DEM {user_dem.path} does not cover the simulated footprint {bounds}; "
                                "use a DEM covering the scene or another --center")

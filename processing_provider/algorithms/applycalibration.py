@@ -52,7 +52,7 @@ class ApplyCalibration(Gf4calAlgorithm):
             raise self.error("Give at least one scene (INPUT).")
         current = self.parameterAsFile(parameters, self.CURRENT_CAMERA, context)
         new = self.parameterAsFile(parameters, self.NEW_CAMERA, context)
-        folder = self.parameterAsString(parameters, self.OUTPUT_FOLDER, context)
+        folder = self.output_folder(parameters, self.OUTPUT_FOLDER, context)
         rep = apply_calibration(current, new, scenes, folder, overwrite=True, progress=progress)
         rpcs, shift, fit_err = [], 0.0, 0.0
         for e in rep["scenes"]:

@@ -29,14 +29,8 @@ class AssessAccuracy(Gf4calAlgorithm):
         self._add(QgsProcessingParameterFileDestination(self.OUTPUT_GPKG, self.tr("Residuals GeoPackage"),
                                                         self.tr("GeoPackage (*.gpkg)"), optional=True),
                   "GCPs with residuals, residual arrows and footprint, styled for QGIS.")
-        self._add(QgsProcessingParameterFileDestination(self.OUTPUT_PLOT, self.tr("Residual plot"),
-                                                        self.tr("PNG image (*.png)"), optional=True,
-                                                        createByDefault=False),
-                  "Residual vectors in image space (PNG).")
-        self._add(QgsProcessingParameterFileDestination(self.OUTPUT_REPORT, self.tr("Report (JSON)"),
-                                                        self.tr("JSON files (*.json)"), optional=True,
-                                                        createByDefault=False),
-                  "All statistics per role as JSON.")
+        self.add_plot_output("Residual vectors in image space (PNG).")
+        self.add_report_output("All statistics per role as JSON.")
         for key, label in (("N", "Number of GCPs"), ("RMS_SAMPLE", "RMS sample (px)"), ("RMS_LINE", "RMS line (px)"),
                            ("MEAN_SAMPLE", "Mean sample (px)"), ("MEAN_LINE", "Mean line (px)"),
                            ("RMS_PLANAR", "Planar RMS (px)"), ("CE90_M", "CE90 (m)"),

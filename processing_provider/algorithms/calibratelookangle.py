@@ -14,13 +14,7 @@ from qgis.core import (
     QgsProcessingParameterFolderDestination,
 )
 
-from ..base import Gf4calAlgorithm
-
-
-def _planar(st):
-    if not st or not st.get("n"):
-        return float("nan")
-    return float((st["sample"]["rms"] ** 2 + st["line"]["rms"] ** 2) ** 0.5)
+from ..base import Gf4calAlgorithm, planar_rms
 
 
 class CalibrateLookAngle(Gf4calAlgorithm):
@@ -78,8 +72,7 @@ class CalibrateLookAngle(Gf4calAlgorithm):
             raise self.error("Give the camera file the RPC was made with (CAMERA).")
         dem = self.read_dem(parameters, context)
         gcps = self.read_gcps(parameters, context, feedback, dem=dem)  # heights filled from the DEM here
-        folder = self.parameterAsString(parameters, self.OUTPUT_FOLDER, context)
-        os.makedirs(folder, exist_ok=True)
+        folder = self.output_folder(parameters, self.OUTPUT_FOLDER, context)
         used = os.path.join(folder, "gcps_used.csv")
         existed = os.path.exists(used)
         # The engine's file workflow reads GCP files: give it the layer's GCPs (WGS84, heights filled) as CSV.
@@ -104,6 +97,6 @@ class CalibrateLookAngle(Gf4calAlgorithm):
                "CONDITION_NUMBER": cal["condition_number"]}
         for role in ("control", "check"):
             st = cal.get(role) or {}
-            out[f"{role.upper()}_RMS_BEFORE"] = _planar(dict(st.get("before", {}), n=st.get("n")))
-            out[f"{role.upper()}_RMS_AFTER"] = _planar(dict(st.get("after", {}), n=st.get("n")))
+            out[f"{role.upper()}_RMS_BEFORE"] = planar_rms(dict(st.get("before", {}), n=st.get("n")))
+            out[f"{role.upper()}_RMS_AFTER"] = planar_rms(dict(st.get("after", {}), n=st.get("n")))
         return out

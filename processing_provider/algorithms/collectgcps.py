@@ -2,7 +2,6 @@
 a DEM (issue 7). The output feeds refinerpc and calibratelookangle directly."""
 from __future__ import annotations
 
-import numpy as np
 from qgis.core import (
     QgsProcessingOutputNumber,
     QgsProcessingParameterBoolean,
@@ -98,7 +97,7 @@ class CollectGcps(Gf4calAlgorithm):
                                 seed=self.parameterAsInt(parameters, self.SEED, context), executor=pool,
                                 progress=progress)
         w = gcps.attrs["windows"]
-        inliers = ~gcps["outlier"].to_numpy(bool) if "outlier" in gcps.columns else np.ones(len(gcps), bool)
+        inliers = ~gcps["outlier"].to_numpy(bool)
         table = gcps if self.parameterAsBool(parameters, self.KEEP_OUTLIERS, context) else gcps[inliers]
         feedback.pushInfo(f"windows {w['total']}: accepted {w['accepted']}, featureless {w['featureless']}, weak "
                           f"correlation {w['weak_correlation']}, cloud/change {w['cloud_or_change']}, no data "
@@ -108,11 +107,8 @@ class CollectGcps(Gf4calAlgorithm):
                              "image, or raise the largest initial offset.")
         write_gcps(table, out)
         self.load_on_completion(out, "GCPs (matched)", "vector")
-        if {"dsample", "dline"} <= set(gcps.columns):
-            ds, dl = gcps["dsample"].to_numpy()[inliers], gcps["dline"].to_numpy()[inliers]
-        else:  # offset measured - RPC prediction
-            ps, pl = rpc.project(gcps["lon"].to_numpy(), gcps["lat"].to_numpy(), gcps["h"].to_numpy())
-            ds, dl = (gcps["sample"].to_numpy() - ps)[inliers], (gcps["line"].to_numpy() - pl)[inliers]
+        # dsample, dline: offset measured - RPC prediction (collect_gcps always returns them).
+        ds, dl = gcps["dsample"].to_numpy()[inliers], gcps["dline"].to_numpy()[inliers]
         return {self.OUTPUT: out, "N_GCPS": len(table), "N_WINDOWS": w["total"], "N_OUTLIERS": w["outliers"],
                 "MEAN_DSAMPLE": float(ds.mean()) if ds.size else float("nan"),
                 "MEAN_DLINE": float(dl.mean()) if dl.size else float("nan")}

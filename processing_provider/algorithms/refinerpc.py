@@ -9,7 +9,7 @@ from qgis.core import (
     QgsProcessingParameterNumber,
 )
 
-from ..base import Gf4calAlgorithm
+from ..base import Gf4calAlgorithm, planar_rms
 
 #: MODEL enum index -> engine model name (stable: the indices are part of the algorithm's interface).
 MODELS = ["translation", "shift-drift", "affine", "poly2", "detector-poly"]
@@ -66,14 +66,8 @@ class RefineRpc(Gf4calAlgorithm):
         self._add(QgsProcessingParameterFileDestination(self.OUTPUT_GPKG, self.tr("Residuals GeoPackage"),
                                                         self.tr("GeoPackage (*.gpkg)")),
                   "GCPs with residuals before/after, residual arrows and footprint, styled for QGIS.")
-        self._add(QgsProcessingParameterFileDestination(self.OUTPUT_PLOT, self.tr("Residual plot"),
-                                                        self.tr("PNG image (*.png)"), optional=True,
-                                                        createByDefault=False),
-                  "Residual vectors in image space before and after (PNG).")
-        self._add(QgsProcessingParameterFileDestination(self.OUTPUT_REPORT, self.tr("Report (JSON)"),
-                                                        self.tr("JSON files (*.json)"), optional=True,
-                                                        createByDefault=False),
-                  "Statistics per role before/after, parameters, outliers, refit error.")
+        self.add_plot_output("Residual vectors in image space before and after (PNG).")
+        self.add_report_output("Statistics per role before/after, parameters, outliers, refit error.")
         for key, label in (("CONTROL_RMS_BEFORE", "Control RMS before (px, planar)"),
                            ("CONTROL_RMS_AFTER", "Control RMS after (px, planar)"),
                            ("CHECK_RMS_BEFORE", "Check RMS before (px, planar)"),
@@ -107,10 +101,10 @@ class RefineRpc(Gf4calAlgorithm):
         for role in ("control", "check"):
             for when in ("before", "after"):
                 st = rep[role][when]
-                rms = _planar_rms(st)
+                rms = planar_rms(st)
                 outputs[f"{role.upper()}_RMS_{when.upper()}"] = rms
                 if st.get("n") and when == "after":
-                    feedback.pushInfo(f"{role}: {st['n']} GCPs, RMS before {_planar_rms(rep[role]['before']):.3f} px, "
+                    feedback.pushInfo(f"{role}: {st['n']} GCPs, RMS before {planar_rms(rep[role]['before']):.3f} px, "
                                       f"after {rms:.3f} px (planar)")
         outputs["N_OUTLIERS"] = len(rep["outliers"])
         for o in rep["outliers"]:
@@ -123,11 +117,3 @@ class RefineRpc(Gf4calAlgorithm):
             self.load_on_completion(out_rpc, "Refined RPC (VRT)", "raster")
         self.load_gpkg_on_completion(out_gpkg)
         return outputs
-
-
-def _planar_rms(stats) -> float:
-    """Planar RMS (px) from per-axis RMS; NaN when the role has no points."""
-    if not stats.get("n"):
-        return float("nan")
-    s, l = stats["sample"]["rms"], stats["line"]["rms"]
-    return float((s ** 2 + l ** 2) ** 0.5)

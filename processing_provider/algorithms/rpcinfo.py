@@ -12,7 +12,6 @@ from qgis.core import (
     QgsProcessingOutputNumber,
     QgsProcessingOutputString,
     QgsProcessingParameterFeatureSink,
-    QgsProcessingParameterFileDestination,
     QgsWkbTypes,
 )
 from qgis.PyQt.QtCore import QVariant
@@ -42,10 +41,7 @@ class RpcInfo(Gf4calAlgorithm):
                                                     QgsProcessing.TypeVectorPolygon, optional=True,
                                                     createByDefault=True),
                   "The image corners localised through the RPC, as a polygon in WGS84.")
-        self._add(QgsProcessingParameterFileDestination(self.OUTPUT_REPORT, self.tr("Report (JSON)"),
-                                                        self.tr("JSON files (*.json)"), optional=True,
-                                                        createByDefault=False),
-                  "Everything above and the RPC offsets/scales as JSON.")
+        self.add_report_output("Everything above and the RPC offsets/scales as JSON.")
         for key, label in self.LABELS.items():
             self.addOutput(QgsProcessingOutputNumber(key, self.tr(label)))
         self.addOutput(QgsProcessingOutputString("SUMMARY", self.tr("Summary")))

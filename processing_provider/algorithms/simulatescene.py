@@ -82,7 +82,7 @@ class SimulateScene(Gf4calAlgorithm):
         h = self.parameterAsInt(parameters, self.HEIGHT, context)
         if (w == 0) != (h == 0):
             raise self.error("Give both crop width and height, or neither (0 = full array).")
-        folder = self.parameterAsString(parameters, self.OUTPUT_FOLDER, context)
+        folder = self.output_folder(parameters, self.OUTPUT_FOLDER, context)
         res = write_scene(sensor, folder, seed=self.parameterAsInt(parameters, self.SEED, context),
                           size=(w, h) if w else None, n_gcps=self.parameterAsInt(parameters, self.N_GCPS, context),
                           gcp_noise_px=self.parameterAsDouble(parameters, self.GCP_NOISE, context),

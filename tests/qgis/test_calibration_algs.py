@@ -115,3 +115,10 @@ def test_calibratelookangle_bad_input(gf4, run_alg, tmp_path):
         run_alg("gf4cal:calibratelookangle", {"INPUT": sim["IMAGE"], "GCPS": sim["GCPS"],
                                               "CAMERA": str(tmp_path / "missing.json"), "OUTPUT_FOLDER": str(out)})
     assert not out.exists() or os.listdir(out) == []
+    # An engine error after the output folder was made: the folder this run created goes away with it.
+    bad = tmp_path / "bad_camera.json"
+    bad.write_text('{"model": "lookangle-cubic", "size": [10]}')
+    with pytest.raises(QgsProcessingException):
+        run_alg("gf4cal:calibratelookangle", {"INPUT": sim["IMAGE"], "GCPS": sim["GCPS"], "CAMERA": str(bad),
+                                              "OUTPUT_FOLDER": str(out / "sub")})
+    assert not out.exists()

@@ -213,3 +213,47 @@ def test_refinerpc_every_model(run_alg, scene, tmp_path, model, exact):
     assert res["CHECK_RMS_AFTER"] < 0.5 * res["CHECK_RMS_BEFORE"]
     if model == 3:  # poly2 contains the affine bias: noise level
         assert res["CHECK_RMS_AFTER"] < 1.5 * math.sqrt(2) * truth["noise_px"]
+
+
+def test_unexpected_error_is_one_line_and_removes_partial_outputs(qgis_app, tmp_path):
+    """A bug inside an algorithm (here a KeyError after an output was written) still reaches the user as one
+    QgsProcessingException line, with the traceback in the log and the partial output removed."""
+    from qgis.core import QgsProcessingContext, QgsProcessingFeedback, QgsProcessingParameterFileDestination
+
+    from processing_provider.base import Gf4calAlgorithm
+
+    class Broken(Gf4calAlgorithm):
+        NAME = "broken"
+
+        def initAlgorithm(self, config=None):
+            self.addParameter(QgsProcessingParameterFileDestination("OUT", "out", "JSON (*.json)"))
+
+        def run_algorithm(self, parameters, context, feedback, progress):
+            import warnings
+            path = self.output_file(parameters, "OUT", context)
+            with open(path, "w") as fh:
+                fh.write("{")
+            warnings.warn("poorly conditioned", UserWarning)
+            return {}["missing"]
+
+    class Log(QgsProcessingFeedback):
+        def __init__(self):
+            super().__init__()
+            self.lines = []
+
+        def pushDebugInfo(self, info):
+            self.lines.append(info)
+
+        def pushWarning(self, warning):
+            self.lines.append(warning)
+
+    alg = Broken()
+    alg.initAlgorithm()
+    fb = Log()
+    out = tmp_path / "partial.json"
+    with pytest.raises(_exc(), match="Internal error \\(KeyError") as info:
+        alg.processAlgorithm({"OUT": str(out)}, QgsProcessingContext(), fb)
+    assert "\n" not in str(info.value).strip()
+    assert not out.exists()
+    log = "\n".join(fb.lines)
+    assert "Traceback" in log and "poorly conditioned" in log  # warnings are logged on failure too
