@@ -13,34 +13,24 @@ Usage: python bench/bench_fit.py [--repeat N]
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 from pathlib import Path
 
 import numpy as np
 
 from gdal_gf4cal.rpc import RPCModel
 from gdal_gf4cal.rpc_fit import fit_rpc, fit_rpc_from_model
+from _timing import timed
 
 DATA = Path(__file__).resolve().parent.parent / "tests" / "data" / "rpcfit_s1"
 # rpcfit's usage.py on these grids, as measured by the project (see tests/data/rpcfit_s1/PROVENANCE.txt).
 QUOTED_RPCFIT = {"time_s": 0.34, "rmse_px": 1.1e-4, "max_px": 7.8e-4}
 
 
-def _timed(fn, repeat):
-    times, out = [], None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), out
-
-
 def bench_s1(repeat):
     d = {k: np.load(DATA / f"s1_{k}.npy") for k in ("train3d", "train2d", "test3d", "test2d")}
     args = (*d["train3d"].T, *d["train2d"].T)
     check = (*d["test3d"].T, *d["test2d"].T)
-    t_ours, (rpc, rep) = _timed(lambda: fit_rpc(*args, check=check), repeat)
+    t_ours, (rpc, rep) = timed(lambda: fit_rpc(*args, check=check), repeat)
     c = rep.check
     print("== Sentinel-1 physical-model grids (rpcfit data): fit on train (4000 pts), errors on test (4000 pts)")
     print(f"  gdal_gf4cal.fit_rpc : {t_ours:8.4f} s   test RMSE x {c.rms_sample_px:.3e}  y {c.rms_line_px:.3e} px   "
@@ -53,7 +43,7 @@ def bench_s1(repeat):
         def run_peer():
             return peer.calibrate_rpc(d["train2d"], d["train3d"], separate=False, tol=1e-10, max_iter=20,
                                       method="initLcurve", plot=False, orientation="projection")
-        t_peer, res = _timed(run_peer, repeat)
+        t_peer, res = timed(run_peer, repeat)
         model = res[0] if isinstance(res, tuple) else res
         rmse, mx, _ = peer.evaluate(model, d["test3d"], d["test2d"])
         print(f"  rpcfit (measured)   : {t_peer:8.4f} s   test RMSE x {rmse[0]:.3e}  y {rmse[1]:.3e} px   "
@@ -93,9 +83,9 @@ def bench_grids(repeat):
     for (g, n_layers) in ((30, 8), (100, 10)):
         S, L, Hh = (a.ravel() for a in np.meshgrid(np.linspace(0, 10240, g), np.linspace(0, 10240, g),
                                                    np.linspace(3000, 6000, n_layers)))
-        t_loc, (lon, lat) = _timed(lambda: model.localize(S, L, Hh), 1)
-        t_fit, (_, rep) = _timed(lambda: fit_rpc(lon, lat, Hh, S, L), repeat)
-        t_all, (_, rep_m) = _timed(lambda: fit_rpc_from_model(model, size=(10240, 10240), height_range=(3000, 6000),
+        t_loc, (lon, lat) = timed(lambda: model.localize(S, L, Hh), 1)
+        t_fit, (_, rep) = timed(lambda: fit_rpc(lon, lat, Hh, S, L), repeat)
+        t_all, (_, rep_m) = timed(lambda: fit_rpc_from_model(model, size=(10240, 10240), height_range=(3000, 6000),
                                                               grid=(g, g), n_layers=n_layers), 1)
         print(f"  {g}x{g} x {n_layers} ({S.size:6d} pts): fit_rpc {t_fit:7.4f} s  (localise {t_loc:6.3f} s)   "
               f"fit_rpc_from_model incl. fit+check grids {t_all:6.3f} s, check max {rep_m.check.max_px:.1e} px, "

@@ -17,23 +17,13 @@ Usage: python bench/bench_lookangle.py [--repeat N] [--n-gcps N]
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import numpy as np
 
 from gdal_gf4cal.lookangle import _Frame, calibrate_lookangle, compare_lookangle, recalibrate_rpc
 from gdal_gf4cal.rpc_fit import fit_rpc_from_model
 from gdal_gf4cal.simulate import make_scene
-
-
-def _timed(fn, repeat):
-    times, out = [], None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), out
+from _timing import timed
 
 
 def make_case(n, seed=5):
@@ -90,18 +80,18 @@ def main():
     im, rpc, gcps, bad = make_case(args.n_gcps)
     current, true_cam = im.current.camera, im.true.camera
     print(f"== GF4 PMS 10240 x 10240, {len(gcps)} GCPs (0.6 px noise, {int(bad.sum())} blunders of 10-50 px)")
-    t_cal, res = _timed(lambda: calibrate_lookangle(rpc, gcps, current), args.repeat)
+    t_cal, res = timed(lambda: calibrate_lookangle(rpc, gcps, current), args.repeat)
     d = compare_lookangle(res.camera, true_cam)
     print(f"  calibrate_lookangle       : {t_cal:8.4f} s  ({res.iterations} iterations, {res.n_outliers} outliers "
           f"flagged, {int((res.outliers & bad).sum())}/{int(bad.sum())} blunders)  camera vs truth rms "
           f"{d['sample']['rms']:.4f} / {d['line']['rms']:.4f} px")
-    t_peer, (peer_cam, nfev) = _timed(lambda: scipy_peer(rpc, gcps, current), 1)
+    t_peer, (peer_cam, nfev) = timed(lambda: scipy_peer(rpc, gcps, current), 1)
     dp = compare_lookangle(peer_cam, true_cam)
     print(f"  scipy least_squares (peer): {t_peer:8.4f} s  ({nfev} evaluations, soft_l1)                      "
           f"camera vs truth rms {dp['sample']['rms']:.4f} / {dp['line']['rms']:.4f} px")
     print(f"  ratio peer / ours         : {t_peer / t_cal:8.1f} x")
 
-    t_rec, (new_rpc, rep) = _timed(lambda: recalibrate_rpc(rpc, current, res.camera), args.repeat)
+    t_rec, (new_rpc, rep) = timed(lambda: recalibrate_rpc(rpc, current, res.camera), args.repeat)
     n_pts = rep.n_points + (rep.check.n_points if rep.check else 0)
     print(f"\n== recalibrated RPC (21 x 21 x 7 fit grid + check grid, {n_pts} points)")
     print(f"  recalibrate_rpc           : {t_rec:8.4f} s  check max {rep.check.max_px:.2e} px")
@@ -110,7 +100,7 @@ def main():
     tr = gdal.Transformer(ds, None, ["METHOD=RPC", f"RPC_HEIGHT={rpc.height_off}"])
     rng = np.random.default_rng(0)
     pts = np.column_stack([rng.uniform(0, im.size[0], n_pts), rng.uniform(0, im.size[1], n_pts)])
-    t_gdal, _ = _timed(lambda: tr.TransformPoints(0, pts), args.repeat)
+    t_gdal, _ = timed(lambda: tr.TransformPoints(0, pts), args.repeat)
     print(f"  GDAL RPC transformer, {n_pts} image->ground (peer, one sub-step only): {t_gdal:8.4f} s")
     print(f"  ratio ours / GDAL sub-step: {t_rec / t_gdal:8.2f} x")
     ok = t_cal < 1.0 and t_rec < 1.0

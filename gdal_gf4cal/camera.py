@@ -21,12 +21,12 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
+from .atomic import atomic_output
 from .errors import Gf4calError, InputOverwriteError
 
 MODEL_NAME = "lookangle-cubic"
@@ -283,21 +283,9 @@ class LookAngleModel:
         path = os.fspath(path)
         if not overwrite and os.path.exists(path):
             raise InputOverwriteError(f"{path} exists; choose another output")
-        folder = os.path.dirname(os.path.abspath(path))
-        fd, tmp = tempfile.mkstemp(prefix=".camera-", suffix=".json", dir=folder)
-        try:
-            with os.fdopen(fd, "w") as fh:
-                json.dump(self.to_dict(), fh, indent=2)
-                fh.write("\n")
-            # mkstemp creates the file 0600; give the camera file the usual permissions (0666 & ~umask).
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o666 & ~umask)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        with atomic_output(path) as tmp, open(tmp, "w") as fh:
+            json.dump(self.to_dict(), fh, indent=2)
+            fh.write("\n")
         return path
 
     @classmethod

@@ -12,11 +12,11 @@ in other CRSs) live in :mod:`gdal_gf4cal.gcp_formats`.
 from __future__ import annotations
 
 import os
-import tempfile
 from typing import Optional, Sequence
 
 import numpy as np
 
+from .atomic import atomic_output
 from .errors import GCPError, InputOverwriteError
 
 REQUIRED = ("lon", "lat", "sample", "line")
@@ -26,7 +26,6 @@ ROLES = ("control", "check")
 
 def make_gcps(lon, lat, h, sample, line, *, ids: Optional[Sequence] = None, role="control", sigma=1.0, **extra):
     """Build a GCP GeoDataFrame from arrays (extra keyword arrays become columns)."""
-    import geopandas as gpd
     import pandas as pd
     lon = np.asarray(lon, dtype=float).ravel()
     n = lon.size
@@ -152,25 +151,17 @@ def write_gcps(gdf, path, *, layer: str = "gcps", overwrite: bool = True) -> str
     if not overwrite and os.path.exists(path):
         raise InputOverwriteError(f"{path} exists; choose another output or allow overwriting")
     ext = os.path.splitext(path)[1].lower()
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".gcps-", suffix=ext, dir=folder)
-    os.close(fd)
-    os.unlink(tmp)
-    try:
+    if ext not in (".csv", ".gpkg", ".geojson", ".json"):
+        raise GCPError(f"cannot write GCPs as {ext!r}; use .csv, .gpkg or .geojson")
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with atomic_output(path) as tmp:
         if ext == ".csv":
             df = gdf.drop(columns="geometry") if "geometry" in gdf.columns else gdf
             df.to_csv(tmp, index=False)   # shortest repr: floats read back identical
         elif ext == ".gpkg":
             _to_geodataframe(gdf.drop(columns="geometry", errors="ignore")).to_file(tmp, layer=layer, driver="GPKG")
-        elif ext in (".geojson", ".json"):
-            _to_geodataframe(gdf.drop(columns="geometry", errors="ignore")).to_file(tmp, driver="GeoJSON")
         else:
-            raise GCPError(f"cannot write GCPs as {ext!r}; use .csv, .gpkg or .geojson")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+            _to_geodataframe(gdf.drop(columns="geometry", errors="ignore")).to_file(tmp, driver="GeoJSON")
     return path
 
 

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from math import comb
 from typing import List, Sequence, Tuple
 
 import numpy as np
 
+from ..atomic import atomic_output
 from ..camera import LookAngleModel, lookangle_terms
 
 #: Exponents (of s, of l) of the ten look-angle terms, in the camera module's order.
@@ -124,26 +124,10 @@ def camera_from_dict(d: dict):
 
 def write_json_atomic(path, obj) -> str:
     path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=folder)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(obj, fh, indent=2, default=_json_default)
-            fh.write("\n")
-        os.replace(tmp, path)
-        fix_mode(path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_output(path) as tmp, open(tmp, "w") as fh:
+        json.dump(obj, fh, indent=2, default=_json_default)
+        fh.write("\n")
     return path
-
-
-def fix_mode(path):
-    """Give a file written through mkstemp (mode 0600) the usual permissions (0666 & ~umask)."""
-    mask = os.umask(0)
-    os.umask(mask)
-    os.chmod(path, 0o666 & ~mask)
 
 
 def _json_default(o):

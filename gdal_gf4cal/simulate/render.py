@@ -20,6 +20,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..atomic import atomic_output
 from ..errors import DEMError, Gf4calError
 from ..progress import report
 
@@ -127,7 +128,6 @@ def write_reference_ortho(path, bounds, resolution_deg: float, seed: int = 0, sc
 
     Blocks are computed by ``workers`` threads (NumPy releases the GIL), at most ``2 * workers`` in flight."""
     from osgeo import gdal, osr
-    from .cameras import fix_mode
     gdal.UseExceptions()
     x0, y0, x1, y1 = bounds
     nx = int(np.ceil((x1 - x0) / resolution_deg))
@@ -135,10 +135,7 @@ def write_reference_ortho(path, bounds, resolution_deg: float, seed: int = 0, sc
     if nx * ny > 40000 ** 2 or nx < 1 or ny < 1:
         raise Gf4calError(f"reference ortho of {nx} x {ny} px is unreasonable; choose a coarser resolution")
     path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".ref-", suffix=".tif", dir=folder)
-    os.close(fd)
-    try:
+    with atomic_output(path) as tmp:
         ds = gdal.GetDriverByName("GTiff").Create(tmp, nx, ny, 1, gdal.GDT_Byte,
                                                   ["TILED=YES", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"])
         ds.SetGeoTransform((x0, resolution_deg, 0.0, y1, 0.0, -resolution_deg))
@@ -158,11 +155,6 @@ def write_reference_ortho(path, bounds, resolution_deg: float, seed: int = 0, sc
         for i, j, arr in _bounded_map(do_block, blocks, workers):
             band.WriteArray(arr, i, j)
         ds = None
-        os.replace(tmp, path)
-        fix_mode(path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 
@@ -440,7 +432,7 @@ def render_image(model, dem, path, *, reference=None, seed: int = 0, gsd_m: Opti
     """
     from osgeo import gdal
     from ..dem import DEM
-    from .cameras import fix_mode
+    from ..atomic import fix_mode
     gdal.UseExceptions()
     dem = DEM.coerce(dem)
     W, H = model.size

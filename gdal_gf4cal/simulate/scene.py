@@ -8,7 +8,6 @@ ground, for ``gf4cal collect-gcps``); per scene: ``dem.tif`` and ``truth.json``.
 from __future__ import annotations
 
 import os
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -18,7 +17,8 @@ import numpy as np
 
 from ..errors import CancelledError, Gf4calError
 from ..progress import report, scaled
-from .cameras import fix_mode, write_json_atomic
+from ..atomic import atomic_output
+from .cameras import write_json_atomic
 from .sensors import SimImage, SimScene, SimulationError, make_scene
 
 #: Sensors whose images cover the same ground (GCPs drawn once, from the first image).
@@ -122,31 +122,20 @@ def write_placeholder_tif(path: str, size, dtype: str = "Byte") -> str:
     """A sparse tiled GeoTIFF of the image size: unwritten blocks cost nothing (10240^2 in a few kB)."""
     from osgeo import gdal
     gdal.UseExceptions()
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".scene-", suffix=".tif", dir=folder)
-    os.close(fd)
-    ds = gdal.GetDriverByName("GTiff").Create(tmp, int(size[0]), int(size[1]), 1, gdal.GetDataTypeByName(dtype),
-                                              ["TILED=YES", "BLOCKXSIZE=512", "BLOCKYSIZE=512", "SPARSE_OK=TRUE",
-                                               "COMPRESS=DEFLATE"])
-    ds.GetRasterBand(1).SetNoDataValue(0)
-    ds.SetMetadataItem("GF4CAL_PLACEHOLDER", "YES: pixels not rendered (gf4cal simulate --render renders them)")
-    ds = None
-    os.replace(tmp, path)
-    fix_mode(path)
+    with atomic_output(path) as tmp:
+        ds = gdal.GetDriverByName("GTiff").Create(tmp, int(size[0]), int(size[1]), 1,
+                                                  gdal.GetDataTypeByName(dtype),
+                                                  ["TILED=YES", "BLOCKXSIZE=512", "BLOCKYSIZE=512", "SPARSE_OK=TRUE",
+                                                   "COMPRESS=DEFLATE"])
+        ds.GetRasterBand(1).SetNoDataValue(0)
+        ds.SetMetadataItem("GF4CAL_PLACEHOLDER", "YES: pixels not rendered (gf4cal simulate --render renders them)")
+        ds = None
     return path
 
 
 def _write_csv(df, path):
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".csv", dir=folder)
-    os.close(fd)
-    try:
+    with atomic_output(path) as tmp:
         df.to_csv(tmp, index=False, float_format="%.12g")
-        os.replace(tmp, path)
-        fix_mode(path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 
@@ -256,7 +245,6 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
             written.append(paths["check_grid"])
             for key_, cam in (("camera_current", im.current.camera), ("camera_true", im.true.camera)):
                 cam.to_json(paths[key_])
-                fix_mode(paths[key_])
             written += [paths["camera_current"], paths["camera_true"]]
             results[im.name] = ImageResult(im.name, d, rpc, rep, g, grid, paths)
             key = im.name or "scene"

@@ -5,11 +5,11 @@ The DEM is written as an EPSG:4326 GeoTIFF of ellipsoidal heights (float32) and 
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from typing import Tuple
 
 import numpy as np
+
+from ..atomic import atomic_output
 
 
 def fractal_surface(shape: Tuple[int, int], seed: int, beta: float = 3.2) -> np.ndarray:
@@ -53,24 +53,16 @@ def write_dem_tif(path: str, heights: np.ndarray, geotransform) -> str:
     gdal.UseExceptions()
     srs = osr.SpatialReference()
     srs.ImportFromEPSG(4326)
-    target = path
-    if not path.startswith("/vsi"):
-        folder = os.path.dirname(os.path.abspath(path))
-        fd, target = tempfile.mkstemp(prefix=".dem-", suffix=".tif", dir=folder)
-        os.close(fd)
     ny, nx = heights.shape
-    ds = gdal.GetDriverByName("GTiff").Create(target, nx, ny, 1, gdal.GDT_Float32,
-                                              ["TILED=YES", "COMPRESS=DEFLATE", "PREDICTOR=3"])
-    ds.SetGeoTransform(geotransform)
-    ds.SetProjection(srs.ExportToWkt())
-    band = ds.GetRasterBand(1)
-    band.WriteArray(heights)
-    band.SetDescription("ellipsoidal height (m), WGS84")
-    ds.SetMetadataItem("VERTICAL_DATUM", "WGS84 ellipsoid")
-    band.FlushCache()
-    ds = None
-    if target != path:
-        os.replace(target, path)
-        from .cameras import fix_mode
-        fix_mode(path)
+    with atomic_output(path) as target:
+        ds = gdal.GetDriverByName("GTiff").Create(target, nx, ny, 1, gdal.GDT_Float32,
+                                                  ["TILED=YES", "COMPRESS=DEFLATE", "PREDICTOR=3"])
+        ds.SetGeoTransform(geotransform)
+        ds.SetProjection(srs.ExportToWkt())
+        band = ds.GetRasterBand(1)
+        band.WriteArray(heights)
+        band.SetDescription("ellipsoidal height (m), WGS84")
+        ds.SetMetadataItem("VERTICAL_DATUM", "WGS84 ellipsoid")
+        band.FlushCache()
+        ds = None
     return path
