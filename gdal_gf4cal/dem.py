@@ -5,10 +5,12 @@ Reads are windowed: points are grouped by tile and only the tiles they touch are
 recently used ones), so sampling 10,000 points of a 30 GB mosaic reads a few MB.
 
 Heights above a geoid (EGM96/EGM2008) are converted to ellipsoidal heights with PROJ's ``vgridshift`` through
-pyproj when ``geoid`` is given; nothing is converted silently.
+pyproj when ``geoid`` is given, or when the DEM's own CRS declares that vertical datum (a compound CRS such as
+EPSG:4326+5773, as GDAL's RPC transformer does by default); ``geoid=False`` uses the stored heights as they are.
 """
 from __future__ import annotations
 
+import logging
 import os
 from collections import OrderedDict
 from typing import Optional, Tuple, Union
@@ -16,6 +18,8 @@ from typing import Optional, Tuple, Union
 import numpy as np
 
 from .errors import DEMError
+
+log = logging.getLogger(__name__)
 
 #: Named geoid grids, looked up in PROJ's data directories.
 GEOID_GRIDS = {"egm96": "egm96_15.gtx", "egm2008": "egm08_25.gtx"}
@@ -29,8 +33,10 @@ class DEM:
     Parameters (of :meth:`from_file`)
     ----------
     path : any raster GDAL opens (GeoTIFF, .hgt, VRT mosaic, ...), any CRS.
-    geoid : ``None`` (heights are already ellipsoidal), ``"egm96"``, ``"egm2008"`` or the path of a geoid grid
-        (heights above that geoid are converted to ellipsoidal heights).
+    geoid : ``"egm96"``, ``"egm2008"`` or the path of a geoid grid: heights above that geoid are converted to
+        ellipsoidal heights. ``None`` (default): ellipsoidal, unless the DEM's CRS declares a geoid vertical datum
+        (EGM96/EGM2008), which is then applied (``geoid_applied`` says which). ``False`` (or ``"none"``,
+        ``"ellipsoid"`` at the CLI): never convert.
     nodata : what to do where the DEM has no data or a point is outside it: ``"error"`` (raise
         :class:`DEMError`), ``"nan"`` (return NaN) or a number (use that ellipsoidal height).
     """
@@ -40,8 +46,10 @@ class DEM:
         self.path = path
         self.constant_height = constant
         self.nodata_policy = nodata
+        if isinstance(geoid, str) and geoid.strip().lower() in ("none", "ellipsoid", "ellipsoidal", "false"):
+            geoid = False          # the CLI's way of saying geoid=False
         self._geoid_name = geoid
-        self._geoid = _geoid_transformer(geoid) if geoid is not None else None
+        self._geoid = _geoid_transformer(geoid) if geoid not in (None, False) else None
         self._tile = int(tile_size)
         self._cache: "OrderedDict[Tuple[int, int], np.ndarray]" = OrderedDict()
         self._cache_tiles = int(cache_tiles)
@@ -73,6 +81,13 @@ class DEM:
             raise DEMError(f"DEM {path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:4326)")
         srs = osr.SpatialReference(wkt=wkt)
         self.crs_wkt = wkt
+        if geoid is None:
+            declared = _declared_geoid(str(path))
+            if declared is not None:
+                log.info("DEM %s: its CRS declares %s heights; converting them to ellipsoidal heights", path,
+                         declared.upper())
+                self._geoid_name = declared
+                self._geoid = _geoid_transformer(declared)
         self._to_dem = None
         geographic_wgs84 = srs.IsGeographic() and srs.GetAuthorityCode("GEOGCS") == "4326"
         if not geographic_wgs84:
@@ -275,6 +290,11 @@ class DEM:
                            None if gy is None else gy[sl])
         return (z, gx, gy) if gradient else z
 
+    @property
+    def geoid_applied(self):
+        """The geoid whose undulation is added to the stored heights (None: stored heights used as they are)."""
+        return self._geoid_name if self._geoid is not None else None
+
     def _read_tile(self, tile_x: int, tile_y: int) -> np.ndarray:
         """Read tile (tile_x, tile_y) with a one-pixel overlap to the right and below (LRU cached)."""
         key = (tile_x, tile_y)
@@ -355,6 +375,35 @@ def _bilinear_flat(flat, W, H, px, py, z, gx=None, gy=None):
         gx += z01
         gy[:] = bottom
     return z
+
+
+def _declared_geoid(path: str) -> Optional[str]:
+    """The geoid a raster's compound CRS declares for its heights: ``"egm96"``, ``"egm2008"`` or None.
+
+    GDAL's GeoTIFF reader reports the vertical part of a CRS only with ``GTIFF_REPORT_COMPD_CS=YES``. A vertical
+    datum we cannot convert is an error: using those heights as ellipsoidal would be silently wrong.
+    """
+    from osgeo import gdal
+    gdal.SetThreadLocalConfigOption("GTIFF_REPORT_COMPD_CS", "YES")
+    try:
+        ds = gdal.Open(path)
+        srs = ds.GetSpatialRef() if ds is not None else None
+    except RuntimeError:
+        srs = None
+    finally:
+        gdal.SetThreadLocalConfigOption("GTIFF_REPORT_COMPD_CS", None)
+    if srs is None or not srs.IsCompound():
+        return None
+    code = srs.GetAuthorityCode("COMPD_CS|VERT_CS") or ""
+    name = f"{srs.GetAttrValue('VERT_CS') or ''} {srs.GetAttrValue('VERT_DATUM') or ''}".upper()
+    if code == "5773" or "EGM96" in name:
+        return "egm96"
+    if code == "3855" or "EGM2008" in name:
+        return "egm2008"
+    if "ELLIPSOID" in name:
+        return None
+    raise DEMError(f"DEM {path}: its heights refer to the vertical datum {name.strip() or code!r}; pass the geoid "
+                   "grid of that datum (geoid=<grid path>, --geoid) or geoid=False to use the heights as they are")
 
 
 def _geoid_transformer(geoid):

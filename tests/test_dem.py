@@ -149,3 +149,32 @@ def test_all_nodata_dem_is_a_clear_error(tmp_path):
                       nodata=-9999)
     with pytest.raises(DEMError, match="no valid height"):
         DEM.from_file(path, nodata="nan").height_range()
+
+
+def test_geoid_declared_by_a_compound_crs_is_applied(tmp_path, srtm_path):
+    """A GeoTIFF tagged EPSG:4326+5773 (EGM96 height) holds orthometric heights: they are converted, as GDAL's
+    RPC transformer does by default, never used as ellipsoidal by mistake; geoid=False opts out."""
+    src = gdal.Open(str(srtm_path))
+    srs = osr.SpatialReference()
+    srs.SetFromUserInput("EPSG:4326+5773")
+    path = str(tmp_path / "srtm_egm96.tif")
+    gdal.Translate(path, src, outputSRS=srs.ExportToWkt())
+    lon, lat = 5.193406151946084, 44.20805807814395
+    declared = DEM.from_file(path)
+    assert declared.geoid_applied == "egm96"
+    assert declared.height(lon, lat) == pytest.approx(DEM.from_file(srtm_path, geoid="egm96").height(lon, lat),
+                                                      abs=1e-6)
+    assert DEM.from_file(path, geoid=False).height(lon, lat) == pytest.approx(
+        DEM.from_file(srtm_path).height(lon, lat), abs=1e-6)
+    assert DEM.from_file(path, geoid="none").geoid_applied is None     # the CLI's spelling of geoid=False
+    assert DEM.from_file(srtm_path).geoid_applied is None     # a plain WGS 84 .hgt says nothing: no conversion
+
+
+def test_unknown_vertical_datum_is_an_error(tmp_path, srtm_path):
+    srs = osr.SpatialReference()
+    srs.SetFromUserInput("EPSG:4326+5703")            # NAVD88 height: no grid we know of
+    path = str(tmp_path / "navd88.tif")
+    gdal.Translate(path, gdal.Open(str(srtm_path)), outputSRS=srs.ExportToWkt())
+    with pytest.raises(DEMError, match="vertical datum"):
+        DEM.from_file(path)
+    assert np.isfinite(DEM.from_file(path, geoid=False, nodata="nan").height(5.5, 44.5))

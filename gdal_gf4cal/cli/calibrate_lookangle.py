@@ -23,7 +23,8 @@ def add_parser(parser):
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
     parser.add_argument("--image", help="the scene's image: also write DIR/<image>.vrt carrying the new RPC")
     parser.add_argument("--dem", help="DEM for GCPs without height")
-    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path")
+    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
+                        "(default: what the DEM's CRS declares, else ellipsoidal; 'none' never converts)")
     parser.add_argument("--no-robust", action="store_true", help="plain least squares: no blunder detection")
     parser.add_argument("--max-condition", type=float, default=None,
                         help="refuse GCP layouts whose condition number exceeds this (default 1e6)")

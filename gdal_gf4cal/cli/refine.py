@@ -19,7 +19,8 @@ def add_parser(parser):
     parser.add_argument("--ccd-axis", choices=("sample", "line"), default="sample",
                         help="detector-poly: image axis along the CCD line (default sample)")
     parser.add_argument("--dem", help="DEM for GCPs without height")
-    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path")
+    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
+                        "(default: what the DEM's CRS declares, else ellipsoidal; 'none' never converts)")
     parser.add_argument("--gcp-crs", help="CRS of the GCPs' map coordinates when the file does not say")
     parser.add_argument("--check-fraction", type=float,
                         help="make this share of the GCPs check points (seeded, spread over the image)")
