@@ -122,3 +122,22 @@ def test_block_reduce():
     a = np.arange(16.0).reshape(4, 4)
     np.testing.assert_allclose(block_reduce(a, 2), [[2.5, 4.5], [10.5, 12.5]])
     np.testing.assert_allclose(block_reduce(a, 1), a)
+
+
+def test_staged_correlation_equals_phase_correlate():
+    """spectra -> correlate_spectra -> quality (on a subset, as the fine level's passes use them) gives exactly
+    phase_correlate's results."""
+    from gdal_gf4cal.matching.correlate import correlate_spectra, spectra
+    f, m, dx, dy = _pairs(12, 32, 2.0, noise=0.05, seed=9)
+    whole = phase_correlate(f, m)
+    F, G = spectra(f), spectra(m)
+    pk = correlate_spectra(F, G)
+    np.testing.assert_array_equal(pk.dx, whole.dx)
+    sub = np.array([1, 4, 7, 11])
+    q = pk.quality(F, G, sub)
+    for name in ("dx", "dy", "peak", "peak_ratio", "ncc", "precision_px"):
+        np.testing.assert_allclose(getattr(q, name), getattr(whole, name)[sub], rtol=1e-6, err_msg=name)
+    np.testing.assert_allclose(whole.dx, dx, atol=0.25)  # small noisy windows: a sanity check only
+    # A zero window pair correlates to a zero surface: no shift, no peak, no overflow warning.
+    z = phase_correlate(np.zeros((2, 32, 32)), np.zeros((2, 32, 32)))
+    assert np.all(z.dx == 0) and np.all(z.peak == 0)

@@ -19,7 +19,7 @@ def add_parser(parser):
     parser.add_argument("--window", type=int, default=64, metavar="PX", help="window size in pixels (default 64)")
     parser.add_argument("--search", type=float, default=64, metavar="PX",
                         help="largest initial offset to find, pixels (default 64)")
-    parser.add_argument("--workers", type=int, help="parallel processes (default: all cores; 1 = no pool)")
+    parser.add_argument("--workers", type=int, help="parallel threads (default: all cores; 1 = no pool)")
     parser.add_argument("--min-peak", type=float, default=0.2, help="correlation peak threshold (default 0.2)")
     parser.add_argument("--outlier-model", default="affine", choices=("translation", "affine", "poly2", "poly3"),
                         help="low-order model for RANSAC + MAD outlier rejection (default affine)")
