@@ -5,23 +5,15 @@ import numpy as np
 import pytest
 from osgeo import gdal, osr
 
+from rasters import write_tif
+
 from gdal_gf4cal import DEM, DEMError
 
 gdal.UseExceptions()
 
 
 def _write_dem(path, array, gt, epsg=4326, nodata=None):
-    ds = gdal.GetDriverByName("GTiff").Create(str(path), array.shape[1], array.shape[0], 1, gdal.GDT_Float32)
-    ds.SetGeoTransform(gt)
-    srs = osr.SpatialReference()
-    srs.ImportFromEPSG(epsg)
-    ds.SetProjection(srs.ExportToWkt())
-    band = ds.GetRasterBand(1)
-    if nodata is not None:
-        band.SetNoDataValue(nodata)
-    band.WriteArray(array)
-    ds = None
-    return str(path)
+    return write_tif(path, np.asarray(array, dtype=np.float32), gt=gt, epsg=epsg, nodata=nodata)
 
 
 def test_constant_dem():

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from osgeo import gdal, osr
+from osgeo import gdal
+
+from rasters import write_tif
 
 from gdal_gf4cal.matching.resample import ReferenceImage, _sample_reference, _sample_reference_each, read_block
 
@@ -11,17 +13,8 @@ gdal.UseExceptions()
 
 
 def _write(path, arr, nodata=None):
-    ds = gdal.GetDriverByName("GTiff").Create(str(path), arr.shape[1], arr.shape[0], 1, gdal.GDT_Float32)
-    ds.SetGeoTransform((100.0, 0.001, 0.0, 30.0, 0.0, -0.001))
-    srs = osr.SpatialReference()
-    srs.ImportFromEPSG(4326)
-    ds.SetProjection(srs.ExportToWkt())
-    b = ds.GetRasterBand(1)
-    if nodata is not None:
-        b.SetNoDataValue(nodata)
-    b.WriteArray(arr)
-    ds = None
-    return str(path)
+    return write_tif(path, np.asarray(arr, dtype=np.float32), gt=(100.0, 0.001, 0.0, 30.0, 0.0, -0.001), epsg=4326,
+                     nodata=nodata)
 
 
 @pytest.fixture()

@@ -11,15 +11,14 @@ Truth: the ground point ``(lon, lat, h)`` of a GCP is truly imaged at ``true_rpc
 """
 from __future__ import annotations
 
-import os
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import Tuple
 
 import numpy as np
-import pytest
 
+from rasters import write_tif
 from gdal_gf4cal.dem import DEM
 from gdal_gf4cal.rpc import RPCModel
 
@@ -72,27 +71,6 @@ def error_affine(shift=(0.0, 0.0), rotation_rad=0.0, scale=1.0, center=(0.0, 0.0
     return np.column_stack([t, M])
 
 
-def write_tif(path, arr, gt=None, epsg=None, nodata=None, rpc: Optional[RPCModel] = None, dtype=None):
-    from osgeo import gdal, osr
-    gdal.UseExceptions()
-    arr = np.asarray(arr)
-    gtype = {np.dtype("uint16"): gdal.GDT_UInt16, np.dtype("float32"): gdal.GDT_Float32,
-             np.dtype("uint8"): gdal.GDT_Byte, np.dtype("float64"): gdal.GDT_Float64}[np.dtype(dtype or arr.dtype)]
-    ds = gdal.GetDriverByName("GTiff").Create(str(path), arr.shape[1], arr.shape[0], 1, gtype, ["TILED=YES"])
-    if gt is not None:
-        ds.SetGeoTransform(gt)
-    if epsg is not None:
-        srs = osr.SpatialReference()
-        srs.ImportFromEPSG(epsg)
-        ds.SetProjection(srs.ExportToWkt())
-    if rpc is not None:
-        ds.SetMetadata(rpc.to_gdal_metadata(), "RPC")
-    b = ds.GetRasterBand(1)
-    if nodata is not None:
-        b.SetNoDataValue(nodata)
-    b.WriteArray(arr)
-    ds = None
-    return str(path)
 
 
 def builtin_texture(shape, seed: int = 7) -> np.ndarray:
