@@ -5,6 +5,8 @@ import numpy as np
 import pytest
 from osgeo import gdal
 
+from rasters import write_tif
+
 from gdal_gf4cal import DEM, RPCModel
 
 gdal.UseExceptions()
@@ -67,7 +69,6 @@ def test_shareloc_reference_point_with_geoid(ventoux, srtm_path):
 
 def test_steep_oblique_terrain_uses_bracketing(tmp_path, monkeypatch):
     """A cliff seen obliquely makes the plain height iteration oscillate; bracketing must still find the surface."""
-    from osgeo import osr
     # Oblique synthetic RPC: image sample depends strongly on height (about 1 px per metre).
     zeros = np.zeros(20)
     samp_num, line_num, den = zeros.copy(), zeros.copy(), zeros.copy()
@@ -82,14 +83,7 @@ def test_steep_oblique_terrain_uses_bracketing(tmp_path, monkeypatch):
     x = np.linspace(6.99, 7.01, 401)
     heights = np.clip((x - 6.995) * 1.0e5 * 1.5, 0, 1000)
     arr = np.tile(heights, (401, 1)).astype(np.float32)
-    path = str(tmp_path / "cliff.tif")
-    ds = gdal.GetDriverByName("GTiff").Create(path, 401, 401, 1, gdal.GDT_Float32)
-    ds.SetGeoTransform((6.99 - 0.00005 / 2, 0.00005, 0, 45.01, 0, -0.00005))
-    srs = osr.SpatialReference()
-    srs.ImportFromEPSG(4326)
-    ds.SetProjection(srs.ExportToWkt())
-    ds.GetRasterBand(1).WriteArray(arr)
-    ds = None
+    path = write_tif(tmp_path / "cliff.tif", arr, gt=(6.99 - 0.00005 / 2, 0.00005, 0, 45.01, 0, -0.00005), epsg=4326)
     dem = DEM.from_file(path)
     import gdal_gf4cal.localization as localization
     bracketed = []
@@ -125,7 +119,6 @@ def test_constant_height_and_off_dem_points(ventoux, srtm_path):
 
 def test_localize_dem_across_the_antimeridian_on_a_world_dem(tmp_path):
     """A scene centred on 180 deg: points east of it localise to lon > 180 and must still find the -180..180 DEM."""
-    from osgeo import osr
     zeros = np.zeros(20)
     samp_num, line_num, den = zeros.copy(), zeros.copy(), zeros.copy()
     den[0] = 1.0
@@ -136,14 +129,7 @@ def test_localize_dem_across_the_antimeridian_on_a_world_dem(tmp_path):
                    line_den=den, samp_num=samp_num, samp_den=den)
     yy, xx = np.mgrid[0:40, 0:3600]          # a band all around the globe, 14..18 S
     arr = (100.0 + 50.0 * np.sin(xx / 7.0) * np.cos(yy / 5.0)).astype(np.float32)
-    path = str(tmp_path / "world.tif")
-    ds = gdal.GetDriverByName("GTiff").Create(path, 3600, 40, 1, gdal.GDT_Float32)
-    ds.SetGeoTransform((-180.0, 0.1, 0, -14.0, 0, -0.1))
-    srs = osr.SpatialReference()
-    srs.ImportFromEPSG(4326)
-    ds.SetProjection(srs.ExportToWkt())
-    ds.GetRasterBand(1).WriteArray(arr)
-    ds = None
+    path = write_tif(tmp_path / "world.tif", arr, gt=(-180.0, 0.1, 0, -14.0, 0, -0.1), epsg=4326)
     dem = DEM.from_file(path)
     s, l = np.meshgrid(np.linspace(10, 990, 15), np.linspace(10, 990, 15))
     lon, lat, h, n_failed = rpc.localize_dem(s.ravel(), l.ravel(), dem, full_output=True)
