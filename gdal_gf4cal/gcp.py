@@ -6,8 +6,11 @@ A GCP table is a :class:`geopandas.GeoDataFrame` in EPSG:4326 whose geometry is 
 convention: centre of the first pixel at 0.5), ``role`` (``"control"`` or ``"check"``), ``sigma`` (px, a priori
 measurement precision) and optionally ``truth_sample``, ``truth_line``, quality columns and ``outlier``.
 
-Readers accept CSV (header required), GeoPackage and GeoJSON; more formats (QGIS ``.points``, raster GCPs, layers
-in other CRSs) live in :mod:`gdal_gf4cal.gcp_formats`.
+The schema itself (:func:`make_gcps`, :func:`validate_gcps`) lives in :mod:`gdal_gf4cal.observations`: this table
+is the one-image view of the observation table. :func:`read_gcps` / :func:`write_gcps` dispatch to the format
+readers and writers of :mod:`gdal_gf4cal.gcp_formats` (CSV with or without header, GeoPackage/GeoJSON layers,
+orthority GeoJSON, QGIS ``.points``, ASP ``.gcp``, OTB tie points, raster GCPs). Import order, without cycles:
+``observations`` <- ``gcp_formats`` <- ``gcp``.
 """
 from __future__ import annotations
 
@@ -18,147 +21,76 @@ import numpy as np
 
 from .atomic import atomic_output
 from .errors import GCPError, InputOverwriteError
+# The schema lives with the observation table (this table is its one-image view); re-exported here.
+from .observations import REQUIRED, ROLES, SCHEMA, _to_geodataframe, fill_heights, make_gcps, validate_gcps
+from . import gcp_formats
 
-REQUIRED = ("lon", "lat", "sample", "line")
-SCHEMA = ("id", "lon", "lat", "h", "sample", "line", "role", "sigma")
-ROLES = ("control", "check")
-
-
-def make_gcps(lon, lat, h, sample, line, *, ids: Optional[Sequence] = None, role="control", sigma=1.0, **extra):
-    """Build a GCP GeoDataFrame from arrays (extra keyword arrays become columns)."""
-    import pandas as pd
-    lon = np.asarray(lon, dtype=float).ravel()
-    n = lon.size
-    data = {
-        "id": [str(i) for i in (ids if ids is not None else range(1, n + 1))],
-        "lon": lon,
-        "lat": np.asarray(lat, dtype=float).ravel(),
-        "h": np.broadcast_to(np.asarray(h, dtype=float), (n,)).copy() if np.ndim(h) == 0 else
-        np.asarray(h, dtype=float).ravel(),
-        "sample": np.asarray(sample, dtype=float).ravel(),
-        "line": np.asarray(line, dtype=float).ravel(),
-        "role": np.broadcast_to(np.asarray(role, dtype=object), (n,)).copy(),
-        "sigma": np.broadcast_to(np.asarray(sigma, dtype=float), (n,)).copy(),
-    }
-    for key, value in extra.items():
-        data[key] = np.broadcast_to(np.asarray(value), (n,)).copy() if np.ndim(value) == 0 else np.asarray(value)
-    df = pd.DataFrame(data)
-    return _to_geodataframe(df)
+__all__ = ["REQUIRED", "SCHEMA", "ROLES", "make_gcps", "validate_gcps", "fill_heights", "read_gcps", "write_gcps",
+           "split_roles"]
 
 
-def _to_geodataframe(df):
-    import geopandas as gpd
-    geometry = gpd.points_from_xy(df["lon"].to_numpy(float), df["lat"].to_numpy(float))
-    return gpd.GeoDataFrame(df, geometry=geometry, crs="EPSG:4326")
+def read_gcps(path, *, dem=None, layer: Optional[str] = None, need_height: bool = True,
+              columns: Optional[str] = None, pixel_convention: Optional[str] = None, image: Optional[str] = None,
+              crs=None):
+    """Read a GCP table from any supported file; see :func:`gdal_gf4cal.gcp_formats.read_gcps_any`.
 
-
-def validate_gcps(gdf, *, source: str = "GCPs", dem=None, need_height: bool = True):
-    """Check and complete a GCP table: required columns, finite numbers, ids, roles, sigma, heights.
-
-    A missing or NaN height is taken from ``dem`` (a :class:`gdal_gf4cal.dem.DEM`, geoid-aware) when given,
-    else it is an error. Returns a new GeoDataFrame following the schema.
+    Parameters
+    ----------
+    dem : DEM (geoid-aware) to take missing heights from.
+    layer : layer of a GeoPackage.
+    need_height : without a DEM, a GCP without height is an error when true.
+    columns : column map of a header-less CSV/text file, e.g. ``"id,sample,line,lon,lat,h"`` (CLI ``--columns``).
+    pixel_convention : ``"corner"`` (GDAL: pixel corners at integers, centre of the first pixel at 0.5) or
+        ``"center"`` (pixel centres at integers, as orthority, ASP and the RPC00B offsets): the convention of the
+        file's image coordinates (CLI ``--gcp-pixel-convention``). None = the format's own (centre for orthority
+        GeoJSON and ASP ``.gcp``, corner for everything else, and GDAL's own reading of GeoTIFF tie points).
+        The table returned is always in the GDAL convention.
+    image : the image the GCPs belong to: selects its rows in multi-image files (orthority ``filename``, ASP
+        ``.gcp``, observation tables; matched on the file stem) and maps QGIS ``.points`` through its geotransform.
+    crs : CRS of the ground coordinates when the file does not say (.points, layers, rasters, CSV ``x,y``).
     """
-    import pandas as pd
-    df = pd.DataFrame(gdf).copy()
-    df.columns = [str(c).strip() for c in df.columns]
-    lower = {c.lower(): c for c in df.columns}
-    df = df.rename(columns={lower[k]: k for k in ("id", "lon", "lat", "h", "sample", "line", "role", "sigma")
-                            if k in lower and lower[k] != k})
-    missing = [c for c in REQUIRED if c not in df.columns]
-    if missing:
-        raise GCPError(f"{source}: missing column(s) {', '.join(missing)}; expected "
-                       "id,lon,lat,h,sample,line[,role][,sigma]")
-    if len(df) == 0:
-        raise GCPError(f"{source}: no GCPs")
-    for c in ("lon", "lat", "sample", "line") + (("h",) if "h" in df.columns else ()):
-        values = pd.to_numeric(df[c], errors="coerce").astype(float)
-        bad = ~np.isfinite(values.to_numpy())
-        if c != "h" and bad.any():
-            row = int(np.flatnonzero(bad)[0])
-            raise GCPError(f"{source}: column {c} has a missing, non-numeric or infinite value (row {row + 1})")
-        df[c] = values
-    if "id" not in df.columns:
-        df["id"] = [str(i) for i in range(1, len(df) + 1)]
-    df["id"] = df["id"].astype(str)
-    if df["id"].duplicated().any():
-        raise GCPError(f"{source}: duplicate GCP id {df['id'][df['id'].duplicated()].iloc[0]!r}")
-    if "h" not in df.columns:
-        df["h"] = np.nan
-    if not np.all(np.isfinite(df["h"].to_numpy())):
-        if dem is None:
-            if need_height:
-                raise GCPError(f"{source}: {int((~np.isfinite(df['h'].to_numpy())).sum())} GCP(s) without height; "
-                               "give a DEM (--dem) to take heights from it")
-        else:
-            # Errors when the DEM has no value under a GCP (never a NaN height from a nodata="nan" DEM).
-            from .gcp_formats import fill_heights
-            df = fill_heights(df, dem, source=source)
-    if ((df["lat"].abs() > 90) | (df["lon"].abs() > 360)).any():
-        raise GCPError(f"{source}: lon/lat out of range; GCP ground coordinates must be WGS84 degrees "
-                       "(reproject the layer to EPSG:4326 or give its CRS)")
-    if "role" not in df.columns:
-        df["role"] = "control"
-    df["role"] = df["role"].fillna("control").astype(str).str.strip().str.lower()
-    bad = ~df["role"].isin(ROLES)
-    if bad.any():
-        raise GCPError(f"{source}: role {df['role'][bad].iloc[0]!r} is not 'control' or 'check'")
-    if "sigma" not in df.columns:
-        df["sigma"] = 1.0
-    df["sigma"] = pd.to_numeric(df["sigma"], errors="coerce").fillna(1.0).astype(float)
-    if (df["sigma"] <= 0).any():
-        raise GCPError(f"{source}: sigma must be positive")
-    if "geometry" in df.columns:
-        df = df.drop(columns="geometry")
-    ordered = list(SCHEMA) + [c for c in df.columns if c not in SCHEMA]
-    return _to_geodataframe(df[ordered].reset_index(drop=True))
-
-
-def read_gcps(path, *, dem=None, layer: Optional[str] = None, need_height: bool = True):
-    """Read a GCP table from CSV (header required), GeoPackage or GeoJSON; see the module docstring.
-
-    Vector layers go through :func:`gdal_gf4cal.gcp_formats.read_gcp_layer` (any CRS, field aliases, Z heights);
-    other formats (QGIS ``.points``, rasters with GCPs) through :func:`gdal_gf4cal.gcp_formats.read_gcps_any`.
-    """
-    import pandas as pd
     path = os.fspath(path)
-    if not os.path.exists(path):
+    if not os.path.exists(path) and not path.startswith("/vsi"):
         raise GCPError(f"GCP file not found: {path}")
-    ext = os.path.splitext(path)[1].lower()
     try:
-        if ext in (".csv", ".txt"):
-            df = pd.read_csv(path, skipinitialspace=True, comment="#")
-        elif ext in (".gpkg", ".geojson", ".json", ".shp", ".fgb"):
-            # Vector layers in any CRS, field-name aliases (col/row, x/y, ...), heights from a Z geometry.
-            from .gcp_formats import read_gcp_layer
-            return read_gcp_layer(path, layer=layer, dem=dem)
-        else:
-            from .gcp_formats import read_gcps_any  # .points files, rasters with embedded GCPs
-            return read_gcps_any(path, dem=dem)
+        return gcp_formats.read_gcps_any(path, dem=dem, layer=layer, crs=crs, image=image, columns=columns,
+                                         pixel_convention=pixel_convention, need_height=need_height)
     except GCPError:
         raise
-    except Exception as exc:  # pandas/fiona raise many types; report one line
+    except Exception as exc:  # pandas/pyogrio raise many types; report one line
         raise GCPError(f"cannot read GCPs from {path}: {str(exc).splitlines()[0]}") from None
-    return validate_gcps(df, source=path, dem=dem, need_height=need_height)
 
 
-def write_gcps(gdf, path, *, layer: str = "gcps", overwrite: bool = True) -> str:
-    """Write a GCP table to ``.csv``, ``.gpkg`` or ``.geojson`` (by extension), atomically.
+def write_gcps(gdf, path, *, layer: str = "gcps", overwrite: bool = True, format: Optional[str] = None,
+               image: Optional[str] = None) -> str:
+    """Write a GCP table, atomically, as ``.csv``, ``.gpkg``, ``.geojson``, QGIS ``.points`` or ASP ``.gcp``.
 
-    ``sample, line`` are written as they are (GDAL convention). Raises
-    :class:`~gdal_gf4cal.errors.InputOverwriteError` if ``path`` exists and ``overwrite`` is false.
+    The format follows the extension unless ``format`` says otherwise: ``"csv"``, ``"gpkg"``, ``"geojson"``,
+    ``"points"``, ``"asp"`` or ``"orthority"`` (orthority's GCP GeoJSON, which needs ``image``: the image's file
+    name). ``sample, line`` are written in each format's own convention (GDAL for ours and QGIS, centre for ASP and
+    orthority). Raises :class:`~gdal_gf4cal.errors.InputOverwriteError` if ``path`` exists and ``overwrite`` is
+    false.
     """
     path = os.fspath(path)
     if not overwrite and os.path.exists(path):
         raise InputOverwriteError(f"{path} exists; choose another output or allow overwriting")
     ext = os.path.splitext(path)[1].lower()
-    if ext not in (".csv", ".gpkg", ".geojson", ".json"):
-        raise GCPError(f"cannot write GCPs as {ext!r}; use .csv, .gpkg or .geojson")
+    fmt = (format or {".csv": "csv", ".gpkg": "gpkg", ".geojson": "geojson", ".json": "geojson",
+                      ".points": "points", ".gcp": "asp"}.get(ext, "")).lower()
+    if fmt in ("points", "asp", "orthority"):
+        writer = {"points": gcp_formats.write_points_file, "asp": gcp_formats.write_asp_gcp,
+                  "orthority": gcp_formats.write_orthority_geojson}[fmt]
+        kwargs = {"image": image} if fmt != "points" else {}
+        return writer(gdf, path, overwrite=overwrite, **kwargs)
+    if fmt not in ("csv", "gpkg", "geojson"):
+        raise GCPError(f"cannot write GCPs as {ext or format!r}; use .csv, .gpkg, .geojson, .points, .gcp "
+                       "or format='orthority'")
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with atomic_output(path) as tmp:
-        if ext == ".csv":
+        if fmt == "csv":
             df = gdf.drop(columns="geometry") if "geometry" in gdf.columns else gdf
             df.to_csv(tmp, index=False)   # shortest repr: floats read back identical
-        elif ext == ".gpkg":
+        elif fmt == "gpkg":
             _to_geodataframe(gdf.drop(columns="geometry", errors="ignore")).to_file(tmp, layer=layer, driver="GPKG")
         else:
             _to_geodataframe(gdf.drop(columns="geometry", errors="ignore")).to_file(tmp, driver="GeoJSON")

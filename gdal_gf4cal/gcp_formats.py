@@ -27,10 +27,13 @@ from typing import Iterator, Optional, Tuple
 
 import numpy as np
 
-from .errors import GCPError
+from .errors import GCPError, InputOverwriteError
+from .observations import fill_heights, gcp_view, validate_gcps, validate_observations
 
-__all__ = ["read_gcps_any", "read_points_file", "read_raster_gcps", "read_gcp_layer", "fill_heights",
-           "assign_roles", "leave_one_out_splits"]
+__all__ = ["read_gcps_any", "read_points_file", "read_raster_gcps", "read_gcp_layer", "read_gcp_csv",
+           "read_orthority_geojson", "read_asp_gcp", "read_otb_points", "write_points_file",
+           "write_orthority_geojson", "write_asp_gcp", "pixel_offset", "fill_heights", "assign_roles",
+           "leave_one_out_splits"]
 
 _SAMPLE_ALIASES = ("sample", "samp", "col", "column", "pixel", "px", "x_img", "img_x", "image_x", "sourcex")
 _LINE_ALIASES = ("line", "row", "ln", "y_img", "img_y", "image_y", "sourcey")
@@ -60,43 +63,34 @@ def _to_lonlat(x, y, crs):
 
 
 def _finish(df, source, dem, need_height=True):
-    from .gcp import validate_gcps
     return validate_gcps(df, source=source, dem=dem, need_height=need_height)   # fills heights from the DEM
 
 
-def fill_heights(gcps, dem, *, source: str = "GCPs"):
-    """Take missing (NaN / absent) heights from ``dem`` (ellipsoidal; geoid-aware through the DEM).
+_CORNER = ("corner", "gdal", "area")
+_CENTER = ("center", "centre", "rpc", "point")
 
-    Raises :class:`GCPError` if the DEM has no value under a GCP that needs one.
+
+def pixel_offset(pixel_convention: Optional[str], default: str = "corner") -> float:
+    """What to add to a file's image coordinates to get GDAL's: 0 for ``"corner"``, 0.5 for ``"center"``.
+
+    ``"corner"`` (aliases ``"gdal"``, ``"area"``): pixel corners at integers, the centre of the first pixel at
+    (0.5, 0.5), GDAL's convention and ours. ``"center"`` (aliases ``"centre"``, ``"rpc"``, ``"point"``): pixel
+    centres at integers (orthority, ASP, RPC00B offsets). None takes ``default`` (the format's own).
     """
-    df = gcps.copy()
-    if "h" not in df.columns:
-        df["h"] = np.nan
-    h = np.asarray(df["h"], dtype=float)
-    miss = ~np.isfinite(h)
-    if miss.any():
-        if dem is None:
-            raise GCPError(f"{source}: {int(miss.sum())} GCP(s) without height; give a DEM (--dem) to take them from")
-        try:
-            fill = np.asarray(dem.height(np.asarray(df["lon"], float)[miss], np.asarray(df["lat"], float)[miss]),
-                              dtype=float)
-        except GCPError:
-            raise
-        except Exception as exc:  # DEMError and friends: keep one line
-            raise GCPError(f"{source}: cannot take GCP heights from the DEM: {str(exc).splitlines()[0]}") from None
-        if not np.all(np.isfinite(fill)):
-            raise GCPError(f"{source}: the DEM has no height under {int((~np.isfinite(fill)).sum())} GCP(s); "
-                           "give their heights or a DEM that covers them")
-        h = h.copy()
-        h[miss] = fill
-        df["h"] = h
-    return df
+    conv = str(pixel_convention if pixel_convention is not None else default).strip().lower()
+    if conv in _CORNER:
+        return 0.0
+    if conv in _CENTER:
+        return 0.5
+    raise GCPError(f"pixel convention must be 'center' or 'corner', not {pixel_convention!r} "
+                   "(--gcp-pixel-convention)")
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # QGIS Georeferencer .points
 # ----------------------------------------------------------------------------------------------------------------
-def read_points_file(path, *, dem=None, crs=None, image: Optional[str] = None, disabled: str = "drop"):
+def read_points_file(path, *, dem=None, crs=None, image: Optional[str] = None, disabled: str = "drop",
+                     pixel_convention: Optional[str] = None, need_height: bool = True):
     """Read a QGIS Georeferencer ``.points`` file.
 
     Parameters
@@ -105,6 +99,7 @@ def read_points_file(path, *, dem=None, crs=None, image: Optional[str] = None, d
         degrees, otherwise an error asking for it).
     image : the raster the points were taken on; needed only if it had a geotransform in QGIS.
     disabled : ``"drop"`` (default) or ``"check"``: what to do with rows whose ``enable`` is 0.
+    pixel_convention : of ``sourceX, sourceY`` (default ``"corner"``, QGIS's); see :func:`pixel_offset`.
     """
     import pandas as pd
     path = os.fspath(path)
@@ -146,6 +141,8 @@ def read_points_file(path, *, dem=None, crs=None, image: Optional[str] = None, d
             raise GCPError(f"{path}: the map coordinates' CRS is unknown (no '#CRS:' line); give it (--gcp-crs)")
     lon, lat = _to_lonlat(mx, my, use_crs)
     sample, line = _source_to_pixel(sx, sy, image)
+    off = pixel_offset(pixel_convention, "corner")
+    sample, line = np.asarray(sample, float) + off, np.asarray(line, float) + off
     if disabled not in ("drop", "check"):
         raise GCPError(f"disabled must be 'drop' or 'check', not {disabled!r}")
     role = np.where(enabled, "control", "check")
@@ -154,7 +151,7 @@ def read_points_file(path, *, dem=None, crs=None, image: Optional[str] = None, d
                         "sample": sample, "line": line, "role": role})[keep].reset_index(drop=True)
     if len(out) == 0:
         raise GCPError(f"{path}: no enabled GCPs")
-    return _finish(out, path, dem)
+    return _finish(out, path, dem, need_height)
 
 
 def _source_to_pixel(sx, sy, image):
@@ -178,8 +175,12 @@ def _source_to_pixel(sx, sy, image):
 # ----------------------------------------------------------------------------------------------------------------
 # raster GCPs
 # ----------------------------------------------------------------------------------------------------------------
-def read_raster_gcps(path, *, dem=None, crs=None):
+def read_raster_gcps(path, *, dem=None, crs=None, pixel_convention: Optional[str] = None, need_height: bool = True):
     """GCPs embedded in a raster (``GetGCPs``), e.g. a GeoTIFF with tie points or a VRT ``GCPList``.
+
+    ``pixel_convention``: None takes ``GCPPixel/GCPLine`` as GDAL reports them (GDAL's convention; GDAL already
+    shifts the tie points of a GeoTIFF declared ``PixelIsPoint``); ``"corner"`` says the same explicitly;
+    ``"center"`` says the writer put pixel centres at integers although GDAL cannot know it (adds 0.5).
 
     ``GCPZ`` is used as the ellipsoidal height unless every GCP has Z = 0 (GDAL's "no height"), in which case the
     heights come from ``dem``.
@@ -210,9 +211,11 @@ def read_raster_gcps(path, *, dem=None, crs=None):
     ids = [str(g.Id) if str(g.Id).strip() else str(i + 1) for i, g in enumerate(gcps)]
     if len(set(ids)) != len(ids):
         ids = [str(i + 1) for i in range(len(gcps))]
+    off = pixel_offset(pixel_convention, "corner")
     df = pd.DataFrame({"id": ids, "lon": lon, "lat": lat, "h": h,
-                       "sample": [g.GCPPixel for g in gcps], "line": [g.GCPLine for g in gcps], "role": "control"})
-    return _finish(df, path, dem)
+                       "sample": np.array([g.GCPPixel for g in gcps], float) + off,
+                       "line": np.array([g.GCPLine for g in gcps], float) + off, "role": "control"})
+    return _finish(df, path, dem, need_height)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -227,11 +230,13 @@ def _find(cols, aliases):
 
 
 def read_gcp_layer(path, *, layer: Optional[str] = None, dem=None, sample_field: Optional[str] = None,
-                   line_field: Optional[str] = None, height_field: Optional[str] = None, crs=None):
+                   line_field: Optional[str] = None, height_field: Optional[str] = None, crs=None,
+                   pixel_convention: Optional[str] = None, need_height: bool = True):
     """A point layer (GeoPackage, GeoJSON, Shapefile, ...) in any CRS with image-coordinate fields.
 
     Ground position: the point geometry reprojected to EPSG:4326 (``crs`` overrides a missing layer CRS); the
     height: ``height_field`` or a field named ``h/height/z/elevation``, else the geometry's Z, else the DEM.
+    ``pixel_convention`` of the image fields: default ``"corner"`` (GDAL's), see :func:`pixel_offset`.
     """
     import geopandas as gpd
     import pandas as pd
@@ -279,40 +284,391 @@ def read_gcp_layer(path, *, layer: Optional[str] = None, dem=None, sample_field:
     for c in cols:
         if c not in used and c not in df.columns:
             df[c] = gdf[c].to_numpy()
-    return _finish(df, path, dem)
+    off = pixel_offset(pixel_convention, "corner")
+    df["sample"] = df["sample"] + off
+    df["line"] = df["line"] + off
+    return _finish(df, path, dem, need_height)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# CSV / text tables (with a header, or header-less with a column map), OTB tie points
+# ----------------------------------------------------------------------------------------------------------------
+_COLUMN_NAMES = {"id": "id", "name": "id", "gcp_id": "id", "sample": "sample", "col": "sample", "column": "sample",
+                 "x_img": "sample", "line": "line", "row": "line", "y_img": "line", "lon": "lon", "long": "lon",
+                 "longitude": "lon", "lat": "lat", "latitude": "lat", "h": "h", "height": "h", "z": "h",
+                 "elevation": "h", "x": "x", "y": "y", "role": "role", "sigma": "sigma"}
+_SKIP = ("-", "_", "skip", "")
+_NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
+
+
+def _data_lines(path):
+    with open(path, encoding="utf-8-sig", errors="replace") as f:
+        return [ln.strip() for ln in f.read().splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+
+
+def _split(line):
+    sep = "," if "," in line else (";" if ";" in line else None)
+    return [t.strip() for t in (line.split(sep) if sep else line.split())], sep
+
+
+def parse_columns(columns) -> list:
+    """A column map (``"id,sample,line,lon,lat,h"`` or a sequence) -> canonical names (``None`` = skip).
+
+    Names: ``id, sample, line, lon, lat, h, role, sigma`` (aliases ``col/row``, ``longitude/latitude``,
+    ``height/z/elevation``, ``name``), ``x, y`` for ground coordinates in ``crs``, and ``-`` or ``skip`` for a
+    column to ignore.
+    """
+    names = [c.strip().lower() for c in (columns.split(",") if isinstance(columns, str) else columns)]
+    out = []
+    for n in names:
+        if n in _SKIP:
+            out.append(None)
+        elif n in _COLUMN_NAMES:
+            out.append(_COLUMN_NAMES[n])
+        else:
+            raise GCPError(f"unknown column {n!r} in the column map (--columns); use id, sample, line, lon, lat, h, "
+                           "role, sigma, x, y or - to skip")
+    real = [n for n in out if n is not None]
+    if len(set(real)) != len(real):
+        raise GCPError("a column is named twice in the column map (--columns)")
+    ground = {"lon", "lat"} <= set(real) or {"x", "y"} <= set(real)
+    if not ({"sample", "line"} <= set(real) and ground):
+        raise GCPError("the column map (--columns) must name sample, line and lon, lat (or x, y), e.g. "
+                       "id,sample,line,lon,lat,h")
+    return out
+
+
+def read_gcp_csv(path, *, columns=None, dem=None, crs=None, pixel_convention: Optional[str] = None,
+                 need_height: bool = True):
+    """A CSV/text GCP table: with a header (our schema, field aliases as for layers), or header-less with
+    ``columns``, a column map such as ``"id,sample,line,lon,lat,h"`` (:func:`parse_columns`; separators ``,``,
+    ``;`` or blanks; a header line, if any, is skipped). ``x, y`` columns are ground coordinates in ``crs``.
+    ``pixel_convention`` of the file's sample/line: default ``"corner"`` (GDAL's), see :func:`pixel_offset`.
+    """
+    import pandas as pd
+    path = os.fspath(path)
+    off = pixel_offset(pixel_convention, "corner")
+    if columns is None:
+        df = pd.read_csv(path, skipinitialspace=True, comment="#", dtype={"id": str})
+        if "sample" not in df.columns or "line" not in df.columns:
+            cols = list(df.columns)
+            fs, fl = _find(cols, _SAMPLE_ALIASES), _find(cols, _LINE_ALIASES)
+            if fs is not None and fl is not None:
+                df = df.rename(columns={fs: "sample", fl: "line"})
+        if off:
+            for c in ("sample", "line"):
+                if c in df.columns:
+                    df[c] = pd.to_numeric(df[c], errors="coerce") + off
+        return _finish(df, path, dem, need_height)
+    names = parse_columns(columns)
+    lines = _data_lines(path)
+    if not lines:
+        raise GCPError(f"{path}: no GCPs")
+    rows = [_split(ln)[0] for ln in lines]
+    numeric = [i for i, n in enumerate(names) if n in ("sample", "line", "lon", "lat", "x", "y")]
+    first = rows[0]
+    if len(first) >= len(names) and not all(_NUMBER.match(first[i] or "") for i in numeric):
+        rows = rows[1:]          # a header line: the map says what the columns are
+    widths = {len(r) for r in rows}
+    if widths != {len(names)}:
+        raise GCPError(f"{path}: rows have {'/'.join(map(str, sorted(widths)))} columns but the column map "
+                       f"(--columns) names {len(names)}; name every column (- to skip one)")
+    arr = np.array(rows, dtype=object)
+    df = pd.DataFrame({n: arr[:, i] for i, n in enumerate(names) if n is not None})
+    for c in ("sample", "line", "lon", "lat", "h", "x", "y", "sigma"):
+        if c in df.columns:
+            df[c] = pd.to_numeric(df[c], errors="coerce")
+    if "x" in df.columns:
+        if crs is None:
+            raise GCPError(f"{path}: ground coordinates x, y need their CRS (--gcp-crs)")
+        df["lon"], df["lat"] = _to_lonlat(df.pop("x").to_numpy(float), df.pop("y").to_numpy(float), crs)
+    df["sample"] = df["sample"] + off
+    df["line"] = df["line"] + off
+    return _finish(df, path, dem, need_height)
+
+
+def read_otb_points(path, *, dem=None, pixel_convention: Optional[str] = None, need_height: bool = True):
+    """An OTB tie-point file (``RefineSensorModel`` / ``GenerateRPCSensorModel`` ``-inpoints``).
+
+    One point per line, blank- or tab-separated: ``col row lon lat`` and optionally a fifth column, the height
+    (taken as ellipsoidal metres; without it the heights come from ``dem``); ``#`` lines are comments. OTB gives
+    an image without georeferencing its origin at the centre of the first pixel, (0.5, 0.5), so the default
+    ``pixel_convention`` is ``"corner"`` (GDAL's); give ``"center"`` for files written with centres at integers.
+    """
+    import pandas as pd
+    path = os.fspath(path)
+    rows = [ln.split() for ln in _data_lines(path)]
+    if not rows:
+        raise GCPError(f"{path}: no tie points")
+    widths = {len(r) for r in rows}
+    if not widths <= {4, 5} or len(widths) != 1:
+        raise GCPError(f"{path}: an OTB tie-point file has 4 or 5 columns (col row lon lat [h]); for other "
+                       "layouts give the column map (--columns)")
+    try:
+        arr = np.array(rows, dtype=float)
+    except ValueError:
+        raise GCPError(f"{path}: non-numeric value in an OTB tie-point file (col row lon lat [h])") from None
+    off = pixel_offset(pixel_convention, "corner")
+    df = pd.DataFrame({"id": [str(i + 1) for i in range(len(arr))], "lon": arr[:, 2], "lat": arr[:, 3],
+                       "h": arr[:, 4] if arr.shape[1] == 5 else np.nan,
+                       "sample": arr[:, 0] + off, "line": arr[:, 1] + off})
+    return _finish(df, path, dem, need_height)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# orthority GCP GeoJSON
+# ----------------------------------------------------------------------------------------------------------------
+def _is_orthority(path) -> bool:
+    import json
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+        feats = doc.get("features") or []
+        return bool(feats) and "ji" in (feats[0].get("properties") or {})
+    except Exception:   # not JSON, not a FeatureCollection: not orthority's format
+        return False
+
+
+def read_orthority_geojson(path, *, pixel_convention: Optional[str] = None):
+    """orthority's GCP GeoJSON -> an observation table (one row per feature).
+
+    Each feature is a GCP: geometry = ``[lon, lat, h]`` in WGS84 3-D geographic coordinates (EPSG:4979, so ``h``
+    is ellipsoidal), property ``ji`` = the image ``[column, row]`` with the origin at the centre of the top-left
+    pixel (default ``pixel_convention="center"``: GDAL's = ji + 0.5), ``filename`` = the image's file name
+    (becomes ``image_id``), optional ``id`` and ``info``. Other properties become columns.
+    """
+    import json
+
+    import pandas as pd
+    path = os.fspath(path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+    except (OSError, ValueError) as exc:
+        raise GCPError(f"cannot read {path}: {str(exc).splitlines()[0]}") from None
+    feats = doc.get("features") if isinstance(doc, dict) else None
+    if not feats:
+        raise GCPError(f"{path}: no GCP features (orthority GCP GeoJSON is a FeatureCollection of points)")
+    off = pixel_offset(pixel_convention, "center")
+    recs = []
+    for k, ft in enumerate(feats):   # parsing JSON records, not a numeric hot path
+        props = dict(ft.get("properties") or {})
+        geom = ft.get("geometry") or {}
+        coords = list(geom.get("coordinates") or [])
+        ji = props.pop("ji", None)
+        if geom.get("type") != "Point" or len(coords) < 2 or not isinstance(ji, (list, tuple)) or len(ji) != 2:
+            raise GCPError(f"{path}: feature {k + 1} is not an orthority GCP (a Point with a 'ji' property)")
+        rec = {"point_id": str(props.pop("id", k + 1)), "image_id": str(props.pop("filename", "") or "unnamed"),
+               "sample": float(ji[0]) + off, "line": float(ji[1]) + off, "lon": float(coords[0]),
+               "lat": float(coords[1]), "h": float(coords[2]) if len(coords) > 2 else np.nan}
+        rec.update({k2: v for k2, v in props.items() if k2 not in rec})
+        recs.append(rec)
+    return validate_observations(pd.DataFrame(recs), source=path, need_height=False)
+
+
+def write_orthority_geojson(gcps, path, *, image: Optional[str] = None, overwrite: bool = False) -> str:
+    """Write a GCP table as orthority's GCP GeoJSON (``ji`` = GDAL sample/line - 0.5, ``filename`` = ``image``'s
+    file name; ``role``, ``sigma`` and ``info`` as extra properties). Heights are required (3-D points)."""
+    import json
+    g = validate_gcps(gcps, need_height=True, source="GCPs for orthority")
+    name = _image_name(image, gcps, "orthority GeoJSON")
+    feats = [{"type": "Feature",
+              "properties": {"filename": name, "ji": [s - 0.5, ln - 0.5], "id": i, "info": str(i), "role": r,
+                             "sigma": sg},
+              "geometry": {"type": "Point", "coordinates": [x, y, z]}}
+             for i, s, ln, x, y, z, r, sg in zip(g["id"], g["sample"].astype(float), g["line"].astype(float),
+                                                 g["lon"].astype(float), g["lat"].astype(float),
+                                                 g["h"].astype(float), g["role"], g["sigma"].astype(float))]
+    text = json.dumps({"type": "FeatureCollection", "features": feats}, indent=1)   # repr floats: exact
+    return _write_text(path, text, overwrite)
+
+
+def _image_name(image, gcps, what):
+    if image is None and "image_id" in getattr(gcps, "columns", ()):
+        ids = list(dict.fromkeys(gcps["image_id"].astype(str)))
+        image = ids[0] if len(ids) == 1 else None
+    if image is None:
+        raise GCPError(f"{what} names the image the GCPs are in: give it (image=...)")
+    return os.path.basename(str(image))
+
+
+def _write_text(path, text, overwrite):
+    from .atomic import atomic_output
+    path = os.fspath(path)
+    if not overwrite and os.path.exists(path):
+        raise InputOverwriteError(f"{path} exists; choose another output or allow overwriting (--overwrite)")
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with atomic_output(path) as tmp:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+    return path
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# ASP (Ames Stereo Pipeline) .gcp
+# ----------------------------------------------------------------------------------------------------------------
+_ASP_ID = re.compile(r"^#\s*gdal_gf4cal id\s+(\S+)\s+(.+?)\s*$")
+
+
+def read_asp_gcp(path, *, pixel_convention: Optional[str] = None):
+    """An ASP ``.gcp`` file -> an observation table (one row per GCP and image it is seen in).
+
+    Each line: ``id lat lon height sigma_lat sigma_lon sigma_h`` then, per image, ``image col row sigma_col
+    sigma_row`` (blanks or commas; ``#`` lines are comments). Heights are above the WGS84 ellipsoid; ground sigmas
+    (m) become ``sigma_lat_m, sigma_lon_m, sigma_h_m`` and the image sigmas ``sigma`` (the mean of the two). ASP
+    puts pixel centres at integers: default ``pixel_convention="center"`` (GDAL's = col/row + 0.5).
+    """
+    import pandas as pd
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise GCPError(f"GCP file not found: {path}")
+    with open(path, encoding="utf-8-sig", errors="replace") as f:
+        raw = f.read().splitlines()
+    ids = {m.group(1): m.group(2) for m in map(_ASP_ID.match, raw) if m}
+    off = pixel_offset(pixel_convention, "center")
+    recs = []
+    for n, ln in enumerate(raw):   # one text line per GCP: parsing, not a numeric hot path
+        s = ln.strip()
+        if not s or s.startswith("#"):
+            continue
+        tok = [t for t in re.split(r"[,\s]+", s) if t]
+        if len(tok) < 12 or (len(tok) - 7) % 5:
+            raise GCPError(f"{path}: line {n + 1} is not an ASP GCP (id lat lon height 3 sigmas, then image col "
+                           "row 2 sigmas per image)")
+        try:
+            lat, lon, h, slat, slon, sh = map(float, tok[1:7])
+            for j in range(7, len(tok), 5):
+                recs.append({"point_id": ids.get(tok[0], tok[0]), "image_id": tok[j],
+                             "sample": float(tok[j + 1]) + off, "line": float(tok[j + 2]) + off,
+                             "sigma": 0.5 * (float(tok[j + 3]) + float(tok[j + 4])), "lon": lon, "lat": lat,
+                             "h": h, "sigma_lat_m": slat, "sigma_lon_m": slon, "sigma_h_m": sh})
+        except ValueError:
+            raise GCPError(f"{path}: line {n + 1} has a non-numeric coordinate or sigma") from None
+    if not recs:
+        raise GCPError(f"{path}: no GCPs")
+    return validate_observations(pd.DataFrame(recs), source=path, need_height=False)
+
+
+def write_asp_gcp(gcps, path, *, image: Optional[str] = None, overwrite: bool = False) -> str:
+    """Write a GCP table (one image, ``image`` = its file name) or an observation table (every image) as an ASP
+    ``.gcp`` file: col/row = GDAL sample/line - 0.5, heights above the WGS84 ellipsoid (required).
+
+    ASP wants integer ids: other ids are written as 1..n and recorded in ``# gdal_gf4cal id`` comments, which
+    :func:`read_asp_gcp` reads back. Ground sigmas come from ``sigma_lat_m, sigma_lon_m, sigma_h_m`` (else 1 m).
+    """
+    import pandas as pd
+    if "point_id" in gcps.columns:
+        t = validate_observations(gcps, need_height=True, source="observations for ASP")
+        t = t[t["kind"] == "gcp"]
+    else:
+        g = validate_gcps(gcps, need_height=True, source="GCPs for ASP")
+        t = pd.DataFrame(g.drop(columns="geometry")).rename(columns={"id": "point_id"})
+        t["image_id"] = _image_name(image, gcps, "an ASP .gcp file")
+    pids = list(dict.fromkeys(t["point_id"].astype(str)))
+    numeric = all(re.fullmatch(r"\d+", p) for p in pids)
+    asp_id = {p: (p if numeric else str(k + 1)) for k, p in enumerate(pids)}
+    head = ["# ASP ground control points (gdal_gf4cal): id lat lon height sigma_lat sigma_lon sigma_h, then per "
+            "image: image col row sigma_col sigma_row; pixel centres at integers; heights above WGS84"]
+    if not numeric:
+        head += [f"# gdal_gf4cal id {asp_id[p]} {p}" for p in pids]
+    sig = {c: (t[c].astype(float).to_numpy() if c in t.columns else np.ones(len(t)))
+           for c in ("sigma_lat_m", "sigma_lon_m", "sigma_h_m")}
+    t = t.assign(_slat=sig["sigma_lat_m"], _slon=sig["sigma_lon_m"], _sh=sig["sigma_h_m"])
+    body = []
+    for pid, grp in t.groupby("point_id", sort=False):   # one text line per ground point
+        r0 = grp.iloc[0]
+        obs = " ".join(f"{im} {s - 0.5!r} {ln - 0.5!r} {sg!r} {sg!r}" for im, s, ln, sg in
+                       zip(grp["image_id"], grp["sample"].astype(float), grp["line"].astype(float),
+                           grp["sigma"].astype(float)))
+        body.append(f"{asp_id[str(pid)]} {float(r0['lat'])!r} {float(r0['lon'])!r} {float(r0['h'])!r} "
+                    f"{float(r0['_slat'])!r} {float(r0['_slon'])!r} {float(r0['_sh'])!r} {obs}")
+    return _write_text(path, "\n".join(head + body) + "\n", overwrite)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# QGIS .points writer
+# ----------------------------------------------------------------------------------------------------------------
+def write_points_file(gcps, path, *, overwrite: bool = False) -> str:
+    """Write a GCP table as a QGIS Georeferencer ``.points`` file (EPSG:4326 map coordinates, ``#CRS:`` line).
+
+    ``sourceX = sample``, ``sourceY = -line`` (an image without geotransform in QGIS); check points are written
+    disabled (``enable = 0``: read them back with ``disabled="check"``). The format has no height: reading it
+    back takes heights from a DEM.
+    """
+    import pyproj
+    g = validate_gcps(gcps, need_height=False, source="GCPs for .points")
+    wkt = pyproj.CRS.from_epsg(4326).to_wkt()
+    rows = [f"{x!r},{y!r},{s!r},{-ln!r},{1 if r == 'control' else 0},0,0,0"
+            for x, y, s, ln, r in zip(g["lon"].astype(float), g["lat"].astype(float), g["sample"].astype(float),
+                                      g["line"].astype(float), g["role"])]
+    text = f"#CRS: {wkt}\nmapX,mapY,sourceX,sourceY,enable,dX,dY,residual\n" + "\n".join(rows) + "\n"
+    return _write_text(path, text, overwrite)
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # dispatch
 # ----------------------------------------------------------------------------------------------------------------
-def read_gcps_any(path, dem=None, *, layer: Optional[str] = None, crs=None, image: Optional[str] = None):
-    """Read GCPs from any supported source, chosen by extension and content.
+def read_gcps_any(path, dem=None, *, layer: Optional[str] = None, crs=None, image: Optional[str] = None,
+                  columns=None, pixel_convention: Optional[str] = None, need_height: bool = True):
+    """Read GCPs from any supported source, chosen by extension and content; returns the GCP table (GDAL pixel
+    convention, heights from ``dem`` where the file has none).
 
-    ``.csv``/``.txt`` -> :func:`gdal_gf4cal.gcp.read_gcps`; ``.points`` -> :func:`read_points_file`; vector layers
-    -> :func:`read_gcp_layer`; anything GDAL opens as a raster with GCPs -> :func:`read_raster_gcps`.
+    ``.points`` (or a CSV starting with ``#CRS``/``mapX``) -> :func:`read_points_file`; ``.gcp`` ->
+    :func:`read_asp_gcp`; GeoJSON with ``ji`` properties -> :func:`read_orthority_geojson`; other vector layers
+    -> :func:`read_gcp_layer`; ``.csv``/``.txt`` -> :func:`read_gcp_csv` (``columns`` for header-less files; an
+    observation table with ``point_id, image`` columns gives ``image``'s view) or, for 4/5 numeric blank-separated
+    columns, :func:`read_otb_points`; anything GDAL opens as a raster with GCPs -> :func:`read_raster_gcps`.
+    Multi-image files (ASP, orthority, observation tables) need ``image`` unless they hold one image.
     """
     path = os.fspath(path)
     if not os.path.exists(path) and not path.startswith("/vsi"):
         raise GCPError(f"GCP file not found: {path}")
     low = path.lower()
+    kw = {"pixel_convention": pixel_convention}
     if low.endswith(".points"):
-        return read_points_file(path, dem=dem, crs=crs, image=image)
+        return read_points_file(path, dem=dem, crs=crs, image=image, need_height=need_height, **kw)
+    if low.endswith(".gcp"):
+        return _view(read_asp_gcp(path, **kw), image, path, dem, need_height)
+    if low.endswith((".geojson", ".json")) and _is_orthority(path):
+        return _view(read_orthority_geojson(path, **kw), image, path, dem, need_height)
     if low.endswith(".csv") or (low.endswith(".txt") and not low.endswith("_rpc.txt")):
+        lines = _data_lines(path)
         with open(path, encoding="utf-8-sig", errors="replace") as f:
             head = f.readline()
-        if head.lower().startswith("#crs") or head.lower().startswith("mapx"):
-            return read_points_file(path, dem=dem, crs=crs, image=image)
-        from .gcp import read_gcps
-        return read_gcps(path, dem=dem)
+        if head.lower().startswith("#crs") or (lines and lines[0].lower().startswith("mapx")):
+            return read_points_file(path, dem=dem, crs=crs, image=image, need_height=need_height, **kw)
+        if columns is not None:
+            return read_gcp_csv(path, columns=columns, dem=dem, crs=crs, need_height=need_height, **kw)
+        first = _split(lines[0])[0] if lines else []
+        if first and all(_NUMBER.match(t) for t in first):
+            if _split(lines[0])[1] is None and len(first) in (4, 5):
+                return read_otb_points(path, dem=dem, need_height=need_height, **kw)
+            raise GCPError(f"{path}: the file has no header; give its column map (--columns), "
+                           "e.g. id,sample,line,lon,lat,h")
+        header = {t.lower() for t in first}
+        if "point_id" in header and header & {"image", "image_id"}:
+            from .observations import read_observations
+            table = read_observations(path, need_height=False)
+            if pixel_offset(pixel_convention, "corner"):
+                table = table.assign(sample=table["sample"] + 0.5, line=table["line"] + 0.5)
+            return _view(table, image, path, dem, need_height)
+        return read_gcp_csv(path, dem=dem, crs=crs, need_height=need_height, **kw)
     if low.endswith(_LAYER_EXT):
-        return read_gcp_layer(path, layer=layer, dem=dem, crs=crs)
+        return read_gcp_layer(path, layer=layer, dem=dem, crs=crs, need_height=need_height, **kw)
     try:
-        return read_raster_gcps(path, dem=dem, crs=crs)
+        return read_raster_gcps(path, dem=dem, crs=crs, need_height=need_height, **kw)
     except GCPError:
         raise
     except Exception:
-        raise GCPError(f"{path}: unsupported GCP source; use CSV, GeoPackage/GeoJSON, QGIS .points or a raster "
-                       "with embedded GCPs") from None
+        raise GCPError(f"{path}: unsupported GCP source; use CSV, GeoPackage/GeoJSON, QGIS .points, ASP .gcp, "
+                       "orthority GeoJSON, OTB tie points or a raster with embedded GCPs") from None
+
+
+def _view(table, image, path, dem, need_height):
+    """One image's GCP table from an observation table read from ``path``."""
+    from .observations import _resolve_image
+    image_id = _resolve_image(table, image, path)
+    return _finish(gcp_view(table, image_id), path, dem, need_height)
 
 
 # ----------------------------------------------------------------------------------------------------------------
