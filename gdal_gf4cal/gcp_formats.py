@@ -349,7 +349,8 @@ def read_gcp_csv(path, *, columns=None, dem=None, crs=None, pixel_convention: Op
     path = os.fspath(path)
     off = pixel_offset(pixel_convention, "corner")
     if columns is None:
-        df = pd.read_csv(path, skipinitialspace=True, comment="#", dtype={"id": str})
+        df = pd.read_csv(path, skipinitialspace=True, comment="#", dtype={"id": str},
+                         float_precision="round_trip")        # the written floats, bit for bit
         if "sample" not in df.columns or "line" not in df.columns:
             cols = list(df.columns)
             fs, fl = _find(cols, _SAMPLE_ALIASES), _find(cols, _LINE_ALIASES)

@@ -432,7 +432,8 @@ def read_observations(path, *, images: Optional[Iterable[str]] = None, dem=None,
     try:
         if ext in (".csv", ".txt"):
             text = {c: str for c in ("point_id", "image_id", "image", "id", "kind", "role", "outlier_level")}
-            df = pd.read_csv(path, skipinitialspace=True, comment="#", dtype=text)   # ids keep leading zeros
+            df = pd.read_csv(path, skipinitialspace=True, comment="#", dtype=text,   # ids keep leading zeros
+                             float_precision="round_trip")                 # floats read back identical
         elif ext in (".gpkg",):
             import geopandas as gpd
             df = gpd.read_file(path, layer=layer) if layer else gpd.read_file(path)
