@@ -338,6 +338,15 @@ def parse_columns(columns) -> list:
     return out
 
 
+def _to_float(col):
+    """Text -> float with Python's exact parser; anything non-numeric becomes NaN (reported by validation)."""
+    import pandas as pd
+    try:
+        return pd.Series(np.asarray(col, dtype=str).astype(float), index=col.index)
+    except ValueError:
+        return pd.to_numeric(col, errors="coerce")
+
+
 def read_gcp_csv(path, *, columns=None, dem=None, crs=None, pixel_convention: Optional[str] = None,
                  need_height: bool = True):
     """A CSV/text GCP table: with a header (our schema, field aliases as for layers), or header-less with
@@ -378,7 +387,7 @@ def read_gcp_csv(path, *, columns=None, dem=None, crs=None, pixel_convention: Op
     df = pd.DataFrame({n: arr[:, i] for i, n in enumerate(names) if n is not None})
     for c in ("sample", "line", "lon", "lat", "h", "x", "y", "sigma"):
         if c in df.columns:
-            df[c] = pd.to_numeric(df[c], errors="coerce")
+            df[c] = _to_float(df[c])
     if "x" in df.columns:
         if crs is None:
             raise GCPError(f"{path}: ground coordinates x, y need their CRS (--gcp-crs)")
@@ -641,8 +650,9 @@ def read_gcps_any(path, dem=None, *, layer: Optional[str] = None, crs=None, imag
         if columns is not None:
             return read_gcp_csv(path, columns=columns, dem=dem, crs=crs, need_height=need_height, **kw)
         first = _split(lines[0])[0] if lines else []
-        if first and all(_NUMBER.match(t) for t in first):
-            if _split(lines[0])[1] is None and len(first) in (4, 5):
+        n_numeric = sum(bool(_NUMBER.match(t)) for t in first)
+        if n_numeric >= 2:                       # data on the first line: no header
+            if _split(lines[0])[1] is None and len(first) in (4, 5) and n_numeric == len(first):
                 return read_otb_points(path, dem=dem, need_height=need_height, **kw)
             raise GCPError(f"{path}: the file has no header; give its column map (--columns), "
                            "e.g. id,sample,line,lon,lat,h")
