@@ -15,7 +15,7 @@ orthority GeoJSON, QGIS ``.points``, ASP ``.gcp``, OTB tie points, raster GCPs).
 from __future__ import annotations
 
 import os
-from typing import Optional, Sequence
+from typing import Optional
 
 import numpy as np
 

@@ -1,4 +1,4 @@
-"""More GCP sources than :mod:`gdal_gf4cal.gcp` reads, and role assignment (METHODS §4, §6).
+"""GCP file formats (ours and other tools'), and role assignment (METHODS §4, §6).
 
 Everything returns the project's one GCP schema (DESIGN.md): a GeoDataFrame in EPSG:4326 with ``id, lon, lat, h,
 sample, line, role, sigma`` (image coordinates in GDAL's convention, centre of the first pixel at 0.5).
@@ -13,6 +13,17 @@ sample, line, role, sigma`` (image coordinates in GDAL's convention, centre of t
 * GeoPackage / GeoJSON / Shapefile point layers in any CRS with ``sample``/``line`` fields (field names are
   matched case-insensitively, with common aliases ``col/row``, ``pixel/line``, ``x_img/y_img``); the height comes
   from a ``h``/``height``/``z``/``elevation`` field or the geometry's Z.
+* orthority's GCP GeoJSON (points ``[lon, lat, h]`` in EPSG:4979, property ``ji`` = ``[column, row]`` with pixel
+  centres at integers, ``filename`` = the image): :func:`read_orthority_geojson` / :func:`write_orthority_geojson`.
+* ASP ``.gcp`` (``id lat lon height 3 sigmas`` then ``image col row 2 sigmas`` per image, pixel centres at
+  integers): :func:`read_asp_gcp` / :func:`write_asp_gcp`.
+* OTB tie-point text (``col row lon lat [h]``): :func:`read_otb_points`.
+* CSV/text with a header, or header-less with a column map (``columns="id,sample,line,lon,lat,h"``):
+  :func:`read_gcp_csv`. QGIS ``.points`` are also written: :func:`write_points_file`.
+* Pixel conventions: every reader takes ``pixel_convention="corner"|"center"`` (:func:`pixel_offset`), the
+  convention of the file's image coordinates, defaulting to the format's own; tables are always returned in
+  GDAL's (corner) convention. Files holding several images (ASP, orthority, observation tables) are read into
+  the observation table (:mod:`gdal_gf4cal.observations`) and give one image's view.
 * Missing heights are taken from a DEM (:class:`gdal_gf4cal.dem.DEM`, which converts geoid heights to ellipsoidal
   ones when opened with ``geoid=``); without a DEM they are an error that says so.
 
@@ -635,6 +646,8 @@ def read_gcps_any(path, dem=None, *, layer: Optional[str] = None, crs=None, imag
         raise GCPError(f"GCP file not found: {path}")
     low = path.lower()
     kw = {"pixel_convention": pixel_convention}
+    if columns is not None and not low.endswith(".points"):    # a column map says: a delimited text table
+        return read_gcp_csv(path, columns=columns, dem=dem, crs=crs, need_height=need_height, **kw)
     if low.endswith(".points"):
         return read_points_file(path, dem=dem, crs=crs, image=image, need_height=need_height, **kw)
     if low.endswith(".gcp"):
@@ -647,8 +660,6 @@ def read_gcps_any(path, dem=None, *, layer: Optional[str] = None, crs=None, imag
             head = f.readline()
         if head.lower().startswith("#crs") or (lines and lines[0].lower().startswith("mapx")):
             return read_points_file(path, dem=dem, crs=crs, image=image, need_height=need_height, **kw)
-        if columns is not None:
-            return read_gcp_csv(path, columns=columns, dem=dem, crs=crs, need_height=need_height, **kw)
         first = _split(lines[0])[0] if lines else []
         n_numeric = sum(bool(_NUMBER.match(t)) for t in first)
         if n_numeric >= 2:                       # data on the first line: no header

@@ -43,7 +43,7 @@ from .errors import GCPError, InputOverwriteError
 
 __all__ = ["OBS_SCHEMA", "KINDS", "OUTLIER_LEVELS", "SCHEMA", "REQUIRED", "ROLES",
            "validate_observations", "read_observations", "write_observations", "gcp_view", "from_gcps",
-           "from_gcp_views", "image_ids", "flag_outliers", "make_gcps", "validate_gcps", "fill_heights"]
+           "from_gcp_views", "image_ids", "select_images", "flag_outliers", "make_gcps", "validate_gcps", "fill_heights"]
 
 # ----------------------------------------------------------------------------------------------------------------
 # the one-image view: the GCP table schema (DESIGN.md "GCP table schema")

@@ -245,7 +245,7 @@ def test_projected_columns_with_crs(tmp_path, reference):
     import pyproj
     tf = pyproj.Transformer.from_crs("EPSG:4326", "EPSG:32651", always_xy=True)
     x, y = tf.transform(reference["lon"].to_numpy(), reference["lat"].to_numpy())
-    path = tmp_path / "utm.csv"
+    path = tmp_path / "utm.dat"          # a column map reads any delimited text, whatever its extension
     path.write_text("\n".join(f"{i},{s!r},{ln!r},{a!r},{b!r},{z!r}" for i, s, ln, a, b, z in
                               zip(reference["id"], reference["sample"], reference["line"], x, y, reference["h"])))
     g = read_gcps(path, columns="id,sample,line,x,y,h", crs="EPSG:32651")
