@@ -687,9 +687,14 @@ def read_gcps_any(path, dem=None, *, layer: Optional[str] = None, crs=None, imag
 
 
 def _view(table, image, path, dem, need_height):
-    """One image's GCP table from an observation table read from ``path``."""
-    from .observations import _resolve_image
-    image_id = _resolve_image(table, image, path)
+    """One image's GCP table from an observation table read from ``path``.
+
+    A file of one image is that image's, whatever ``image`` is called (a VRT or a renamed copy of the scene);
+    in a file of several, ``image`` picks by name.
+    """
+    from .observations import _resolve_image, image_ids
+    ids = image_ids(table)
+    image_id = ids[0] if len(ids) == 1 else _resolve_image(table, image, path)
     return _finish(gcp_view(table, image_id), path, dem, need_height)
 
 

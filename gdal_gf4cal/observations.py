@@ -238,9 +238,11 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
                                f"(row {int(np.flatnonzero(bad)[0]) + 1})")
         df[c] = values
     has_ground = np.isfinite(df["lon"].to_numpy()) & np.isfinite(df["lat"].to_numpy())
+    inferred = np.where(has_ground, "gcp", "tie")
     if "kind" not in df.columns:
-        df["kind"] = np.where(has_ground, "gcp", "tie")
+        df["kind"] = inferred
     df["kind"] = df["kind"].fillna("").astype(str).str.strip().str.lower()
+    df["kind"] = df["kind"].where(df["kind"] != "", inferred)          # blank kind: inferred as when absent
     bad = ~df["kind"].isin(KINDS)
     if bad.any():
         raise GCPError(f"{source}: kind {df['kind'][bad].iloc[0]!r} is not 'gcp' or 'tie'")

@@ -251,3 +251,11 @@ def test_projected_columns_with_crs(tmp_path, reference):
     g = read_gcps(path, columns="id,sample,line,x,y,h", crs="EPSG:32651")
     assert np.allclose(g["lon"], reference["lon"], atol=1e-9) and np.allclose(g["lat"], reference["lat"], atol=1e-9)
     assert np.array_equal(g["sample"], reference["sample"])
+
+
+def test_single_image_file_is_that_images(tmp_path, reference):
+    """refine passes the scene path as ``image``: a one-image ASP file named otherwise is still its GCPs."""
+    path = tmp_path / "field.gcp"
+    write_gcps(reference, path, image="QB02_P001.TIF")
+    g = read_gcps(path, image=str(tmp_path / "scene_rpc.vrt"))
+    _same(g, reference)

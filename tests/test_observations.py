@@ -147,6 +147,8 @@ def test_kind_inferred_and_heights_from_dem():
     assert list(t["kind"]) == ["gcp", "gcp", "tie", "tie"]
     assert list(t["h"][:2]) == [123.5, 123.5] and t["h"][2:].isna().all()   # ties stay unknown
     assert list(t["image_id"]) == ["a.tif", "b.tif", "a.tif", "b.tif"]
+    blank = validate_observations(_obs(kind=["", "gcp", None, "TIE"]))      # blank kinds inferred, case folded
+    assert list(blank["kind"]) == ["gcp", "gcp", "tie", "tie"]
 
 
 def test_outlier_levels_cumulative(tmp_path):
