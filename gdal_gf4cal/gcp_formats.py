@@ -28,6 +28,7 @@ from typing import Iterator, Optional, Tuple
 import numpy as np
 
 from .errors import GCPError
+from ._gdal import with_gdal_exceptions
 
 __all__ = ["read_gcps_any", "read_points_file", "read_raster_gcps", "read_gcp_layer", "fill_heights",
            "assign_roles", "leave_one_out_splits"]
@@ -157,12 +158,12 @@ def read_points_file(path, *, dem=None, crs=None, image: Optional[str] = None, d
     return _finish(out, path, dem)
 
 
+@with_gdal_exceptions
 def _source_to_pixel(sx, sy, image):
     """QGIS layer coordinates -> GDAL pixel coordinates (via the image's geotransform if it has one)."""
     if image is None:
         return sx, -sy
     from osgeo import gdal
-    gdal.UseExceptions()
     try:
         ds = gdal.Open(str(image))
     except RuntimeError as exc:
@@ -178,6 +179,7 @@ def _source_to_pixel(sx, sy, image):
 # ----------------------------------------------------------------------------------------------------------------
 # raster GCPs
 # ----------------------------------------------------------------------------------------------------------------
+@with_gdal_exceptions
 def read_raster_gcps(path, *, dem=None, crs=None):
     """GCPs embedded in a raster (``GetGCPs``), e.g. a GeoTIFF with tie points or a VRT ``GCPList``.
 
@@ -186,7 +188,6 @@ def read_raster_gcps(path, *, dem=None, crs=None):
     """
     import pandas as pd
     from osgeo import gdal
-    gdal.UseExceptions()
     path = os.fspath(path)
     try:
         ds = gdal.Open(path)

@@ -45,7 +45,7 @@ class ApplyCalibration(Gf4calAlgorithm):
         self.addOutput(QgsProcessingOutputNumber("MAX_FIT_ERROR_PX", self.tr("Largest RPC fit error (px)")))
 
     def run_algorithm(self, parameters, context, feedback, progress):
-        from gdal_gf4cal.lookangle import apply_calibration
+        from gdal_gf4cal.workflows import apply_calibration
 
         scenes = self.parameterAsFileList(parameters, self.INPUT, context)
         if not scenes:

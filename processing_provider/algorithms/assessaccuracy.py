@@ -40,7 +40,7 @@ class AssessAccuracy(Gf4calAlgorithm):
 
     def run_algorithm(self, parameters, context, feedback, progress):
         from gdal_gf4cal.describe import image_size_of
-        from gdal_gf4cal.report import assess_accuracy
+        from gdal_gf4cal.workflows import assess_accuracy
 
         source = self.input_path(parameters, context)
         dem = self.read_dem(parameters, context)

@@ -64,7 +64,7 @@ class CalibrateLookAngle(Gf4calAlgorithm):
     def run_algorithm(self, parameters, context, feedback, progress):
         from gdal_gf4cal.describe import image_size_of
         from gdal_gf4cal.gcp import write_gcps
-        from gdal_gf4cal.lookangle import calibrate_lookangle_files
+        from gdal_gf4cal.workflows import calibrate_lookangle_files
 
         source = self.input_path(parameters, context)
         camera = self.parameterAsFile(parameters, self.CAMERA, context)

@@ -77,7 +77,7 @@ class RefineRpc(Gf4calAlgorithm):
             self.addOutput(QgsProcessingOutputNumber(key, self.tr(label)))
 
     def run_algorithm(self, parameters, context, feedback, progress):
-        from gdal_gf4cal.compensation import refine_rpc
+        from gdal_gf4cal.workflows import refine_rpc
 
         source = self.input_path(parameters, context)
         dem = self.read_dem(parameters, context)
