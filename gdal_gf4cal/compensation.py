@@ -31,8 +31,7 @@ from .errors import DegenerateGeometryError, GCPError, Gf4calError, InputOverwri
 
 __all__ = [
     "MODEL_NAMES", "CompensationModel", "CompensationResult", "CompensatedRPC", "AppliedCompensation",
-    "fit_compensation", "apply_compensation", "write_refined_rpc", "refine_rpc", "ground_offsets_m",
-    "accuracy_by_role", "output_kind",
+    "fit_compensation", "apply_compensation", "ground_offsets_m", "accuracy_by_role",
 ]
 
 #: Model names accepted by :meth:`CompensationModel.from_name` (and ``gf4cal refine --model``).

@@ -17,8 +17,7 @@ import numpy as np
 from .errors import DegenerateGeometryError, GCPError
 from .progress import report as _report
 
-__all__ = ["IntersectionResult", "intersect", "ground_errors_m", "intersection_accuracy", "read_tie_points",
-           "intersect_files"]
+__all__ = ["IntersectionResult", "intersect", "ground_errors_m", "intersection_accuracy"]
 
 _A = 6378137.0
 _E2 = 6.69437999014e-3

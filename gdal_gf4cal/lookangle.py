@@ -35,7 +35,7 @@ from .progress import report, scaled
 __all__ = [
     "LookAngleCalibration", "LookAngleConditionWarning", "calibrate_lookangle", "recalibrate_rpc",
     "compare_lookangle", "lookangle_monomials", "layout_condition", "RecalibratedSensor", "MIN_GCPS",
-    "calibrate_lookangle_files", "apply_calibration", "calibrate_lookangle_rigorous",
+    "calibrate_lookangle_rigorous",
 ]
 
 #: Exponents ``(p, q)`` of ``s^p l^q`` for the 10 terms, in the camera file's order

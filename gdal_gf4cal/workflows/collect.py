@@ -3,7 +3,7 @@ the GCP table (issue 7); the file-level part of :mod:`gdal_gf4cal.matching.colle
 from __future__ import annotations
 
 import os
-from typing import Any, Dict, Optional
+from typing import Any, Dict
 
 from ..errors import Gf4calError
 from ..outputs import OutputSet, check_vector

@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 from typing import Any, Dict, Optional, Sequence
 
-from ..errors import GCPError, Gf4calError, InputOverwriteError
+from ..errors import GCPError, Gf4calError
 from ..outputs import OutputSet, check_not_a_shadowing_sidecar, check_vector, rpc_stem, same_file
 from ._common import _open_dem, _open_image, cancel_check, collect_warnings, finish_report, is_path
 
