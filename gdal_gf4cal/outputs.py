@@ -276,6 +276,10 @@ class OutputSet:
         self._folders.append((path, before))
         return path
 
+    def set_check(self, key: str, check: Optional[Callable[[str], None]]) -> None:
+        """Set the check of output ``key`` once the run knows what to expect (e.g. the feature counts)."""
+        self._outputs[key].check = check
+
     def tmp(self, key: str) -> str:
         """The temporary path of output ``key``."""
         return self._outputs[key].tmp

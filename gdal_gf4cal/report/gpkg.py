@@ -39,7 +39,8 @@ def _create_layer(ds, name, srs, geom_type, fields, description, metadata=None):
     for fname, (ftype, subtype) in fields:
         fd = ogr.FieldDefn(fname, ftype)
         fd.SetSubType(subtype)
-        layer.CreateField(fd)
+        if layer.CreateField(fd) != 0:
+            raise Gf4calError(f"cannot create field {fname!r} in layer {name!r}; check the disk is not full")
     for k, v in (metadata or {}).items():
         layer.SetMetadataItem(k, str(v))
     return layer
@@ -313,7 +314,8 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         if ds is None:
             raise Gf4calError(f"cannot create a GeoPackage in {path.parent}; check the folder is writable")
         styles = []
-        ds.StartTransaction()
+        if ds.StartTransaction() != 0:
+            raise Gf4calError(f"cannot write the GeoPackage {path}; check the folder is writable")
         gl = _create_layer(ds, "gcps", srs, ogr.wkbPoint, fields,
                            f"{title}: ground control / check points with residuals (measured - predicted, px)")
         _write_features(gl, fields, columns, [point_wkb(i) for i in range(n)])
@@ -334,7 +336,8 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
             qml, sld = _footprint_style()
             styles.append(("footprint", fl.GetGeometryColumn(), qml, _sld("footprint", sld), "scene footprint"))
         _write_layer_styles(ds, styles)
-        ds.CommitTransaction()
+        if ds.CommitTransaction() != 0:
+            raise Gf4calError(f"cannot write the GeoPackage {path} (the commit failed: disk full?); nothing was kept")
         ds = None
         os.replace(tmp, path)
     finally:

@@ -92,6 +92,7 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
                 footprint = footprint_from_rpc(rpc, image_size, h=float(rpc.height_off))
             write_residuals_gpkg(table, outs.tmp("residuals"), footprint=footprint, before=("res_sample", "res_line"),
                                  after=None, title="RPC accuracy")
+            outs.set_check("residuals", check_vector({"gcps": len(table)}))
         if plot:
             plot_residuals(table, outs.tmp("plot"), before=("res_sample", "res_line"), after=None,
                            image_size=image_size, title="RPC residuals at the GCPs")

@@ -8,7 +8,7 @@ import os
 from typing import Any, Dict
 
 from ..outputs import OutputSet, check_vector
-from ._common import _open_dem, cancel_check, collect_warnings, finish_report
+from ._common import _open_dem, cancel_check, collect_warnings, finish_report, is_path
 
 
 def _scene_stem(path) -> str:
@@ -60,7 +60,7 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
              "residuals_png": "residuals.png", "report": "report.json"}
     if image is not None:
         names["vrt"] = f"{stem}.vrt"
-    outs = OutputSet([rpc_path, gcps_path, camera_path, image, dem], overwrite=overwrite,
+    outs = OutputSet([rpc_path, gcps_path if is_path(gcps_path) else None, camera_path, image, dem], overwrite=overwrite,
                      cancelled=cancel_check(progress))
     for key, name in names.items():
         outs.declare(key, os.path.join(out, name), check=check_vector() if key == "residuals_gpkg" else None)
@@ -69,7 +69,11 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
         rpc = RPCModel.from_file(rpc_path)
         current = LookAngleModel.from_json(camera_path)
         dem_obj = _open_dem(dem, geoid)
-        gcps = read_gcps(gcps_path, dem=dem_obj, **({"layer": gcp_layer} if gcp_layer else {}))
+        if is_path(gcps_path):
+            gcps = read_gcps(gcps_path, dem=dem_obj, **({"layer": gcp_layer} if gcp_layer else {}))
+        else:                                         # a GCP table already read (QGIS: the layer's reader)
+            from ..gcp import validate_gcps
+            gcps = validate_gcps(gcps_path, dem=dem_obj)
         res = calibrate_lookangle(rpc, gcps, current, robust=robust,
                                   max_condition=MAX_CONDITION if max_condition is None else max_condition,
                                   progress=_progress.scaled(progress, 0.0, 0.4))
@@ -86,10 +90,11 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
             footprint = None
         write_residuals_gpkg(res.gcps, outs.tmp("residuals_gpkg"), footprint=footprint, overwrite=True,
                              title="Look-angle calibration residuals")
+        outs.set_check("residuals_gpkg", check_vector({"gcps": len(res.gcps)}))
         plot_residuals(res.gcps, outs.tmp("residuals_png"), image_size=size,
                        title=f"{stem}: GCP residuals before / after look-angle calibration")
         rep = {"command": "calibrate-lookangle",
-               "inputs": {"rpc": os.fspath(rpc_path), "gcps": os.fspath(gcps_path), "camera": os.fspath(camera_path),
+               "inputs": {"rpc": os.fspath(rpc_path), "gcps": os.fspath(gcps_path) if is_path(gcps_path) else None, "camera": os.fspath(camera_path),
                           "image": None if image is None else os.fspath(image),
                           "dem": dem if dem is None or isinstance(dem, (str, int, float)) else os.fspath(dem)
                           if isinstance(dem, os.PathLike) else str(dem)},

@@ -44,6 +44,8 @@ def collect_gcps_file(image, reference, dem, out, *, rpc=None, geoid=None, keep_
                               f"{w['weak_correlation']} weak, {w['nodata'] + w['outside_image']} without data); "
                               "check that the reference and DEM cover the image, or raise --search")
         write_gcps(table, outs.tmp("gcps"))
+        if not out.lower().endswith(".csv"):
+            outs.set_check("gcps", check_vector({"gcps": len(table)} if out.lower().endswith(".gpkg") else None))
     rep = {"command": "collect-gcps", "windows": dict(w), "n_gcps": int(len(table)),
            "n_outliers": int(gcps["outlier"].to_numpy(bool).sum()), "output": out, "outputs": {"gcps": out},
            "gcps": gcps, "table": table}

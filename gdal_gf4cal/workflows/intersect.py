@@ -113,6 +113,8 @@ def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional
         if out:
             from ..gcp import write_gcps
             write_gcps(table, outs.tmp("points"))        # a point layer (EPSG:4326) for .gpkg/.geojson
+            if out.lower().endswith(".gpkg"):
+                outs.set_check("points", check_vector({"gcps": len(table)}))
             rep["output"] = out
         rep["outputs"] = outs.paths
         finish_report(rep, warns)

@@ -152,6 +152,7 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
             except Gf4calError:
                 fp = None
             write_residuals_gpkg(result.gcps, outs.tmp("residuals"), footprint=fp, title=title)
+            outs.set_check("residuals", check_vector({"gcps": len(result.gcps)}))
         if plot:
             from ..report import plot_residuals
             plot_residuals(result.gcps, outs.tmp("plot"), image_size=image_size, title=title)

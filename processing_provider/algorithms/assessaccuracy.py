@@ -53,7 +53,8 @@ class AssessAccuracy(Gf4calAlgorithm):
             from gdal_gf4cal.rpc import RPCModel
             size = RPCModel.from_file(source).image_size
         rep = assess_accuracy(source, gcps, residuals=out_gpkg, plot=out_plot, report=out_report, image_size=size,
-                              progress=progress)
+                              overwrite=True, progress=progress)
+        self.push_warnings(feedback, rep)
         a = rep["all"]
         outputs = {"N": rep["n"], "RMS_SAMPLE": a["sample"]["rms"], "RMS_LINE": a["line"]["rms"],
                    "MEAN_SAMPLE": a["sample"]["mean"], "MEAN_LINE": a["line"]["mean"],

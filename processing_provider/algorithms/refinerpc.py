@@ -93,6 +93,7 @@ class RefineRpc(Gf4calAlgorithm):
                          dem=dem, robust=self.parameterAsBool(parameters, self.ROBUST, context),
                          outlier_threshold=self.parameterAsDouble(parameters, self.OUTLIER_THRESHOLD, context),
                          residuals=out_gpkg, plot=out_plot, report=out_report, overwrite=True, progress=progress)
+        self.push_warnings(feedback, rep)
         outputs = {self.OUTPUT_RPC: out_rpc, self.OUTPUT_GPKG: out_gpkg}
         if out_plot:
             outputs[self.OUTPUT_PLOT] = out_plot
