@@ -23,9 +23,12 @@ from .gcp import make_gcps, read_gcps, write_gcps
 from .rpc_fit import FitReport, fit_rpc, fit_rpc_from_model
 from .lookangle import LookAngleCalibration, calibrate_lookangle, compare_lookangle, recalibrate_rpc
 from .compensation import (CompensatedRPC, CompensationModel, CompensationResult, apply_compensation,
-                           fit_compensation, refine_rpc)
+                           fit_compensation)
 from .intersection import IntersectionResult, intersect
 from .matching import collect_gcps
+from .workflows import (apply_calibration, assess_accuracy, calibrate_lookangle_files, collect_gcps_file,
+                        intersect_files, read_tie_points, refine_rpc, run_experiment, simulate_scene,
+                        write_refined_rpc)
 
 __version__ = "0.1.0"
 
@@ -38,4 +41,6 @@ __all__ = [
     "CompensatedRPC", "CompensationModel", "CompensationResult", "apply_compensation", "fit_compensation",
     "refine_rpc", "IntersectionResult", "intersect",
     "collect_gcps",
+    "apply_calibration", "assess_accuracy", "calibrate_lookangle_files", "collect_gcps_file", "intersect_files",
+    "read_tie_points", "run_experiment", "simulate_scene", "write_refined_rpc",
 ]

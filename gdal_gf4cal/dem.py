@@ -18,6 +18,7 @@ from typing import Optional, Tuple, Union
 import numpy as np
 
 from .errors import DEMError
+from ._gdal import with_gdal_exceptions
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +42,7 @@ class DEM:
         :class:`DEMError`), ``"nan"`` (return NaN) or a number (use that ellipsoidal height).
     """
 
+    @with_gdal_exceptions
     def __init__(self, *, path: Optional[str] = None, constant: Optional[float] = None, geoid=None,
                  nodata: NodataPolicy = "error", band: int = 1, tile_size: int = 1024, cache_tiles: int = 64):
         self.path = path
@@ -58,7 +60,6 @@ class DEM:
         if path is None:
             return
         from osgeo import gdal, osr
-        gdal.UseExceptions()
         try:
             self._ds = gdal.Open(str(path))
         except RuntimeError as exc:
@@ -255,6 +256,7 @@ class DEM:
         out[idx] = values
         return out
 
+    @with_gdal_exceptions
     def _sample_whole(self, px, py, gradient: bool = False):
         """Bilinear sampling of a small DEM held in memory, at pixel coordinates (pixel centres at integers).
 
@@ -295,6 +297,7 @@ class DEM:
         """The geoid whose undulation is added to the stored heights (None: stored heights used as they are)."""
         return self._geoid_name if self._geoid is not None else None
 
+    @with_gdal_exceptions
     def _read_tile(self, tile_x: int, tile_y: int) -> np.ndarray:
         """Read tile (tile_x, tile_y) with a one-pixel overlap to the right and below (LRU cached)."""
         key = (tile_x, tile_y)

@@ -38,6 +38,7 @@ from typing import Iterator, Optional, Tuple
 
 import numpy as np
 
+from ._gdal import with_gdal_exceptions
 from .errors import GCPError, InputOverwriteError
 from .observations import fill_heights, gcp_view, validate_gcps, validate_observations
 
@@ -165,12 +166,12 @@ def read_points_file(path, *, dem=None, crs=None, image: Optional[str] = None, d
     return _finish(out, path, dem, need_height)
 
 
+@with_gdal_exceptions
 def _source_to_pixel(sx, sy, image):
     """QGIS layer coordinates -> GDAL pixel coordinates (via the image's geotransform if it has one)."""
     if image is None:
         return sx, -sy
     from osgeo import gdal
-    gdal.UseExceptions()
     try:
         ds = gdal.Open(str(image))
     except RuntimeError as exc:
@@ -186,6 +187,7 @@ def _source_to_pixel(sx, sy, image):
 # ----------------------------------------------------------------------------------------------------------------
 # raster GCPs
 # ----------------------------------------------------------------------------------------------------------------
+@with_gdal_exceptions
 def read_raster_gcps(path, *, dem=None, crs=None, pixel_convention: Optional[str] = None, need_height: bool = True):
     """GCPs embedded in a raster (``GetGCPs``), e.g. a GeoTIFF with tie points or a VRT ``GCPList``.
 
@@ -198,7 +200,6 @@ def read_raster_gcps(path, *, dem=None, crs=None, pixel_convention: Optional[str
     """
     import pandas as pd
     from osgeo import gdal
-    gdal.UseExceptions()
     path = os.fspath(path)
     try:
         ds = gdal.Open(path)

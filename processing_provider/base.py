@@ -10,9 +10,6 @@ import warnings
 from typing import Any, Dict, List, Optional
 
 from qgis.core import (
-    QgsCoordinateReferenceSystem,
-    QgsCoordinateTransform,
-    QgsFeatureRequest,
     QgsProcessing,
     QgsProcessingAlgorithm,
     QgsProcessingException,
@@ -63,6 +60,10 @@ class FeedbackProgress:
         if message and message != self._last_message:
             self._last_message = message
             self.feedback.setProgressText(message)
+
+    def is_cancelled(self) -> bool:
+        """Asked by the output policy right before it renames the written outputs into place."""
+        return self.feedback is not None and self.feedback.isCanceled()
 
     def sub(self, start: float, stop: float) -> "FeedbackProgress":
         """A callback mapping [0, 1] of a sub-task onto [start, stop] of this one."""
@@ -213,12 +214,15 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         return DEM.from_file(layer.source(), geoid=geoid)
 
     def read_gcps(self, parameters, context, feedback, dem=None):
-        """The GCP layer as an engine GCP table (DESIGN.md schema, EPSG:4326).
+        """The GCP layer as an engine GCP table (DESIGN.md schema, EPSG:4326), read by the engine's own reader.
 
-        The ground position is the point geometry (reprojected to WGS84); sample, line, height, id, role and sigma
-        come from the chosen fields. A chosen field that the layer lacks is an error naming the parameter.
+        QGIS hands over the layer's file and layer name (exporting it to a temporary GeoPackage only when the
+        source is not a file OGR reads, e.g. a memory layer or a selection); :func:`gdal_gf4cal.gcp_formats.
+        read_gcp_layer` reads it (geometry = ground position in any CRS, reprojected to WGS84). Chosen fields
+        name the sample, line, height, id, role and sigma columns; a chosen field the layer lacks is an error.
         """
-        from gdal_gf4cal.gcp import make_gcps, validate_gcps
+        from gdal_gf4cal.gcp import validate_gcps
+        from gdal_gf4cal.gcp_formats import read_gcp_layer
 
         source = self.parameterAsSource(parameters, self.GCPS, context)
         if source is None:
@@ -245,76 +249,56 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
                         f"Choose the field holding the {key} values."))
                 continue  # an optional field left at its default name that the layer does not have
             chosen[key] = field
-        wgs84 = QgsCoordinateReferenceSystem("EPSG:4326")
-        xform = QgsCoordinateTransform(source.sourceCrs(), wgs84, context.transformContext())
-        request = QgsFeatureRequest().setSubsetOfAttributes(list(chosen.values()), source.fields())
-        cols: Dict[str, list] = {k: [] for k in chosen}
-        lon, lat = [], []
-        for feat in source.getFeatures(request):
-            if feedback is not None and feedback.isCanceled():
-                raise CancelledError("cancelled by the user")
-            geom = feat.geometry()
-            if geom.isNull() or geom.isEmpty():
-                raise QgsProcessingException(self.tr(f"GCP feature {feat.id()} has no geometry; remove it or fix it."))
-            geom.transform(xform)
-            pt = geom.asPoint() if not geom.isMultipart() else geom.asMultiPoint()[0]
-            lon.append(pt.x())
-            lat.append(pt.y())
-            for key, field in chosen.items():
-                v = feat[field]
-                cols[key].append(None if v is None or (hasattr(v, "isNull") and v.isNull()) else v)
-        if not lon:
+        if source.featureCount() == 0:
             raise QgsProcessingException(self.tr("The GCP layer has no features."))
-
-        def numbers(key):
-            out = []
-            for i, v in enumerate(cols[key]):
-                try:
-                    out.append(float("nan") if v in (None, "") else float(v))
-                except (TypeError, ValueError):
-                    raise QgsProcessingException(self.tr(
-                        f"GCP field '{chosen[key]}' has a non-numeric value {v!r} (feature {i + 1}).")) from None
-            return out
-
-        h = numbers("h") if "h" in chosen else [float("nan")] * len(lon)
-        missing_h = sum(1 for x in h if x != x)
-        if missing_h and dem is None:
+        if "h" not in chosen and dem is None:
             raise QgsProcessingException(self.tr(
-                f"{missing_h} GCP(s) have no height (no or empty {self.HEIGHT_FIELD}); choose the height field or "
-                f"give a DEM to take the heights from."))
-        gcps = make_gcps(lon, lat, h, numbers("sample"), numbers("line"),
-                         ids=[str(v) for v in cols["id"]] if "id" in chosen else None,
-                         role=[("control" if v in (None, "") else str(v)) for v in cols["role"]]
-                         if "role" in chosen else "control",
-                         sigma=[(1.0 if (x != x) else x) for x in numbers("sigma")] if "sigma" in chosen else 1.0)
-        return validate_gcps(gcps, source=f"GCP layer {source.sourceName()!r}", dem=dem)
+                f"The GCPs have no height (no {self.HEIGHT_FIELD}); choose the height field or give a DEM to take "
+                "the heights from."))
+        path, layer = self.parameterAsCompatibleSourceLayerPathAndLayerName(
+            parameters, self.GCPS, context, ["gpkg", "geojson", "shp", "fgb"], "gpkg", feedback)
+        if feedback is not None and feedback.isCanceled():
+            raise CancelledError("cancelled by the user")
+        table = read_gcp_layer(path, layer=layer or None, dem=dem, sample_field=chosen.get("sample"),
+                               line_field=chosen.get("line"), height_field=chosen.get("h"))
+        changed = False
+        for key in ("id", "role", "sigma"):
+            field = chosen.get(key)
+            if field and field != key and field in table.columns:
+                values = table[field]
+                if key == "id":
+                    values = values.astype(str)
+                elif key == "role":
+                    values = values.where(values.notna() & (values.astype(str) != ""), "control").astype(str)
+                else:
+                    values = values.astype(float).fillna(1.0)
+                table[key] = values.to_numpy()
+                changed = True
+        return validate_gcps(table, source=f"GCP layer {source.sourceName()!r}", dem=dem) if changed else table
+
+    def push_warnings(self, feedback, rep) -> None:
+        """Send the workflow report's ``warnings`` (list of one-line str) to the Processing log."""
+        if feedback is None:
+            return
+        for w in (rep.get("warnings", []) if isinstance(rep, dict) else getattr(rep, "warnings", []) or []):
+            feedback.pushWarning(str(w))
 
     # ---- outputs -------------------------------------------------------------------------------------------
     def output_file(self, parameters, name, context) -> Optional[str]:
-        """A file destination's path (None when optional and unset); removed again if the run fails."""
+        """A file destination's path (None when optional and unset). The workflow writes it under its output
+        policy (:class:`gdal_gf4cal.outputs.OutputSet`): folders made and files written by a failed or cancelled
+        run are removed there, so nothing is created here (a new path is still removed if the run fails)."""
         path = self.parameterAsFileOutput(parameters, name, context)
-        if not path:
-            return None
-        if not os.path.exists(path):
-            self._created.append(path)
-        folder = os.path.dirname(os.path.abspath(path))
-        os.makedirs(folder, exist_ok=True)
-        return path
+        if path and not os.path.exists(path):
+            self._created.append(path)    # safety net for an algorithm that writes it itself
+        return path or None
 
     def output_folder(self, parameters, name, context) -> str:
-        """A folder destination's path, created if needed; a folder this run created is removed again (with
-        everything in it, all written by this run) if the run fails."""
+        """A folder destination's path; the workflow creates it (and removes it again if the run fails)."""
         folder = self.parameterAsString(parameters, name, context)
         if not folder:
             raise QgsProcessingException(self.tr(f"Choose an output folder ({name})."))
-        folder = os.path.abspath(folder)
-        top = folder
-        while not os.path.exists(os.path.dirname(top)) and os.path.dirname(top) != top:
-            top = os.path.dirname(top)
-        if not os.path.exists(folder):
-            os.makedirs(folder)
-            self._created_dirs.append(top)
-        return folder
+        return os.path.abspath(folder)
 
     def load_on_completion(self, uri: str, name: str, kind: str = "vector") -> None:
         """Open ``uri`` as a layer (with its default style) in the project when the algorithm finishes."""

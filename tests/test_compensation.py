@@ -14,7 +14,8 @@ import pytest
 
 from gdal_gf4cal import DegenerateGeometryError, GCPError, InputOverwriteError, RPCModel
 from gdal_gf4cal.compensation import (CompensatedRPC, CompensationModel, CompensationResult, apply_compensation,
-                                      fit_compensation, write_refined_rpc)
+                                      fit_compensation)
+from gdal_gf4cal.workflows import write_refined_rpc
 
 DATA = Path(__file__).parent / "data" / "compensation"
 

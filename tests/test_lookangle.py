@@ -333,7 +333,7 @@ def test_progress_is_reported_and_cancellation_propagates(scene):
 
 def test_apply_calibration_keeps_dotted_product_names(scene, tmp_path):
     """GF4 product names carry dotted coordinates (GF4_PMS_E88.5_N32.5_...): output names keep the whole stem."""
-    from gdal_gf4cal.lookangle import apply_calibration
+    from gdal_gf4cal.workflows import apply_calibration
     names = ["GF4_PMS_E88.5_N32.5_20210109", "GF4_PMS_E88.9_N27.3_20210109"]
     paths = [scene["rpc"].write_rpb(str(tmp_path / f"{n}.RPB")) for n in names]
     rep = apply_calibration(scene["current"], scene["true"], paths, tmp_path / "out")

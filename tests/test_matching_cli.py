@@ -58,7 +58,7 @@ def test_cli_bad_input_is_one_line(scene, tmp_path):
 def test_end_to_end_collect_refine_orthorectify(scene, tmp_path):
     """collect -> refine (affine, gdal_gf4cal.compensation) -> gdalwarp -rpc with the refined RPC: the
     orthoimage matches the reference within 0.2 px (phase correlation), while the biased RPC is ~50 px off."""
-    from gdal_gf4cal.compensation import refine_rpc
+    from gdal_gf4cal.workflows import refine_rpc
     from gdal_gf4cal.gcp import write_gcps
     from gdal_gf4cal.matching import collect_gcps
     g = collect_gcps(scene.image, None, scene.reference, scene.dem, spacing_px=32, window_px=64, workers=1)

@@ -216,7 +216,7 @@ def test_report_json_numpy_safe(tmp_path):
 def test_assess_accuracy_against_known_offsets(tmp_path):
     """A real RPC (GDAL autotest's DigitalGlobe sample) and GCPs displaced by a known shift + rotation + noise."""
     from gdal_gf4cal.gcp import make_gcps
-    from gdal_gf4cal.report import assess_accuracy
+    from gdal_gf4cal.workflows import assess_accuracy
     from gdal_gf4cal.rpc import RPCModel
 
     rpc_path = os.path.join(os.path.dirname(__file__), "data", "rpc", "md_dg.RPB")

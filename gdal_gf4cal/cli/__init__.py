@@ -1,13 +1,16 @@
 """The ``gf4cal`` command line: one module per sub-command, each with ``add_parser(subparsers)`` and ``run(args)``.
 
 The CLI only parses options, calls the library and prints. Any :class:`Gf4calError` becomes one line on stderr and
-exit status 2; a cancelled run exits 130. No traceback reaches the user (``GF4CAL_DEBUG=1`` shows it).
+exit status 2 (any other exception too); a cancelled or interrupted run (Ctrl-C, SIGTERM) exits 130 and keeps no
+output. No traceback reaches the user (``GF4CAL_DEBUG=1`` shows it, ``0`` does not). Commands call the workflows
+layer (:mod:`gdal_gf4cal.workflows`) and print its report, with ``report["warnings"]`` as ``warning:`` lines.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import os
+import signal
 import sys
 from typing import List, Optional
 
@@ -41,23 +44,54 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _debug() -> bool:
+    """``GF4CAL_DEBUG=1`` (or yes/true/on) shows tracebacks; unset, ``0``, no, false or off does not."""
+    return os.environ.get("GF4CAL_DEBUG", "").strip().lower() in ("1", "yes", "true", "on")
+
+
+def print_warnings(rep, stream=None) -> None:
+    """Print ``rep["warnings"]`` (list of one-line str) as ``gf4cal: warning: ...`` lines on stderr."""
+    for w in (rep or {}).get("warnings", []) if isinstance(rep, dict) else getattr(rep, "warnings", []) or []:
+        print(f"gf4cal: warning: {w}", file=stream or sys.stderr)
+
+
+def _sigterm(signum, frame):  # pragma: no cover - exercised through a subprocess
+    raise KeyboardInterrupt("terminated")
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    previous = None
+    try:
+        previous = signal.signal(signal.SIGTERM, _sigterm)   # SIGTERM cleans up like Ctrl-C (outputs removed)
+    except ValueError:                                       # not the main thread: leave signals alone
+        previous = None
     try:
         return int(args._run(args) or 0)
     except CancelledError:
         print("gf4cal: cancelled", file=sys.stderr)
         return 130
-    except (Gf4calError, OSError, ValueError) as exc:
-        if os.environ.get("GF4CAL_DEBUG"):
+    except KeyboardInterrupt:
+        print("gf4cal: interrupted; no output was kept", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 2
+    except Exception as exc:     # every exception class becomes one line (GF4CAL_DEBUG=1: the traceback)
+        if _debug():
             raise
-        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        text = str(exc).strip()
+        msg = text.splitlines()[0] if text else type(exc).__name__
+        if not isinstance(exc, (Gf4calError, OSError, ValueError)):
+            msg = f"{type(exc).__name__}: {msg} (unexpected; rerun with GF4CAL_DEBUG=1 and report it)"
         print(f"gf4cal: error: {msg}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("gf4cal: interrupted", file=sys.stderr)
-        return 130
+    except RecursionError as exc:  # pragma: no cover - a subclass of Exception; kept for clarity
+        print(f"gf4cal: error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -16,7 +16,7 @@ def add_parser(parser):
 
 
 def run(args) -> int:
-    from ..lookangle import apply_calibration
+    from ..workflows import apply_calibration
     from ..progress import TextProgressBar
     rep = apply_calibration(args.current, args.new, args.scenes, args.out, overwrite=args.overwrite,
                             progress=TextProgressBar())
@@ -26,4 +26,6 @@ def run(args) -> int:
               f"{e['image_shift_px']['max']:.2f} px; RPC fit max {fit['max_px']:.2e} px -> {e['rpb']}"
               + (f" and {e['vrt']}" if e["vrt"] else ""))
     print(f"wrote report: {rep['outputs']['report']}")
+    from . import print_warnings
+    print_warnings(rep)
     return 0

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import sys
-import warnings
 
 NAME = "calibrate-lookangle"
 HELP = ("Calibrate the detector look-angle model (GF4-type area array) from a scene's RPC, its camera file and "
@@ -65,15 +64,12 @@ def print_summary(rep: dict, stream=None) -> None:
 
 
 def run(args) -> int:
-    from ..lookangle import MAX_CONDITION, LookAngleConditionWarning, calibrate_lookangle_files
+    from . import print_warnings
     from ..progress import TextProgressBar
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", LookAngleConditionWarning)
-        rep = calibrate_lookangle_files(args.rpc, args.gcps, args.camera, args.out, image=args.image, dem=args.dem,
-                                        geoid=args.geoid, robust=not args.no_robust,
-                                        max_condition=args.max_condition or MAX_CONDITION,
-                                        overwrite=args.overwrite, progress=TextProgressBar())
-    for w in caught:
-        print(f"gf4cal: warning: {w.message}", file=sys.stderr)
+    from ..workflows import calibrate_lookangle_files
+    rep = calibrate_lookangle_files(args.rpc, args.gcps, args.camera, args.out, image=args.image, dem=args.dem,
+                                    geoid=args.geoid, robust=not args.no_robust, max_condition=args.max_condition,
+                                    overwrite=args.overwrite, progress=TextProgressBar())
     print_summary(rep)
+    print_warnings(rep)
     return 0

@@ -32,41 +32,15 @@ def add_parser(parser):
 
 
 def run(args) -> int:
-    import os
-
-    from ..dem import DEM
-    from ..errors import Gf4calError, InputOverwriteError
-    from ..gcp import write_gcps
-    from ..matching import collect_gcps
+    from . import print_warnings
     from ..progress import TextProgressBar
-    from ..rpc import RPCModel
-
-    out = os.path.abspath(args.out)
-    for src in (args.image, args.reference, args.dem, args.rpc):
-        if src and os.path.exists(str(src)) and os.path.abspath(str(src)) == out:
-            raise InputOverwriteError(f"output {args.out!r} is an input; choose a new output path")
-    if os.path.exists(out) and not args.overwrite:
-        raise InputOverwriteError(f"output {args.out!r} exists; remove it, choose another path or --overwrite")
-    if os.path.splitext(out)[1].lower() not in (".gpkg", ".csv", ".geojson", ".json"):
-        raise Gf4calError(f"output {args.out!r}: use a name ending in .gpkg, .csv or .geojson")
-    if not os.path.exists(args.image):
-        raise Gf4calError(f"image not found: {args.image}")
-    rpc = RPCModel.from_file(args.rpc or args.image)
-    try:
-        dem = DEM.constant(float(args.dem))
-    except ValueError:
-        dem = DEM.from_file(args.dem, geoid=args.geoid)
-    gcps = collect_gcps(args.image, rpc, args.reference, dem, spacing_px=args.spacing, window_px=args.window,
-                        workers=args.workers, min_peak=args.min_peak, search_px=args.search,
-                        outlier_model=args.outlier_model, seed=args.seed, band=args.band,
-                        reference_band=args.reference_band, progress=TextProgressBar())
-    w = gcps.attrs["windows"]
-    table = gcps if args.keep_outliers else gcps[~gcps["outlier"].to_numpy(bool)]
-    if len(table) == 0:
-        raise Gf4calError(f"no GCP found in {w['total']} windows ({w['featureless']} featureless, "
-                          f"{w['weak_correlation']} weak, {w['nodata'] + w['outside_image']} without data); check "
-                          "that the reference and DEM cover the image, or raise --search")
-    write_gcps(table, out)
+    from ..workflows import collect_gcps_file
+    rep = collect_gcps_file(args.image, args.reference, args.dem, args.out, rpc=args.rpc, geoid=args.geoid,
+                            keep_outliers=args.keep_outliers, overwrite=args.overwrite, progress=TextProgressBar(),
+                            spacing_px=args.spacing, window_px=args.window, workers=args.workers,
+                            min_peak=args.min_peak, search_px=args.search, outlier_model=args.outlier_model,
+                            seed=args.seed, band=args.band, reference_band=args.reference_band)
+    gcps, w = rep["gcps"], rep["windows"]
     inl = ~gcps["outlier"].to_numpy(bool)
     print(f"windows {w['total']}: accepted {w['accepted']}, featureless {w['featureless']}, weak correlation "
           f"{w['weak_correlation']}, cloud/change {w['cloud_or_change']}, no data {w['nodata']}, outside "
@@ -75,5 +49,6 @@ def run(args) -> int:
         ds, dl = gcps["dsample"].to_numpy()[inl], gcps["dline"].to_numpy()[inl]
         print(f"offset measured - RPC: mean {ds.mean():+.3f} / {dl.mean():+.3f} px (sample/line), "
               f"median precision {float(gcps['precision_px'][inl].median()):.3f} px")
-    print(f"wrote {len(table)} GCPs: {args.out}")
+    print(f"wrote {rep['n_gcps']} GCPs: {args.out}")
+    print_warnings(rep)
     return 0

@@ -5,10 +5,6 @@ Dispatches by name to ``gdal_gf4cal.experiments.<name>.run(out_dir, ...)``; a mo
 """
 from __future__ import annotations
 
-import importlib
-import pkgutil
-
-from ..errors import Gf4calError
 
 NAME = "experiment"
 HELP = "Run a paper's experiment on simulated scenes (e.g. 'gf4': look-angle calibration, Tables 2-4)."
@@ -16,8 +12,8 @@ HELP = "Run a paper's experiment on simulated scenes (e.g. 'gf4': look-angle cal
 
 def available():
     """Names of the experiment modules in :mod:`gdal_gf4cal.experiments`."""
-    from .. import experiments
-    return sorted(m.name for m in pkgutil.iter_modules(experiments.__path__) if not m.name.startswith("_"))
+    from ..workflows.experiment import available as _available
+    return _available()
 
 
 def add_parser(parser):
@@ -25,16 +21,18 @@ def add_parser(parser):
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (report.json and more)")
     parser.add_argument("--seed", type=int, default=None, help="random seed (default: the experiment's own)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="write into an existing, non-empty folder (never over an input)")
 
 
 def run(args) -> int:
+    from . import print_warnings
     from ..progress import TextProgressBar
-    names = available()
-    if args.name not in names:
-        raise Gf4calError(f"unknown experiment {args.name!r}; choose one of: {', '.join(names)}")
-    mod = importlib.import_module(f"gdal_gf4cal.experiments.{args.name}")
-    kwargs = {"progress": None if args.quiet else TextProgressBar()}
+    from ..workflows import run_experiment
+    kwargs = {}
     if args.seed is not None:
         kwargs["seed"] = args.seed
-    mod.run(args.out, **kwargs)
+    rep = run_experiment(args.name, args.out, overwrite=args.overwrite,
+                         progress=None if args.quiet else TextProgressBar(), **kwargs)
+    print_warnings(rep)
     return 0

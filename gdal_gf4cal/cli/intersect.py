@@ -19,7 +19,7 @@ def add_parser(parser):
 
 def run(args) -> int:
     import math
-    from ..intersection import intersect_files
+    from ..workflows import intersect_files
     rep = intersect_files(args.rpc, args.points, out=args.out, sigma_px=args.sigma, report=args.report,
                           overwrite=args.overwrite)
     print(f"{rep['n_intersected']} of {rep['n_points']} points intersected from {len(rep['rpcs'])} images")
@@ -43,4 +43,6 @@ def run(args) -> int:
                   f"{r['sigma_planar_m']:.3f},{r['sigma_height_m']:.3f}")
     else:
         print(f"wrote {args.out}")
+    from . import print_warnings
+    print_warnings(rep)
     return 0

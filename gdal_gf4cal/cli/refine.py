@@ -42,28 +42,17 @@ def _fmt(x):
 
 
 def run(args) -> int:
-    import os
-    from ..compensation import refine_rpc
+    from . import print_warnings
     from ..progress import TextProgressBar
-    created = []          # output folders made here, like simulate/calibrate do; removed again on failure
-    for out in (args.out, args.report, args.residuals, args.plot):
-        folder = os.path.dirname(os.path.abspath(out)) if out else ""
-        if folder and not os.path.isdir(folder):
-            os.makedirs(folder)
-            created.append(folder)
-    try:
-        rep = refine_rpc(args.source, args.gcps, args.model, out=args.out, order=args.order, along=args.along,
-                         ccd_axis=args.ccd_axis, dem=args.dem, geoid=args.geoid, gcp_crs=args.gcp_crs,
-                         check_fraction=args.check_fraction, seed=args.seed, leave_one_out=args.leave_one_out,
-                         robust=not args.no_robust, outlier_threshold=args.outlier_threshold, report=args.report,
-                         residuals=args.residuals, plot=args.plot, overwrite=args.overwrite,
-                         progress=TextProgressBar())
-    except BaseException:
-        for folder in reversed(created):
-            if os.path.isdir(folder) and not os.listdir(folder):
-                os.rmdir(folder)
-        raise
+    from ..workflows import refine_rpc
+    rep = refine_rpc(args.source, args.gcps, args.model, out=args.out, order=args.order, along=args.along,
+                     ccd_axis=args.ccd_axis, dem=args.dem, geoid=args.geoid, gcp_crs=args.gcp_crs,
+                     check_fraction=args.check_fraction, seed=args.seed, leave_one_out=args.leave_one_out,
+                     robust=not args.no_robust, outlier_threshold=args.outlier_threshold, report=args.report,
+                     residuals=args.residuals, plot=args.plot, overwrite=args.overwrite,
+                     progress=TextProgressBar())
     _print_report(rep)
+    print_warnings(rep)
     return 0
 
 

@@ -33,12 +33,15 @@ def add_parser(parser):
                         help="with --render from the built-in texture: do not write reference.tif (the same "
                              "texture as an EPSG:4326 orthophoto, for collect-gcps --reference)")
     parser.add_argument("--workers", type=int, default=2, help="rendering threads (default 2)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="write into an existing, non-empty folder (never over an input)")
 
 
 def run(args) -> int:
+    from . import print_warnings
     from ..progress import TextProgressBar
-    from ..simulate import write_scene
-    res = write_scene(args.sensor, args.out, seed=args.seed, center=args.center, size=args.size,
+    from ..workflows import simulate_scene
+    res = simulate_scene(args.sensor, args.out, overwrite=args.overwrite, seed=args.seed, center=args.center, size=args.size,
                       n_gcps=args.n_gcps, gcp_noise_px=args.gcp_noise, outlier_fraction=args.outlier_fraction,
                       dem=args.dem, render=args.render, reference=args.reference, progress=TextProgressBar(),
                       check_fraction=args.check_fraction, paint_clouds=args.clouds, workers=args.workers,
@@ -50,4 +53,5 @@ def run(args) -> int:
               f"RMS {chk.rms_px:.2e} px  ({im.dir})")
         if "reference" in im.paths:
             print(f"  reference orthophoto of the same ground: {im.paths['reference']}")
+    print_warnings(res)
     return 0

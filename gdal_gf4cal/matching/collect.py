@@ -50,6 +50,7 @@ from ..progress import report
 from .correlate import correlate_spectra, phase_correlate, spectra, window_measures
 from .filters import reject_outliers
 from .resample import ReferenceImage, read_block, reference_on_grids
+from .._gdal import with_gdal_exceptions
 
 __all__ = ["TileSpec", "STATUS", "collect_gcps", "plan_tiles", "match_tile", "assemble_gcps"]
 
@@ -182,6 +183,7 @@ def _predict_offsets(centers, dx, dy, pilots, rest, res, ok, p):
     return pred[:, 0], pred[:, 1]
 
 
+@with_gdal_exceptions
 def match_tile(spec: TileSpec) -> Dict[str, np.ndarray]:
     """Match every window of one tile (the unit of parallel work; see the module docstring).
 
@@ -190,7 +192,6 @@ def match_tile(spec: TileSpec) -> Dict[str, np.ndarray]:
     peak_ratio, ncc, precision_px, texture`` and ``status`` (see :data:`STATUS`).
     """
     from osgeo import gdal
-    gdal.UseExceptions()
     c = np.asarray(spec.centers, dtype=float).reshape(-1, 2)
     n = c.shape[0]
     out = {k: np.full(n, np.nan) for k in ("lon", "lat", "h", "dsample", "dline", "peak", "peak_ratio", "ncc",
@@ -378,9 +379,9 @@ DEFAULTS = dict(min_peak=0.2, min_peak_ratio=2.0, min_ncc=0.3, min_texture=1.5, 
                 sigma_px=1.0, geometry_step=4)
 
 
+@with_gdal_exceptions
 def _image_info(image, band: int):
     from osgeo import gdal
-    gdal.UseExceptions()
     path = image.GetDescription() if hasattr(image, "GetDescription") else os.fspath(image)
     try:
         ds = gdal.Open(path)

@@ -22,6 +22,7 @@ from typing import Tuple
 import numpy as np
 
 from ..errors import Gf4calError
+from .._gdal import with_gdal_exceptions
 
 __all__ = ["ReferenceImage", "grid_nodes", "read_block", "reference_on_grids"]
 
@@ -72,10 +73,10 @@ class ReferenceImage:
         state["_transformer"] = None
         return state
 
+    @with_gdal_exceptions
     def _open(self):
         if self._ds is None:
             from osgeo import gdal
-            gdal.UseExceptions()
             try:
                 self._ds = gdal.Open(self.path)
             except RuntimeError as exc:

@@ -23,6 +23,7 @@ import numpy as np
 from ..atomic import atomic_output
 from ..errors import DEMError, Gf4calError
 from ..progress import report
+from .._gdal import with_gdal_exceptions
 
 _M_PER_DEG = 111320.0
 
@@ -121,6 +122,7 @@ def texture_value(lon, lat, seed: int = 0, scale_m: float = 150.0, edge_m: Optio
     return np.clip(v, 0.0, 1.0)
 
 
+@with_gdal_exceptions
 def write_reference_ortho(path, bounds, resolution_deg: float, seed: int = 0, scale_m: float = 150.0,
                           block: int = 1024, workers: int = 2) -> str:
     """Write the built-in texture as an EPSG:4326 Byte GeoTIFF over ``bounds = (min_lon, min_lat, max_lon,
@@ -128,7 +130,6 @@ def write_reference_ortho(path, bounds, resolution_deg: float, seed: int = 0, sc
 
     Blocks are computed by ``workers`` threads (NumPy releases the GIL), at most ``2 * workers`` in flight."""
     from osgeo import gdal, osr
-    gdal.UseExceptions()
     x0, y0, x1, y1 = bounds
     nx = int(np.ceil((x1 - x0) / resolution_deg))
     ny = int(np.ceil((y1 - y0) / resolution_deg))
@@ -244,9 +245,9 @@ def _native_cell_deg(dem) -> Optional[float]:
 class _Reference:
     """Windowed bilinear sampling of any GDAL raster (any CRS) at (lon, lat); one dataset handle per thread."""
 
+    @with_gdal_exceptions
     def __init__(self, path: str, image_gsd_m: float):
         from osgeo import gdal, osr
-        gdal.UseExceptions()
         self.path = os.fspath(path)
         try:
             ds = gdal.Open(self.path)
@@ -415,6 +416,7 @@ def _cloud_field(x, y, W, H, seed):
                                                                                 9100 + seed) * 0.3
 
 
+@with_gdal_exceptions
 def render_image(model, dem, path, *, reference=None, seed: int = 0, gsd_m: Optional[float] = None,
                  paint_clouds: float = 0.0, cloud_mask_path: Optional[str] = None, tile: int = 512,
                  workers: int = 2, progress=None) -> str:
@@ -433,7 +435,6 @@ def render_image(model, dem, path, *, reference=None, seed: int = 0, gsd_m: Opti
     from osgeo import gdal
     from ..dem import DEM
     from ..atomic import fix_mode
-    gdal.UseExceptions()
     dem = DEM.coerce(dem)
     W, H = model.size
     if gsd_m is None:

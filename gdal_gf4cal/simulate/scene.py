@@ -20,6 +20,7 @@ from ..progress import report, scaled
 from ..atomic import atomic_output
 from .cameras import write_json_atomic
 from .sensors import SimImage, SimScene, SimulationError, make_scene
+from .._gdal import with_gdal_exceptions
 
 #: Sensors whose images cover the same ground (GCPs drawn once, from the first image).
 _SHARED_COVERAGE = {"zy3", "gf7"}
@@ -118,10 +119,10 @@ def check_grid(image: SimImage, dem, n: int = 41):
     return df[np.isfinite(df.to_numpy()).all(axis=1)].reset_index(drop=True)
 
 
+@with_gdal_exceptions
 def write_placeholder_tif(path: str, size, dtype: str = "Byte") -> str:
     """A sparse tiled GeoTIFF of the image size: unwritten blocks cost nothing (10240^2 in a few kB)."""
     from osgeo import gdal
-    gdal.UseExceptions()
     with atomic_output(path) as tmp:
         ds = gdal.GetDriverByName("GTiff").Create(tmp, int(size[0]), int(size[1]), 1,
                                                   gdal.GetDataTypeByName(dtype),

@@ -45,7 +45,7 @@ class ApplyCalibration(Gf4calAlgorithm):
         self.addOutput(QgsProcessingOutputNumber("MAX_FIT_ERROR_PX", self.tr("Largest RPC fit error (px)")))
 
     def run_algorithm(self, parameters, context, feedback, progress):
-        from gdal_gf4cal.lookangle import apply_calibration
+        from gdal_gf4cal.workflows import apply_calibration
 
         scenes = self.parameterAsFileList(parameters, self.INPUT, context)
         if not scenes:
@@ -54,6 +54,7 @@ class ApplyCalibration(Gf4calAlgorithm):
         new = self.parameterAsFile(parameters, self.NEW_CAMERA, context)
         folder = self.output_folder(parameters, self.OUTPUT_FOLDER, context)
         rep = apply_calibration(current, new, scenes, folder, overwrite=True, progress=progress)
+        self.push_warnings(feedback, rep)
         rpcs, shift, fit_err = [], 0.0, 0.0
         for e in rep["scenes"]:
             fit = e["fit"]["check"] or e["fit"]["fit"]

@@ -40,7 +40,7 @@ class AssessAccuracy(Gf4calAlgorithm):
 
     def run_algorithm(self, parameters, context, feedback, progress):
         from gdal_gf4cal.describe import image_size_of
-        from gdal_gf4cal.report import assess_accuracy
+        from gdal_gf4cal.workflows import assess_accuracy
 
         source = self.input_path(parameters, context)
         dem = self.read_dem(parameters, context)
@@ -53,7 +53,8 @@ class AssessAccuracy(Gf4calAlgorithm):
             from gdal_gf4cal.rpc import RPCModel
             size = RPCModel.from_file(source).image_size
         rep = assess_accuracy(source, gcps, residuals=out_gpkg, plot=out_plot, report=out_report, image_size=size,
-                              progress=progress)
+                              overwrite=True, progress=progress)
+        self.push_warnings(feedback, rep)
         a = rep["all"]
         outputs = {"N": rep["n"], "RMS_SAMPLE": a["sample"]["rms"], "RMS_LINE": a["line"]["rms"],
                    "MEAN_SAMPLE": a["sample"]["mean"], "MEAN_LINE": a["line"]["mean"],

@@ -63,8 +63,7 @@ class CalibrateLookAngle(Gf4calAlgorithm):
 
     def run_algorithm(self, parameters, context, feedback, progress):
         from gdal_gf4cal.describe import image_size_of
-        from gdal_gf4cal.gcp import write_gcps
-        from gdal_gf4cal.lookangle import calibrate_lookangle_files
+        from gdal_gf4cal.workflows import calibrate_lookangle_files
 
         source = self.input_path(parameters, context)
         camera = self.parameterAsFile(parameters, self.CAMERA, context)
@@ -73,15 +72,10 @@ class CalibrateLookAngle(Gf4calAlgorithm):
         dem = self.read_dem(parameters, context)
         gcps = self.read_gcps(parameters, context, feedback, dem=dem)  # heights filled from the DEM here
         folder = self.output_folder(parameters, self.OUTPUT_FOLDER, context)
-        used = os.path.join(folder, "gcps_used.csv")
-        existed = os.path.exists(used)
-        # The engine's file workflow reads GCP files: give it the layer's GCPs (WGS84, heights filled) as CSV.
-        write_gcps(gcps.drop(columns="geometry"), used)
-        if not existed:
-            self._created.append(used)
         image = source if image_size_of(source) is not None else None
-        rep = calibrate_lookangle_files(source, used, camera, folder, image=image, robust=self.parameterAsBool(
+        rep = calibrate_lookangle_files(source, gcps, camera, folder, image=image, robust=self.parameterAsBool(
             parameters, self.ROBUST, context), overwrite=True, progress=progress)
+        self.push_warnings(feedback, rep)
         cal, paths = rep["calibration"], rep["outputs"]
         feedback.pushInfo(f"{cal['n_control']} control GCPs, {cal['n_outliers']} outliers, {cal['iterations']} "
                           f"iterations, condition number {cal['condition_number']:.3g}")

@@ -75,9 +75,7 @@ class CollectGcps(Gf4calAlgorithm):
     def run_algorithm(self, parameters, context, feedback, progress):
         from concurrent.futures import ThreadPoolExecutor
 
-        from gdal_gf4cal.gcp import write_gcps
-        from gdal_gf4cal.matching import collect_gcps
-        from gdal_gf4cal.rpc import RPCModel
+        from gdal_gf4cal.workflows import collect_gcps_file
 
         image = self.input_path(parameters, context)
         ref_layer = self.parameterAsRasterLayer(parameters, self.REFERENCE, context)
@@ -85,10 +83,10 @@ class CollectGcps(Gf4calAlgorithm):
             raise self.error("Give the reference orthophoto (REFERENCE).")
         dem = self.read_dem(parameters, context)
         out = self.output_file(parameters, self.OUTPUT, context)
-        rpc = RPCModel.from_file(image)
+        keep = self.parameterAsBool(parameters, self.KEEP_OUTLIERS, context)
         # Threads, not processes: inside QGIS a process pool would start QGIS executables.
         with ThreadPoolExecutor(max_workers=self.parameterAsInt(parameters, self.THREADS, context)) as pool:
-            gcps = collect_gcps(image, rpc, ref_layer.source(), dem,
+            rep = collect_gcps_file(image, ref_layer.source(), dem, out, keep_outliers=keep, overwrite=True,
                                 spacing_px=self.parameterAsInt(parameters, self.SPACING, context),
                                 window_px=self.parameterAsInt(parameters, self.WINDOW, context),
                                 search_px=self.parameterAsDouble(parameters, self.SEARCH, context),
@@ -96,16 +94,12 @@ class CollectGcps(Gf4calAlgorithm):
                                                                                   context)],
                                 seed=self.parameterAsInt(parameters, self.SEED, context), executor=pool,
                                 progress=progress)
-        w = gcps.attrs["windows"]
+        self.push_warnings(feedback, rep)
+        gcps, table, w = rep["gcps"], rep["table"], rep["windows"]
         inliers = ~gcps["outlier"].to_numpy(bool)
-        table = gcps if self.parameterAsBool(parameters, self.KEEP_OUTLIERS, context) else gcps[inliers]
         feedback.pushInfo(f"windows {w['total']}: accepted {w['accepted']}, featureless {w['featureless']}, weak "
                           f"correlation {w['weak_correlation']}, cloud/change {w['cloud_or_change']}, no data "
                           f"{w['nodata']}, outside {w['outside_image']}; outliers {w['outliers']}")
-        if len(table) == 0:
-            raise self.error(f"No GCP found in {w['total']} windows; check that the reference and the DEM cover the "
-                             "image, or raise the largest initial offset.")
-        write_gcps(table, out)
         self.load_on_completion(out, "GCPs (matched)", "vector")
         # dsample, dline: offset measured - RPC prediction (collect_gcps always returns them).
         ds, dl = gcps["dsample"].to_numpy()[inliers], gcps["dline"].to_numpy()[inliers]

@@ -77,7 +77,7 @@ class RefineRpc(Gf4calAlgorithm):
             self.addOutput(QgsProcessingOutputNumber(key, self.tr(label)))
 
     def run_algorithm(self, parameters, context, feedback, progress):
-        from gdal_gf4cal.compensation import refine_rpc
+        from gdal_gf4cal.workflows import refine_rpc
 
         source = self.input_path(parameters, context)
         dem = self.read_dem(parameters, context)
@@ -93,6 +93,7 @@ class RefineRpc(Gf4calAlgorithm):
                          dem=dem, robust=self.parameterAsBool(parameters, self.ROBUST, context),
                          outlier_threshold=self.parameterAsDouble(parameters, self.OUTLIER_THRESHOLD, context),
                          residuals=out_gpkg, plot=out_plot, report=out_report, overwrite=True, progress=progress)
+        self.push_warnings(feedback, rep)
         outputs = {self.OUTPUT_RPC: out_rpc, self.OUTPUT_GPKG: out_gpkg}
         if out_plot:
             outputs[self.OUTPUT_PLOT] = out_plot

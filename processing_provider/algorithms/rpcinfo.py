@@ -50,6 +50,7 @@ class RpcInfo(Gf4calAlgorithm):
         from shapely import wkt
 
         from gdal_gf4cal.describe import describe_rpc
+        from gdal_gf4cal.outputs import OutputSet
         from gdal_gf4cal.report import write_report_json
 
         path = self.input_path(parameters, context)
@@ -70,7 +71,10 @@ class RpcInfo(Gf4calAlgorithm):
         progress(0.8, "writing outputs")
         report = self.output_file(parameters, self.OUTPUT_REPORT, context)
         if report:
-            write_report_json(info, report)
+            outs = OutputSet([path], overwrite=True, cancelled=progress.is_cancelled)
+            tmp = outs.declare("report", report)
+            with outs:
+                write_report_json(info, tmp)
             outputs[self.OUTPUT_REPORT] = report
         fields = QgsFields()
         for name, kind in (("source", QVariant.String), ("width", QVariant.Int), ("height", QVariant.Int),

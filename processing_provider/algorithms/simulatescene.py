@@ -75,7 +75,7 @@ class SimulateScene(Gf4calAlgorithm):
         self.addOutput(QgsProcessingOutputNumber("RPC_FIT_MAX_PX", self.tr("RPC fit check error, max (px)")))
 
     def run_algorithm(self, parameters, context, feedback, progress):
-        from gdal_gf4cal.simulate import write_scene
+        from gdal_gf4cal.workflows import simulate_scene
 
         sensor = SENSORS[self.parameterAsEnum(parameters, self.SENSOR, context)]
         w = self.parameterAsInt(parameters, self.WIDTH, context)
@@ -83,12 +83,13 @@ class SimulateScene(Gf4calAlgorithm):
         if (w == 0) != (h == 0):
             raise self.error("Give both crop width and height, or neither (0 = full array).")
         folder = self.output_folder(parameters, self.OUTPUT_FOLDER, context)
-        res = write_scene(sensor, folder, seed=self.parameterAsInt(parameters, self.SEED, context),
+        res = simulate_scene(sensor, folder, overwrite=True, seed=self.parameterAsInt(parameters, self.SEED, context),
                           size=(w, h) if w else None, n_gcps=self.parameterAsInt(parameters, self.N_GCPS, context),
                           gcp_noise_px=self.parameterAsDouble(parameters, self.GCP_NOISE, context),
                           outlier_fraction=self.parameterAsDouble(parameters, self.OUTLIER_FRACTION, context),
                           check_fraction=self.parameterAsDouble(parameters, self.CHECK_FRACTION, context),
                           render=self.parameterAsBool(parameters, self.RENDER, context), progress=progress)
+        self.push_warnings(feedback, res)
         first = next(iter(res.images.values()))
         for name, im in res.images.items():
             chk = im.fit_report.check

@@ -257,3 +257,25 @@ def test_unexpected_error_is_one_line_and_removes_partial_outputs(qgis_app, tmp_
     assert not out.exists()
     log = "\n".join(fb.lines)
     assert "Traceback" in log and "poorly conditioned" in log  # warnings are logged on failure too
+
+
+def test_memory_layer_with_renamed_fields_reaches_the_engine_reader(run_alg, scene, tmp_path):
+    """A layer without a file (memory, renamed role field) goes through parameterAsCompatibleSourceLayerPathAnd
+    LayerName and the engine's own layer reader: every point read, roles from the chosen field, no CSV written."""
+    from qgis.core import QgsFeatureRequest, QgsVectorLayer
+
+    files, truth = scene
+    src = QgsVectorLayer(files["gcps"], "gcps", "ogr")
+    mem = src.materialize(QgsFeatureRequest())
+    idx = mem.fields().indexOf("role")
+    assert mem.dataProvider().renameAttributes({idx: "kind"})
+    mem.updateFields()
+    n = mem.featureCount()
+    res, _ = run_alg("gf4cal:assessaccuracy", {"INPUT": files["image"], "GCPS": mem, "ROLE_FIELD": "kind",
+                                              "OUTPUT_REPORT": str(tmp_path / "a.json")})
+    assert res["N"] == n == src.featureCount()
+    import json
+    rep = json.loads((tmp_path / "a.json").read_text())
+    roles = [f["role"] for f in src.getFeatures()]
+    assert rep["check"]["n"] == roles.count("check") > 0 and rep["control"]["n"] == roles.count("control")
+    assert sorted(os.listdir(tmp_path)) == ["a.json"]

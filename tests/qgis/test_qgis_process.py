@@ -104,7 +104,8 @@ def test_plugin_zip_layout_and_metadata(tmp_path):
                      "gdal_gf4cal_plugin/processing_provider/provider.py",
                      "gdal_gf4cal_plugin/processing_provider/algorithms/refinerpc.py",
                      "gdal_gf4cal_plugin/libs/gdal_gf4cal/__init__.py",
-                     "gdal_gf4cal_plugin/libs/gdal_gf4cal/report.py"):
+                     "gdal_gf4cal_plugin/libs/gdal_gf4cal/report/__init__.py",
+                         "gdal_gf4cal_plugin/libs/gdal_gf4cal/workflows/refine.py"):
         assert required in names, required
     assert not any("__pycache__" in n or n.endswith(".pyc") for n in names)
     assert "def classFactory(iface)" in init

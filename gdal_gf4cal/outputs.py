@@ -1,0 +1,405 @@
+"""The one output policy of every file-to-file job (DESIGN.md "Outputs"; METHODS §4.2: never overwrite an input).
+
+A run declares every output up front in an :class:`OutputSet`; before any work the set refuses
+
+* an output that is an input (same path, a symlink or hard link to it, or an ``.RPB`` / ``_RPC.TXT`` sidecar that
+  GDAL would read as the RPC of an input image),
+* two outputs that are the same file (``--out X.RPB --report X.RPB``),
+* an existing output without ``overwrite=True``.
+
+Each output is then written to a temporary next to its target (a hidden name that keeps the target's whole
+basename, so writers that look at suffixes such as ``_RPC.TXT`` see the right one), checked (the file exists, is
+not empty, and the output's own check passes: GDAL/OGR re-open, feature counts) and, when every output is
+written, all are renamed into place together. On any failure, cancel (:class:`CancelledError`), ``KeyboardInterrupt``
+or SIGTERM (the CLI turns it into ``KeyboardInterrupt``) every temporary and every folder the run created is
+removed, and targets that were being replaced are restored.
+
+:func:`atomic_output` (single file: write next to the target, then ``os.replace``) lives here too; the writers of
+the engine use it, so a file written outside an ``OutputSet`` is still never half-written.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+import uuid
+from contextlib import contextmanager
+from typing import Callable, Dict, Iterable, Iterator, List, Optional, Sequence
+
+from .errors import Gf4calError, InputOverwriteError
+
+__all__ = ["OutputSet", "atomic_output", "fix_mode", "same_file", "rpc_stem", "check_not_a_shadowing_sidecar",
+           "count_features", "check_raster", "check_vector"]
+
+# Files SQLite/GDAL may leave next to a temporary (GeoPackage journals, GDAL's .aux.xml).
+_COMPANIONS = ("-journal", "-wal", "-shm", ".aux.xml")
+
+
+def fix_mode(path) -> None:
+    """Give a file created through ``mkstemp`` (mode 0600) the usual permissions (0666 & ~umask)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(path, 0o666 & ~mask)
+
+
+@contextmanager
+def atomic_output(path) -> Iterator[str]:
+    """Yield a temporary path in ``path``'s folder (same extension, not yet created); on success it replaces
+    ``path`` with the usual permissions, on any failure it is removed.
+
+    ``/vsi`` paths (GDAL's virtual file systems) are yielded as they are: there is nothing to make atomic.
+    """
+    path = os.fspath(path)
+    if path.startswith("/vsi"):
+        yield path
+        return
+    folder = os.path.dirname(os.path.abspath(path))
+    stem, ext = os.path.splitext(os.path.basename(path))
+    fd, tmp = tempfile.mkstemp(prefix=f".{stem}.", suffix=".tmp" + ext, dir=folder)
+    os.close(fd)
+    os.unlink(tmp)        # writers (GDAL, OGR, pandas) create the file themselves; some refuse an existing one
+    try:
+        yield tmp
+        os.replace(tmp, path)
+        fix_mode(path)
+    finally:
+        _remove(tmp)
+
+
+# ------------------------------------------------------------------------------------------------ path identity
+def same_file(a, b) -> bool:
+    """True when ``a`` and ``b`` name the same file: equal absolute paths, or (both existing) the same inode
+    (symlinks, hard links, case-insensitive file systems)."""
+    a, b = os.fspath(a), os.fspath(b)
+    if os.path.abspath(a) == os.path.abspath(b) or os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def rpc_stem(path) -> str:
+    """``dir/name`` without ``.RPB`` / ``_RPC.TXT`` (sidecars) or the extension (images), lower case."""
+    full = os.path.abspath(os.fspath(path))
+    low = full.lower()
+    for suffix in (".rpb", "_rpc.txt"):
+        if low.endswith(suffix):
+            return low[:-len(suffix)]
+    return os.path.splitext(low)[0]
+
+
+def check_not_a_shadowing_sidecar(out_path, sources: Sequence) -> None:
+    """Refuse an ``.RPB`` / ``_RPC.TXT`` output that GDAL would read as the RPC of an input image.
+
+    GDAL looks for ``<stem>.RPB`` and ``<stem>_RPC.TXT`` (any case) next to an image and prefers them to the RPC in
+    its TIFF tags, so writing one there silently changes the input's RPC (METHODS §4.2: never overwrite the input).
+    Symlinked folders are resolved, so a sidecar reached through another path is refused too.
+    """
+    out_path = os.fspath(out_path)
+    low = os.path.basename(out_path).lower()
+    if not (low.endswith(".rpb") or low.endswith("_rpc.txt")):
+        return
+    stems = {rpc_stem(out_path), rpc_stem(os.path.join(os.path.realpath(os.path.dirname(os.path.abspath(out_path))),
+                                                       os.path.basename(out_path)))}
+    for src in sources:
+        if not src or not isinstance(src, (str, os.PathLike)):
+            continue
+        src = os.fspath(src)
+        if src.lower().endswith((".csv", ".points", ".geojson", ".gpkg", ".json")):
+            continue
+        src_stems = {rpc_stem(src), rpc_stem(os.path.realpath(src))}
+        if stems & src_stems:
+            name = os.path.basename(out_path)
+            n = len(os.path.basename(rpc_stem(out_path)))
+            raise InputOverwriteError(
+                f"output {out_path!r} would be read by GDAL as the RPC of the input {src!r}; choose another name "
+                f"(e.g. {name[:n]}_refined{name[n:]}) or write a .vrt")
+
+
+# ------------------------------------------------------------------------------------------------ checks
+def count_features(path) -> Dict[str, int]:
+    """``{layer name: feature count}`` of a vector file, re-opened with OGR (a :class:`Gf4calError` if it cannot)."""
+    from ._gdal import open_vector
+    ds = open_vector(path, what="written vector file")
+    counts = {}
+    for i in range(ds.GetLayerCount()):
+        lyr = ds.GetLayer(i)
+        counts[lyr.GetName()] = int(lyr.GetFeatureCount())
+    ds = None
+    return counts
+
+
+def check_vector(expected: Optional[Dict[str, int]] = None) -> Callable[[str], None]:
+    """A check for :meth:`OutputSet.declare`: the file re-opens with OGR and has ``expected`` features per layer."""
+    def check(path: str) -> None:
+        counts = count_features(path)
+        for layer, n in (expected or {}).items():
+            if counts.get(layer) != n:
+                raise Gf4calError(f"the written file has {counts.get(layer, 0)} features in layer {layer!r} instead "
+                                  f"of {n}; check the disk is not full and write again")
+    return check
+
+
+def check_raster(bands: Optional[int] = None) -> Callable[[str], None]:
+    """A check for :meth:`OutputSet.declare`: the file re-opens with GDAL (with ``bands`` bands when given)."""
+    def check(path: str) -> None:
+        from ._gdal import open_raster
+        ds = open_raster(path, what="written raster")
+        n = ds.RasterCount
+        ds = None
+        if bands is not None and n != bands:
+            raise Gf4calError(f"the written raster has {n} bands instead of {bands}; check the disk and write again")
+    return check
+
+
+def _remove(path: str) -> None:
+    for p in [path] + [path + c for c in _COMPANIONS]:
+        try:
+            if os.path.isdir(p) and not os.path.islink(p):
+                import shutil
+                shutil.rmtree(p, ignore_errors=True)
+            elif os.path.lexists(p):
+                os.unlink(p)
+        except OSError:
+            pass
+
+
+class _Output:
+    __slots__ = ("key", "path", "tmp", "check", "is_dir")
+
+    def __init__(self, key, path, tmp, check, is_dir):
+        self.key, self.path, self.tmp, self.check, self.is_dir = key, path, tmp, check, is_dir
+
+
+class OutputSet:
+    """Every output of one run, written all-or-nothing (module docstring; DESIGN.md "Outputs").
+
+    Usage::
+
+        outs = OutputSet(inputs=[image, gcps, dem], overwrite=overwrite)
+        rpc_tmp = outs.declare("rpc", out)                 # refuses collisions and existing files at once
+        rep_tmp = outs.declare("report", report) if report else None
+        with outs:                                         # creates missing folders; cleans up on any failure
+            ... work, write to rpc_tmp / rep_tmp ...
+        # leaving the block without an exception checks and renames every output together
+
+    Parameters
+    ----------
+    inputs : paths the run reads; no output may be one of them (also through links and shadowing sidecars)
+    overwrite : replace existing outputs (never an input)
+    cancelled : optional callable returning True when the user cancelled; checked before the renames
+    """
+
+    def __init__(self, inputs: Iterable = (), *, overwrite: bool = False,
+                 cancelled: Optional[Callable[[], bool]] = None):
+        self.inputs: List[str] = [os.fspath(p) for p in inputs if isinstance(p, (str, os.PathLike)) and os.fspath(p)]
+        self.overwrite = bool(overwrite)
+        self.cancelled = cancelled
+        self._outputs: Dict[str, _Output] = {}
+        self._created_dirs: List[str] = []
+        self._folders: List[tuple] = []
+        self._token = uuid.uuid4().hex[:8]
+        self._entered = False
+        self.committed = False
+
+    # -------------------------------------------------------------------------------------------- declaring
+    def add_input(self, path) -> None:
+        """Declare one more input (e.g. a sidecar found while opening); re-checks the outputs against it."""
+        if isinstance(path, (str, os.PathLike)) and os.fspath(path):
+            self.inputs.append(os.fspath(path))
+            for o in self._outputs.values():
+                self._check_against_inputs(o.path, [os.fspath(path)])
+
+    def _check_against_inputs(self, path: str, inputs: Sequence[str]) -> None:
+        for i in inputs:
+            if same_file(path, i):
+                raise InputOverwriteError(f"output {path!r} is an input; choose a new output path")
+        check_not_a_shadowing_sidecar(path, inputs)
+
+    def declare(self, key: str, path, *, check: Optional[Callable[[str], None]] = None,
+                directory: bool = False) -> str:
+        """Declare output ``key`` at ``path`` and return the temporary path to write it to (not yet created).
+
+        Refuses at once an output that is an input, that another output already names, or that exists without
+        ``overwrite``. ``check(tmp)`` runs on the written temporary before the renames (raise to fail the run).
+        ``directory=True`` declares a folder output (written as a temporary folder, renamed as a whole).
+        """
+        if self._entered and self.committed:
+            raise Gf4calError("this output set was already written; make a new one")
+        path = os.fspath(path)
+        if not path:
+            raise Gf4calError(f"output {key}: empty path; give a file name")
+        if key in self._outputs:
+            raise Gf4calError(f"output {key!r} declared twice")
+        for other in self._outputs.values():
+            if same_file(path, other.path) or \
+                    os.path.normcase(os.path.abspath(path)).lower() == os.path.normcase(
+                        os.path.abspath(other.path)).lower():
+                raise InputOverwriteError(f"outputs {other.key} and {key} are the same file {path!r}; give each "
+                                          "output its own path")
+        self._check_against_inputs(path, self.inputs)
+        if os.path.lexists(path) and not self.overwrite:
+            raise InputOverwriteError(f"output {path!r} exists; remove it, choose a new path or pass --overwrite "
+                                      "(overwrite=True)")
+        if os.path.isdir(path) and not directory:
+            raise InputOverwriteError(f"output {path!r} is a folder; give a file name")
+        if path.startswith("/vsi"):
+            tmp = path
+        else:
+            folder, name = os.path.split(os.path.abspath(path))
+            tmp = os.path.join(folder, f".gf4cal-{self._token}-{name}")
+        self._outputs[key] = _Output(key, path, tmp, check, directory)
+        if self._entered:
+            self._make_folder(path)
+        return tmp
+
+    def declare_folder(self, key: str, path) -> str:
+        """Declare a folder output that the run fills in place (a simulated scene, an experiment); returns ``path``.
+
+        Refused when it is an input or holds an input, or exists and is not empty without ``overwrite``. On failure
+        the folder is removed if this run created it, else every entry the run added to it is removed.
+        """
+        path = os.fspath(path)
+        if not path:
+            raise Gf4calError(f"output {key}: empty path; give a folder name")
+        if os.path.lexists(path) and not os.path.isdir(path):
+            raise InputOverwriteError(f"output folder {path!r} is a file; give a folder name")
+        real = os.path.realpath(path)
+        for i in self.inputs:
+            ri = os.path.realpath(i)
+            if same_file(path, i) or ri.startswith(real.rstrip(os.sep) + os.sep):
+                raise InputOverwriteError(f"output folder {path!r} holds the input {i!r}; choose another folder")
+        if os.path.isdir(path) and os.listdir(path) and not self.overwrite:
+            raise InputOverwriteError(f"output folder {path!r} exists and is not empty; choose a new folder or "
+                                      "pass --overwrite (overwrite=True)")
+        before = set(os.listdir(path)) if os.path.isdir(path) else None
+        self._folders.append((path, before))
+        return path
+
+    def set_check(self, key: str, check: Optional[Callable[[str], None]]) -> None:
+        """Set the check of output ``key`` once the run knows what to expect (e.g. the feature counts)."""
+        self._outputs[key].check = check
+
+    def tmp(self, key: str) -> str:
+        """The temporary path of output ``key``."""
+        return self._outputs[key].tmp
+
+    def path(self, key: str) -> str:
+        """The final path of output ``key``."""
+        return self._outputs[key].path
+
+    @property
+    def paths(self) -> Dict[str, str]:
+        """``{key: final path}`` of every declared output (what reports list under ``outputs``)."""
+        return {k: o.path for k, o in self._outputs.items()}
+
+    def __contains__(self, key: str) -> bool:
+        return key in self._outputs
+
+    # -------------------------------------------------------------------------------------------- writing
+    def _make_folder(self, path: str) -> None:
+        folder = os.path.dirname(os.path.abspath(path))
+        missing = []
+        while folder and not os.path.isdir(folder):
+            missing.append(folder)
+            parent = os.path.dirname(folder)
+            if parent == folder:
+                break
+            folder = parent
+        for d in reversed(missing):
+            try:
+                os.mkdir(d)
+            except FileExistsError:
+                continue
+            except OSError as exc:
+                raise Gf4calError(f"cannot create the output folder {d}: {exc.strerror}; check the path and "
+                                  "its permissions") from None
+            self._created_dirs.append(d)
+
+    def __enter__(self) -> "OutputSet":
+        self._entered = True
+        try:
+            for o in self._outputs.values():
+                if not o.path.startswith("/vsi"):
+                    self._make_folder(o.path)
+            for path, before in self._folders:
+                if before is None:
+                    self._make_folder(os.path.join(path, "x"))
+        except BaseException:
+            self.abort()
+            raise
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is not None:
+            self.abort()
+            return False
+        try:
+            self.commit()
+        except BaseException:
+            self.abort()
+            raise
+        return False
+
+    def commit(self) -> Dict[str, str]:
+        """Check every written temporary, then rename them all into place (restoring replaced files on failure)."""
+        from .errors import CancelledError
+        todo = [o for o in self._outputs.values() if not o.path.startswith("/vsi")]
+        for o in todo:
+            if not os.path.lexists(o.tmp):
+                raise Gf4calError(f"output {o.key} ({o.path}) was not written; nothing was kept")
+            if not o.is_dir and os.path.getsize(o.tmp) == 0:
+                raise Gf4calError(f"output {o.key} ({o.path}) came out empty (disk full?); nothing was kept")
+            if o.check is not None:
+                o.check(o.tmp)
+        if self.cancelled is not None and self.cancelled():
+            raise CancelledError("cancelled before the outputs were written; nothing was kept")
+        backups: List[tuple] = []
+        done: List[_Output] = []
+        try:
+            for o in todo:
+                if os.path.lexists(o.path):          # overwrite=True: keep the old one until all are in place
+                    bak = os.path.join(os.path.dirname(os.path.abspath(o.path)),
+                                       f".gf4cal-{self._token}-old-{os.path.basename(o.path)}")
+                    os.replace(o.path, bak) if not os.path.isdir(o.path) else os.rename(o.path, bak)
+                    backups.append((o.path, bak))
+                os.replace(o.tmp, o.path)
+                done.append(o)
+                if not o.is_dir:
+                    fix_mode(o.path)
+        except BaseException:
+            for o in done:
+                _remove(o.path)
+            for path, bak in backups:
+                try:
+                    os.replace(bak, path)
+                except OSError:
+                    pass
+            raise
+        for _, bak in backups:
+            _remove(bak)
+        self.committed = True
+        self._created_dirs = []
+        self._folders = []
+        return self.paths
+
+    def abort(self) -> None:
+        """Remove every temporary and every folder this run created (empty ones; nothing else)."""
+        for o in self._outputs.values():
+            if not o.path.startswith("/vsi") and o.tmp != o.path:
+                _remove(o.tmp)
+        for path, before in self._folders:
+            if before is not None and os.path.isdir(path):
+                for name in set(os.listdir(path)) - before:
+                    _remove(os.path.join(path, name))
+            elif before is None and os.path.isdir(path) and os.path.realpath(path) in {
+                    os.path.realpath(d) for d in self._created_dirs}:
+                import shutil
+                shutil.rmtree(path, ignore_errors=True)
+        self._folders = [] if self.committed else self._folders
+        for d in reversed(self._created_dirs):
+            try:
+                os.rmdir(d)
+            except OSError:
+                pass
+        self._created_dirs = []

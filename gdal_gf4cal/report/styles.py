@@ -1,0 +1,165 @@
+"""QGIS styles (QML) and OGC SLD as text for the residual GeoPackage's layers (never imports qgis)."""
+from __future__ import annotations
+
+from typing import Any, Mapping, Tuple
+from xml.sax.saxutils import escape, quoteattr
+
+import numpy as np
+
+from ._common import _RAMP, _ROLE_COLOURS, _OUTLIER_COLOUR, _FOOTPRINT_COLOUR, _nice
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# QGIS styles (QML) and OGC SLD, as text
+# ----------------------------------------------------------------------------------------------------------------
+def _rgba(hex_colour: str, alpha: int = 255) -> str:
+    h = hex_colour.lstrip("#")
+    return f"{int(h[0:2], 16)},{int(h[2:4], 16)},{int(h[4:6], 16)},{alpha}"
+
+
+def _props(props: Mapping[str, Any]) -> str:
+    # QGIS 3.22 writes both the <Option> map and the legacy <prop> list; later versions read either.
+    opts = "".join(f'<Option type="QString" name={quoteattr(k)} value={quoteattr(str(v))}/>' for k, v in props.items())
+    legacy = "".join(f"<prop k={quoteattr(k)} v={quoteattr(str(v))}/>" for k, v in props.items())
+    return f'<Option type="Map">{opts}</Option>{legacy}'
+
+
+def _symbol(kind: str, name: str, layers: str, alpha: float = 1.0) -> str:
+    return (f'<symbol type="{kind}" name={quoteattr(name)} alpha="{alpha:g}" clip_to_extent="1" force_rhr="0">'
+            f"{layers}</symbol>")
+
+
+def _layer(cls: str, props: Mapping[str, Any], inner: str = "") -> str:
+    return f'<layer class="{cls}" enabled="1" locked="0" pass="0">{_props(props)}{inner}</layer>'
+
+
+def _arrow_symbol(name: str, colour: str, alpha: float = 1.0) -> str:
+    """A line symbol drawn as a filled arrow (head in mm so that short vectors still show their direction)."""
+    fill = _symbol("fill", "@" + name + "@0", _layer("SimpleFill", {
+        "color": _rgba(colour), "style": "solid", "outline_color": "35,35,35,255", "outline_style": "solid",
+        "outline_width": "0.1", "outline_width_unit": "MM", "joinstyle": "miter"}))
+    return _symbol("line", name, _layer("ArrowLine", {
+        "arrow_width": "0.6", "arrow_width_unit": "MM", "arrow_start_width": "0.6", "arrow_start_width_unit": "MM",
+        "head_length": "2.2", "head_length_unit": "MM", "head_thickness": "1.5", "head_thickness_unit": "MM",
+        "head_type": "0", "arrow_type": "0", "is_curved": "0", "is_repeated": "1", "offset": "0",
+        "offset_unit": "MM", "ring_filter": "0"}, fill), alpha)
+
+
+def _marker_symbol(name: str, shape: str, colour: str, size: float) -> str:
+    return _symbol("marker", name, _layer("SimpleMarker", {
+        "name": shape, "color": _rgba(colour), "outline_color": "0,0,0,255", "outline_style": "solid",
+        "outline_width": "0.2", "outline_width_unit": "MM", "size": f"{size:g}", "size_unit": "MM", "angle": "0",
+        "joinstyle": "bevel", "scale_method": "diameter", "vertical_anchor_point": "1",
+        "horizontal_anchor_point": "1"}))
+
+
+def _qml(renderer: str) -> str:
+    return ("<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n"
+            '<qgis version="3.22.0" styleCategories="Symbology">' + renderer + "</qgis>\n")
+
+
+def _class_breaks(magnitudes: np.ndarray, n: int = len(_RAMP)) -> list:
+    """Equal-interval class breaks 0 .. max, at two significant digits, last class open-ended."""
+    m = magnitudes[np.isfinite(magnitudes)]
+    top = float(m.max()) if m.size and m.max() > 0 else 1.0
+    step = _nice(top / n)
+    while step * n < top * 0.999:  # rounding down may leave the largest value out of the classes
+        step = _nice(step * 1.05)
+    return [i * step for i in range(n)] + [max(step * n, top) * 1e6]
+
+
+def _vector_style(breaks, alpha: float = 1.0) -> Tuple[str, str]:
+    """Graduated arrows on ``res_px`` (QML) and the equivalent SLD rules."""
+    ranges, symbols, rules = [], [], []
+    for i in range(len(breaks) - 1):
+        lo, hi = breaks[i], breaks[i + 1]
+        label = f"{lo:g} - {hi:g} px" if i < len(breaks) - 2 else f">= {lo:g} px"
+        ranges.append(f'<range lower="{lo:.10g}" upper="{hi:.10g}" symbol="{i}" label={quoteattr(label)} '
+                      'render="true"/>')
+        symbols.append(_arrow_symbol(str(i), _RAMP[i], alpha))
+        rules.append(
+            f"<se:Rule><se:Name>{escape(label)}</se:Name><ogc:Filter><ogc:And>"
+            f"<ogc:PropertyIsGreaterThanOrEqualTo><ogc:PropertyName>res_px</ogc:PropertyName>"
+            f"<ogc:Literal>{lo:.10g}</ogc:Literal></ogc:PropertyIsGreaterThanOrEqualTo>"
+            f"<ogc:PropertyIsLessThan><ogc:PropertyName>res_px</ogc:PropertyName>"
+            f"<ogc:Literal>{hi:.10g}</ogc:Literal></ogc:PropertyIsLessThan></ogc:And></ogc:Filter>"
+            f'<se:LineSymbolizer><se:Stroke><se:SvgParameter name="stroke">{_RAMP[i]}</se:SvgParameter>'
+            f'<se:SvgParameter name="stroke-width">2</se:SvgParameter></se:Stroke></se:LineSymbolizer>'
+            # SLD has no arrow line: mark the head (end point) with a triangle.
+            f'<se:PointSymbolizer><se:Geometry><ogc:Function name="endPoint"><ogc:PropertyName>geom'
+            f"</ogc:PropertyName></ogc:Function></se:Geometry><se:Graphic><se:Mark>"
+            f"<se:WellKnownName>triangle</se:WellKnownName><se:Fill>"
+            f'<se:SvgParameter name="fill">{_RAMP[i]}</se:SvgParameter></se:Fill></se:Mark>'
+            f"<se:Size>8</se:Size></se:Graphic></se:PointSymbolizer></se:Rule>")
+    qml = _qml('<renderer-v2 type="graduatedSymbol" attr="res_px" graduatedMethod="GraduatedColor" '
+               'symbollevels="0" forceraster="0" enableorderby="0" referencescale="-1">'
+               f"<ranges>{''.join(ranges)}</ranges><symbols>{''.join(symbols)}</symbols>"
+               '<mode name="equal"/><rotation/><sizescale/></renderer-v2>')
+    return qml, "".join(rules)
+
+
+def _points_style() -> Tuple[str, str]:
+    """Rule-based points: outliers (red cross) over control (blue triangle) and check (green circle) points."""
+    # if() casts the boolean field (NULL counts as not an outlier); comparing a boolean with 0 does not.
+    not_out = '(if("outlier", 1, 0) = 0)'
+    rules = [
+        (f"{not_out} AND \"role\" = 'control'", "control", "triangle", _ROLE_COLOURS["control"], 3.2),
+        (f"{not_out} AND \"role\" = 'check'", "check", "circle", _ROLE_COLOURS["check"], 3.0),
+        (f"{not_out} AND coalesce(\"role\", '') NOT IN ('control', 'check')", "other", "square", "#888888", 2.6),
+        ('if("outlier", 1, 0) = 1', "outlier", "cross_fill", _OUTLIER_COLOUR, 3.6),
+    ]
+    qrules, symbols, sld = [], [], []
+    for i, (flt, label, shape, colour, size) in enumerate(rules):
+        qrules.append(f'<rule key="{{gf4cal-rule-{i}}}" symbol="{i}" label={quoteattr(label)} '
+                      f'filter={quoteattr(flt)}/>')
+        symbols.append(_marker_symbol(str(i), shape, colour, size))
+    sld_filter = {
+        "control": "<ogc:And><ogc:PropertyIsEqualTo><ogc:PropertyName>role</ogc:PropertyName><ogc:Literal>control"
+                   "</ogc:Literal></ogc:PropertyIsEqualTo><ogc:Not><ogc:PropertyIsEqualTo><ogc:PropertyName>outlier"
+                   "</ogc:PropertyName><ogc:Literal>1</ogc:Literal></ogc:PropertyIsEqualTo></ogc:Not></ogc:And>",
+        "check": "<ogc:And><ogc:PropertyIsEqualTo><ogc:PropertyName>role</ogc:PropertyName><ogc:Literal>check"
+                 "</ogc:Literal></ogc:PropertyIsEqualTo><ogc:Not><ogc:PropertyIsEqualTo><ogc:PropertyName>outlier"
+                 "</ogc:PropertyName><ogc:Literal>1</ogc:Literal></ogc:PropertyIsEqualTo></ogc:Not></ogc:And>",
+        "outlier": "<ogc:PropertyIsEqualTo><ogc:PropertyName>outlier</ogc:PropertyName><ogc:Literal>1</ogc:Literal>"
+                   "</ogc:PropertyIsEqualTo>",
+    }
+    sld_shape = {"triangle": "triangle", "circle": "circle", "cross_fill": "cross"}
+    for flt, label, shape, colour, size in rules:
+        if label not in sld_filter:
+            continue
+        sld.append(f"<se:Rule><se:Name>{label}</se:Name><ogc:Filter>{sld_filter[label]}</ogc:Filter>"
+                   f"<se:PointSymbolizer><se:Graphic><se:Mark><se:WellKnownName>{sld_shape[shape]}"
+                   f'</se:WellKnownName><se:Fill><se:SvgParameter name="fill">{colour}</se:SvgParameter></se:Fill>'
+                   f'<se:Stroke><se:SvgParameter name="stroke">#000000</se:SvgParameter></se:Stroke></se:Mark>'
+                   f"<se:Size>{size * 3:.0f}</se:Size></se:Graphic></se:PointSymbolizer></se:Rule>")
+    qml = _qml('<renderer-v2 type="RuleRenderer" symbollevels="0" forceraster="0" enableorderby="0" '
+               f'referencescale="-1"><rules key="{{gf4cal-root}}">{"".join(qrules)}</rules>'
+               f"<symbols>{''.join(symbols)}</symbols></renderer-v2>")
+    return qml, "".join(sld)
+
+
+def _footprint_style() -> Tuple[str, str]:
+    fill = _symbol("fill", "0", _layer("SimpleFill", {
+        "color": _rgba(_FOOTPRINT_COLOUR, 30), "style": "solid", "outline_color": _rgba(_FOOTPRINT_COLOUR),
+        "outline_style": "dash", "outline_width": "0.5", "outline_width_unit": "MM", "joinstyle": "miter"}))
+    qml = _qml('<renderer-v2 type="singleSymbol" symbollevels="0" forceraster="0" enableorderby="0" '
+               f'referencescale="-1"><symbols>{fill}</symbols><rotation/><sizescale/></renderer-v2>')
+    sld = (f"<se:Rule><se:Name>footprint</se:Name><se:PolygonSymbolizer><se:Fill>"
+           f'<se:SvgParameter name="fill">{_FOOTPRINT_COLOUR}</se:SvgParameter>'
+           f'<se:SvgParameter name="fill-opacity">0.12</se:SvgParameter></se:Fill><se:Stroke>'
+           f'<se:SvgParameter name="stroke">{_FOOTPRINT_COLOUR}</se:SvgParameter>'
+           f'<se:SvgParameter name="stroke-width">1</se:SvgParameter>'
+           f'<se:SvgParameter name="stroke-dasharray">4 2</se:SvgParameter></se:Stroke>'
+           f'</se:PolygonSymbolizer></se:Rule>')
+    return qml, sld
+
+
+def _sld(layer: str, rules: str) -> str:
+    return ('<?xml version="1.0" encoding="UTF-8"?>\n'
+            '<StyledLayerDescriptor xmlns="http://www.opengis.net/sld" xmlns:ogc="http://www.opengis.net/ogc" '
+            'xmlns:se="http://www.opengis.net/se" xmlns:xlink="http://www.w3.org/1999/xlink" '
+            'xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance" version="1.1.0" '
+            'xsi:schemaLocation="http://www.opengis.net/sld '
+            'http://schemas.opengis.net/sld/1.1.0/StyledLayerDescriptor.xsd">'
+            f"<NamedLayer><se:Name>{escape(layer)}</se:Name><UserStyle><se:Name>{escape(layer)}</se:Name>"
+            f"<se:FeatureTypeStyle>{rules}</se:FeatureTypeStyle></UserStyle></NamedLayer></StyledLayerDescriptor>\n")

@@ -1,0 +1,19 @@
+"""The workflows layer: every file-to-file job, called by the CLI and the QGIS algorithms and nothing else
+(DESIGN.md "Workflows"). Each job takes paths and options, reads its inputs, calls the engine, writes every
+output under one :class:`~gdal_gf4cal.outputs.OutputSet` (all or nothing, never over an input, never over an
+existing file without ``overwrite=True``) and returns its report dict (with ``warnings``: a list of one-line str).
+"""
+from __future__ import annotations
+
+from .apply import apply_calibration
+from .assess import assess_accuracy
+from .calibrate import calibrate_lookangle_files
+from .collect import collect_gcps_file
+from .experiment import run_experiment
+from .intersect import intersect_files, read_tie_points
+from .refine import output_kind, refine_rpc, write_refined_rpc
+from .simulate import simulate_scene
+
+__all__ = ["apply_calibration", "assess_accuracy", "calibrate_lookangle_files", "collect_gcps_file",
+           "run_experiment", "intersect_files", "read_tie_points", "output_kind", "refine_rpc",
+           "write_refined_rpc", "simulate_scene"]

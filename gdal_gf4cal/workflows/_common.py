@@ -1,0 +1,82 @@
+"""Helpers shared by the file-to-file jobs (DESIGN.md "Workflows"): opening inputs the same way everywhere."""
+from __future__ import annotations
+
+import os
+import warnings
+from contextlib import contextmanager
+from typing import Any, Dict, Iterator, List, Optional, Tuple
+
+from .._gdal import try_open_raster
+
+
+def is_path(x) -> bool:
+    """True for a file path (str or path-like), False for in-memory objects (tables, models, numbers)."""
+    return isinstance(x, (str, os.PathLike))
+
+
+def _open_dem(dem, geoid=None):
+    """A :class:`~gdal_gf4cal.dem.DEM` from what the user gave: ``None``, a DEM, a path, or a constant height
+    (a number or a string that parses as one). The lead switches this to ``DEM.from_user_input`` at merge."""
+    from ..dem import DEM
+    if dem is None:
+        return None
+    if isinstance(dem, DEM):
+        return dem
+    if isinstance(dem, (int, float)):
+        return DEM.constant(float(dem))
+    if isinstance(dem, str):
+        try:
+            return DEM.constant(float(dem))
+        except ValueError:
+            pass
+    if is_path(dem):
+        return DEM.from_file(os.fspath(dem), geoid=geoid)
+    return DEM.coerce(dem)
+
+
+def _open_image(path) -> Tuple[Optional[Tuple[int, int]], List[str]]:
+    """``((width, height), files)`` if GDAL opens ``path`` as a raster with pixels (``files``: the image and its
+    sidecars, all inputs), else ``(None, [path])`` (a standalone RPC file)."""
+    path = os.fspath(path)
+    low = path.lower()
+    if low.endswith((".rpb", "_rpc.txt", ".txt", ".json", ".geom")):
+        return None, [path]
+    ds = try_open_raster(path)
+    if ds is None or ds.RasterCount == 0 or ds.RasterXSize <= 1:
+        return None, [path]
+    return (ds.RasterXSize, ds.RasterYSize), [path] + list(ds.GetFileList() or [])
+
+
+@contextmanager
+def collect_warnings(into: List[str]) -> Iterator[None]:
+    """Record Python warnings raised by the engine inside the block as one-line strings in ``into``
+    (they reach the user as ``report["warnings"]``: CLI ``warning:`` lines, QGIS ``pushWarning``)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    for w in caught:
+        if issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning, ResourceWarning)):
+            continue
+        text = str(w.message).strip().splitlines()
+        if text and text[0] not in into:
+            into.append(text[0])
+
+
+def finish_report(rep: Dict[str, Any], warns: List[str]) -> Dict[str, Any]:
+    """Merge ``warns`` into ``rep["warnings"]`` (a list of str, always present), without duplicates."""
+    out = list(rep.get("warnings") or [])
+    for w in warns:
+        if w not in out:
+            out.append(w)
+    rep["warnings"] = out
+    return rep
+
+
+def cancel_check(progress):
+    """A callable for :class:`~gdal_gf4cal.outputs.OutputSet` ``cancelled=``: asks ``progress`` (QGIS feedback
+    adapters expose ``is_cancelled()`` / ``isCanceled()``)."""
+    for name in ("is_cancelled", "isCanceled"):
+        f = getattr(progress, name, None)
+        if callable(f):
+            return f
+    return None

@@ -1,0 +1,81 @@
+"""``gf4cal apply-calibration`` / QGIS "Apply calibration": recalibrate other scenes' RPCs for a calibrated camera
+(METHODS §5 step 4). Moved from :mod:`gdal_gf4cal.lookangle`; all outputs together or none."""
+from __future__ import annotations
+
+import os
+from typing import Any, Dict, Sequence
+
+import numpy as np
+
+from ..errors import GCPError, InputOverwriteError
+from ..outputs import OutputSet
+from .calibrate import _scene_stem
+from ._common import cancel_check, collect_warnings, finish_report
+
+
+def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: bool = False,
+                      progress=None) -> Dict[str, Any]:
+    """Recalibrate the RPCs of other scenes made with camera ``current`` for camera ``new`` (METHODS §5 step 4).
+
+    ``current``/``new`` are LookAngleModels or camera-file paths; ``scenes`` images or RPC files. Writes
+    ``out_dir/<scene>.RPB`` for each (plus ``out_dir/<scene>.vrt`` over the untouched image when the scene is a
+    raster) and ``out_dir/report.json`` with each fit report. Every RPC is refitted before anything is written,
+    and all files are renamed into place together (none on failure or cancel).
+    """
+    from .. import progress as _progress
+    from ..camera import LookAngleModel
+    from ..lookangle import recalibrate_rpc
+    from ..report import write_report_json
+    from ..rpc import RPCModel
+    from ..rpc_io import rpc_file_format, write_rpb, write_rpc_vrt
+
+    cur = current if hasattr(current, "tan_angles") else LookAngleModel.from_json(current)
+    nw = new if hasattr(new, "tan_angles") else LookAngleModel.from_json(new)
+    if tuple(cur.size) != tuple(nw.size):
+        raise GCPError(f"the cameras have different sizes {tuple(cur.size)} and {tuple(nw.size)}; give the "
+                       "current camera the new one was calibrated from")
+    scenes = [os.fspath(s) for s in scenes]
+    if not scenes:
+        raise GCPError("no scene given; name the scenes (images or RPC files) to recalibrate")
+    out = os.fspath(out_dir)
+    stems = [_scene_stem(s) for s in scenes]
+    if len(set(stems)) != len(stems):
+        raise InputOverwriteError("two scenes have the same name; recalibrate them into different folders")
+    inputs = scenes + [current if isinstance(current, (str, os.PathLike)) else None,
+                       new if isinstance(new, (str, os.PathLike)) else None]
+    outs = OutputSet(inputs, overwrite=overwrite, cancelled=cancel_check(progress))
+    plans = []
+    for s, stem in zip(scenes, stems):
+        is_image = rpc_file_format(s) == "gdal"
+        rpb = os.path.join(out, f"{stem}.RPB")
+        vrt = os.path.join(out, f"{stem}.vrt") if is_image else None
+        outs.declare(f"rpb:{stem}", rpb)
+        if vrt:
+            outs.declare(f"vrt:{stem}", vrt)
+        plans.append((s, stem, rpb, vrt))
+    outs.declare("report", os.path.join(out, "report.json"))
+    warns: list = []
+    with outs, collect_warnings(warns):
+        entries = []
+        for i, (s, stem, rpb, vrt) in enumerate(plans):
+            rpc = RPCModel.from_file(s)
+            new_rpc, fit_report = recalibrate_rpc(rpc, cur, nw, progress=_progress.scaled(
+                progress, i / len(plans), (i + 0.9) / len(plans)))
+            write_rpb(new_rpc, outs.tmp(f"rpb:{stem}"), overwrite=True)
+            if vrt:
+                write_rpc_vrt(s, new_rpc, outs.tmp(f"vrt:{stem}"), overwrite=True)
+            S, L = (a.ravel() for a in np.meshgrid(np.linspace(0, cur.size[0], 11), np.linspace(0, cur.size[1], 11)))
+            lon, lat = rpc.localize(S, L, np.full(S.shape, rpc.height_off))
+            ns, nl = new_rpc.project(lon, lat, rpc.height_off)
+            shift = np.hypot(ns - S, nl - L)
+            entries.append({"scene": s, "rpb": rpb, "vrt": vrt, "fit": fit_report.to_dict(),
+                            "image_shift_px": {"mean": float(np.nanmean(shift)), "max": float(np.nanmax(shift))}})
+        rep = {"command": "apply-calibration",
+               "current": current if isinstance(current, str) else getattr(cur, "name", ""),
+               "new": new if isinstance(new, str) else getattr(nw, "name", ""),
+               "scenes": entries, "outputs": {"report": outs.path("report")}}
+        finish_report(rep, warns)
+        write_report_json(rep, outs.tmp("report"))
+    finish_report(rep, warns)
+    _progress.report(progress, 1.0, "done")
+    return rep

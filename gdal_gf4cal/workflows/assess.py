@@ -1,0 +1,105 @@
+"""Accuracy of an RPC against GCPs (QGIS "Assess accuracy", METHODS §6); moved from :mod:`gdal_gf4cal.report`."""
+from __future__ import annotations
+
+import os
+from typing import Optional, Tuple
+
+import numpy as np
+
+from ..outputs import OutputSet, check_vector
+from ._common import _open_dem, cancel_check, collect_warnings, finish_report, is_path
+
+
+def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[str] = None, residuals=None,
+                    plot=None, report=None, image_size: Optional[Tuple[int, int]] = None, overwrite: bool = False,
+                    progress=None) -> dict:
+    """Accuracy of an RPC against GCPs (METHODS §6): residuals, per-axis and planar statistics, CE90, internal
+    accuracy, per role; optionally written as a styled GeoPackage, a plot and ``report.json`` (all or none).
+
+    Residuals are ``measured - predicted`` with ``predicted = rpc.project(lon, lat, h)`` (GDAL pixel convention).
+    In the GeoPackage and plot they are the *before* residuals (the RPC as given, before any correction).
+
+    Parameters
+    ----------
+    source : path or RPCModel
+        Image with an RPC, RPC file, or a model.
+    gcps : GCP table (DESIGN.md schema; :func:`gdal_gf4cal.gcp.validate_gcps` is applied) or a GCP file path
+        (``gcp_layer``: its layer).
+    dem : DEM, path or height, optional
+        Fills missing GCP heights (``geoid``: the DEM's geoid).
+    residuals, plot, report : optional output paths (``.gpkg``, ``.png``, ``.json``).
+    overwrite : replace existing outputs (never an input).
+
+    Returns
+    -------
+    dict
+        ``{"n", "all"|"control"|"check": {"n", "line", "sample", "planar", "ce90_m", "internal"}, "outputs",
+        "warnings"}``; a role without points is absent. ``ce90_m`` converts residuals to ground metres through the
+        RPC's ground Jacobian at each GCP; ``internal`` removes a rotation + translation first (needs >= 2 points).
+    """
+    from .. import stats
+    from ..compensation import ground_offsets_m
+    from ..gcp import read_gcps, validate_gcps
+    from ..progress import report as _report
+    from ..report import footprint_from_rpc, plot_residuals, write_report_json, write_residuals_gpkg
+    from ..rpc import RPCModel
+
+    src_name = None if isinstance(source, RPCModel) else os.fspath(source)
+    outs = OutputSet([src_name, gcps if is_path(gcps) else None, dem if is_path(dem) else None],
+                     overwrite=overwrite, cancelled=cancel_check(progress))
+    if residuals:
+        outs.declare("residuals", residuals, check=check_vector())
+    if plot:
+        outs.declare("plot", plot)
+    if report:
+        outs.declare("report", report)
+    warns: list = []
+    with outs, collect_warnings(warns):
+        rpc = source if isinstance(source, RPCModel) else RPCModel.from_file(source)
+        dem_obj = _open_dem(dem, geoid)
+        if is_path(gcps):
+            table = read_gcps(gcps, dem=dem_obj, **({"layer": gcp_layer} if gcp_layer else {}))
+        else:
+            table = validate_gcps(gcps, dem=dem_obj)
+        _report(progress, 0.2, "projecting the GCPs")
+        lon, lat, h = (table[c].to_numpy(float) for c in ("lon", "lat", "h"))
+        s_pred, l_pred = (np.asarray(v, float) for v in rpc.project(lon, lat, h))
+        table = table.copy()
+        table["pred_sample"], table["pred_line"] = s_pred, l_pred
+        table["res_sample"] = table["sample"].to_numpy(float) - s_pred
+        table["res_line"] = table["line"].to_numpy(float) - l_pred
+        east, north = ground_offsets_m(rpc, lon, lat, h, table["res_sample"].to_numpy(),
+                                       table["res_line"].to_numpy())
+        table["res_east_m"], table["res_north_m"] = east, north
+        out: dict = {"source": src_name, "n": int(len(table)), "residuals": "measured - RPC(ground), px"}
+        roles = {"all": np.ones(len(table), bool)}
+        for role in ("control", "check"):
+            m = (table["role"] == role).to_numpy()
+            if m.any() and not m.all():
+                roles[role] = m
+        for key, m in roles.items():
+            rs, rl = table["res_sample"].to_numpy()[m], table["res_line"].to_numpy()[m]
+            entry = stats.residual_report(rs, rl)
+            entry["ce90_m"] = stats.ce90(east[m], north[m])
+            if m.sum() >= 2:
+                entry["internal"] = stats.internal_accuracy(table["sample"].to_numpy()[m],
+                                                            table["line"].to_numpy()[m], s_pred[m], l_pred[m])
+            out[key] = entry
+        _report(progress, 0.6, "writing outputs")
+        if residuals:
+            footprint = None
+            if image_size is not None:
+                footprint = footprint_from_rpc(rpc, image_size, h=float(rpc.height_off))
+            write_residuals_gpkg(table, outs.tmp("residuals"), footprint=footprint, before=("res_sample", "res_line"),
+                                 after=None, title="RPC accuracy")
+            outs.set_check("residuals", check_vector({"gcps": len(table)}))
+        if plot:
+            plot_residuals(table, outs.tmp("plot"), before=("res_sample", "res_line"), after=None,
+                           image_size=image_size, title="RPC residuals at the GCPs")
+        out["outputs"] = outs.paths
+        finish_report(out, warns)
+        if report:
+            write_report_json(out, outs.tmp("report"))
+    finish_report(out, warns)
+    _report(progress, 1.0, "done")
+    return out

@@ -1,0 +1,109 @@
+"""``gf4cal calibrate-lookangle`` / QGIS "Calibrate look angles": the file job of METHODS §5 (seed 000).
+
+Moved from :mod:`gdal_gf4cal.lookangle` (which keeps the estimation). All outputs are written together or none.
+"""
+from __future__ import annotations
+
+import os
+from typing import Any, Dict
+
+from ..outputs import OutputSet, check_vector
+from ._common import _open_dem, cancel_check, collect_warnings, finish_report, is_path
+
+
+def _scene_stem(path) -> str:
+    """``scene.tif`` / ``scene.RPB`` / ``scene_RPC.TXT`` -> ``scene``.
+
+    Only the last extension goes: product names carry dots (``GF4_PMS_E88.5_N32.5_...``) and two scenes must not
+    collapse to one output name.
+    """
+    name = os.path.basename(os.fspath(path))
+    stem = os.path.splitext(name)[0] if not name.startswith(".") else name
+    if stem.upper().endswith("_RPC"):
+        stem = stem[:-4]
+    return stem or "scene"
+
+
+def _check_outputs(paths, inputs, overwrite: bool) -> None:
+    """Refuse before anything is written: an output that is an input, two outputs that are one file, or an
+    existing output without ``overwrite`` (the checks of :class:`OutputSet`)."""
+    outs = OutputSet(inputs, overwrite=overwrite)
+    for i, p in enumerate(paths):
+        outs.declare(f"output {i + 1}", p)
+
+
+def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, image=None, dem=None, geoid=None,
+                              gcp_layer=None, robust: bool = True, max_condition=None, overwrite: bool = False,
+                              progress=None) -> Dict[str, Any]:
+    """File workflow of ``gf4cal calibrate-lookangle`` (METHODS §5): calibrate, recalibrate the RPC, write outputs.
+
+    Writes into ``out_dir``: ``camera_new.json``, ``<scene>.RPB`` (the recalibrated RPC), ``<image>.vrt`` over the
+    untouched ``image`` when given, ``residuals.gpkg`` (GCPs with residuals before / after, outlier flags and
+    residual vectors), ``residuals.png`` and ``report.json``; all together after everything was computed, or
+    none (a refused input, a failure, a cancel). Returns the report dict (with ``outputs`` and ``warnings``).
+    """
+    from .. import progress as _progress
+    from ..camera import LookAngleModel
+    from ..gcp import read_gcps
+    from ..lookangle import MAX_CONDITION, calibrate_lookangle, compare_lookangle, recalibrate_rpc
+    from ..report import footprint_from_rpc, plot_residuals, write_report_json, write_residuals_gpkg
+    from ..rpc import RPCModel
+    from ..rpc_io import write_rpb, write_rpc_vrt
+
+    if max_condition is not None and not (float(max_condition) >= 1.0):
+        from ..errors import Gf4calError
+        raise Gf4calError(f"max_condition {max_condition} makes no sense: a condition number is >= 1; give e.g. 1e6 "
+                          "or leave it out")
+    out = os.fspath(out_dir)
+    stem = _scene_stem(image if image is not None else rpc_path)
+    names = {"camera": "camera_new.json", "rpb": f"{stem}.RPB", "residuals_gpkg": "residuals.gpkg",
+             "residuals_png": "residuals.png", "report": "report.json"}
+    if image is not None:
+        names["vrt"] = f"{stem}.vrt"
+    outs = OutputSet([rpc_path, gcps_path if is_path(gcps_path) else None, camera_path, image, dem], overwrite=overwrite,
+                     cancelled=cancel_check(progress))
+    for key, name in names.items():
+        outs.declare(key, os.path.join(out, name), check=check_vector() if key == "residuals_gpkg" else None)
+    warns: list = []
+    with outs, collect_warnings(warns):
+        rpc = RPCModel.from_file(rpc_path)
+        current = LookAngleModel.from_json(camera_path)
+        dem_obj = _open_dem(dem, geoid)
+        if is_path(gcps_path):
+            gcps = read_gcps(gcps_path, dem=dem_obj, **({"layer": gcp_layer} if gcp_layer else {}))
+        else:                                         # a GCP table already read (QGIS: the layer's reader)
+            from ..gcp import validate_gcps
+            gcps = validate_gcps(gcps_path, dem=dem_obj)
+        res = calibrate_lookangle(rpc, gcps, current, robust=robust,
+                                  max_condition=MAX_CONDITION if max_condition is None else max_condition,
+                                  progress=_progress.scaled(progress, 0.0, 0.4))
+        new_rpc, fit_report = recalibrate_rpc(rpc, current, res.camera, progress=_progress.scaled(progress, 0.4, 0.85))
+        _progress.report(progress, 0.85, "writing outputs")
+        res.camera.to_json(outs.tmp("camera"))
+        write_rpb(new_rpc, outs.tmp("rpb"), overwrite=True)
+        if image is not None:
+            write_rpc_vrt(image, new_rpc, outs.tmp("vrt"), overwrite=True)
+        size = tuple(current.size)
+        try:
+            footprint = footprint_from_rpc(rpc, size, h=rpc.height_off)
+        except Exception:  # a footprint is a convenience layer; the residuals matter
+            footprint = None
+        write_residuals_gpkg(res.gcps, outs.tmp("residuals_gpkg"), footprint=footprint, overwrite=True,
+                             title="Look-angle calibration residuals")
+        outs.set_check("residuals_gpkg", check_vector({"gcps": len(res.gcps)}))
+        plot_residuals(res.gcps, outs.tmp("residuals_png"), image_size=size,
+                       title=f"{stem}: GCP residuals before / after look-angle calibration")
+        rep = {"command": "calibrate-lookangle",
+               "inputs": {"rpc": os.fspath(rpc_path), "gcps": os.fspath(gcps_path) if is_path(gcps_path) else None, "camera": os.fspath(camera_path),
+                          "image": None if image is None else os.fspath(image),
+                          "dem": dem if dem is None or isinstance(dem, (str, int, float)) else os.fspath(dem)
+                          if isinstance(dem, os.PathLike) else str(dem)},
+               "calibration": res.to_dict(),
+               "camera_change_px": compare_lookangle(res.camera, current),
+               "recalibrated_rpc": fit_report.to_dict(),
+               "outputs": outs.paths}
+        finish_report(rep, warns)
+        write_report_json(rep, outs.tmp("report"))
+    finish_report(rep, warns)
+    _progress.report(progress, 1.0, "done")
+    return rep

@@ -1,0 +1,52 @@
+"""``gf4cal collect-gcps`` / QGIS "Collect GCPs": match a raw image against a reference orthophoto + DEM and write
+the GCP table (issue 7); the file-level part of :mod:`gdal_gf4cal.matching.collect`."""
+from __future__ import annotations
+
+import os
+from typing import Any, Dict
+
+from ..errors import Gf4calError
+from ..outputs import OutputSet, check_vector
+from ._common import _open_dem, cancel_check, collect_warnings, finish_report
+
+_EXTS = (".gpkg", ".csv", ".geojson", ".json")
+
+
+def collect_gcps_file(image, reference, dem, out, *, rpc=None, geoid=None, keep_outliers: bool = False,
+                      overwrite: bool = False, progress=None, **options) -> Dict[str, Any]:
+    """Collect GCPs on ``image`` (its RPC, or the RPC file ``rpc``) against ``reference`` + ``dem`` and write them
+    to ``out`` (``.gpkg``, ``.csv`` or ``.geojson``); ``options`` go to :func:`gdal_gf4cal.matching.collect_gcps`.
+
+    ``dem`` is a DEM path or a constant height. The table is written only when matching succeeded, and never over
+    an input or (without ``overwrite``) an existing file. Returns ``{"windows", "n_gcps", "n_outliers", "output",
+    "gcps" (the GeoDataFrame, all rows), "table" (the rows written), "warnings"}``.
+    """
+    from ..gcp import write_gcps
+    from ..matching import collect_gcps
+    from ..rpc import RPCModel
+    out = os.fspath(out)
+    if os.path.splitext(out)[1].lower() not in _EXTS:
+        raise Gf4calError(f"output {out!r}: use a name ending in .gpkg, .csv or .geojson")
+    if not os.path.exists(os.fspath(image)):
+        raise Gf4calError(f"image not found: {image}")
+    outs = OutputSet([image, reference, dem if isinstance(dem, (str, os.PathLike)) else None, rpc],
+                     overwrite=overwrite, cancelled=cancel_check(progress))
+    outs.declare("gcps", out, check=None if out.lower().endswith(".csv") else check_vector())
+    warns: list = []
+    with outs, collect_warnings(warns):
+        model = rpc if hasattr(rpc, "project") else RPCModel.from_file(os.fspath(rpc or image))
+        dem_obj = _open_dem(dem, geoid)
+        gcps = collect_gcps(os.fspath(image), model, os.fspath(reference), dem_obj, progress=progress, **options)
+        w = gcps.attrs["windows"]
+        table = gcps if keep_outliers else gcps[~gcps["outlier"].to_numpy(bool)]
+        if len(table) == 0:
+            raise Gf4calError(f"no GCP found in {w['total']} windows ({w['featureless']} featureless, "
+                              f"{w['weak_correlation']} weak, {w['nodata'] + w['outside_image']} without data); "
+                              "check that the reference and DEM cover the image, or raise --search")
+        write_gcps(table, outs.tmp("gcps"))
+        if not out.lower().endswith(".csv"):
+            outs.set_check("gcps", check_vector({"gcps": len(table)} if out.lower().endswith(".gpkg") else None))
+    rep = {"command": "collect-gcps", "windows": dict(w), "n_gcps": int(len(table)),
+           "n_outliers": int(gcps["outlier"].to_numpy(bool).sum()), "output": out, "outputs": {"gcps": out},
+           "gcps": gcps, "table": table}
+    return finish_report(rep, warns)

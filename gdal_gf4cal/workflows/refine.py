@@ -1,0 +1,166 @@
+"""``gf4cal refine`` / QGIS "Refine RPC": read, estimate, apply, write, report (METHODS §4, §6).
+
+Moved from :mod:`gdal_gf4cal.compensation` (which keeps the model, the fit and :func:`apply_compensation`);
+every output goes through one :class:`~gdal_gf4cal.outputs.OutputSet`: all written, or none.
+"""
+from __future__ import annotations
+
+import os
+from typing import Any, Dict, Optional, Sequence
+
+from ..errors import GCPError, Gf4calError
+from ..outputs import OutputSet, check_not_a_shadowing_sidecar, check_vector, rpc_stem, same_file
+from ._common import _open_dem, _open_image, cancel_check, collect_warnings, finish_report, is_path
+
+# Old private names, kept for callers and tests that used them from compensation.py.
+_same_file = same_file
+_rpc_stem = rpc_stem
+_check_not_a_shadowing_sidecar = check_not_a_shadowing_sidecar
+
+
+def output_kind(path) -> str:
+    """'rpb', 'rpc_txt' or 'vrt' from an output path (case-insensitive); GCPError for any other name."""
+    low = os.path.basename(str(path)).lower()
+    if low.endswith(".rpb"):
+        return "rpb"
+    if low.endswith("_rpc.txt") or low.endswith(".txt"):
+        return "rpc_txt"
+    if low.endswith(".vrt"):
+        return "vrt"
+    raise GCPError(f"output {path!r}: use a name ending in .RPB, _RPC.TXT or .vrt")
+
+
+def _write_rpc_as(rpc, path: str, kind: str, image: Optional[str]) -> None:
+    """Write ``rpc`` to ``path`` (a fresh temporary) in the form ``kind`` names."""
+    if kind == "vrt":
+        from ..rpc_io import write_rpc_vrt
+        write_rpc_vrt(image, rpc, path, overwrite=True)
+    elif kind == "rpb":
+        from ..rpc_io import write_rpb
+        write_rpb(rpc, path, overwrite=True)
+    else:
+        from ..rpc_io import write_rpc_txt
+        write_rpc_txt(rpc, path, overwrite=True)
+
+
+def write_refined_rpc(rpc, out_path, *, image: Optional[str] = None, inputs: Sequence[str] = (),
+                      overwrite: bool = False) -> str:
+    """Write a refined RPC as ``.RPB``, ``_RPC.TXT`` or (with ``image``) a VRT over the untouched image (METHODS §4.2).
+
+    Refuses to write over any of ``inputs`` (and over ``image``), to write a sidecar that GDAL would read as the RPC
+    of one of them, and, unless ``overwrite``, over an existing file. Written through an :class:`OutputSet`.
+    """
+    out_path = os.fspath(out_path)
+    kind = output_kind(out_path)
+    if kind == "vrt" and not image:
+        raise GCPError("a .vrt output needs an image input; for an RPC file write .RPB or _RPC.TXT")
+    outs = OutputSet(list(inputs) + ([image] if image else []), overwrite=overwrite)
+    tmp = outs.declare("rpc", out_path)
+    with outs:
+        _write_rpc_as(rpc, tmp, kind, image)
+    return out_path
+
+
+def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None,
+               along: Optional[str] = None, ccd_axis: str = "sample", dem=None, geoid=None, gcp_crs=None,
+               gcp_layer: Optional[str] = None, check_fraction: Optional[float] = None, seed: int = 0,
+               leave_one_out: bool = False, robust: bool = True, outlier_threshold: float = 4.0,
+               report: Optional[str] = None, residuals: Optional[str] = None, plot: Optional[str] = None,
+               overwrite: bool = False, progress=None) -> Dict[str, Any]:
+    """Refine the RPC of an image or sidecar with GCPs and write it (METHODS §4, §6); ``gf4cal refine``.
+
+    Parameters
+    ----------
+    source : image with an RPC (tags, .RPB, _RPC.TXT, NITF, ...) or a standalone RPC file
+    gcps : path of a GCP file (CSV, GeoPackage/GeoJSON in any CRS, QGIS .points, raster with GCPs) or a table;
+        ``gcp_layer`` names the layer of a multi-layer vector file
+    model, order, along, ccd_axis, robust, outlier_threshold, leave_one_out : see
+        :func:`~gdal_gf4cal.compensation.fit_compensation`
+    dem : DEM path / :class:`~gdal_gf4cal.dem.DEM` / number; supplies missing GCP heights (``geoid`` converts
+        geoid heights to ellipsoidal ones)
+    check_fraction : if given, that share of the GCPs becomes check points (seeded with ``seed``, spread over the
+        image); otherwise the file's roles are used (all control if it has none)
+    out : ``.RPB``, ``_RPC.TXT`` or (image input only) ``.vrt`` over the untouched image; never an input
+    report, residuals, plot : optional ``report.json``, residual GeoPackage and PNG
+    overwrite : replace existing outputs (never an input); without it any existing output is refused before work
+
+    Returns
+    -------
+    dict
+        The report (also written to ``report``): ``model``, ``control``/``check`` with ``before``/``after``
+        statistics, ``outliers``, ``apply`` (fold or refit and its error), ``warnings``, ``outputs``.
+        All outputs are written together after everything was computed, or none is (failure, cancel, SIGTERM).
+    """
+    from .. import progress as _progress
+    from ..compensation import _axis_stats, apply_compensation, fit_compensation
+    from ..gcp_formats import assign_roles, read_gcps_any
+    from ..rpc import RPCModel
+
+    source = os.fspath(source)
+    out = os.fspath(out)
+    kind = output_kind(out)
+    image_size, inputs = _open_image(source)
+    inputs += [os.fspath(x) for x in (gcps, dem) if is_path(x)]
+    if kind == "vrt" and image_size is None:
+        raise GCPError(f"{source} is not an image: write the refined RPC as .RPB or _RPC.TXT, or give the image "
+                       "to get a .vrt")
+    if residuals and not os.fspath(residuals).lower().endswith(".gpkg"):
+        raise GCPError(f"residuals are written as a GeoPackage: give a .gpkg path, not {os.fspath(residuals)!r}")
+    outs = OutputSet(inputs, overwrite=overwrite, cancelled=cancel_check(progress))
+    outs.declare("rpc", out)
+    if residuals:
+        outs.declare("residuals", residuals, check=check_vector())
+    if plot:
+        outs.declare("plot", plot)
+    if report:
+        outs.declare("report", report)
+    warns: list = []
+    with outs, collect_warnings(warns):
+        _progress.report(progress, 0.0, "reading the RPC and GCPs")
+        rpc = RPCModel.from_file(source)
+        dem_obj = _open_dem(dem, geoid)
+        if is_path(gcps):
+            kw = {"layer": gcp_layer} if gcp_layer else {}
+            table = read_gcps_any(os.fspath(gcps), dem=dem_obj, crs=gcp_crs,
+                                  image=source if image_size is not None else None, **kw)
+        else:
+            from ..gcp import validate_gcps
+            table = validate_gcps(gcps, dem=dem_obj)
+        table = assign_roles(table, check_fraction, seed=seed)
+        _progress.report(progress, 0.1, "estimating the compensation")
+        result = fit_compensation(rpc, table, model, order=order, along=along, ccd_axis=ccd_axis, dem=dem_obj,
+                                  robust=robust, outlier_threshold=outlier_threshold, leave_one_out=leave_one_out)
+        _progress.report(progress, 0.2, "applying the compensation")
+        applied = apply_compensation(rpc, result, image_size=image_size,
+                                     progress=_progress.scaled(progress, 0.2, 0.9))
+        rep: Dict[str, Any] = {"input": source, "gcps": os.fspath(gcps) if is_path(gcps) else None, "output": out}
+        rep.update(result.to_dict(rpc))
+        rep["apply"] = applied.to_dict()
+        if leave_one_out:
+            tab = result.gcps
+            sel = (tab["role"] == "control").to_numpy() & ~tab["outlier"].to_numpy(bool)
+            rep["leave_one_out"] = {"n": int(sel.sum()),
+                                    "line": _axis_stats(tab["res_line_loo"].to_numpy(float)[sel]),
+                                    "sample": _axis_stats(tab["res_sample_loo"].to_numpy(float)[sel])}
+        _progress.report(progress, 0.9, "writing outputs")
+        _write_rpc_as(applied.rpc, outs.tmp("rpc"), kind, source if kind == "vrt" else None)
+        title = f"GCP residuals, {result.model.label}"
+        if residuals:
+            from ..report import footprint_from_rpc, write_residuals_gpkg
+            try:
+                fp = footprint_from_rpc(applied.rpc, image_size or rpc.image_size, h=float(rpc.height_off))
+            except Gf4calError:
+                fp = None
+            write_residuals_gpkg(result.gcps, outs.tmp("residuals"), footprint=fp, title=title)
+            outs.set_check("residuals", check_vector({"gcps": len(result.gcps)}))
+        if plot:
+            from ..report import plot_residuals
+            plot_residuals(result.gcps, outs.tmp("plot"), image_size=image_size, title=title)
+        rep["outputs"] = outs.paths
+        finish_report(rep, warns)
+        if report:
+            from ..report import write_report_json
+            write_report_json(rep, outs.tmp("report"))
+    finish_report(rep, warns)
+    _progress.report(progress, 1.0, "done")
+    return rep
