@@ -90,6 +90,7 @@ class SensorSpec:
     relief_m: Tuple[float, float]
     build: Callable
     images: Tuple[str, ...]
+    options: Tuple[str, ...] = ()            # keyword options of ``build`` (make_scene(..., options={...}))
 
 
 def _crop(full: Tuple[int, int], size: Optional[Tuple[int, int]]):
@@ -377,35 +378,10 @@ def _build_hj1(rng, center, size, h_mid):
     return [SimImage("", cur, tru, gsd, errors, info)]
 
 
-def _build_jl1(rng, center, size, h_mid, n_ccd: int = 4):
-    alt, incl = 535e3, 97.5
-    full = (8192, 8192)
-    gsd = 0.75
-    ifov = gsd / alt
-    overlap = 200
-    speed0 = 7.0e3
-    dty = 0.6 * speed0 / alt                     # ~0.6 s between adjacent CCDs (staggered focal plane)
-    ref = _linear_camera(full, ifov, 0.0, 0.0, "jl1 ref")
-    orbit = _align_orbit(center, h_mid, alt, incl, ref, CAMERA_TO_BODY, full[0] / 2)
-    att_true = Attitude(roll=(rng.normal(0, 8) * ifov,), pitch=(rng.normal(0, 8) * ifov,),
-                        yaw=(rng.normal(0, 3e-5),))
-    images = []
-    for k in range(n_ccd):
-        off = (k - (n_ccd - 1) / 2.0) * (full[0] - overlap)
-        tx0 = ifov * off
-        ty0 = dty / 2 if k % 2 == 0 else -dty / 2
-        cam_cur = _linear_camera(full, ifov, tx0, ty0, f"jl1 ccd{k + 1} current")
-        ex = (rng.normal(0, 2), rng.normal(0, 1), rng.normal(0, 0.8), rng.normal(0, 1.2))
-        ey = (rng.normal(0, 2), rng.normal(0, 1), rng.normal(0, 0.8), rng.normal(0, 0.4))
-        cam_true = _linear_camera(full, ifov, tx0, ty0, f"jl1 ccd{k + 1} true", _poly_px(ex), _poly_px(ey))
-        cur, tru, info = _pushbroom(f"jl1 ccd{k + 1}", full, size, cam_cur, cam_true, orbit, Attitude(), att_true,
-                                    CAMERA_TO_BODY, _shift_center(center, orbit, off * gsd), h_mid, gsd, None,
-                                    {"ccd": k + 1, "cross_track_offset_px": off, "view_tan_y": ty0, "ifov_rad": ifov})
-        errors = {"camera_cross_track_px_poly": list(ex), "camera_along_track_px_poly": list(ey),
-                  "poly_variable": "u = (s - W/2) / (W/2) of the full CCD"}
-        info.update(attitude_true=att_true.to_dict(), orbit=orbit.to_dict())
-        images.append(SimImage(f"ccd{k + 1}", cur, tru, gsd, errors, info))
-    return images
+def _build_jl1(rng, center, size, h_mid, **options):
+    # The Jilin-1 group (4 CCDs x pan + 4 MS bands, block-calibration truth) lives in its own module.
+    from .jl1 import build_jl1
+    return build_jl1(rng, center, size, h_mid, **options)
 
 
 def _shift_center(center, orbit, cross_m):
@@ -466,8 +442,11 @@ SENSORS: Dict[str, SensorSpec] = {
                       "16384 px", (121.7, 31.45), (0.0, 600.0), _build_zy3, ("nadir", "fwd", "bwd")),
     "hj1": SensorSpec("hj1", "HJ-1A CCD, push-broom tilted 15 deg, 360 km swath, 30 m, 12000 px", (117.5, 36.5),
                       (0.0, 1500.0), _build_hj1, ("",)),
-    "jl1": SensorSpec("jl1", "Jilin-1 KF01A, staggered TDI CCDs (4 x 8192 px, 0.75 m, 0.6 s apart)", (125.3, 43.9),
-                      (150.0, 700.0), _build_jl1, ("ccd1", "ccd2", "ccd3", "ccd4")),
+    "jl1": SensorSpec("jl1", "Jilin-1 KF01A wide-field group: 4 staggered TDI CCDs (8192 px, 0.75 m pan, 0.6 s apart, "
+                      "yaw-steered) x 4 MS bands (3 m)", (125.3, 43.9), (150.0, 700.0), _build_jl1,
+                      tuple(f"ccd{k}" for k in range(1, 5)) + tuple(
+                          f"ccd{k}_{b}" for k in range(1, 5) for b in ("blue", "green", "red", "nir")),
+                      ("orbit_seed",)),
     "gf7": SensorSpec("gf7", "Gaofen-7 backward camera, pan 0.65 m + MS 2.6 m, three sub-CCDs, jitter",
                       (113.3, 23.1), (0.0, 1200.0), _build_gf7, ("pan", "ms")),
 }
@@ -503,7 +482,7 @@ def _gsd(model):
 
 
 def make_scene(sensor: str, *, seed: int = 0, center=None, size=None, dem=None, dem_path: Optional[str] = None,
-               progress=None) -> SimScene:
+               progress=None, options: Optional[Dict] = None) -> SimScene:
     """Build a simulated scene in memory (METHODS §10).
 
     Parameters
@@ -515,6 +494,8 @@ def make_scene(sensor: str, *, seed: int = 0, center=None, size=None, dem=None, 
         the other images get the crop of the same ground extent); geometry unchanged.
     dem : None (synthetic seeded fractal terrain), a path, a number or a :class:`gdal_gf4cal.dem.DEM`.
     dem_path : where to write the synthetic DEM (default: an in-memory ``/vsimem/`` file).
+    options : sensor-specific keywords of :attr:`SensorSpec.options` (jl1: ``orbit_seed``, the per-orbit attitude
+        error of validation scenes, :mod:`.jl1`).
     """
     from ..dem import DEM
     from ..progress import report
@@ -526,6 +507,10 @@ def make_scene(sensor: str, *, seed: int = 0, center=None, size=None, dem=None, 
         raise SimulationError(f"centre {center} is not a valid (lon, lat) in degrees")
     if size is not None:
         size = (int(size[0]), int(size[1]))
+    options = dict(options or {})
+    if set(options) - set(spec.options):
+        raise SimulationError(f"{sensor} has no option {sorted(set(options) - set(spec.options))}; "
+                              f"it takes {list(spec.options) or 'none'}")
     rng = np.random.default_rng(seed)
     report(progress, 0.0, "building sensor models")
     user_dem = DEM.coerce(dem) if dem is not None else None
@@ -535,12 +520,13 @@ def make_scene(sensor: str, *, seed: int = 0, center=None, size=None, dem=None, 
             else user_dem.constant_height
     else:
         h_mid = 0.5 * (relief[0] + relief[1])
-    images = spec.build(rng, center, size, h_mid)
+    images = spec.build(rng, center, size, h_mid, **options)
     report(progress, 0.3, "terrain")
     if user_dem is None:
         # The terrain covers the full detector array's footprint even for a crop: a crop sees the same ground
         # (and the same slopes) as the full scene.
-        full_images = images if size is None else spec.build(np.random.default_rng(seed), center, None, h_mid)
+        full_images = images if size is None else spec.build(np.random.default_rng(seed), center, None, h_mid,
+                                                                  **options)
         bounds = _footprint(full_images, relief)
         mx, my = 0.1 * (bounds[2] - bounds[0]) + 0.01, 0.1 * (bounds[3] - bounds[1]) + 0.01
         bounds = (bounds[0] - mx, bounds[1] - my, bounds[2] + mx, bounds[3] + my)
@@ -581,11 +567,12 @@ def make_scene(sensor: str, *, seed: int = 0, center=None, size=None, dem=None, 
         im.info["gsd_center_m"] = [gx, gy]
         if im.gsd_m == 0.0:
             im.gsd_m = 0.5 * (gx + gy)
+    scene_truth = images[0].info.pop("scene_truth", {})          # sensor-level truth (jl1: the group's)
     truth = {"sensor": sensor, "description": spec.description, "seed": seed, "center": list(center),
              "size": list(size) if size else None, "dem": dem_info, "height_range_m": list(hr),
              "pixel_convention": "gdal (centre of the first pixel at 0.5, 0.5)",
              "images": {im.name or "scene": {"size": list(im.size), "gsd_m": im.gsd_m, "errors": im.errors,
-                                             "info": im.info} for im in images}}
+                                             "info": im.info} for im in images}, **scene_truth}
     report(progress, 1.0, "scene built")
     return SimScene(sensor, seed, center, images, the_dem, path, truth)
 

@@ -1,0 +1,351 @@
+"""Jilin-1 KF01A wide-field camera group: the multi-CCD / multi-band block-calibration test bed (METHODS §8, §10).
+
+One group = 4 TDI CCDs (pan 0.75 m, 8192 detectors each) mechanically staggered in two rows 0.6 s apart along track,
+each with four MS bands (3 m, 2048 detectors: blue, green, red, nir) at their own along-track focal-plane offsets.
+The platform is yaw-steered (as ZY-3) so that the Earth's rotation during the stagger does not skew the two CCD rows
+apart: adjacent CCDs overlap by ~200 pan pixels at every latitude.
+
+Truth (every term recorded in ``truth.json``):
+
+* interior per CCD and band: image displacement ``true - current`` cubic in the normalised detector position
+  ``u = (s - W/2) / (W/2)``, ``I_s(u) = sum a_j u^j``, ``I_l(u) = sum b_j u^j`` (px of that band), drawn so that the
+  seams between adjacent CCDs (offset of the true positions relative to the current ones, CCD k+1 minus CCD k, in
+  their overlap) are 2-5 px;
+* exterior per group (shared by every CCD and band): constant roll/pitch/yaw offsets and roll/pitch drift
+  (METHODS §8: ``phi(t) = phi_u + phi_v t``, ``omega(t) = omega_u + omega_v t``, ``kappa = kappa_u``; ``t`` in s
+  from the orbit reference time 0);
+* optionally (``orbit_seed``) a per-orbit random attitude error, N(0, 3.6 arcsec) per axis, for validation scenes:
+  10 orbits without control then give CE90 ~ 20 m;
+* focal-plane positions ``X_k(u) = X0 + (W/2) u`` (cross-track) and ``Y_k`` (along-track), in px of the band.
+
+``size=(W, H)`` crops shorten the CCDs to W pan detectors (MS: W/4) and the scene to H lines while keeping the
+group's layout (stagger, band offsets, GSD, yaw steering) and the overlap between adjacent CCDs (200 pan px, or W/4
+for W < 800): a cropped group is a small group of the same camera, so tests stay fast and keep every overlap.
+
+:func:`block_observations` draws the long observation table (GCPs and tie points, METHODS §8) that
+:func:`gdal_gf4cal.simulate.write_scene` writes as ``observations.csv``.
+"""
+from __future__ import annotations
+
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from .models import Attitude
+from .sensors import (ARCSEC, CAMERA_TO_BODY, SimImage, SimulationError, _align_orbit, _crop_any, _linear_camera,
+                      _poly_px, _pushbroom, _shift_center, _yaw_steering)
+
+ALTITUDE_M = 535e3
+INCLINATION_DEG = 97.5
+PAN_GSD_M = 0.75
+MS_GSD_M = 3.0
+MS_FACTOR = 4                         # pan pixels per MS pixel
+CCD_PX = 8192                         # pan detectors per CCD (MS: CCD_PX / MS_FACTOR)
+N_CCD = 4
+OVERLAP_PX = 200                      # nominal overlap of adjacent CCDs, pan px
+STAGGER_S = 0.6                       # time between the two CCD rows
+NOMINAL_SPEED_M_S = 7.0e3
+MS_BANDS = ("blue", "green", "red", "nir")
+BANDS = ("pan",) + MS_BANDS
+#: Along-track focal-plane offset of each band from the pan line of its CCD, in pan pixels (angle / pan ifov).
+BAND_OFFSET_PAN_PX = {"pan": 0.0, "blue": -1400.0, "green": -1000.0, "red": 1000.0, "nir": 1400.0}
+#: Per-orbit random attitude error (validation scenes), per axis: CE90 ~ 20 m at 535 km (METHODS §8).
+ORBIT_ATTITUDE_SIGMA_ARCSEC = 3.6
+#: Seam magnitude drawn per adjacent pair and band, px of the band (the issue asks for 2-5 px).
+SEAM_RANGE_PX = (2.5, 4.5)
+#: Farthest latitude of a scene centre: the 97.5 deg orbit reaches 82.5 deg; keep the group's swath under it.
+MAX_ABS_LAT_DEG = 80.0
+REFERENCE_BAND = "blue"
+
+IMAGE_NAMES = tuple(f"ccd{k + 1}" for k in range(N_CCD)) + tuple(
+    f"ccd{k + 1}_{b}" for k in range(N_CCD) for b in MS_BANDS)
+
+
+def image_name(ccd: int, band: str) -> str:
+    """Image name of CCD ``ccd`` (1-based) and ``band``: ``ccd2`` (pan), ``ccd2_blue`` (MS)."""
+    return f"ccd{ccd}" if band == "pan" else f"ccd{ccd}_{band}"
+
+
+def _overlap_px(W: int) -> int:
+    return OVERLAP_PX if W >= 4 * OVERLAP_PX else max(8, W // 4)
+
+
+def build_jl1(rng, center, size, h_mid, *, orbit_seed: Optional[int] = None) -> List[SimImage]:
+    """The 20 images (4 CCDs x pan + 4 MS bands) of one Jilin-1 group (METHODS §8, §10).
+
+    Parameters
+    ----------
+    rng : numpy Generator (interior and exterior truth).
+    center : (lon, lat) of the group's centre; |lat| <= :data:`MAX_ABS_LAT_DEG`.
+    size : None (8192 x 8192 pan per CCD) or (W, H): W pan detectors per CCD, H pan lines (MS: W/4, H/4).
+    h_mid : mean terrain height (m).
+    orbit_seed : None (calibration scene) or a seed of the per-orbit attitude error (validation scenes).
+    """
+    if abs(center[1]) > MAX_ABS_LAT_DEG:
+        raise SimulationError(f"jl1: centre latitude {center[1]} is beyond the orbit's reach; "
+                              f"choose |lat| <= {MAX_ABS_LAT_DEG:g}")
+    if size is None:
+        W, H = CCD_PX, CCD_PX
+    else:
+        W, H = int(size[0]), int(size[1])
+        if W < 64 or H < 16 or W > CCD_PX:
+            raise SimulationError(f"jl1: --size {W} {H} must have 64 <= W <= {CCD_PX} and H >= 16")
+    full_pan = (W, max(H, CCD_PX))
+    overlap = _overlap_px(W)
+    alt = ALTITUDE_M
+    ifov = PAN_GSD_M / alt
+    dty = STAGGER_S * NOMINAL_SPEED_M_S / alt
+    ref = _linear_camera((CCD_PX, CCD_PX), ifov, 0.0, 0.0, "jl1 ref")
+    orbit = _align_orbit(center, h_mid, alt, INCLINATION_DEG, ref, CAMERA_TO_BODY, CCD_PX / 2)
+    # Yaw steering: the yaw that makes the leading row (looking dty/2 forward) see the centre with its central
+    # detector; the trailing row then sees the same ground tracks, so the rows' CCDs overlap as designed.
+    yaw0 = _yaw_steering(orbit, center, h_mid, (CCD_PX, CCD_PX), ifov, dty / 2)
+    att_cur = Attitude(yaw=(yaw0,))
+    sign = lambda: rng.choice([-1.0, 1.0])                                   # noqa: E731
+    ext = {"roll_rad": sign() * rng.uniform(2.0, 6.0) * ARCSEC,
+           "roll_drift_rad_s": sign() * rng.uniform(0.5, 1.5) * ARCSEC,
+           "pitch_rad": sign() * rng.uniform(2.0, 6.0) * ARCSEC,
+           "pitch_drift_rad_s": sign() * rng.uniform(0.5, 1.5) * ARCSEC,
+           "yaw_rad": sign() * rng.uniform(20.0, 60.0) * ARCSEC,
+           "t0_s": 0.0}
+    if orbit_seed is not None:
+        orng = np.random.default_rng(int(orbit_seed) + 8191)
+        d = orng.normal(0.0, ORBIT_ATTITUDE_SIGMA_ARCSEC, 3) * ARCSEC
+        orbit_err = {"orbit_seed": int(orbit_seed), "roll_rad": float(d[0]), "pitch_rad": float(d[1]),
+                     "yaw_rad": float(d[2]), "sigma_arcsec": ORBIT_ATTITUDE_SIGMA_ARCSEC}
+    else:
+        orbit_err = {"orbit_seed": None, "roll_rad": 0.0, "pitch_rad": 0.0, "yaw_rad": 0.0,
+                     "sigma_arcsec": 0.0}
+    att_true = Attitude(roll=(ext["roll_rad"] + orbit_err["roll_rad"], ext["roll_drift_rad_s"]),
+                        pitch=(ext["pitch_rad"] + orbit_err["pitch_rad"], ext["pitch_drift_rad_s"]),
+                        yaw=(yaw0 + ext["yaw_rad"] + orbit_err["yaw_rad"],))
+
+    def camera(band, tx0, ty0, i_s, i_l, name):
+        f = 1 if band == "pan" else MS_FACTOR
+        full = (W // f, full_pan[1] // f)
+        extra = (None, None) if i_s is None else (_poly_px([-c for c in i_s]), _poly_px([-c for c in i_l]))
+        return full, _linear_camera(full, ifov * f, tx0, ty0, name, *extra)
+
+    images: Dict[tuple, SimImage] = {}
+    interior: Dict[tuple, list] = {}
+    for band in BANDS:
+        f = 1 if band == "pan" else MS_FACTOR
+        gsd = PAN_GSD_M * f
+        band_size = None if size is None else (max(16, W // f), max(16, H // f))
+        for k in range(N_CCD):
+            off = (k - (N_CCD - 1) / 2.0) * (W - overlap)                    # pan px
+            tx0 = ifov * off
+            row = 1.0 if k % 2 == 0 else -1.0
+            ty0 = row * dty / 2 + ifov * BAND_OFFSET_PAN_PX[band]
+            i_s = [rng.normal(0, 2), rng.normal(0, 1), rng.normal(0, 0.8), rng.normal(0, 1.2)]
+            i_l = [rng.normal(0, 2), rng.normal(0, 1), rng.normal(0, 0.8), rng.normal(0, 0.4)]
+            name = image_name(k + 1, band)
+            full, cam_cur = camera(band, tx0, ty0, None, None, f"jl1 {name} current")
+            _, cam_true = camera(band, tx0, ty0, i_s, i_l, f"jl1 {name} true")
+            cur, tru, info = _pushbroom(f"jl1 {name}", full, band_size, cam_cur, cam_true, orbit, att_cur, att_true,
+                                        CAMERA_TO_BODY, _shift_center(center, orbit, off * PAN_GSD_M), h_mid, gsd,
+                                        None, {"ccd": k + 1, "band": band, "ifov_rad": ifov * f,
+                                               "cross_track_offset_pan_px": off, "view_tan_y": ty0})
+            Wb = full[0]
+            info["focal_plane"] = {"X_px_poly": [tx0 / (ifov * f), Wb / 2.0], "Y_px": ty0 / (ifov * f),
+                                   "definition": "X_k(u) = X0 + (W/2) u cross-track, Y_k along-track: focal-plane "
+                                                 "position of the detector (tan angle / ifov), px of this band"}
+            images[(k, band)] = SimImage(name, cur, tru, gsd, {}, info)
+            interior[(k, band)] = [i_s, i_l]
+        # Seams: set each CCD's constant interior term so that the seam with its left neighbour is 2-5 px.
+        for k in range(1, N_CCD):
+            a, b = images[(k - 1, band)], images[(k, band)]
+            S = _seam_vector(a, b, h_mid)
+            target = rng.uniform(*SEAM_RANGE_PX)
+            norm = float(np.hypot(*S))
+            direction = S / norm if norm > 1e-6 else np.array([np.cos(t := rng.uniform(0, 2 * np.pi)), np.sin(t)])
+            delta = direction * target - S
+            i_s, i_l = interior[(k, band)]
+            i_s[0] += float(delta[0])
+            i_l[0] += float(delta[1])
+            tx0 = ifov * (k - (N_CCD - 1) / 2.0) * (W - overlap)
+            ty0 = b.info["view_tan_y"]
+            _, cam_true = camera(band, tx0, ty0, i_s, i_l, f"jl1 {b.name} true")
+            b.true = b.true.with_camera(_crop_any(cam_true, tuple(b.info["crop_offset"]), b.size))
+            b.true.name = f"jl1 {b.name} true"
+    for (k, band), im in images.items():
+        i_s, i_l = interior[(k, band)]
+        im.errors = {"interior_sample_px_poly": list(map(float, i_s)), "interior_line_px_poly": list(map(float, i_l)),
+                     "poly_variable": "u = (s - W/2) / (W/2) of this CCD image (full CCD length)",
+                     "definition": "true image position = current + I(u_true) + exterior effects (METHODS §8)",
+                     "focal_plane": im.info["focal_plane"]}
+    group = {"exterior": ext, "orbit_attitude_error": orbit_err, "yaw_steering_rad": yaw0,
+             "attitude_current": att_cur.to_dict(), "attitude_true": att_true.to_dict(), "orbit": orbit.to_dict(),
+             "overlap_pan_px": overlap, "stagger_s": STAGGER_S, "reference_band": REFERENCE_BAND,
+             "band_offset_pan_px": dict(BAND_OFFSET_PAN_PX), "n_ccd": N_CCD, "bands": list(BANDS),
+             "ccd_pan_px": W, "seams_px": {}}
+    for band in BANDS:
+        for k in range(1, N_CCD):
+            S = _seam_vector(images[(k - 1, band)], images[(k, band)], h_mid)
+            group["seams_px"][f"{image_name(k, band)}|{image_name(k + 1, band)}"] = [float(S[0]), float(S[1])]
+    out = [images[(k, "pan")] for k in range(N_CCD)] + [images[(k, b)] for k in range(N_CCD) for b in MS_BANDS]
+    for im in out:
+        im.info.update(group=group)
+    out[0].info["scene_truth"] = {"block": group}
+    return out
+
+
+def overlap_points(left: SimImage, right: SimImage, h, n_lines: int = 5, model: str = "true"):
+    """Ground points (lon, lat) at height ``h`` seen by the middle column of the overlap of two adjacent CCD images
+    (``right``'s detectors in ``[0, overlap]``), on ``n_lines`` lines spread over ``right``; and that column."""
+    mr = getattr(right, model)
+    ml = getattr(left, model)
+    W, H = mr.size
+    l = (np.arange(n_lines) + 0.5) * H / n_lines
+    # The overlap's width in right's pixels: where left's last detector falls in right.
+    lo, la = ml.localize(np.full(n_lines, float(ml.size[0])), np.full(n_lines, ml.size[1] / 2.0), h)
+    s_edge, _ = mr.project(lo, la, np.full(n_lines, h))
+    s_mid = 0.5 * float(np.nanmedian(s_edge))
+    lon, lat = mr.localize(np.full(n_lines, s_mid), l, np.full(n_lines, h))
+    return lon, lat
+
+
+def _seam_vector(left: SimImage, right: SimImage, h):
+    """Mean seam (sample, line) in px of the band: (true - current) of ``right`` minus that of ``left`` at ground
+    points of their overlap."""
+    lon, lat = overlap_points(left, right, h)
+    hh = np.full(lon.shape, h)
+    d = []
+    for im in (left, right):
+        ts, tl = im.true.project(lon, lat, hh)
+        cs, cl = im.current.project(lon, lat, hh)
+        d.append(np.array([np.mean(ts - cs), np.mean(tl - cl)]))
+    return d[1] - d[0]
+
+
+def overlap_width_px(left: SimImage, right: SimImage, h, n_lines: int = 7, model: str = "true"):
+    """Overlap of two adjacent CCD images, in px of the band, on ``n_lines`` lines of ``right``: how far ``left``'s
+    image extends past ``right``'s first detector (``left.W - s_left(ground of right's sample 0)``)."""
+    mr, ml = getattr(right, model), getattr(left, model)
+    W, H = mr.size
+    l = (np.arange(n_lines) + 0.5) * H / n_lines
+    lon, lat = mr.localize(np.zeros(n_lines), l, np.full(n_lines, h))
+    s, _ = ml.project(lon, lat, np.full(n_lines, h))
+    return ml.size[0] - s
+
+
+# --------------------------------------------------------------------------------------- observations
+OBSERVATION_COLUMNS = ["point_id", "image_id", "kind", "sample", "line", "sigma", "role", "lon", "lat", "h",
+                       "truth_sample", "truth_line", "truth_lon", "truth_lat", "truth_h"]
+
+
+def _inside(model, s, l):
+    W, H = model.size
+    return np.isfinite(s) & np.isfinite(l) & (s >= 0) & (s <= W) & (l >= 0) & (l <= H)
+
+
+def _rows(pid, image, kind, s, l, sigma, role, lon, lat, h, ts, tl, tlon, tlat, th):
+    n = len(pid)
+    return {"point_id": np.asarray(pid, dtype=object), "image_id": np.full(n, image, dtype=object),
+            "kind": np.full(n, kind, dtype=object), "sample": s, "line": l, "sigma": np.full(n, float(sigma)),
+            "role": np.broadcast_to(np.asarray(role, dtype=object), (n,)).copy(), "lon": lon, "lat": lat, "h": h,
+            "truth_sample": ts, "truth_line": tl, "truth_lon": tlon, "truth_lat": tlat, "truth_h": th}
+
+
+def block_observations(scene, *, gcps=None, n_gcps: int = 50, gcp_noise_px: float = 0.2, check_fraction: float = 0.3,
+                       n_overlap_ties: int = 40, n_band_ties: int = 40, tie_noise_px: float = 0.1,
+                       reference_band: str = REFERENCE_BAND, seed: Optional[int] = None):
+    """The long observation table of a Jilin-1 group (METHODS §8): GCPs and tie points with known truth.
+
+    Parameters
+    ----------
+    scene : a ``jl1`` :class:`~gdal_gf4cal.simulate.SimScene`.
+    gcps : ``{image name: GeoDataFrame}`` from :func:`~gdal_gf4cal.simulate.simulate_gcps` (their rows are used as
+        they are); None draws them here with ``n_gcps`` (per image), ``gcp_noise_px``, ``check_fraction``.
+    n_overlap_ties : tie points per pair of adjacent CCDs and per band, in their overlap (own density).
+    n_band_ties : tie points per CCD between the reference band and every other band of that CCD (pan included).
+    tie_noise_px : Gaussian matching noise of tie points, px of each image per axis (own noise).
+    seed : seeds the draws (default: the scene's seed).
+
+    Returns
+    -------
+    pandas.DataFrame with :data:`OBSERVATION_COLUMNS`: one row per observation of a point in an image; ``kind`` is
+    ``gcp`` or ``tie``; ``sample, line`` measured (GDAL pixel convention), ``truth_sample, truth_line`` error-free
+    (true model); ``lon, lat, h`` the ground coordinates of GCPs (NaN for ties: unknowns of the adjustment);
+    ``truth_lon, truth_lat, truth_h`` the true ground point of every row. Tie points share ``point_id`` across
+    images (``T...`` overlap ties, ``B...`` band ties); GCP ids are ``G...``.
+    """
+    import pandas as pd
+    if scene.sensor != "jl1":
+        raise SimulationError(f"block observations are for jl1 scenes, not {scene.sensor}; use simulate_gcps")
+    if reference_band not in MS_BANDS:
+        raise SimulationError(f"reference band {reference_band!r} unknown; choose one of {', '.join(MS_BANDS)}")
+    if tie_noise_px < 0 or n_overlap_ties < 0 or n_band_ties < 0:
+        raise SimulationError("tie_noise_px, n_overlap_ties and n_band_ties must be >= 0")
+    rng = np.random.default_rng((scene.seed if seed is None else seed) + 524287)
+    dem = scene.dem
+    sig = max(tie_noise_px, 1e-3)
+    rows = []
+    if gcps is None:
+        from .scene import simulate_gcps
+        gcps = simulate_gcps(scene, n_gcps=n_gcps, gcp_noise_px=gcp_noise_px, check_fraction=check_fraction,
+                             seed=seed)
+    for name, g in gcps.items():
+        lon, lat, h = (g[c].to_numpy(float) for c in ("lon", "lat", "h"))
+        rows.append(_rows(g["id"].to_numpy(object), name, "gcp", g["sample"].to_numpy(float),
+                          g["line"].to_numpy(float), 0.0, g["role"].to_numpy(object), lon, lat, h,
+                          g["truth_sample"].to_numpy(float), g["truth_line"].to_numpy(float), lon, lat, h))
+        rows[-1]["sigma"] = g["sigma"].to_numpy(float)
+
+    def noisy(v):
+        return v + (rng.normal(0.0, tie_noise_px, v.shape) if tie_noise_px > 0 else 0.0)
+
+    nan = lambda n: np.full(n, np.nan)                                          # noqa: E731
+    counter = [0]
+
+    def ids(prefix, n):
+        out = np.array([f"{prefix}{counter[0] + i + 1:06d}" for i in range(n)], dtype=object)
+        counter[0] += n
+        return out
+
+    by_name = {im.name: im for im in scene.images}
+    n_ccd = max(int(im.info["ccd"]) for im in scene.images)
+    # Ties between adjacent CCDs, per band, in their overlap.
+    for band in BANDS:
+        for k in range(1, n_ccd):
+            left, right = by_name[image_name(k, band)], by_name[image_name(k + 1, band)]
+            if n_overlap_ties == 0:
+                continue
+            ov = float(np.nanmax(overlap_width_px(left, right, float(np.mean(right.true.height_range)))))
+            m = 4 * n_overlap_ties
+            s = rng.uniform(0.0, max(ov, 1.0), m)
+            l = rng.uniform(0.0, right.size[1], m)
+            lon, lat, h = right.true.localize_dem(s, l, dem)
+            ls, ll = left.true.project(lon, lat, h)
+            rs, rl = right.true.project(lon, lat, h)
+            ok = _inside(left.true, ls, ll) & _inside(right.true, rs, rl) & np.isfinite(h)
+            sel = np.flatnonzero(ok)[:n_overlap_ties]
+            pid = ids("T", sel.size)
+            for im, ts, tl in ((left, ls, ll), (right, rs, rl)):
+                n = sel.size
+                rows.append(_rows(pid, im.name, "tie", noisy(ts[sel]), noisy(tl[sel]), sig, "control", nan(n),
+                                  nan(n), nan(n), ts[sel], tl[sel], lon[sel], lat[sel], h[sel]))
+    # Ties between the reference band and every other band of the same CCD (one point, up to five rays).
+    for k in range(1, n_ccd + 1):
+        if n_band_ties == 0:
+            continue
+        refim = by_name[image_name(k, reference_band)]
+        m = 2 * n_band_ties
+        W, H = refim.size
+        s, l = rng.uniform(0.0, W, m), rng.uniform(0.0, H, m)
+        lon, lat, h = refim.true.localize_dem(s, l, dem)
+        others = [by_name[image_name(k, b)] for b in BANDS if b != reference_band]
+        proj = [im.true.project(lon, lat, h) for im in others]
+        inside = np.array([_inside(im.true, ps, pl) for im, (ps, pl) in zip(others, proj)])
+        rs, rl = refim.true.project(lon, lat, h)
+        ok = np.isfinite(h) & inside.any(axis=0) & _inside(refim.true, rs, rl)
+        sel = np.flatnonzero(ok)[:n_band_ties]
+        pid = ids("B", sel.size)
+        for im, (ts, tl), ins in [(refim, (rs, rl), np.ones(rs.shape, bool))] + list(zip(others, proj, inside)):
+            use = ins[sel]
+            j = sel[use]
+            n = j.size
+            rows.append(_rows(pid[use], im.name, "tie", noisy(ts[j]), noisy(tl[j]), sig, "control", nan(n), nan(n),
+                              nan(n), ts[j], tl[j], lon[j], lat[j], h[j]))
+    df = pd.concat([pd.DataFrame(r) for r in rows], ignore_index=True)[OBSERVATION_COLUMNS]
+    return df
