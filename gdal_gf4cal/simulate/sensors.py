@@ -397,42 +397,9 @@ def _shift_center(center, orbit, cross_m):
 
 
 def _build_gf7(rng, center, size, h_mid):
-    alt, incl = 505e3, 97.4
-    back = -np.tan(np.radians(5.0))
-    bands = [("pan", (30720, 30720), 0.65, back), ("ms", (7680, 7680), 2.6, back - 0.4 * 7.0e3 / alt)]
-    ref = _linear_camera(bands[0][1], 0.65 / alt, 0.0, back, "ref")
-    orbit = _align_orbit(center, h_mid, alt, incl, ref, CAMERA_TO_BODY, bands[0][1][0] / 2)
-    ms_px = 2.6 / alt
-    # Shared exterior errors (linear in the image) and jitter (< 0.1 MS px between pan and MS).
-    att_true = Attitude(roll=(rng.normal(0, 6) * ms_px, rng.normal(0, 0.05) * ms_px),
-                        pitch=(rng.normal(0, 6) * ms_px,), yaw=(rng.normal(0, 2e-5),),
-                        jitter=[("roll", 0.05 * ms_px, 0.71, rng.uniform(0, 2 * np.pi)),
-                                ("pitch", 0.04 * ms_px, 1.27, rng.uniform(0, 2 * np.pi))])
-    images = []
-    ref_full = bands[0][1]
-    for name, full, gsd, ty0 in bands:
-        ifov = gsd * np.cos(np.arctan(ty0)) ** 2 / alt
-        cam_cur = _linear_camera(full, ifov, 0.0, ty0, f"gf7 {name} current")
-        # Three sub-CCDs per band, each with its own placement error and distortion (in this band's pixels).
-        edges = np.linspace(0, full[0], 4)
-        pieces, piece_err = [], []
-        for k in range(3):
-            ex = (rng.normal(0, 0.3), rng.normal(0, 0.15), rng.normal(0, 0.1), rng.normal(0, 0.1))
-            ey = (rng.normal(0, 0.3), rng.normal(0, 0.15), rng.normal(0, 0.1), 0.0)
-            if name == "pan":
-                ex, ey = tuple(4 * e for e in ex), tuple(4 * e for e in ey)
-            pieces.append(_linear_camera(full, ifov, 0.0, ty0, f"gf7 {name} sub-ccd{k + 1} true",
-                                         _poly_px(ex), _poly_px(ey)))
-            piece_err.append({"cross_track_px_poly": list(ex), "along_track_px_poly": list(ey)})
-        cam_true = PiecewiseCamera(full, pieces, edges, name=f"gf7 {name} true")
-        s = _scale_size(full, size, ref_full) if name != "pan" else size
-        cur, tru, info = _pushbroom(f"gf7 {name}", full, s, cam_cur, cam_true, orbit, Attitude(), att_true,
-                                    CAMERA_TO_BODY, center, h_mid, gsd, None, {"view_tan_y": ty0, "ifov_rad": ifov})
-        info.update(attitude_true=att_true.to_dict(), orbit=orbit.to_dict())
-        errors = {"sub_ccd_edges_px": edges.tolist(), "sub_ccd_errors": piece_err,
-                  "poly_variable": "u = (s - W/2) / (W/2) of the full band", "jitter": att_true.jitter}
-        images.append(SimImage(name, cur, tru, gsd, errors, info))
-    return images
+    """GF7 lives in :mod:`.gf7` (pan-MS registration truth, METHODS §9)."""
+    from .gf7 import build_gf7
+    return build_gf7(rng, center, size, h_mid)
 
 
 SENSORS: Dict[str, SensorSpec] = {
@@ -447,7 +414,8 @@ SENSORS: Dict[str, SensorSpec] = {
                       tuple(f"ccd{k}" for k in range(1, 5)) + tuple(
                           f"ccd{k}_{b}" for k in range(1, 5) for b in ("blue", "green", "red", "nir")),
                       ("orbit_seed",)),
-    "gf7": SensorSpec("gf7", "Gaofen-7 backward camera, pan 0.65 m + MS 2.6 m, three sub-CCDs, jitter",
+    "gf7": SensorSpec("gf7", "Gaofen-7 backward camera, pan 0.65 m + MS 2.6 m (4 bands) 0.117 s apart, three "
+                      "quartic sub-CCDs, differential jitter",
                       (113.3, 23.1), (0.0, 1200.0), _build_gf7, ("pan", "ms")),
 }
 
