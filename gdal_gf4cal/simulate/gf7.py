@@ -518,7 +518,8 @@ def write_misregistration_truth(scene, path, *, step: float = 8.0, tile: int = 5
     path = os.fspath(path)
     with atomic_output(path) as tmp:
         ds_ = gdal.GetDriverByName("GTiff").Create(tmp, W, H, 2, gdal.GDT_Float32, [
-            "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "PREDICTOR=3", "BIGTIFF=IF_SAFER"])
+            "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "PREDICTOR=3",
+            "BIGTIFF=IF_SAFER"])
         for band, desc in ((1, "delta_sample_ms_px"), (2, "delta_line_ms_px")):
             ds_.GetRasterBand(band).SetDescription(desc)
         ds_.SetMetadataItem("GF4CAL_TRUTH", "true pan-MS misregistration delta = MS image point - pan/DEM/MS-RPC "
