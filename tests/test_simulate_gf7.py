@@ -258,3 +258,15 @@ def _georeferenced_pleiades(tmp_path):
     ds = gdal.Translate(dst, str(src), outputSRS="EPSG:4326", outputBounds=[b[0], b[3], b[2], b[1]])
     ds = None
     return dst
+
+
+def test_field_at_predicted_points(edge_crop):
+    s, l = np.array([20.5, 100.25, 200.75]), np.array([30.5, 128.0, 250.5])
+    ds, dl = true_misregistration(edge_crop, s, l)
+    ps, pl = true_misregistration(edge_crop, s - ds, l - dl, at="predicted")
+    assert np.max(np.abs(ps - ds)) < 1e-6 and np.max(np.abs(pl - dl)) < 1e-6
+    # Through the fitted RPCs instead of the current models: the same field to the RPC fit error (METHODS §3).
+    rpc_pan, _ = fit_rpc_from_model(edge_crop.image("pan").current)
+    rpc_ms, _ = fit_rpc_from_model(edge_crop.image("ms").current)
+    rs, rl = true_misregistration(edge_crop, s, l, pan_model=rpc_pan, ms_model=rpc_ms)
+    assert np.max(np.abs(rs - ds)) < 0.01 and np.max(np.abs(rl - dl)) < 0.01

@@ -33,10 +33,9 @@ from __future__ import annotations
 import contextvars
 import json
 import os
-import tempfile
 from contextlib import closing, contextmanager
-from dataclasses import asdict, dataclass, replace
-from typing import Optional, Tuple
+from dataclasses import asdict, dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -440,7 +439,8 @@ def _models(scene, piece=None, pan_model=None, ms_model=None):
     return pan_true, ms_true, pan_model or pan.current, ms_model or ms.current
 
 
-def true_misregistration(scene, sample, line, *, pan_model=None, ms_model=None, piece: Optional[int] = None):
+def true_misregistration(scene, sample, line, *, pan_model=None, ms_model=None, piece: Optional[int] = None,
+                         at: str = "ms"):
     """The TRUE pan-MS misregistration at MS image points (METHODS §9's nabla), MS pixels per axis.
 
     ``delta = p' - p''``: ``p' = (sample, line)`` is where the MS image shows the ground point ``P`` (the MS
@@ -449,11 +449,22 @@ def true_misregistration(scene, sample, line, *, pan_model=None, ms_model=None, 
     the pan RPC; pass an :class:`~gdal_gf4cal.RPCModel` to use the fitted RPC) and projected with ``ms_model``
     (default the MS current model). GDAL pixel convention. ``piece`` evaluates sub-CCD ``piece``'s smooth
     extension (pan and MS) everywhere (used to interpolate without crossing the jumps).
+    ``at="predicted"``: ``(sample, line)`` are predicted points ``p''`` instead (what resampling the MS onto the
+    pan needs): ``delta`` such that the MS shows the ground at ``p'' + delta`` (fixed point ``p' = p'' +
+    delta(p')``, 5 iterations; the field's gradient is ~1e-4 px/px away from the edges).
 
     Returns ``(delta_sample, delta_line)`` arrays of the input shape (NaN off the DEM).
     """
-    pan_true, ms_true, pan_cur, ms_cur = _models(scene, piece, pan_model, ms_model)
     s, l = np.broadcast_arrays(np.asarray(sample, dtype=float), np.asarray(line, dtype=float))
+    if at == "predicted":
+        ps, pl = s, l
+        for _ in range(5):
+            ds, dl = true_misregistration(scene, ps, pl, pan_model=pan_model, ms_model=ms_model, piece=piece)
+            ps, pl = s + ds, l + dl
+        return ds, dl
+    if at != "ms":
+        raise ValueError(f"at={at!r}: use 'ms' (MS image points) or 'predicted' (predicted points)")
+    pan_true, ms_true, pan_cur, ms_cur = _models(scene, piece, pan_model, ms_model)
     lon, lat, h = ms_true.localize_dem(s, l, scene.dem)
     ps, pl = pan_true.project(lon, lat, h)
     lon2, lat2, h2 = pan_cur.localize_dem(ps, pl, scene.dem)
@@ -493,9 +504,10 @@ def write_misregistration_truth(scene, path, *, step: float = 8.0, tile: int = 5
     band 2 delta line, MS pixels, at every MS pixel centre, GDAL convention) -- what a ``correction.tif`` is
     checked against (METHODS §9). Per sub-CCD, bicubic from :func:`misregistration_nodes` (exact at the nodes;
     between them the terrain's fine structure in the line axis -- the pan and MS rays are 0.094° apart along
-    track -- is interpolated: max ~0.004 px, RMS ~0.001 px at ``step`` 8, 0.001 / 0.0003 px at 4); the jumps stay sharp at the MS sub-CCD edges). The pan's own jump, which lands within
-    ~1 MS px of the MS edge (the misregistration there), is put at the MS edge: within that pixel the grid may
-    differ from :func:`true_misregistration` by the pan jump (~0.1 px). Written tile by tile, atomically."""
+    track -- is interpolated: max ~0.004 px, RMS ~0.001 px at ``step`` 8, 0.001 / 0.0003 px at 4; the jumps
+    stay sharp at the MS sub-CCD edges). The pan's own jump, which lands within ~1 MS px of the MS edge (the
+    misregistration there), is put at the MS edge: within that pixel the grid may differ from
+    :func:`true_misregistration` by the pan jump (~0.1 px). Written tile by tile, atomically."""
     from osgeo import gdal
     from ..atomic import atomic_output
     gdal.UseExceptions()
@@ -506,7 +518,8 @@ def write_misregistration_truth(scene, path, *, step: float = 8.0, tile: int = 5
     path = os.fspath(path)
     with atomic_output(path) as tmp:
         ds_ = gdal.GetDriverByName("GTiff").Create(tmp, W, H, 2, gdal.GDT_Float32, [
-            "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"])
+            "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "PREDICTOR=3",
+            "BIGTIFF=IF_SAFER"])
         for band, desc in ((1, "delta_sample_ms_px"), (2, "delta_line_ms_px")):
             ds_.GetRasterBand(band).SetDescription(desc)
         ds_.SetMetadataItem("GF4CAL_TRUTH", "true pan-MS misregistration delta = MS image point - pan/DEM/MS-RPC "
