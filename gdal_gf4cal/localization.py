@@ -54,6 +54,16 @@ class LocalizationStats:
         return self.n_points - self.n_failed
 
 
+def _pixel_shift(pixel_convention: str) -> float:
+    """Raw RPC00B -> ``pixel_convention`` offset (as :func:`gdal_gf4cal.sensor.pixel_shift`, which imports this
+    module)."""
+    if pixel_convention == "gdal":
+        return 0.5
+    if pixel_convention == "rpc":
+        return 0.0
+    raise ValueError(f"pixel_convention must be 'gdal' or 'rpc', not {pixel_convention!r}")
+
+
 def _shape_out(values, shape):
     return float(values.reshape(-1)[0]) if shape == () else values.reshape(shape)
 
@@ -109,8 +119,7 @@ def _dem_stats(model, s, l, dem, pixel_convention, lon, lat, hgt, iters) -> Loca
 def _localize_dem_flat(model, s, l, dem, pixel_convention, tol_m, max_iter, scan_steps):
     """:func:`localize_dem` on flat arrays: ``(lon, lat, h, iterations)``; the RPC fast path first if it applies."""
     if getattr(model, "rational_polynomial", False) is True and not dem.is_constant:
-        from .sensor import pixel_shift
-        lon, lat, h, iters = _rpc_localize_dem_fast(model, s, l, dem, pixel_shift(pixel_convention), tol_m)
+        lon, lat, h, iters = _rpc_localize_dem_fast(model, s, l, dem, _pixel_shift(pixel_convention), tol_m)
         todo = np.flatnonzero(~np.isfinite(h))
         if todo.size:
             lo, la, hh, it2 = _localize_dem_generic(model, s[todo], l[todo], dem, pixel_convention, tol_m, max_iter,
