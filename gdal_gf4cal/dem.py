@@ -30,6 +30,10 @@ NodataPolicy = Union[str, float]
 class DEM:
     """A height model: a GDAL raster (:meth:`from_file`) or a constant height (:meth:`constant`).
 
+    Build one from whatever the user gave with :meth:`from_user_input` (a DEM, a path, a number or None). Sample
+    it with :meth:`sample` (scalars or arrays, the no-data policy per call) and, in Newton iterations, with
+    :meth:`sample_with_gradient` (heights and slopes, vectorised, windowed tile reads) (METHODS §2).
+
     Parameters (of :meth:`from_file`)
     ----------
     path : any raster GDAL opens (GeoTIFF, .hgt, VRT mosaic, ...), any CRS.
