@@ -28,6 +28,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from .errors import DegenerateGeometryError, GCPError, Gf4calError, InputOverwriteError
+from .sensor import GDAL_PIXEL_OFFSET, SensorModelMixin, pixel_shift
 
 __all__ = [
     "MODEL_NAMES", "CompensationModel", "CompensationResult", "CompensatedRPC", "AppliedCompensation",
@@ -719,41 +720,60 @@ def _normalised(a_s, a_l, y_s, y_l, w0, used):
 # ----------------------------------------------------------------------------------------------------------------
 # applying
 # ----------------------------------------------------------------------------------------------------------------
-class CompensatedRPC:
+class CompensatedRPC(SensorModelMixin):
     """An RPC composed with an image-space correction: ``project = rpc.project + d(rpc.project)`` (METHODS §4).
 
-    Offers the model verbs of :class:`~gdal_gf4cal.rpc.RPCModel` (``project``, ``project_jacobian``,
-    ``localize``, ``localize_dem``) in the GDAL pixel convention, so it can be refitted (METHODS §3), intersected
-    (METHODS §7) or compared with a truth model. Other attributes (offsets, scales, ``height_range``) are the RPC's.
+    A :class:`~gdal_gf4cal.sensor.SensorModel` (``project``, ``project_jacobian``, ``localize``, ``localize_dem``,
+    ``height_range``; GDAL pixel convention unless ``pixel_convention="rpc"``), so it can be refitted
+    (METHODS §3), intersected (METHODS §7) or compared with a truth model. It is made of ``.rpc`` (the uncorrected
+    :class:`~gdal_gf4cal.rpc.RPCModel`) and ``.result`` (the :class:`CompensationResult`) and forwards nothing
+    to them: it has no writers. The only way from a correction to a file is :func:`apply_compensation` (exact
+    fold or refit, its error reported), whose ``.rpc`` is written.
     """
 
     def __init__(self, rpc, result: CompensationResult):
         self.rpc = rpc
         self.result = result
 
-    def __getattr__(self, name):
-        if name in ("rpc", "result"):
-            raise AttributeError(name)
-        return getattr(self.rpc, name)
+    def __repr__(self) -> str:
+        return f"CompensatedRPC(rpc={self.rpc!r}, model={getattr(self.result.model, 'name', self.result.model)!r})"
 
-    def project(self, lon, lat, h):
+    @property
+    def height_range(self) -> Tuple[float, float]:
+        """The RPC's valid height range (m): the correction is image-space only."""
+        return tuple(self.rpc.height_range)
+
+    # -- SensorModelMixin hooks (flat arrays, GDAL convention) ------------------------------------------------
+    def _project_gdal(self, lon, lat, h):
         s, l = self.rpc.project(lon, lat, h)
         ds, dl = self.result.correction(s, l)
         return np.asarray(s) + ds, np.asarray(l) + dl
 
-    def project_jacobian(self, lon, lat, h):
+    def _localize_gdal(self, sample, line, h):
+        sp, lp = self.result.invert_correction(sample, line)
+        return self.rpc.localize(sp, lp, h)
+
+    # -- analytic Jacobian and the RPC's DEM fast path ---------------------------------------------------------
+    def project_jacobian(self, lon, lat, h, *, pixel_convention: str = "gdal") -> np.ndarray:
+        """``d(sample, line)/d(lon, lat, h)`` = ``(I + d correction) @ J_rpc``, shape ``(..., 2, 3)`` (METHODS §4)."""
+        pixel_shift(pixel_convention)
         s, l = self.rpc.project(lon, lat, h)
-        jac = _jacobian(self.rpc, lon, lat, h)
+        jac = np.asarray(self.rpc.project_jacobian(lon, lat, h), dtype=float)
         dcorr = self.result.correction_jacobian(s, l)
         return jac + dcorr @ jac
 
-    def localize(self, sample, line, h, **kw):
-        sp, lp = self.result.invert_correction(sample, line)
-        return self.rpc.localize(sp, lp, h, **kw)
-
-    def localize_dem(self, sample, line, dem, **kw):
-        sp, lp = self.result.invert_correction(sample, line)
-        return self.rpc.localize_dem(sp, lp, dem, **kw)
+    def localize_dem(self, sample, line, dem, *, pixel_convention: str = "gdal", full_output: bool = False,
+                     **kw):
+        """Line of sight x DEM (METHODS §2, §4): the correction is inverted in the image, then the RPC's
+        :meth:`~gdal_gf4cal.rpc.RPCModel.localize_dem` (its fast path) does the rest; same returns as it."""
+        shift = pixel_shift(pixel_convention) - GDAL_PIXEL_OFFSET
+        sample, line = np.broadcast_arrays(np.asarray(sample, dtype=float), np.asarray(line, dtype=float))
+        sp, lp = self.result.invert_correction(sample - shift, line - shift)
+        sp = np.asarray(sp, dtype=float).reshape(sample.shape)
+        lp = np.asarray(lp, dtype=float).reshape(sample.shape)
+        if sample.shape == ():
+            sp, lp = float(sp), float(lp)
+        return self.rpc.localize_dem(sp, lp, dem, full_output=full_output, **kw)
 
 
 @dataclass

@@ -31,6 +31,10 @@ NodataPolicy = Union[str, float]
 class DEM:
     """A height model: a GDAL raster (:meth:`from_file`) or a constant height (:meth:`constant`).
 
+    Build one from whatever the user gave with :meth:`from_user_input` (a DEM, a path, a number or None). Sample
+    it with :meth:`sample` (scalars or arrays, the no-data policy per call) and, in Newton iterations, with
+    :meth:`sample_with_gradient` (heights and slopes, vectorised, windowed tile reads) (METHODS §2).
+
     Parameters (of :meth:`from_file`)
     ----------
     path : any raster GDAL opens (GeoTIFF, .hgt, VRT mosaic, ...), any CRS.
@@ -116,13 +120,50 @@ class DEM:
         return cls(constant=float(height_m))
 
     @classmethod
-    def coerce(cls, dem) -> "DEM":
-        """A :class:`DEM` from a DEM, a number (constant height) or a path."""
+    def from_user_input(cls, dem, geoid=None, *, nodata: Optional[NodataPolicy] = None,
+                        band: int = 1) -> Optional["DEM"]:
+        """The one way from what a user gives to a :class:`DEM` (METHODS §2).
+
+        Parameters
+        ----------
+        dem : a :class:`DEM` (returned as it is), the path of a raster (opened with ``geoid``, ``nodata`` and
+            ``band``), a number (a constant ellipsoidal height in metres) or ``None`` (no DEM: returns ``None``).
+        geoid : see the class docstring; only used when ``dem`` is a path (a DEM object keeps its own, and a
+            constant height is ellipsoidal).
+        nodata : the no-data policy of a DEM opened from a path (default ``"error"``); for a given DEM object,
+            a copy with that policy (:meth:`with_nodata`).
+        """
+        if dem is None:
+            return None
         if isinstance(dem, DEM):
-            return dem
+            return dem if nodata is None else dem.with_nodata(nodata)
+        if isinstance(dem, (bool, np.bool_)):
+            raise DEMError(f"DEM {dem!r} is neither a raster path nor a height; pass a DEM file or a height in metres")
         if isinstance(dem, (int, float, np.floating, np.integer)):
+            if not np.isfinite(float(dem)):
+                raise DEMError(f"constant DEM height {dem!r} is not a finite number; pass a height in metres")
             return cls.constant(float(dem))
-        return cls.from_file(dem)
+        if isinstance(dem, (str, os.PathLike)):
+            return cls.from_file(os.fspath(dem), geoid=geoid, nodata="error" if nodata is None else nodata, band=band)
+        raise DEMError(f"cannot use {type(dem).__name__} as a DEM; pass a DEM, a raster path or a height in metres")
+
+    @classmethod
+    def coerce(cls, dem) -> "DEM":
+        """A :class:`DEM` from a DEM, a number (constant height) or a path (:meth:`from_user_input`, not None)."""
+        if dem is None:
+            raise DEMError("no DEM given; pass a DEM, a raster path or a height in metres")
+        return cls.from_user_input(dem)
+
+    def with_nodata(self, nodata: NodataPolicy) -> "DEM":
+        """A copy with another no-data policy, sharing the opened raster and its caches."""
+        if isinstance(nodata, str) and nodata not in ("error", "nan"):
+            raise ValueError("nodata must be 'error', 'nan' or a height in metres")
+        if nodata == self.nodata_policy and type(nodata) is type(self.nodata_policy):
+            return self
+        import copy
+        other = copy.copy(self)
+        other.nodata_policy = nodata
+        return other
 
     # ------------------------------------------------------------------ properties
     @property
@@ -158,14 +199,109 @@ class DEM:
                        "the scene")
 
     # ------------------------------------------------------------------ sampling
-    def height(self, lon, lat) -> np.ndarray:
+    def sample(self, lon, lat, *, nodata: Optional[NodataPolicy] = None):
         """Ellipsoidal height (m) at (lon, lat) degrees WGS84, bilinear; scalars or arrays (METHODS §2).
 
         Bilinear between pixel centres (GDAL convention: the centre of the first pixel is at (0.5, 0.5) pixel
         coordinates); between the outermost centres and the raster edge the edge value holds. Outside the raster
-        or next to no-data the DEM's ``nodata`` policy applies.
+        or next to no-data the no-data policy applies: ``nodata`` (``"error"``, ``"nan"`` or a height in metres)
+        or, when None, the DEM's own. A scalar point gives a Python float; arrays keep their (broadcast) shape.
         """
+        policy = self.nodata_policy if nodata is None else nodata
+        if isinstance(policy, str) and policy not in ("error", "nan"):
+            raise ValueError("nodata must be 'error', 'nan' or a height in metres")
+        return self._height(lon, lat, policy)
+
+    def height(self, lon, lat):
+        """Alias of :meth:`sample` with the DEM's own no-data policy."""
         return self._height(lon, lat, self.nodata_policy)
+
+    @property
+    def gradient_is_analytic(self) -> bool:
+        """True when :meth:`sample_with_gradient` is the exact derivative of :meth:`sample` (a WGS84 geographic
+        raster without geoid conversion, or a constant); otherwise it is a central difference over half a pixel."""
+        return self.is_constant or (self._to_dem is None and self._geoid is None)
+
+    def sample_with_gradient(self, lon, lat):
+        """Heights and their slopes at (lon, lat): ``(h, dh/dlon, dh/dlat)`` in m, m/deg, m/deg (METHODS §2).
+
+        The sampler of the DEM intersection's Newton steps: flat float arrays in and out, vectorised, NaN outside
+        the raster or next to no-data whatever the no-data policy (a numeric policy gives its height and zero
+        slope there). Small rasters are held in memory; large ones are read by windowed tiles (LRU cached). The
+        gradient is that of the bilinear surface (in the half-pixel border where the edge value holds, that of
+        the edge cell); see :attr:`gradient_is_analytic` for reprojected or geoid-corrected DEMs.
+        """
+        lon = np.asarray(lon, dtype=float).ravel()
+        lat = np.asarray(lat, dtype=float).ravel()
+        if self.is_constant:
+            z = np.where(np.isfinite(lon) & np.isfinite(lat), self.constant_height, np.nan)
+            return z, np.zeros(lon.size), np.zeros(lon.size)
+        policy = self.nodata_policy
+        numeric = not isinstance(policy, str)
+        if not self.gradient_is_analytic:
+            gt = self._gt
+            step = 0.5 * min(abs(gt[1]), abs(gt[5]))
+            if self._to_dem is not None:          # projected DEM: half a pixel in metres, in degrees
+                step /= 111320.0
+            z = self._height(lon, lat, "nan")
+            gx = (self._height(lon + step, lat, "nan") - self._height(lon - step, lat, "nan")) / (2 * step)
+            gy = (self._height(lon, lat + step, "nan") - self._height(lon, lat - step, "nan")) / (2 * step)
+        else:
+            gt = self._gt
+            x = self._wrap_lon(lon) if self._lon_wrap else lon
+            px = x * (1.0 / gt[1])
+            px += -gt[0] / gt[1] - 0.5
+            py = lat * (1.0 / gt[5])
+            py += -gt[3] / gt[5] - 0.5
+            if self.width * self.height_px <= self._whole_limit:
+                z, gx, gy = self._sample_whole(px, py, gradient=True)
+            else:
+                z, gx, gy = self._sample_tiles_gradient(px, py)
+            gx *= 1.0 / gt[1]
+            gy *= 1.0 / gt[5]
+        if numeric:
+            bad = ~np.isfinite(z)
+            if np.any(bad):
+                z[bad] = float(policy)
+                gx[bad] = 0.0
+                gy[bad] = 0.0
+        return z, gx, gy
+
+    def _sample_tiles_gradient(self, px, py):
+        """Bilinear value and gradient (per pixel) of a large raster, by windowed tile reads (one per tile)."""
+        W, H = self.width, self.height_px
+        n = px.size
+        z = np.full(n, np.nan)
+        gx = np.full(n, np.nan)
+        gy = np.full(n, np.nan)
+        with np.errstate(invalid="ignore"):
+            inside = np.isfinite(px) & np.isfinite(py) & (px >= -0.5) & (py >= -0.5) & (px <= W - 0.5) & \
+                (py <= H - 0.5)
+        idx = np.flatnonzero(inside)
+        if idx.size == 0:
+            return z, gx, gy
+        pxi = np.clip(px[idx], 0.0, W - 1.0)
+        pyi = np.clip(py[idx], 0.0, H - 1.0)
+        T = self._tile
+        tx = np.minimum(np.floor(pxi).astype(np.int64), max(W - 2, 0)) // T
+        ty = np.minimum(np.floor(pyi).astype(np.int64), max(H - 2, 0)) // T
+        key = ty * (W // T + 2) + tx
+        order = np.argsort(key, kind="stable")
+        keys_sorted = key[order]
+        starts = np.flatnonzero(np.r_[True, keys_sorted[1:] != keys_sorted[:-1]])
+        ends = np.r_[starts[1:], keys_sorted.size]
+        for a, b in zip(starts, ends):           # one iteration per tile touched, not per point
+            sel = order[a:b]
+            tile_y, tile_x = int(ty[sel[0]]), int(tx[sel[0]])
+            block = self._read_tile(tile_x, tile_y)
+            bh, bw = block.shape
+            lx = pxi[sel] - tile_x * T
+            ly = pyi[sel] - tile_y * T
+            zz, gg, hh = np.empty(sel.size), np.empty(sel.size), np.empty(sel.size)
+            _bilinear_flat(block.ravel(), bw, bh, lx, ly, zz, gg, hh)
+            j = idx[sel]
+            z[j], gx[j], gy[j] = zz, gg, hh
+        return z, gx, gy
 
     def _height(self, lon, lat, policy: NodataPolicy) -> np.ndarray:
         """:meth:`height` with an explicit no-data policy (iterations ask for NaN without touching the DEM)."""

@@ -58,7 +58,7 @@ def describe_rpc(source, dem=None, geoid=None, rpc: Optional[RPCModel] = None) -
     s = np.array([0.0, W, W, 0.0])
     l = np.array([0.0, 0.0, H, H])
     if dem is not None:
-        dem_obj = dem if isinstance(dem, DEM) else DEM.from_file(dem, geoid=geoid)
+        dem_obj = DEM.from_user_input(dem, geoid=geoid)
         lon, lat, h = rpc.localize_dem(s, l, dem_obj)
         if not np.all(np.isfinite(h)):
             raise DEMError(f"the footprint of {source} is not covered by the DEM {getattr(dem_obj, 'path', dem)}; "

@@ -121,7 +121,7 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
         (n_img, -1) if np.ndim(sigma_px) >= 1 else (1, 1)), (n_img, n_pts))
     wgt = np.where(obs, 1.0 / sig ** 2, 0.0)
     if h0 is None:
-        h0 = float(getattr(models[0], "height_off", 0.0))
+        h0 = float(np.mean(models[0].height_range))     # the RPC's HEIGHT_OFF; any SensorModel has height_range
     # Start: localise in the first image observing each point at h0.
     lon = np.full(n_pts, np.nan)
     lat = np.full(n_pts, np.nan)

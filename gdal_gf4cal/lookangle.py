@@ -29,6 +29,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from .camera import CameraFormatError
+from .sensor import SensorModelMixin
 from .errors import ConvergenceError, DegenerateGeometryError, GCPError, InputOverwriteError
 from .progress import report, scaled
 
@@ -623,12 +624,13 @@ def compare_lookangle(a, b, grid_px: float = 50) -> Dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------------------------------- recalibrate
-class RecalibratedSensor:
+class RecalibratedSensor(SensorModelMixin):
     """The scene's geometry with the recalibrated camera, as an image-space composition over the old RPC.
 
     ``project(lon, lat, h) = tan_new^-1(tan_old(RPC(lon, lat, h)))`` and
-    ``localize(s, l, h) = RPC.localize(tan_old^-1(tan_new(s, l)), h)`` (METHODS §5 step 4), GDAL convention.
-    This is what :func:`recalibrate_rpc` fits a new RPC to.
+    ``localize(s, l, h) = RPC.localize(tan_old^-1(tan_new(s, l)), h)`` (METHODS §5 step 4), GDAL convention unless
+    ``pixel_convention="rpc"``. A :class:`~gdal_gf4cal.sensor.SensorModel` made of ``.rpc``, ``.current`` and
+    ``.new``, with no writers: :func:`recalibrate_rpc` fits the RPC of it that is written.
     """
 
     def __init__(self, rpc, current, new):
@@ -640,34 +642,21 @@ class RecalibratedSensor:
 
     @property
     def height_range(self):
-        return self.rpc.height_range
+        """The RPC's valid height range (m)."""
+        return tuple(self.rpc.height_range)
 
-    def project(self, lon, lat, h):
-        lon, lat, h = np.broadcast_arrays(np.asarray(lon, float), np.asarray(lat, float), np.asarray(h, float))
-        shape = lon.shape
-        sv, lv = self.rpc.project(lon.ravel(), lat.ravel(), h.ravel())
+    def _project_gdal(self, lon, lat, h):
+        sv, lv = self.rpc.project(lon, lat, h)
         sv = np.asarray(sv, float).ravel()
         lv = np.asarray(lv, float).ravel()
         tx, ty = self.current.tan_angles(sv, lv)
         s, l = self.new.detector_of(tx, ty, sv, lv)
-        if shape == ():
-            return float(s[0]), float(l[0])
-        return s.reshape(shape), l.reshape(shape)
+        return np.asarray(s, float).ravel(), np.asarray(l, float).ravel()
 
-    def localize(self, sample, line, h):
-        sample, line, h = np.broadcast_arrays(np.asarray(sample, float), np.asarray(line, float),
-                                              np.asarray(h, float))
-        shape = sample.shape
-        s = sample.ravel()
-        l = line.ravel()
-        tx, ty = self.new.tan_angles(s, l)
-        sv, lv = self.current.detector_of(tx, ty, s, l)
-        lon, lat = self.rpc.localize(sv, lv, h.ravel())
-        lon = np.asarray(lon, float)
-        lat = np.asarray(lat, float)
-        if shape == ():
-            return float(lon.ravel()[0]), float(lat.ravel()[0])
-        return lon.reshape(shape), lat.reshape(shape)
+    def _localize_gdal(self, sample, line, h):
+        tx, ty = self.new.tan_angles(sample, line)
+        sv, lv = self.current.detector_of(tx, ty, sample, line)
+        return self.rpc.localize(np.asarray(sv, float).ravel(), np.asarray(lv, float).ravel(), h)
 
 
 def recalibrate_rpc(rpc, current, new, height_range=None, *, grid=(21, 21), n_layers: int = 7, progress=None):

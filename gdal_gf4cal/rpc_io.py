@@ -700,6 +700,10 @@ def _metadata_of(rpc: Any) -> Dict[str, str]:
     elif isinstance(rpc, Mapping):
         md = rpc
         source = "RPC metadata"
+    elif hasattr(rpc, "rpc"):      # a model composed over an RPC (CompensatedRPC, RecalibratedSensor): no RPC00B
+        raise RPCFormatError(f"cannot write {type(rpc).__name__}: it is an RPC composed with a correction; make an "
+                             "RPC of it with apply_compensation(model.rpc, model.result) (fold or refit, its error "
+                             "reported; recalibrate_rpc for a RecalibratedSensor) and write that .rpc")
     else:
         raise RPCFormatError(f"cannot write {type(rpc).__name__}: give an RPCModel or a dict of GDAL RPC keys")
     canon = normalize_rpc_metadata(md, source)

@@ -108,9 +108,9 @@ def _file_key(path: str) -> Tuple:
 def _dem_from_spec(spec: Tuple):
     from ..dem import DEM
     if spec[0] == "constant":
-        return DEM.constant(spec[1])
+        return DEM.from_user_input(float(spec[1]))
     return _cached(("dem",) + _file_key(spec[1]) + tuple(spec[2:]),
-                   lambda: DEM.from_file(spec[1], geoid=spec[2], nodata=spec[3]))
+                   lambda: DEM.from_user_input(spec[1], geoid=spec[2], nodata=spec[3]))
 
 
 def _dem_spec(dem) -> Tuple:

@@ -1,7 +1,8 @@
 """Rigorous sensor models of the simulator (METHODS §10): frame (area array) and push-broom cameras.
 
-Both models share one interface (the same verbs as :class:`gdal_gf4cal.RPCModel`, GDAL pixel convention, centre
-of the first pixel at 0.5):
+Both models implement the one sensor-model contract (:class:`gdal_gf4cal.sensor.SensorModel`, through
+:class:`~gdal_gf4cal.sensor.SensorModelMixin`: the same verbs and keywords as :class:`gdal_gf4cal.RPCModel`, GDAL
+pixel convention, centre of the first pixel at 0.5, scalars in and Python floats out):
 
 ``project(lon, lat, h) -> (sample, line)``          ground to image (push-broom: the line/time is solved)
 ``localize(sample, line, h) -> (lon, lat)``         image to ground at ellipsoidal height h
@@ -24,6 +25,7 @@ from typing import List, Sequence, Tuple
 
 import numpy as np
 
+from ..sensor import SensorModelMixin
 from .geodesy import (GM_EARTH, OMEGA_EARTH, ecef_to_geodetic, geodetic_to_ecef, ray_height_intersection,
                       rot_x, rot_y, rot_z)
 
@@ -32,15 +34,15 @@ def _arr(*xs):
     return np.broadcast_arrays(*[np.asarray(x, dtype=float) for x in xs])
 
 
-def _out(v, shape):
-    return float(v.reshape(-1)[0]) if shape == () else v.reshape(shape)
-
-
 def _unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-class _ModelBase:
+class _ModelBase(SensorModelMixin):
+    """The shared half of the simulator's models: the :class:`~gdal_gf4cal.sensor.SensorModel` contract through
+    :class:`~gdal_gf4cal.sensor.SensorModelMixin` (scalars, shapes, pixel convention, ``full_output``,
+    ``localize_dem`` through the localisation layer, numeric ``project_jacobian``)."""
+
     camera = None
     height_range: Tuple[float, float] = (0.0, 0.0)
     name: str = ""
@@ -55,26 +57,22 @@ class _ModelBase:
         m.camera = camera
         return m
 
-    def localize(self, sample, line, h, *, pixel_convention: str = "gdal"):
-        """Ground ``(lon, lat)`` of image points at ellipsoidal height ``h`` (GDAL convention unless "rpc")."""
-        s, l, h = _arr(sample, line, h)
-        shape = s.shape
-        if pixel_convention == "rpc":
-            s, l = s + 0.5, l + 0.5
-        o, d = self.look_vectors(s.ravel(), l.ravel())
-        t = ray_height_intersection(o, d, h.ravel())
+    def _localize_gdal(self, sample, line, h):
+        """Ground ``(lon, lat)`` of image points at ellipsoidal height ``h`` (flat arrays, GDAL convention)."""
+        o, d = self.look_vectors(sample, line)
+        t = ray_height_intersection(o, d, h)
         lon, lat, _ = ecef_to_geodetic(o + t[:, None] * d)
-        return _out(lon, shape), _out(lat, shape)
+        return lon, lat
 
-    def localize_dem(self, sample, line, dem, **kw):
+    def localize_dem(self, sample, line, dem, *, pixel_convention: str = "gdal", full_output: bool = False, **kw):
         """``(lon, lat, h)`` where the lines of sight meet ``dem`` (a DEM or a height); NaN where they miss.
 
-        Uses :func:`gdal_gf4cal.localization.localize_dem`; ``(lon, lat)`` is exactly ``localize(s, l, h)`` for the
-        returned ``h``, so ``project`` of the result returns the input to round-off.
+        Uses :func:`gdal_gf4cal.localization.localize_dem` (``tol_m`` 1e-5 m by default); ``(lon, lat)`` is exactly
+        ``localize(s, l, h)`` for the returned ``h``, so ``project`` of the result returns the input to round-off.
         """
-        from ..localization import localize_dem
         kw.setdefault("tol_m", 1e-5)
-        return localize_dem(self, sample, line, dem, **kw)
+        return super().localize_dem(sample, line, dem, pixel_convention=pixel_convention, full_output=full_output,
+                                    **kw)
 
 
 class FrameModel(_ModelBase):
@@ -107,16 +105,11 @@ class FrameModel(_ModelBase):
         z = np.where(v[..., 2] > 0, v[..., 2], np.nan)
         return v[..., 0] / z, v[..., 1] / z
 
-    def project(self, lon, lat, h, *, pixel_convention: str = "gdal"):
-        """Image ``(sample, line)`` of ground points (GDAL convention unless "rpc")."""
-        lon, lat, h = _arr(lon, lat, h)
-        shape = lon.shape
-        tx, ty = self.look_angles(lon.ravel(), lat.ravel(), h.ravel())
+    def _project_gdal(self, lon, lat, h):
+        """Image ``(sample, line)`` of ground points (flat arrays, GDAL convention)."""
+        tx, ty = self.look_angles(lon, lat, h)
         s, l = self.camera.detector_of(tx, ty, tol_px=1e-11)
-        s, l = np.asarray(s, float), np.asarray(l, float)
-        if pixel_convention == "rpc":
-            s, l = s - 0.5, l - 0.5
-        return _out(s, shape), _out(l, shape)
+        return np.asarray(s, float), np.asarray(l, float)
 
 
 @dataclass
@@ -279,12 +272,10 @@ class PushbroomModel(_ModelBase):
             s = s + (tx - cx) / J[..., 0, 0]
         return s
 
-    def project(self, lon, lat, h, *, pixel_convention: str = "gdal", tol_px: float = 1e-8, max_iter: int = 30):
-        """Image ``(sample, line)`` of ground points: Newton on the line (time) at which the ground point lies in
-        the plane of view of its detector. NaN where it does not converge."""
-        lon, lat, h = _arr(lon, lat, h)
-        shape = lon.shape
-        P = geodetic_to_ecef(lon.ravel(), lat.ravel(), h.ravel())
+    def _project_gdal(self, lon, lat, h, tol_px: float = 1e-8, max_iter: int = 30):
+        """Image ``(sample, line)`` of ground points (flat arrays, GDAL convention): Newton on the line (time) at
+        which the ground point lies in the plane of view of its detector. NaN where it does not converge."""
+        P = geodetic_to_ecef(lon, lat, h)
         n = P.shape[0]
         line = np.full(n, self.line_center)
         sample = np.full(n, np.nan)
@@ -317,9 +308,7 @@ class PushbroomModel(_ModelBase):
             if idx.size == 0:
                 break
         sample[~ok], line[~ok] = np.nan, np.nan
-        if pixel_convention == "rpc":
-            sample, line = sample - 0.5, line - 0.5
-        return _out(sample, shape), _out(line, shape)
+        return sample, line
 
     def look_angles(self, lon, lat, h):
         """Camera-frame ``(tan_x, tan_y)`` of ground points at their imaging time (= camera.tan_angles(project))."""

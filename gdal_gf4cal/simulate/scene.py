@@ -179,7 +179,7 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
     try:
         dem_path = os.path.join(out_dir, "dem.tif")
         if dem is not None:
-            dem_obj = dem if isinstance(dem, DEM) else DEM.coerce(dem)
+            dem_obj = DEM.from_user_input(dem)
             scene = make_scene(sensor_name, seed=seed, center=center, size=size, dem=dem_obj,
                                progress=scaled(progress, 0.0, 0.1))
             _copy_dem(scene, dem_path)
@@ -306,9 +306,6 @@ def _copy_dem(scene: SimScene, dem_path: str):
     xs = bounds[0] + (np.arange(int(np.ceil((bounds[2] - bounds[0]) / cell))) + 0.5) * cell
     ys = bounds[3] - (np.arange(int(np.ceil((bounds[3] - bounds[1]) / cell))) + 0.5) * cell
     X, Y = np.meshgrid(xs, ys)
-    from ..dem import DEM
     dem = scene.dem
-    if not dem.is_constant and dem.path:
-        dem = DEM.from_file(dem.path, geoid=getattr(dem, "_geoid_name", None), nodata="nan")
-    heights = np.asarray(dem.height(X, Y), dtype=np.float32)
+    heights = np.asarray(dem.sample(X, Y, nodata="nan"), dtype=np.float32)
     write_dem_tif(dem_path, heights, (bounds[0], cell, 0.0, bounds[3], 0.0, -cell))

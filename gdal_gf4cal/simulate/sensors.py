@@ -481,7 +481,7 @@ def make_scene(sensor: str, *, seed: int = 0, center=None, size=None, dem=None, 
                               f"it takes {list(spec.options) or 'none'}")
     rng = np.random.default_rng(seed)
     report(progress, 0.0, "building sensor models")
-    user_dem = DEM.coerce(dem) if dem is not None else None
+    user_dem = DEM.from_user_input(dem)
     relief = spec.relief_m
     if user_dem is not None:
         h_mid = float(np.clip(user_dem.height(*center), -500, 9000)) if not user_dem.is_constant \
@@ -517,10 +517,9 @@ def make_scene(sensor: str, *, seed: int = 0, center=None, size=None, dem=None, 
             bounds = _footprint(images, (h_mid,))
             g = np.linspace(0, 1, 60)
             lo, la = np.meshgrid(bounds[0] + g * (bounds[2] - bounds[0]), bounds[1] + g * (bounds[3] - bounds[1]))
-            # Re-opened with nodata="nan" (the footprint may overhang the DEM) but the same geoid: the range must
-            # be ellipsoidal like every height the models use.
-            hh = np.asarray(DEM.from_file(user_dem.path, geoid=user_dem._geoid_name, nodata="nan").height(lo, la)) \
-                if user_dem.path else np.asarray(user_dem.height(lo, la))
+            # Sampled with nodata="nan" (the footprint may overhang the DEM), through the DEM's geoid: the range
+            # must be ellipsoidal like every height the models use.
+            hh = np.asarray(user_dem.sample(lo, la, nodata="nan"))
             if not np.any(np.isfinite(hh)):
                 raise DEMError(f"DEM {user_dem.path} does not cover the simulated footprint {bounds}; "
                                "use a DEM covering the scene or another --center")

@@ -1,0 +1,88 @@
+"""The 20 RPC00B terms and their derivatives (METHODS §1): the polynomial core shared by the RPC model, the RPC
+fit and the DEM-intersection fast path of the localisation layer (kept apart so none of them imports another)."""
+from __future__ import annotations
+
+import numpy as np
+
+#: The 20 terms in RPC00B order (P = normalised latitude, L = longitude, H = height).
+TERMS = ("1", "L", "P", "H", "LP", "LH", "PH", "L2", "P2", "H2", "PLH", "L3", "LP2", "LH2", "L2P", "P3", "PH2",
+         "L2H", "P2H", "H3")
+
+#: Exponents (of L, P, H) of the 20 terms, in RPC00B order.
+_EXPONENTS = ((0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1), (2, 0, 0), (0, 2, 0),
+              (0, 0, 2), (1, 1, 1), (3, 0, 0), (1, 2, 0), (1, 0, 2), (2, 1, 0), (0, 3, 0), (0, 1, 2), (2, 0, 1),
+              (0, 2, 1), (0, 0, 3))
+
+
+def _derivative_matrix(axis: int) -> np.ndarray:
+    """D (20, 20) with d(term_j)/d(axis) = sum_k D[j, k] term_k: derivatives stay in the 20-term basis."""
+    index = {e: k for k, e in enumerate(_EXPONENTS)}
+    D = np.zeros((20, 20))
+    for j, e in enumerate(_EXPONENTS):
+        if e[axis]:
+            lowered = list(e)
+            lowered[axis] -= 1
+            D[j, index[tuple(lowered)]] = e[axis]
+    return D
+
+
+#: d/dL, d/dP, d/dH as (20, 20) basis maps: coefficients of the derivative polynomial = coeffs @ D.
+DERIVATIVE_MATRICES = tuple(_derivative_matrix(a) for a in range(3))
+
+#: Chunk of points processed at once: keeps the (20, chunk) monomial block in cache.
+_CHUNK = 16384
+
+
+def monomials(L: np.ndarray, P: np.ndarray, H: np.ndarray) -> np.ndarray:
+    """The 20 RPC00B monomials of normalised (L, P, H), shape ``(20, N)`` (term-major, METHODS §1).
+
+    Term-major layout makes each row a contiguous vector, so ``coeffs @ monomials(...)`` evaluates several
+    polynomials at once with one BLAS call. Use ``.T`` for a point-major ``(N, 20)`` design matrix.
+    """
+    L = np.asarray(L, dtype=float).ravel()
+    P = np.asarray(P, dtype=float).ravel()
+    H = np.asarray(H, dtype=float).ravel()
+    m = np.empty((20, L.size))
+    m[0] = 1.0
+    m[1] = L
+    m[2] = P
+    m[3] = H
+    np.multiply(L, P, out=m[4])
+    np.multiply(L, H, out=m[5])
+    np.multiply(P, H, out=m[6])
+    np.multiply(L, L, out=m[7])
+    np.multiply(P, P, out=m[8])
+    np.multiply(H, H, out=m[9])
+    np.multiply(m[4], H, out=m[10])      # PLH
+    np.multiply(m[7], L, out=m[11])      # L3
+    np.multiply(m[8], L, out=m[12])      # LP2
+    np.multiply(m[9], L, out=m[13])      # LH2
+    np.multiply(m[7], P, out=m[14])      # L2P
+    np.multiply(m[8], P, out=m[15])      # P3
+    np.multiply(m[9], P, out=m[16])      # PH2
+    np.multiply(m[7], H, out=m[17])      # L2H
+    np.multiply(m[8], H, out=m[18])      # P2H
+    np.multiply(m[9], H, out=m[19])      # H3
+    return m
+
+
+def monomial_derivatives(L: np.ndarray, P: np.ndarray, H: np.ndarray, with_h: bool = True):
+    """Partial derivatives of :func:`monomials` with respect to L, P and H, each ``(20, N)``.
+
+    With ``with_h=False`` the third item is ``None`` (saves a third of the work when H is fixed).
+    """
+    L = np.asarray(L, dtype=float).ravel()
+    P = np.asarray(P, dtype=float).ravel()
+    H = np.asarray(H, dtype=float).ravel()
+    n = L.size
+    one, zero = np.ones(n), np.zeros(n)
+    LL, PP, HH, LP, LH, PH = L * L, P * P, H * H, L * P, L * H, P * H
+    dL = np.stack([zero, one, zero, zero, P, H, zero, 2 * L, zero, zero, PH, 3 * LL, PP, HH, 2 * LP, zero, zero,
+                   2 * LH, zero, zero])
+    dP = np.stack([zero, zero, one, zero, L, zero, H, zero, 2 * P, zero, LH, zero, 2 * LP, zero, LL, 3 * PP, HH,
+                   zero, 2 * PH, zero])
+    if not with_h:
+        return dL, dP, None
+    dH = np.stack([zero, zero, zero, one, zero, L, P, zero, zero, 2 * H, LP, zero, zero, 2 * LH, zero, zero, 2 * PH,
+                   LL, PP, 3 * HH])
+    return dL, dP, dH
