@@ -39,6 +39,7 @@ from typing import Optional
 
 import numpy as np
 
+from .._gdal import with_gdal_exceptions
 from .geodesy import geodetic_to_ecef
 from .models import CAMERA_TO_BODY, Attitude
 
@@ -499,6 +500,7 @@ def _spline(cols, rows, values):
     return RectBivariateSpline(rows, cols, v, kx=kx, ky=ky)
 
 
+@with_gdal_exceptions
 def write_misregistration_truth(scene, path, *, step: float = 8.0, tile: int = 512) -> str:
     """Write the TRUE misregistration field on the MS image grid: 2-band float32 GeoTIFF (band 1 delta sample,
     band 2 delta line, MS pixels, at every MS pixel centre, GDAL convention) -- what a ``correction.tif`` is
@@ -510,7 +512,6 @@ def write_misregistration_truth(scene, path, *, step: float = 8.0, tile: int = 5
     :func:`true_misregistration` by the pan jump (~0.1 px). Written tile by tile, atomically."""
     from osgeo import gdal
     from ..atomic import atomic_output
-    gdal.UseExceptions()
     ms = scene.image("ms")
     W, H = ms.size
     nodes = misregistration_nodes(scene, step)
@@ -588,6 +589,7 @@ def _to_byte(r):
     return np.clip(np.round(20.0 + 220.0 * r), 1, 255).astype(np.uint8)
 
 
+@with_gdal_exceptions
 def render_gf7_image(scene, name: str, path, *, reference=None, mask_path=None, tile: int = 512,
                      workers: int = 2, progress=None) -> str:
     """Render the ``pan`` (1 band) or ``ms`` (4 bands: blue, green, red, NIR) image of a GF7 scene through its
@@ -600,7 +602,6 @@ def render_gf7_image(scene, name: str, path, *, reference=None, mask_path=None, 
     from ..atomic import atomic_output
     from ..progress import report
     from .render import _bounded_map, _DemGrid, _Reference, ground_of_pixels, model_bounds
-    gdal.UseExceptions()
     im = scene.image(name)
     model = im.true
     W, H = model.size
