@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import threading
 import uuid
 from contextlib import contextmanager
 from typing import Callable, Dict, Iterable, Iterator, List, Optional, Sequence
@@ -29,6 +30,16 @@ from .errors import Gf4calError, InputOverwriteError
 
 __all__ = ["OutputSet", "atomic_output", "fix_mode", "same_file", "rpc_stem", "check_not_a_shadowing_sidecar",
            "count_features", "check_raster", "check_vector"]
+
+# Set by the CLI's SIGTERM/SIGINT handler: a run that has been told to stop never commits its outputs, even when the
+# KeyboardInterrupt was swallowed on the way (e.g. raised inside a GDAL callback that ignores Python exceptions).
+_INTERRUPTED = threading.Event()
+
+
+def request_interrupt() -> None:
+    """Mark the process as interrupted (signal handlers call this): no OutputSet commits afterwards."""
+    _INTERRUPTED.set()
+
 
 # Files SQLite/GDAL may leave next to a temporary (GeoPackage journals, GDAL's .aux.xml).
 _COMPANIONS = ("-journal", "-wal", "-shm", ".aux.xml")
@@ -352,6 +363,8 @@ class OutputSet:
                 raise Gf4calError(f"output {o.key} ({o.path}) came out empty (disk full?); nothing was kept")
             if o.check is not None:
                 o.check(o.tmp)
+        if _INTERRUPTED.is_set():
+            raise KeyboardInterrupt("interrupted before the outputs were written; nothing was kept")
         if self.cancelled is not None and self.cancelled():
             raise CancelledError("cancelled before the outputs were written; nothing was kept")
         backups: List[tuple] = []

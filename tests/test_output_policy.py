@@ -280,7 +280,7 @@ def test_simulate_overwrite_keeps_the_users_files_when_cancelled(tmp_path):
 def test_sigterm_mid_run_exits_130_and_leaves_no_file(tmp_path):
     out = tmp_path / "scene"
     proc = subprocess.Popen([sys.executable, "-m", "gdal_gf4cal.cli", "simulate", "--sensor", "gf4", "--out", str(out),
-                             "--size", "3000", "3000", "--render", "--workers", "1"],
+                             "--size", "2000", "2000", "--render", "--workers", "1"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     while not out.exists() and time.monotonic() < deadline:     # wait until the run has started writing

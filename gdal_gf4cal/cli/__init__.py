@@ -56,17 +56,20 @@ def print_warnings(rep, stream=None) -> None:
 
 
 def _sigterm(signum, frame):  # pragma: no cover - exercised through a subprocess
+    from ..outputs import request_interrupt
+    request_interrupt()           # also stops the commit if the KeyboardInterrupt gets swallowed on the way
     raise KeyboardInterrupt("terminated")
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    previous = None
+    previous = {}
     try:
-        previous = signal.signal(signal.SIGTERM, _sigterm)   # SIGTERM cleans up like Ctrl-C (outputs removed)
+        for sig in (signal.SIGTERM, signal.SIGINT):          # SIGTERM cleans up like Ctrl-C (outputs removed)
+            previous[sig] = signal.signal(sig, _sigterm)
     except ValueError:                                       # not the main thread: leave signals alone
-        previous = None
+        pass
     try:
         return int(args._run(args) or 0)
     except CancelledError:
@@ -90,8 +93,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"gf4cal: error: {exc}", file=sys.stderr)
         return 2
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 if __name__ == "__main__":  # pragma: no cover
