@@ -127,7 +127,8 @@ class DEM:
         Parameters
         ----------
         dem : a :class:`DEM` (returned as it is), the path of a raster (opened with ``geoid``, ``nodata`` and
-            ``band``), a number (a constant ellipsoidal height in metres) or ``None`` (no DEM: returns ``None``).
+            ``band``), a number or a string that is one and names no file (a constant ellipsoidal height in
+            metres) or ``None`` (no DEM: returns ``None``).
         geoid : see the class docstring; only used when ``dem`` is a path (a DEM object keeps its own, and a
             constant height is ellipsoidal).
         nodata : the no-data policy of a DEM opened from a path (default ``"error"``); for a given DEM object,
@@ -143,6 +144,11 @@ class DEM:
             if not np.isfinite(float(dem)):
                 raise DEMError(f"constant DEM height {dem!r} is not a finite number; pass a height in metres")
             return cls.constant(float(dem))
+        if isinstance(dem, str) and not os.path.exists(dem):
+            try:
+                return cls.from_user_input(float(dem))      # a height typed at the CLI ("--dem 250")
+            except ValueError:
+                pass
         if isinstance(dem, (str, os.PathLike)):
             return cls.from_file(os.fspath(dem), geoid=geoid, nodata="error" if nodata is None else nodata, band=band)
         raise DEMError(f"cannot use {type(dem).__name__} as a DEM; pass a DEM, a raster path or a height in metres")

@@ -14,26 +14,6 @@ def is_path(x) -> bool:
     return isinstance(x, (str, os.PathLike))
 
 
-def _open_dem(dem, geoid=None):
-    """A :class:`~gdal_gf4cal.dem.DEM` from what the user gave: ``None``, a DEM, a path, or a constant height
-    (a number or a string that parses as one). The lead switches this to ``DEM.from_user_input`` at merge."""
-    from ..dem import DEM
-    if dem is None:
-        return None
-    if isinstance(dem, DEM):
-        return dem
-    if isinstance(dem, (int, float)):
-        return DEM.constant(float(dem))
-    if isinstance(dem, str):
-        try:
-            return DEM.constant(float(dem))
-        except ValueError:
-            pass
-    if is_path(dem):
-        return DEM.from_file(os.fspath(dem), geoid=geoid)
-    return DEM.coerce(dem)
-
-
 def _open_image(path) -> Tuple[Optional[Tuple[int, int]], List[str]]:
     """``((width, height), files)`` if GDAL opens ``path`` as a raster with pixels (``files``: the image and its
     sidecars, all inputs), else ``(None, [path])`` (a standalone RPC file)."""

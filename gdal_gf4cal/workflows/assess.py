@@ -7,7 +7,8 @@ from typing import Optional, Tuple
 import numpy as np
 
 from ..outputs import OutputSet, check_vector
-from ._common import _open_dem, cancel_check, collect_warnings, finish_report, is_path
+from ..dem import DEM
+from ._common import cancel_check, collect_warnings, finish_report, is_path
 
 
 def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[str] = None, residuals=None,
@@ -56,7 +57,7 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
     warns: list = []
     with outs, collect_warnings(warns):
         rpc = source if isinstance(source, RPCModel) else RPCModel.from_file(source)
-        dem_obj = _open_dem(dem, geoid)
+        dem_obj = DEM.from_user_input(dem, geoid=geoid)
         if is_path(gcps):
             table = read_gcps(gcps, dem=dem_obj, **({"layer": gcp_layer} if gcp_layer else {}))
         else:

@@ -8,7 +8,8 @@ import os
 from typing import Any, Dict
 
 from ..outputs import OutputSet, check_vector
-from ._common import _open_dem, cancel_check, collect_warnings, finish_report, is_path
+from ..dem import DEM
+from ._common import cancel_check, collect_warnings, finish_report, is_path
 
 
 def _scene_stem(path) -> str:
@@ -68,7 +69,7 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
     with outs, collect_warnings(warns):
         rpc = RPCModel.from_file(rpc_path)
         current = LookAngleModel.from_json(camera_path)
-        dem_obj = _open_dem(dem, geoid)
+        dem_obj = DEM.from_user_input(dem, geoid=geoid)
         if is_path(gcps_path):
             gcps = read_gcps(gcps_path, dem=dem_obj, **({"layer": gcp_layer} if gcp_layer else {}))
         else:                                         # a GCP table already read (QGIS: the layer's reader)

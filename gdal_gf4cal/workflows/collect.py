@@ -7,7 +7,8 @@ from typing import Any, Dict
 
 from ..errors import Gf4calError
 from ..outputs import OutputSet, check_vector
-from ._common import _open_dem, cancel_check, collect_warnings, finish_report
+from ..dem import DEM
+from ._common import cancel_check, collect_warnings, finish_report
 
 _EXTS = (".gpkg", ".csv", ".geojson", ".json")
 
@@ -35,7 +36,7 @@ def collect_gcps_file(image, reference, dem, out, *, rpc=None, geoid=None, keep_
     warns: list = []
     with outs, collect_warnings(warns):
         model = rpc if hasattr(rpc, "project") else RPCModel.from_file(os.fspath(rpc or image))
-        dem_obj = _open_dem(dem, geoid)
+        dem_obj = DEM.from_user_input(dem, geoid=geoid)
         gcps = collect_gcps(os.fspath(image), model, os.fspath(reference), dem_obj, progress=progress, **options)
         w = gcps.attrs["windows"]
         table = gcps if keep_outliers else gcps[~gcps["outlier"].to_numpy(bool)]

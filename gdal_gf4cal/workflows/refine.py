@@ -10,7 +10,8 @@ from typing import Any, Dict, Optional, Sequence
 
 from ..errors import GCPError, Gf4calError
 from ..outputs import OutputSet, check_not_a_shadowing_sidecar, check_vector, rpc_stem, same_file
-from ._common import _open_dem, _open_image, cancel_check, collect_warnings, finish_report, is_path
+from ..dem import DEM
+from ._common import _open_image, cancel_check, collect_warnings, finish_report, is_path
 
 # Old private names, kept for callers and tests that used them from compensation.py.
 _same_file = same_file
@@ -118,7 +119,7 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     with outs, collect_warnings(warns):
         _progress.report(progress, 0.0, "reading the RPC and GCPs")
         rpc = RPCModel.from_file(source)
-        dem_obj = _open_dem(dem, geoid)
+        dem_obj = DEM.from_user_input(dem, geoid=geoid)
         if is_path(gcps):
             kw = {"layer": gcp_layer} if gcp_layer else {}
             table = read_gcps_any(os.fspath(gcps), dem=dem_obj, crs=gcp_crs,
