@@ -247,3 +247,21 @@ def test_band_ties_cover_every_ms_band(written):
     for k in range(1, 5):
         for b in ("pan",) + MS_BANDS:
             assert (band_ties.image_id == image_name(k, b)).sum() >= 15, (k, b)
+
+
+def test_truth_is_inside_the_rpc_space_model(crop):
+    """METHODS §8: true - current = exterior (constant + linear in time) + cubic interior in u, per image: that
+    model leaves < 0.01 px of the several-px truth, so a block adjustment can reach it."""
+    sizes = []
+    for im in crop.images:
+        W, H = im.size
+        s, l = (a.ravel() for a in np.meshgrid(np.linspace(0, W, 21), np.linspace(0, H, 21)))
+        lon, lat, h = im.current.localize_dem(s, l, crop.dem)
+        ts, tl = im.true.project(lon, lat, h)
+        u, v = (s - W / 2) / (W / 2), (l - H / 2) / (H / 2)
+        A = np.column_stack([u ** 0, u, u ** 2, u ** 3, v])
+        for d in (ts - s, tl - l):
+            sizes.append(np.sqrt(np.mean(d ** 2)))
+            left = d - A @ np.linalg.lstsq(A, d, rcond=None)[0]
+            assert np.sqrt(np.mean(left ** 2)) < 0.01, im.name
+    assert max(sizes) > 3.0
