@@ -265,3 +265,18 @@ def test_truth_is_inside_the_rpc_space_model(crop):
             left = d - A @ np.linalg.lstsq(A, d, rcond=None)[0]
             assert np.sqrt(np.mean(left ** 2)) < 0.01, im.name
     assert max(sizes) > 3.0
+
+
+def test_tie_blunders_are_marked(crop):
+    clean = block_observations(crop, n_gcps=5, n_overlap_ties=20, n_band_ties=20, tie_noise_px=0.0)
+    obs = block_observations(crop, n_gcps=5, n_overlap_ties=20, n_band_ties=20, tie_noise_px=0.0,
+                             tie_outlier_fraction=0.05)
+    ties = obs[obs.kind == "tie"]
+    n_points = ties.point_id.nunique()
+    bad = ties[ties.truth_outlier]
+    assert len(bad) == round(0.05 * n_points) and bad.point_id.is_unique
+    off = np.hypot(bad["sample"] - bad.truth_sample, bad["line"] - bad.truth_line)
+    assert off.min() >= 5.0 and off.max() <= 50.0
+    good = ties[~ties.truth_outlier]
+    assert np.allclose(good["sample"], good.truth_sample) and np.allclose(good["line"], good.truth_line)
+    assert len(clean) == len(obs) and not clean.truth_outlier.any()

@@ -226,7 +226,7 @@ def overlap_width_px(left: SimImage, right: SimImage, h, n_lines: int = 7, model
 
 # --------------------------------------------------------------------------------------- observations
 OBSERVATION_COLUMNS = ["point_id", "image_id", "kind", "sample", "line", "sigma", "role", "lon", "lat", "h",
-                       "truth_sample", "truth_line", "truth_lon", "truth_lat", "truth_h"]
+                       "truth_sample", "truth_line", "truth_lon", "truth_lat", "truth_h", "truth_outlier"]
 
 
 def _inside(model, s, l):
@@ -239,11 +239,13 @@ def _rows(pid, image, kind, s, l, sigma, role, lon, lat, h, ts, tl, tlon, tlat, 
     return {"point_id": np.asarray(pid, dtype=object), "image_id": np.full(n, image, dtype=object),
             "kind": np.full(n, kind, dtype=object), "sample": s, "line": l, "sigma": np.full(n, float(sigma)),
             "role": np.broadcast_to(np.asarray(role, dtype=object), (n,)).copy(), "lon": lon, "lat": lat, "h": h,
-            "truth_sample": ts, "truth_line": tl, "truth_lon": tlon, "truth_lat": tlat, "truth_h": th}
+            "truth_sample": ts, "truth_line": tl, "truth_lon": tlon, "truth_lat": tlat, "truth_h": th,
+            "truth_outlier": np.zeros(n, dtype=bool)}
 
 
 def block_observations(scene, *, gcps=None, n_gcps: int = 50, gcp_noise_px: float = 0.2, check_fraction: float = 0.3,
                        n_overlap_ties: int = 40, n_band_ties: int = 40, tie_noise_px: float = 0.1,
+                       tie_outlier_fraction: float = 0.0, tie_outlier_range_px=(5.0, 50.0),
                        reference_band: str = REFERENCE_BAND, seed: Optional[int] = None):
     """The long observation table of a Jilin-1 group (METHODS §8): GCPs and tie points with known truth.
 
@@ -255,6 +257,8 @@ def block_observations(scene, *, gcps=None, n_gcps: int = 50, gcp_noise_px: floa
     n_overlap_ties : tie points per pair of adjacent CCDs and per band, in their overlap (own density).
     n_band_ties : tie points per CCD between the reference band and every other band of that CCD (pan included).
     tie_noise_px : Gaussian matching noise of tie points, px of each image per axis (own noise).
+    tie_outlier_fraction : fraction of tie points given a wrong match: one of their observations (not the first)
+        moved by ``tie_outlier_range_px`` (5-50 px) in a random direction; ``truth_outlier`` marks that row.
     seed : seeds the draws (default: the scene's seed).
 
     Returns
@@ -270,8 +274,8 @@ def block_observations(scene, *, gcps=None, n_gcps: int = 50, gcp_noise_px: floa
         raise SimulationError(f"block observations are for jl1 scenes, not {scene.sensor}; use simulate_gcps")
     if reference_band not in MS_BANDS:
         raise SimulationError(f"reference band {reference_band!r} unknown; choose one of {', '.join(MS_BANDS)}")
-    if tie_noise_px < 0 or n_overlap_ties < 0 or n_band_ties < 0:
-        raise SimulationError("tie_noise_px, n_overlap_ties and n_band_ties must be >= 0")
+    if tie_noise_px < 0 or n_overlap_ties < 0 or n_band_ties < 0 or not 0 <= tie_outlier_fraction < 1:
+        raise SimulationError("need tie_noise_px, n_overlap_ties, n_band_ties >= 0 and 0 <= tie_outlier_fraction < 1")
     rng = np.random.default_rng((scene.seed if seed is None else seed) + 524287)
     dem = scene.dem
     sig = max(tie_noise_px, 1e-3)
@@ -286,6 +290,8 @@ def block_observations(scene, *, gcps=None, n_gcps: int = 50, gcp_noise_px: floa
                           g["line"].to_numpy(float), 0.0, g["role"].to_numpy(object), lon, lat, h,
                           g["truth_sample"].to_numpy(float), g["truth_line"].to_numpy(float), lon, lat, h))
         rows[-1]["sigma"] = g["sigma"].to_numpy(float)
+        if "truth_outlier" in g:
+            rows[-1]["truth_outlier"] = g["truth_outlier"].to_numpy(bool)
 
     def noisy(v):
         return v + (rng.normal(0.0, tie_noise_px, v.shape) if tie_noise_px > 0 else 0.0)
@@ -343,6 +349,17 @@ def block_observations(scene, *, gcps=None, n_gcps: int = 50, gcp_noise_px: floa
             rows.append(_rows(pid[use], im.name, "tie", noisy(ts[j]), noisy(tl[j]), sig, "control", nan(n), nan(n),
                               nan(n), ts[j], tl[j], lon[j], lat[j], h[j]))
     df = pd.concat([pd.DataFrame(r) for r in rows], ignore_index=True)[OBSERVATION_COLUMNS]
+    if tie_outlier_fraction > 0:
+        tie = df["kind"].to_numpy() == "tie"
+        pids = df.loc[tie, "point_id"].unique()
+        bad = rng.permutation(pids)[:int(round(tie_outlier_fraction * pids.size))]
+        # the last observation of each chosen point (never its first, so the point keeps a correct ray)
+        last = df[tie & df["point_id"].isin(bad).to_numpy()].groupby("point_id").tail(1).index.to_numpy()
+        mag = rng.uniform(*tie_outlier_range_px, last.size)
+        ang = rng.uniform(0.0, 2 * np.pi, last.size)
+        df.loc[last, "sample"] += mag * np.cos(ang)
+        df.loc[last, "line"] += mag * np.sin(ang)
+        df.loc[last, "truth_outlier"] = True
     return df
 
 
@@ -354,7 +371,7 @@ def write_observations(scene, out_dir, gcps, observation_options, written) -> di
     import os
     from .scene import _write_csv
     opts = dict(observation_options or {})
-    allowed = {"n_overlap_ties", "n_band_ties", "tie_noise_px", "reference_band", "seed"}
+    allowed = {"n_overlap_ties", "n_band_ties", "tie_noise_px", "tie_outlier_fraction", "reference_band", "seed"}
     if set(opts) - allowed:
         raise SimulationError(f"unknown observation option(s) {sorted(set(opts) - allowed)}; "
                               f"use {sorted(allowed)}")
@@ -363,7 +380,8 @@ def write_observations(scene, out_dir, gcps, observation_options, written) -> di
     written.append(path)
     _write_csv(obs, path)
     ties = obs[obs["kind"] == "tie"]
-    settings = {"n_overlap_ties": 40, "n_band_ties": 40, "tie_noise_px": 0.1, "reference_band": REFERENCE_BAND}
+    settings = {"n_overlap_ties": 40, "n_band_ties": 40, "tie_noise_px": 0.1, "tie_outlier_fraction": 0.0,
+                "tie_outlier_range_px": [5.0, 50.0], "reference_band": REFERENCE_BAND}
     settings.update(opts)
     return dict(settings, n_rows=int(len(obs)), n_gcp_rows=int((obs["kind"] == "gcp").sum()),
                 n_tie_points=int(ties["point_id"].nunique()), n_tie_rows=int(len(ties)),
