@@ -35,6 +35,17 @@ def add_parser(parser):
     parser.add_argument("--workers", type=int, default=2, help="rendering threads (default 2)")
     parser.add_argument("--overwrite", action="store_true",
                         help="write into an existing, non-empty folder (never over an input)")
+    parser.add_argument("--orbit-seed", type=int, metavar="N",
+                        help="jl1: seed of a per-orbit random attitude error (3.6 arcsec per axis; validation scenes)")
+    parser.add_argument("--n-ties", type=int, metavar="N",
+                        help="jl1: tie points per CCD overlap and band, and per CCD between bands (default 40)")
+    parser.add_argument("--tie-noise", type=float, metavar="PX",
+                        help="jl1: tie-point matching noise, pixels per axis (default 0.1)")
+
+
+def _observation_options(args):
+    opts = {"n_overlap_ties": args.n_ties, "n_band_ties": args.n_ties, "tie_noise_px": args.tie_noise}
+    return {k: v for k, v in opts.items() if v is not None} or None
 
 
 def run(args) -> int:
@@ -45,7 +56,9 @@ def run(args) -> int:
                       n_gcps=args.n_gcps, gcp_noise_px=args.gcp_noise, outlier_fraction=args.outlier_fraction,
                       dem=args.dem, render=args.render, reference=args.reference, progress=TextProgressBar(),
                       check_fraction=args.check_fraction, paint_clouds=args.clouds, workers=args.workers,
-                      reference_ortho=not args.no_reference_ortho)
+                      reference_ortho=not args.no_reference_ortho,
+                      options=None if args.orbit_seed is None else {"orbit_seed": args.orbit_seed},
+                      observation_options=_observation_options(args))
     print(f"{args.sensor} scene written to {res.out_dir} in {res.elapsed_s:.1f} s")
     for name, im in res.images.items():
         chk = im.fit_report.check

@@ -8,9 +8,10 @@ from .cameras import PiecewiseCamera, camera_from_dict, crop_camera, shift_coeff
 from .models import Attitude, CircularOrbit, FrameModel, PushbroomModel
 from .scene import ImageResult, SceneResult, check_grid, simulate_gcps, write_placeholder_tif, write_scene
 from .sensors import SENSORS, SimImage, SimScene, SimulationError, make_scene
+from .jl1 import block_observations
 
 __all__ = [
-    "Attitude", "CircularOrbit", "FrameModel", "ImageResult", "PiecewiseCamera", "PushbroomModel", "SENSORS",
+    "Attitude", "block_observations", "CircularOrbit", "FrameModel", "ImageResult", "PiecewiseCamera", "PushbroomModel", "SENSORS",
     "SceneResult", "SimImage", "SimScene", "SimulationError", "camera_from_dict", "check_grid", "crop_camera",
     "make_scene", "render_image", "shift_coefficients", "simulate_gcps", "texture_value", "write_placeholder_tif",
     "write_reference_ortho", "write_scene",

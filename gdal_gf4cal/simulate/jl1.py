@@ -27,6 +27,7 @@ for W < 800): a cropped group is a small group of the same camera, so tests stay
 """
 from __future__ import annotations
 
+import copy
 from typing import Dict, List, Optional
 
 import numpy as np
@@ -116,6 +117,9 @@ def build_jl1(rng, center, size, h_mid, *, orbit_seed: Optional[int] = None) -> 
     else:
         orbit_err = {"orbit_seed": None, "roll_rad": 0.0, "pitch_rad": 0.0, "yaw_rad": 0.0,
                      "sigma_arcsec": 0.0}
+    # The camera (interior, seams) is drawn against the group's exterior alone; the orbit's error is added last.
+    att_group = Attitude(roll=(ext["roll_rad"], ext["roll_drift_rad_s"]), pitch=(ext["pitch_rad"],
+                         ext["pitch_drift_rad_s"]), yaw=(yaw0 + ext["yaw_rad"],))
     att_true = Attitude(roll=(ext["roll_rad"] + orbit_err["roll_rad"], ext["roll_drift_rad_s"]),
                         pitch=(ext["pitch_rad"] + orbit_err["pitch_rad"], ext["pitch_drift_rad_s"]),
                         yaw=(yaw0 + ext["yaw_rad"] + orbit_err["yaw_rad"],))
@@ -128,6 +132,7 @@ def build_jl1(rng, center, size, h_mid, *, orbit_seed: Optional[int] = None) -> 
 
     images: Dict[tuple, SimImage] = {}
     interior: Dict[tuple, list] = {}
+    seams: Dict[str, list] = {}
     for band in BANDS:
         f = 1 if band == "pan" else MS_FACTOR
         gsd = PAN_GSD_M * f
@@ -142,9 +147,10 @@ def build_jl1(rng, center, size, h_mid, *, orbit_seed: Optional[int] = None) -> 
             name = image_name(k + 1, band)
             full, cam_cur = camera(band, tx0, ty0, None, None, f"jl1 {name} current")
             _, cam_true = camera(band, tx0, ty0, i_s, i_l, f"jl1 {name} true")
-            cur, tru, info = _pushbroom(f"jl1 {name}", full, band_size, cam_cur, cam_true, orbit, att_cur, att_true,
+            cur, tru, info = _pushbroom(f"jl1 {name}", full, band_size, cam_cur, cam_true, orbit, att_cur, att_group,
                                         CAMERA_TO_BODY, _shift_center(center, orbit, off * PAN_GSD_M), h_mid, gsd,
                                         None, {"ccd": k + 1, "band": band, "ifov_rad": ifov * f,
+                                               "overlap_pan_px": overlap,
                                                "cross_track_offset_pan_px": off, "view_tan_y": ty0})
             Wb = full[0]
             info["focal_plane"] = {"X_px_poly": [tx0 / (ifov * f), Wb / 2.0], "Y_px": ty0 / (ifov * f),
@@ -168,8 +174,11 @@ def build_jl1(rng, center, size, h_mid, *, orbit_seed: Optional[int] = None) -> 
             _, cam_true = camera(band, tx0, ty0, i_s, i_l, f"jl1 {b.name} true")
             b.true = b.true.with_camera(_crop_any(cam_true, tuple(b.info["crop_offset"]), b.size))
             b.true.name = f"jl1 {b.name} true"
+            seams[f"{a.name}|{b.name}"] = [float(v) for v in direction * target]
     for (k, band), im in images.items():
         i_s, i_l = interior[(k, band)]
+        im.true = copy.copy(im.true)
+        im.true.attitude = att_true
         im.errors = {"interior_sample_px_poly": list(map(float, i_s)), "interior_line_px_poly": list(map(float, i_l)),
                      "poly_variable": "u = (s - W/2) / (W/2) of this CCD image (full CCD length)",
                      "definition": "true image position = current + I(u_true) + exterior effects (METHODS §8)",
@@ -178,11 +187,9 @@ def build_jl1(rng, center, size, h_mid, *, orbit_seed: Optional[int] = None) -> 
              "attitude_current": att_cur.to_dict(), "attitude_true": att_true.to_dict(), "orbit": orbit.to_dict(),
              "overlap_pan_px": overlap, "stagger_s": STAGGER_S, "reference_band": REFERENCE_BAND,
              "band_offset_pan_px": dict(BAND_OFFSET_PAN_PX), "n_ccd": N_CCD, "bands": list(BANDS),
-             "ccd_pan_px": W, "seams_px": {}}
-    for band in BANDS:
-        for k in range(1, N_CCD):
-            S = _seam_vector(images[(k - 1, band)], images[(k, band)], h_mid)
-            group["seams_px"][f"{image_name(k, band)}|{image_name(k + 1, band)}"] = [float(S[0]), float(S[1])]
+             "ccd_pan_px": W, "seams_px": seams,
+             "seam_definition": "(true - current) image position of CCD k+1 minus that of CCD k at the same ground "
+                                "point in their overlap, px of the band (sample, line), as designed (to ~0.05 px)"}
     out = [images[(k, "pan")] for k in range(N_CCD)] + [images[(k, b)] for k in range(N_CCD) for b in MS_BANDS]
     for im in out:
         im.info.update(group=group)
@@ -190,32 +197,20 @@ def build_jl1(rng, center, size, h_mid, *, orbit_seed: Optional[int] = None) -> 
     return out
 
 
-def overlap_points(left: SimImage, right: SimImage, h, n_lines: int = 5, model: str = "true"):
-    """Ground points (lon, lat) at height ``h`` seen by the middle column of the overlap of two adjacent CCD images
-    (``right``'s detectors in ``[0, overlap]``), on ``n_lines`` lines spread over ``right``; and that column."""
-    mr = getattr(right, model)
-    ml = getattr(left, model)
-    W, H = mr.size
+def _seam_vector(left: SimImage, right: SimImage, h, n_lines: int = 5):
+    """Mean seam (sample, line) in px of the band: (true - current) position of ``right`` minus that of ``left`` at
+    ground points (height ``h``) in the middle of their overlap, on ``n_lines`` lines of ``right``."""
+    W, H = right.size
+    f = 1 if right.info.get("band", "pan") == "pan" else MS_FACTOR
+    ov = right.info.get("overlap_pan_px", OVERLAP_PX) / f
+    s = np.full(n_lines, 0.5 * ov)
     l = (np.arange(n_lines) + 0.5) * H / n_lines
-    # The overlap's width in right's pixels: where left's last detector falls in right.
-    lo, la = ml.localize(np.full(n_lines, float(ml.size[0])), np.full(n_lines, ml.size[1] / 2.0), h)
-    s_edge, _ = mr.project(lo, la, np.full(n_lines, h))
-    s_mid = 0.5 * float(np.nanmedian(s_edge))
-    lon, lat = mr.localize(np.full(n_lines, s_mid), l, np.full(n_lines, h))
-    return lon, lat
-
-
-def _seam_vector(left: SimImage, right: SimImage, h):
-    """Mean seam (sample, line) in px of the band: (true - current) of ``right`` minus that of ``left`` at ground
-    points of their overlap."""
-    lon, lat = overlap_points(left, right, h)
-    hh = np.full(lon.shape, h)
-    d = []
-    for im in (left, right):
-        ts, tl = im.true.project(lon, lat, hh)
-        cs, cl = im.current.project(lon, lat, hh)
-        d.append(np.array([np.mean(ts - cs), np.mean(tl - cl)]))
-    return d[1] - d[0]
+    hh = np.full(n_lines, float(h))
+    lon, lat = right.current.localize(s, l, hh)
+    rs, rl = right.true.project(lon, lat, hh)
+    ts, tl = left.true.project(lon, lat, hh)
+    cs, cl = left.current.project(lon, lat, hh)
+    return np.array([np.mean((rs - s) - (ts - cs)), np.mean((rl - l) - (tl - cl))])
 
 
 def overlap_width_px(left: SimImage, right: SimImage, h, n_lines: int = 7, model: str = "true"):
@@ -231,7 +226,7 @@ def overlap_width_px(left: SimImage, right: SimImage, h, n_lines: int = 7, model
 
 # --------------------------------------------------------------------------------------- observations
 OBSERVATION_COLUMNS = ["point_id", "image_id", "kind", "sample", "line", "sigma", "role", "lon", "lat", "h",
-                       "truth_sample", "truth_line", "truth_lon", "truth_lat", "truth_h"]
+                       "truth_sample", "truth_line", "truth_lon", "truth_lat", "truth_h", "truth_outlier"]
 
 
 def _inside(model, s, l):
@@ -244,11 +239,13 @@ def _rows(pid, image, kind, s, l, sigma, role, lon, lat, h, ts, tl, tlon, tlat, 
     return {"point_id": np.asarray(pid, dtype=object), "image_id": np.full(n, image, dtype=object),
             "kind": np.full(n, kind, dtype=object), "sample": s, "line": l, "sigma": np.full(n, float(sigma)),
             "role": np.broadcast_to(np.asarray(role, dtype=object), (n,)).copy(), "lon": lon, "lat": lat, "h": h,
-            "truth_sample": ts, "truth_line": tl, "truth_lon": tlon, "truth_lat": tlat, "truth_h": th}
+            "truth_sample": ts, "truth_line": tl, "truth_lon": tlon, "truth_lat": tlat, "truth_h": th,
+            "truth_outlier": np.zeros(n, dtype=bool)}
 
 
 def block_observations(scene, *, gcps=None, n_gcps: int = 50, gcp_noise_px: float = 0.2, check_fraction: float = 0.3,
                        n_overlap_ties: int = 40, n_band_ties: int = 40, tie_noise_px: float = 0.1,
+                       tie_outlier_fraction: float = 0.0, tie_outlier_range_px=(5.0, 50.0),
                        reference_band: str = REFERENCE_BAND, seed: Optional[int] = None):
     """The long observation table of a Jilin-1 group (METHODS §8): GCPs and tie points with known truth.
 
@@ -260,6 +257,8 @@ def block_observations(scene, *, gcps=None, n_gcps: int = 50, gcp_noise_px: floa
     n_overlap_ties : tie points per pair of adjacent CCDs and per band, in their overlap (own density).
     n_band_ties : tie points per CCD between the reference band and every other band of that CCD (pan included).
     tie_noise_px : Gaussian matching noise of tie points, px of each image per axis (own noise).
+    tie_outlier_fraction : fraction of tie points given a wrong match: one of their observations (not the first)
+        moved by ``tie_outlier_range_px`` (5-50 px) in a random direction; ``truth_outlier`` marks that row.
     seed : seeds the draws (default: the scene's seed).
 
     Returns
@@ -275,8 +274,8 @@ def block_observations(scene, *, gcps=None, n_gcps: int = 50, gcp_noise_px: floa
         raise SimulationError(f"block observations are for jl1 scenes, not {scene.sensor}; use simulate_gcps")
     if reference_band not in MS_BANDS:
         raise SimulationError(f"reference band {reference_band!r} unknown; choose one of {', '.join(MS_BANDS)}")
-    if tie_noise_px < 0 or n_overlap_ties < 0 or n_band_ties < 0:
-        raise SimulationError("tie_noise_px, n_overlap_ties and n_band_ties must be >= 0")
+    if tie_noise_px < 0 or n_overlap_ties < 0 or n_band_ties < 0 or not 0 <= tie_outlier_fraction < 1:
+        raise SimulationError("need tie_noise_px, n_overlap_ties, n_band_ties >= 0 and 0 <= tie_outlier_fraction < 1")
     rng = np.random.default_rng((scene.seed if seed is None else seed) + 524287)
     dem = scene.dem
     sig = max(tie_noise_px, 1e-3)
@@ -291,6 +290,8 @@ def block_observations(scene, *, gcps=None, n_gcps: int = 50, gcp_noise_px: floa
                           g["line"].to_numpy(float), 0.0, g["role"].to_numpy(object), lon, lat, h,
                           g["truth_sample"].to_numpy(float), g["truth_line"].to_numpy(float), lon, lat, h))
         rows[-1]["sigma"] = g["sigma"].to_numpy(float)
+        if "truth_outlier" in g:
+            rows[-1]["truth_outlier"] = g["truth_outlier"].to_numpy(bool)
 
     def noisy(v):
         return v + (rng.normal(0.0, tie_noise_px, v.shape) if tie_noise_px > 0 else 0.0)
@@ -348,4 +349,43 @@ def block_observations(scene, *, gcps=None, n_gcps: int = 50, gcp_noise_px: floa
             rows.append(_rows(pid[use], im.name, "tie", noisy(ts[j]), noisy(tl[j]), sig, "control", nan(n), nan(n),
                               nan(n), ts[j], tl[j], lon[j], lat[j], h[j]))
     df = pd.concat([pd.DataFrame(r) for r in rows], ignore_index=True)[OBSERVATION_COLUMNS]
+    if tie_outlier_fraction > 0:
+        tie = df["kind"].to_numpy() == "tie"
+        pids = df.loc[tie, "point_id"].unique()
+        bad = rng.permutation(pids)[:int(round(tie_outlier_fraction * pids.size))]
+        # the last observation of each chosen point (never its first, so the point keeps a correct ray)
+        last = df[tie & df["point_id"].isin(bad).to_numpy()].groupby("point_id").tail(1).index.to_numpy()
+        mag = rng.uniform(*tie_outlier_range_px, last.size)
+        ang = rng.uniform(0.0, 2 * np.pi, last.size)
+        df.loc[last, "sample"] += mag * np.cos(ang)
+        df.loc[last, "line"] += mag * np.sin(ang)
+        df.loc[last, "truth_outlier"] = True
     return df
+
+
+def write_observations(scene, out_dir, gcps, observation_options, written) -> dict:
+    """Write ``observations.csv`` (:func:`block_observations`, atomic) into ``out_dir``; return its truth record.
+
+    ``written`` (list) receives the path, so that a failing :func:`~gdal_gf4cal.simulate.write_scene` removes it.
+    """
+    import os
+    from .scene import _write_csv
+    opts = dict(observation_options or {})
+    allowed = {"n_overlap_ties", "n_band_ties", "tie_noise_px", "tie_outlier_fraction", "reference_band", "seed"}
+    if set(opts) - allowed:
+        raise SimulationError(f"unknown observation option(s) {sorted(set(opts) - allowed)}; "
+                              f"use {sorted(allowed)}")
+    obs = block_observations(scene, gcps=gcps, **opts)
+    path = os.path.join(out_dir, "observations.csv")
+    written.append(path)
+    _write_csv(obs, path)
+    ties = obs[obs["kind"] == "tie"]
+    settings = {"n_overlap_ties": 40, "n_band_ties": 40, "tie_noise_px": 0.1, "tie_outlier_fraction": 0.0,
+                "tie_outlier_range_px": [5.0, 50.0], "reference_band": REFERENCE_BAND}
+    settings.update(opts)
+    return dict(settings, n_rows=int(len(obs)), n_gcp_rows=int((obs["kind"] == "gcp").sum()),
+                n_tie_points=int(ties["point_id"].nunique()), n_tie_rows=int(len(ties)),
+                columns=list(obs.columns), pixel_convention="gdal",
+                measured="tie: truth (true model) + N(0, tie_noise_px) per axis; gcp: the rows of gcps.csv",
+                tie_ids="T: between adjacent CCDs of one band in their overlap; B: reference band and the other "
+                        "bands of one CCD")

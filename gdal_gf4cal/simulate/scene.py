@@ -144,7 +144,8 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
                 gcp_noise_px: float = 0.6, outlier_fraction: float = 0.0, dem=None, render: bool = False,
                 reference=None, progress=None, *, check_fraction: float = 0.3, paint_clouds: float = 0.0,
                 workers: int = 2, tile: int = 512, check_grid_n: int = 41,
-                reference_ortho: bool = True) -> SceneResult:
+                reference_ortho: bool = True, options: Optional[Dict] = None,
+                observation_options: Optional[Dict] = None) -> SceneResult:
     """Simulate a scene and write every file (METHODS §10). See DESIGN.md "Simulator API" for the layout.
 
     Parameters
@@ -160,6 +161,10 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
         ``scene.tif``: the same texture as an EPSG:4326 orthophoto (:func:`.render.write_reference_ortho`, pixel =
         the image's nominal GSD, covering its footprint plus a margin), i.e. what ``gf4cal collect-gcps
         --reference`` needs to match the scene. Without clouds.
+    options : sensor options of :func:`make_scene` (jl1: ``orbit_seed``).
+    observation_options : jl1 only: keywords of :func:`.jl1.block_observations` (``n_overlap_ties``,
+        ``n_band_ties``, ``tie_noise_px``, ``reference_band``) for ``observations.csv``, the long observation table
+        of GCPs (the rows of the per-image gcps.csv) and tie points, written beside the image folders.
     progress : callback ``(fraction, message)``; raising :class:`CancelledError` from it cancels (files written by
         this call are removed).
     """
@@ -181,11 +186,11 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
         if dem is not None:
             dem_obj = DEM.from_user_input(dem)
             scene = make_scene(sensor_name, seed=seed, center=center, size=size, dem=dem_obj,
-                               progress=scaled(progress, 0.0, 0.1))
+                               progress=scaled(progress, 0.0, 0.1), options=options)
             _copy_dem(scene, dem_path)
         else:
             scene = make_scene(sensor_name, seed=seed, center=center, size=size, dem_path=dem_path,
-                               progress=scaled(progress, 0.0, 0.1))
+                               progress=scaled(progress, 0.0, 0.1), options=options)
         written.append(dem_path)
         report(progress, 0.1, "control points")
         gcps = simulate_gcps(scene, n_gcps=n_gcps, gcp_noise_px=gcp_noise_px, outlier_fraction=outlier_fraction,
@@ -253,6 +258,12 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
             truth["images"][key]["n_gcps"] = int(len(g))
             truth["files"][key] = {k_: os.path.relpath(v, out_dir) for k_, v in paths.items()}
         truth["files"]["dem"] = "dem.tif"
+        if scene.sensor == "jl1":
+            from .jl1 import write_observations
+            truth["observations"] = write_observations(scene, out_dir, gcps, observation_options, written)
+            truth["files"]["observations"] = "observations.csv"
+        elif observation_options:
+            raise SimulationError("observation_options are for jl1 scenes only")
         truth["elapsed_s"] = time.perf_counter() - t0
         truth_path = os.path.join(out_dir, "truth.json")
         write_json_atomic(truth_path, truth)
@@ -275,7 +286,7 @@ def _refuse_inputs_among_outputs(sensor_name: str, out_dir: str, inputs) -> None
     from .sensors import SENSORS
     if sensor_name not in SENSORS:
         return                                   # make_scene gives the error naming the sensors
-    outputs = {os.path.realpath(os.path.join(out_dir, f)) for f in ("dem.tif", "truth.json")}
+    outputs = {os.path.realpath(os.path.join(out_dir, f)) for f in ("dem.tif", "truth.json", "observations.csv")}
     for name in SENSORS[sensor_name].images:
         outputs |= {os.path.realpath(os.path.join(out_dir, name, f)) for f in _IMAGE_FILES}
     for p in inputs:
