@@ -8,7 +8,8 @@ from .cameras import PiecewiseCamera, camera_from_dict, crop_camera, shift_coeff
 from .models import Attitude, CircularOrbit, FrameModel, PushbroomModel
 from .scene import ImageResult, SceneResult, check_grid, simulate_gcps, write_placeholder_tif, write_scene
 from .sensors import SENSORS, SimImage, SimScene, SimulationError, make_scene
-from .jl1 import block_observations
+from .jl1 import block_observations          # registers jl1 in SENSORS
+from . import gf7  # noqa: F401  (registers gf7 in SENSORS)
 
 __all__ = [
     "Attitude", "block_observations", "CircularOrbit", "FrameModel", "ImageResult", "PiecewiseCamera", "PushbroomModel", "SENSORS",

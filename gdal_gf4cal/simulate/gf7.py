@@ -40,6 +40,7 @@ from typing import Optional
 import numpy as np
 
 from .._gdal import with_gdal_exceptions
+from .building import SENSORS, SensorSpec
 from .geodesy import geodetic_to_ecef
 from .models import CAMERA_TO_BODY, Attitude
 
@@ -95,7 +96,7 @@ def gf7_options(**kw):
 
 
 def _check_options(opt: GF7Options):
-    from .sensors import SimulationError
+    from .building import SimulationError
     if not (0.0 < abs(opt.look_time_s) <= 2.0):
         raise SimulationError(f"look_time_s {opt.look_time_s} must be non-zero and at most 2 s (GF7: 0.117 s)")
     if not (0.0 <= opt.clouds < 1.0 and 0.0 <= opt.water < 1.0 and opt.clouds + opt.water < 0.95):
@@ -260,7 +261,7 @@ def _jitter_spectrum(camera_seed: int, look_time_s: float, ms_ifov: float, rng_p
 def _cross_track_gap_m(orbit, yaw, cams, center, h):
     """Cross-track distance (m) between the ground points of the pan and MS reference detectors at the times
     they see the along-track position of ``center``."""
-    from .sensors import _center_time, _probe
+    from .building import _center_time, _probe
     att = Attitude(yaw=(yaw,))
     g = []
     for cam, s_ref in cams:
@@ -276,7 +277,7 @@ def _cross_track_gap_m(orbit, yaw, cams, center, h):
 def build_gf7(rng, center, size, h_mid):
     """GF7 builder for :func:`gdal_gf4cal.simulate.make_scene` (METHODS §9, §10); options from
     :func:`gf7_options` (default :class:`GF7Options`)."""
-    from .sensors import SimImage, _align_orbit, _linear_camera, _pushbroom, _scale_size
+    from .building import SimImage, _align_orbit, _linear_camera, _pushbroom, _scale_size
     opt = _OPTIONS.get() or GF7Options()
     _check_options(opt)
     alt = ALTITUDE_M + rng.uniform(-1500.0, 1500.0)           # orbit differs a little between scenes
@@ -707,3 +708,8 @@ def write_gf7_scene(out_dir, *, seed: int = 0, camera_seed: int = 4, look_time_s
     write_json_atomic(res.truth_path, truth)
     report(progress, 1.0, "gf7 scene written")
     return res
+
+
+SENSORS["gf7"] = SensorSpec(
+    "gf7", "Gaofen-7 backward camera, pan 0.65 m + MS 2.6 m (4 bands) 0.117 s apart, three quartic sub-CCDs, "
+    "differential jitter", (113.3, 23.1), (0.0, 1200.0), build_gf7, ("pan", "ms"))

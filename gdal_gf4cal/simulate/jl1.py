@@ -33,7 +33,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from .models import Attitude
-from .sensors import (ARCSEC, CAMERA_TO_BODY, SimImage, SimulationError, _align_orbit, _crop_any, _linear_camera,
+from .building import (ARCSEC, SENSORS, SensorSpec, CAMERA_TO_BODY, SimImage, SimulationError, _align_orbit, _crop_any, _linear_camera,
                       _poly_px, _pushbroom, _shift_center, _yaw_steering)
 
 ALTITUDE_M = 535e3
@@ -389,3 +389,10 @@ def write_observations(scene, out_dir, gcps, observation_options, written) -> di
                 measured="tie: truth (true model) + N(0, tie_noise_px) per axis; gcp: the rows of gcps.csv",
                 tie_ids="T: between adjacent CCDs of one band in their overlap; B: reference band and the other "
                         "bands of one CCD")
+
+
+SENSORS["jl1"] = SensorSpec(
+    "jl1", "Jilin-1 KF01A wide-field group: 4 staggered TDI CCDs (8192 px, 0.75 m pan, 0.6 s apart, yaw-steered) "
+    "x 4 MS bands (3 m)", (125.3, 43.9), (150.0, 700.0), build_jl1,
+    tuple(f"ccd{k}" for k in range(1, 5)) + tuple(f"ccd{k}_{b}" for k in range(1, 5) for b in ("blue", "green", "red", "nir")),
+    ("orbit_seed",), write_observations=write_observations)

@@ -19,7 +19,7 @@ from ..errors import CancelledError, Gf4calError
 from ..progress import report, scaled
 from ..atomic import atomic_output
 from .cameras import write_json_atomic
-from .sensors import SimImage, SimScene, SimulationError, make_scene
+from .sensors import SENSORS, SimImage, SimScene, SimulationError, make_scene
 from .._gdal import with_gdal_exceptions
 
 #: Sensors whose images cover the same ground (GCPs drawn once, from the first image).
@@ -258,12 +258,13 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
             truth["images"][key]["n_gcps"] = int(len(g))
             truth["files"][key] = {k_: os.path.relpath(v, out_dir) for k_, v in paths.items()}
         truth["files"]["dem"] = "dem.tif"
-        if scene.sensor == "jl1":
-            from .jl1 import write_observations
+        write_observations = SENSORS[scene.sensor].write_observations
+        if write_observations is not None:
             truth["observations"] = write_observations(scene, out_dir, gcps, observation_options, written)
             truth["files"]["observations"] = "observations.csv"
         elif observation_options:
-            raise SimulationError("observation_options are for jl1 scenes only")
+            raise SimulationError(f"observation_options are for sensors with an observation table (jl1), not "
+                                  f"{scene.sensor}")
         truth["elapsed_s"] = time.perf_counter() - t0
         truth_path = os.path.join(out_dir, "truth.json")
         write_json_atomic(truth_path, truth)
@@ -283,7 +284,6 @@ _IMAGE_FILES = ("scene.tif", "scene.RPB", "gcps.csv", "gcps.gpkg", "check_grid.c
 
 def _refuse_inputs_among_outputs(sensor_name: str, out_dir: str, inputs) -> None:
     """Refuse, before anything is written, an input file (reference image, DEM) that is one of the outputs."""
-    from .sensors import SENSORS
     if sensor_name not in SENSORS:
         return                                   # make_scene gives the error naming the sensors
     outputs = {os.path.realpath(os.path.join(out_dir, f)) for f in ("dem.tif", "truth.json", "observations.csv")}
