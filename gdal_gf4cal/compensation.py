@@ -185,7 +185,9 @@ class CompensationResult:
         The input table with added columns ``pred_sample_before, pred_line_before`` (RPC), ``res_sample_before,
         res_line_before``, ``pred_sample_after, pred_line_after, res_sample_after, res_line_after`` (corrected),
         ``norm_res_sample,
-        norm_res_line`` (residual / its standard deviation), ``outlier`` (bool), ``used`` (in the estimate),
+        norm_res_line`` (residual / its standard deviation), ``outlier`` (bool), ``outlier_level`` (``'start'``:
+        left out by the high-breakdown start and never re-admitted, ``'snooping'``: by data snooping, ``''``),
+        ``used`` (in the estimate),
         and with ``leave_one_out=True`` ``res_sample_loo, res_line_loo``. Residuals are measured - predicted, px.
     redundancy : int
         Observations minus parameters of the final estimate (the smaller axis).
@@ -195,6 +197,8 @@ class CompensationResult:
         Worst condition number of the column-equilibrated control design (both axes).
     notes : list of str
         What the caller should know (robust estimation skipped, blunder threshold raised, ...).
+    warnings : list of str
+        What is likely wrong (the check points fit worse after compensation than before); never silent.
     """
 
     model: CompensationModel
@@ -209,6 +213,7 @@ class CompensationResult:
     iterations: int = 0
     condition_number: float = 1.0
     notes: List[str] = field(default_factory=list)
+    warnings: List[str] = field(default_factory=list)
 
     @classmethod
     def from_coefficients(cls, model, frame: Sequence[float], coef_sample, coef_line) -> "CompensationResult":
@@ -336,6 +341,7 @@ class CompensationResult:
              "res_sample_px": _f(r["res_sample_after"]), "res_line_px": _f(r["res_line_after"])}
             for _, r in self.outliers.iterrows()]
         out["notes"] = list(self.notes)
+        out["warnings"] = list(self.warnings)
         return out
 
 
@@ -590,31 +596,23 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
     used = ctrl.copy()
     iterations = 0
     redundancy_min = n_ctrl - max(p_s, p_l)
+    start_out = np.zeros(len(tab), bool)
     if robust and redundancy_min >= 2:
-        # Phase 1: robust start (Huber, then redescending Tukey) so that several blunders cannot mask each other.
-        rw = np.where(ctrl, 1.0, 0.0)
-        for it in range(max_iter):
-            iterations = it + 1
-            cs, _, cl, _ = solve(w0 * rw)
-            us = (y_s - a_s @ cs) * np.sqrt(w0)
-            ul = (y_l - a_l @ cl) * np.sqrt(w0)
-            scale_s = max(1.4826 * np.median(np.abs(us[ctrl])), 1e-9)
-            scale_l = max(1.4826 * np.median(np.abs(ul[ctrl])), 1e-9)
-            z = np.maximum(np.abs(us) / scale_s, np.abs(ul) / scale_l)
-            if it < 3:
-                new = np.minimum(1.0, 1.345 / np.maximum(z, 1e-12))
-            else:
-                new = np.where(z < 4.685, (1.0 - (z / 4.685) ** 2) ** 2, 0.0)
-            new = np.where(ctrl, new, 0.0)
-            if (new > 0).sum() < model.min_gcps:
-                break
-            done = np.max(np.abs(new - rw)) < 1e-4
-            rw = new
-            if done and it >= 3:
-                break
-        used = ctrl & (rw > 0)
+        # Phase 1: high-breakdown start (least trimmed squares from every minimal subset of the control points,
+        # or seeded random ones when there are many): several blunders, even coherent ones, cannot mask each other.
+        from .estimation import high_breakdown_start
+        idx = np.flatnonzero(ctrl)
+        design = np.zeros((idx.size, 2, p_s + p_l))
+        design[:, 0, :p_s], design[:, 1, p_s:] = a_s[idx], a_l[idx]
+        inl, _, _ = high_breakdown_start(design, np.stack([y_s[idx], y_l[idx]], axis=1),
+                                         np.repeat(w0[idx, None], 2, axis=1), min_points=model.min_gcps)
+        used = np.zeros(len(tab), bool)
+        used[idx[inl]] = True
+        if used.sum() <= model.min_gcps:
+            used = ctrl.copy()
+        start_out = ctrl & ~used
         # Phase 2: data snooping with normalised residuals on the robust inlier set until it is stable.
-        for _ in range(max_iter):
+        for iterations in range(1, max_iter + 1):
             if used.sum() < model.min_gcps:
                 used = ctrl.copy()
                 break
@@ -653,7 +651,9 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
     tab["res_sample_after"], tab["res_line_after"] = y_s - ds, y_l - dl
     tab["norm_res_sample"], tab["norm_res_line"] = norm_s, norm_l
     tab["outlier"] = outlier
+    tab["outlier_level"] = np.where(outlier, np.where(start_out, "start", "snooping"), "")
     tab["used"] = used
+    warns = _worse_check_warning(tab)
     if leave_one_out:
         # Exact LOO residual of linear LS: v_i / (1 - h_ii) for points in the fit; others are already independent.
         hs = w0 * np.einsum("ij,jk,ik->i", a_s, ns, a_s)
@@ -663,21 +663,29 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
             tab["res_line_loo"] = np.where(used, (y_l - dl) / (1.0 - hl), y_l - dl)
     return CompensationResult(model=model, frame=fr, coef_sample=cs, coef_line=cl,
                               cov_sample=sig_s ** 2 * ns, cov_line=sig_l ** 2 * nl, sigma0_px=(sig_s, sig_l),
-                              gcps=tab, redundancy=red, iterations=iterations, condition_number=cond, notes=notes)
+                              gcps=tab, redundancy=red, iterations=iterations, condition_number=cond, notes=notes,
+                              warnings=warns)
+
+
+def _worse_check_warning(tab) -> List[str]:
+    """A warning when the check points (blunders left out) fit worse after compensation than before."""
+    sel = (tab["role"] == "check").to_numpy() & ~tab["outlier"].to_numpy(bool)
+    if not sel.any():
+        return []
+    before = float(np.sqrt(np.mean(tab["res_sample_before"].to_numpy(float)[sel] ** 2
+                                   + tab["res_line_before"].to_numpy(float)[sel] ** 2)))
+    after = float(np.sqrt(np.mean(tab["res_sample_after"].to_numpy(float)[sel] ** 2
+                                  + tab["res_line_after"].to_numpy(float)[sel] ** 2)))
+    if after > before:
+        return [f"the {int(sel.sum())} check points fit worse after compensation than before (planar rms "
+                f"{before:.3g} -> {after:.3g} px): check the GCPs (blunders, wrong heights) or choose a simpler model"]
+    return []
 
 
 def _critical_value(threshold: float, dof: int) -> float:
-    """Critical normalised residual for ``dof`` degrees of freedom of the estimated sigma (METHODS §4, §6).
-
-    ``threshold`` is read as a standard-normal quantile (large redundancy, Baarda's w-test). The residuals here are
-    normalised with an *estimated* sigma, so with few redundant observations they follow Student's t: the
-    threshold becomes the t quantile of the same two-sided probability (a fixed 4 flagged a few percent of good
-    GCPs in sets of 4-10).
-    """
-    if dof <= 0:
-        return math.inf
-    from scipy import stats
-    return float(stats.t.isf(stats.norm.sf(threshold), dof))
+    """Critical normalised residual, :func:`gdal_gf4cal.estimation.critical_value` (METHODS §4, §6)."""
+    from .estimation import critical_value
+    return critical_value(threshold, dof)
 
 
 def _exceeds(norm_s, norm_l, threshold: float, dof: Tuple[int, int]) -> np.ndarray:
