@@ -668,18 +668,28 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
 
 
 def _worse_check_warning(tab) -> List[str]:
-    """A warning when the check points (blunders left out) fit worse after compensation than before."""
-    sel = (tab["role"] == "check").to_numpy() & ~tab["outlier"].to_numpy(bool)
-    if not sel.any():
+    """Warnings when the check points disagree with the compensation: they fit worse after it than before
+    (blunders left out), or most of them are flagged as blunders."""
+    chk = (tab["role"] == "check").to_numpy()
+    if not chk.any():
         return []
-    before = float(np.sqrt(np.mean(tab["res_sample_before"].to_numpy(float)[sel] ** 2
-                                   + tab["res_line_before"].to_numpy(float)[sel] ** 2)))
-    after = float(np.sqrt(np.mean(tab["res_sample_after"].to_numpy(float)[sel] ** 2
-                                  + tab["res_line_after"].to_numpy(float)[sel] ** 2)))
-    if after > before:
-        return [f"the {int(sel.sum())} check points fit worse after compensation than before (planar rms "
-                f"{before:.3g} -> {after:.3g} px): check the GCPs (blunders, wrong heights) or choose a simpler model"]
-    return []
+    outl = tab["outlier"].to_numpy(bool)
+    sel = chk & ~outl
+    out: List[str] = []
+    if 2 * int((chk & outl).sum()) > int(chk.sum()):
+        out.append(f"{int((chk & outl).sum())} of the {int(chk.sum())} check points are flagged as blunders: the "
+                   "check points disagree with the compensation; check the GCPs (wrong heights, other image) or the "
+                   "model")
+    if sel.any():
+        def rms(when):
+            return float(np.sqrt(np.mean(tab[f"res_sample_{when}"].to_numpy(float)[sel] ** 2
+                                         + tab[f"res_line_{when}"].to_numpy(float)[sel] ** 2)))
+        before, after = rms("before"), rms("after")
+        if after > before:
+            out.append(f"the {int(sel.sum())} check points fit worse after compensation than before (planar rms "
+                       f"{before:.3g} -> {after:.3g} px): check the GCPs (blunders, wrong heights) or choose a "
+                       "simpler model")
+    return out
 
 
 def _critical_value(threshold: float, dof: int) -> float:
