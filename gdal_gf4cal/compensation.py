@@ -27,6 +27,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from .basis import detector_terms, monomial_derivatives, monomials, term_name
 from .errors import DegenerateGeometryError, GCPError, Gf4calError, InputOverwriteError
 
 __all__ = [
@@ -121,11 +122,10 @@ class CompensationModel:
         if self.name != "detector-poly":
             return _BASE_TERMS[self.name]
         ts, tl = (list(t) for t in _BASE_TERMS[self.along])
+        poly = detector_terms(self.order, self.ccd_axis)
         if self.ccd_axis == "sample":
-            poly = [(k, 0) for k in range(self.order + 1)]
             ts = ts + [t for t in poly if t not in ts]
         else:
-            poly = [(0, k) for k in range(self.order + 1)]
             tl = tl + [t for t in poly if t not in tl]
         return tuple(ts), tuple(tl)
 
@@ -148,21 +148,10 @@ class CompensationModel:
         return set(ts) <= {(0, 0), (1, 0)} and set(tl) <= {(0, 0), (0, 1)}
 
 
-def _monomials(terms, u, v):
-    return np.stack([u ** i * v ** j for (i, j) in terms], axis=-1)
-
-
-def _monomial_derivatives(terms, u, v):
-    """d/du and d/dv of each monomial, shape (..., n_terms) each."""
-    du = np.stack([(i * u ** (i - 1) * v ** j) if i else np.zeros_like(u) for (i, j) in terms], axis=-1)
-    dv = np.stack([(j * u ** i * v ** (j - 1)) if j else np.zeros_like(u) for (i, j) in terms], axis=-1)
-    return du, dv
-
-
-def _term_name(axis: str, term: Tuple[int, int]) -> str:
-    i, j = term
-    parts = ([] if i == 0 else ["u" if i == 1 else f"u{i}"]) + ([] if j == 0 else ["v" if j == 1 else f"v{j}"])
-    return f"{axis}_{'*'.join(parts) if parts else '1'}"
+# The bases live in gdal_gf4cal.basis (METHODS §4.1); the private names stay for existing callers.
+_monomials = monomials
+_monomial_derivatives = monomial_derivatives
+_term_name = term_name
 
 
 @dataclass

@@ -28,6 +28,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from .basis import LOOKANGLE_POWERS, lookangle_cubic
 from .camera import CameraFormatError
 from .errors import ConvergenceError, DegenerateGeometryError, GCPError, InputOverwriteError
 from .progress import report, scaled
@@ -40,7 +41,7 @@ __all__ = [
 
 #: Exponents ``(p, q)`` of ``s^p l^q`` for the 10 terms, in the camera file's order
 #: ``1, s, l, s·l, s², l², s²·l, s·l², s³, l³`` (METHODS §5; the paper's eq. 4 typo fixed).
-POWERS: Tuple[Tuple[int, int], ...] = ((0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2), (2, 1), (1, 2), (3, 0), (0, 3))
+POWERS: Tuple[Tuple[int, int], ...] = LOOKANGLE_POWERS
 
 #: 10 coefficients per axis: fewer control points leave the cubic undetermined.
 MIN_GCPS = 10
@@ -63,12 +64,8 @@ class LookAngleConditionWarning(UserWarning):
 
 
 # ---------------------------------------------------------------------------------------------------- basis
-def lookangle_monomials(u, v) -> np.ndarray:
-    """The 10 look-angle terms of ``(u, v)``, shape ``(..., 10)`` (order of :data:`POWERS`)."""
-    u = np.asarray(u, dtype=float)
-    v = np.asarray(v, dtype=float)
-    uu, vv = u * u, v * v
-    return np.stack([np.ones_like(u), u, v, u * v, uu, vv, uu * v, u * vv, uu * u, vv * v], axis=-1)
+#: The 10 look-angle terms of ``(u, v)``, shape ``(..., 10)`` (order of :data:`POWERS`): :mod:`gdal_gf4cal.basis`.
+lookangle_monomials = lookangle_cubic
 
 
 def _basis_change(a_s: float, b_s: float, a_l: float, b_l: float) -> np.ndarray:
