@@ -53,12 +53,15 @@ def _subsets(n: int, m: int, n_subsets: int, seed: int) -> np.ndarray:
 
 
 def _batched_fit(a: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray, scale: np.ndarray):
-    """Weighted LS for each row of ``mask`` (K, n) over the points it selects; returns (x (K, p), ok (K,))."""
+    """Weighted LS for each row of ``mask`` (K, n) over the points it selects; returns (x (K, p), ok (K,)).
+
+    The K normal matrices are one matrix product ``mask @ (per-point outer products)`` (BLAS), not a loop.
+    """
+    n, k, p = a.shape
     aw = a / scale                                                   # (n, k, p) column-scaled
-    ww = w[None, :, :] * mask[:, :, None]                            # (K, n, k)
-    nmat = np.einsum("nkp,Knk,nkq->Kpq", aw, ww, aw, optimize=True)
-    rhs = np.einsum("nkp,Knk,nk->Kp", aw, ww, y, optimize=True)
-    p = a.shape[2]
+    outer = np.einsum("nk,nkp,nkq->npq", w, aw, aw).reshape(n, p * p)
+    nmat = (mask @ outer).reshape(-1, p, p)
+    rhs = mask @ np.einsum("nk,nkp,nk->np", w, aw, y)
     ev = np.linalg.eigvalsh(nmat)
     ok = (ev[:, 0] > 1e-10 * np.maximum(ev[:, -1], 1e-300)) & (ev[:, -1] > 0)
     nmat = np.where(ok[:, None, None], nmat, np.eye(p))
@@ -73,7 +76,7 @@ def _point_sq(a, y, w, x):
 
 
 def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int] = None, n_subsets: int = 500,
-                         seed: int = 0, chunk: int = 512) -> Tuple[np.ndarray, float, dict]:
+                         seed: int = 0, chunk: int = 512, max_search: int = 1000) -> Tuple[np.ndarray, float, dict]:
     """High-breakdown start (least trimmed squares from minimal subsets), see the module docstring.
 
     Parameters
@@ -84,6 +87,9 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
         Points in a minimal subset (default ``ceil(p / k)``).
     n_subsets : int
         Random subsets when ``C(n, m)`` exceeds :data:`MAX_EXHAUSTIVE` (seeded with ``seed``).
+    max_search : int
+        Above this many points the subsets are searched on a seeded sample of that size, and the best fit is
+        then concentrated on all points (cost independent of ``n``).
 
     Returns
     -------
@@ -103,6 +109,13 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
     h = min(n, max((n + m + 1) // 2, m + 1))
     scale = np.sqrt(np.einsum("nkp,nk,nkp->p", a, w, a))
     scale = np.where(scale > 0, scale, 1.0)
+    # Large sets: search on a seeded sample of ``max_search`` points (nested subsets, as FAST-LTS); the winner is
+    # then concentrated on all points.
+    search = np.arange(n) if n <= max_search else np.sort(
+        np.random.default_rng(seed + 1).choice(n, max_search, replace=False))
+    a_full, y_full, w_full, n_full, h_full = a, y, w, n, h
+    a, y, w, n = a[search], y[search], w[search], search.size
+    h = min(n, max((n + m + 1) // 2, m + 1))
     subs = _subsets(n, m, n_subsets, seed)
     best_crit, best_x = math.inf, None
     for c0 in range(0, len(subs), chunk):
@@ -125,10 +138,22 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
         i = int(np.argmin(crit))
         if crit[i] < best_crit:
             best_crit, best_x = float(crit[i]), x[i]
-    info = {"subsets": int(len(subs)), "exhaustive": bool(math.comb(n, m) <= MAX_EXHAUSTIVE), "h": int(h)}
+    info = {"subsets": int(len(subs)), "exhaustive": bool(math.comb(n, m) <= MAX_EXHAUSTIVE), "h": int(h_full),
+            "searched_points": int(n)}
     if best_x is None:
         raise DegenerateGeometryError("no subset of the points determines the parameters; spread the points over "
                                       "the image or estimate fewer parameters")
+    a, y, w, n, h = a_full, y_full, w_full, n_full, h_full
+    if search.size < n:
+        for _ in range(2):                                           # concentration steps on all points
+            r2 = _point_sq(a, y, w, best_x[None])[0]
+            keep = np.zeros((1, n))
+            keep[0, np.argpartition(r2, h - 1)[:h]] = 1.0
+            x, ok = _batched_fit(a, y, w, keep, scale)
+            if ok[0]:
+                best_x = x[0]
+        r2 = _point_sq(a, y, w, best_x[None])[0]
+        best_crit = float(np.sum(np.partition(r2, h - 1)[:h]))
     from scipy import stats
     r2 = _point_sq(a, y, w, best_x[None])[0]
     # LTS scale: E[chi2_k | chi2_k <= q] = k F_{k+2}(q) / F_k(q), q the h/n quantile.
