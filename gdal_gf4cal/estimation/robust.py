@@ -69,6 +69,20 @@ def _batched_fit(a: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray, 
     return x, ok
 
 
+def _inflation(a: np.ndarray, w: np.ndarray, fit_set: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Per point, the factor of sigma^2 in the expected squared residual norm over ``k``: ``1 - lev`` inside
+    ``fit_set``, ``1 + lev`` outside it (``lev`` the mean leverage of the point's observations)."""
+    n, k, p = a.shape
+    aw = a / scale
+    nmat = np.einsum("nk,nkp,nkq->pq", w * fit_set[:, None], aw, aw)
+    try:
+        ninv = np.linalg.inv(nmat)
+    except np.linalg.LinAlgError:
+        return np.ones(n)
+    lev = np.einsum("nk,nkp,pq,nkq->n", w, aw, ninv, aw) / k
+    return np.maximum(np.where(fit_set, 1.0 - lev, 1.0 + lev), 1e-6)
+
+
 def _point_sq(a, y, w, x):
     """Weighted squared residual norm per point for each parameter row of ``x`` (K, p): (K, n)."""
     res = y[None] - np.einsum("nkp,Kp->Knk", a, x, optimize=True)
@@ -164,15 +178,35 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
     s2 = best_crit / max(corr * h, 1e-300) * (h * k) / dof_h
     cut = stats.chi2.ppf(0.999, k)
     tiny = 1e-18 * max(float(np.median(np.sum(w * y * y, axis=1))), 1e-300)
-    inl = r2 <= cut * max(s2, tiny)
-    # one reweighting step: LS on the inliers, plain scale
-    if inl.sum() > m:
-        x, ok = _batched_fit(a, y, w, inl[None].astype(float), scale)
-        if ok[0]:
+    fit_set = np.zeros(n, bool)
+    fit_set[np.argpartition(r2, h - 1)[:h]] = True
+    inl = r2 / _inflation(a, w, fit_set, scale) <= cut * max(s2, tiny)
+    # Reweighting: LS on the inliers, plain scale; residuals normalised by their own variance (a point outside the
+    # fit has variance sigma^2 (1 + leverage), inside sigma^2 (1 - leverage)), until the inlier set is stable.
+    def settle(inl, s2):
+        for _ in range(10):
+            if inl.sum() <= m:
+                break
+            x, ok = _batched_fit(a, y, w, inl[None].astype(float), scale)
+            if not ok[0]:
+                break
             r2 = _point_sq(a, y, w, x)[0]
-            dof = max(int(inl.sum()) * k - p, 1)
-            s2 = float(np.sum(r2[inl]) / dof)
-            inl = r2 <= cut * max(s2, tiny)
+            s2 = float(np.sum(r2[inl]) / max(int(inl.sum()) * k - p, 1))
+            new = r2 / _inflation(a, w, inl, scale) <= cut * max(s2, tiny)
+            if np.array_equal(new, inl):
+                break
+            inl = new
+        return inl, s2
+
+    inl, s2 = settle(inl, s2)
+    # The same from all points: when its set is larger and its scale is not significantly larger (F test, 1 %),
+    # the start only over-fitted a trimmed half (little redundancy) and the larger consensus is kept.
+    all_inl, all_s2 = settle(np.ones(n, bool), s2)
+    if all_inl.sum() > inl.sum():
+        d1, d2 = max(int(all_inl.sum()) * k - p, 1), max(int(inl.sum()) * k - p, 1)
+        if all_s2 <= stats.f.ppf(0.99, d1, d2) * max(s2, tiny):
+            inl, s2 = all_inl, all_s2
+            info["from_all_points"] = True
     return inl, float(math.sqrt(max(s2, 0.0))), info
 
 
