@@ -385,31 +385,20 @@ def _jacobian(model, lon, lat, h):
 
 
 def accuracy_by_role(gcps, rpc=None) -> Dict[str, Any]:
-    """``{control|check: {n_outliers, before|after: {n, line|sample: {mean, rms, rmse, max}, ce90_m}}}`` (METHODS §6).
+    """``{control|check: {n_outliers, before|after: {n, line|sample: {mean, rms, rmse, max}, planar, ce90_m}}}``.
 
-    From a table with ``res_{sample,line}_{before,after}`` columns (px); flagged outliers are left out. ``ce90_m``
-    is the planar CE90 (m) of the image residuals taken to the ground through ``rpc`` (None without ``rpc``).
+    The one report shape, :func:`gdal_gf4cal.stats.accuracy_by_role` (METHODS §6), from a table with
+    ``res_{sample,line}_{before,after}`` columns (px); flagged outliers are left out. ``ce90_m`` is the planar CE90
+    (m) of the image residuals taken to the ground through ``rpc`` (None without ``rpc``).
     """
-    from .stats import ce90
-    out: Dict[str, Any] = {}
-    role = gcps["role"].astype(str).to_numpy()
-    outl = gcps["outlier"].to_numpy(bool)
-    for name in ("control", "check"):
-        sel = (role == name) & ~outl
-        entry: Dict[str, Any] = {"n_outliers": int(((role == name) & outl).sum())}
-        for when in ("before", "after"):
-            rs = gcps[f"res_sample_{when}"].to_numpy(float)[sel]
-            rl = gcps[f"res_line_{when}"].to_numpy(float)[sel]
-            st: Dict[str, Any] = {"n": int(sel.sum()), "line": _axis_stats(rl), "sample": _axis_stats(rs)}
-            ce = None
-            if rpc is not None and sel.any():
-                e, n_ = ground_offsets_m(rpc, gcps["lon"].to_numpy(float)[sel], gcps["lat"].to_numpy(float)[sel],
-                                         gcps["h"].to_numpy(float)[sel], rs, rl)
-                ce = _f(ce90(e, n_))
-            st["ce90_m"] = ce
-            entry[when] = st
-        out[name] = entry
-    return out
+    from .stats import accuracy_by_role as _by_role
+    ground = None
+    if rpc is not None:
+        lon, lat, h = (gcps[c].to_numpy(float) for c in ("lon", "lat", "h"))
+
+        def ground(sel, rs, rl):
+            return ground_offsets_m(rpc, lon[sel], lat[sel], h[sel], rs, rl)
+    return _by_role(gcps, ground_offsets=ground)
 
 
 # ----------------------------------------------------------------------------------------------------------------

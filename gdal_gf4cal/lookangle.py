@@ -192,8 +192,9 @@ class LookAngleCalibration:
     condition_number : :func:`layout_condition` of the control points.
     gcps : copy of the input table with columns ``virtual_sample, virtual_line`` (``RPC(ground)``),
         ``res_sample_before, res_line_before`` (measured - RPC(ground)), ``pred_sample, pred_line``
-        (``tan_new^-1(tan_old(s', l'))``), ``res_sample_after, res_line_after``, ``norm_residual`` (radial residual
-        / robust sigma), ``weight`` (final robust weight, 0 if rejected), ``outlier`` (bool; control only).
+        (``tan_new^-1(tan_old(s', l'))``; also as ``pred_*_after``, with ``pred_*_before`` = ``virtual_*``), ``res_sample_after, res_line_after``, ``norm_residual`` (radial residual
+        / robust sigma), ``weight`` (final robust weight, 0 if rejected), ``outlier`` (bool; control and check points),
+        ``outlier_level`` (``'start'``, ``'snooping'`` or ``''``).
     control_stats, check_stats : ``{"before"|"after": {"sample"|"line": axis_stats}}``; outliers excluded;
         ``check_stats`` is None without check points.
     """
@@ -559,6 +560,9 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
     out["res_line_before"] = obs[:, 1] - lv
     out["pred_sample"] = _scatter(n, u_idx, pred[:, 0])
     out["pred_line"] = _scatter(n, u_idx, pred[:, 1])
+    # explicit names of the one table shape (gdal_gf4cal.stats): before = the RPC, after = the recalibrated camera
+    out["pred_sample_before"], out["pred_line_before"] = sv, lv
+    out["pred_sample_after"], out["pred_line_after"] = out["pred_sample"], out["pred_line"]
     out["res_sample_after"] = obs[:, 0] - out["pred_sample"].to_numpy(float)
     out["res_line_after"] = obs[:, 1] - out["pred_line"].to_numpy(float)
     c_idx = np.flatnonzero(ctrl)
