@@ -298,6 +298,48 @@ class CompensationResult:
         return {n: float(x) for n, x in zip(self.parameter_names, sd)}
 
     @property
+    def estimate(self):
+        """The estimate as the one result class :class:`gdal_gf4cal.estimation.Estimate` (METHODS §4).
+
+        Blocks ``sample`` and ``line``; observations interleaved per GCP (sample, line); ``sigma0`` is the RMS of
+        the two axes' values (they are pooled when the redundancy is small); redundancy numbers ``1 - w a N^-1 a``
+        of the points in the estimate.
+        """
+        from .estimation import Estimate
+        tab = self.gcps
+        p_s = self.coef_sample.size
+        p = p_s + self.coef_line.size
+        cov = np.zeros((p, p))
+        cov[:p_s, :p_s], cov[p_s:, p_s:] = self.cov_sample, self.cov_line
+        n = len(tab)
+        if n and "pred_sample_before" in tab.columns:
+            u, v = self._uv(tab["pred_sample_before"].to_numpy(float), tab["pred_line_before"].to_numpy(float))
+            ts, tl = self.model.terms
+            w = 1.0 / tab["sigma"].to_numpy(float) ** 2
+            used = tab["used"].to_numpy(bool)
+            red = []
+            for a, c, sg in ((_monomials(ts, u, v), self.cov_sample, self.sigma0_px[0]),
+                             (_monomials(tl, u, v), self.cov_line, self.sigma0_px[1])):
+                q = np.einsum("ij,jk,ik->i", a, c, a) / max(sg, 1e-300) ** 2
+                red.append(np.where(used, 1.0 - w * q, 0.0))
+            redundancy = np.stack(red, axis=1).ravel()
+            weights = np.repeat(np.where(used, w, 0.0), 2)
+            res = np.stack([tab["res_sample_after"], tab["res_line_after"]], axis=1).astype(float).ravel()
+            norm = np.stack([tab["norm_res_sample"], tab["norm_res_line"]], axis=1).astype(float).ravel()
+            outlier = tab["outlier"].to_numpy(bool)
+            level = tab["outlier_level"].to_numpy(str) if "outlier_level" in tab.columns else None
+        else:
+            redundancy = weights = res = norm = np.zeros(0)
+            outlier, level = np.zeros(0, bool), None
+        dof = int(round(float(redundancy.sum()))) if redundancy.size else 0
+        return Estimate(names=self.parameter_names, x=np.concatenate([self.coef_sample, self.coef_line]), cov=cov,
+                        sigma0=float(np.sqrt(0.5 * (self.sigma0_px[0] ** 2 + self.sigma0_px[1] ** 2))), dof=dof,
+                        redundancy=redundancy, residuals=res, normalised=norm, weights=weights,
+                        blocks={"sample": slice(0, p_s), "line": slice(p_s, p)}, outlier=outlier,
+                        outlier_level=level, condition_number=float(self.condition_number),
+                        iterations=int(self.iterations), notes=list(self.notes), warnings=list(self.warnings))
+
+    @property
     def outliers(self):
         """Rows of :attr:`gcps` flagged as blunders."""
         return self.gcps[self.gcps["outlier"].to_numpy(bool)]

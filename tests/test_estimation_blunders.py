@@ -121,3 +121,18 @@ def test_check_point_blunder_flagged_and_worse_checks_warned(truth, tmp_path, ca
         tab[f"res_{axis}_after"] = tab[f"res_{axis}_before"].abs() + 1.0
     from gdal_gf4cal.compensation import _worse_check_warning
     assert any("fit worse after compensation" in w for w in _worse_check_warning(tab))
+
+
+def test_compensation_result_is_an_estimate(truth):
+    from gdal_gf4cal.compensation import fit_compensation
+    rpc, _ = truth
+    tab = _gcps(truth, 12, 9)
+    tab.loc[[2, 5], "sample"] += 40.0
+    res = fit_compensation(rpc, tab, "affine")
+    est = res.estimate
+    assert est.names == res.parameter_names and est.block("line").tolist() == res.coef_line.tolist()
+    assert est.outlier.sum() == 2 and est.outlier[[2, 5]].all()
+    assert set(est.outlier_level[[2, 5]]) <= {"start", "snooping"}
+    # redundancy numbers of the 10 points in the estimate add up to the degrees of freedom (2 x (10 - 3))
+    assert est.dof == 14 and est.redundancy.sum() == pytest.approx(14.0, abs=1e-9)
+    assert np.all(est.weights.reshape(-1, 2)[[2, 5]] == 0)
