@@ -19,6 +19,7 @@ whole.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from itertools import combinations
 from typing import List, Optional, Sequence, Tuple
 
@@ -32,6 +33,7 @@ from .result import Estimate
 MAX_EXHAUSTIVE = 3000
 
 
+@lru_cache(maxsize=256)
 def critical_value(threshold: float, dof: int) -> float:
     """Critical normalised residual for ``dof`` degrees of freedom of the estimated sigma (METHODS §4, §6).
 
@@ -62,11 +64,31 @@ def _batched_fit(a: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray, 
     outer = np.einsum("nk,nkp,nkq->npq", w, aw, aw).reshape(n, p * p)
     nmat = (mask @ outer).reshape(-1, p, p)
     rhs = mask @ np.einsum("nk,nkp,nk->np", w, aw, y)
-    ev = np.linalg.eigvalsh(nmat)
-    ok = (ev[:, 0] > 1e-10 * np.maximum(ev[:, -1], 1e-300)) & (ev[:, -1] > 0)
+    # Regular subsets: the column-scaled normal matrix (diagonal <= 1) has a determinant well above zero.
+    sign, logdet = np.linalg.slogdet(nmat)
+    ok = (sign > 0) & (logdet > p * math.log(1e-10))
     nmat = np.where(ok[:, None, None], nmat, np.eye(p))
     x = np.linalg.solve(nmat, rhs[:, :, None])[:, :, 0] / scale
     return x, ok
+
+
+@lru_cache(maxsize=256)
+def _lts_consistency(h: int, n: int, k: int) -> float:
+    from scipy import stats
+    alpha = h / n
+    return float(k * stats.chi2.cdf(stats.chi2.ppf(alpha, k), k + 2) / alpha) if alpha < 1 else float(k)
+
+
+@lru_cache(maxsize=64)
+def _chi2_ppf(p: float, k: int) -> float:
+    from scipy import stats
+    return float(stats.chi2.ppf(p, k))
+
+
+@lru_cache(maxsize=1024)
+def _f_ppf(p: float, d1: int, d2: int) -> float:
+    from scipy import stats
+    return float(stats.f.ppf(p, d1, d2))
 
 
 def _inflation(a: np.ndarray, w: np.ndarray, fit_set: np.ndarray, scale: np.ndarray) -> np.ndarray:
@@ -168,15 +190,12 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
                 best_x = x[0]
         r2 = _point_sq(a, y, w, best_x[None])[0]
         best_crit = float(np.sum(np.partition(r2, h - 1)[:h]))
-    from scipy import stats
     r2 = _point_sq(a, y, w, best_x[None])[0]
     # LTS scale: E[chi2_k | chi2_k <= q] = k F_{k+2}(q) / F_k(q), q the h/n quantile.
-    alpha = h / n
-    q = stats.chi2.ppf(alpha, k)
-    corr = k * stats.chi2.cdf(q, k + 2) / alpha if alpha < 1 else k
+    corr = _lts_consistency(h, n, k)
     dof_h = max(h * k - p, 1)
     s2 = best_crit / max(corr * h, 1e-300) * (h * k) / dof_h
-    cut = stats.chi2.ppf(0.999, k)
+    cut = _chi2_ppf(0.999, k)
     tiny = 1e-18 * max(float(np.median(np.sum(w * y * y, axis=1))), 1e-300)
     fit_set = np.zeros(n, bool)
     fit_set[np.argpartition(r2, h - 1)[:h]] = True
@@ -204,7 +223,7 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
     all_inl, all_s2 = settle(np.ones(n, bool), s2)
     if all_inl.sum() > inl.sum():
         d1, d2 = max(int(all_inl.sum()) * k - p, 1), max(int(inl.sum()) * k - p, 1)
-        if all_s2 <= stats.f.ppf(0.99, d1, d2) * max(s2, tiny):
+        if all_s2 <= _f_ppf(0.99, d1, d2) * max(s2, tiny):
             inl, s2 = all_inl, all_s2
             info["from_all_points"] = True
     return inl, float(math.sqrt(max(s2, 0.0))), info
