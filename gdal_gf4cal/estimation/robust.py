@@ -11,7 +11,9 @@ whole.
    points), cannot pull the start; this is what an M-estimator started from least squares cannot do (2 blunders
    in 7 GCPs broke it).
 2. **Reweighting**: the start's scale (consistency-corrected) keeps the points within the 99.9 % chi-square
-   bound; least squares on them, once more.
+   bound, each residual normalised by its own variance (``1 -/+ leverage`` inside/outside the fit); least
+   squares on them, until the set is stable. The same from all points: when that set is larger and its scale not
+   significantly larger (F test, 1 %), the start only over-fitted its trimmed half and the larger set is kept.
 3. **Data snooping**: normalised residuals (Baarda's w) of every point, in or out, against
    :func:`critical_value`; points are left out while they exceed it and re-admitted when they do not, until the
    set is stable.
