@@ -27,6 +27,7 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 
 from .atomic import atomic_output
+from .basis import lookangle_cubic, lookangle_cubic_derivatives
 from .errors import Gf4calError, InputOverwriteError
 
 MODEL_NAME = "lookangle-cubic"
@@ -38,21 +39,15 @@ class CameraFormatError(Gf4calError, ValueError):
 
 
 def lookangle_terms(s, l) -> np.ndarray:
-    """The ten cubic terms ``1, s, l, s·l, s², l², s²·l, s·l², s³, l³``, shape ``(10, N)``."""
-    s = np.asarray(s, dtype=float).ravel()
-    l = np.asarray(l, dtype=float).ravel()
-    ss, ll = s * s, l * l
-    return np.stack([np.ones_like(s), s, l, s * l, ss, ll, ss * l, s * ll, ss * s, ll * l])
+    """The ten cubic terms ``1, s, l, s·l, s², l², s²·l, s·l², s³, l³``, shape ``(10, N)`` (:mod:`~gdal_gf4cal.basis`)."""
+    return np.ascontiguousarray(lookangle_cubic(np.asarray(s, dtype=float).ravel(),
+                                                np.asarray(l, dtype=float).ravel()).T)
 
 
 def lookangle_term_derivatives(s, l) -> Tuple[np.ndarray, np.ndarray]:
     """Derivatives of :func:`lookangle_terms` with respect to s and l, each ``(10, N)``."""
-    s = np.asarray(s, dtype=float).ravel()
-    l = np.asarray(l, dtype=float).ravel()
-    z, o = np.zeros_like(s), np.ones_like(s)
-    ds = np.stack([z, o, z, l, 2 * s, z, 2 * s * l, l * l, 3 * s * s, z])
-    dl = np.stack([z, z, o, s, z, 2 * l, s * s, 2 * s * l, z, 3 * l * l])
-    return ds, dl
+    ds, dl = lookangle_cubic_derivatives(np.asarray(s, dtype=float).ravel(), np.asarray(l, dtype=float).ravel())
+    return np.ascontiguousarray(ds.T), np.ascontiguousarray(dl.T)
 
 
 def _normalisation_matrix(centre: Tuple[float, float], half: Tuple[float, float]) -> np.ndarray:

@@ -21,13 +21,13 @@ Estimating (:func:`fit_compensation` -> :class:`CompensationResult`) is separate
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .errors import DegenerateGeometryError, GCPError, Gf4calError, InputOverwriteError
+from .basis import detector_terms, monomial_derivatives, monomials, term_name
+from .errors import DegenerateGeometryError, GCPError
 from .sensor import GDAL_PIXEL_OFFSET, SensorModelMixin, pixel_shift
 
 __all__ = [
@@ -121,11 +121,10 @@ class CompensationModel:
         if self.name != "detector-poly":
             return _BASE_TERMS[self.name]
         ts, tl = (list(t) for t in _BASE_TERMS[self.along])
+        poly = detector_terms(self.order, self.ccd_axis)
         if self.ccd_axis == "sample":
-            poly = [(k, 0) for k in range(self.order + 1)]
             ts = ts + [t for t in poly if t not in ts]
         else:
-            poly = [(0, k) for k in range(self.order + 1)]
             tl = tl + [t for t in poly if t not in tl]
         return tuple(ts), tuple(tl)
 
@@ -148,21 +147,10 @@ class CompensationModel:
         return set(ts) <= {(0, 0), (1, 0)} and set(tl) <= {(0, 0), (0, 1)}
 
 
-def _monomials(terms, u, v):
-    return np.stack([u ** i * v ** j for (i, j) in terms], axis=-1)
-
-
-def _monomial_derivatives(terms, u, v):
-    """d/du and d/dv of each monomial, shape (..., n_terms) each."""
-    du = np.stack([(i * u ** (i - 1) * v ** j) if i else np.zeros_like(u) for (i, j) in terms], axis=-1)
-    dv = np.stack([(j * u ** i * v ** (j - 1)) if j else np.zeros_like(u) for (i, j) in terms], axis=-1)
-    return du, dv
-
-
-def _term_name(axis: str, term: Tuple[int, int]) -> str:
-    i, j = term
-    parts = ([] if i == 0 else ["u" if i == 1 else f"u{i}"]) + ([] if j == 0 else ["v" if j == 1 else f"v{j}"])
-    return f"{axis}_{'*'.join(parts) if parts else '1'}"
+# The bases live in gdal_gf4cal.basis (METHODS §4.1); the private names stay for existing callers.
+_monomials = monomials
+_monomial_derivatives = monomial_derivatives
+_term_name = term_name
 
 
 @dataclass
@@ -185,7 +173,9 @@ class CompensationResult:
         The input table with added columns ``pred_sample_before, pred_line_before`` (RPC), ``res_sample_before,
         res_line_before``, ``pred_sample_after, pred_line_after, res_sample_after, res_line_after`` (corrected),
         ``norm_res_sample,
-        norm_res_line`` (residual / its standard deviation), ``outlier`` (bool), ``used`` (in the estimate),
+        norm_res_line`` (residual / its standard deviation), ``outlier`` (bool), ``outlier_level`` (``'start'``:
+        left out by the high-breakdown start and never re-admitted, ``'snooping'``: by data snooping, ``''``),
+        ``used`` (in the estimate),
         and with ``leave_one_out=True`` ``res_sample_loo, res_line_loo``. Residuals are measured - predicted, px.
     redundancy : int
         Observations minus parameters of the final estimate (the smaller axis).
@@ -195,6 +185,8 @@ class CompensationResult:
         Worst condition number of the column-equilibrated control design (both axes).
     notes : list of str
         What the caller should know (robust estimation skipped, blunder threshold raised, ...).
+    warnings : list of str
+        What is likely wrong (the check points fit worse after compensation than before); never silent.
     """
 
     model: CompensationModel
@@ -209,6 +201,7 @@ class CompensationResult:
     iterations: int = 0
     condition_number: float = 1.0
     notes: List[str] = field(default_factory=list)
+    warnings: List[str] = field(default_factory=list)
 
     @classmethod
     def from_coefficients(cls, model, frame: Sequence[float], coef_sample, coef_line) -> "CompensationResult":
@@ -304,6 +297,48 @@ class CompensationResult:
         return {n: float(x) for n, x in zip(self.parameter_names, sd)}
 
     @property
+    def estimate(self):
+        """The estimate as the one result class :class:`gdal_gf4cal.estimation.Estimate` (METHODS §4).
+
+        Blocks ``sample`` and ``line``; observations interleaved per GCP (sample, line); ``sigma0`` is the RMS of
+        the two axes' values (they are pooled when the redundancy is small); redundancy numbers ``1 - w a N^-1 a``
+        of the points in the estimate.
+        """
+        from .estimation import Estimate
+        tab = self.gcps
+        p_s = self.coef_sample.size
+        p = p_s + self.coef_line.size
+        cov = np.zeros((p, p))
+        cov[:p_s, :p_s], cov[p_s:, p_s:] = self.cov_sample, self.cov_line
+        n = len(tab)
+        if n and "pred_sample_before" in tab.columns:
+            u, v = self._uv(tab["pred_sample_before"].to_numpy(float), tab["pred_line_before"].to_numpy(float))
+            ts, tl = self.model.terms
+            w = 1.0 / tab["sigma"].to_numpy(float) ** 2
+            used = tab["used"].to_numpy(bool)
+            red = []
+            for a, c, sg in ((_monomials(ts, u, v), self.cov_sample, self.sigma0_px[0]),
+                             (_monomials(tl, u, v), self.cov_line, self.sigma0_px[1])):
+                q = np.einsum("ij,jk,ik->i", a, c, a) / max(sg, 1e-300) ** 2
+                red.append(np.where(used, 1.0 - w * q, 0.0))
+            redundancy = np.stack(red, axis=1).ravel()
+            weights = np.repeat(np.where(used, w, 0.0), 2)
+            res = np.stack([tab["res_sample_after"], tab["res_line_after"]], axis=1).astype(float).ravel()
+            norm = np.stack([tab["norm_res_sample"], tab["norm_res_line"]], axis=1).astype(float).ravel()
+            outlier = tab["outlier"].to_numpy(bool)
+            level = tab["outlier_level"].to_numpy(str) if "outlier_level" in tab.columns else None
+        else:
+            redundancy = weights = res = norm = np.zeros(0)
+            outlier, level = np.zeros(0, bool), None
+        dof = int(round(float(redundancy.sum()))) if redundancy.size else 0
+        return Estimate(names=self.parameter_names, x=np.concatenate([self.coef_sample, self.coef_line]), cov=cov,
+                        sigma0=float(np.sqrt(0.5 * (self.sigma0_px[0] ** 2 + self.sigma0_px[1] ** 2))), dof=dof,
+                        redundancy=redundancy, residuals=res, normalised=norm, weights=weights,
+                        blocks={"sample": slice(0, p_s), "line": slice(p_s, p)}, outlier=outlier,
+                        outlier_level=level, condition_number=float(self.condition_number),
+                        iterations=int(self.iterations), notes=list(self.notes), warnings=list(self.warnings))
+
+    @property
     def outliers(self):
         """Rows of :attr:`gcps` flagged as blunders."""
         return self.gcps[self.gcps["outlier"].to_numpy(bool)]
@@ -336,6 +371,7 @@ class CompensationResult:
              "res_sample_px": _f(r["res_sample_after"]), "res_line_px": _f(r["res_line_after"])}
             for _, r in self.outliers.iterrows()]
         out["notes"] = list(self.notes)
+        out["warnings"] = list(self.warnings)
         return out
 
 
@@ -390,31 +426,20 @@ def _jacobian(model, lon, lat, h):
 
 
 def accuracy_by_role(gcps, rpc=None) -> Dict[str, Any]:
-    """``{control|check: {n_outliers, before|after: {n, line|sample: {mean, rms, rmse, max}, ce90_m}}}`` (METHODS §6).
+    """``{control|check: {n_outliers, before|after: {n, line|sample: {mean, rms, rmse, max}, planar, ce90_m}}}``.
 
-    From a table with ``res_{sample,line}_{before,after}`` columns (px); flagged outliers are left out. ``ce90_m``
-    is the planar CE90 (m) of the image residuals taken to the ground through ``rpc`` (None without ``rpc``).
+    The one report shape, :func:`gdal_gf4cal.stats.accuracy_by_role` (METHODS §6), from a table with
+    ``res_{sample,line}_{before,after}`` columns (px); flagged outliers are left out. ``ce90_m`` is the planar CE90
+    (m) of the image residuals taken to the ground through ``rpc`` (None without ``rpc``).
     """
-    from .stats import ce90
-    out: Dict[str, Any] = {}
-    role = gcps["role"].astype(str).to_numpy()
-    outl = gcps["outlier"].to_numpy(bool)
-    for name in ("control", "check"):
-        sel = (role == name) & ~outl
-        entry: Dict[str, Any] = {"n_outliers": int(((role == name) & outl).sum())}
-        for when in ("before", "after"):
-            rs = gcps[f"res_sample_{when}"].to_numpy(float)[sel]
-            rl = gcps[f"res_line_{when}"].to_numpy(float)[sel]
-            st: Dict[str, Any] = {"n": int(sel.sum()), "line": _axis_stats(rl), "sample": _axis_stats(rs)}
-            ce = None
-            if rpc is not None and sel.any():
-                e, n_ = ground_offsets_m(rpc, gcps["lon"].to_numpy(float)[sel], gcps["lat"].to_numpy(float)[sel],
-                                         gcps["h"].to_numpy(float)[sel], rs, rl)
-                ce = _f(ce90(e, n_))
-            st["ce90_m"] = ce
-            entry[when] = st
-        out[name] = entry
-    return out
+    from .stats import accuracy_by_role as _by_role
+    ground = None
+    if rpc is not None:
+        lon, lat, h = (gcps[c].to_numpy(float) for c in ("lon", "lat", "h"))
+
+        def ground(sel, rs, rl):
+            return ground_offsets_m(rpc, lon[sel], lat[sel], h[sel], rs, rl)
+    return _by_role(gcps, ground_offsets=ground)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -590,31 +615,23 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
     used = ctrl.copy()
     iterations = 0
     redundancy_min = n_ctrl - max(p_s, p_l)
+    start_out = np.zeros(len(tab), bool)
     if robust and redundancy_min >= 2:
-        # Phase 1: robust start (Huber, then redescending Tukey) so that several blunders cannot mask each other.
-        rw = np.where(ctrl, 1.0, 0.0)
-        for it in range(max_iter):
-            iterations = it + 1
-            cs, _, cl, _ = solve(w0 * rw)
-            us = (y_s - a_s @ cs) * np.sqrt(w0)
-            ul = (y_l - a_l @ cl) * np.sqrt(w0)
-            scale_s = max(1.4826 * np.median(np.abs(us[ctrl])), 1e-9)
-            scale_l = max(1.4826 * np.median(np.abs(ul[ctrl])), 1e-9)
-            z = np.maximum(np.abs(us) / scale_s, np.abs(ul) / scale_l)
-            if it < 3:
-                new = np.minimum(1.0, 1.345 / np.maximum(z, 1e-12))
-            else:
-                new = np.where(z < 4.685, (1.0 - (z / 4.685) ** 2) ** 2, 0.0)
-            new = np.where(ctrl, new, 0.0)
-            if (new > 0).sum() < model.min_gcps:
-                break
-            done = np.max(np.abs(new - rw)) < 1e-4
-            rw = new
-            if done and it >= 3:
-                break
-        used = ctrl & (rw > 0)
+        # Phase 1: high-breakdown start (least trimmed squares from every minimal subset of the control points,
+        # or seeded random ones when there are many): several blunders, even coherent ones, cannot mask each other.
+        from .estimation import high_breakdown_start
+        idx = np.flatnonzero(ctrl)
+        design = np.zeros((idx.size, 2, p_s + p_l))
+        design[:, 0, :p_s], design[:, 1, p_s:] = a_s[idx], a_l[idx]
+        inl, _, _ = high_breakdown_start(design, np.stack([y_s[idx], y_l[idx]], axis=1),
+                                         np.repeat(w0[idx, None], 2, axis=1), min_points=model.min_gcps)
+        used = np.zeros(len(tab), bool)
+        used[idx[inl]] = True
+        if used.sum() <= model.min_gcps:
+            used = ctrl.copy()
+        start_out = ctrl & ~used
         # Phase 2: data snooping with normalised residuals on the robust inlier set until it is stable.
-        for _ in range(max_iter):
+        for iterations in range(1, max_iter + 1):
             if used.sum() < model.min_gcps:
                 used = ctrl.copy()
                 break
@@ -653,7 +670,9 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
     tab["res_sample_after"], tab["res_line_after"] = y_s - ds, y_l - dl
     tab["norm_res_sample"], tab["norm_res_line"] = norm_s, norm_l
     tab["outlier"] = outlier
+    tab["outlier_level"] = np.where(outlier, np.where(start_out, "start", "snooping"), "")
     tab["used"] = used
+    warns = _worse_check_warning(tab)
     if leave_one_out:
         # Exact LOO residual of linear LS: v_i / (1 - h_ii) for points in the fit; others are already independent.
         hs = w0 * np.einsum("ij,jk,ik->i", a_s, ns, a_s)
@@ -663,21 +682,39 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
             tab["res_line_loo"] = np.where(used, (y_l - dl) / (1.0 - hl), y_l - dl)
     return CompensationResult(model=model, frame=fr, coef_sample=cs, coef_line=cl,
                               cov_sample=sig_s ** 2 * ns, cov_line=sig_l ** 2 * nl, sigma0_px=(sig_s, sig_l),
-                              gcps=tab, redundancy=red, iterations=iterations, condition_number=cond, notes=notes)
+                              gcps=tab, redundancy=red, iterations=iterations, condition_number=cond, notes=notes,
+                              warnings=warns)
+
+
+def _worse_check_warning(tab) -> List[str]:
+    """Warnings when the check points disagree with the compensation: they fit worse after it than before
+    (blunders left out), or most of them are flagged as blunders."""
+    chk = (tab["role"] == "check").to_numpy()
+    if not chk.any():
+        return []
+    outl = tab["outlier"].to_numpy(bool)
+    sel = chk & ~outl
+    out: List[str] = []
+    if 2 * int((chk & outl).sum()) > int(chk.sum()):
+        out.append(f"{int((chk & outl).sum())} of the {int(chk.sum())} check points are flagged as blunders: the "
+                   "check points disagree with the compensation; check the GCPs (wrong heights, other image) or the "
+                   "model")
+    if sel.any():
+        def rms(when):
+            return float(np.sqrt(np.mean(tab[f"res_sample_{when}"].to_numpy(float)[sel] ** 2
+                                         + tab[f"res_line_{when}"].to_numpy(float)[sel] ** 2)))
+        before, after = rms("before"), rms("after")
+        if after > before:
+            out.append(f"the {int(sel.sum())} check points fit worse after compensation than before (planar rms "
+                       f"{before:.3g} -> {after:.3g} px): check the GCPs (blunders, wrong heights) or choose a "
+                       "simpler model")
+    return out
 
 
 def _critical_value(threshold: float, dof: int) -> float:
-    """Critical normalised residual for ``dof`` degrees of freedom of the estimated sigma (METHODS §4, §6).
-
-    ``threshold`` is read as a standard-normal quantile (large redundancy, Baarda's w-test). The residuals here are
-    normalised with an *estimated* sigma, so with few redundant observations they follow Student's t: the
-    threshold becomes the t quantile of the same two-sided probability (a fixed 4 flagged a few percent of good
-    GCPs in sets of 4-10).
-    """
-    if dof <= 0:
-        return math.inf
-    from scipy import stats
-    return float(stats.t.isf(stats.norm.sf(threshold), dof))
+    """Critical normalised residual, :func:`gdal_gf4cal.estimation.critical_value` (METHODS §4, §6)."""
+    from .estimation import critical_value
+    return critical_value(threshold, dof)
 
 
 def _exceeds(norm_s, norm_l, threshold: float, dof: Tuple[int, int]) -> np.ndarray:

@@ -15,6 +15,7 @@ from typing import Any, Dict, Optional, Sequence
 import numpy as np
 
 from .errors import DegenerateGeometryError, GCPError
+from .estimation import solve_with_points
 from .progress import report as _report
 
 __all__ = ["IntersectionResult", "intersect", "ground_errors_m", "intersection_accuracy"]
@@ -133,56 +134,48 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
             lon[todo], lat[todo] = lo, la
     active = (n_obs >= 2) & np.isfinite(lon) & np.isfinite(lat)
     converged = np.zeros(n_pts, bool)
-    nmat = np.zeros((n_pts, 3, 3))
+
+    def linearise(idx):
+        """Residuals (n, 2 n_img), weights and d(sample, line)/d(east, north, up) (n, 2 n_img, 3) in px/m."""
+        mx, my = _radii(lat[idx], h[idx])
+        to_m = np.stack([mx, my, np.ones_like(mx)], -1)
+        res_k = np.zeros((idx.size, n_img, 2))
+        jac_k = np.zeros((idx.size, n_img, 2, 3))
+        for k in range(n_img):
+            s, l = models[k].project(lon[idx], lat[idx], h[idx])
+            r = np.stack([pts[k, idx, 0] - s, pts[k, idx, 1] - l], axis=-1)
+            jac = _jacobian(models[k], lon[idx], lat[idx], h[idx]) / to_m[:, None, :]
+            res_k[:, k] = np.where(obs[k, idx, None], r, np.nan)
+            jac_k[:, k] = np.where(obs[k, idx, None, None], jac, 0.0)
+        w = np.repeat(wgt[:, idx].T, 2, axis=1)
+        return res_k.reshape(idx.size, 2 * n_img), w, jac_k.reshape(idx.size, 2 * n_img, 3), mx, my
+
     for it in range(max_iter):
         _report(progress, it / max_iter, "intersecting")
         idx = np.flatnonzero(active & ~converged)
         if idx.size == 0:
             break
-        mx, my = _radii(lat[idx], h[idx])
-        to_m = np.stack([mx, my, np.ones_like(mx)], -1)
-        nm = np.zeros((idx.size, 3, 3))
-        rhs = np.zeros((idx.size, 3))
-        for k in range(n_img):
-            s, l = models[k].project(lon[idx], lat[idx], h[idx])
-            r = np.stack([pts[k, idx, 0] - s, pts[k, idx, 1] - l], axis=-1)
-            # d(sample, line)/d(east, north, up) in px per metre.
-            jac = _jacobian(models[k], lon[idx], lat[idx], h[idx]) / to_m[:, None, :]
-            w = wgt[k, idx]
-            r = np.where(obs[k, idx, None], r, 0.0)
-            jac = np.where(obs[k, idx, None, None], jac, 0.0)
-            nm += w[:, None, None] * np.einsum("nai,naj->nij", jac, jac)
-            rhs += w[:, None] * np.einsum("nai,na->ni", jac, r)
-        ok = np.abs(np.linalg.det(nm)) > 1e-30
-        step = np.full((idx.size, 3), np.nan)
-        step[ok] = np.linalg.solve(nm[ok], rhs[ok][..., None])[..., 0]
-        bad = ~ok | ~np.all(np.isfinite(step), axis=1)
+        r, w, jac, mx, my = linearise(idx)
+        # The ground point of each tie point is a point block: solved (eliminated) per point (estimation.schur).
+        sol = solve_with_points(jac, r, w, det_min=1e-30, covariance=False)
+        step = sol.dx_points
+        bad = ~sol.ok | ~np.all(np.isfinite(step), axis=1)
         active[idx[bad]] = False
         good = ~bad
         g = idx[good]
         lon[g] += step[good, 0] / mx[good]
         lat[g] += step[good, 1] / my[good]
         h[g] += step[good, 2]
-        nmat[g] = nm[good]
         converged[g] = np.linalg.norm(step[good], axis=1) < tol_m
     # Final residuals and covariance at the solution.
     res = np.full((n_img, n_pts, 2), np.nan)
-    nmat_final = np.zeros((n_pts, 3, 3))
     fin = active & converged
     idx = np.flatnonzero(fin)
-    if idx.size:
-        mx, my = _radii(lat[idx], h[idx])
-        to_m = np.stack([mx, my, np.ones_like(mx)], -1)
-        for k in range(n_img):
-            s, l = models[k].project(lon[idx], lat[idx], h[idx])
-            r = np.stack([pts[k, idx, 0] - s, pts[k, idx, 1] - l], axis=-1)
-            res[k, idx] = np.where(obs[k, idx, None], r, np.nan)
-            jac = _jacobian(models[k], lon[idx], lat[idx], h[idx]) / to_m[:, None, :]
-            jac = np.where(obs[k, idx, None, None], jac, 0.0)
-            nmat_final[idx] += wgt[k, idx, None, None] * np.einsum("nai,naj->nij", jac, jac)
     cov = np.full((n_pts, 3, 3), np.nan)
     if idx.size:
-        cov[idx] = np.linalg.inv(nmat_final[idx])
+        r, w, jac, _, _ = linearise(idx)
+        res[:, idx] = r.reshape(idx.size, n_img, 2).transpose(1, 0, 2)
+        cov[idx] = solve_with_points(jac, r, w, det_min=-1.0).cov_points
     with np.errstate(invalid="ignore", divide="ignore"):
         wr2 = np.nansum(wgt[..., None] * np.nan_to_num(res) ** 2, axis=(0, 2))
         red = 2 * n_obs - 3

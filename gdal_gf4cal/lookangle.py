@@ -24,14 +24,16 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from .basis import LOOKANGLE_POWERS, lookangle_cubic
 from .camera import CameraFormatError
+from .errors import ConvergenceError, DegenerateGeometryError, GCPError
+from .estimation import high_breakdown_start
+from .progress import report
 from .sensor import SensorModelMixin
-from .errors import ConvergenceError, DegenerateGeometryError, GCPError, InputOverwriteError
-from .progress import report, scaled
 
 __all__ = [
     "LookAngleCalibration", "LookAngleConditionWarning", "calibrate_lookangle", "recalibrate_rpc",
@@ -41,7 +43,7 @@ __all__ = [
 
 #: Exponents ``(p, q)`` of ``s^p l^q`` for the 10 terms, in the camera file's order
 #: ``1, s, l, s·l, s², l², s²·l, s·l², s³, l³`` (METHODS §5; the paper's eq. 4 typo fixed).
-POWERS: Tuple[Tuple[int, int], ...] = ((0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2), (2, 1), (1, 2), (3, 0), (0, 3))
+POWERS: Tuple[Tuple[int, int], ...] = LOOKANGLE_POWERS
 
 #: 10 coefficients per axis: fewer control points leave the cubic undetermined.
 MIN_GCPS = 10
@@ -57,6 +59,14 @@ _REJECT_K = 4.0       # hard rejection; P(Rayleigh > 4 sigma) = 3e-4, so ~no goo
 _RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))   # median of |r|/sigma for a 2-D normal residual
 _MIN_SCALE_PX = 0.01  # floor of the robust scale in pixels (an RPC reproduces its model to ~1e-3 px)
 _MIN_ROBUST_GCPS = 20  # below this the redundancy is too small to estimate a robust scale
+#: Up to this many control GCPs the robust solve starts from the high-breakdown estimate (few GCPs, where several
+#: blunders break a Huber start); above it the MAD-scaled Huber start has ~50 % breakdown already and the start
+#: would only cost time (bench/bench_lookangle.py).
+_START_MAX_GCPS = 1000
+#: ... and from this many: the start's trimmed half (h = (n + 11) // 2 points) must have well more redundant
+#: observations than the 20 parameters (2 h - 20 >= 50); with fewer, fitting 20 coefficients to half the points
+#: over-fits and flags good points (seen at 40 GCPs), and the Huber start of today is kept.
+_START_MIN_GCPS = 60
 
 
 class LookAngleConditionWarning(UserWarning):
@@ -64,12 +74,8 @@ class LookAngleConditionWarning(UserWarning):
 
 
 # ---------------------------------------------------------------------------------------------------- basis
-def lookangle_monomials(u, v) -> np.ndarray:
-    """The 10 look-angle terms of ``(u, v)``, shape ``(..., 10)`` (order of :data:`POWERS`)."""
-    u = np.asarray(u, dtype=float)
-    v = np.asarray(v, dtype=float)
-    uu, vv = u * u, v * v
-    return np.stack([np.ones_like(u), u, v, u * v, uu, vv, uu * v, u * vv, uu * u, vv * v], axis=-1)
+#: The 10 look-angle terms of ``(u, v)``, shape ``(..., 10)`` (order of :data:`POWERS`): :mod:`gdal_gf4cal.basis`.
+lookangle_monomials = lookangle_cubic
 
 
 def _basis_change(a_s: float, b_s: float, a_l: float, b_l: float) -> np.ndarray:
@@ -187,8 +193,9 @@ class LookAngleCalibration:
     condition_number : :func:`layout_condition` of the control points.
     gcps : copy of the input table with columns ``virtual_sample, virtual_line`` (``RPC(ground)``),
         ``res_sample_before, res_line_before`` (measured - RPC(ground)), ``pred_sample, pred_line``
-        (``tan_new^-1(tan_old(s', l'))``), ``res_sample_after, res_line_after``, ``norm_residual`` (radial residual
-        / robust sigma), ``weight`` (final robust weight, 0 if rejected), ``outlier`` (bool; control only).
+        (``tan_new^-1(tan_old(s', l'))``; also as ``pred_*_after``, with ``pred_*_before`` = ``virtual_*``), ``res_sample_after, res_line_after``, ``norm_residual`` (radial residual
+        / robust sigma), ``weight`` (final robust weight, 0 if rejected), ``outlier`` (bool; control and check points),
+        ``outlier_level`` (``'start'``, ``'snooping'`` or ``''``).
     control_stats, check_stats : ``{"before"|"after": {"sample"|"line": axis_stats}}``; outliers excluded;
         ``check_stats`` is None without check points.
     """
@@ -339,17 +346,21 @@ class _RobustSolution:
 
 
 def _robust_solve(A: np.ndarray, r0: np.ndarray, w_base: np.ndarray, sigma: np.ndarray, robust: bool,
-                  hint: str, tol_px: float = 1e-6, max_steps: int = 100) -> _RobustSolution:
+                  hint: str, tol_px: float = 1e-6, max_steps: int = 100,
+                  start_out: Optional[np.ndarray] = None) -> _RobustSolution:
     """Solve the linearised problem ``r(delta) = r0 + A delta`` (pixels) by IRLS.
 
     Phase 1: Huber reweighting (bounded influence, no rejection) to convergence, so the scale and residuals are
-    not distorted by the blunders' pull on a plain least-squares fit. Phase 2: hard rejection at 4 robust sigmas,
-    Huber on the rest, until the outlier set is stable and the solution no longer moves (METHODS §5 step 3).
+    not distorted by the blunders' pull on a plain least-squares fit; the points ``start_out`` of the
+    high-breakdown start (:func:`gdal_gf4cal.estimation.high_breakdown_start`) are left out of it. Phase 2: hard
+    rejection at 4 robust sigmas of every point (start points are re-admitted when they fit), Huber on the rest,
+    until the outlier set is stable and the solution no longer moves (METHODS §5 step 3).
     """
     n = r0.shape[0]
     A2 = A.reshape(2 * n, -1)
     r2 = r0.reshape(2 * n)
-    rw = np.ones(n)
+    keep = np.ones(n) if start_out is None or not robust else np.where(start_out, 0.0, 1.0)
+    rw = keep.copy()
     delta, N = _solve_normal(A2, (w_base * rw[:, None]).reshape(-1), r2, hint)
     outlier = np.zeros(n, bool)
     z = np.full(n, np.nan)
@@ -363,6 +374,7 @@ def _robust_solve(A: np.ndarray, r0: np.ndarray, w_base: np.ndarray, sigma: np.n
         hub, out, scale, z = _robust_weights(r, sigma, A.shape[-1])
         if phase == 1:
             out = np.zeros(n, bool)
+            hub = hub * keep
         rw_new = np.where(out, 0.0, hub)
         if int((~out).sum()) < MIN_GCPS:
             raise GCPError(f"only {int((~out).sum())} control GCPs left after rejecting outliers; the GCPs are "
@@ -472,6 +484,7 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
     w_c = base_w[ctrl]
     sig_c = eff_sigma[ctrl]
     use_robust = robust and n_ctrl >= _MIN_ROBUST_GCPS
+    start_out: Optional[np.ndarray] = None
 
     def camera_of(a):
         return _with_coefficients(current, to_raw @ a[:10], to_raw @ a[10:])
@@ -488,7 +501,11 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
         A, Jinv = _design(cam, frame, obs_c[:, 0], obs_c[:, 1])
         tx, ty = cam.tan_angles(obs_c[:, 0], obs_c[:, 1])
         r0 = np.einsum("nij,nj->ni", Jinv, np.column_stack([tx - Vx, ty - Vy]))
-        sol = _robust_solve(A, r0, w_c, sig_c, use_robust, hint)
+        if use_robust and start_out is None and _START_MIN_GCPS <= n_ctrl <= _START_MAX_GCPS:
+            # High-breakdown start on the first linearisation (blunders cannot pull it; METHODS §5 step 3).
+            inl, _, _ = high_breakdown_start(A, -r0, w_c, min_points=10)
+            start_out = ~inl if inl.sum() > 10 else np.zeros(n_ctrl, bool)
+        sol = _robust_solve(A, r0, w_c, sig_c, use_robust, hint, start_out=start_out)
         alpha = alpha + sol.delta
         cam = camera_of(alpha)
         step = float(np.max(np.abs(np.einsum("nij,j->ni", A, sol.delta))))
@@ -544,25 +561,42 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
     out["res_line_before"] = obs[:, 1] - lv
     out["pred_sample"] = _scatter(n, u_idx, pred[:, 0])
     out["pred_line"] = _scatter(n, u_idx, pred[:, 1])
+    # explicit names of the one table shape (gdal_gf4cal.stats): before = the RPC, after = the recalibrated camera
+    out["pred_sample_before"], out["pred_line_before"] = sv, lv
+    out["pred_sample_after"], out["pred_line_after"] = out["pred_sample"], out["pred_line"]
     out["res_sample_after"] = obs[:, 0] - out["pred_sample"].to_numpy(float)
     out["res_line_after"] = obs[:, 1] - out["pred_line"].to_numpy(float)
     c_idx = np.flatnonzero(ctrl)
     out["norm_residual"] = _scatter(n, c_idx, z_c)
     out["weight"] = _scatter(n, c_idx, sol.weights, 0.0)
-    out["outlier"] = _scatter(n, c_idx, sol.outlier, False).astype(bool)
+    outlier = _scatter(n, c_idx, sol.outlier, False).astype(bool)
+    level = np.where(outlier, "snooping", "").astype(object)
+    if start_out is not None:
+        level[c_idx[sol.outlier & start_out]] = "start"
+    check = ~control & usable
+    if use_robust and check.any():
+        # Check points are blunders by the same rule as control points: radial residual over 4 robust sigmas.
+        k_idx = np.flatnonzero(check)
+        radial_px = np.hypot(out["res_sample_after"].to_numpy(float)[k_idx],
+                             out["res_line_after"].to_numpy(float)[k_idx])
+        bad = radial_px / np.maximum(eff_sigma[k_idx] * scale, _MIN_SCALE_PX) > _REJECT_K
+        outlier[k_idx[bad]] = True
+        level[k_idx[bad]] = "snooping"
+    out["outlier"] = outlier
+    out["outlier_level"] = level.astype(str)
     good_full = ctrl & ~out["outlier"].to_numpy(bool)
     control_stats = {
         "before": _axis_pair_stats(out["res_sample_before"][good_full], out["res_line_before"][good_full]),
         "after": _axis_pair_stats(out["res_sample_after"][good_full], out["res_line_after"][good_full]),
         "n": int(good_full.sum()),
     }
-    check = ~control & usable
     check_stats = None
     if check.any():
+        good_chk = check & ~outlier                      # flagged check points are left out, as for control points
         check_stats = {
-            "before": _axis_pair_stats(out["res_sample_before"][check], out["res_line_before"][check]),
-            "after": _axis_pair_stats(out["res_sample_after"][check], out["res_line_after"][check]),
-            "n": int(check.sum()),
+            "before": _axis_pair_stats(out["res_sample_before"][good_chk], out["res_line_before"][good_chk]),
+            "after": _axis_pair_stats(out["res_sample_after"][good_chk], out["res_line_after"][good_chk]),
+            "n": int(good_chk.sum()), "n_outliers": int((check & outlier).sum()),
         }
     report(progress, 1.0, "look-angle calibration done")
     name = getattr(current, "name", "") or ""

@@ -5,6 +5,17 @@ rms² = mean² + rmse², as in seed 000's Table 3: mean 2.52, RMS 9.90, RMSE 9.5
 Planar: CE90 (90th percentile of radial error), LE90 for height, share of points within a threshold.
 Internal (relative) accuracy: remove a rotation + translation fitted on the points (seed 000 eq. 8).
 Residuals are always ``measured - predicted``.
+
+One accuracy-report shape (:func:`accuracy_by_role`), used by every estimator's report::
+
+    {control|check: {n_outliers, before|after: {n, sample|line: {mean, rms, rmse, max}, planar: {n, rms, mean,
+     max, ce90}, ce90_m}}}
+
+Column names of residual tables: ``res_{sample,line}_{before,after}`` (measured - predicted, px) and
+``pred_{sample,line}_{before,after}``: *before* is the model as given (the RPC), *after* the estimated one.
+A bare ``pred_sample`` (look-angle table, RPC accuracy report) always means the prediction of the model the
+table reports on, i.e. *after* for an estimate, the RPC for an accuracy assessment; new code writes the
+explicit ``_before`` / ``_after`` names.
 """
 from __future__ import annotations
 
@@ -73,6 +84,54 @@ def residual_report(res_sample, res_line, *, ground_m_per_px: Optional[float] = 
 
 #: The name DESIGN.md gives the per-axis + planar report (METHODS §6).
 accuracy_report = residual_report
+
+
+def _none_if_nan(x):
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def accuracy_by_role(table, *, ground_offsets=None, ground_m_per_px: Optional[float] = None,
+                     roles=("control", "check")) -> Dict[str, object]:
+    """The one accuracy report per role, before and after an estimate (METHODS §6); see the module docstring.
+
+    Parameters
+    ----------
+    table : DataFrame
+        Columns ``role``, ``outlier`` (bool; flagged points are left out of both before and after, and counted
+        in ``n_outliers``) and ``res_{sample,line}_{before,after}`` (px; a missing ``after`` pair is skipped).
+    ground_offsets : callable, optional
+        ``ground_offsets(mask, res_sample, res_line) -> (east_m, north_m)`` for the rows ``mask``: gives
+        ``ce90_m`` through the sensor's ground Jacobian.
+    ground_m_per_px : float, optional
+        Otherwise a ground scale (GSD) for ``ce90_m``; with neither ``ce90_m`` is None.
+    """
+    role = table["role"].astype(str).to_numpy()
+    outl = table["outlier"].to_numpy(bool) if "outlier" in table.columns else np.zeros(len(table), bool)
+    out: Dict[str, object] = {}
+    for name in roles:
+        sel = (role == name) & ~outl
+        entry: Dict[str, object] = {"n_outliers": int(((role == name) & outl).sum())}
+        for when in ("before", "after"):
+            if f"res_sample_{when}" not in table.columns:
+                continue
+            rs = table[f"res_sample_{when}"].to_numpy(float)[sel]
+            rl = table[f"res_line_{when}"].to_numpy(float)[sel]
+            st: Dict[str, object] = {"n": int(sel.sum()),
+                                     "line": {k: _none_if_nan(v) for k, v in axis_stats(rl).items() if k != "n"},
+                                     "sample": {k: _none_if_nan(v) for k, v in axis_stats(rs).items() if k != "n"},
+                                     "planar": {k: (_none_if_nan(v) if k != "n" else v)
+                                                for k, v in planar_stats(rs, rl).items()}}
+            ce = None
+            if sel.any() and ground_offsets is not None:
+                e, n_ = ground_offsets(sel, rs, rl)
+                ce = _none_if_nan(ce90(e, n_))
+            elif sel.any() and ground_m_per_px is not None:
+                ce = _none_if_nan(ce90(rs, rl) * float(ground_m_per_px))
+            st["ce90_m"] = ce
+            entry[when] = st
+        out[name] = entry
+    return out
 
 
 def fit_rotation_translation(sample_meas, line_meas, sample_pred, line_pred):

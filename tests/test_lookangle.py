@@ -346,3 +346,29 @@ def test_weights_of_the_wrong_shape_are_a_gcp_error(scene):
     gcps, _ = make_gcps(scene["m_true"], 30, 0.3, seed=16)
     with pytest.raises(GCPError, match="weights"):
         calibrate_lookangle(scene["rpc"], gcps, scene["current"], weights=np.ones(7))
+
+
+@pytest.mark.parametrize("n, fraction, seed", [(60, 0.3, 21), (100, 0.4, 22)])
+def test_many_blunders_in_a_small_set_are_all_flagged(scene, n, fraction, seed):
+    """Issue 10: a Huber start from least squares breaks down with 30-40 % blunders among few GCPs; the
+    high-breakdown start (estimation.high_breakdown_start) does not."""
+    sigma = 0.3
+    gcps, blunder = make_gcps(scene["m_true"], n, sigma, seed=seed, blunder_fraction=fraction)
+    res = calibrate_lookangle(scene["rpc"], gcps, scene["current"])
+    assert np.all(res.outliers[blunder])
+    assert np.count_nonzero(res.outliers & ~blunder) <= 1
+    # the camera is the least-squares one of the good points alone
+    clean = calibrate_lookangle(scene["rpc"], gcps[~blunder], scene["current"], robust=False)
+    d = compare_lookangle(res.camera, clean.camera)
+    assert max(d["sample"]["rms"], d["line"]["rms"]) < 0.02
+    assert set(res.gcps.loc[res.outliers, "outlier_level"]) <= {"start", "snooping"}
+
+
+def test_check_point_blunders_are_flagged_and_left_out_of_the_check_statistics(scene):
+    gcps, _ = make_gcps(scene["m_true"], 150, 0.3, seed=9)
+    gcps.loc[100:, "role"] = "check"
+    gcps.loc[[110, 120], "line"] += 30.0
+    res = calibrate_lookangle(scene["rpc"], gcps, scene["current"])
+    assert np.flatnonzero(res.outliers).tolist() == [110, 120]
+    assert res.check_stats["n"] == 48 and res.check_stats["n_outliers"] == 2
+    assert res.check_stats["after"]["line"]["rms"] <= 1.3 * 0.3

@@ -46,3 +46,18 @@ def test_accuracy_report_splits_axes_and_reports_ce90_in_metres():
     rep = accuracy_report([3.0, -3.0, np.nan], [4.0, 4.0, 1.0], ground_m_per_px=50.0)
     assert rep["n"] == 2 and rep["line"]["mean"] == 4.0 and rep["sample"]["rmse"] == 3.0
     assert rep["planar"]["max"] == 5.0 and rep["ce90_m"] == 250.0
+
+
+def test_accuracy_by_role_is_the_one_report_shape():
+    import pandas as pd
+    from gdal_gf4cal.stats import accuracy_by_role
+    tab = pd.DataFrame({"role": ["control"] * 3 + ["check"] * 2, "outlier": [False, False, True, False, False],
+                        "res_sample_before": [3.0, 4.0, 50.0, 1.0, -1.0], "res_line_before": [4.0, 3.0, 0.0, 0.0, 0.0],
+                        "res_sample_after": [0.0, 0.0, 45.0, 3.0, -3.0], "res_line_after": [0.0, 0.0, 0.0, 4.0, 4.0]})
+    rep = accuracy_by_role(tab, ground_m_per_px=2.0)
+    assert rep["control"]["n_outliers"] == 1 and rep["control"]["before"]["n"] == 2
+    assert rep["control"]["before"]["planar"]["rms"] == pytest.approx(5.0)
+    assert rep["check"]["after"]["planar"]["rms"] == pytest.approx(5.0)
+    assert rep["check"]["after"]["ce90_m"] == pytest.approx(10.0)
+    assert rep["check"]["after"]["sample"] == {"mean": 0.0, "rms": 3.0, "rmse": 3.0, "max": 3.0}
+    assert rep["control"]["after"]["line"]["max"] == 0.0

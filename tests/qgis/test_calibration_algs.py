@@ -73,10 +73,14 @@ def test_calibratelookangle_removes_the_systematic_error(gf4):
     injected = {f["id"]: f["role"] for f in src.GetLayer(0) if f["truth_outlier"]}
     rows = {f["id"]: (f["role"], bool(f["outlier"]), f["res_sample_after"], f["res_line_after"])
             for f in res.GetLayerByName("gcps")}
-    flagged = {i for i, r in rows.items() if r[1]}
+    # (issue 10: check points are tested for blunders too, so the injected check blunders are now flagged as well;
+    # N_OUTLIERS still counts the control points)
+    flagged = {i for i, r in rows.items() if r[1] and r[0] == "control"}
     injected_control = {i for i, role in injected.items() if role == "control"}
     assert injected_control and injected_control <= flagged and len(flagged - injected_control) <= 2
     assert cal["N_OUTLIERS"] == len(flagged)
+    flagged_check = {i for i, r in rows.items() if r[1] and r[0] == "check"}
+    assert {i for i, role in injected.items() if role == "check"} <= flagged_check
     # check points (never estimated from), leaving out those the simulator gave a blunder: at the noise level
     chk = np.array([(r[2], r[3]) for i, r in rows.items() if r[0] == "check" and i not in injected])
     assert len(chk) > 30 and np.sqrt(np.mean(np.sum(chk ** 2, axis=1))) < 1.3 * floor

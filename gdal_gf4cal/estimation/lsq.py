@@ -1,0 +1,136 @@
+"""Weighted linear least squares with named parameter blocks that can be frozen (METHODS §4, §5).
+
+``A x ~ y`` with weights ``w`` (``1/sigma^2``; 0 leaves an observation out). Columns are scaled to unit weighted
+norm before the SVD solve, so the condition number reported (and tested against ``max_condition``) is that of the
+equilibrated design: parameters of very different units (pixels and pixels per normalised coordinate cubed) do
+not make a well-determined problem look degenerate.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Dict, Sequence, Tuple
+
+import numpy as np
+
+from ..errors import DegenerateGeometryError
+from .result import Estimate, names_and_blocks
+
+#: Largest condition number of the column-scaled design accepted as a determined layout.
+MAX_CONDITION = 1e8
+
+
+@dataclass(frozen=True)
+class Block:
+    """A named group of parameters (``names``), e.g. ``Block('exterior', ('omega', 'phi', 'kappa'))``."""
+
+    name: str
+    names: Tuple[str, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "names", tuple(str(n) for n in self.names))
+
+    @property
+    def size(self) -> int:
+        return len(self.names)
+
+
+def _free_mask(blocks: Dict[str, slice], frozen: Sequence[str], p: int) -> np.ndarray:
+    free = np.ones(p, bool)
+    for name in frozen:
+        if name not in blocks:
+            raise DegenerateGeometryError(f"cannot freeze unknown parameter block {name!r}; blocks are "
+                                          f"{', '.join(blocks)}")
+        free[blocks[name]] = False
+    return free
+
+
+def solve_normal_scaled(a: np.ndarray, y: np.ndarray, w: np.ndarray, hint: str = "",
+                        max_condition: float = MAX_CONDITION) -> Tuple[np.ndarray, np.ndarray, float]:
+    """``(x, N^-1, cond)`` of the weighted LS ``a x ~ y`` through the SVD of the column-scaled ``sqrt(w) a``.
+
+    Raises :class:`DegenerateGeometryError` (with the condition number) when the layout does not determine ``x``.
+    """
+    sw = np.sqrt(np.maximum(w, 0.0))
+    aw = a * sw[:, None]
+    scale = np.linalg.norm(aw, axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    u, s, vt = np.linalg.svd(aw / scale, full_matrices=False)
+    cond = float(s[0] / s[-1]) if s.size and s[-1] > 0 else math.inf
+    if not s.size or cond > max_condition:
+        raise DegenerateGeometryError(
+            f"the observations do not determine the parameters (condition number {cond:.3g}){hint}; add "
+            "observations spread over the image or estimate fewer parameters")
+    z = (vt.T / s) @ (u.T @ (y * sw))
+    x = z / scale
+    vs = vt.T / s
+    n_inv = (vs @ vs.T) / np.outer(scale, scale)
+    return x, n_inv, cond
+
+
+def weighted_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), frozen: Sequence[str] = (),
+                 values=None, prior=None, apriori: bool = False, hint: str = "",
+                 max_condition: float = MAX_CONDITION) -> Estimate:
+    """Weighted least squares ``design @ x ~ obs`` with freezable named blocks (METHODS §4).
+
+    Parameters
+    ----------
+    design : ndarray (n_obs, p)
+    obs : ndarray (n_obs,)
+    weights : ndarray (n_obs,), optional
+        ``1 / sigma^2`` per observation; 0 leaves it out of the estimate (its residual is still computed).
+    blocks : sequence of Block
+        Named parameter groups in column order (sizes must add up to ``p``); default one block ``x``.
+    frozen : sequence of str
+        Blocks held at ``values`` (default 0): their columns move to the right-hand side.
+    values : ndarray (p,), optional
+        Current parameter values (used for frozen blocks only).
+    prior : ndarray (n_obs,), optional
+        A-priori weights of the observations left out (``weights == 0``), to normalise their residuals
+        (default 1).
+    apriori : bool
+        Covariance from the a-priori weights (``N^-1``) instead of ``sigma0^2 N^-1``.
+
+    Returns
+    -------
+    Estimate
+        With redundancy numbers ``r_i = 1 - w_i a_i^T N^-1 a_i`` and normalised residuals
+        ``v_i / (sigma0 sqrt(r_i / w_i))`` (``v_i / (sigma0 sqrt(1/w_i + a_i^T N^-1 a_i))`` when left out).
+
+    Raises
+    ------
+    DegenerateGeometryError
+        The layout does not determine the free parameters (the message gives the condition number).
+    """
+    a = np.asarray(design, dtype=float)
+    y = np.asarray(obs, dtype=float).ravel()
+    n, p = a.shape
+    w = np.ones(n) if weights is None else np.broadcast_to(np.asarray(weights, dtype=float), (n,)).copy()
+    names, sl = names_and_blocks(blocks, p)
+    if len(names) != p:
+        raise DegenerateGeometryError(f"blocks name {len(names)} parameters but the design has {p} columns")
+    free = _free_mask(sl, frozen, p)
+    x = np.zeros(p) if values is None else np.asarray(values, dtype=float).copy()
+    y_free = y - a[:, ~free] @ x[~free] if (~free).any() else y
+    af = a[:, free]
+    used = w > 0
+    n_used = int(np.count_nonzero(used))
+    pf = int(free.sum())
+    if n_used < pf:
+        raise DegenerateGeometryError(f"{n_used} observations cannot determine {pf} parameters{hint}; add "
+                                      "observations or freeze/estimate fewer parameters")
+    xf, n_inv, cond = solve_normal_scaled(af[used], y_free[used], w[used], hint, max_condition)
+    x[free] = xf
+    v = y - a @ x
+    dof = n_used - pf
+    sigma0 = float(math.sqrt(np.sum(w * v * v) / dof)) if dof > 0 else 1.0
+    q = np.einsum("ij,jk,ik->i", af, n_inv, af)
+    red = np.where(used, 1.0 - w * q, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w_out = np.ones(n) if prior is None else np.broadcast_to(np.asarray(prior, dtype=float), (n,))
+        qv = np.where(used, red / np.where(used, w, 1.0), 1.0 / np.where(used, 1.0, w_out) + q)
+        norm = np.where(qv > 1e-12, v / (max(sigma0, 1e-300) * np.sqrt(np.abs(qv))), np.nan)
+    cov = np.zeros((p, p))
+    cov[np.ix_(free, free)] = n_inv if apriori else sigma0 ** 2 * n_inv
+    return Estimate(names=names, x=x, cov=cov, sigma0=sigma0, dof=dof, redundancy=red, residuals=v,
+                    normalised=norm, weights=w, blocks=sl, frozen=tuple(frozen), condition_number=cond)

@@ -1,0 +1,118 @@
+"""Normal equations with point blocks eliminated by Schur complement (METHODS §7; block calibration next).
+
+Observations come per point: ``r`` rows per point, each depending on the point's own ``q`` parameters (e.g. a
+tie point's ground coordinates, or intersection's east/north/up) and on ``p`` global parameters (sensor
+corrections; none for plain intersection). The normal matrix
+
+    [ N_pp  N_pg ] [dx_p]   [b_p]
+    [ N_gp  N_gg ] [dx_g] = [b_g]
+
+has a block-diagonal ``N_pp`` (one ``q x q`` block per point), so the points are eliminated:
+``S = N_gg - sum_i N_gp,i N_pp,i^-1 N_pg,i``, ``S dx_g = b_g - sum_i N_gp,i N_pp,i^-1 b_p,i`` (``scipy.sparse``
+when ``p`` is large), then ``dx_p,i = N_pp,i^-1 (b_p,i - N_pg,i dx_g)``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import DegenerateGeometryError
+
+#: Global parameter count above which the reduced system is assembled and solved with scipy.sparse.
+SPARSE_ABOVE = 500
+
+
+@dataclass
+class PointSolution:
+    """One Gauss-Newton step of a point-block system.
+
+    ``dx_points`` (N, q) and ``cov_points`` (N, q, q) (``N_pp^-1``-based, including the uncertainty of the global
+    parameters; NaN for points whose block is singular), ``ok`` (N,) the points whose block is regular,
+    ``dx_global`` (p,) and ``cov_global`` (p, p) (``S^-1``; empty without global parameters), all for unit
+    weight (multiply by ``sigma0^2`` for a-posteriori covariances).
+    """
+
+    dx_points: np.ndarray
+    cov_points: np.ndarray
+    ok: np.ndarray
+    dx_global: np.ndarray
+    cov_global: np.ndarray
+
+
+def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_min: float = 1e-30,
+                      covariance: bool = True) -> PointSolution:
+    """Solve the normal equations of point-block observations by Schur complement (module docstring).
+
+    Parameters
+    ----------
+    jac_points : ndarray (N, r, q)
+        Derivatives of each point's ``r`` observations by its own parameters.
+    residuals, weights : ndarray (N, r)
+        ``observed - predicted`` and weights (0: not observed).
+    jac_global : ndarray (N, r, p), optional
+        Derivatives by the global parameters.
+    det_min : float
+        Points whose ``N_pp`` block has ``|det| <= det_min`` are singular (``ok`` False, NaN step).
+
+    Raises
+    ------
+    DegenerateGeometryError
+        The reduced system of the global parameters is singular.
+    """
+    jp = np.asarray(jac_points, dtype=float)
+    r = np.nan_to_num(np.asarray(residuals, dtype=float))
+    w = np.asarray(weights, dtype=float)
+    n, _, q = jp.shape
+    npp = np.einsum("nr,nri,nrj->nij", w, jp, jp)
+    bp = np.einsum("nr,nri,nr->ni", w, jp, r)
+    ok = np.abs(np.linalg.det(npp)) > det_min
+    inv = np.full((n, q, q), np.nan)
+    if ok.any():
+        inv[ok] = np.linalg.inv(npp[ok])
+    if jac_global is None:
+        dxp = np.full((n, q), np.nan)
+        if ok.any():
+            dxp[ok] = np.linalg.solve(npp[ok], bp[ok][..., None])[..., 0]
+        return PointSolution(dxp, inv if covariance else np.empty((0, q, q)), ok, np.zeros(0), np.zeros((0, 0)))
+    jg = np.asarray(jac_global, dtype=float)
+    p = jg.shape[2]
+    jg_ok, jp_ok, w_ok, r_ok, inv_ok = jg[ok], jp[ok], w[ok], r[ok], inv[ok]
+    npg = np.einsum("nr,nri,nrj->nij", w_ok, jp_ok, jg_ok)                  # (n, q, p)
+    bg = np.einsum("nr,nri,nr->i", w_ok, jg_ok, r_ok)
+    ngg = np.einsum("nr,nri,nrj->ij", w_ok, jg_ok, jg_ok)
+    t = np.einsum("nij,njk->nik", inv_ok, npg)                                # N_pp^-1 N_pg
+    b_red = bg - np.einsum("nqi,nq->i", npg, np.einsum("nij,nj->ni", inv_ok, bp[ok]))
+    if p > SPARSE_ABOVE:
+        import scipy.sparse as sp
+        import scipy.sparse.linalg as spla
+        m = ok.sum()
+        rows = np.repeat(np.arange(m * q), p).reshape(m, q, p)
+        cols = np.broadcast_to(np.arange(p), (m, q, p))
+        npg_s = sp.csr_matrix((npg.ravel(), (rows.ravel(), cols.ravel())), shape=(m * q, p))
+        t_s = sp.csr_matrix((t.ravel(), (rows.ravel(), cols.ravel())), shape=(m * q, p))
+        s_mat = (sp.csr_matrix(ngg) - npg_s.T @ t_s).tocsc()
+        s_mat.eliminate_zeros()
+        try:
+            dxg = spla.spsolve(s_mat, b_red)
+        except RuntimeError as exc:                                            # singular factor
+            raise DegenerateGeometryError(f"the global parameters are not determined ({exc}); freeze blocks or "
+                                          "add observations") from None
+        s_dense = s_mat.toarray() if covariance else None
+    else:
+        s_dense = ngg - np.einsum("nqi,nqj->ij", npg, t)
+        sv = np.linalg.svd(s_dense, compute_uv=False)
+        if sv[-1] <= 1e-12 * sv[0]:
+            raise DegenerateGeometryError(f"the global parameters are not determined (condition number "
+                                          f"{sv[0] / max(sv[-1], 1e-300):.3g}); freeze blocks or add observations")
+        dxg = np.linalg.solve(s_dense, b_red)
+    if not np.all(np.isfinite(dxg)):
+        raise DegenerateGeometryError("the global parameters are not determined; freeze blocks or add observations")
+    dxp = np.full((n, q), np.nan)
+    dxp[ok] = np.einsum("nij,nj->ni", inv_ok, bp[ok] - npg @ dxg)
+    cov_g = np.linalg.inv(s_dense) if covariance else np.zeros((0, 0))
+    cov_p = inv
+    if covariance:
+        cov_p = inv.copy()
+        cov_p[ok] = inv_ok + np.einsum("nqi,ij,nrj->nqr", t, cov_g, t)
+    return PointSolution(dxp, cov_p, ok, dxg, cov_g)
