@@ -16,11 +16,12 @@ export PROJ_DATA := /usr/share/proj
 export PYTHONWARNINGS :=
 DEMO_OUT ?= demo_out
 
-.PHONY: help system venv install demo test test-engine test-qgis plugin bench clean
+.PHONY: help system venv install demo test test-fast test-engine test-qgis plugin bench clean
 
 help:
 	@echo "make demo   - install what is missing, then run the GF4 look-angle calibration demo"
 	@echo "make test   - install what is missing, then run every test (QGIS ones included)"
+	@echo "make test-fast - the inner loop: engine tests not marked slow (no QGIS)"
 	@echo "make plugin - build dist/gdal_gf4cal_plugin.zip and build/plugin/gdal_gf4cal_plugin/"
 	@echo "make bench  - run the benchmarks under bench/"
 
@@ -54,6 +55,9 @@ demo: install
 
 test: install
 	$(PY) -m pytest -q -p no:cacheprovider tests
+
+test-fast: install
+	$(PY) -m pytest -q -p no:cacheprovider tests --ignore=tests/qgis -m "not slow"
 
 test-engine: install
 	$(PY) -m pytest -q -p no:cacheprovider tests --ignore=tests/qgis
