@@ -31,6 +31,10 @@ def add_parser(parser):
     parser.add_argument("--outlier-threshold", type=float, default=4.0,
                         help="normalised residual above which a GCP is a blunder (default 4)")
     parser.add_argument("--out", required=True, help="output .RPB, _RPC.TXT, or .vrt (image input)")
+    parser.add_argument("--ortho", metavar="ORTHO.tif",
+                        help="also orthorectify the image with the refined RPC over --dem into this GeoTIFF")
+    from .ortho import add_ortho_arguments
+    add_ortho_arguments(parser)
     parser.add_argument("--report", help="write report.json")
     parser.add_argument("--residuals", help="write the GCPs and residuals as a styled GeoPackage (.gpkg)")
     parser.add_argument("--plot", help="write a PNG of the residual vectors before/after")
@@ -45,13 +49,17 @@ def run(args) -> int:
     from . import print_warnings
     from ..progress import TextProgressBar
     from ..workflows import refine_rpc
-    rep = refine_rpc(args.source, args.gcps, args.model, out=args.out, order=args.order, along=args.along,
+    from .ortho import cli_geoid_errors, print_ortho
+    ortho_options = {"crs": args.crs, "res_m": args.res, "resampling": args.resampling}
+    rep = cli_geoid_errors(refine_rpc, args.source, args.gcps, args.model, out=args.out, order=args.order, along=args.along,
                      ccd_axis=args.ccd_axis, dem=args.dem, geoid=args.geoid, gcp_crs=args.gcp_crs,
                      check_fraction=args.check_fraction, seed=args.seed, leave_one_out=args.leave_one_out,
                      robust=not args.no_robust, outlier_threshold=args.outlier_threshold, report=args.report,
                      residuals=args.residuals, plot=args.plot, overwrite=args.overwrite,
-                     progress=TextProgressBar())
+                     progress=TextProgressBar(), ortho=args.ortho, ortho_options=ortho_options)
     _print_report(rep)
+    if "ortho" in rep:
+        print_ortho(rep["ortho"])
     print_warnings(rep)
     return 0
 

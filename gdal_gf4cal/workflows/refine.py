@@ -66,7 +66,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
                gcp_layer: Optional[str] = None, check_fraction: Optional[float] = None, seed: int = 0,
                leave_one_out: bool = False, robust: bool = True, outlier_threshold: float = 4.0,
                report: Optional[str] = None, residuals: Optional[str] = None, plot: Optional[str] = None,
-               overwrite: bool = False, progress=None) -> Dict[str, Any]:
+               overwrite: bool = False, progress=None, ortho=None,
+               ortho_options: Optional[Dict[str, Any]] = None) -> Dict[str, Any]:
     """Refine the RPC of an image or sidecar with GCPs and write it (METHODS §4, §6); ``gf4cal refine``.
 
     Parameters
@@ -83,6 +84,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     out : ``.RPB``, ``_RPC.TXT`` or (image input only) ``.vrt`` over the untouched image; never an input
     report, residuals, plot : optional ``report.json``, residual GeoPackage and PNG
     overwrite : replace existing outputs (never an input); without it any existing output is refused before work
+    ortho : also orthorectify the image with the refined RPC over ``dem`` into this GeoTIFF (``ortho_options``:
+        ``crs``, ``res_m``, ``resampling`` of :func:`~gdal_gf4cal.workflows.ortho.orthorectify`); report ``ortho``
 
     Returns
     -------
@@ -106,8 +109,13 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
                        "to get a .vrt")
     if residuals and not os.fspath(residuals).lower().endswith(".gpkg"):
         raise GCPError(f"residuals are written as a GeoPackage: give a .gpkg path, not {os.fspath(residuals)!r}")
+    if ortho is not None:
+        ortho_grid = _ortho_preflight(image_size, dem, geoid, ortho_options or {})
     outs = OutputSet(inputs, overwrite=overwrite, cancelled=cancel_check(progress))
     outs.declare("rpc", out)
+    if ortho is not None:
+        from ..outputs import check_raster
+        outs.declare("ortho", ortho, check=check_raster())
     if residuals:
         outs.declare("residuals", residuals, check=check_vector())
     if plot:
@@ -144,6 +152,10 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
                                     "sample": _axis_stats(tab["res_sample_loo"].to_numpy(float)[sel])}
         _progress.report(progress, 0.9, "writing outputs")
         _write_rpc_as(applied.rpc, outs.tmp("rpc"), kind, source if kind == "vrt" else None)
+        if ortho is not None:
+            from .ortho import warp_ortho
+            rep["ortho"] = warp_ortho(source, image_size, applied.rpc, os.fspath(dem), ortho_grid, outs.tmp("ortho"),
+                                      progress=_progress.scaled(progress, 0.9, 0.98), **(ortho_options or {}))
         title = f"GCP residuals, {result.model.label}"
         if residuals:
             from ..report import footprint_from_rpc, write_residuals_gpkg
@@ -164,3 +176,24 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     finish_report(rep, warns)
     _progress.report(progress, 1.0, "done")
     return rep
+
+
+def _ortho_preflight(image_size, dem, geoid, ortho_options):
+    """Refuse ``ortho=`` without an image or a DEM file, bad ortho options, or a geoid that cannot be applied
+    (before any work); returns the geoid grid to apply (None: heights used as they are)."""
+    from ..geoid import resolve_geoid
+    from .ortho import check_ortho_options
+    if image_size is None:
+        raise GCPError("an ortho needs the image itself, not a standalone RPC file: give the image")
+    if not is_path(dem) or _is_number(dem):
+        raise GCPError("an ortho needs a DEM file (dem=, --dem) covering the scene")
+    check_ortho_options(ortho_options.get("resampling", "bilinear"), ortho_options.get("res_m"))
+    return resolve_geoid(geoid, os.fspath(dem))
+
+
+def _is_number(x) -> bool:
+    try:
+        float(os.fspath(x))
+        return True
+    except ValueError:
+        return False
