@@ -12,7 +12,10 @@ def add_parser(parser):
     parser.add_argument("--gcps", required=True,
                         help="GCPs: CSV (id,lon,lat,h,sample,line[,role][,sigma]), GeoPackage/GeoJSON point layer "
                              "(any CRS, sample/line fields), QGIS .points, or a raster with embedded GCPs")
-    parser.add_argument("--model", required=True, choices=MODEL_NAMES, help="image-space compensation model")
+    parser.add_argument("--model", default="auto", choices=("auto",) + tuple(MODEL_NAMES),
+                        help="image-space compensation model; auto (default): the simplest of translation, "
+                        "shift-drift, affine, poly2 unless more parameters lower the leave-one-out error "
+                        "significantly (the report says why)")
     parser.add_argument("--order", type=int, help="detector-poly: polynomial order 1..6 along the CCD")
     parser.add_argument("--along", choices=("translation", "shift-drift", "affine", "poly2"),
                         help="detector-poly: the model it is combined with (default translation)")
@@ -66,6 +69,16 @@ def run(args) -> int:
 
 def _print_report(rep) -> None:
     m = rep["model"]
+    if "model_selection" in rep:
+        sel = rep["model_selection"]
+        print(f"model auto -> {sel['reason']}")
+        for name, c in sel["candidates"].items():
+            if c.get("scored"):
+                chk = f", check rms {c['check_rms_px']:.3f} px" if c.get("check_rms_px") is not None else ""
+                print(f"  {name:12} leave-one-out rms {c['loo_rms_px']:.3f} px, control rms "
+                      f"{c['control_rms_px']:.3f} px{chk}")
+            else:
+                print(f"  {name:12} not compared: {c.get('why_not', '')}")
     # sigma0 is the a-posteriori factor of the GCPs' sigma: in px only when their sigma is 1 px.
     print(f"model {m['label']}: {len(m['parameters_px'])} parameters, sigma0 "
           f"{_fmt(m['sigma0_px']['sample'])}/{_fmt(m['sigma0_px']['line'])} (sample/line, x GCP sigma)")

@@ -76,7 +76,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     gcps : path of a GCP file (CSV, GeoPackage/GeoJSON in any CRS, QGIS .points, raster with GCPs) or a table;
         ``gcp_layer`` names the layer of a multi-layer vector file
     model, order, along, ccd_axis, robust, outlier_threshold, leave_one_out : see
-        :func:`~gdal_gf4cal.compensation.fit_compensation`
+        :func:`~gdal_gf4cal.compensation.fit_compensation`; ``model="auto"`` chooses by leave-one-out error
+        (:func:`~gdal_gf4cal.model_selection.select_model`; report ``model_selection``)
     dem : DEM path / :class:`~gdal_gf4cal.dem.DEM` / number; supplies missing GCP heights (``geoid`` converts
         geoid heights to ellipsoidal ones)
     check_fraction : if given, that share of the GCPs becomes check points (seeded with ``seed``, spread over the
@@ -136,6 +137,11 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
             table = validate_gcps(gcps, dem=dem_obj)
         table = assign_roles(table, check_fraction, seed=seed)
         _progress.report(progress, 0.1, "estimating the compensation")
+        selection = None
+        if str(model) == "auto":              # --model auto: leave-one-out error with a parsimony rule
+            from ..model_selection import select_model
+            selection = select_model(rpc, table, dem=dem_obj, robust=robust, outlier_threshold=outlier_threshold)
+            model = selection.chosen
         result = fit_compensation(rpc, table, model, order=order, along=along, ccd_axis=ccd_axis, dem=dem_obj,
                                   robust=robust, outlier_threshold=outlier_threshold, leave_one_out=leave_one_out)
         _progress.report(progress, 0.2, "applying the compensation")
@@ -144,6 +150,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
         rep: Dict[str, Any] = {"input": source, "gcps": os.fspath(gcps) if is_path(gcps) else None, "output": out}
         rep.update(result.to_dict(rpc))
         rep["apply"] = applied.to_dict()
+        if selection is not None:
+            rep["model_selection"] = selection.to_dict()
         if leave_one_out:
             tab = result.gcps
             sel = (tab["role"] == "control").to_numpy() & ~tab["outlier"].to_numpy(bool)
