@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 
-EXPECTED = {"rpcinfo", "simulatescene", "refinerpc", "calibratelookangle", "applycalibration",
+EXPECTED = {"rpcinfo", "simulatescene", "refinerpc", "orthorectify", "calibratelookangle", "applycalibration",
             "assessaccuracy", "collectgcps"}
 
 
