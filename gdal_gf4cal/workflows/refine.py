@@ -162,7 +162,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
         _write_rpc_as(applied.rpc, outs.tmp("rpc"), kind, source if kind == "vrt" else None)
         if ortho is not None:
             from .ortho import warp_ortho
-            rep["ortho"] = warp_ortho(source, image_size, applied.rpc, os.fspath(dem), ortho_grid, outs.tmp("ortho"),
+            dem_path = dem.path if getattr(dem, "path", None) else os.fspath(dem)
+            rep["ortho"] = warp_ortho(source, image_size, applied.rpc, dem_path, ortho_grid, outs.tmp("ortho"),
                                       progress=_progress.scaled(progress, 0.9, 0.98), **(ortho_options or {}))
         title = f"GCP residuals, {result.model.label}"
         if residuals:
@@ -193,9 +194,11 @@ def _ortho_preflight(image_size, dem, geoid, ortho_options):
     from .ortho import check_ortho_options
     if image_size is None:
         raise GCPError("an ortho needs the image itself, not a standalone RPC file: give the image")
+    check_ortho_options(ortho_options.get("resampling", "bilinear"), ortho_options.get("res_m"))
+    if getattr(dem, "path", None):              # an opened DEM: its own geoid choice
+        return resolve_geoid(dem.geoid_applied or "none", dem.path)
     if not is_path(dem) or _is_number(dem):
         raise GCPError("an ortho needs a DEM file (dem=, --dem) covering the scene")
-    check_ortho_options(ortho_options.get("resampling", "bilinear"), ortho_options.get("res_m"))
     return resolve_geoid(geoid, os.fspath(dem))
 
 

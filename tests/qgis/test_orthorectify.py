@@ -47,3 +47,16 @@ def test_orthorectify_egm2008_without_grid_names_grid_and_parameter(run_alg, osc
     msg = str(info.value)
     assert "us_nga_egm08_25.tif" in msg and "Geoid grid file" in msg and "--geoid" not in msg
     assert not list(tmp_path.iterdir())
+
+
+def test_refinerpc_auto_with_ortho_loads_the_ortho(run_alg, oscene, tmp_path):
+    from qgis.core import QgsRasterLayer
+    res, fb = run_alg("gf4cal:refinerpc", {"INPUT": str(oscene / "s" / "scene.tif"),
+                                            "GCPS": str(oscene / "s" / "gcps.gpkg"), "DEM": str(oscene / "dem_egm96.tif"),
+                                            "OUTPUT_RPC": str(tmp_path / "r.vrt"),
+                                            "OUTPUT_GPKG": str(tmp_path / "r.gpkg"),
+                                            "OUTPUT_ORTHO": str(tmp_path / "ortho.tif")})
+    assert "automatic model choice:" in fb.text()
+    assert res["OUTPUT_ORTHO"] == str(tmp_path / "ortho.tif")
+    layer = QgsRasterLayer(res["OUTPUT_ORTHO"], "ortho", "gdal")
+    assert layer.isValid() and layer.crs().authid().startswith("EPSG:326")
