@@ -60,3 +60,21 @@ def test_refinerpc_auto_with_ortho_loads_the_ortho(run_alg, oscene, tmp_path):
     assert res["OUTPUT_ORTHO"] == str(tmp_path / "ortho.tif")
     layer = QgsRasterLayer(res["OUTPUT_ORTHO"], "ortho", "gdal")
     assert layer.isValid() and layer.crs().authid().startswith("EPSG:326")
+
+
+def test_residual_layers_share_one_exaggeration_and_label_ids(run_alg, oscene, tmp_path):
+    from qgis.core import QgsVectorLayer
+    gpkg = tmp_path / "res.gpkg"
+    run_alg("gf4cal:refinerpc", {"INPUT": str(oscene / "s" / "scene.tif"), "GCPS": str(oscene / "s" / "gcps.gpkg"),
+                                 "MODEL": 0, "OUTPUT_RPC": str(tmp_path / "r.RPB"), "OUTPUT_GPKG": str(gpkg)})
+    factors = {}
+    for name in ("residual_vectors", "residual_vectors_before"):
+        layer = QgsVectorLayer(f"{gpkg}|layername={name}", name, "ogr")
+        assert layer.isValid()
+        values = {f["exaggeration"] for f in layer.getFeatures()}
+        assert len(values) == 1
+        factors[name] = values.pop()
+    assert factors["residual_vectors"] == factors["residual_vectors_before"]
+    gcps = QgsVectorLayer(f"{gpkg}|layername=gcps", "gcps", "ogr")
+    assert gcps.isValid() and gcps.labelsEnabled()                # default style from layer_styles
+    assert gcps.labeling().settings().fieldName == "id"
