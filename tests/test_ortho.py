@@ -63,7 +63,7 @@ def refined(scene):
     out.mkdir()
     rc = main(["refine", str(s / "scene.tif"), "--gcps", str(s / "gcps.csv"), "--model", "affine", "--dem",
                str(scene / "dem_egm96.tif"), "--out", str(out / "refined.vrt"), "--ortho", str(out / "ortho.tif"),
-               "--res", str(RES_M), "--report", str(out / "report.json")])
+               "--res", str(RES_M), "--report", str(out / "report.json"), "--residuals", str(out / "res.gpkg")])
     assert rc == 0
     return out
 
@@ -193,3 +193,23 @@ def test_ortho_geoid_changes_the_ortho(scene):
     assert va.shape == ve.shape and np.mean(np.abs(va - ve)) < 0.05
     if va.shape == vb.shape:
         assert np.mean(np.abs(va - vb)) > 1.0
+
+
+def test_residual_arrows_are_rpc_ground_offsets_in_metres(refined):
+    """One exaggeration for before/after; arrow length = factor x the RPC ground offset (m) in res_m_*."""
+    from osgeo import ogr
+    geod = pyproj.Geod(ellps="WGS84")
+    ds = ogr.Open(str(refined / "res.gpkg"))
+    gcps = {f["id"]: f for f in ds.GetLayerByName("gcps")}
+    factors = set()
+    for layer, epoch in (("residual_vectors", "after"), ("residual_vectors_before", "before")):
+        for f in ds.GetLayerByName(layer):
+            g = f.GetGeometryRef()
+            (x0, y0), (x1, y1) = g.GetPoint_2D(0), g.GetPoint_2D(1)
+            length_m = geod.inv(x0, y0, x1, y1)[2]
+            factors.add(f["exaggeration"])
+            assert length_m == pytest.approx(f["exaggeration"] * gcps[f["id"]][f"res_m_{epoch}"], rel=0.01)
+    assert len(factors) == 1
+    before = np.array([f["res_m_before"] for f in gcps.values()])
+    after = np.array([f["res_m_after"] for f in gcps.values()])
+    assert np.sqrt(np.mean(after ** 2)) < 0.3 * np.sqrt(np.mean(before ** 2))     # the gain, in metres

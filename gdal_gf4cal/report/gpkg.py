@@ -269,9 +269,17 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         regular = finite & ~outlier if (finite & ~outlier).any() else finite
         if regular.any():
             longest_all = max(longest_all, float(length[regular].max()))
+    metric = {e: _metric_offsets(df, e, lon, lat, x, y, tf) for e in epochs}
+    if any(m is not None for m in metric.values()):       # arrows from the RPC ground offsets: rescale the factor
+        lens = [np.hypot(*m) for m in metric.values() if m is not None]
+        lens = [v[np.isfinite(v) & ~outlier] if (np.isfinite(v) & ~outlier).any() else v[np.isfinite(v)]
+                for v in lens]
+        longest_all = max([float(v.max()) for v in lens if v.size] + [0.0]) or longest_all
     for k, epoch in enumerate(epochs):
         s_, l_ = res[epoch]
         dx, dy = s_ * ps, -l_ * pl  # sample -> east, line -> south (image rows go down)
+        if metric[epoch] is not None:
+            dx, dy = metric[epoch]   # the RPC ground offsets (res_east_m_/res_north_m_ columns), in map units
         length = np.hypot(dx, dy)
         mag = np.hypot(s_, l_)
         finite = np.isfinite(length) & np.isfinite(x) & np.isfinite(y)
@@ -353,6 +361,20 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         ds = None
         _cleanup(tmp)
     return path
+
+
+def _metric_offsets(df, epoch, lon, lat, x, y, tf):
+    """Map-unit (dx, dy) of the ground offsets ``res_east_m_<epoch>``, ``res_north_m_<epoch>`` (metres) at each GCP,
+    or None when the table has no such columns."""
+    ce, cn = f"res_east_m_{epoch}", f"res_north_m_{epoch}"
+    if ce not in df.columns or cn not in df.columns:
+        return None
+    e, n = _column(df, ce), _column(df, cn)
+    r = 6371008.8
+    lon2 = lon + np.degrees(e / (r * np.cos(np.radians(lat))))
+    lat2 = lat + np.degrees(n / r)
+    x2, y2 = (lon2, lat2) if tf is None else tf.transform(lon2, lat2)
+    return np.asarray(x2, float) - x, np.asarray(y2, float) - y
 
 
 def footprint_from_rpc(rpc, size: Tuple[int, int], h=0.0, n: int = 16):

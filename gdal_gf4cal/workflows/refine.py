@@ -172,7 +172,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
                 fp = footprint_from_rpc(applied.rpc, image_size or rpc.image_size, h=float(rpc.height_off))
             except Gf4calError:
                 fp = None
-            write_residuals_gpkg(result.gcps, outs.tmp("residuals"), footprint=fp, title=title)
+            write_residuals_gpkg(_with_ground_offsets(rpc, result.gcps), outs.tmp("residuals"), footprint=fp,
+                                 title=title)
             outs.set_check("residuals", check_vector({"gcps": len(result.gcps)}))
         if plot:
             from ..report import plot_residuals
@@ -208,3 +209,19 @@ def _is_number(x) -> bool:
         return True
     except ValueError:
         return False
+
+
+def _with_ground_offsets(rpc, tab):
+    """``tab`` with the residuals as ground offsets in metres through the RPC (METHODS §6): ``res_east_m_*``,
+    ``res_north_m_*``, ``res_m_*`` for before/after (the GeoPackage's arrows are drawn from them)."""
+    import numpy as np
+    from ..compensation import ground_offsets_m
+    tab = tab.copy()
+    lon, lat, h = (tab[c].to_numpy(float) for c in ("lon", "lat", "h"))
+    for epoch in ("before", "after"):
+        cs, cl = f"res_sample_{epoch}", f"res_line_{epoch}"
+        if cs in tab.columns and cl in tab.columns:
+            e, n = ground_offsets_m(rpc, lon, lat, h, tab[cs].to_numpy(float), tab[cl].to_numpy(float))
+            tab[f"res_east_m_{epoch}"], tab[f"res_north_m_{epoch}"] = e, n
+            tab[f"res_m_{epoch}"] = np.hypot(e, n)
+    return tab
