@@ -344,7 +344,7 @@ class CompensationResult:
         return self.gcps[self.gcps["outlier"].to_numpy(bool)]
 
     def accuracy(self, rpc=None) -> Dict[str, Any]:
-        """Per role (control, check), before and after: n and per axis mean/rms/rmse/max (px), CE90 (m).
+        """Per role (control, check), before and after: n and per axis mean/rms/std/max (px), CE90 (m).
 
         Flagged outliers are left out of both (so before/after compare the same points) and counted in
         ``n_outliers``. With ``rpc`` the planar CE90 in metres is computed through the RPC's ground Jacobian.
@@ -384,7 +384,7 @@ def _f(x) -> Optional[float]:
 # statistics helpers (METHODS §6)
 # ----------------------------------------------------------------------------------------------------------------
 def _axis_stats(x) -> Dict[str, Optional[float]]:
-    """``{mean, rms, rmse, max}`` (px) of one axis, :func:`gdal_gf4cal.stats.axis_stats`; None when empty."""
+    """``{mean, rms, std, max}`` (px) of one axis, :func:`gdal_gf4cal.stats.axis_stats`; None when empty."""
     from .stats import axis_stats
     return {k: _f(v) for k, v in axis_stats(x).items() if k != "n"}
 
@@ -426,7 +426,7 @@ def _jacobian(model, lon, lat, h):
 
 
 def accuracy_by_role(gcps, rpc=None) -> Dict[str, Any]:
-    """``{control|check: {n_outliers, before|after: {n, line|sample: {mean, rms, rmse, max}, planar, ce90_m}}}``.
+    """``{control|check: {n_outliers, before|after: {n, line|sample: {mean, rms, std, max}, planar, ce90_m}}}``.
 
     The one report shape, :func:`gdal_gf4cal.stats.accuracy_by_role` (METHODS §6), from a table with
     ``res_{sample,line}_{before,after}`` columns (px); flagged outliers are left out. ``ce90_m`` is the planar CE90

@@ -22,7 +22,7 @@ from ._gdal import with_gdal_exceptions
 
 log = logging.getLogger(__name__)
 
-#: Named geoid grids, looked up in PROJ's data directories.
+#: Named geoid grids (legacy names; :data:`gdal_gf4cal.geoid.GEOID_GRID_NAMES` has PROJ's current ones too).
 GEOID_GRIDS = {"egm96": "egm96_15.gtx", "egm2008": "egm08_25.gtx"}
 
 NodataPolicy = Union[str, float]
@@ -54,6 +54,8 @@ class DEM:
         self.nodata_policy = nodata
         if isinstance(geoid, str) and geoid.strip().lower() in ("none", "ellipsoid", "ellipsoidal", "false"):
             geoid = False          # the CLI's way of saying geoid=False
+        elif isinstance(geoid, str) and geoid.strip().lower() == "auto":
+            geoid = None           # what the DEM's CRS declares
         self._geoid_name = geoid
         self._geoid = _geoid_transformer(geoid) if geoid not in (None, False) else None
         self._tile = int(tile_size)
@@ -92,7 +94,7 @@ class DEM:
                 log.info("DEM %s: its CRS declares %s heights; converting them to ellipsoidal heights", path,
                          declared.upper())
                 self._geoid_name = declared
-                self._geoid = _geoid_transformer(declared)
+                self._geoid = _geoid_transformer(declared, source=str(path))
         self._to_dem = None
         geographic_wgs84 = srs.IsGeographic() and srs.GetAuthorityCode("GEOGCS") == "4326"
         if not geographic_wgs84:
@@ -551,18 +553,14 @@ def _declared_geoid(path: str) -> Optional[str]:
                    "grid of that datum (geoid=<grid path>, --geoid) or geoid=False to use the heights as they are")
 
 
-def _geoid_transformer(geoid):
-    """A pyproj transformer adding the geoid undulation N: h_ellipsoidal = H_geoid + N (lon, lat in degrees)."""
+def _geoid_transformer(geoid, source=None):
+    """A pyproj transformer adding the geoid undulation N: h_ellipsoidal = H_geoid + N (lon, lat in degrees).
+
+    The grid is found by :func:`gdal_gf4cal.geoid.grid_path` (PROJ's current and legacy grid names).
+    """
     import pyproj
-    grid = GEOID_GRIDS.get(str(geoid).lower(), str(geoid))
-    if grid in GEOID_GRIDS.values():
-        found = _find_proj_grid(grid)
-        if found is None:
-            raise DEMError(f"geoid grid {grid} not found in PROJ's data directories; install proj-data or pass "
-                           "the grid's path as geoid=")
-        grid = found
-    elif not os.path.exists(grid):
-        raise DEMError(f"geoid grid not found: {grid}; pass 'egm96', 'egm2008' or the path of a .gtx/.tif grid")
+    from .geoid import grid_path
+    grid = grid_path(geoid, source=source)
     try:
         # vgridshift computes Z + multiplier * N in the forward direction; PROJ wants radians for the grid lookup.
         return pyproj.Transformer.from_pipeline(
@@ -573,12 +571,10 @@ def _geoid_transformer(geoid):
 
 
 def _find_proj_grid(name: str) -> Optional[str]:
-    import pyproj
-    dirs = [pyproj.datadir.get_data_dir()] + [d for d in os.environ.get("PROJ_DATA", "").split(os.pathsep) if d]
-    dirs += ["/usr/share/proj", pyproj.datadir.get_user_data_dir()]
-    for d in dirs:
-        for sub in d.split(os.pathsep):
-            candidate = os.path.join(sub, name)
-            if os.path.exists(candidate):
-                return candidate
+    """Path of a PROJ grid file by name in PROJ's data directories (see :mod:`gdal_gf4cal.geoid`), or None."""
+    from .geoid import proj_search_dirs
+    for d in proj_search_dirs():
+        candidate = os.path.join(d, name)
+        if os.path.exists(candidate):
+            return candidate
     return None

@@ -6,8 +6,11 @@ partial output behind. The CLI passes :class:`TextProgressBar`; the QGIS provide
 """
 from __future__ import annotations
 
+import logging
 import sys
 from typing import Callable, Optional
+
+log = logging.getLogger(__name__)
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -26,24 +29,42 @@ def scaled(progress: Optional[ProgressCallback], start: float, stop: float) -> O
 
 
 class TextProgressBar:
-    """A one-line progress bar on stderr (only drawn when stderr is a terminal unless ``force``)."""
+    """CLI progress: a tqdm bar with ETA on stderr when it is a terminal (or ``force``); otherwise quiet, with a
+    log line (logger ``gdal_gf4cal.progress``, INFO) at every quarter and at each new stage message."""
 
     def __init__(self, width: int = 40, stream=None, force: bool = False):
         self.width = width
         self.stream = stream or sys.stderr
-        self.enabled = force or self.stream.isatty()
+        self.enabled = force or (hasattr(self.stream, "isatty") and self.stream.isatty())
         self._last = -1
+        self._bar = None
+        self._message = None
+
+    def _make_bar(self):
+        try:
+            from tqdm import tqdm
+        except ImportError:      # pragma: no cover - python3-tqdm is a dependency (Makefile APT_PACKAGES)
+            return None
+        return tqdm(total=100, file=self.stream, ncols=self.width + 60, leave=True, dynamic_ncols=False,
+                    bar_format="{percentage:3.0f}%|{bar}| [{elapsed}<{remaining}] {desc}")
 
     def __call__(self, fraction: float, message: str = "") -> None:
-        if not self.enabled:
-            return
-        filled = int(round(fraction * self.width))
         pct = int(fraction * 100)
-        if pct == self._last and fraction < 1:
+        if not self.enabled:
+            if (pct // 25 != self._last // 25 or message != self._message) and pct != self._last:
+                log.info("%3d%% %s", pct, message)
+            self._last, self._message = pct, message
             return
-        self._last = pct
-        bar = "#" * filled + "-" * (self.width - filled)
-        self.stream.write(f"\r[{bar}] {pct:3d}% {message[:40]:<40}")
+        if self._bar is None:
+            self._bar = self._make_bar()
+            if self._bar is None:
+                return
+        if pct != self._last:
+            self._bar.update(max(pct - self._bar.n, 0))
+            self._last = pct
+        if message != self._message:
+            self._bar.set_description_str(message[:40], refresh=True)
+            self._message = message
         if fraction >= 1:
-            self.stream.write("\n")
-        self.stream.flush()
+            self._bar.close()
+            self._bar = None

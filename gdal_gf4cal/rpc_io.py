@@ -855,7 +855,8 @@ def write_rpc_vrt(image_path: PathLike, rpc: Any, vrt_path: PathLike, overwrite:
 
     The source's own RPC (tags or sidecars) is replaced, so ``gdalwarp -rpc vrt_path ...`` and
     ``gdal.Transformer(vrt, None, ['METHOD=RPC'])`` use the new model. The image is referenced, not copied
-    (by a path relative to the VRT when the image lies in the VRT's folder or below).
+    (by a path relative to the VRT when the image lies in the VRT's folder or below, or when the image path was given
+    relative, e.g. ``../scene.tif``; otherwise by its absolute path).
 
     Parameters
     ----------
@@ -903,11 +904,24 @@ def write_rpc_vrt(image_path: PathLike, rpc: Any, vrt_path: PathLike, overwrite:
         vrt.FlushCache()
         vrt = None
         src = None
+        given = os.fspath(image_path)
+        if not _is_vsi(given) and not os.path.isabs(given):     # given relative: keep it relative (to the VRT)
+            _relative_source(tmp, src_name, os.path.dirname(os.path.abspath(out)))
         _commit(tmp, out, overwrite)
     finally:
         if tmp.exists():
             tmp.unlink()
     return out
+
+
+def _relative_source(vrt_file, abs_source: str, vrt_folder: str) -> None:
+    """Make the VRT's absolute ``SourceFilename`` of ``abs_source`` relative to ``vrt_folder`` (``../x.tif``)."""
+    from xml.sax.saxutils import escape
+    text = Path(vrt_file).read_text()
+    rel = os.path.relpath(abs_source, vrt_folder)
+    old = f'<SourceFilename relativeToVRT="0">{escape(abs_source)}</SourceFilename>'
+    if old in text:
+        Path(vrt_file).write_text(text.replace(old, f'<SourceFilename relativeToVRT="1">{escape(rel)}</SourceFilename>'))
 
 
 __all__ = [

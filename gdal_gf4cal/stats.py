@@ -1,14 +1,15 @@
 """Accuracy statistics (METHODS §6).
 
-Per axis: ``mean``, ``rms`` = sqrt(mean(x²)), ``rmse`` = standard deviation about the mean (population, so
-rms² = mean² + rmse², as in seed 000's Table 3: mean 2.52, RMS 9.90, RMSE 9.57), ``max`` = max |x|.
+Per axis: ``mean``, ``rms`` = sqrt(mean(x²)), ``std`` = standard deviation about the mean (population, so
+rms² = mean² + std²; the papers' "RMSE", e.g. seed 000's Table 3: mean 2.52, RMS 9.90, RMSE 9.57; named ``std``
+so that it is not read as an error), ``max`` = max |x|.
 Planar: CE90 (90th percentile of radial error), LE90 for height, share of points within a threshold.
 Internal (relative) accuracy: remove a rotation + translation fitted on the points (seed 000 eq. 8).
 Residuals are always ``measured - predicted``.
 
 One accuracy-report shape (:func:`accuracy_by_role`), used by every estimator's report::
 
-    {control|check: {n_outliers, before|after: {n, sample|line: {mean, rms, rmse, max}, planar: {n, rms, mean,
+    {control|check: {n_outliers, before|after: {n, sample|line: {mean, rms, std, max}, planar: {n, rms, mean,
      max, ce90}, ce90_m}}}
 
 Column names of residual tables: ``res_{sample,line}_{before,after}`` (measured - predicted, px) and
@@ -27,14 +28,14 @@ from .errors import DegenerateGeometryError
 
 
 def axis_stats(residuals) -> Dict[str, float]:
-    """``{n, mean, rms, rmse, max}`` of one axis of residuals (NaN ignored; all NaN when empty)."""
+    """``{n, mean, rms, std, max}`` of one axis of residuals (NaN ignored; all NaN when empty)."""
     r = np.asarray(residuals, dtype=float).ravel()
     r = r[np.isfinite(r)]
     if r.size == 0:
-        return {"n": 0, "mean": float("nan"), "rms": float("nan"), "rmse": float("nan"), "max": float("nan")}
+        return {"n": 0, "mean": float("nan"), "rms": float("nan"), "std": float("nan"), "max": float("nan")}
     mean = float(np.mean(r))
     return {"n": int(r.size), "mean": mean, "rms": float(np.sqrt(np.mean(r * r))),
-            "rmse": float(np.sqrt(np.mean((r - mean) ** 2))), "max": float(np.max(np.abs(r)))}
+            "std": float(np.sqrt(np.mean((r - mean) ** 2))), "max": float(np.max(np.abs(r)))}
 
 
 def planar_stats(res_sample, res_line) -> Dict[str, float]:
@@ -161,7 +162,7 @@ def internal_accuracy(sample_meas, line_meas, sample_pred, line_pred) -> Dict[st
     """Internal (relative) accuracy, seed 000 eq. 8: residuals after removing rotation + translation.
 
     Returns ``{"theta_rad", "ds", "dl", "line": {...}, "sample": {...}, "planar": {...}}`` with per-axis
-    mean/rms/rmse/max in pixels.
+    mean/rms/std/max in pixels.
     """
     fit = fit_rotation_translation(sample_meas, line_meas, sample_pred, line_pred)
     out = {"theta_rad": fit["theta_rad"], "ds": fit["ds"], "dl": fit["dl"]}

@@ -25,8 +25,9 @@ from qgis.PyQt.QtCore import QCoreApplication
 
 from gdal_gf4cal.errors import CancelledError, Gf4calError
 
-GEOID_OPTIONS = ["Ellipsoidal heights (no conversion)", "Heights above EGM96", "Heights above EGM2008"]
-_GEOIDS = [None, "egm96", "egm2008"]
+GEOID_OPTIONS = ["As the DEM's CRS declares (ellipsoidal when it declares none)", "Heights above EGM96",
+                 "Heights above EGM2008", "Ellipsoidal heights (no conversion, whatever the CRS declares)"]
+_GEOIDS = [None, "egm96", "egm2008", False]
 TRACKER = "https://github.com/gdal-gf4cal/gdal_gf4cal/issues"
 
 

@@ -36,7 +36,7 @@ def test_experiment_report_has_the_papers_tables(experiment):
         assert set(t) == {"line", "sample"} and set(t["line"]) == {"mean", "rms", "max"}
     assert list(rep["table3"]) == ["initial", "low_order_removed", "rigorous", "rpc"]
     for t in rep["table3"].values():
-        assert set(t["sample"]) == {"mean", "rms", "rmse"}
+        assert set(t["sample"]) == {"mean", "rms", "std"}
     assert list(rep["table4"]) == scenes[1:]
     for t in rep["table4"].values():
         assert set(t) == {"before", "rigorous", "rpc"}

@@ -100,7 +100,7 @@ def test_refine_writes_vrt_that_gdalwarp_orthorectifies_with(scene):
             st = rep[role][when]
             assert st["n"] == n
             for ax in ("line", "sample"):
-                assert set(st[ax]) >= {"mean", "rms", "rmse", "max"}
+                assert set(st[ax]) >= {"mean", "rms", "std", "max"}
             assert st["ce90_m"] > 0
         assert rep[role]["after"]["sample"]["rms"] < 0.1 * rep[role]["before"]["sample"]["rms"]
     assert [o["id"] for o in rep["outliers"]] == ["P05"]

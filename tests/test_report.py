@@ -83,6 +83,7 @@ def test_residual_vectors_direction_length_and_factor(tmp_path, gcps):
     out = write_residuals_gpkg(gcps, tmp_path / "res.gpkg", before=("ds0", "dl0"))
     extent = max(np.ptp(gcps.lon), np.ptp(gcps.lat))
     g = gcps.set_index("id")
+    factors, longest = [], []
     for layer, cols, epoch in (("residual_vectors", ("res_sample_after", "res_line_after"), "after"),
                                ("residual_vectors_before", ("ds0", "dl0"), "before")):
         rows, fields, meta, _ = _layer_rows(out, layer)
@@ -107,8 +108,12 @@ def test_residual_vectors_direction_length_and_factor(tmp_path, gcps):
             assert y1 - y0 == pytest.approx(-factor * dl_px * PX_DEG, rel=1e-6, abs=1e-12)
             assert r["map_units_per_px"] == pytest.approx(factor * PX_DEG, rel=1e-6)
             lengths.append(math.hypot(x1 - x0, y1 - y0))
-        # automatic factor: the longest arrow is ~10 % of the extent (two significant digits of rounding)
-        assert max(lengths) / extent == pytest.approx(0.10, rel=0.06)
+        factors.append(factor)
+        longest.append(max(lengths))
+    # one automatic factor for before and after: the longest arrow of either is ~10 % of the extent (two
+    # significant digits of rounding), so the gain of the refinement shows as shorter 'after' arrows
+    assert factors[0] == factors[1]
+    assert max(longest) / extent == pytest.approx(0.10, rel=0.06)
 
 
 def test_explicit_factor_projected_crs_and_before_only(tmp_path, gcps):
@@ -236,7 +241,7 @@ def test_assess_accuracy_against_known_offsets(tmp_path):
     assert rep["n"] == n and rep["check"]["n"] == (np.arange(n) % 3 == 0).sum()
     assert rep["all"]["sample"]["mean"] == pytest.approx(1.5, abs=0.05)
     assert rep["all"]["line"]["mean"] == pytest.approx(-0.7, abs=0.05)
-    assert rep["all"]["sample"]["rmse"] < 0.3 and rep["all"]["line"]["rmse"] < 0.3
+    assert rep["all"]["sample"]["std"] < 0.3 and rep["all"]["line"]["std"] < 0.3
     # ~1.65 px planar at ~1.6 m per pixel
     assert rep["all"]["ce90_m"] == pytest.approx(1.65 * 1.6, rel=0.15)
     # internal accuracy removes the shift and rotation: what is left is the noise

@@ -12,10 +12,10 @@ def test_axis_stats_definitions():
     s = axis_stats(r)
     assert s["mean"] == 2.0
     assert s["rms"] == pytest.approx(np.sqrt((1 + 4 + 9 + 36) / 4))
-    assert s["rmse"] == pytest.approx(np.sqrt(((1 - 2) ** 2 + 16 + 1 + 16) / 4))
+    assert s["std"] == pytest.approx(np.sqrt(((1 - 2) ** 2 + 16 + 1 + 16) / 4))
     assert s["max"] == 6.0 and s["n"] == 4
-    # rms² = mean² + rmse² (the relation behind seed 000's Table 3: 9.90² = 2.52² + 9.57²)
-    assert s["rms"] ** 2 == pytest.approx(s["mean"] ** 2 + s["rmse"] ** 2)
+    # rms² = mean² + std² (the relation behind seed 000's Table 3: 9.90² = 2.52² + 9.57²)
+    assert s["rms"] ** 2 == pytest.approx(s["mean"] ** 2 + s["std"] ** 2)
     assert axis_stats([np.nan])["n"] == 0
 
 
@@ -44,7 +44,7 @@ def test_internal_accuracy_removes_rotation_and_translation():
 def test_accuracy_report_splits_axes_and_reports_ce90_in_metres():
     from gdal_gf4cal.stats import accuracy_report
     rep = accuracy_report([3.0, -3.0, np.nan], [4.0, 4.0, 1.0], ground_m_per_px=50.0)
-    assert rep["n"] == 2 and rep["line"]["mean"] == 4.0 and rep["sample"]["rmse"] == 3.0
+    assert rep["n"] == 2 and rep["line"]["mean"] == 4.0 and rep["sample"]["std"] == 3.0
     assert rep["planar"]["max"] == 5.0 and rep["ce90_m"] == 250.0
 
 

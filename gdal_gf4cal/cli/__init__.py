@@ -20,6 +20,7 @@ from ..errors import CancelledError, Gf4calError
 COMMANDS = [
     "info",
     "refine",
+    "ortho",
     "intersect",
     "simulate",
     "calibrate_lookangle",

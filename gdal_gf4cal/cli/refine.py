@@ -12,7 +12,10 @@ def add_parser(parser):
     parser.add_argument("--gcps", required=True,
                         help="GCPs: CSV (id,lon,lat,h,sample,line[,role][,sigma]), GeoPackage/GeoJSON point layer "
                              "(any CRS, sample/line fields), QGIS .points, or a raster with embedded GCPs")
-    parser.add_argument("--model", required=True, choices=MODEL_NAMES, help="image-space compensation model")
+    parser.add_argument("--model", default="auto", choices=("auto",) + tuple(MODEL_NAMES),
+                        help="image-space compensation model; auto (default): the simplest of translation, "
+                        "shift-drift, affine, poly2 unless more parameters lower the leave-one-out error "
+                        "significantly (the report says why)")
     parser.add_argument("--order", type=int, help="detector-poly: polynomial order 1..6 along the CCD")
     parser.add_argument("--along", choices=("translation", "shift-drift", "affine", "poly2"),
                         help="detector-poly: the model it is combined with (default translation)")
@@ -31,6 +34,10 @@ def add_parser(parser):
     parser.add_argument("--outlier-threshold", type=float, default=4.0,
                         help="normalised residual above which a GCP is a blunder (default 4)")
     parser.add_argument("--out", required=True, help="output .RPB, _RPC.TXT, or .vrt (image input)")
+    parser.add_argument("--ortho", metavar="ORTHO.tif",
+                        help="also orthorectify the image with the refined RPC over --dem into this GeoTIFF")
+    from .ortho import add_ortho_arguments
+    add_ortho_arguments(parser)
     parser.add_argument("--report", help="write report.json")
     parser.add_argument("--residuals", help="write the GCPs and residuals as a styled GeoPackage (.gpkg)")
     parser.add_argument("--plot", help="write a PNG of the residual vectors before/after")
@@ -45,19 +52,33 @@ def run(args) -> int:
     from . import print_warnings
     from ..progress import TextProgressBar
     from ..workflows import refine_rpc
-    rep = refine_rpc(args.source, args.gcps, args.model, out=args.out, order=args.order, along=args.along,
+    from .ortho import cli_geoid_errors, print_ortho
+    ortho_options = {"crs": args.crs, "res_m": args.res, "resampling": args.resampling}
+    rep = cli_geoid_errors(refine_rpc, args.source, args.gcps, args.model, out=args.out, order=args.order, along=args.along,
                      ccd_axis=args.ccd_axis, dem=args.dem, geoid=args.geoid, gcp_crs=args.gcp_crs,
                      check_fraction=args.check_fraction, seed=args.seed, leave_one_out=args.leave_one_out,
                      robust=not args.no_robust, outlier_threshold=args.outlier_threshold, report=args.report,
                      residuals=args.residuals, plot=args.plot, overwrite=args.overwrite,
-                     progress=TextProgressBar())
+                     progress=TextProgressBar(), ortho=args.ortho, ortho_options=ortho_options)
     _print_report(rep)
+    if "ortho" in rep:
+        print_ortho(rep["ortho"])
     print_warnings(rep)
     return 0
 
 
 def _print_report(rep) -> None:
     m = rep["model"]
+    if "model_selection" in rep:
+        sel = rep["model_selection"]
+        print(f"model auto -> {sel['reason']}")
+        for name, c in sel["candidates"].items():
+            if c.get("scored"):
+                chk = f", check rms {c['check_rms_px']:.3f} px" if c.get("check_rms_px") is not None else ""
+                print(f"  {name:12} leave-one-out rms {c['loo_rms_px']:.3f} px, control rms "
+                      f"{c['control_rms_px']:.3f} px{chk}")
+            else:
+                print(f"  {name:12} not compared: {c.get('why_not', '')}")
     # sigma0 is the a-posteriori factor of the GCPs' sigma: in px only when their sigma is 1 px.
     print(f"model {m['label']}: {len(m['parameters_px'])} parameters, sigma0 "
           f"{_fmt(m['sigma0_px']['sample'])}/{_fmt(m['sigma0_px']['line'])} (sample/line, x GCP sigma)")

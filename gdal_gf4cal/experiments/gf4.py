@@ -102,8 +102,8 @@ def format_tables(rep: Dict[str, Any]) -> str:
             f"{'RMSE':>6}"]
     for key, label in labels.items():
         t = rep["table3"][key]
-        out.append(f"{label:38} {t['line']['mean']:10.2f} {t['line']['rms']:6.2f} {t['line']['rmse']:6.2f}   "
-                   f"{t['sample']['mean']:12.2f} {t['sample']['rms']:6.2f} {t['sample']['rmse']:6.2f}")
+        out.append(f"{label:38} {t['line']['mean']:10.2f} {t['line']['rms']:6.2f} {t['line']['std']:6.2f}   "
+                   f"{t['sample']['mean']:12.2f} {t['sample']['rms']:6.2f} {t['sample']['std']:6.2f}")
     out += ["", "Table 4  Internal accuracy of the independent scenes with the calibration of " + CALIBRATION_SCENE
             + " (pixel)",
             f"{'':6} {'Before calibration':^27} | {'Physical-model calibration':^27} | {'RPC-model calibration':^27}",
@@ -200,7 +200,7 @@ def run(out_dir, *, seed: int = DEFAULT_SEED, progress=None, gcp_noise_px: float
     g1 = s1["gcps"]
     lon, lat, h = (g1[c].to_numpy(float) for c in ("lon", "lat", "h"))
     ms, ml = g1["sample"].to_numpy(float), g1["line"].to_numpy(float)
-    keys3 = ("mean", "rms", "rmse")
+    keys3 = ("mean", "rms", "std")
     new_rpcs: Dict[str, Dict[str, Any]] = {}
 
     def recalibrated(name):

@@ -148,7 +148,8 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         Drawn as arrows coloured by ``res_px`` (graduated, 6 classes from 0 to the largest non-outlier
         residual; larger ones fall in the last, open class).
     ``residual_vectors_before``
-        Same for the *before* residuals, only when both before and after are given (its own factor).
+        Same for the *before* residuals, only when both before and after are given, with the SAME factor as
+        ``residual_vectors`` (the gain of the refinement shows as shorter arrows).
     ``footprint``
         The scene footprint polygon, when ``footprint`` is given.
 
@@ -162,9 +163,9 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
     footprint : shapely geometry (lon/lat) or GeoSeries/GeoDataFrame, optional
         Scene footprint, see :func:`footprint_from_rpc`.
     exaggeration : float, optional
-        Factor applied to the residuals' ground size. Default: chosen per layer so that the longest vector of a
-        point not flagged ``outlier`` is about 10 % of the extent of the GCPs (and footprint), rounded to two
-        significant digits; then longer (blunder) arrows are shortened to 3x that length and flagged ``clipped``.
+        Factor applied to the residuals' ground size. Default: one factor for every layer, chosen so that the
+        longest vector (any epoch) of a point not flagged ``outlier`` is about 10 % of the extent of the GCPs (and
+        footprint), rounded to two significant digits; then longer (blunder) arrows are shortened to 3x that length and flagged ``clipped``.
     before, after : (str, str) or None
         Names of the (sample, line) residual columns in ``gcps``, in pixels (``measured - predicted``). Missing
         columns are skipped; the output fields always have the standard names.
@@ -256,24 +257,40 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
     srs.ImportFromWkt(out_crs.to_wkt())
     srs.SetAxisMappingStrategy(osr.OAMS_TRADITIONAL_GIS_ORDER)
 
-    # residual vectors, one layer per epoch
+    # residual vectors, one layer per epoch, ONE exaggeration for all epochs (so before/after compare at a glance):
+    # the automatic factor comes from the longest regular arrow of any epoch (usually 'before').
     vector_layers = []
     epochs = [e for e in ("after", "before") if res[e] is not None]
+    longest_all = 0.0
+    for epoch in epochs:
+        s_, l_ = res[epoch]
+        length = np.hypot(s_ * ps, l_ * pl)
+        finite = np.isfinite(length) & np.isfinite(x) & np.isfinite(y)
+        regular = finite & ~outlier if (finite & ~outlier).any() else finite
+        if regular.any():
+            longest_all = max(longest_all, float(length[regular].max()))
+    metric = {e: _metric_offsets(df, e, lon, lat, x, y, tf) for e in epochs}
+    if any(m is not None for m in metric.values()):       # arrows from the RPC ground offsets: rescale the factor
+        lens = [np.hypot(*m) for m in metric.values() if m is not None]
+        lens = [v[np.isfinite(v) & ~outlier] if (np.isfinite(v) & ~outlier).any() else v[np.isfinite(v)]
+                for v in lens]
+        longest_all = max([float(v.max()) for v in lens if v.size] + [0.0]) or longest_all
     for k, epoch in enumerate(epochs):
         s_, l_ = res[epoch]
         dx, dy = s_ * ps, -l_ * pl  # sample -> east, line -> south (image rows go down)
+        if metric[epoch] is not None:
+            dx, dy = metric[epoch]   # the RPC ground offsets (res_east_m_/res_north_m_ columns), in map units
         length = np.hypot(dx, dy)
         mag = np.hypot(s_, l_)
         finite = np.isfinite(length) & np.isfinite(x) & np.isfinite(y)
         # Scale and classes follow the ordinary points: one blunder must not shrink every other arrow to nothing.
         regular = finite & ~outlier if (finite & ~outlier).any() else finite
-        longest = float(length[regular].max()) if regular.any() else 0.0
         clip_at = np.inf
         if exaggeration is not None:
             factor = float(exaggeration)
         else:
-            factor = _nice(0.1 * extent / longest) if longest > 0 else 1.0
-            clip_at = 3.0 * longest * factor  # auto mode: blunders drawn at most 3x the longest regular arrow
+            factor = _nice(0.1 * extent / longest_all) if longest_all > 0 else 1.0
+            clip_at = 3.0 * longest_all * factor  # auto mode: blunders drawn at most 3x the longest regular arrow
         name = "residual_vectors" if k == 0 else "residual_vectors_before"
         scale = factor * math.sqrt(ps * pl)
         drawn = factor * length
@@ -344,6 +361,20 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         ds = None
         _cleanup(tmp)
     return path
+
+
+def _metric_offsets(df, epoch, lon, lat, x, y, tf):
+    """Map-unit (dx, dy) of the ground offsets ``res_east_m_<epoch>``, ``res_north_m_<epoch>`` (metres) at each GCP,
+    or None when the table has no such columns."""
+    ce, cn = f"res_east_m_{epoch}", f"res_north_m_{epoch}"
+    if ce not in df.columns or cn not in df.columns:
+        return None
+    e, n = _column(df, ce), _column(df, cn)
+    r = 6371008.8
+    lon2 = lon + np.degrees(e / (r * np.cos(np.radians(lat))))
+    lat2 = lat + np.degrees(n / r)
+    x2, y2 = (lon2, lat2) if tf is None else tf.transform(lon2, lat2)
+    return np.asarray(x2, float) - x, np.asarray(y2, float) - y
 
 
 def footprint_from_rpc(rpc, size: Tuple[int, int], h=0.0, n: int = 16):

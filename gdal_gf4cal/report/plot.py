@@ -33,8 +33,10 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
 
     Each panel draws every GCP's residual ``(res_sample, res_line)`` (measured - predicted, px) as an arrow at its
     image position (line axis pointing down, like the image), control and check points in different colours and
-    outliers circled, with a scale arrow and the per-axis RMS in the panel title. Each panel has its own
-    exaggeration so both patterns are readable (like Fig. 5 of seed 000); the scale arrow gives it.
+    outliers circled, GCP ids written next to each point, with a scale arrow and the per-axis RMS of control and
+    check points (separately) in the panel title. ONE exaggeration for all panels (stated in the figure title), so
+    the gain of the refinement shows as shorter arrows; the axes include the whole image and every GCP; the legend
+    sits below the axes.
 
     Parameters
     ----------
@@ -45,11 +47,12 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
     before, after : (str, str) or None
         (sample, line) residual columns; missing ones give no panel. At least one must exist.
     image_size : (width, height), optional
-        Sets the axes to the whole image; default: the GCPs' extent.
+        The axes include the whole image (dashed frame) and every GCP; default: the GCPs' extent.
     """
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
     import pandas as pd
 
     path = Path(path)
@@ -64,24 +67,34 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
     s, l = _column(df, "sample"), _column(df, "line")
     role = df["role"].astype(str).to_numpy() if "role" in df.columns else np.full(len(df), "control", object)
     outlier = _as_bool_array(df["outlier"]) if "outlier" in df.columns else np.zeros(len(df), bool)
-    if image_size is not None:
-        xlim, ylim = (0, float(image_size[0])), (float(image_size[1]), 0)
-    else:
-        pad = 0.05 * max(np.nanmax(s) - np.nanmin(s), np.nanmax(l) - np.nanmin(l), 1.0)
-        xlim, ylim = (np.nanmin(s) - pad, np.nanmax(s) + pad), (np.nanmax(l) + pad, np.nanmin(l) - pad)
+    ids = df["id"].astype(str).to_numpy() if "id" in df.columns else np.array([str(i) for i in range(len(df))])
+    # Axes: the whole image AND every GCP (points outside the image are drawn too, never clipped away).
+    xs = [s[np.isfinite(s)]] + ([np.array([0.0, float(image_size[0])])] if image_size is not None else [])
+    ys = [l[np.isfinite(l)]] + ([np.array([0.0, float(image_size[1])])] if image_size is not None else [])
+    xa, ya = np.concatenate(xs), np.concatenate(ys)
+    pad = 0.06 * max(float(np.ptp(xa)) if xa.size else 1.0, float(np.ptp(ya)) if ya.size else 1.0, 1.0)
+    xlim = (float(xa.min()) - pad, float(xa.max()) + pad) if xa.size else (0.0, 1.0)
+    ylim = (float(ya.max()) + pad, float(ya.min()) - pad) if ya.size else (1.0, 0.0)
     span = max(abs(xlim[1] - xlim[0]), abs(ylim[1] - ylim[0]))
+    # ONE exaggeration for every panel, from the longest regular residual of any panel: the gain shows.
+    finite_all = np.isfinite(s) & np.isfinite(l)
+    longest = 0.0
+    for _, (rs, rl) in panels:
+        mag = np.hypot(rs, rl)
+        ok = finite_all & np.isfinite(mag) & (~outlier if (finite_all & np.isfinite(mag) & ~outlier).any() else True)
+        if ok.any():
+            longest = max(longest, float(np.max(mag[ok])))
+    factor = 0.08 * span / longest if longest > 0 else 1.0     # data units per px of residual
+    ref = _nice_scale(longest) if longest > 0 else 1.0
 
-    fig = Figure(figsize=(5.2 * len(panels), 5.6), dpi=dpi)
+    fig = Figure(figsize=(5.2 * len(panels), 6.2), dpi=dpi)
     FigureCanvasAgg(fig)
-    fig.suptitle(title)
+    fig.suptitle(f"{title} (arrows exaggerated {factor:.3g}x in every panel)")
     with matplotlib.rc_context({"font.size": 9}):
         for k, (label, (rs, rl)) in enumerate(panels):
             ax = fig.add_subplot(1, len(panels), k + 1)
             mag = np.hypot(rs, rl)
             finite = np.isfinite(mag) & np.isfinite(s) & np.isfinite(l)
-            longest = float(np.nanmax(mag[finite])) if finite.any() else 0.0
-            # Data units per px of residual: the longest arrow spans ~8 % of the image.
-            factor = 0.08 * span / longest if longest > 0 else 1.0
             for r, colour in (("control", _ROLE_COLOURS["control"]), ("check", _ROLE_COLOURS["check"])):
                 m = finite & (role == r)
                 if m.any():
@@ -96,23 +109,32 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
                 ax.scatter(s[outlier & finite], l[outlier & finite], s=60, facecolors="none",
                            edgecolors=_OUTLIER_COLOUR, linewidths=1.2,
                            label=f"outlier ({int((outlier & finite).sum())})")
-            ref = _nice_scale(longest) if longest > 0 else 1.0
+            for i in np.flatnonzero(np.isfinite(s) & np.isfinite(l)):
+                ax.annotate(ids[i], (s[i], l[i]), xytext=(3, 3), textcoords="offset points", fontsize=6,
+                            color="#333333")
+            if image_size is not None:
+                ax.add_patch(Rectangle((0, 0), float(image_size[0]), float(image_size[1]), fill=False,
+                                       edgecolor="#aaaaaa", linewidth=0.8, linestyle="--", label="image"))
             # Scale arrow in the lower-left corner.
             x0 = xlim[0] + 0.05 * (xlim[1] - xlim[0])
             y0 = ylim[0] - 0.05 * (ylim[0] - ylim[1])
             ax.quiver([x0], [y0], [ref], [0.0], color="black", angles="xy", scale_units="xy", scale=1.0 / factor,
                       width=0.006)
             ax.annotate(f"{ref:g} px", (x0, y0), xytext=(0, 6), textcoords="offset points", fontsize=8)
-            use = finite & ~outlier
-            rms_s = float(np.sqrt(np.mean(rs[use] ** 2))) if use.any() else float("nan")
-            rms_l = float(np.sqrt(np.mean(rl[use] ** 2))) if use.any() else float("nan")
-            ax.set_title(f"{label}: RMS sample {rms_s:.3g} px, line {rms_l:.3g} px", fontsize=9)
+            lines = []
+            for r in ("control", "check"):          # control and check never mixed in one number
+                use = finite & ~outlier & (role == r)
+                if use.any():
+                    lines.append(f"{r} (n={int(use.sum())}): RMS sample {np.sqrt(np.mean(rs[use] ** 2)):.3g} px, "
+                                 f"line {np.sqrt(np.mean(rl[use] ** 2)):.3g} px")
+            ax.set_title(f"{label}\n" + "\n".join(lines), fontsize=8)
             ax.set_xlim(*xlim)
             ax.set_ylim(*ylim)
             ax.set_aspect("equal")
             ax.set_xlabel("sample (px)")
             ax.set_ylabel("line (px)")
-            ax.legend(loc="upper right", fontsize=7)
+            # Legend below the axes: never over an arrow.
+            ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3, fontsize=7, frameon=False)
         fig.tight_layout()
     tmp = _temp_path(path)
     try:

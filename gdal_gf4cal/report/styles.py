@@ -53,9 +53,19 @@ def _marker_symbol(name: str, shape: str, colour: str, size: float) -> str:
         "horizontal_anchor_point": "1"}))
 
 
-def _qml(renderer: str) -> str:
+def _qml(renderer: str, label_field: str = "") -> str:
+    """A QML document with ``renderer``; with ``label_field`` also labels with that field (the GCP ids)."""
+    if not label_field:
+        return ("<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n"
+                '<qgis version="3.22.0" styleCategories="Symbology">' + renderer + "</qgis>\n")
+    labeling = (f'<labeling type="simple"><settings calloutType="simple"><text-style fieldName={quoteattr(label_field)} '
+                'isExpression="0" fontSize="8" fontSizeUnit="Point" textColor="0,0,0,255" textOpacity="1">'
+                '<text-buffer bufferDraw="1" bufferSize="0.8" bufferSizeUnits="MM" bufferColor="255,255,255,255" '
+                'bufferOpacity="1"/></text-style><placement placement="0" dist="1.5" distUnits="MM" '
+                'offsetType="0"/><rendering drawLabels="1" obstacle="1"/></settings></labeling>')
     return ("<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n"
-            '<qgis version="3.22.0" styleCategories="Symbology">' + renderer + "</qgis>\n")
+            '<qgis version="3.22.0" styleCategories="Symbology|Labeling" labelsEnabled="1">' + renderer + labeling +
+            "</qgis>\n")
 
 
 def _class_breaks(magnitudes: np.ndarray, n: int = len(_RAMP)) -> list:
@@ -134,7 +144,7 @@ def _points_style() -> Tuple[str, str]:
                    f"<se:Size>{size * 3:.0f}</se:Size></se:Graphic></se:PointSymbolizer></se:Rule>")
     qml = _qml('<renderer-v2 type="RuleRenderer" symbollevels="0" forceraster="0" enableorderby="0" '
                f'referencescale="-1"><rules key="{{gf4cal-root}}">{"".join(qrules)}</rules>'
-               f"<symbols>{''.join(symbols)}</symbols></renderer-v2>")
+               f"<symbols>{''.join(symbols)}</symbols></renderer-v2>", label_field="id")
     return qml, "".join(sld)
 
 

@@ -67,7 +67,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
                gcp_layer: Optional[str] = None, check_fraction: Optional[float] = None, seed: int = 0,
                leave_one_out: bool = False, robust: bool = True, outlier_threshold: float = 4.0,
                report: Optional[str] = None, residuals: Optional[str] = None, plot: Optional[str] = None,
-               overwrite: bool = False, progress=None) -> Dict[str, Any]:
+               overwrite: bool = False, progress=None, ortho=None,
+               ortho_options: Optional[Dict[str, Any]] = None) -> Dict[str, Any]:
     """Refine the RPC of an image or sidecar with GCPs and write it (METHODS §4, §6); ``gf4cal refine``.
 
     Parameters
@@ -76,7 +77,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     gcps : path of a GCP file (CSV, GeoPackage/GeoJSON in any CRS, QGIS .points, raster with GCPs) or a table;
         ``gcp_layer`` names the layer of a multi-layer vector file
     model, order, along, ccd_axis, robust, outlier_threshold, leave_one_out : see
-        :func:`~gdal_gf4cal.compensation.fit_compensation`
+        :func:`~gdal_gf4cal.compensation.fit_compensation`; ``model="auto"`` chooses by leave-one-out error
+        (:func:`~gdal_gf4cal.model_selection.select_model`; report ``model_selection``)
     dem : DEM path / :class:`~gdal_gf4cal.dem.DEM` / number; supplies missing GCP heights (``geoid`` converts
         geoid heights to ellipsoidal ones)
     check_fraction : if given, that share of the GCPs becomes check points (seeded with ``seed``, spread over the
@@ -84,6 +86,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     out : ``.RPB``, ``_RPC.TXT`` or (image input only) ``.vrt`` over the untouched image; never an input
     report, residuals, plot : optional ``report.json``, residual GeoPackage and PNG
     overwrite : replace existing outputs (never an input); without it any existing output is refused before work
+    ortho : also orthorectify the image with the refined RPC over ``dem`` into this GeoTIFF (``ortho_options``:
+        ``crs``, ``res_m``, ``resampling`` of :func:`~gdal_gf4cal.workflows.ortho.orthorectify`); report ``ortho``
 
     Returns
     -------
@@ -107,8 +111,13 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
                        "to get a .vrt")
     if residuals and not os.fspath(residuals).lower().endswith(".gpkg"):
         raise GCPError(f"residuals are written as a GeoPackage: give a .gpkg path, not {os.fspath(residuals)!r}")
+    if ortho is not None:
+        ortho_grid = _ortho_preflight(image_size, dem, geoid, ortho_options or {})
     outs = OutputSet(inputs, overwrite=overwrite, cancelled=cancel_check(progress))
     outs.declare("rpc", out)
+    if ortho is not None:
+        from ..outputs import check_raster
+        outs.declare("ortho", ortho, check=check_raster())
     if residuals:
         outs.declare("residuals", residuals, check=check_vector())
     if plot:
@@ -129,6 +138,11 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
             table = validate_gcps(gcps, dem=dem_obj)
         table = assign_roles(table, check_fraction, seed=seed)
         _progress.report(progress, 0.1, "estimating the compensation")
+        selection = None
+        if str(model) == "auto":              # --model auto: leave-one-out error with a parsimony rule
+            from ..model_selection import select_model
+            selection = select_model(rpc, table, dem=dem_obj, robust=robust, outlier_threshold=outlier_threshold)
+            model = selection.chosen
         result = fit_compensation(rpc, table, model, order=order, along=along, ccd_axis=ccd_axis, dem=dem_obj,
                                   robust=robust, outlier_threshold=outlier_threshold, leave_one_out=leave_one_out)
         _progress.report(progress, 0.2, "applying the compensation")
@@ -137,6 +151,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
         rep: Dict[str, Any] = {"input": source, "gcps": os.fspath(gcps) if is_path(gcps) else None, "output": out}
         rep.update(result.to_dict(rpc))
         rep["apply"] = applied.to_dict()
+        if selection is not None:
+            rep["model_selection"] = selection.to_dict()
         if leave_one_out:
             tab = result.gcps
             sel = (tab["role"] == "control").to_numpy() & ~tab["outlier"].to_numpy(bool)
@@ -145,6 +161,11 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
                                     "sample": _axis_stats(tab["res_sample_loo"].to_numpy(float)[sel])}
         _progress.report(progress, 0.9, "writing outputs")
         _write_rpc_as(applied.rpc, outs.tmp("rpc"), kind, source if kind == "vrt" else None)
+        if ortho is not None:
+            from .ortho import warp_ortho
+            dem_path = dem.path if getattr(dem, "path", None) else os.fspath(dem)
+            rep["ortho"] = warp_ortho(source, image_size, applied.rpc, dem_path, ortho_grid, outs.tmp("ortho"),
+                                      progress=_progress.scaled(progress, 0.9, 0.98), **(ortho_options or {}))
         title = f"GCP residuals, {result.model.label}"
         if residuals:
             from ..report import footprint_from_rpc, write_residuals_gpkg
@@ -152,7 +173,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
                 fp = footprint_from_rpc(applied.rpc, image_size or rpc.image_size, h=float(rpc.height_off))
             except Gf4calError:
                 fp = None
-            write_residuals_gpkg(result.gcps, outs.tmp("residuals"), footprint=fp, title=title)
+            write_residuals_gpkg(_with_ground_offsets(rpc, result.gcps), outs.tmp("residuals"), footprint=fp,
+                                 title=title)
             outs.set_check("residuals", check_vector({"gcps": len(result.gcps)}))
         if plot:
             from ..report import plot_residuals
@@ -165,3 +187,42 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     finish_report(rep, warns)
     _progress.report(progress, 1.0, "done")
     return rep
+
+
+def _ortho_preflight(image_size, dem, geoid, ortho_options):
+    """Refuse ``ortho=`` without an image or a DEM file, bad ortho options, or a geoid that cannot be applied
+    (before any work); returns the geoid grid to apply (None: heights used as they are)."""
+    from ..geoid import resolve_geoid
+    from .ortho import check_ortho_options
+    if image_size is None:
+        raise GCPError("an ortho needs the image itself, not a standalone RPC file: give the image")
+    check_ortho_options(ortho_options.get("resampling", "bilinear"), ortho_options.get("res_m"))
+    if getattr(dem, "path", None):              # an opened DEM: its own geoid choice
+        return resolve_geoid(dem.geoid_applied or "none", dem.path)
+    if not is_path(dem) or _is_number(dem):
+        raise GCPError("an ortho needs a DEM file (dem=, --dem) covering the scene")
+    return resolve_geoid(geoid, os.fspath(dem))
+
+
+def _is_number(x) -> bool:
+    try:
+        float(os.fspath(x))
+        return True
+    except ValueError:
+        return False
+
+
+def _with_ground_offsets(rpc, tab):
+    """``tab`` with the residuals as ground offsets in metres through the RPC (METHODS §6): ``res_east_m_*``,
+    ``res_north_m_*``, ``res_m_*`` for before/after (the GeoPackage's arrows are drawn from them)."""
+    import numpy as np
+    from ..compensation import ground_offsets_m
+    tab = tab.copy()
+    lon, lat, h = (tab[c].to_numpy(float) for c in ("lon", "lat", "h"))
+    for epoch in ("before", "after"):
+        cs, cl = f"res_sample_{epoch}", f"res_line_{epoch}"
+        if cs in tab.columns and cl in tab.columns:
+            e, n = ground_offsets_m(rpc, lon, lat, h, tab[cs].to_numpy(float), tab[cl].to_numpy(float))
+            tab[f"res_east_m_{epoch}"], tab[f"res_north_m_{epoch}"] = e, n
+            tab[f"res_m_{epoch}"] = np.hypot(e, n)
+    return tab

@@ -3,8 +3,10 @@ from .applycalibration import ApplyCalibration
 from .assessaccuracy import AssessAccuracy
 from .calibratelookangle import CalibrateLookAngle
 from .collectgcps import CollectGcps
+from .orthorectify import Orthorectify
 from .refinerpc import RefineRpc
 from .rpcinfo import RpcInfo
 from .simulatescene import SimulateScene
 
-ALGORITHMS = [RpcInfo, SimulateScene, CollectGcps, RefineRpc, CalibrateLookAngle, ApplyCalibration, AssessAccuracy]
+ALGORITHMS = [RpcInfo, SimulateScene, CollectGcps, RefineRpc, Orthorectify, CalibrateLookAngle, ApplyCalibration,
+              AssessAccuracy]

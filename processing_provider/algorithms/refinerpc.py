@@ -7,15 +7,17 @@ from qgis.core import (
     QgsProcessingParameterEnum,
     QgsProcessingParameterFileDestination,
     QgsProcessingParameterNumber,
+    QgsProcessingParameterRasterDestination,
 )
 
 from ..base import Gf4calAlgorithm, planar_rms
 
 #: MODEL enum index -> engine model name (stable: the indices are part of the algorithm's interface).
-MODELS = ["translation", "shift-drift", "affine", "poly2", "detector-poly"]
+MODELS = ["translation", "shift-drift", "affine", "poly2", "detector-poly", "auto"]
 MODEL_LABELS = ["Translation (2 parameters, >= 1 GCP)", "Shift and drift (4 parameters, >= 2 GCPs)",
                 "Affine (6 parameters, >= 3 GCPs)", "Polynomial order 2 (12 parameters, >= 6 GCPs)",
-                "Detector-position polynomial (cross-track, order ORDER)"]
+                "Detector-position polynomial (cross-track, order ORDER)",
+                "Automatic: the simplest model the leave-one-out error supports (recommended)"]
 
 
 class RefineRpc(Gf4calAlgorithm):
@@ -35,13 +37,16 @@ class RefineRpc(Gf4calAlgorithm):
     CCD_AXIS = "CCD_AXIS"
     ROBUST = "ROBUST"
     OUTLIER_THRESHOLD = "OUTLIER_THRESHOLD"
+    OUTPUT_ORTHO = "OUTPUT_ORTHO"
 
     def initAlgorithm(self, config=None):
         self.add_input_rpc()
         self.add_gcp_parameters()
         self._add(QgsProcessingParameterEnum(self.MODEL, self.tr("Compensation model"), MODEL_LABELS,
-                                             defaultValue=2),
-                  "Image-space correction estimated from the control points (METHODS §4.1, §4.3).")
+                                             defaultValue=5),
+                  "Image-space correction estimated from the control points (METHODS §4.1, §4.3). Automatic "
+                  "compares translation, shift-drift, affine and poly2 by leave-one-out error and keeps the "
+                  "simplest unless more parameters are significantly better; the log and report say why.")
         p = self._add(QgsProcessingParameterNumber(self.ORDER, self.tr("Detector polynomial order (1-6)"),
                                                    QgsProcessingParameterNumber.Integer, 3, minValue=1, maxValue=6),
                       "Order of the cross-track polynomial of the detector position (detector-poly model only).")
@@ -66,6 +71,10 @@ class RefineRpc(Gf4calAlgorithm):
         self._add(QgsProcessingParameterFileDestination(self.OUTPUT_GPKG, self.tr("Residuals GeoPackage"),
                                                         self.tr("GeoPackage (*.gpkg)")),
                   "GCPs with residuals before/after, residual arrows and footprint, styled for QGIS.")
+        self._add(QgsProcessingParameterRasterDestination(self.OUTPUT_ORTHO, self.tr("Orthoimage (needs the DEM)"),
+                                                          optional=True, createByDefault=False),
+                  "Also orthorectify the image with the refined RPC over the DEM (its heights made ellipsoidal); "
+                  "this orthoimage, not the refined VRT, is loaded.")
         self.add_plot_output("Residual vectors in image space before and after (PNG).")
         self.add_report_output("Statistics per role before/after, parameters, outliers, refit error.")
         for key, label in (("CONTROL_RMS_BEFORE", "Control RMS before (px, planar)"),
@@ -88,12 +97,18 @@ class RefineRpc(Gf4calAlgorithm):
         out_gpkg = self.output_file(parameters, self.OUTPUT_GPKG, context)
         out_plot = self.output_file(parameters, self.OUTPUT_PLOT, context)
         out_report = self.output_file(parameters, self.OUTPUT_REPORT, context)
+        out_ortho = self.parameterAsOutputLayer(parameters, self.OUTPUT_ORTHO, context) or None
+        if out_ortho and dem is None:
+            raise self.error("An orthoimage (OUTPUT_ORTHO) needs the DEM (DEM).")
         rep = refine_rpc(source, gcps, model, out=out_rpc, order=order,
                          ccd_axis=["sample", "line"][self.parameterAsEnum(parameters, self.CCD_AXIS, context)],
                          dem=dem, robust=self.parameterAsBool(parameters, self.ROBUST, context),
                          outlier_threshold=self.parameterAsDouble(parameters, self.OUTLIER_THRESHOLD, context),
-                         residuals=out_gpkg, plot=out_plot, report=out_report, overwrite=True, progress=progress)
+                         residuals=out_gpkg, plot=out_plot, report=out_report, overwrite=True, progress=progress,
+                         ortho=out_ortho)
         self.push_warnings(feedback, rep)
+        if "model_selection" in rep:
+            feedback.pushInfo(f"automatic model choice: {rep['model_selection']['reason']}")
         outputs = {self.OUTPUT_RPC: out_rpc, self.OUTPUT_GPKG: out_gpkg}
         if out_plot:
             outputs[self.OUTPUT_PLOT] = out_plot
@@ -114,7 +129,9 @@ class RefineRpc(Gf4calAlgorithm):
         outputs["REFIT_MAX_PX"] = float(rep["apply"]["refit_max_px"])
         if not rep["apply"]["exact"]:
             feedback.pushInfo(f"RPC refitted on the corrected model: max error {rep['apply']['refit_max_px']:.2e} px")
-        if out_rpc.lower().endswith(".vrt"):
+        if out_ortho:
+            outputs[self.OUTPUT_ORTHO] = out_ortho          # Processing loads it: the ortho, not the VRT
+        elif out_rpc.lower().endswith(".vrt"):
             self.load_on_completion(out_rpc, "Refined RPC (VRT)", "raster")
         self.load_gpkg_on_completion(out_gpkg)
         return outputs

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 
-EXPECTED = {"rpcinfo", "simulatescene", "refinerpc", "calibratelookangle", "applycalibration",
+EXPECTED = {"rpcinfo", "simulatescene", "refinerpc", "orthorectify", "calibratelookangle", "applycalibration",
             "assessaccuracy", "collectgcps"}
 
 
@@ -33,7 +33,8 @@ def test_provider_registers_with_documented_algorithms(qgis_app):
     for p in ("INPUT", "GCPS", "MODEL", "DEM", "OUTPUT_RPC", "OUTPUT_GPKG"):
         assert refine.parameterDefinition(p) is not None, p
     assert refine.parameterDefinition("DEM").flags() & refine.parameterDefinition("DEM").FlagOptional
-    assert refine.parameterDefinition("MODEL").options()[:5] and len(refine.parameterDefinition("MODEL").options()) == 5
+    assert len(refine.parameterDefinition("MODEL").options()) == 6
+    assert refine.parameterDefinition("MODEL").defaultValue() == 5             # auto
 
 
 def test_rpcinfo_reports_size_heights_gsd_and_footprint(run_alg, scene, tmp_path):

@@ -1,0 +1,63 @@
+"""``gf4cal ortho``: orthorectify an image with its (refined) RPC over a DEM made ellipsoidal (METHODS §2, §4.2)."""
+from __future__ import annotations
+
+NAME = "ortho"
+HELP = ("Orthorectify an image with its RPC (or a refined one, --rpc) over a DEM with GDAL's warper; heights above "
+        "a geoid are made ellipsoidal first (the grid is found through PROJ), else the run is refused.")
+
+GEOID_HELP = ("what the DEM's heights are above: auto (default: what the DEM's CRS declares), none (use them as they "
+              "are), egm96, egm2008, or the PATH of a geoid grid (.gtx/.tif)")
+
+
+def add_geoid_argument(parser, default="auto"):
+    """The ``--geoid`` option shared by ``ortho`` and ``refine``."""
+    parser.add_argument("--geoid", default=default, metavar="none|egm96|egm2008|PATH|auto", help=GEOID_HELP)
+
+
+def add_ortho_arguments(parser, out_required=True):
+    """``--crs``, ``--res`` and ``--resampling`` (shared with ``refine --ortho``)."""
+    from ..workflows.ortho import RESAMPLING
+    parser.add_argument("--crs", default="utm",
+                        help="output CRS: EPSG:XXXX or 'utm' (default: the UTM zone of the scene centre)")
+    parser.add_argument("--res", type=float, metavar="METRES", help="output pixel size (default: GDAL's choice)")
+    parser.add_argument("--resampling", choices=RESAMPLING, default="bilinear", help="resampling (default bilinear)")
+
+
+def add_parser(parser):
+    parser.add_argument("image", metavar="IMAGE", help="the image (any GDAL raster); its own RPC unless --rpc")
+    parser.add_argument("--rpc", help="RPC to use instead of the image's: refined .vrt, .RPB, _RPC.TXT")
+    parser.add_argument("--dem", required=True, help="DEM covering the scene (any GDAL raster, any CRS)")
+    add_geoid_argument(parser)
+    parser.add_argument("--out", required=True, metavar="ORTHO.tif", help="output GeoTIFF (tiled, compressed)")
+    add_ortho_arguments(parser)
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
+
+
+def cli_geoid_errors(func, *args, **kwargs):
+    """Call ``func``; a missing geoid grid is reported in the CLI's words (``--geoid PATH``)."""
+    from ..geoid import GeoidGridMissing
+    try:
+        return func(*args, **kwargs)
+    except GeoidGridMissing as exc:
+        raise exc.phrase("--geoid PATH") from None
+
+
+def print_ortho(rep) -> None:
+    g = rep.get("geoid")
+    heights = f"DEM heights above {g['name']} made ellipsoidal" if g else "DEM heights used as ellipsoidal"
+    print(f"ortho: {rep['size_px'][0]} x {rep['size_px'][1]} px of {rep['res_m']:.3f} in {rep['crs']}, "
+          f"{rep['resampling']}; {heights}")
+
+
+def run(args) -> int:
+    from . import print_warnings
+    from ..progress import TextProgressBar
+    from ..workflows import orthorectify
+    rep = cli_geoid_errors(orthorectify, args.image, dem=args.dem, out=args.out, rpc=args.rpc, geoid=args.geoid,
+                           crs=args.crs, res_m=args.res, resampling=args.resampling, overwrite=args.overwrite,
+                           progress=TextProgressBar())
+    print_ortho(rep)
+    for k, v in rep["outputs"].items():
+        print(f"wrote {k}: {v}")
+    print_warnings(rep)
+    return 0

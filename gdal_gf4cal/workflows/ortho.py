@@ -1,0 +1,253 @@
+"""``gf4cal ortho`` / QGIS "Orthorectify": an orthoimage from an image, its (refined) RPC and a DEM (METHODS §2, §4.2).
+
+GDAL does the warping (``gdal.Warp`` with the RPC transformer and ``RPC_DEM``, multithreaded, tiled and compressed
+GeoTIFF). This module makes sure the DEM GDAL samples holds ELLIPSOIDAL heights: when the DEM's heights are above a
+geoid (declared by its compound CRS, ``geoid="auto"``, or named with ``geoid=``) it writes a temporary ellipsoidal
+GeoTIFF over the image footprint (the DEM's own grid, ``h = H + N`` at each pixel centre through PROJ's grid of that
+geoid) and warps with it; GDAL's own vertical handling is switched off (``RPC_DEM_APPLY_VDATUM_SHIFT=FALSE``), so a
+declared datum whose grid is missing is refused (:class:`~gdal_gf4cal.geoid.GeoidGridMissing`, naming the grid)
+instead of silently ignored. The result equals ``gdalwarp -rpc -to RPC_DEM=<ellipsoidal DEM>`` with the same grid.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from typing import Any, Dict, Optional, Tuple
+
+import numpy as np
+
+from ..errors import CancelledError, DEMError, Gf4calError
+from ..outputs import OutputSet, check_raster
+from ._common import _open_image, cancel_check, collect_warnings, finish_report
+
+#: Resampling names accepted by :func:`orthorectify` (GDAL's ``-r`` names).
+RESAMPLING = ("near", "bilinear", "cubic", "cubicspline", "lanczos", "average", "mode")
+#: Creation options of the ortho: tiled, compressed, BigTIFF when needed (COG-friendly layout).
+CREATION_OPTIONS = ["TILED=YES", "BLOCKXSIZE=512", "BLOCKYSIZE=512", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"]
+
+
+def utm_epsg(lon_deg: float, lat_deg: float) -> int:
+    """EPSG code of the WGS84 UTM zone holding (lon, lat): 326zz north, 327zz south."""
+    zone = int(np.floor((((lon_deg + 180.0) % 360.0)) / 6.0)) + 1
+    return (32600 if lat_deg >= 0 else 32700) + min(max(zone, 1), 60)
+
+
+def footprint_lonlat(rpc, image_size: Tuple[int, int], h_range_m: Tuple[float, float],
+                     margin: float = 0.05) -> Tuple[float, float, float, float]:
+    """(west, south, east, north) degrees of the image seen at every height of ``h_range_m`` (image border
+    localised with the RPC at both heights), widened by ``margin`` of its size on each side."""
+    W, H = image_size
+    t = np.linspace(0.0, 1.0, 17)
+    s = np.concatenate([t * W, np.full_like(t, W), t[::-1] * W, np.zeros_like(t)])
+    l = np.concatenate([np.zeros_like(t), t * H, np.full_like(t, H), t[::-1] * H])
+    lons, lats = [], []
+    for h in h_range_m:
+        lon, lat = rpc.localize(s, l, np.full(s.size, float(h)))
+        lons.append(np.asarray(lon, float))
+        lats.append(np.asarray(lat, float))
+    lon, lat = np.concatenate(lons), np.concatenate(lats)
+    w, e, so, n = np.nanmin(lon), np.nanmax(lon), np.nanmin(lat), np.nanmax(lat)
+    dx, dy = (e - w) * margin + 1e-4, (n - so) * margin + 1e-4
+    return (float(w - dx), float(so - dy), float(e + dx), float(n + dy))
+
+
+def write_ellipsoidal_dem(dem_path: str, grid: str, bounds_lonlat, out_path: str) -> str:
+    """Write the part of ``dem_path`` covering ``bounds_lonlat`` as ellipsoidal heights (METHODS §2).
+
+    Same grid as the source (a pixel window of it), ``h = H + N(lon, lat)`` at each pixel centre with ``N`` from
+    the geoid ``grid`` (PROJ ``vgridshift``), float32, no-data -9999, the source's horizontal CRS only.
+    """
+    from osgeo import gdal, osr
+    import pyproj
+    from ..dem import _geoid_transformer
+    from .._gdal import open_raster
+    src = open_raster(dem_path, what="DEM", error=DEMError)
+    gt = src.GetGeoTransform()
+    srs = src.GetSpatialRef()
+    if srs is None:
+        raise DEMError(f"DEM {dem_path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:4326)")
+    srs = srs.Clone()
+    if srs.IsCompound():
+        srs.StripVertical()
+    crs = pyproj.CRS.from_wkt(srs.ExportToWkt())
+    w, s, e, n = bounds_lonlat
+    lon = np.concatenate([np.linspace(w, e, 33), np.full(33, e), np.linspace(e, w, 33), np.full(33, w)])
+    lat = np.concatenate([np.full(33, s), np.linspace(s, n, 33), np.full(33, n), np.linspace(n, s, 33)])
+    to_dem = pyproj.Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+    x, y = to_dem.transform(lon, lat)
+    px = (np.asarray(x) - gt[0]) / gt[1]
+    py = (np.asarray(y) - gt[3]) / gt[5]
+    x0 = int(max(np.floor(np.nanmin(px)) - 2, 0))
+    y0 = int(max(np.floor(np.nanmin(py)) - 2, 0))
+    x1 = int(min(np.ceil(np.nanmax(px)) + 2, src.RasterXSize))
+    y1 = int(min(np.ceil(np.nanmax(py)) + 2, src.RasterYSize))
+    if x1 <= x0 or y1 <= y0:
+        raise DEMError(f"DEM {dem_path} does not cover the image; use a DEM that covers the scene")
+    band = src.GetRasterBand(1)
+    H = band.ReadAsArray(x0, y0, x1 - x0, y1 - y0).astype(float)
+    nd = band.GetNoDataValue()
+    if nd is not None:
+        H[H == nd] = np.nan
+    cols = gt[0] + gt[1] * (x0 + np.arange(x1 - x0) + 0.5)
+    rows = gt[3] + gt[5] * (y0 + np.arange(y1 - y0) + 0.5)
+    X, Y = np.meshgrid(cols, rows)
+    plon, plat = to_dem.transform(X.ravel(), Y.ravel(), direction="INVERSE")
+    ok = np.isfinite(H.ravel())
+    h = np.full(H.size, -9999.0)
+    if np.any(ok):
+        _, _, h_ell = _geoid_transformer(grid).transform(np.asarray(plon)[ok], np.asarray(plat)[ok], H.ravel()[ok])
+        h[ok] = h_ell
+        if not np.all(np.isfinite(h[ok])):
+            raise DEMError(f"the geoid grid {grid} does not cover the DEM around the image; use a global grid")
+    ds = gdal.GetDriverByName("GTiff").Create(out_path, x1 - x0, y1 - y0, 1, gdal.GDT_Float32,
+                                              ["TILED=YES", "COMPRESS=DEFLATE"])
+    ds.SetGeoTransform((gt[0] + x0 * gt[1], gt[1], 0.0, gt[3] + y0 * gt[5], 0.0, gt[5]))
+    ds.SetProjection(srs.ExportToWkt())
+    ob = ds.GetRasterBand(1)
+    ob.SetNoDataValue(-9999.0)
+    ob.WriteArray(h.reshape(H.shape).astype(np.float32))
+    ds = None
+    return out_path
+
+
+def _target_srs(crs, bounds_lonlat) -> str:
+    from osgeo import osr
+    if crs is None or str(crs).strip().lower() == "utm":
+        w, s, e, n = bounds_lonlat
+        return f"EPSG:{utm_epsg((w + e) / 2.0, (s + n) / 2.0)}"
+    srs = osr.SpatialReference()
+    try:
+        srs.SetFromUserInput(str(crs))
+    except RuntimeError:
+        raise Gf4calError(f"unknown output CRS {crs!r}; give EPSG:XXXX, a WKT/PROJ string or 'utm'") from None
+    return str(crs)
+
+
+def orthorectify(image, *, dem, out, rpc=None, geoid="auto", crs="utm", res_m: Optional[float] = None,
+                 resampling: str = "bilinear", overwrite: bool = False, progress=None) -> Dict[str, Any]:
+    """Orthorectify ``image`` with its RPC (or ``rpc``) over ``dem`` into a GeoTIFF (METHODS §2, §4.2).
+
+    Parameters
+    ----------
+    image : a raster GDAL opens (its own RPC is used unless ``rpc`` is given)
+    dem : DEM path (any CRS); ``geoid`` says what its heights are above: ``"auto"`` (default: what its CRS
+        declares), ``"none"`` (use as they are), ``"egm96"``, ``"egm2008"`` or a grid path
+    out : output GeoTIFF (tiled, deflate-compressed); never an input; an existing file only with ``overwrite``
+    rpc : optional RPC source (refined ``.vrt``, ``.RPB``, ``_RPC.TXT``, ...) replacing the image's own
+    crs : output CRS (``"utm"``: the UTM zone of the scene centre; else ``EPSG:XXXX`` or any GDAL CRS string)
+    res_m : output pixel size in CRS units (metres for UTM); default GDAL's choice (about the image's GSD)
+    resampling : one of :data:`RESAMPLING`
+
+    Returns
+    -------
+    dict
+        ``input``, ``rpc``, ``dem``, ``geoid`` (``{"name", "grid"}``, absent when heights are used as they are),
+        ``crs``, ``res_m``, ``size_px``, ``resampling``, ``outputs``, ``warnings``.
+        Raises :class:`~gdal_gf4cal.geoid.GeoidGridMissing` (nothing written) when a geoid cannot be applied.
+    """
+    from .. import progress as _progress
+    from ..geoid import resolve_geoid
+    from ..rpc import RPCModel
+
+    image, out, dem = os.fspath(image), os.fspath(out), os.fspath(dem)
+    check_ortho_options(resampling, res_m)
+    image_size, inputs = _open_image(image)
+    if image_size is None:
+        raise Gf4calError(f"{image} is not an image GDAL can read; orthorectify needs the image's pixels")
+    inputs.append(dem)
+    if rpc is not None:
+        rpc = os.fspath(rpc)
+        inputs.append(rpc)
+    grid = resolve_geoid(geoid, dem)            # refuses a declared geoid without grid before any work
+    outs = OutputSet(inputs, overwrite=overwrite, cancelled=cancel_check(progress))
+    outs.declare("ortho", out, check=check_raster())
+    warns: list = []
+    rep: Dict[str, Any] = {"input": image, "rpc": rpc or image, "dem": dem}
+    with outs, collect_warnings(warns):
+        _progress.report(progress, 0.0, "reading the RPC and the DEM")
+        model = RPCModel.from_file(rpc or image)
+        rep.update(warp_ortho(image, image_size, model if rpc is not None else None, dem, grid, outs.tmp("ortho"),
+                              crs=crs, res_m=res_m, resampling=resampling, progress=progress))
+        rep["outputs"] = outs.paths
+    finish_report(rep, warns)
+    _progress.report(progress, 1.0, "done")
+    return rep
+
+
+def check_ortho_options(resampling: str = "bilinear", res_m: Optional[float] = None) -> None:
+    """Refuse an unknown resampling or a non-positive resolution (before any work)."""
+    if resampling not in RESAMPLING:
+        raise Gf4calError(f"unknown resampling {resampling!r}; use one of {', '.join(RESAMPLING)}")
+    if res_m is not None and not (float(res_m) > 0):
+        raise Gf4calError(f"the output resolution must be a positive number of metres, not {res_m!r}")
+
+
+def warp_ortho(image: str, image_size, model, dem: str, grid: Optional[str], out_path: str, *, crs="utm",
+               res_m: Optional[float] = None, resampling: str = "bilinear", progress=None) -> Dict[str, Any]:
+    """Warp ``image`` (with ``model`` as its RPC, or its own when None) over ``dem`` into ``out_path`` (a temporary
+    of an :class:`OutputSet`); ``grid``: the geoid grid making the DEM ellipsoidal (None: heights used as they are).
+
+    Returns the ortho part of the report: ``geoid`` (when applied), ``crs``, ``res_m``, ``size_px``, ``resampling``.
+    """
+    from osgeo import gdal
+    from .. import progress as _progress
+    from ..dem import DEM
+    from ..rpc import RPCModel
+    from .._gdal import first_line, gdal_exceptions, open_raster
+    rep: Dict[str, Any] = {}
+    with tempfile.TemporaryDirectory(prefix="gf4cal_ortho_") as tmpdir:
+        rpc_model = model if model is not None else RPCModel.from_file(image)
+        dem_obj = DEM.from_file(dem, geoid=grid if grid else False)
+        lo, hi = dem_obj.height_range()
+        pad = 120.0 if grid else 0.0           # geoid undulations are within +-110 m
+        bounds = footprint_lonlat(rpc_model, image_size, (lo - pad, hi + pad))
+        if grid:
+            _progress.report(progress, 0.05, "writing the ellipsoidal DEM")
+            dem_used = write_ellipsoidal_dem(dem, grid, bounds, os.path.join(tmpdir, "dem_ellipsoidal.tif"))
+            rep["geoid"] = {"name": os.path.basename(grid), "grid": grid}
+        else:
+            dem_used = dem
+        dst_srs = _target_srs(crs, bounds)
+        rep["crs"] = dst_srs
+        src_path = image
+        if model is not None:                   # the image's pixels with the given RPC
+            src_path = os.path.join(tmpdir, "source.vrt")
+            with gdal_exceptions():
+                gdal.Translate(src_path, open_raster(image, what="image"), format="VRT")
+                vrt = gdal.Open(src_path, gdal.GA_Update)
+                vrt.SetMetadata(model.to_gdal_metadata(), "RPC")
+                vrt = None
+        cancelled = []
+
+        def _cb(fraction, _msg, _data):
+            try:
+                _progress.report(progress, 0.1 + 0.85 * fraction, "warping")
+            except CancelledError as exc:
+                cancelled.append(exc)
+                return 0
+            return 1
+
+        opts = dict(format="GTiff", dstSRS=dst_srs, rpc=True, resampleAlg=resampling, multithread=True,
+                    transformerOptions=[f"RPC_DEM={dem_used}", "RPC_DEMINTERPOLATION=bilinear",
+                                        "RPC_DEM_APPLY_VDATUM_SHIFT=FALSE"],
+                    warpOptions=["NUM_THREADS=ALL_CPUS"], creationOptions=CREATION_OPTIONS, callback=_cb)
+        if res_m is not None:
+            opts.update(xRes=float(res_m), yRes=float(res_m), targetAlignedPixels=True)
+        try:
+            with gdal_exceptions():
+                ds = gdal.Warp(out_path, src_path, **opts)
+                if ds is None:
+                    raise Gf4calError("gdal.Warp failed without a message")
+                gt = ds.GetGeoTransform()
+                rep["res_m"] = float(abs(gt[1]))
+                rep["size_px"] = [ds.RasterXSize, ds.RasterYSize]
+                ds = None
+        except RuntimeError as exc:
+            if cancelled:
+                raise cancelled[0] from None
+            raise Gf4calError(f"orthorectification failed: {first_line(exc)}; check the DEM covers the scene") \
+                from None
+        if cancelled:
+            raise cancelled[0]
+    rep["resampling"] = resampling
+    return rep

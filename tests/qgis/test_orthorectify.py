@@ -1,0 +1,80 @@
+"""``gf4cal:orthorectify`` in headless QGIS: the ortho loads georeferenced; a DEM above EGM96 (compound CRS) gives
+the same ortho as the ellipsoidal DEM; EGM2008 without grid is refused naming the grid and the QGIS parameter."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from osgeo import gdal
+
+
+@pytest.fixture(scope="module")
+def oscene(tmp_path_factory):
+    from gdal_gf4cal.simulate import write_scene
+    from tests.test_ortho import _geoid_dem
+    d = tmp_path_factory.mktemp("qortho")
+    write_scene("gf4", d / "s", seed=5, size=(192, 192), n_gcps=8, render=True, tile=192, reference_ortho=False)
+    _geoid_dem(d / "s" / "dem.tif", d / "dem_egm96.tif", 5773)
+    _geoid_dem(d / "s" / "dem.tif", d / "dem_egm2008.tif", 3855)
+    return d
+
+
+def test_orthorectify_loads_georeferenced_ortho(run_alg, oscene, tmp_path):
+    from qgis.core import QgsRasterLayer
+    out = tmp_path / "ortho.tif"
+    res, fb = run_alg("gf4cal:orthorectify", {"INPUT": str(oscene / "s" / "scene.tif"),
+                                               "DEM": str(oscene / "dem_egm96.tif"), "RESOLUTION": 60.0,
+                                               "OUTPUT": str(out)})
+    assert res["RESOLUTION_OUT"] == 60.0 and "egm96" in fb.text().lower()
+    layer = QgsRasterLayer(res["OUTPUT"], "ortho", "gdal")
+    assert layer.isValid() and layer.crs().authid().startswith("EPSG:326")
+    ext = layer.extent()
+    assert ext.width() > 60 * 150 and layer.rasterUnitsPerPixelX() == 60.0
+    ell = tmp_path / "ortho_ell.tif"
+    run_alg("gf4cal:orthorectify", {"INPUT": str(oscene / "s" / "scene.tif"), "DEM": str(oscene / "s" / "dem.tif"),
+                                    "RESOLUTION": 60.0, "OUTPUT": str(ell)})
+    a, b = (gdal.Open(str(p)).ReadAsArray().astype(float) for p in (out, ell))
+    assert a.shape == b.shape and np.mean(np.abs(a - b)) < 0.05
+
+
+def test_orthorectify_egm2008_without_grid_names_grid_and_parameter(run_alg, oscene, tmp_path):
+    from qgis.core import QgsProcessingException
+    from gdal_gf4cal.geoid import find_grid
+    if find_grid("egm2008")[0] is not None:
+        pytest.skip("an EGM2008 grid is installed here")
+    with pytest.raises(QgsProcessingException) as info:
+        run_alg("gf4cal:orthorectify", {"INPUT": str(oscene / "s" / "scene.tif"),
+                                        "DEM": str(oscene / "dem_egm2008.tif"), "OUTPUT": str(tmp_path / "o.tif")})
+    msg = str(info.value)
+    assert "us_nga_egm08_25.tif" in msg and "Geoid grid file" in msg and "--geoid" not in msg
+    assert not list(tmp_path.iterdir())
+
+
+def test_refinerpc_auto_with_ortho_loads_the_ortho(run_alg, oscene, tmp_path):
+    from qgis.core import QgsRasterLayer
+    res, fb = run_alg("gf4cal:refinerpc", {"INPUT": str(oscene / "s" / "scene.tif"),
+                                            "GCPS": str(oscene / "s" / "gcps.gpkg"), "DEM": str(oscene / "dem_egm96.tif"),
+                                            "OUTPUT_RPC": str(tmp_path / "r.vrt"),
+                                            "OUTPUT_GPKG": str(tmp_path / "r.gpkg"),
+                                            "OUTPUT_ORTHO": str(tmp_path / "ortho.tif")})
+    assert "automatic model choice:" in fb.text()
+    assert res["OUTPUT_ORTHO"] == str(tmp_path / "ortho.tif")
+    layer = QgsRasterLayer(res["OUTPUT_ORTHO"], "ortho", "gdal")
+    assert layer.isValid() and layer.crs().authid().startswith("EPSG:326")
+
+
+def test_residual_layers_share_one_exaggeration_and_label_ids(run_alg, oscene, tmp_path):
+    from qgis.core import QgsVectorLayer
+    gpkg = tmp_path / "res.gpkg"
+    run_alg("gf4cal:refinerpc", {"INPUT": str(oscene / "s" / "scene.tif"), "GCPS": str(oscene / "s" / "gcps.gpkg"),
+                                 "MODEL": 0, "OUTPUT_RPC": str(tmp_path / "r.RPB"), "OUTPUT_GPKG": str(gpkg)})
+    factors = {}
+    for name in ("residual_vectors", "residual_vectors_before"):
+        layer = QgsVectorLayer(f"{gpkg}|layername={name}", name, "ogr")
+        assert layer.isValid()
+        values = {f["exaggeration"] for f in layer.getFeatures()}
+        assert len(values) == 1
+        factors[name] = values.pop()
+    assert factors["residual_vectors"] == factors["residual_vectors_before"]
+    gcps = QgsVectorLayer(f"{gpkg}|layername=gcps", "gcps", "ogr")
+    assert gcps.isValid() and gcps.labelsEnabled()                # default style from layer_styles
+    assert gcps.labeling().settings().fieldName == "id"

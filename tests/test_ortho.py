@@ -1,0 +1,215 @@
+"""``gf4cal ortho`` / ``refine --ortho`` on a simulated, rendered GF-4 scene whose DEM is in a compound CRS (EGM96).
+
+Truth: the simulator's noise-free image position of every GCP (``truth_sample``, ``truth_line``). The error of the
+ortho is measured ON the ortho: a coordinate image (band 1 = sample, band 2 = line of each pixel centre, GDAL
+convention) carrying the refined RPC is orthorectified on the same grid, and each check point's true image position
+is located in it (Newton on the bilinear ortho); its distance to the GCP's ground position, in ortho pixels, is the
+error. The ortho must also equal ``gdalwarp -rpc -to RPC_DEM=<ellipsoidal DEM>`` (the simulator's own DEM).
+"""
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyproj
+import pytest
+from osgeo import gdal, osr
+from scipy.ndimage import binary_erosion, map_coordinates
+
+from gdal_gf4cal.cli import main
+from gdal_gf4cal.dem import _geoid_transformer
+from gdal_gf4cal.geoid import GeoidGridMissing, find_grid, resolve_geoid
+from gdal_gf4cal.rpc import RPCModel
+from gdal_gf4cal.simulate import write_scene
+from gdal_gf4cal.workflows import orthorectify
+
+gdal.UseExceptions()
+RES_M = 50.0
+
+
+def _geoid_dem(src: Path, dst: Path, vertical_epsg: int) -> None:
+    """The ellipsoidal DEM ``src`` as heights above EGM96 (H = h - N), declared as EPSG:4326+``vertical_epsg``."""
+    ds = gdal.Open(str(src))
+    gt = ds.GetGeoTransform()
+    h = ds.ReadAsArray().astype(float)
+    W, H = ds.RasterXSize, ds.RasterYSize
+    lon, lat = np.meshgrid(gt[0] + gt[1] * (np.arange(W) + 0.5), gt[3] + gt[5] * (np.arange(H) + 0.5))
+    _, _, hg = _geoid_transformer("egm96").transform(lon.ravel(), lat.ravel(), h.ravel(), direction="INVERSE")
+    out = gdal.GetDriverByName("GTiff").Create(str(dst), W, H, 1, gdal.GDT_Float64)
+    out.SetGeoTransform(gt)
+    srs = osr.SpatialReference()
+    srs.SetFromUserInput(f"EPSG:4326+{vertical_epsg}")
+    out.SetSpatialRef(srs)
+    out.GetRasterBand(1).WriteArray(hg.reshape(H, W))
+    out = None
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ortho")
+    write_scene("gf4", d / "s", seed=3, size=(256, 256), n_gcps=24, gcp_noise_px=0.2, check_fraction=0.4,
+                render=True, tile=256, reference_ortho=False)
+    _geoid_dem(d / "s" / "dem.tif", d / "dem_egm96.tif", 5773)
+    _geoid_dem(d / "s" / "dem.tif", d / "dem_egm2008.tif", 3855)   # mislabelled on purpose: only the label matters
+    return d
+
+
+@pytest.fixture(scope="module")
+def refined(scene):
+    s = scene / "s"
+    out = scene / "run"
+    out.mkdir()
+    rc = main(["refine", str(s / "scene.tif"), "--gcps", str(s / "gcps.csv"), "--model", "affine", "--dem",
+               str(scene / "dem_egm96.tif"), "--out", str(out / "refined.vrt"), "--ortho", str(out / "ortho.tif"),
+               "--res", str(RES_M), "--report", str(out / "report.json"), "--residuals", str(out / "res.gpkg")])
+    assert rc == 0
+    return out
+
+
+def _coordinate_image(scene: Path, rpc: RPCModel, path: Path) -> Path:
+    """A 2-band float raster of the scene's size: the GDAL image coordinates of each pixel centre, with ``rpc``."""
+    src = gdal.Open(str(scene / "s" / "scene.tif"))
+    W, H = src.RasterXSize, src.RasterYSize
+    ds = gdal.GetDriverByName("GTiff").Create(str(path), W, H, 2, gdal.GDT_Float64)
+    ds.GetRasterBand(1).WriteArray(np.tile(np.arange(W) + 0.5, (H, 1)))
+    ds.GetRasterBand(2).WriteArray(np.tile((np.arange(H) + 0.5)[:, None], (1, W)))
+    ds.SetMetadata(rpc.to_gdal_metadata(), "RPC")
+    ds = None
+    return path
+
+
+def _read(path):
+    ds = gdal.Open(str(path))
+    return ds.ReadAsArray().astype(float), ds.GetGeoTransform(), ds.GetSpatialRef().GetAuthorityCode(None)
+
+
+def test_refine_ortho_check_points_on_the_ortho(scene, refined):
+    rpc = RPCModel.from_file(refined / "refined.vrt")
+    ortho, gt, epsg = _read(refined / "ortho.tif")
+    assert gt[1] == RES_M and -gt[5] == RES_M and ortho.std() > 10       # a rendered scene, on a 50 m grid
+    coords = _coordinate_image(scene, rpc, scene / "coords.tif")
+    orthorectify(coords, dem=scene / "dem_egm96.tif", out=scene / "coords_ortho.tif", res_m=RES_M)
+    xy, gt_c, epsg_c = _read(scene / "coords_ortho.tif")
+    assert gt_c == gt and epsg_c == epsg and xy.shape[1:] == ortho.shape
+    gcps = pd.read_csv(scene / "s" / "gcps.csv")
+    chk = gcps[gcps["role"] == "check"]
+    assert len(chk) >= 6
+    x, y = pyproj.Transformer.from_crs("EPSG:4326", f"EPSG:{epsg}", always_xy=True).transform(
+        chk["lon"].to_numpy(), chk["lat"].to_numpy())
+    c0 = (np.asarray(x) - gt[0]) / gt[1]                  # ortho pixel coordinates (GDAL convention)
+    r0 = (np.asarray(y) - gt[3]) / gt[5]
+    target = np.vstack([chk["truth_sample"].to_numpy(), chk["truth_line"].to_numpy()])
+
+    def sample(c, r):     # bilinear, pixel centres at integer + 0.5
+        return np.vstack([map_coordinates(xy[b], [r - 0.5, c - 0.5], order=1) for b in (0, 1)])
+
+    c, r = c0.copy(), r0.copy()
+    for _ in range(6):                                    # Newton: where the ortho shows the true image point
+        f = sample(c, r) - target
+        dc = (sample(c + 0.5, r) - sample(c - 0.5, r))
+        dr = (sample(c, r + 0.5) - sample(c, r - 0.5))
+        det = dc[0] * dr[1] - dc[1] * dr[0]
+        c -= (dr[1] * f[0] - dr[0] * f[1]) / det
+        r -= (-dc[1] * f[0] + dc[0] * f[1]) / det
+    err_px = np.hypot(c - c0, r - r0)
+    assert np.all(np.abs(sample(c, r) - target) < 1e-3)
+    rms = float(np.sqrt(np.mean(err_px ** 2)))
+    assert rms <= 0.5, (rms, err_px)
+
+
+def test_ortho_equals_gdalwarp_with_the_ellipsoidal_dem(scene, refined):
+    rpc = RPCModel.from_file(refined / "refined.vrt")
+    ortho, gt, epsg = _read(refined / "ortho.tif")
+    ny, nx = ortho.shape
+    te = [str(v) for v in (gt[0], gt[3] + gt[5] * ny, gt[0] + gt[1] * nx, gt[3])]
+    common = ["gdalwarp", "-q", "-rpc", "-to", f"RPC_DEM={scene / 's' / 'dem.tif'}", "-to",
+              "RPC_DEMINTERPOLATION=bilinear", "-t_srs", f"EPSG:{epsg}", "-te", *te, "-tr", str(RES_M), str(RES_M),
+              "-r", "bilinear"]
+    subprocess.run(common + [str(refined / "refined.vrt"), str(scene / "gdalwarp_scene.tif")], check=True)
+    ref, gt_r, _ = _read(scene / "gdalwarp_scene.tif")
+    assert gt_r == gt
+    assert np.mean(np.abs(ref - ortho)) < 0.05 and np.abs(ref - ortho).max() <= 1     # Byte rounding at most
+    # Geometric agreement: the coordinate image through both warps, to 0.01 px.
+    coords = _coordinate_image(scene, rpc, scene / "coords2.tif")
+    subprocess.run(common + [str(coords), str(scene / "gdalwarp_coords.tif")], check=True)
+    orthorectify(coords, dem=scene / "dem_egm96.tif", out=scene / "coords2_ortho.tif", res_m=RES_M)
+    a, _, _ = _read(scene / "gdalwarp_coords.tif")
+    b, gt_b, _ = _read(scene / "coords2_ortho.tif")
+    assert gt_b == gt
+    valid = binary_erosion((a[0] > 0) & (b[0] > 0), iterations=2)
+    assert valid.sum() > 0.5 * valid.size
+    diff = np.abs(a - b)[:, valid]
+    assert diff.max() < 0.01, diff.max()
+
+
+def test_egm2008_without_grid_refused_nothing_written(scene, capsys):
+    if find_grid("egm2008")[0] is not None:
+        pytest.skip("an EGM2008 grid is installed here")
+    out = scene / "refused"
+    out.mkdir()
+    rc = main(["refine", str(scene / "s" / "scene.tif"), "--gcps", str(scene / "s" / "gcps.csv"), "--model",
+               "translation", "--dem", str(scene / "dem_egm2008.tif"), "--out", str(out / "r.vrt"), "--ortho",
+               str(out / "o.tif")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "us_nga_egm08_25.tif" in err and "--geoid PATH" in err and err.count("\n") == 1
+    assert list(out.iterdir()) == []
+    rc = main(["ortho", str(scene / "s" / "scene.tif"), "--dem", str(scene / "dem_egm2008.tif"), "--out",
+               str(out / "o.tif")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "us_nga_egm08_25.tif" in err and list(out.iterdir()) == []
+    with pytest.raises(GeoidGridMissing) as info:           # the library's neutral wording
+        orthorectify(scene / "s" / "scene.tif", dem=scene / "dem_egm2008.tif", out=out / "o.tif")
+    assert "geoid=<grid path>" in str(info.value) and info.value.grids[0] == "us_nga_egm08_25.tif"
+    # --geoid none: the heights are used as they are (the user's choice), and the ortho is written
+    assert main(["ortho", str(scene / "s" / "scene.tif"), "--dem", str(scene / "dem_egm2008.tif"), "--geoid",
+                 "none", "--out", str(out / "o.tif"), "--res", "100"]) == 0
+    assert gdal.Open(str(out / "o.tif")).GetGeoTransform()[1] == 100.0
+
+
+def test_geoid_grid_found_under_proj_current_name(tmp_path, monkeypatch):
+    grid = tmp_path / "us_nga_egm08_25.tif"
+    grid.write_bytes(b"x")                     # only its name is looked up here
+    monkeypatch.setenv("PROJ_DATA", str(tmp_path))
+    path, names, dirs = find_grid("egm2008")
+    assert path == str(grid) and names[0] == "us_nga_egm08_25.tif" and str(tmp_path) in dirs
+    assert resolve_geoid("egm2008") == str(grid)
+    assert resolve_geoid("none") is None and resolve_geoid("auto") is None
+    assert resolve_geoid(str(grid)) == str(grid)
+
+
+def test_ortho_geoid_changes_the_ortho(scene):
+    """Heights above EGM96 (N about -34 m) used as ellipsoidal move the ortho: the geoid is applied."""
+    a = scene / "o_auto.tif"
+    b = scene / "o_none.tif"
+    ra = orthorectify(scene / "s" / "scene.tif", dem=scene / "dem_egm96.tif", out=a, res_m=RES_M)
+    rb = orthorectify(scene / "s" / "scene.tif", dem=scene / "dem_egm96.tif", out=b, res_m=RES_M, geoid="none")
+    assert ra["geoid"]["name"] == "egm96_15.gtx" and "geoid" not in rb
+    e = scene / "o_ell.tif"
+    orthorectify(scene / "s" / "scene.tif", dem=scene / "s" / "dem.tif", out=e, res_m=RES_M)
+    va, vb, ve = (gdal.Open(str(p)).ReadAsArray().astype(float) for p in (a, b, e))
+    assert va.shape == ve.shape and np.mean(np.abs(va - ve)) < 0.05
+    if va.shape == vb.shape:
+        assert np.mean(np.abs(va - vb)) > 1.0
+
+
+def test_residual_arrows_are_rpc_ground_offsets_in_metres(refined):
+    """One exaggeration for before/after; arrow length = factor x the RPC ground offset (m) in res_m_*."""
+    from osgeo import ogr
+    geod = pyproj.Geod(ellps="WGS84")
+    ds = ogr.Open(str(refined / "res.gpkg"))
+    gcps = {f["id"]: f for f in ds.GetLayerByName("gcps")}
+    factors = set()
+    for layer, epoch in (("residual_vectors", "after"), ("residual_vectors_before", "before")):
+        for f in ds.GetLayerByName(layer):
+            g = f.GetGeometryRef()
+            (x0, y0), (x1, y1) = g.GetPoint_2D(0), g.GetPoint_2D(1)
+            length_m = geod.inv(x0, y0, x1, y1)[2]
+            factors.add(f["exaggeration"])
+            assert length_m == pytest.approx(f["exaggeration"] * gcps[f["id"]][f"res_m_{epoch}"], rel=0.01)
+    assert len(factors) == 1
+    before = np.array([f["res_m_before"] for f in gcps.values()])
+    after = np.array([f["res_m_after"] for f in gcps.values()])
+    assert np.sqrt(np.mean(after ** 2)) < 0.3 * np.sqrt(np.mean(before ** 2))     # the gain, in metres
