@@ -59,5 +59,5 @@ def test_accuracy_by_role_is_the_one_report_shape():
     assert rep["control"]["before"]["planar"]["rms"] == pytest.approx(5.0)
     assert rep["check"]["after"]["planar"]["rms"] == pytest.approx(5.0)
     assert rep["check"]["after"]["ce90_m"] == pytest.approx(10.0)
-    assert rep["check"]["after"]["sample"] == {"mean": 0.0, "rms": 3.0, "rmse": 3.0, "max": 3.0}
+    assert rep["check"]["after"]["sample"] == {"mean": 0.0, "rms": 3.0, "std": 3.0, "max": 3.0}
     assert rep["control"]["after"]["line"]["max"] == 0.0
