@@ -19,6 +19,7 @@ import numpy as np
 
 from .errors import DEMError
 from ._gdal import with_gdal_exceptions
+from .geoid import declared_geoid, grid_path, proj_search_dirs
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +90,7 @@ class DEM:
         srs = osr.SpatialReference(wkt=wkt)
         self.crs_wkt = wkt
         if geoid is None:
-            declared = _declared_geoid(str(path))
+            declared = declared_geoid(str(path))
             if declared is not None:
                 log.info("DEM %s: its CRS declares %s heights; converting them to ellipsoidal heights", path,
                          declared.upper())
@@ -524,42 +525,12 @@ def _bilinear_flat(flat, W, H, px, py, z, gx=None, gy=None):
     return z
 
 
-def _declared_geoid(path: str) -> Optional[str]:
-    """The geoid a raster's compound CRS declares for its heights: ``"egm96"``, ``"egm2008"`` or None.
-
-    GDAL's GeoTIFF reader reports the vertical part of a CRS only with ``GTIFF_REPORT_COMPD_CS=YES``. A vertical
-    datum we cannot convert is an error: using those heights as ellipsoidal would be silently wrong.
-    """
-    from osgeo import gdal
-    gdal.SetThreadLocalConfigOption("GTIFF_REPORT_COMPD_CS", "YES")
-    try:
-        ds = gdal.Open(path)
-        srs = ds.GetSpatialRef() if ds is not None else None
-    except RuntimeError:
-        srs = None
-    finally:
-        gdal.SetThreadLocalConfigOption("GTIFF_REPORT_COMPD_CS", None)
-    if srs is None or not srs.IsCompound():
-        return None
-    code = srs.GetAuthorityCode("COMPD_CS|VERT_CS") or ""
-    name = f"{srs.GetAttrValue('VERT_CS') or ''} {srs.GetAttrValue('VERT_DATUM') or ''}".upper()
-    if code == "5773" or "EGM96" in name:
-        return "egm96"
-    if code == "3855" or "EGM2008" in name:
-        return "egm2008"
-    if "ELLIPSOID" in name:
-        return None
-    raise DEMError(f"DEM {path}: its heights refer to the vertical datum {name.strip() or code!r}; pass the geoid "
-                   "grid of that datum (geoid=<grid path>, --geoid) or geoid=False to use the heights as they are")
-
-
 def _geoid_transformer(geoid, source=None):
     """A pyproj transformer adding the geoid undulation N: h_ellipsoidal = H_geoid + N (lon, lat in degrees).
 
     The grid is found by :func:`gdal_gf4cal.geoid.grid_path` (PROJ's current and legacy grid names).
     """
     import pyproj
-    from .geoid import grid_path
     grid = grid_path(geoid, source=source)
     try:
         # vgridshift computes Z + multiplier * N in the forward direction; PROJ wants radians for the grid lookup.
@@ -572,7 +543,6 @@ def _geoid_transformer(geoid, source=None):
 
 def _find_proj_grid(name: str) -> Optional[str]:
     """Path of a PROJ grid file by name in PROJ's data directories (see :mod:`gdal_gf4cal.geoid`), or None."""
-    from .geoid import proj_search_dirs
     for d in proj_search_dirs():
         candidate = os.path.join(d, name)
         if os.path.exists(candidate):

@@ -96,9 +96,32 @@ def grid_path(geoid: str, source: Optional[str] = None) -> str:
 
 
 def declared_geoid(path: str) -> Optional[str]:
-    """The geoid the vertical part of a raster's compound CRS declares: ``"egm96"``, ``"egm2008"`` or None."""
-    from .dem import _declared_geoid
-    return _declared_geoid(path)
+    """The geoid a raster's compound CRS declares for its heights: ``"egm96"``, ``"egm2008"`` or None.
+
+    GDAL's GeoTIFF reader reports the vertical part of a CRS only with ``GTIFF_REPORT_COMPD_CS=YES``. A vertical
+    datum we cannot convert is an error: using those heights as ellipsoidal would be silently wrong.
+    """
+    from osgeo import gdal
+    gdal.SetThreadLocalConfigOption("GTIFF_REPORT_COMPD_CS", "YES")
+    try:
+        ds = gdal.Open(path)
+        srs = ds.GetSpatialRef() if ds is not None else None
+    except RuntimeError:
+        srs = None
+    finally:
+        gdal.SetThreadLocalConfigOption("GTIFF_REPORT_COMPD_CS", None)
+    if srs is None or not srs.IsCompound():
+        return None
+    code = srs.GetAuthorityCode("COMPD_CS|VERT_CS") or ""
+    name = f"{srs.GetAttrValue('VERT_CS') or ''} {srs.GetAttrValue('VERT_DATUM') or ''}".upper()
+    if code == "5773" or "EGM96" in name:
+        return "egm96"
+    if code == "3855" or "EGM2008" in name:
+        return "egm2008"
+    if "ELLIPSOID" in name:
+        return None
+    raise DEMError(f"DEM {path}: its heights refer to the vertical datum {name.strip() or code!r}; pass the geoid "
+                   "grid of that datum (geoid=<grid path>, --geoid) or geoid=False to use the heights as they are")
 
 
 def resolve_geoid(choice, dem_path: Optional[str] = None) -> Optional[str]:
