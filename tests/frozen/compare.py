@@ -24,7 +24,11 @@ def assert_close(got: Any, want: Any, *, rel: float = 1e-6, abs_: float = 0.0, p
 def _walk(got, want, rel, abs_, path, bad):
     if isinstance(want, dict):
         if not isinstance(got, dict) or set(got) != set(want):
-            bad.append(f"{path}: keys {sorted(got) if isinstance(got, dict) else type(got)} != {sorted(want)}")
+            if not isinstance(got, dict):
+                bad.append(f"{path}: {type(got).__name__} where a dict was frozen")
+            else:
+                bad.append(f"{path}: keys missing {sorted(set(want) - set(got))[:20]}, "
+                           f"new {sorted(set(got) - set(want))[:20]}")
             return
         for k in want:
             _walk(got[k], want[k], rel, abs_, f"{path}/{k}", bad)

@@ -11,7 +11,31 @@ import pytest
 from .compare import assert_close, load
 from .scenes import compute_experiment
 
+#: Report keys renamed since the freeze (same values): issue 15 renamed the spread about the mean from ``rmse``
+#: to ``std`` everywhere, so that it is not read as an error (the gf4 table's column header still says RMSE).
+RENAMED_KEYS = {"rmse": "std"}
+
+
+#: Values that legitimately changed since the freeze, and why. Only these leaves are left out of the comparison.
+#: - ``reweighting_steps``: iteration counts of the look-angle robust solve. calibrate_lookangle now starts from the
+#:   estimation core's high-breakdown start (issue 10), so it takes a different number of reweighting steps to the
+#:   same solution: every coefficient, residual, flag and table value of the experiment is unchanged.
+CHANGED_LEAVES = ("reweighting_steps",)
+
+
+def _renamed(frozen: dict) -> dict:
+    out = {}
+    for key, value in frozen.items():
+        *head, last = key.split("/")
+        out["/".join(head + [RENAMED_KEYS.get(last, last)])] = value
+    return out
+
+
+def _without_changed(values: dict) -> dict:
+    return {k: v for k, v in values.items() if k.rsplit("/", 1)[-1] not in CHANGED_LEAVES}
+
 
 @pytest.mark.parametrize("name", [pytest.param("gf4", marks=pytest.mark.slow), "zy3", "hj1"])
 def test_experiment_frozen(name, tmp_path):
-    assert_close(compute_experiment(name, tmp_path), load(f"experiment_{name}"), rel=1e-6, abs_=1e-8, path=name)
+    assert_close(_without_changed(compute_experiment(name, tmp_path)),
+                 _without_changed(_renamed(load(f"experiment_{name}"))), rel=1e-6, abs_=1e-8, path=name)
