@@ -195,8 +195,11 @@ class LookAngleCalibration:
         (``tan_new^-1(tan_old(s', l'))``; also as ``pred_*_after``, with ``pred_*_before`` = ``virtual_*``), ``res_sample_after, res_line_after``, ``norm_residual`` (radial residual
         / robust sigma), ``weight`` (final robust weight, 0 if rejected), ``outlier`` (bool; control and check points),
         ``outlier_level`` (``'start'``, ``'snooping'`` or ``''``).
-    control_stats, check_stats : ``{"before"|"after": {"sample"|"line": axis_stats}}``; outliers excluded;
-        ``check_stats`` is None without check points.
+    control_stats, check_stats : one role of :func:`gdal_gf4cal.stats.accuracy_by_role` (``{n_outliers,
+        before|after: {n, sample|line: {mean, rms, rmse, max}, planar, ce90_m}}``, ``ce90_m`` None) plus ``n``
+        (points in the statistics); outliers excluded; ``check_stats`` is None without check points.
+    estimate : the one result class :class:`gdal_gf4cal.estimation.Estimate` (blocks ``x``, ``y``: raw
+        coefficients; per-GCP outlier flags of control and check points, residuals after, redundancy numbers).
     """
 
     camera: Any
@@ -217,6 +220,7 @@ class LookAngleCalibration:
     n_control: int
     n_outliers: int
     warnings: List[str] = field(default_factory=list)
+    estimate: Any = None
 
     @property
     def residuals_before(self) -> np.ndarray:
@@ -277,11 +281,6 @@ class LookAngleCalibration:
 
 
 # ---------------------------------------------------------------------------------------------------- helpers
-def _axis_pair_stats(res_sample, res_line) -> Dict[str, Any]:
-    from .stats import axis_stats
-    return {"sample": axis_stats(np.asarray(res_sample, float)), "line": axis_stats(np.asarray(res_line, float))}
-
-
 def _gcp_columns(gcps):
     missing = [c for c in ("lon", "lat", "h", "sample", "line") if c not in getattr(gcps, "columns", ())]
     if missing:
@@ -508,20 +507,15 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
         level[k_idx[bad]] = "snooping"
     out["outlier"] = outlier
     out["outlier_level"] = level.astype(str)
-    good_full = ctrl & ~out["outlier"].to_numpy(bool)
-    control_stats = {
-        "before": _axis_pair_stats(out["res_sample_before"][good_full], out["res_line_before"][good_full]),
-        "after": _axis_pair_stats(out["res_sample_after"][good_full], out["res_line_after"][good_full]),
-        "n": int(good_full.sum()),
-    }
-    check_stats = None
-    if check.any():
-        good_chk = check & ~outlier                      # flagged check points are left out, as for control points
-        check_stats = {
-            "before": _axis_pair_stats(out["res_sample_before"][good_chk], out["res_line_before"][good_chk]),
-            "after": _axis_pair_stats(out["res_sample_after"][good_chk], out["res_line_after"][good_chk]),
-            "n": int(good_chk.sum()), "n_outliers": int((check & outlier).sum()),
-        }
+    # The one accuracy-report shape (gdal_gf4cal.stats.accuracy_by_role) over the usable points; flagged points
+    # are left out of before and after. ``n`` (points in the statistics) is kept at the top for the printers.
+    by_role = _stats_by_role(out, usable, control)
+    control_stats = by_role["control"]
+    check_stats = by_role["check"] if check.any() else None
+    # The one result class: coefficients [a0..a9, b0..b9] (raw), per-observation diagnostics interleaved (s, l).
+    n_inv_norm = cov_norm / (sigma0 ** 2 if dof > 0 else 1.0)
+    q_c = np.einsum("ij,jk,ik->i", A2, n_inv_norm, A2).reshape(-1, 2)
+    estimate = _estimate(cam, cov_raw, sigma0, dof, cond, iteration, msgs, out, base_w, ctrl, c_idx, wr, q_c)
     report(progress, 1.0, "look-angle calibration done")
     name = getattr(current, "name", "") or ""
     cam = _with_coefficients(current, cam.x, cam.y, name=(f"{name} recalibrated" if name else "recalibrated"))
@@ -530,7 +524,45 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
         corrections=np.array(corrections), correction_px=np.array(correction_px), history=history,
         covariance=cov_raw, covariance_normalised=cov_norm, sigma0=sigma0, robust_sigma_px=float(scale),
         condition_number=cond, gcps=out, control_stats=control_stats, check_stats=check_stats,
-        n_control=n_ctrl, n_outliers=int(sol.outlier.sum()), warnings=msgs)
+        n_control=n_ctrl, n_outliers=int(sol.outlier.sum()), warnings=msgs, estimate=estimate)
+
+
+def _stats_by_role(out, usable: np.ndarray, control: np.ndarray) -> Dict[str, Any]:
+    """:func:`gdal_gf4cal.stats.accuracy_by_role` of the usable rows of the output table, with ``n`` (points in
+    the statistics, outliers left out) at the top of each role for the printers (METHODS §6)."""
+    from .stats import accuracy_by_role
+    import pandas as pd
+    tab = pd.DataFrame({"role": np.where(control, "control", "check")[usable],
+                        "outlier": out["outlier"].to_numpy(bool)[usable]})
+    for c in ("res_sample_before", "res_line_before", "res_sample_after", "res_line_after"):
+        tab[c] = out[c].to_numpy(float)[usable]
+    rep = accuracy_by_role(tab)
+    for entry in rep.values():
+        entry["n"] = int(entry["after"]["n"])
+    return rep
+
+
+def _estimate(cam, cov_raw, sigma0, dof, cond, iterations, msgs, out, base_w, ctrl, c_idx, wr, q_c):
+    """:class:`gdal_gf4cal.estimation.Estimate` of a look-angle calibration (METHODS §4, §5): blocks ``x``
+    (``a0..a9``) and ``y`` (``b0..b9``, raw units), residuals ``measured - predicted`` after, interleaved (sample,
+    line) per GCP; weights ``1/sigma^2`` x robust factor (0: left out or not a control point); redundancy numbers
+    ``1 - w a N^-1 a`` of the final linearisation."""
+    from .estimation import Estimate
+    n = len(out)
+    res = np.stack([out["res_sample_after"].to_numpy(float), out["res_line_after"].to_numpy(float)], axis=1)
+    w = np.zeros((n, 2))
+    w[c_idx] = wr
+    red = np.zeros((n, 2))
+    red[c_idx] = np.where(wr > 0, 1.0 - wr * q_c, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm = np.where((w > 0) & (red > 1e-12), res / (max(sigma0, 1e-300) * np.sqrt(red / np.where(w > 0, w, 1.0))),
+                        np.nan)
+    names = [f"a{i}" for i in range(10)] + [f"b{i}" for i in range(10)]
+    return Estimate(names=names, x=np.concatenate([np.asarray(cam.x, float), np.asarray(cam.y, float)]),
+                    cov=cov_raw, sigma0=float(sigma0), dof=int(dof), redundancy=red.ravel(), residuals=res.ravel(),
+                    normalised=norm.ravel(), weights=w.ravel(), blocks={"x": slice(0, 10), "y": slice(10, 20)},
+                    outlier=out["outlier"].to_numpy(bool), outlier_level=out["outlier_level"].to_numpy(str),
+                    condition_number=float(cond), iterations=int(iterations), warnings=list(msgs))
 
 
 def calibrate_lookangle_rigorous(model, gcps, current=None, **kwargs) -> LookAngleCalibration:
