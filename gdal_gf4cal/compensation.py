@@ -28,6 +28,7 @@ import numpy as np
 
 from .basis import detector_terms, monomial_derivatives, monomials, term_name
 from .errors import DegenerateGeometryError, GCPError
+from .geodesy import radii_of_curvature
 from .sensor import GDAL_PIXEL_OFFSET, SensorModelMixin, pixel_shift
 
 __all__ = [
@@ -46,9 +47,6 @@ _BASE_TERMS = {
     "affine": (((0, 0), (1, 0), (0, 1)), ((0, 0), (1, 0), (0, 1))),
     "poly2": (((0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2)),) * 2,
 }
-
-_SEMI_MAJOR = 6378137.0
-_E2 = 6.69437999014e-3
 
 
 @dataclass(frozen=True)
@@ -400,9 +398,7 @@ def ground_offsets_m(rpc, lon, lat, h, dsample, dline) -> Tuple[np.ndarray, np.n
     with np.errstate(all="ignore"):
         dll = np.linalg.solve(jac, rhs)[..., 0]
     phi = np.radians(lat)
-    w = np.sqrt(1.0 - _E2 * np.sin(phi) ** 2)
-    rn = _SEMI_MAJOR / w
-    rm = _SEMI_MAJOR * (1.0 - _E2) / w ** 3
+    rn, rm = radii_of_curvature(lat)
     east = np.radians(dll[..., 0]) * (rn + h) * np.cos(phi)
     north = np.radians(dll[..., 1]) * (rm + h)
     return east, north

@@ -15,22 +15,15 @@ from typing import Any, Dict, Optional, Sequence
 import numpy as np
 
 from .errors import DegenerateGeometryError, GCPError
+from .geodesy import metres_per_degree
 from .estimation import solve_with_points
 from .progress import report as _report
 
 __all__ = ["IntersectionResult", "intersect", "ground_errors_m", "intersection_accuracy"]
 
-_A = 6378137.0
-_E2 = 6.69437999014e-3
-
-
 def _radii(lat_deg, h):
-    """Metres per degree of longitude and of latitude at ``lat`` and height ``h`` (WGS84)."""
-    phi = np.radians(lat_deg)
-    w = np.sqrt(1.0 - _E2 * np.sin(phi) ** 2)
-    rn = _A / w
-    rm = _A * (1.0 - _E2) / w ** 3
-    return np.radians(1.0) * (rn + h) * np.cos(phi), np.radians(1.0) * (rm + h)
+    """Metres per degree of longitude and of latitude (:func:`gdal_gf4cal.geodesy.metres_per_degree`)."""
+    return metres_per_degree(lat_deg, h)
 
 
 def ground_errors_m(lon, lat, h, lon_ref, lat_ref, h_ref):
