@@ -223,11 +223,11 @@ def intersection_accuracy(result: IntersectionResult, lon_true, lat_true, h_true
     e, n, u = e[ok], n[ok], u[ok]
     if not ok.any():
         return {"n": 0, "planar_rms_m": None, "height_rms_m": None, "ce90_m": None, "le90_m": None}
+    from .stats import axis_stats, ce90, le90, planar_stats
 
     def ax(x):
-        return {"mean": float(x.mean()), "rms": float(np.sqrt(np.mean(x ** 2))), "max": float(np.abs(x).max())}
+        return {k: v for k, v in axis_stats(x).items() if k in ("mean", "rms", "max")}
 
-    rad = np.hypot(e, n)
     return {"n": int(ok.sum()), "east": ax(e), "north": ax(n), "height": ax(u),
-            "planar_rms_m": float(np.sqrt(np.mean(rad ** 2))), "height_rms_m": float(np.sqrt(np.mean(u ** 2))),
-            "ce90_m": float(np.percentile(rad, 90)), "le90_m": float(np.percentile(np.abs(u), 90))}
+            "planar_rms_m": planar_stats(e, n)["rms"], "height_rms_m": axis_stats(u)["rms"],
+            "ce90_m": ce90(e, n), "le90_m": le90(u)}
