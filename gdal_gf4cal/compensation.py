@@ -28,6 +28,7 @@ import numpy as np
 
 from .basis import detector_terms, monomial_derivatives, monomials, term_name
 from .errors import DegenerateGeometryError, GCPError
+from .geodesy import radii_of_curvature
 from .sensor import GDAL_PIXEL_OFFSET, SensorModelMixin, pixel_shift
 
 __all__ = [
@@ -46,9 +47,6 @@ _BASE_TERMS = {
     "affine": (((0, 0), (1, 0), (0, 1)), ((0, 0), (1, 0), (0, 1))),
     "poly2": (((0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2)),) * 2,
 }
-
-_SEMI_MAJOR = 6378137.0
-_E2 = 6.69437999014e-3
 
 
 @dataclass(frozen=True)
@@ -400,9 +398,7 @@ def ground_offsets_m(rpc, lon, lat, h, dsample, dline) -> Tuple[np.ndarray, np.n
     with np.errstate(all="ignore"):
         dll = np.linalg.solve(jac, rhs)[..., 0]
     phi = np.radians(lat)
-    w = np.sqrt(1.0 - _E2 * np.sin(phi) ** 2)
-    rn = _SEMI_MAJOR / w
-    rm = _SEMI_MAJOR * (1.0 - _E2) / w ** 3
+    rn, rm = radii_of_curvature(lat)
     east = np.radians(dll[..., 0]) * (rn + h) * np.cos(phi)
     north = np.radians(dll[..., 1]) * (rm + h)
     return east, north
@@ -484,15 +480,13 @@ def _table(gcps):
     return tab
 
 
-def _solve_axis(a, y, w):
-    """Weighted LS: returns (coef, N^-1) for weights ``w`` (zeros drop a row)."""
-    sw = np.sqrt(w)[:, None]
-    aw = a * sw
-    n_mat = aw.T @ aw
-    n_inv = np.linalg.pinv(n_mat, rcond=1e-13, hermitian=True)
-    coef = n_inv @ (aw.T @ (y * sw[:, 0]))
-    return coef, n_inv
-
+def _solve_axis(a, y, w, prior=None) -> Tuple[np.ndarray, np.ndarray, Any]:
+    """Weighted LS of one axis through :func:`gdal_gf4cal.estimation.weighted_lsq` (METHODS §4): returns
+    ``(coef, N^-1, estimate)`` for weights ``w`` (zeros drop a row; their residuals are still computed and
+    normalised with the a-priori weights ``prior``)."""
+    from .estimation import weighted_lsq
+    est = weighted_lsq(a, y, w, prior=prior, apriori=True)
+    return est.x, est.cov, est
 
 def _check_rank(a_list, model: CompensationModel, n_ctrl: int, terms=None) -> float:
     """Raise DegenerateGeometryError if the control layout does not determine the model over the image.
@@ -607,11 +601,6 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
     p_s, p_l = a_s.shape[1], a_l.shape[1]
     notes: List[str] = []
 
-    def solve(weights):
-        cs, ns = _solve_axis(a_s, y_s, weights)
-        cl, nl = _solve_axis(a_l, y_l, weights)
-        return cs, ns, cl, nl
-
     used = ctrl.copy()
     iterations = 0
     redundancy_min = n_ctrl - max(p_s, p_l)
@@ -635,7 +624,10 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
             if used.sum() < model.min_gcps:
                 used = ctrl.copy()
                 break
-            norm_s, norm_l, *_, dof = _normalised(a_s, a_l, y_s, y_l, w0, used)
+            try:
+                norm_s, norm_l, *_, dof = _normalised(a_s, a_l, y_s, y_l, w0, used)
+            except DegenerateGeometryError:
+                break                                        # undetermined subset: handled below
             new_used = ctrl & ~_exceeds(norm_s, norm_l, outlier_threshold, dof)
             if new_used.sum() < model.min_gcps or (new_used.sum() - max(p_s, p_l)) < 1:
                 notes.append("too many GCPs look like blunders for a robust estimate; all control points kept")
@@ -727,30 +719,22 @@ def _normalised(a_s, a_l, y_s, y_l, w0, used):
     """LS on ``used``; normalised residuals of every point, a-posteriori sigma per axis, redundancy and the
     degrees of freedom ``(sample, line)`` of the sigma estimates."""
     wu = np.where(used, w0, 0.0)
-    cs, ns = _solve_axis(a_s, y_s, wu)
-    cl, nl = _solve_axis(a_l, y_l, wu)
-    vs, vl = y_s - a_s @ cs, y_l - a_l @ cl
-    n_used = int(used.sum())
-    red_s, red_l = n_used - a_s.shape[1], n_used - a_l.shape[1]
-    # With no redundancy the a-priori sigma (weights) is all we know: sigma0 = 1.
-    sig_s = float(np.sqrt(np.sum(wu * vs ** 2) / red_s)) if red_s > 0 else 1.0
-    sig_l = float(np.sqrt(np.sum(wu * vl ** 2) / red_l)) if red_l > 0 else 1.0
+    cs, ns, est_s = _solve_axis(a_s, y_s, wu, w0)
+    cl, nl, est_l = _solve_axis(a_l, y_l, wu, w0)
+    vs, vl = est_s.residuals, est_l.residuals
+    red_s, red_l = est_s.dof, est_l.dof
+    # With no redundancy the a-priori sigma (weights) is all we know: sigma0 = 1 (weighted_lsq's convention).
+    sig_s, sig_l = est_s.sigma0, est_l.sigma0
     dof = (red_s, red_l)
     if red_s > 0 and red_l > 0 and min(red_s, red_l) < 10:
         # Few redundant observations per axis: pool both axes for a steadier scale.
         pooled = float(np.sqrt((np.sum(wu * vs ** 2) + np.sum(wu * vl ** 2)) / (red_s + red_l)))
         sig_s = sig_l = pooled
         dof = (red_s + red_l,) * 2
-    q_s = np.einsum("ij,jk,ik->i", a_s, ns, a_s)
-    q_l = np.einsum("ij,jk,ik->i", a_l, nl, a_l)
-    # var(v) = sigma^2 (1/w - q) in the fit, sigma^2 (1/w + q) outside it.
-    qv_s = np.where(used, 1.0 / w0 - q_s, 1.0 / w0 + q_s)
-    qv_l = np.where(used, 1.0 / w0 - q_l, 1.0 / w0 + q_l)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        norm_s = np.where(qv_s > 1e-10, vs / (max(sig_s, 1e-12) * np.sqrt(np.abs(qv_s))), np.nan)
-        norm_l = np.where(qv_l > 1e-10, vl / (max(sig_l, 1e-12) * np.sqrt(np.abs(qv_l))), np.nan)
-    norm_s = np.nan_to_num(norm_s, nan=0.0)
-    norm_l = np.nan_to_num(norm_l, nan=0.0)
+    # weighted_lsq normalises with var(v) = sigma^2 (1/w - q) in the fit, sigma^2 (1/w + q) outside it; rescale
+    # from its per-axis sigma to the (possibly pooled) one.
+    norm_s = np.nan_to_num(est_s.normalised * (max(est_s.sigma0, 1e-300) / max(sig_s, 1e-12)), nan=0.0)
+    norm_l = np.nan_to_num(est_l.normalised * (max(est_l.sigma0, 1e-300) / max(sig_l, 1e-12)), nan=0.0)
     return norm_s, norm_l, cs, cl, ns, nl, sig_s, sig_l, min(red_s, red_l), dof
 
 

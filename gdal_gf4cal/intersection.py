@@ -15,22 +15,15 @@ from typing import Any, Dict, Optional, Sequence
 import numpy as np
 
 from .errors import DegenerateGeometryError, GCPError
+from .geodesy import metres_per_degree
 from .estimation import solve_with_points
 from .progress import report as _report
 
 __all__ = ["IntersectionResult", "intersect", "ground_errors_m", "intersection_accuracy"]
 
-_A = 6378137.0
-_E2 = 6.69437999014e-3
-
-
 def _radii(lat_deg, h):
-    """Metres per degree of longitude and of latitude at ``lat`` and height ``h`` (WGS84)."""
-    phi = np.radians(lat_deg)
-    w = np.sqrt(1.0 - _E2 * np.sin(phi) ** 2)
-    rn = _A / w
-    rm = _A * (1.0 - _E2) / w ** 3
-    return np.radians(1.0) * (rn + h) * np.cos(phi), np.radians(1.0) * (rm + h)
+    """Metres per degree of longitude and of latitude (:func:`gdal_gf4cal.geodesy.metres_per_degree`)."""
+    return metres_per_degree(lat_deg, h)
 
 
 def ground_errors_m(lon, lat, h, lon_ref, lat_ref, h_ref):
@@ -66,6 +59,10 @@ class IntersectionResult:
     sigma0 : ndarray (N,)
         A-posteriori RMS of weighted residuals per point (redundancy = 2 n_images - 3), NaN without redundancy.
     converged : ndarray (N,) of bool
+    redundancy : ndarray (n_images, N, 2)
+        Redundancy numbers ``1 - w a^T N^-1 a`` of the observations (0 where not observed or not converged).
+    weights : ndarray (n_images, N, 2)
+        ``1 / sigma_px^2`` of the observations (0 where not observed).
     """
 
     lon: np.ndarray
@@ -76,6 +73,29 @@ class IntersectionResult:
     cov_enu_m2: np.ndarray
     sigma0: np.ndarray
     converged: np.ndarray
+    redundancy: Optional[np.ndarray] = None
+    weights: Optional[np.ndarray] = None
+
+    def estimate(self, i: int):
+        """Point ``i`` as the one result class :class:`gdal_gf4cal.estimation.Estimate` (METHODS §4, §7).
+
+        One block ``enu`` (``east_m, north_m, up_m``): the intersection's local frame at the solution, so ``x`` is
+        zero and ``cov`` is :attr:`cov_enu_m2` ``[i]`` (a-priori, unchanged); observations are the point's
+        ``(sample, line)`` per image, in image order (``residuals`` NaN, weight 0 where an image does not see
+        it); ``sigma0`` and ``dof = 2 n_images - 3`` as in :attr:`sigma0`, normalised residuals
+        ``v / (sigma0 sqrt(r / w))``.
+        """
+        from .estimation import Estimate
+        res = self.residuals[:, i].reshape(-1)
+        w = (np.zeros_like(res) if self.weights is None else self.weights[:, i].reshape(-1))
+        red = np.zeros_like(res) if self.redundancy is None else self.redundancy[:, i].reshape(-1)
+        s0 = float(self.sigma0[i])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            norm = np.where((w > 0) & (red > 1e-12) & np.isfinite(s0),
+                            res / (s0 * np.sqrt(red / np.where(w > 0, w, 1.0))), np.nan)
+        return Estimate(names=["east_m", "north_m", "up_m"], x=np.zeros(3), cov=np.array(self.cov_enu_m2[i]),
+                        sigma0=s0, dof=int(2 * self.n_images[i] - 3), redundancy=red, residuals=res,
+                        normalised=norm, weights=w, blocks={"enu": slice(0, 3)}, iterations=0)
 
     @property
     def sigma_planar_m(self) -> np.ndarray:
@@ -172,10 +192,13 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
     fin = active & converged
     idx = np.flatnonzero(fin)
     cov = np.full((n_pts, 3, 3), np.nan)
+    redundancy = np.zeros((n_img, n_pts, 2))
     if idx.size:
         r, w, jac, _, _ = linearise(idx)
         res[:, idx] = r.reshape(idx.size, n_img, 2).transpose(1, 0, 2)
         cov[idx] = solve_with_points(jac, r, w, det_min=-1.0).cov_points
+        q = np.einsum("nri,nij,nrj->nr", jac, cov[idx], jac)
+        redundancy[:, idx] = np.where(w > 0, 1.0 - w * q, 0.0).reshape(idx.size, n_img, 2).transpose(1, 0, 2)
     with np.errstate(invalid="ignore", divide="ignore"):
         wr2 = np.nansum(wgt[..., None] * np.nan_to_num(res) ** 2, axis=(0, 2))
         red = 2 * n_obs - 3
@@ -185,7 +208,8 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
     h = np.where(fin, h, np.nan)
     _report(progress, 1.0, "intersected")
     return IntersectionResult(lon=lon, lat=lat, h=h, residuals=res, n_images=n_obs.astype(int),
-                              cov_enu_m2=cov, sigma0=sigma0, converged=fin)
+                              cov_enu_m2=cov, sigma0=sigma0, converged=fin, redundancy=redundancy,
+                              weights=np.repeat(wgt[..., None], 2, axis=2))
 
 
 def intersection_accuracy(result: IntersectionResult, lon_true, lat_true, h_true) -> Dict[str, Any]:
@@ -199,11 +223,11 @@ def intersection_accuracy(result: IntersectionResult, lon_true, lat_true, h_true
     e, n, u = e[ok], n[ok], u[ok]
     if not ok.any():
         return {"n": 0, "planar_rms_m": None, "height_rms_m": None, "ce90_m": None, "le90_m": None}
+    from .stats import axis_stats, ce90, le90, planar_stats
 
     def ax(x):
-        return {"mean": float(x.mean()), "rms": float(np.sqrt(np.mean(x ** 2))), "max": float(np.abs(x).max())}
+        return {k: v for k, v in axis_stats(x).items() if k in ("mean", "rms", "max")}
 
-    rad = np.hypot(e, n)
     return {"n": int(ok.sum()), "east": ax(e), "north": ax(n), "height": ax(u),
-            "planar_rms_m": float(np.sqrt(np.mean(rad ** 2))), "height_rms_m": float(np.sqrt(np.mean(u ** 2))),
-            "ce90_m": float(np.percentile(rad, 90)), "le90_m": float(np.percentile(np.abs(u), 90))}
+            "planar_rms_m": planar_stats(e, n)["rms"], "height_rms_m": axis_stats(u)["rms"],
+            "ce90_m": ce90(e, n), "le90_m": le90(u)}

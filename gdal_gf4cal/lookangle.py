@@ -31,7 +31,7 @@ import numpy as np
 from .basis import LOOKANGLE_POWERS, lookangle_cubic
 from .camera import CameraFormatError
 from .errors import ConvergenceError, DegenerateGeometryError, GCPError
-from .estimation import high_breakdown_start
+from .estimation import IRLSSolution, high_breakdown_start, irls, radial_huber_weights
 from .progress import report
 from .sensor import SensorModelMixin
 
@@ -56,7 +56,6 @@ WARN_CONDITION = 1e4
 
 _HUBER_C = 2.5        # radial normalised residual where Huber down-weighting starts
 _REJECT_K = 4.0       # hard rejection; P(Rayleigh > 4 sigma) = 3e-4, so ~no good point is lost
-_RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))   # median of |r|/sigma for a 2-D normal residual
 _MIN_SCALE_PX = 0.01  # floor of the robust scale in pixels (an RPC reproduces its model to ~1e-3 px)
 _MIN_ROBUST_GCPS = 20  # below this the redundancy is too small to estimate a robust scale
 #: Up to this many control GCPs the robust solve starts from the high-breakdown estimate (few GCPs, where several
@@ -196,8 +195,11 @@ class LookAngleCalibration:
         (``tan_new^-1(tan_old(s', l'))``; also as ``pred_*_after``, with ``pred_*_before`` = ``virtual_*``), ``res_sample_after, res_line_after``, ``norm_residual`` (radial residual
         / robust sigma), ``weight`` (final robust weight, 0 if rejected), ``outlier`` (bool; control and check points),
         ``outlier_level`` (``'start'``, ``'snooping'`` or ``''``).
-    control_stats, check_stats : ``{"before"|"after": {"sample"|"line": axis_stats}}``; outliers excluded;
-        ``check_stats`` is None without check points.
+    control_stats, check_stats : one role of :func:`gdal_gf4cal.stats.accuracy_by_role` (``{n_outliers,
+        before|after: {n, sample|line: {mean, rms, rmse, max}, planar, ce90_m}}``, ``ce90_m`` None) plus ``n``
+        (points in the statistics); outliers excluded; ``check_stats`` is None without check points.
+    estimate : the one result class :class:`gdal_gf4cal.estimation.Estimate` (blocks ``x``, ``y``: raw
+        coefficients; per-GCP outlier flags of control and check points, residuals after, redundancy numbers).
     """
 
     camera: Any
@@ -218,6 +220,7 @@ class LookAngleCalibration:
     n_control: int
     n_outliers: int
     warnings: List[str] = field(default_factory=list)
+    estimate: Any = None
 
     @property
     def residuals_before(self) -> np.ndarray:
@@ -278,11 +281,6 @@ class LookAngleCalibration:
 
 
 # ---------------------------------------------------------------------------------------------------- helpers
-def _axis_pair_stats(res_sample, res_line) -> Dict[str, Any]:
-    from .stats import axis_stats
-    return {"sample": axis_stats(np.asarray(res_sample, float)), "line": axis_stats(np.asarray(res_line, float))}
-
-
 def _gcp_columns(gcps):
     missing = [c for c in ("lon", "lat", "h", "sample", "line") if c not in getattr(gcps, "columns", ())]
     if missing:
@@ -301,96 +299,21 @@ def _gcp_columns(gcps):
 
 
 def _robust_weights(r: np.ndarray, sigma: np.ndarray, n_params: int):
-    """Huber weights, hard-rejection mask, robust scale and normalised radial residuals (control points).
-
-    The scale is MAD-like: the median radial residual ``|r| / sigma`` of a 2-D normal residual is
-    ``sqrt(2 ln 2)`` sigma; it is corrected for the parameters' absorption of residual degrees of freedom.
-    """
-    radial_px = np.hypot(r[:, 0], r[:, 1])
-    radial = radial_px / sigma
-    n_obs = 2 * radial.size
-    scale = float(np.median(radial)) / _RAYLEIGH_MEDIAN * math.sqrt(n_obs / max(n_obs - n_params, 1))
-    scale = max(scale, 1e-12)
-    # Residuals below the RPC's own fitting accuracy (~0.01 px) are never evidence of a blunder, however small
-    # the scale of noise-free data is.
-    z = radial_px / np.maximum(sigma * scale, _MIN_SCALE_PX)
-    w = np.where(z <= _HUBER_C, 1.0, _HUBER_C / np.maximum(z, 1e-300))
-    return w, z > _REJECT_K, scale, z
-
-
-def _solve_normal(A2: np.ndarray, w2: np.ndarray, r2: np.ndarray, hint: str) -> Tuple[np.ndarray, np.ndarray]:
-    """Weighted least squares ``min |sqrt(w) (r + A delta)|``: returns delta and the normal matrix (column-scaled
-    solve for conditioning)."""
-    Aw = A2 * w2[:, None]
-    N = Aw.T @ A2
-    b = Aw.T @ r2
-    d = np.sqrt(np.diag(N))
-    if not np.all(d > 0):
-        raise DegenerateGeometryError(f"condition number inf: {hint}")
-    try:
-        delta = -np.linalg.solve(N / d[:, None] / d[None, :], b / d) / d
-    except np.linalg.LinAlgError:
-        raise DegenerateGeometryError(f"condition number inf (singular normal matrix): {hint}") from None
-    return delta, N
-
-
-@dataclass
-class _RobustSolution:
-    delta: np.ndarray
-    N: np.ndarray
-    weights: np.ndarray      # robust factor per point (0 = rejected)
-    outlier: np.ndarray
-    scale: float
-    z: np.ndarray
-    steps: int
+    """Huber weights, rejection mask, radial robust scale and normalised radial residuals of control points:
+    :func:`gdal_gf4cal.estimation.radial_huber_weights` with this module's constants (METHODS §5 step 3)."""
+    return radial_huber_weights(r, sigma, n_params, huber_c=_HUBER_C, reject_k=_REJECT_K, min_scale=_MIN_SCALE_PX)
 
 
 def _robust_solve(A: np.ndarray, r0: np.ndarray, w_base: np.ndarray, sigma: np.ndarray, robust: bool,
                   hint: str, tol_px: float = 1e-6, max_steps: int = 100,
-                  start_out: Optional[np.ndarray] = None) -> _RobustSolution:
-    """Solve the linearised problem ``r(delta) = r0 + A delta`` (pixels) by IRLS.
-
-    Phase 1: Huber reweighting (bounded influence, no rejection) to convergence, so the scale and residuals are
-    not distorted by the blunders' pull on a plain least-squares fit; the points ``start_out`` of the
-    high-breakdown start (:func:`gdal_gf4cal.estimation.high_breakdown_start`) are left out of it. Phase 2: hard
-    rejection at 4 robust sigmas of every point (start points are re-admitted when they fit), Huber on the rest,
-    until the outlier set is stable and the solution no longer moves (METHODS §5 step 3).
-    """
-    n = r0.shape[0]
-    A2 = A.reshape(2 * n, -1)
-    r2 = r0.reshape(2 * n)
-    keep = np.ones(n) if start_out is None or not robust else np.where(start_out, 0.0, 1.0)
-    rw = keep.copy()
-    delta, N = _solve_normal(A2, (w_base * rw[:, None]).reshape(-1), r2, hint)
-    outlier = np.zeros(n, bool)
-    z = np.full(n, np.nan)
-    scale = float("nan")
-    steps = 1
-    if not robust:
-        return _RobustSolution(delta, N, rw, outlier, scale, z, steps)
-    phase = 1
-    for _ in range(max_steps):
-        r = r0 + np.einsum("nij,j->ni", A, delta)
-        hub, out, scale, z = _robust_weights(r, sigma, A.shape[-1])
-        if phase == 1:
-            out = np.zeros(n, bool)
-            hub = hub * keep
-        rw_new = np.where(out, 0.0, hub)
-        if int((~out).sum()) < MIN_GCPS:
-            raise GCPError(f"only {int((~out).sum())} control GCPs left after rejecting outliers; the GCPs are "
-                           "inconsistent (check the camera file and the RPC belong to this scene)")
-        new_delta, N = _solve_normal(A2, (w_base * rw_new[:, None]).reshape(-1), r2, hint)
-        steps += 1
-        change = float(np.max(np.abs(np.einsum("nij,j->ni", A, new_delta - delta))))
-        stable = np.array_equal(out, outlier)
-        delta, rw, outlier = new_delta, rw_new, out
-        if change < tol_px and stable:
-            if phase == 2:
-                break
-            phase = 2
-    r = r0 + np.einsum("nij,j->ni", A, delta)
-    _, _, scale, z = _robust_weights(r, sigma, A.shape[-1])
-    return _RobustSolution(delta, N, rw, outlier, scale, z, steps)
+                  start_out: Optional[np.ndarray] = None) -> IRLSSolution:
+    """Solve the linearised problem ``r(delta) = r0 + A delta`` (pixels) by the core's IRLS
+    (:func:`gdal_gf4cal.estimation.irls`, ``A delta ~ -r0``): Huber to convergence with the high-breakdown start's
+    points ``start_out`` left out, then hard rejection at 4 robust sigmas (METHODS §5 step 3). ``.x`` is delta."""
+    return irls(A, -r0, w_base, lambda v: _robust_weights(v, sigma, A.shape[-1]), robust=robust,
+                start_out=start_out, min_points=MIN_GCPS, tol=tol_px, max_steps=max_steps, hint=hint,
+                too_few=" (control GCPs); the GCPs are inconsistent (check the camera file and the RPC belong to "
+                        "this scene)")
 
 
 # ---------------------------------------------------------------------------------------------------- calibrate
@@ -506,12 +429,12 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
             inl, _, _ = high_breakdown_start(A, -r0, w_c, min_points=10)
             start_out = ~inl if inl.sum() > 10 else np.zeros(n_ctrl, bool)
         sol = _robust_solve(A, r0, w_c, sig_c, use_robust, hint, start_out=start_out)
-        alpha = alpha + sol.delta
+        alpha = alpha + sol.x
         cam = camera_of(alpha)
-        step = float(np.max(np.abs(np.einsum("nij,j->ni", A, sol.delta))))
-        r_lin = r0 + np.einsum("nij,j->ni", A, sol.delta)
+        step = float(np.max(np.abs(np.einsum("nij,j->ni", A, sol.x))))
+        r_lin = r0 + np.einsum("nij,j->ni", A, sol.x)
         good = ~sol.outlier
-        corrections.append(np.concatenate([to_raw @ sol.delta[:10], to_raw @ sol.delta[10:]]))
+        corrections.append(np.concatenate([to_raw @ sol.x[:10], to_raw @ sol.x[10:]]))
         correction_px.append(step)
         history.append({"iteration": iteration, "max_correction_px": step,
                         "rms_px": float(np.sqrt(np.mean(r_lin[good] ** 2))),
@@ -584,20 +507,15 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
         level[k_idx[bad]] = "snooping"
     out["outlier"] = outlier
     out["outlier_level"] = level.astype(str)
-    good_full = ctrl & ~out["outlier"].to_numpy(bool)
-    control_stats = {
-        "before": _axis_pair_stats(out["res_sample_before"][good_full], out["res_line_before"][good_full]),
-        "after": _axis_pair_stats(out["res_sample_after"][good_full], out["res_line_after"][good_full]),
-        "n": int(good_full.sum()),
-    }
-    check_stats = None
-    if check.any():
-        good_chk = check & ~outlier                      # flagged check points are left out, as for control points
-        check_stats = {
-            "before": _axis_pair_stats(out["res_sample_before"][good_chk], out["res_line_before"][good_chk]),
-            "after": _axis_pair_stats(out["res_sample_after"][good_chk], out["res_line_after"][good_chk]),
-            "n": int(good_chk.sum()), "n_outliers": int((check & outlier).sum()),
-        }
+    # The one accuracy-report shape (gdal_gf4cal.stats.accuracy_by_role) over the usable points; flagged points
+    # are left out of before and after. ``n`` (points in the statistics) is kept at the top for the printers.
+    by_role = _stats_by_role(out, usable, control)
+    control_stats = by_role["control"]
+    check_stats = by_role["check"] if check.any() else None
+    # The one result class: coefficients [a0..a9, b0..b9] (raw), per-observation diagnostics interleaved (s, l).
+    n_inv_norm = cov_norm / (sigma0 ** 2 if dof > 0 else 1.0)
+    q_c = np.einsum("ij,jk,ik->i", A2, n_inv_norm, A2).reshape(-1, 2)
+    estimate = _estimate(cam, cov_raw, sigma0, dof, cond, iteration, msgs, out, base_w, ctrl, c_idx, wr, q_c)
     report(progress, 1.0, "look-angle calibration done")
     name = getattr(current, "name", "") or ""
     cam = _with_coefficients(current, cam.x, cam.y, name=(f"{name} recalibrated" if name else "recalibrated"))
@@ -606,7 +524,45 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
         corrections=np.array(corrections), correction_px=np.array(correction_px), history=history,
         covariance=cov_raw, covariance_normalised=cov_norm, sigma0=sigma0, robust_sigma_px=float(scale),
         condition_number=cond, gcps=out, control_stats=control_stats, check_stats=check_stats,
-        n_control=n_ctrl, n_outliers=int(sol.outlier.sum()), warnings=msgs)
+        n_control=n_ctrl, n_outliers=int(sol.outlier.sum()), warnings=msgs, estimate=estimate)
+
+
+def _stats_by_role(out, usable: np.ndarray, control: np.ndarray) -> Dict[str, Any]:
+    """:func:`gdal_gf4cal.stats.accuracy_by_role` of the usable rows of the output table, with ``n`` (points in
+    the statistics, outliers left out) at the top of each role for the printers (METHODS §6)."""
+    from .stats import accuracy_by_role
+    import pandas as pd
+    tab = pd.DataFrame({"role": np.where(control, "control", "check")[usable],
+                        "outlier": out["outlier"].to_numpy(bool)[usable]})
+    for c in ("res_sample_before", "res_line_before", "res_sample_after", "res_line_after"):
+        tab[c] = out[c].to_numpy(float)[usable]
+    rep = accuracy_by_role(tab)
+    for entry in rep.values():
+        entry["n"] = int(entry["after"]["n"])
+    return rep
+
+
+def _estimate(cam, cov_raw, sigma0, dof, cond, iterations, msgs, out, base_w, ctrl, c_idx, wr, q_c):
+    """:class:`gdal_gf4cal.estimation.Estimate` of a look-angle calibration (METHODS §4, §5): blocks ``x``
+    (``a0..a9``) and ``y`` (``b0..b9``, raw units), residuals ``measured - predicted`` after, interleaved (sample,
+    line) per GCP; weights ``1/sigma^2`` x robust factor (0: left out or not a control point); redundancy numbers
+    ``1 - w a N^-1 a`` of the final linearisation."""
+    from .estimation import Estimate
+    n = len(out)
+    res = np.stack([out["res_sample_after"].to_numpy(float), out["res_line_after"].to_numpy(float)], axis=1)
+    w = np.zeros((n, 2))
+    w[c_idx] = wr
+    red = np.zeros((n, 2))
+    red[c_idx] = np.where(wr > 0, 1.0 - wr * q_c, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm = np.where((w > 0) & (red > 1e-12), res / (max(sigma0, 1e-300) * np.sqrt(red / np.where(w > 0, w, 1.0))),
+                        np.nan)
+    names = [f"a{i}" for i in range(10)] + [f"b{i}" for i in range(10)]
+    return Estimate(names=names, x=np.concatenate([np.asarray(cam.x, float), np.asarray(cam.y, float)]),
+                    cov=cov_raw, sigma0=float(sigma0), dof=int(dof), redundancy=red.ravel(), residuals=res.ravel(),
+                    normalised=norm.ravel(), weights=w.ravel(), blocks={"x": slice(0, 10), "y": slice(10, 20)},
+                    outlier=out["outlier"].to_numpy(bool), outlier_level=out["outlier_level"].to_numpy(str),
+                    condition_number=float(cond), iterations=int(iterations), warnings=list(msgs))
 
 
 def calibrate_lookangle_rigorous(model, gcps, current=None, **kwargs) -> LookAngleCalibration:

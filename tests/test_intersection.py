@@ -123,3 +123,23 @@ def test_cli_intersect_wide_and_long_csv(pair, tmp_path, capsys):
     assert "5 of 5 points intersected" in text and text.count("\n") >= 8
     assert main(["intersect", "--rpc", str(LEFT), "--points", str(long)]) == 2
     assert "at least 2" in capsys.readouterr().err
+
+
+def test_estimate_view_of_a_point(pair):
+    """Issue 10: IntersectionResult.estimate(i) is the one result class; covariance and sigma0 unchanged."""
+    from gdal_gf4cal.estimation import Estimate
+    rng = np.random.default_rng(3)
+    lon, lat, h = ground_points(pair[0], 50, rng)
+    sigma = 0.5
+    pts = np.stack([np.column_stack(m.project(lon, lat, h)) for m in pair]) + rng.normal(0, sigma, (2, 50, 2))
+    res = intersect(pair, pts, sigma_px=sigma)
+    est = res.estimate(7)
+    assert isinstance(est, Estimate) and est.names == ["east_m", "north_m", "up_m"]
+    np.testing.assert_array_equal(est.cov, res.cov_enu_m2[7])
+    assert est.sigma0 == res.sigma0[7] and est.dof == 1
+    np.testing.assert_array_equal(est.residuals, res.residuals[:, 7].ravel())
+    np.testing.assert_allclose(est.weights, 1.0 / sigma ** 2)
+    # 4 observations, 3 unknowns: the redundancy numbers add up to 1 for every point
+    np.testing.assert_allclose(res.redundancy.sum(axis=(0, 2)), 1.0, atol=1e-9)
+    # one redundant observation: every normalised residual has the same magnitude, 1 (w-test with dof 1)
+    np.testing.assert_allclose(np.abs(est.normalised), 1.0, rtol=1e-6)

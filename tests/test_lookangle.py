@@ -372,3 +372,25 @@ def test_check_point_blunders_are_flagged_and_left_out_of_the_check_statistics(s
     assert np.flatnonzero(res.outliers).tolist() == [110, 120]
     assert res.check_stats["n"] == 48 and res.check_stats["n_outliers"] == 2
     assert res.check_stats["after"]["line"]["rms"] <= 1.3 * 0.3
+
+
+def test_estimate_is_the_one_result_class(scene):
+    """Issue 10: LookAngleCalibration.estimate (METHODS §4, §5) agrees with the calibration's own numbers."""
+    from gdal_gf4cal.estimation import Estimate
+    gcps, _ = make_gcps(scene["m_true"], 150, 0.3, seed=9)
+    gcps.loc[100:, "role"] = "check"
+    gcps.loc[[110, 120], "line"] += 30.0
+    res = calibrate_lookangle(scene["rpc"], gcps, scene["current"])
+    est = res.estimate
+    assert isinstance(est, Estimate)
+    np.testing.assert_array_equal(est.block("x"), res.camera.x)
+    np.testing.assert_array_equal(est.block("y"), res.camera.y)
+    np.testing.assert_allclose(est.std, res.coefficient_std)
+    assert est.sigma0 == res.sigma0 and 0.8 < est.sigma0 < 1.2         # GCP noise 0.3 px, sigma 0.3 px
+    assert np.flatnonzero(est.outlier).tolist() == [110, 120]
+    # check points carry no weight; the redundancy numbers of the control observations add up to the dof
+    assert np.all(est.weights.reshape(-1, 2)[100:] == 0)
+    assert est.redundancy.sum() == pytest.approx(est.dof, abs=1e-6)
+    assert est.dof == 2 * 100 - 20
+    # the one report shape: before/after per role, with planar statistics
+    assert res.check_stats["after"]["planar"]["n"] == 48 and res.control_stats["n_outliers"] == 0

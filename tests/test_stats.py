@@ -61,3 +61,16 @@ def test_accuracy_by_role_is_the_one_report_shape():
     assert rep["check"]["after"]["ce90_m"] == pytest.approx(10.0)
     assert rep["check"]["after"]["sample"] == {"mean": 0.0, "rms": 3.0, "std": 3.0, "max": 3.0}
     assert rep["control"]["after"]["line"]["max"] == 0.0
+
+
+def test_one_geodesy_helper_gives_the_wgs84_radii():
+    """Issue 10: one set of ellipsoid radii (gdal_gf4cal.geodesy), used by compensation and intersection."""
+    from gdal_gf4cal import geodesy
+    from gdal_gf4cal.simulate import geodesy as sim_geodesy
+    rn, rm = geodesy.radii_of_curvature([0.0, 90.0])
+    # equator: N = a, M = a (1 - e^2) = b^2 / a; pole: N = M = a^2 / b
+    np.testing.assert_allclose(rn, [6378137.0, 6378137.0 ** 2 / 6356752.314245], rtol=1e-12)
+    np.testing.assert_allclose(rm, [6356752.314245 ** 2 / 6378137.0, 6378137.0 ** 2 / 6356752.314245], rtol=1e-12)
+    mx, my = geodesy.metres_per_degree(0.0, 0.0)
+    assert mx == pytest.approx(111319.4908, abs=1e-3) and my == pytest.approx(np.radians(1.0) * 6356752.314245 ** 2 / 6378137.0, abs=1e-4)
+    assert sim_geodesy.WGS84_A is geodesy.WGS84_A and sim_geodesy.WGS84_E2 is geodesy.WGS84_E2

@@ -8,9 +8,9 @@ pan-MS registration next) goes through :func:`weighted_lsq` / :func:`solve_with_
 from __future__ import annotations
 
 from .result import Estimate
-from .lsq import Block, weighted_lsq
+from .lsq import Block, normal_solve, weighted_lsq
 from .schur import solve_with_points
-from .robust import critical_value, high_breakdown_start, robust_lsq
+from .robust import IRLSSolution, critical_value, high_breakdown_start, irls, radial_huber_weights, robust_lsq
 
 __all__ = ["Estimate", "Block", "weighted_lsq", "solve_with_points", "critical_value", "high_breakdown_start",
-           "robust_lsq"]
+           "robust_lsq", "normal_solve", "irls", "IRLSSolution", "radial_huber_weights"]

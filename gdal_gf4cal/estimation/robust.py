@@ -21,6 +21,7 @@ whole.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from functools import lru_cache
 from itertools import combinations
 from typing import List, Optional, Sequence, Tuple
@@ -294,3 +295,107 @@ def robust_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), froze
     est.outlier, est.outlier_level, est.iterations = outlier, level, it
     est.notes.extend(notes)
     return est
+
+
+#: Median of ``|r| / sigma`` for a 2-D normal residual (Rayleigh), the consistency factor of the radial scale.
+RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
+
+
+def radial_huber_weights(res, sigma, n_params: int, *, huber_c: float = 2.5, reject_k: float = 4.0,
+                         min_scale: float = 0.01):
+    """Radial (2-D) robust scale and Huber weights of per-point residual pairs (METHODS §5 step 3, §6).
+
+    The scale is MAD-like: the median radial residual ``|r| / sigma`` of a 2-D normal residual is
+    ``sqrt(2 ln 2)`` sigma; it is corrected for the parameters' absorption of residual degrees of freedom.
+    Residuals below ``min_scale`` (e.g. an RPC's own fitting accuracy, px) are never evidence of a blunder.
+
+    Parameters
+    ----------
+    res : ndarray (n_points, 2)
+    sigma : ndarray (n_points,)
+        A-priori standard deviation of each point.
+
+    Returns
+    -------
+    (weights (n,), reject (n,) bool: beyond ``reject_k``, scale: float, z (n,): radial residual / robust sigma)
+    """
+    r = np.asarray(res, dtype=float)
+    radial_px = np.hypot(r[:, 0], r[:, 1])
+    radial = radial_px / sigma
+    n_obs = 2 * radial.size
+    scale = float(np.median(radial)) / RAYLEIGH_MEDIAN * math.sqrt(n_obs / max(n_obs - n_params, 1))
+    scale = max(scale, 1e-12)
+    z = radial_px / np.maximum(sigma * scale, min_scale)
+    w = np.where(z <= huber_c, 1.0, huber_c / np.maximum(z, 1e-300))
+    return w, z > reject_k, scale, z
+
+
+@dataclass
+class IRLSSolution:
+    """Result of :func:`irls`: parameters ``x``, normal matrix ``N`` (a-priori weights x robust factors), the robust
+    factor per point (0 = rejected), ``outlier`` flags, the robust ``scale``, ``z`` (normalised residuals of the
+    weight function) and the number of solves ``steps``."""
+
+    x: np.ndarray
+    N: np.ndarray
+    weights: np.ndarray
+    outlier: np.ndarray
+    scale: float
+    z: np.ndarray
+    steps: int
+
+
+def irls(design, obs, weights, weight_fn, *, x0=None, robust: bool = True, start_out=None, min_points: int = 1,
+         tol: float = 1e-6, max_steps: int = 100, hint: str = "", too_few: str = "") -> IRLSSolution:
+    """Iteratively reweighted LS over points with a weight function (METHODS §4, §5 step 3).
+
+    ``design`` (n, k, p), ``obs`` and ``weights`` (n, k); ``weight_fn(residuals (n, k)) -> (w, reject, scale, z)``
+    (e.g. :func:`radial_huber_weights`). Phase 1: the weight function's down-weighting without rejection (points
+    ``start_out`` of :func:`high_breakdown_start` left out) to convergence; phase 2: rejection too (start points
+    re-admitted when they fit), until the rejected set is stable and the fit moves less than ``tol``.
+    Each solve is :func:`~gdal_gf4cal.estimation.lsq.normal_solve`.
+
+    Raises
+    ------
+    GCPError
+        Fewer than ``min_points`` points left (``too_few`` is the message's hint).
+    """
+    from ..errors import GCPError
+    from .lsq import normal_solve
+    a = np.asarray(design, dtype=float)
+    n = a.shape[0]
+    a2 = a.reshape(n * a.shape[1], -1)
+    y = np.asarray(obs, dtype=float)
+    y2 = y.reshape(-1)
+    w_base = np.asarray(weights, dtype=float)
+    keep = np.ones(n) if start_out is None or not robust else np.where(start_out, 0.0, 1.0)
+    rw = keep.copy()
+    x, nmat = normal_solve(a2, y2, (w_base * rw[:, None]).reshape(-1), hint)
+    outlier = np.zeros(n, bool)
+    z = np.full(n, np.nan)
+    scale = float("nan")
+    steps = 1
+    if not robust:
+        return IRLSSolution(x, nmat, rw, outlier, scale, z, steps)
+    phase = 1
+    for _ in range(max_steps):
+        v = y - np.einsum("nij,j->ni", a, x)
+        fw, out, scale, z = weight_fn(v)
+        if phase == 1:
+            out = np.zeros(n, bool)
+            fw = fw * keep
+        rw_new = np.where(out, 0.0, fw)
+        if int((~out).sum()) < min_points:
+            raise GCPError(f"only {int((~out).sum())} points left after rejecting outliers{too_few}")
+        new_x, nmat = normal_solve(a2, y2, (w_base * rw_new[:, None]).reshape(-1), hint)
+        steps += 1
+        change = float(np.max(np.abs(np.einsum("nij,j->ni", a, new_x - x))))
+        stable = np.array_equal(out, outlier)
+        x, rw, outlier = new_x, rw_new, out
+        if change < tol and stable:
+            if phase == 2:
+                break
+            phase = 2
+    v = y - np.einsum("nij,j->ni", a, x)
+    _, _, scale, z = weight_fn(v)
+    return IRLSSolution(x, nmat, rw, outlier, scale, z, steps)

@@ -35,6 +35,7 @@ from typing import Any, Dict
 import numpy as np
 
 from ..progress import report as _report
+from ..stats import axis_stats
 
 #: The paper's Tables 1-2 (px): model -> role -> axis -> (rms, max); along-track not given for the polynomials.
 PAPER = {
@@ -56,10 +57,9 @@ N_BINS = 8
 
 
 def _rms_max(x) -> Dict[str, float]:
-    x = np.asarray(x, dtype=float)
-    x = x[np.isfinite(x)]
-    return {"rms": float(np.sqrt(np.mean(x ** 2))), "max": float(np.max(np.abs(x)))} if x.size else \
-        {"rms": float("nan"), "max": float("nan")}
+    """``{rms, max}`` (px) of one axis, :func:`gdal_gf4cal.stats.axis_stats` (NaN ignored; NaN when empty)."""
+    st = axis_stats(x)
+    return {"rms": st["rms"], "max": st["max"]}
 
 
 def _table(res_s, res_l, role) -> Dict[str, Any]:

@@ -8,10 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-WGS84_A = 6378137.0
-WGS84_F = 1.0 / 298.257223563
-WGS84_B = WGS84_A * (1.0 - WGS84_F)
-WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
+from ..geodesy import WGS84_A, WGS84_B, WGS84_E2, WGS84_F  # noqa: F401  (the one set of ellipsoid constants)
 WGS84_EP2 = WGS84_E2 / (1.0 - WGS84_E2)
 GM_EARTH = 3.986004418e14          # m^3 s^-2
 OMEGA_EARTH = 7.2921151467e-5      # rad s^-1 (sidereal rotation rate)
