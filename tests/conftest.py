@@ -84,7 +84,6 @@ def _plane_dem(path, model, relief_m: float = 40.0):
 @pytest.fixture(scope="session", params=SENSOR_MODELS)
 def sensor_model(request, tmp_path_factory, ventoux_rpc_path, srtm_path):
     """``(name, model, dem, size)``: one model of each kind with a DEM under its footprint and its image size."""
-    import numpy as np
     from gdal_gf4cal.compensation import CompensatedRPC, CompensationModel, CompensationResult
     from gdal_gf4cal.dem import DEM
     from gdal_gf4cal.lookangle import RecalibratedSensor

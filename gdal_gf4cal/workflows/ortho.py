@@ -57,7 +57,7 @@ def write_ellipsoidal_dem(dem_path: str, grid: str, bounds_lonlat, out_path: str
     Same grid as the source (a pixel window of it), ``h = H + N(lon, lat)`` at each pixel centre with ``N`` from
     the geoid ``grid`` (PROJ ``vgridshift``), float32, no-data -9999, the source's horizontal CRS only.
     """
-    from osgeo import gdal, osr
+    from osgeo import gdal
     import pyproj
     from ..dem import _geoid_transformer
     from .._gdal import open_raster
