@@ -4,8 +4,6 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import numpy as np
-import pandas as pd
 import pytest
 
 DATA = Path(__file__).parent / "data"
@@ -114,39 +112,8 @@ def sensor_model(request, tmp_path_factory, ventoux_rpc_path, srtm_path):
     return name, model, _plane_dem(tmp / "dem.tif", model), tuple(model.size)
 
 
-# ------------------------------------------------------------------------------------------ seeded GCP sets
-def gcps_from_truth(truth, n, *, size, heights, sigma_px=0.5, seed=0, n_control=None, blunder_fraction=0.0,
-                    blunder_px=(10.0, 50.0), layout=None, id_prefix="g"):
-    """The one GCP simulator of the tests: ``n`` true image points spread over ``size`` (W, H) (uniformly, or
-    ``layout(rng, n) -> (s, l)``), heights uniform in ``heights``, ground = ``truth.localize`` (any sensor model
-    with the contract of gdal_gf4cal.sensor), measured with Gaussian noise ``sigma_px`` per axis; the first
-    ``n_control`` are control, the rest check (default: all control); a seeded share ``blunder_fraction`` of the
-    points is moved by ``blunder_px`` (uniform magnitude range, random direction). Returns ``(table, blunder)``:
-    a DataFrame of the GCP schema with ``truth_sample, truth_line``, and the boolean blunder mask."""
-    rng = np.random.default_rng(seed)
-    if layout is None:
-        s, l = rng.uniform(0, size[0], n), rng.uniform(0, size[1], n)
-    else:
-        s, l = layout(rng, n)
-    h = rng.uniform(heights[0], heights[1], n)
-    lon, lat = truth.localize(s, l, h)
-    assert np.all(np.isfinite(lon)) and np.all(np.isfinite(lat)), "the truth model does not localise every GCP"
-    ms, ml = s + rng.normal(0, sigma_px, n), l + rng.normal(0, sigma_px, n)
-    blunder = np.zeros(n, bool)
-    if blunder_fraction:
-        idx = rng.choice(n, int(round(blunder_fraction * n)), replace=False)
-        mag, ang = rng.uniform(*blunder_px, idx.size), rng.uniform(0, 2 * np.pi, idx.size)
-        ms[idx] += mag * np.cos(ang)
-        ml[idx] += mag * np.sin(ang)
-        blunder[idx] = True
-    n_control = n if n_control is None else n_control
-    table = pd.DataFrame({"id": [f"{id_prefix}{i}" for i in range(n)], "lon": lon, "lat": lat, "h": h,
-                          "sample": ms, "line": ml, "role": np.where(np.arange(n) < n_control, "control", "check"),
-                          "sigma": max(float(sigma_px), 1e-3), "truth_sample": s, "truth_line": l})
-    return table, blunder
-
-
 @pytest.fixture(scope="session")
 def simulate_gcps():
-    """:func:`gcps_from_truth`, the shared seeded GCP simulator, as a fixture."""
+    """:func:`gcpsim.gcps_from_truth`, the shared seeded GCP simulator, as a fixture."""
+    from gcpsim import gcps_from_truth
     return gcps_from_truth

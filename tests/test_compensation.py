@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from gcpsim import gcps_from_truth
 from gdal_gf4cal import DegenerateGeometryError, GCPError, InputOverwriteError, RPCModel
 from gdal_gf4cal.compensation import (CompensatedRPC, CompensationModel, CompensationResult, apply_compensation,
                                       fit_compensation)
@@ -51,17 +52,10 @@ def true_model(rpc, key):
 
 
 def simulate_gcps(truth, rpc, n, sigma, rng, n_control):
-    """GCPs spread over the image: ground by localising random image points through the truth."""
-    w, h = rpc.image_size
-    s = rng.uniform(0, w, n)
-    l = rng.uniform(0, h, n)
-    hh = rng.uniform(*rpc.height_range, n)
-    lon, lat = truth.localize(s, l, hh)
-    assert np.all(np.isfinite(lon))
-    return pd.DataFrame({"id": [f"g{i}" for i in range(n)], "lon": lon, "lat": lat, "h": hh,
-                         "sample": s + rng.normal(0, sigma, n), "line": l + rng.normal(0, sigma, n),
-                         "role": np.where(np.arange(n) < n_control, "control", "check"), "truth_sample": s,
-                         "truth_line": l})
+    """GCPs spread over the image: ground by localising random image points through the truth (conftest)."""
+    table, _ = gcps_from_truth(truth, n, size=rpc.image_size, heights=rpc.height_range, sigma_px=sigma, seed=rng,
+                               n_control=n_control, with_sigma=False)
+    return table
 
 
 def dense_grid(rpc, truth, n=25):

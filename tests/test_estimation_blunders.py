@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from gcpsim import gcps_from_truth
 from gdal_gf4cal import RPCModel
 from gdal_gf4cal.cli import main
 from gdal_gf4cal.compensation import CompensatedRPC, CompensationResult
@@ -34,15 +35,11 @@ def truth():
 
 def _gcps(truth, n_control: int, seed: int) -> pd.DataFrame:
     rpc, true_model = truth
-    rng = np.random.default_rng(seed)
-    w, h_px = rpc.image_size
-    m = n_control + N_CHECK
-    s, l = rng.uniform(0, w, m), rng.uniform(0, h_px, m)
-    h = rng.uniform(float(rpc.height_off) - 50, float(rpc.height_off) + 50, m)
-    lon, lat = true_model.localize(s, l, h)
-    return pd.DataFrame({"id": [f"G{i:02d}" for i in range(m)], "lon": lon, "lat": lat, "h": h,
-                         "sample": s + rng.normal(0, NOISE_PX, m), "line": l + rng.normal(0, NOISE_PX, m),
-                         "role": ["control"] * n_control + ["check"] * N_CHECK})
+    h0 = float(rpc.height_off)
+    table, _ = gcps_from_truth(true_model, n_control + N_CHECK, size=rpc.image_size, heights=(h0 - 50, h0 + 50),
+                               sigma_px=NOISE_PX, seed=seed, n_control=n_control, with_sigma=False)
+    table["id"] = [f"G{i:02d}" for i in range(len(table))]
+    return table
 
 
 def _refine(tab: pd.DataFrame, tmp_path: Path, name: str, capsys=None) -> dict:

@@ -7,9 +7,9 @@ measured with the *true* camera (yaw of ~10 px at the edge, radial distortion of
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 import pytest
 
+from gcpsim import gcps_from_truth
 from gdal_gf4cal.camera import LookAngleModel
 from gdal_gf4cal.errors import CancelledError, DegenerateGeometryError, GCPError
 from gdal_gf4cal.lookangle import (LookAngleConditionWarning, RecalibratedSensor, _Frame, calibrate_lookangle,
@@ -53,25 +53,10 @@ def make_cameras():
 
 
 def make_gcps(true_model, n, sigma, seed, layout=None, blunder_fraction=0.0):
-    """GCPs: ground points of uniformly spread true image points, measured with Gaussian noise (+ blunders)."""
-    rng = np.random.default_rng(seed)
-    if layout is None:
-        s, l = rng.uniform(0, W, n), rng.uniform(0, W, n)
-    else:
-        s, l = layout(rng, n)
-    h = rng.uniform(*HEIGHTS, n)
-    lon, lat = true_model.localize(s, l, h)
-    ms, ml = s + rng.normal(0, sigma, n), l + rng.normal(0, sigma, n)
-    blunder = np.zeros(n, bool)
-    if blunder_fraction:
-        idx = rng.choice(n, int(round(blunder_fraction * n)), replace=False)
-        mag, ang = rng.uniform(10, 50, idx.size), rng.uniform(0, 2 * np.pi, idx.size)
-        ms[idx] += mag * np.cos(ang)
-        ml[idx] += mag * np.sin(ang)
-        blunder[idx] = True
-    return pd.DataFrame({"id": [f"g{i}" for i in range(n)], "lon": lon, "lat": lat, "h": h, "sample": ms,
-                         "line": ml, "role": "control", "sigma": max(sigma, 1e-3), "truth_sample": s,
-                         "truth_line": l}), blunder
+    """GCPs: ground points of uniformly spread true image points, measured with Gaussian noise (+ 10-50 px
+    blunders): the shared simulator of conftest."""
+    return gcps_from_truth(true_model, n, size=(W, W), heights=HEIGHTS, sigma_px=sigma, seed=seed, layout=layout,
+                           blunder_fraction=blunder_fraction, blunder_px=(10, 50))
 
 
 @pytest.fixture(scope="module")
