@@ -297,3 +297,38 @@ def collect_gcps_batch(scenes: Sequence, reference, dem, out_dir, *, ext: str = 
                      params=dict(options, reference=os.fspath(reference),
                                  dem=dem if not isinstance(dem, os.PathLike) else os.fspath(dem)),
                      executor=executor, overwrite=overwrite, progress=progress, command="collect-gcps")
+
+
+def refine_scene(scene: str, outputs: Dict[str, str], *, gcps_dir: str, gcps_ext: str = ".gpkg",
+                 model: str = "affine", overwrite: bool = False, **options) -> Dict[str, Any]:
+    """Scene function of batch ``refine`` (METHODS §4): refine ``scene``'s RPC with its own GCP table
+    ``gcps_dir/<stem><gcps_ext>`` (what batch collect-gcps writes) and write ``outputs['rpc']`` (+ ``report``).
+
+    Returns ``n_control, n_check, control_rms_after_px, check_rms_after_px, check_ce90_after_m, n_outliers``."""
+    import math
+    from .workflows.refine import refine_rpc
+    gcps = os.path.join(gcps_dir, scene_stem(scene) + gcps_ext)
+    if not os.path.exists(gcps):
+        raise Gf4calError(f"no GCP table for this scene: {gcps} (run collect-gcps on it first)")
+    rep = refine_rpc(scene, gcps, model, out=outputs["rpc"], report=outputs.get("report"), overwrite=overwrite,
+                     **options)
+
+    def rms(role):
+        a = rep[role]["after"]
+        return math.hypot(a["sample"]["rms"], a["line"]["rms"]) if a["n"] else math.nan
+    return {"n_control": rep["control"]["after"]["n"], "n_check": rep["check"]["after"]["n"],
+            "control_rms_after_px": rms("control"), "check_rms_after_px": rms("check"),
+            "check_ce90_after_m": rep["check"]["after"].get("ce90_m", math.nan) if rep["check"]["after"]["n"]
+            else math.nan, "n_outliers": len(rep.get("outliers", []))}
+
+
+def refine_batch(scenes: Sequence, gcps_dir, model: str, out_dir, *, out_ext: str = ".RPB", gcps_ext: str = ".gpkg",
+                 executor=None, overwrite: bool = False, progress=None, **options) -> Dict[str, Any]:
+    """Batch ``refine``: ``out_dir/<stem><out_ext>`` (``.RPB``, ``_RPC.TXT`` or ``.vrt``) and
+    ``out_dir/<stem>.report.json`` per scene, from ``gcps_dir/<stem><gcps_ext>``; see :func:`run_batch`."""
+    out = os.fspath(out_dir)
+    return run_batch(refine_scene, scenes, out,
+                     lambda s: {"rpc": os.path.join(out, scene_stem(s) + out_ext),
+                                "report": os.path.join(out, scene_stem(s) + ".report.json")},
+                     params=dict(options, gcps_dir=os.fspath(gcps_dir), gcps_ext=gcps_ext, model=model),
+                     executor=executor, overwrite=overwrite, progress=progress, command="refine")

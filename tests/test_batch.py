@@ -140,3 +140,52 @@ def test_cli_apply_calibration_batch_and_bad_scheduler(gf4, tmp_path, capsys):
     rc = main(["apply-calibration", *gf4["scenes"], "--current", str(cur), "--new", str(new), "--out",
                str(tmp_path / "o2"), "--dask", "tcp://127.0.0.1:9"])
     assert rc == 2 and "cannot reach the Dask scheduler" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_cli_collect_gcps_then_refine_batch_on_a_local_cluster(tmp_path, capsys):
+    """Batch collect-gcps (2 scenes of one area with different RPC errors + a missing one) on a LocalCluster,
+    then batch refine with each scene's own table: GCPs and refined RPCs agree with the truth; the summary names
+    the missing scene; a rerun skips."""
+    from osgeo import gdal
+    from gdal_gf4cal.gcp import read_gcps
+    from test_matching_scene import build_scene, error_affine
+    scenes = []
+    for k, shift in enumerate([(12.2, -9.4), (-7.5, 10.1)]):
+        d = tmp_path / f"s{k}"
+        d.mkdir()
+        sc = build_scene(d, texture="pleiades", size=(320, 320), seed=3, error=error_affine(shift=shift))
+        named = tmp_path / f"scene{k}.tif"
+        gdal.Translate(str(named), sc.image)
+        sc.rpc.write_rpb(str(tmp_path / f"scene{k}.RPB"))
+        scenes.append((str(named), sc))
+    ref, dem = scenes[0][1].reference, scenes[0][1].dem_path
+    missing = str(tmp_path / "scene9.tif")
+    gout = tmp_path / "gcps"
+    rc = main(["collect-gcps", scenes[0][0], scenes[1][0], missing, "--reference", ref, "--dem", dem,
+               "--out", str(gout), "--spacing", "40", "--dask", "local:2"])
+    assert rc == 1   # the missing scene failed, the others are written
+    assert f"scene not found: {missing}" in capsys.readouterr().err
+    df = pd.read_csv(gout / "batch_summary.csv")
+    assert list(df["status"]) == ["ok", "ok", "failed"] and (df["n_gcps"][:2] >= 20).all()
+    for path, sc in scenes:
+        g = read_gcps(gout / (os.path.splitext(os.path.basename(path))[0] + ".gpkg"))
+        ts, tl = sc.truth(g["lon"].to_numpy(), g["lat"].to_numpy(), g["h"].to_numpy())
+        assert np.sqrt(np.mean((g["sample"] - ts) ** 2 + (g["line"] - tl) ** 2)) <= 0.1
+    rout = tmp_path / "refined"
+    rc = main(["refine", scenes[0][0], scenes[1][0], "--batch", "--gcps", str(gout), "--model", "affine",
+               "--out", str(rout), "--dask", "local:2"])
+    assert rc == 0
+    df = pd.read_csv(rout / "batch_summary.csv")
+    assert list(df["status"]) == ["ok", "ok"] and (df["control_rms_after_px"] < 0.1).all()
+    for path, sc in scenes:
+        stem = os.path.splitext(os.path.basename(path))[0]
+        new = RPCModel.from_file(str(rout / f"{stem}.RPB"))
+        g = read_gcps(gout / f"{stem}.gpkg")
+        lon, lat, h = g["lon"].to_numpy(), g["lat"].to_numpy(), g["h"].to_numpy()
+        s, l = new.project(lon, lat, h)
+        ts, tl = sc.truth(lon, lat, h)
+        assert np.max(np.hypot(s - ts, l - tl)) < 0.3
+    assert main(["refine", scenes[0][0], scenes[1][0], "--batch", "--gcps", str(gout), "--model", "affine",
+                 "--out", str(rout)]) == 0
+    assert list(pd.read_csv(rout / "batch_summary.csv")["status"]) == ["skipped", "skipped"]
