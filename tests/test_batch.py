@@ -10,12 +10,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from gdal_gf4cal.batch import apply_calibration_batch, collect_gcps_batch, expand_scenes
+from gdal_gf4cal.batch import apply_calibration_batch, expand_scenes
 from gdal_gf4cal.cli import main
 from gdal_gf4cal.executors import get_executor
 from gdal_gf4cal.rpc import RPCModel
 
-from test_lookangle import HEIGHTS, W, dense_check, fit_rpc_from_model, frame_model, make_cameras
+from test_lookangle import HEIGHTS, dense_check, fit_rpc_from_model, frame_model, make_cameras
 
 
 @pytest.fixture(scope="module")
