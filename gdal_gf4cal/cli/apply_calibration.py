@@ -7,15 +7,23 @@ HELP = ("Recalibrate the RPCs of scenes made with the --current camera for the -
 
 
 def add_parser(parser):
-    parser.add_argument("scenes", nargs="+", metavar="SCENE", help="images with an RPC or RPC sidecars")
+    parser.add_argument("scenes", nargs="+", metavar="SCENE", help="images with an RPC or RPC sidecars (paths, "
+                        "globs or @list.txt)")
     parser.add_argument("--current", required=True, metavar="OLD.json", help="the camera the scenes' RPCs were "
                                                                            "made with")
     parser.add_argument("--new", required=True, metavar="NEW.json", help="the recalibrated camera")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs (never an input)")
+    from .batch_options import add_batch_options
+    add_batch_options(parser, flag=True)
 
 
 def run(args) -> int:
+    if args.batch or args.dask:
+        from .batch_options import run_batch_command
+        from ..batch import apply_calibration_batch
+        return run_batch_command(args, lambda ex, pr: apply_calibration_batch(
+            args.current, args.new, args.scenes, args.out, executor=ex, overwrite=args.overwrite, progress=pr))
     from ..workflows import apply_calibration
     from ..progress import TextProgressBar
     rep = apply_calibration(args.current, args.new, args.scenes, args.out, overwrite=args.overwrite,

@@ -7,7 +7,8 @@ HELP = ("Collect GCPs automatically: sub-pixel matching of the raw image (with i
 
 
 def add_parser(parser):
-    parser.add_argument("image", metavar="IMAGE", help="raw image with an RPC (TIFF tags, .RPB, _RPC.TXT, NITF)")
+    parser.add_argument("image", nargs="+", metavar="IMAGE", help="raw image with an RPC (TIFF tags, .RPB, "
+                        "_RPC.TXT, NITF); several (paths, globs, @list.txt): a batch, --out is a folder")
     parser.add_argument("--reference", required=True, metavar="ORTHO",
                         help="reference orthophoto: any GDAL raster with a CRS (overviews are used when finer)")
     parser.add_argument("--dem", required=True, help="DEM (any GDAL raster, any CRS) or a constant height in metres")
@@ -29,15 +30,32 @@ def add_parser(parser):
     parser.add_argument("--keep-outliers", action="store_true",
                         help="also write the flagged outliers (column outlier=True); by default only inliers")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
+    from .batch_options import add_batch_options
+    add_batch_options(parser)
 
 
 def run(args) -> int:
     from . import print_warnings
+    from ..batch import collect_gcps_batch, expand_scenes
+    from ..executors import get_executor
     from ..progress import TextProgressBar
     from ..workflows import collect_gcps_file
-    rep = collect_gcps_file(args.image, args.reference, args.dem, args.out, rpc=args.rpc, geoid=args.geoid,
+    scenes = expand_scenes(args.image)
+    opts = dict(rpc=args.rpc, geoid=args.geoid, keep_outliers=args.keep_outliers, spacing_px=args.spacing,
+                window_px=args.window, min_peak=args.min_peak, search_px=args.search,
+                outlier_model=args.outlier_model, seed=args.seed, band=args.band, reference_band=args.reference_band)
+    if len(scenes) > 1 or args.batch:
+        if args.rpc:
+            from ..errors import Gf4calError
+            raise Gf4calError("--rpc names one scene's RPC; in a batch each scene must carry its own RPC")
+        from .batch_options import run_batch_command
+        return run_batch_command(args, lambda ex, pr: collect_gcps_batch(
+            scenes, args.reference, args.dem, args.out, executor=ex, overwrite=args.overwrite, progress=pr, **opts))
+    args.image = scenes[0]
+    with get_executor(args.dask or (None if args.workers is None else f"threads:{args.workers}")) as ex:
+        rep = collect_gcps_file(args.image, args.reference, args.dem, args.out, rpc=args.rpc, geoid=args.geoid,
                             keep_outliers=args.keep_outliers, overwrite=args.overwrite, progress=TextProgressBar(),
-                            spacing_px=args.spacing, window_px=args.window, workers=args.workers,
+                            spacing_px=args.spacing, window_px=args.window, executor=ex,
                             min_peak=args.min_peak, search_px=args.search, outlier_model=args.outlier_model,
                             seed=args.seed, band=args.band, reference_band=args.reference_band)
     gcps, w = rep["gcps"], rep["windows"]

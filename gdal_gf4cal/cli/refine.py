@@ -8,7 +8,8 @@ HELP = ("Refine an image's RPC with GCPs (translation, shift-drift, affine, poly
 
 def add_parser(parser):
     from ..compensation import MODEL_NAMES
-    parser.add_argument("source", metavar="IMAGE_OR_RPC", help="image with an RPC, or a standalone RPC file")
+    parser.add_argument("source", nargs="+", metavar="IMAGE_OR_RPC", help="image with an RPC, or a standalone RPC "
+                        "file (several with --batch)")
     parser.add_argument("--gcps", required=True,
                         help="GCPs: CSV (id,lon,lat,h,sample,line[,role][,sigma]), GeoPackage/GeoJSON point layer "
                              "(any CRS, sample/line fields), QGIS .points, or a raster with embedded GCPs")
@@ -42,6 +43,11 @@ def add_parser(parser):
     parser.add_argument("--residuals", help="write the GCPs and residuals as a styled GeoPackage (.gpkg)")
     parser.add_argument("--plot", help="write a PNG of the residual vectors before/after")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs (never an input)")
+    parser.add_argument("--batch", action="store_true", help="batch form: IMAGE_OR_RPC are many scenes (paths, "
+                        "globs, @list.txt), --gcps a folder of <stem>.gpkg tables, --out a folder (<stem>.RPB + "
+                        "<stem>.report.json per scene, batch_summary.csv/.json); rerun skips finished scenes")
+    from .batch_options import add_batch_options
+    add_batch_options(parser, flag=False)
 
 
 def _fmt(x):
@@ -52,6 +58,18 @@ def run(args) -> int:
     from . import print_warnings
     from ..progress import TextProgressBar
     from ..workflows import refine_rpc
+    if args.batch or args.dask:
+        from .batch_options import run_batch_command
+        from ..batch import refine_batch
+        return run_batch_command(args, lambda ex, pr: refine_batch(
+            args.source, args.gcps, args.model, args.out, executor=ex, overwrite=args.overwrite, progress=pr,
+            order=args.order, along=args.along, ccd_axis=args.ccd_axis, dem=args.dem, geoid=args.geoid,
+            gcp_crs=args.gcp_crs, check_fraction=args.check_fraction, seed=args.seed,
+            robust=not args.no_robust, outlier_threshold=args.outlier_threshold))
+    if len(args.source) != 1:
+        from ..errors import Gf4calError
+        raise Gf4calError("several scenes: add --batch (then --gcps is a folder of <stem>.gpkg and --out a folder)")
+    args.source = args.source[0]
     from .ortho import cli_geoid_errors, print_ortho
     ortho_options = {"crs": args.crs, "res_m": args.res, "resampling": args.resampling}
     rep = cli_geoid_errors(refine_rpc, args.source, args.gcps, args.model, out=args.out, order=args.order, along=args.along,

@@ -404,6 +404,9 @@ def plan_tiles(image, rpc, reference, dem, spacing_px: int = 256, window_px: int
     path, W, H, nodata = _image_info(image, band)
     if rpc is None:
         rpc = RPCModel.from_file(path)
+    # Compute the RPC's derived matrices (least squares, matmul) once, here: they travel with the pickled spec,
+    # so every worker process uses the same bits whatever its BLAS threads (bit-identical GCPs, issue 14).
+    rpc._approximate_inverse, rpc._coeffs_with_derivatives, rpc._coeffs  # noqa: B018
     w = int(window_px)
     if w < 16 or w % 2:
         raise Gf4calError(f"window must be an even number of pixels >= 16 (got {window_px})")
@@ -538,20 +541,9 @@ def collect_gcps(image, rpc, reference, dem, spacing_px: int = 256, window_px: i
             # process pool paid ~0.3 s of start-up and pickling on a 10240^2 scene for no gain in throughput.
             own = executor = cf.ThreadPoolExecutor(max_workers=nw)
     try:
-        if executor is None:
-            for i, spec in enumerate(specs):
-                results.append(match_tile(spec))
-                report(progress, 0.95 * (i + 1) / len(specs), f"tile {i + 1}/{len(specs)}")
-        else:
-            futures = [executor.submit(match_tile, s) for s in specs]
-            try:
-                for i, fut in enumerate(cf.as_completed(futures)):
-                    results.append(fut.result())
-                    report(progress, 0.95 * (i + 1) / len(specs), f"tile {i + 1}/{len(specs)}")
-            except (CancelledError, KeyboardInterrupt):
-                for fut in futures:
-                    fut.cancel()
-                raise
+        # Results in submission order whatever the executor (gdal_gf4cal.executors, issue 14).
+        from ..executors import map_ordered
+        results = map_ordered(match_tile, specs, executor, progress=progress, stop=0.95, label="tile")
     finally:
         if own is not None:
             own.shutdown(wait=True, cancel_futures=True)

@@ -1,0 +1,186 @@
+"""One way to get an executor for tiles and scenes (issue 14): serial, threads, or Dask.
+
+Every unit of work in gdal_gf4cal (the tile function of matching, :func:`gdal_gf4cal.matching.collect.match_tile`,
+and the scene function of each batch job, :mod:`gdal_gf4cal.batch`) is a plain top-level function of paths and
+parameters: nothing pickled holds an open GDAL dataset, each task opens its own windows. So the same function runs
+
+- ``"serial"`` (or ``1``): in the calling thread;
+- ``"threads"`` / ``"threads:N"`` / ``None`` (default, today's behaviour): a :class:`concurrent.futures.ThreadPoolExecutor`;
+- ``"local"`` / ``"local:N"``: a ``distributed.LocalCluster`` with N worker processes of 1 thread each;
+- ``"tcp://HOST:PORT"``: a running Dask scheduler (``dask scheduler`` + ``dask worker``, shared storage);
+- a ``distributed.Client`` or any :class:`concurrent.futures.Executor` passed from Python.
+
+:func:`map_ordered` submits the tasks, reports progress over completed tasks, gathers the results in submission
+order (so outputs are deterministic whatever the executor) and cancels what is left on cancel.
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import os
+import warnings
+from typing import Any, Callable, Iterator, List, Optional, Sequence
+
+from .errors import CancelledError, Gf4calError
+from .progress import report
+
+#: seconds to wait for a remote scheduler before giving up
+CONNECT_TIMEOUT_S = 5.0
+
+
+class ExecutorError(Gf4calError, ConnectionError):
+    """The executor could not be started or reached (exit code 2 at the CLI)."""
+
+
+class SerialExecutor(cf.Executor):
+    """A :class:`concurrent.futures.Executor` that runs each task at ``submit`` in the calling thread."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        fut: cf.Future = cf.Future()
+        try:
+            fut.set_result(fn(*args, **kwargs))
+        except BaseException as exc:  # noqa: BLE001 - delivered through the future, like any executor
+            if isinstance(exc, (KeyboardInterrupt, CancelledError)):
+                raise
+            fut.set_exception(exc)
+        return fut
+
+
+@contextlib.contextmanager
+def _quiet_tornado():
+    # Debian's distributed + tornado 6.2 warn "make_current is deprecated" when an event loop starts.
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", category=DeprecationWarning)
+        yield
+
+
+def _client_executor(client):
+    return client.get_executor(pure=False)
+
+
+@contextlib.contextmanager
+def get_executor(spec: Any = None, *, workers: Optional[int] = None,
+                 connect_timeout_s: float = CONNECT_TIMEOUT_S) -> Iterator[cf.Executor]:
+    """Context manager yielding a :class:`concurrent.futures.Executor` for ``spec`` (see the module docstring).
+
+    Parameters
+    ----------
+    spec : ``None``/``"threads[:N]"``, ``"serial"``, ``"local[:N]"``, ``"tcp://HOST:PORT"`` (or any Dask
+        scheduler address), a ``distributed.Client``, or a :class:`concurrent.futures.Executor` (used as is,
+        not shut down).
+    workers : thread/process count when ``spec`` gives none (default: CPU count).
+    connect_timeout_s : how long to wait for a remote scheduler.
+
+    Raises
+    ------
+    ExecutorError : an unknown spec, Dask missing, or an unreachable scheduler (one line, exit 2 at the CLI).
+    """
+    if isinstance(spec, cf.Executor):
+        yield spec
+        return
+    if spec is not None and hasattr(spec, "get_executor") and hasattr(spec, "scheduler_info"):
+        yield _client_executor(spec)
+        return
+    s = "threads" if spec is None else str(spec).strip()
+    kind, _, n = s.partition(":") if "://" not in s else (s, "", "")
+    try:
+        count = int(n) if n else (workers or os.cpu_count() or 1)
+    except ValueError:
+        raise ExecutorError(f"executor {s!r}: the worker count must be a whole number, e.g. local:2") from None
+    if count < 1:
+        raise ExecutorError(f"executor {s!r}: give at least 1 worker")
+    if kind in ("serial", "1") or (kind == "threads" and count == 1):
+        yield SerialExecutor()
+        return
+    if kind == "threads":
+        with cf.ThreadPoolExecutor(max_workers=count) as ex:
+            try:
+                yield ex
+            except BaseException:
+                ex.shutdown(wait=True, cancel_futures=True)
+                raise
+        return
+    try:
+        import distributed
+    except ImportError:
+        raise ExecutorError("Dask is not installed; install python3-distributed (apt) or dask[distributed] "
+                            "(pip), or run without --dask") from None
+    if kind == "local":
+        import dask
+        with _quiet_tornado(), dask.config.set({"distributed.worker.daemon": False}):
+            cluster = distributed.LocalCluster(n_workers=count, threads_per_worker=1, processes=True,
+                                               dashboard_address=None, silence_logs=40)
+            try:
+                client = distributed.Client(cluster)
+            except BaseException:
+                cluster.close()
+                raise
+        try:
+            yield _client_executor(client)
+        finally:
+            with _quiet_tornado():
+                client.close()
+                cluster.close()
+        return
+    if s.startswith(("tcp://", "tls://", "ucx://", "inproc://")):
+        try:
+            with _quiet_tornado():
+                client = distributed.Client(s, timeout=connect_timeout_s)
+        except (OSError, TimeoutError) as exc:
+            raise ExecutorError(f"cannot reach the Dask scheduler at {s} within {connect_timeout_s:g} s "
+                                f"({type(exc).__name__}); start it with `dask scheduler` or check the "
+                                "address") from None
+        try:
+            yield _client_executor(client)
+        finally:
+            with _quiet_tornado():
+                client.close()
+        return
+    raise ExecutorError(f"unknown executor {s!r}; use serial, threads[:N], local[:N] or tcp://HOST:PORT")
+
+
+def map_ordered(fn: Callable, items: Sequence, executor: Optional[cf.Executor] = None, *,
+                progress=None, start: float = 0.0, stop: float = 1.0, label: str = "task",
+                return_exceptions: bool = False) -> List[Any]:
+    """Run ``fn(item)`` for every item on ``executor`` (``None``: serially) and return the results in
+    submission order (deterministic output whatever the executor).
+
+    Progress goes over completed tasks from ``start`` to ``stop``; a :class:`CancelledError` raised by
+    ``progress`` (or Ctrl-C) cancels the pending tasks and propagates. With ``return_exceptions`` a failing task
+    gives its exception in its slot instead of raising.
+    """
+    n = len(items)
+    out: List[Any] = [None] * n
+    if n == 0:
+        return out
+    if executor is None or isinstance(executor, SerialExecutor):
+        for i, item in enumerate(items):
+            try:
+                out[i] = fn(item)
+            except (CancelledError, KeyboardInterrupt):
+                raise
+            except Exception as exc:  # noqa: BLE001 - reported in its slot
+                if not return_exceptions:
+                    raise
+                out[i] = exc
+            report(progress, start + (stop - start) * (i + 1) / n, f"{label} {i + 1}/{n}")
+        return out
+    futures = {}
+    try:
+        for i, item in enumerate(items):
+            futures[executor.submit(fn, item)] = i
+        for k, fut in enumerate(cf.as_completed(futures)):
+            i = futures[fut]
+            exc = fut.exception()
+            if exc is not None:
+                if not return_exceptions:
+                    raise exc
+                out[i] = exc
+            else:
+                out[i] = fut.result()
+            report(progress, start + (stop - start) * (k + 1) / n, f"{label} {k + 1}/{n}")
+    except BaseException:
+        for fut in futures:
+            fut.cancel()
+        raise
+    return out
