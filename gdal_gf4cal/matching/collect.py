@@ -45,7 +45,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..errors import CancelledError, Gf4calError
+from ..errors import Gf4calError
 from ..progress import report
 from .correlate import correlate_spectra, phase_correlate, spectra, window_measures
 from .filters import reject_outliers

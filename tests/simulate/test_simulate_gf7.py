@@ -253,7 +253,7 @@ def _georeferenced_pleiades(tmp_path):
     from gdal_gf4cal.simulate.render import model_bounds
     sc = mk(seed=3, size=(512, 512), crop_center_ms_px=2560)
     b = model_bounds(sc.image("pan").true, margin=0.05)
-    src = Path(__file__).parent / "data" / "matching" / "pleiades_ventoux_left.tif"
+    src = Path(__file__).parents[1] / "data" / "matching" / "pleiades_ventoux_left.tif"
     dst = str(tmp_path / "ref.tif")
     ds = gdal.Translate(dst, str(src), outputSRS="EPSG:4326", outputBounds=[b[0], b[3], b[2], b[1]])
     ds = None

@@ -12,7 +12,7 @@ from gdal_gf4cal import RPCModel
 from gdal_gf4cal.cli import main
 from gdal_gf4cal.model_selection import select_model
 
-DATA = Path(__file__).parent / "data" / "compensation"
+DATA = Path(__file__).parents[1] / "data" / "compensation"
 
 
 def _gcps(kind: str, n: int, seed: int) -> tuple:

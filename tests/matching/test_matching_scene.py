@@ -22,7 +22,7 @@ from rasters import write_tif
 from gdal_gf4cal.dem import DEM
 from gdal_gf4cal.rpc import RPCModel
 
-DATA = Path(__file__).parent / "data" / "matching"
+DATA = Path(__file__).parents[1] / "data" / "matching"
 SRTM = DATA / "srtm_ventoux_crop.tif"
 PLEIADES = DATA / "pleiades_ventoux_left.tif"
 UTM31 = 32631

@@ -19,7 +19,7 @@ from osgeo import gdal
 from gdal_gf4cal import RPCModel, rpc_io
 from gdal_gf4cal.errors import RPCFormatError
 
-DATA = Path(__file__).parent / "data" / "rpc"
+DATA = Path(__file__).parents[1] / "data" / "rpc"
 LOCAL_FILES = sorted(p for p in DATA.iterdir() if p.name != "PROVENANCE.txt")
 NO_GDAL_READER = ("json", "geom")  # formats GDAL has no reader for: their model is handed to GDAL as metadata
 TOL_PX = 1e-6

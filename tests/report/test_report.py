@@ -224,7 +224,7 @@ def test_assess_accuracy_against_known_offsets(tmp_path):
     from gdal_gf4cal.workflows import assess_accuracy
     from gdal_gf4cal.rpc import RPCModel
 
-    rpc_path = os.path.join(os.path.dirname(__file__), "data", "rpc", "md_dg.RPB")
+    rpc_path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "data", "rpc", "md_dg.RPB")
     rpc = RPCModel.from_file(rpc_path)
     W, H = rpc.image_size
     rng = np.random.default_rng(3)

@@ -19,7 +19,7 @@ from gdal_gf4cal import RPCModel
 from gdal_gf4cal.cli import main
 from gdal_gf4cal.compensation import CompensatedRPC, CompensationResult
 
-RPB = Path(__file__).parent / "data" / "compensation" / "md_dg.RPB"
+RPB = Path(__file__).parents[1] / "data" / "compensation" / "md_dg.RPB"
 NOISE_PX = 0.5
 N_CHECK = 20
 

@@ -18,7 +18,7 @@ from gdal_gf4cal.compensation import (CompensatedRPC, CompensationModel, Compens
                                       fit_compensation)
 from gdal_gf4cal.workflows import write_refined_rpc
 
-DATA = Path(__file__).parent / "data" / "compensation"
+DATA = Path(__file__).parents[1] / "data" / "compensation"
 
 
 @pytest.fixture(scope="module")

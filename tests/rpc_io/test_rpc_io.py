@@ -18,7 +18,7 @@ from osgeo import gdal
 from gdal_gf4cal import RPCModel, rpc_io
 from gdal_gf4cal.errors import Gf4calError, InputOverwriteError, RPCFormatError
 
-DATA = Path(__file__).parent / "data" / "rpc"
+DATA = Path(__file__).parents[1] / "data" / "rpc"
 
 #: Every real RPC file in tests/data/rpc and the format the reader must recognise in it.
 FORMATS = {

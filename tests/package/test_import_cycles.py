@@ -14,7 +14,7 @@ import pathlib
 import pytest
 
 PACKAGE = "gdal_gf4cal"
-ROOT = pathlib.Path(__file__).resolve().parents[1] / PACKAGE
+ROOT = pathlib.Path(__file__).resolve().parents[2] / PACKAGE
 
 
 

@@ -14,7 +14,7 @@ from gdal_gf4cal.cli import main
 from gdal_gf4cal.compensation import CompensatedRPC, CompensationResult
 
 gdal.UseExceptions()
-DATA = Path(__file__).parent / "data" / "compensation"
+DATA = Path(__file__).parents[1] / "data" / "compensation"
 SIZE = 256
 BLOBS = [(60.0, 70.0), (190.0, 100.0), (120.0, 200.0)]
 SHIFT = (6.0, -4.0)   # true image-space error (sample, line) px of the RPC

@@ -10,7 +10,7 @@ from osgeo import gdal
 from gdal_gf4cal import RPCModel
 from gdal_gf4cal.rpc_io import write_rpc_vrt
 
-DATA = Path(__file__).parent / "data" / "compensation"
+DATA = Path(__file__).parents[1] / "data" / "compensation"
 
 
 def _image(folder: Path) -> Path:

@@ -13,7 +13,7 @@ from gdal_gf4cal.cli import main
 from gdal_gf4cal.compensation import CompensatedRPC, CompensationResult, fit_compensation
 from gdal_gf4cal.intersection import ground_errors_m, intersect, intersection_accuracy
 
-DATA = Path(__file__).parent / "data" / "compensation"
+DATA = Path(__file__).parents[1] / "data" / "compensation"
 LEFT = DATA / "RPC_P1BP--2017092838284574CP.XML"
 RIGHT = DATA / "RPC_P1BP--2017092838319324CP.XML"
 

@@ -29,7 +29,7 @@ from gdal_gf4cal.simulate.render import model_bounds
 
 gdal.UseExceptions()
 
-PLEIADES = Path(__file__).parent / "data" / "matching" / "pleiades_ventoux_left.tif"
+PLEIADES = Path(__file__).parents[1] / "data" / "matching" / "pleiades_ventoux_left.tif"
 SIZE = 1024            # built-in texture scenes
 SIZE_REAL = 512        # the real 500 x 500 orthophoto then has about the GF4 crop's ground resolution (~60 m)
 SPACING, WINDOW = 64, 64
