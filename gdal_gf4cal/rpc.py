@@ -349,20 +349,25 @@ class RPCModel(SensorModelMixin):
         return cubic @ T
 
     def _start_normalised(self, x, y, H):
-        """Newton start ``(L, P)`` for flat normalised image points: the framed cubic inverse inside the image of
-        the ground cube (within a small fraction of a pixel), the ground-cube affine outside it."""
-        (cx, sx, cy, sy), cubic, affine = self._inverse_fit
-        u, v = (x - cx) / sx, (y - cy) / sy
+        """Newton start ``(L, P)`` for flat normalised image points: the cubic inverse inside the image of the
+        ground cube (within a small fraction of a pixel), the ground-cube affine outside it."""
+        (cx, sx, cy, sy), _, affine = self._inverse_fit
+        A = self._approximate_inverse
         n = x.size
         L, P = np.empty(n), np.empty(n)
+        x_lo, x_hi, y_lo, y_hi = cx - 1.25 * sx, cx + 1.25 * sx, cy - 1.25 * sy, cy + 1.25 * sy
         for i in range(0, n, _CHUNK):
             sl = slice(i, i + _CHUNK)
-            L[sl], P[sl] = cubic @ monomials(u[sl], v[sl], H[sl])
-        outside = np.flatnonzero(~((np.abs(u) <= 1.25) & (np.abs(v) <= 1.25) & (np.abs(H) <= 1.5)))
-        if outside.size:
-            uo, vo, ho = u[outside], v[outside], H[outside]
-            L[outside] = affine[0, 0] + affine[0, 1] * uo + affine[0, 2] * vo + affine[0, 3] * ho
-            P[outside] = affine[1, 0] + affine[1, 1] * uo + affine[1, 2] * vo + affine[1, 3] * ho
+            xs, ys, hs = x[sl], y[sl], H[sl]
+            L[sl], P[sl] = A @ monomials(xs, ys, hs)
+            # Chunk-wise bounds first: the common case (every point inside) costs six reductions.
+            if (xs.min(initial=x_lo) >= x_lo and xs.max(initial=x_hi) <= x_hi and ys.min(initial=y_lo) >= y_lo
+                    and ys.max(initial=y_hi) <= y_hi and np.abs(hs).max(initial=0.0) <= 1.5):
+                continue
+            out = np.flatnonzero(~((xs >= x_lo) & (xs <= x_hi) & (ys >= y_lo) & (ys <= y_hi) & (np.abs(hs) <= 1.5)))
+            uo, vo, ho = (xs[out] - cx) / sx, (ys[out] - cy) / sy, hs[out]
+            L[i + out] = affine[0, 0] + affine[0, 1] * uo + affine[0, 2] * vo + affine[0, 3] * ho
+            P[i + out] = affine[1, 0] + affine[1, 1] * uo + affine[1, 2] * vo + affine[1, 3] * ho
         return L, P
 
     def _localize_normalised(self, x, y, H, tol, max_iter):
@@ -379,7 +384,7 @@ class RPCModel(SensorModelMixin):
         L, P = self._start_normalised(x, y, H)
         n = x.size
         converged = np.zeros(n, dtype=bool)
-        det_sign = np.zeros(n)
+        det_sign = np.full(n, self._orientation)   # checked for the points that need more than two steps
         tol_x = tol / abs(self.samp_scale)   # tolerances in pixels -> normalised units per axis
         tol_y = tol / abs(self.line_scale)
         active = np.arange(n)
@@ -393,7 +398,8 @@ class RPCModel(SensorModelMixin):
                 ry = y[active] - cy
                 done = (np.abs(rx) <= tol_x) & (np.abs(ry) <= tol_y)
                 converged[active[done]] = True
-                det_sign[active[done]] = np.sign(a[done] * e[done] - b[done] * c[done])
+                if iterations > 2:
+                    det_sign[active[done]] = np.sign(a[done] * e[done] - b[done] * c[done])
                 keep = ~done & np.isfinite(rx) & np.isfinite(ry)
                 if not np.any(keep):
                     active = active[:0]
@@ -403,12 +409,16 @@ class RPCModel(SensorModelMixin):
                 det = a * e - b * c
                 dL_ = (e * rx - b * ry) / det
                 dP_ = (a * ry - c * rx) / det
-                La, Pa = L[active], P[active]
                 step = np.maximum(np.abs(dL_), np.abs(dP_))
-                limit = 0.5 * np.maximum(1.0, np.maximum(np.abs(La), np.abs(Pa)))
-                f = np.where(step > limit, limit / step, 1.0)
-                L[active] = La + f * dL_
-                P[active] = Pa + f * dP_
+                big = np.flatnonzero(step > 0.5)
+                if big.size:   # damping, in ground space: rare, so only these points pay for it
+                    ab = active[big]
+                    limit = 0.5 * np.maximum(1.0, np.maximum(np.abs(L[ab]), np.abs(P[ab])))
+                    f = np.minimum(1.0, limit / step[big])
+                    dL_[big] *= f
+                    dP_[big] *= f
+                L[active] += dL_
+                P[active] += dP_
                 if iterations % 3 == 0 or iterations > 3:
                     d = self._normalised_jacobian(L[active], P[active], H[active], with_h=False)
                     cx, cy = d["x"], d["y"]
