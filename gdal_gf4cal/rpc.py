@@ -146,7 +146,7 @@ class RPCModel(SensorModelMixin):
                     kwargs[name] = float(str(md[key]).split()[0])
                 except ValueError:
                     pass  # optional informative keys: ignore garbage rather than refuse the RPC
-        return cls(source=source, **kwargs)
+        return validate_rpc(cls(source=source, **kwargs))
 
     @classmethod
     def from_file(cls, path) -> "RPCModel":
@@ -514,6 +514,50 @@ class RPCModel(SensorModelMixin):
                 f"{abs(self.lat_scale):.4f}, h={self.height_off:.1f}±{abs(self.height_scale):.1f}, "
                 f"size~{self.image_size[0]}x{self.image_size[1]}" + (f", source={self.source!r})" if self.source
                                                                     else ")"))
+
+
+#: Plausibility limits of :func:`validate_rpc` (METHODS §1): generous, they only refuse what no sensor produces.
+_LIMITS = {"lat_off": 90.0, "long_off": 360.0, "height_off": 1e5}
+_SCALE_LIMITS = {"lat_scale": (1e-7, 90.0), "long_scale": (1e-7, 360.0), "height_scale": (1e-3, 1e5),
+                 "line_scale": (1e-3, 1e8), "samp_scale": (1e-3, 1e8)}
+#: Largest |coefficient| accepted: RPC00B coefficients act on normalised coordinates, real ones stay below ~10.
+_MAX_COEFF = 1e6
+
+
+def validate_rpc(rpc: "RPCModel") -> "RPCModel":
+    """Refuse a physically implausible RPC with a one-line :class:`RPCFormatError` naming the reason (METHODS §1).
+
+    Checks |LAT_OFF| <= 90, |LONG_OFF| <= 360, |HEIGHT_OFF| <= 1e5 m; scales finite and of plausible magnitude
+    (negative scales stay legal; |LAT_SCALE| of 1e-300 does not: it makes localisation return finite wrong values);
+    every coefficient finite and |c| <= 1e6; a 9 x 9 x 5 grid of the RPC's normalised ground cube projects to finite
+    image points. Called by every reader path (:meth:`RPCModel.from_gdal_metadata`, hence
+    :meth:`RPCModel.from_file`). Returns ``rpc``.
+    """
+    where = rpc._where()
+    for name, limit in _LIMITS.items():
+        value = getattr(rpc, name)
+        if abs(value) > limit:
+            raise RPCFormatError(f"RPC{where}: {name.upper()} = {value:g} is impossible (|{name.upper()}| must be "
+                                 f"<= {limit:g}); check the file")
+    for name, (lo, hi) in _SCALE_LIMITS.items():
+        value = abs(getattr(rpc, name))
+        if not lo <= value <= hi:
+            raise RPCFormatError(f"RPC{where}: {name.upper()} = {getattr(rpc, name):g} is implausible (|"
+                                 f"{name.upper()}| must lie in [{lo:g}, {hi:g}]); check the file")
+    for name, key in _GDAL_COEFF_KEYS.items():
+        worst = float(np.max(np.abs(getattr(rpc, name))))
+        if worst > _MAX_COEFF:
+            raise RPCFormatError(f"RPC{where}: {key} holds a coefficient of magnitude {worst:.3g} (> {_MAX_COEFF:g}"
+                                 "); the RPC is corrupt")
+    g = np.linspace(-1.0, 1.0, 9)
+    L, P, H = (a.ravel() for a in np.meshgrid(g, g, np.linspace(-1.0, 1.0, 5), indexing="ij"))
+    with np.errstate(all="ignore"):
+        x, y = rpc._project_normalised(L, P, H)
+    bad = ~(np.isfinite(x) & np.isfinite(y))
+    if np.any(bad):
+        raise RPCFormatError(f"RPC{where}: {int(bad.sum())} points of its ground cube do not project to finite "
+                             "image points (a denominator vanishes); the RPC is corrupt")
+    return rpc
 
 
 def _parse_number(value, key: str, where: str) -> float:
