@@ -564,7 +564,7 @@ def _parse_number(value, key: str, where: str) -> float:
     try:
         text = str(value).strip().split()[0] if isinstance(value, str) else value
         number = float(text)
-    except (ValueError, IndexError, TypeError):
+    except (ValueError, IndexError, TypeError, OverflowError):
         raise RPCFormatError(f"RPC{where}: {key} is not a number ({str(value)[:40]!r})") from None
     if not math.isfinite(number):
         raise RPCFormatError(f"RPC{where}: {key} is not a finite number ({value!r})")
