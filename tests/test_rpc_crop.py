@@ -166,3 +166,29 @@ def test_points_beyond_the_extrapolation_limit_stay_nan():
     rpc = _far_crop("rpc_WV2.xml", 13582.5, 19403.5)
     lon, lat = rpc.localize(np.array([512.0, -1e9]), np.array([512.0, 1e9]), rpc.height_off)
     assert np.isfinite(lon[0]) and np.isnan(lon[1])
+
+
+def test_info_of_a_far_crop_takes_the_image_size_and_warns(tmp_path):
+    """``gf4cal info`` guessed 38893 x 39830 px from the scales and printed NaN corners silently."""
+    from gdal_gf4cal.cli.info import format_info
+    from gdal_gf4cal.describe import describe_rpc
+    crop = _far_crop("rpc_WV2.xml", 13582.5, 19403.5)
+    tif = write_tif(tmp_path / "far.tif", np.zeros((SIZE, SIZE), "uint8"), rpc=crop)
+    crop.write_rpb(tmp_path / "side.RPB")
+    write_tif(tmp_path / "side.tif", np.zeros((SIZE, 700), "uint8"))            # the sidecar's image, no tags
+    for source, size in ((tif, [SIZE, SIZE]), (tmp_path / "side.RPB", [700, SIZE])):
+        info = describe_rpc(source)
+        assert info["size"] == size and info["size_from_image"]
+        assert np.all(np.isfinite(np.array(info["corners"])))
+        assert len(info["warnings"]) == 1 and "does not cover" in info["warnings"][0]
+        text = format_info(info)
+        assert "nan" not in text.lower() and "warning: the RPC's image domain" in text
+    ul = describe_rpc(tif)["corners"][0]
+    lon, lat = crop.localize(0.0, 0.0, crop.height_off)
+    assert ul[:2] == pytest.approx([lon, lat], abs=1e-12)
+
+
+def test_info_of_a_full_image_has_no_warning(data_dir):
+    from gdal_gf4cal.describe import describe_rpc
+    info = describe_rpc(data_dir / "rpc" / "PHR1B_P_201709281038393_SEN_PRG_FC_178609-001.tif")
+    assert info["size"] == [128, 128] and info["warnings"] == []
