@@ -17,7 +17,7 @@ export PROJ_DATA := /usr/share/proj
 export PYTHONWARNINGS :=
 DEMO_OUT ?= demo_out
 
-.PHONY: help system venv install demo test test-fast test-engine test-qgis plugin bench clean
+.PHONY: help system venv install demo test test-fast test-engine test-qgis plugin bench fuzz clean
 
 help:
 	@echo "make demo   - install what is missing, then run the GF4 look-angle calibration demo"
@@ -25,6 +25,7 @@ help:
 	@echo "make test-fast - the inner loop: engine tests not marked slow (no QGIS)"
 	@echo "make plugin - build dist/gdal_gf4cal_plugin.zip and build/plugin/gdal_gf4cal_plugin/"
 	@echo "make bench  - run the benchmarks under bench/"
+	@echo "make fuzz   - fuzz the RPC readers for long (FUZZ_CASES=200000 FUZZ_SEED=... to change)"
 
 # System packages: installed only when one is missing (dpkg-query is fast when all are there).
 define apt_install_missing
@@ -75,6 +76,14 @@ BENCH_APT_PACKAGES := python3-skimage
 bench: install
 	$(call apt_install_missing,$(BENCH_APT_PACKAGES))
 	@for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+# Long fuzz of the RPC readers (tests/rpc_io/test_fuzz_rpc.py; the suite runs 10,000 cases with a fixed seed).
+FUZZ_CASES ?= 200000
+FUZZ_SEED ?= $(shell date +%s)
+
+fuzz: install
+	GF4CAL_FUZZ_CASES=$(FUZZ_CASES) GF4CAL_FUZZ_SEED=$(FUZZ_SEED) $(PY) -m pytest -q -p no:cacheprovider -s \
+	  tests/rpc_io/test_fuzz_rpc.py -k test_fuzz_rpc_readers
 
 clean:
 	rm -rf build dist $(DEMO_OUT) test-artifacts

@@ -84,6 +84,12 @@ class DEM:
             raise DEMError(f"DEM {path} is rotated; warp it to a north-up grid first (gdalwarp)")
         self._gt = gt
         self._nodata_value = self._band.GetNoDataValue()
+        # Band scale/offset (METHODS §2): stored value x scale + offset = height in metres (a decimetre DEM has 0.1).
+        self._scale = float(self._band.GetScale() or 1.0)
+        self._offset = float(self._band.GetOffset() or 0.0)
+        if not (np.isfinite(self._scale) and np.isfinite(self._offset)) or self._scale == 0.0:
+            raise DEMError(f"DEM {path} has an unusable band scale/offset ({self._scale!r}, {self._offset!r}); "
+                           "fix them with gdal_edit.py -scale/-offset")
         wkt = self._ds.GetProjection()
         if not wkt:
             raise DEMError(f"DEM {path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:4326)")
@@ -203,7 +209,8 @@ class DEM:
             except RuntimeError:
                 lo_hi = None
             if lo_hi is not None and all(np.isfinite(lo_hi)):
-                return (float(lo_hi[0]), float(lo_hi[1]))
+                lo, hi = sorted(float(v) * self._scale + self._offset for v in lo_hi)
+                return (lo, hi)
         raise DEMError(f"DEM {self.path} has no valid height (every pixel is no-data); use a DEM with data over "
                        "the scene")
 
@@ -415,6 +422,8 @@ class DEM:
             block = self._band.ReadAsArray().astype(float)
             if self._nodata_value is not None:
                 block[block == self._nodata_value] = np.nan
+            if self._scale != 1.0 or self._offset != 0.0:
+                block = block * self._scale + self._offset
             self._whole = block
         W, H = self.width, self.height_px
         px = np.asarray(px, dtype=float).ravel()
@@ -457,6 +466,8 @@ class DEM:
         block = self._band.ReadAsArray(xoff, yoff, xsize, ysize).astype(float)
         if self._nodata_value is not None:
             block[block == self._nodata_value] = np.nan
+        if self._scale != 1.0 or self._offset != 0.0:
+            block = block * self._scale + self._offset
         self._cache[key] = block
         if len(self._cache) > self._cache_tiles:
             self._cache.popitem(last=False)

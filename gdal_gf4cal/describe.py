@@ -33,6 +33,37 @@ def image_size_of(path) -> Optional[tuple]:
     return (ds.RasterXSize, ds.RasterYSize)
 
 
+_CORNERS = ("upper-left", "upper-right", "lower-right", "lower-left")
+_IMAGE_EXTENSIONS = (".tif", ".TIF", ".tiff", ".TIFF", ".ntf", ".NTF", ".jp2", ".JP2", ".vrt", ".VRT")
+
+
+def _image_of(source, fmt: str):
+    """The raster whose size the RPC describes: ``source`` itself when GDAL opens it as an image, else the image a
+    ``.RPB`` / ``_RPC.TXT`` sidecar sits next to (``x.RPB`` / ``x_RPC.TXT`` -> ``x.tif`` ...), else None."""
+    path = os.fspath(source)
+    if fmt in ("gdal", "gdal_xml"):
+        return path
+    if fmt not in ("rpb", "rpc_txt"):
+        return None
+    base, ext = os.path.splitext(path)
+    if fmt == "rpc_txt" and base.lower().endswith("_rpc"):
+        base = base[:-4]
+    for candidate in (base + e for e in _IMAGE_EXTENSIONS):
+        if os.path.isfile(candidate):
+            return candidate
+    return None
+
+
+def _uncovered(rpc: RPCModel, W: int, H: int) -> str:
+    """'' when the RPC's image domain (OFF ± |SCALE|, GDAL pixel convention, 1 px slack) covers [0, W] x [0, H];
+    else a description of that domain."""
+    s0, s1 = rpc.samp_off + 0.5 - abs(rpc.samp_scale), rpc.samp_off + 0.5 + abs(rpc.samp_scale)
+    l0, l1 = rpc.line_off + 0.5 - abs(rpc.line_scale), rpc.line_off + 0.5 + abs(rpc.line_scale)
+    if s0 <= 1.0 and s1 >= W - 1.0 and l0 <= 1.0 and l1 >= H - 1.0:
+        return ""
+    return f"samples {s0:.0f}..{s1:.0f}, lines {l0:.0f}..{l1:.0f}"
+
+
 def describe_rpc(source, dem=None, geoid=None, rpc: Optional[RPCModel] = None) -> dict:
     """Describe the RPC of ``source`` (image or RPC file).
 
@@ -45,16 +76,26 @@ def describe_rpc(source, dem=None, geoid=None, rpc: Optional[RPCModel] = None) -
     Returns
     -------
     dict with ``source``, ``format``, ``size`` (w, h), ``corners`` [(lon, lat, h)] clockwise from upper-left
-    (GDAL pixel corners), ``footprint_wkt``, ``gsd_m`` {sample, line}, ``height_range_m``, ``rpc`` (offsets/scales).
+    (GDAL pixel corners), ``footprint_wkt``, ``gsd_m`` {sample, line}, ``height_range_m``, ``rpc`` (offsets/scales),
+    ``warnings`` (one-line strings: an image the RPC's image domain does not cover, corners that do not localise).
+    The size is the image's when there is one (``source`` itself, or the image next to a .RPB/_RPC.TXT sidecar),
+    else guessed from the RPC's offsets and scales.
     """
     from .rpc_io import rpc_file_format
     rpc = rpc or RPCModel.from_file(source)
     fmt = rpc_file_format(source)
-    size = image_size_of(source) if fmt == "gdal" else None
+    image = _image_of(source, fmt)
+    size = image_size_of(image) if image is not None else None
     size_from_image = size is not None
+    warnings = []
     if size is None:
         size = rpc.image_size
     W, H = size
+    if size_from_image:
+        uncovered = _uncovered(rpc, W, H)
+        if uncovered:
+            warnings.append(f"the RPC's image domain ({uncovered}) does not cover the {W} x {H} px image: "
+                            "localisation extrapolates the RPC there (a cropped RPC?)")
     s = np.array([0.0, W, W, 0.0])
     l = np.array([0.0, 0.0, H, H])
     if dem is not None:
@@ -68,6 +109,10 @@ def describe_rpc(source, dem=None, geoid=None, rpc: Optional[RPCModel] = None) -
         h = np.full(4, rpc.height_off)
         lon, lat = rpc.localize(s, l, h)
         where = f"constant height HEIGHT_OFF = {rpc.height_off:.1f} m"
+    failed = [name for name, a in zip(_CORNERS, lon) if not np.isfinite(a)]
+    if failed:
+        warnings.append(f"the RPC does not localise the {', '.join(failed)} corner(s) (NaN): the image lies outside "
+                        "what the RPC can invert; check that this RPC belongs to this image")
     # GSD at the image centre from the localisation Jacobian: metres on the ground per pixel along each axis.
     cs, cl = W / 2.0, H / 2.0
     hc = rpc.height_off
@@ -93,6 +138,7 @@ def describe_rpc(source, dem=None, geoid=None, rpc: Optional[RPCModel] = None) -
         "err_bias": rpc.err_bias,
         "err_rand": rpc.err_rand,
     }
+    info["warnings"] = warnings
     if dem is not None:
         info["dem_height_range_m"] = [float(np.min(h)), float(np.max(h))]
     return info

@@ -94,10 +94,26 @@ def localize_dem(model, sample, line, dem, *, pixel_convention: str = "gdal", to
         lon, lat, hgt, iters = _localize_dem_flat(model, s, l, dem, pixel_convention, tol_m, max_iter, scan_steps)
     else:
         lon, lat, hgt, iters = _localize_dem_generic(model, s, l, dem, pixel_convention, tol_m, max_iter, scan_steps)
+    _warn_implausible_heights(model, dem, hgt)
     out = (_shape_out(lon, shape), _shape_out(lat, shape), _shape_out(hgt, shape))
     if not full_output:
         return out
     return out + (_dem_stats(model, s, l, dem, pixel_convention, lon, lat, hgt, iters),)
+
+
+def _warn_implausible_heights(model, dem, hgt) -> None:
+    """Log a warning when DEM heights lie far outside the RPC's height range (METHODS §2: a DEM in feet or in
+    decimetres without its band scale, the wrong DEM): beyond HEIGHT_OFF ± 2 x HEIGHT_SCALE, 500 m at least."""
+    height_range = getattr(model, "height_range", None)
+    if height_range is None or dem.is_constant or not np.any(np.isfinite(hgt)):
+        return
+    lo, hi = height_range
+    margin = max(0.5 * (hi - lo), 500.0)
+    h_min, h_max = float(np.nanmin(hgt)), float(np.nanmax(hgt))
+    if h_min < lo - margin or h_max > hi + margin:
+        log.warning("DEM %s: heights %.0f..%.0f m lie far outside the RPC's height range %.0f..%.0f m; check the "
+                    "DEM's units (band scale/offset), its vertical datum and that it covers the scene",
+                    dem.path, h_min, h_max, lo, hi)
 
 
 def _dem_stats(model, s, l, dem, pixel_convention, lon, lat, hgt, iters) -> LocalizationStats:

@@ -39,6 +39,11 @@ _GDAL_OPTIONAL = {"err_bias": "ERR_BIAS", "err_rand": "ERR_RAND", "min_long": "M
 
 ArrayLike = Union[float, np.ndarray]
 
+#: Localisations are accepted this many normalised units from the RPC's ground cube at most (METHODS §1): cropped
+#: RPCs keep image offsets tens of scales away from their pixels, GDAL extrapolates there, so do we; beyond it a
+#: root is an artefact of the polynomial.
+_MAX_EXTRAPOLATION = 100.0
+
 
 def _as_float_array(x) -> np.ndarray:
     return np.asarray(x, dtype=float)
@@ -141,7 +146,7 @@ class RPCModel(SensorModelMixin):
                     kwargs[name] = float(str(md[key]).split()[0])
                 except ValueError:
                     pass  # optional informative keys: ignore garbage rather than refuse the RPC
-        return cls(source=source, **kwargs)
+        return validate_rpc(cls(source=source, **kwargs))
 
     @classmethod
     def from_file(cls, path) -> "RPCModel":
@@ -293,35 +298,93 @@ class RPCModel(SensorModelMixin):
 
     # ------------------------------------------------------------------ image -> ground
     @cached_property
-    def _approximate_inverse(self) -> np.ndarray:
-        """Cubic polynomial (normalised x, y, H) -> (L, P), least-squares fit over the normalised cube.
+    def _inverse_fit(self):
+        """Approximate inverses fitted over the RPC's *ground* cube (METHODS §1).
 
-        It gives Newton a starting point within a small fraction of a pixel, so localisation needs 1-3 steps.
+        A grid of the normalised ground cube ``[-1, 1]^3`` is projected; its image ``(x, y)`` defines an image
+        frame (centre ``cx, cy``, half-spans ``sx, sy``) in which the fits are well conditioned even when the image
+        offsets lie tens of scales away from the image points (cropped RPCs). Returns ``(frame, cubic, affine)``:
+        ``frame = (cx, sx, cy, sy)``; ``cubic`` (2, 20) maps the 20 monomials of the framed ``(u, v, H)`` to
+        ``(L, P)``; ``affine`` (2, 4) maps ``(1, u, v, H)`` to ``(L, P)`` and is what points outside the frame start
+        from (a cubic extrapolates wildly there).
         """
         g = np.linspace(-1.0, 1.0, 11)
         L, P, H = (a.ravel() for a in np.meshgrid(g, g, np.linspace(-1.0, 1.0, 5), indexing="ij"))
         with np.errstate(all="ignore"):
             x, y = self._project_normalised(L, P, H)
-        ok = np.isfinite(x) & np.isfinite(y) & (np.abs(x) < 10) & (np.abs(y) < 10)
-        A = monomials(x[ok], y[ok], H[ok]).T
-        coef, *_ = np.linalg.lstsq(A, np.column_stack([L[ok], P[ok]]), rcond=None)
-        return coef.T  # (2, 20)
+        ok = np.isfinite(x) & np.isfinite(y)
+        if np.count_nonzero(ok) < 40:
+            raise RPCFormatError(f"RPC{self._where()}: its ground cube does not project to finite image points; "
+                                 "the RPC is not usable")
+        frame = []
+        for v in (x[ok], y[ok]):
+            lo, hi = np.percentile(v, [2.0, 98.0])
+            c, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+            frame += [c, half if half > 0 else 1.0]
+        cx, sx, cy, sy = frame
+        u, v = (x - cx) / sx, (y - cy) / sy
+        ok &= (np.abs(u) <= 4.0) & (np.abs(v) <= 4.0)   # a pole inside the cube must not drive the fit
+        target = np.column_stack([L[ok], P[ok]])
+        cubic, *_ = np.linalg.lstsq(monomials(u[ok], v[ok], H[ok]).T, target, rcond=None)
+        A1 = np.column_stack([np.ones(np.count_nonzero(ok)), u[ok], v[ok], H[ok]])
+        affine, *_ = np.linalg.lstsq(A1, target, rcond=None)
+        return np.array(frame), cubic.T, affine.T
+
+    @cached_property
+    def _approximate_inverse(self) -> np.ndarray:
+        """Cubic (normalised x, y, H) -> (L, P) in the RPC's own normalised image coordinates, (2, 20).
+
+        The framed cubic of :attr:`_inverse_fit` with the frame substituted (exact binomial expansion), for callers
+        that evaluate ``A @ monomials(x, y, H)`` directly (the DEM fast path of the localisation layer).
+        """
+        (cx, sx, cy, sy), cubic, _ = self._inverse_fit
+        index = {e: k for k, e in enumerate(_EXPONENTS)}
+        T = np.zeros((20, 20))          # framed monomial j = sum_k T[j, k] raw monomial k
+        for j, (a, b, c) in enumerate(_EXPONENTS):
+            for i in range(a + 1):
+                wa = math.comb(a, i) * (-cx) ** (a - i) / sx ** a
+                for k in range(b + 1):
+                    wb = math.comb(b, k) * (-cy) ** (b - k) / sy ** b
+                    T[j, index[(i, k, c)]] += wa * wb
+        return cubic @ T
+
+    def _start_normalised(self, x, y, H):
+        """Newton start ``(L, P)`` for flat normalised image points: the cubic inverse inside the image of the
+        ground cube (within a small fraction of a pixel), the ground-cube affine outside it."""
+        (cx, sx, cy, sy), _, affine = self._inverse_fit
+        A = self._approximate_inverse
+        n = x.size
+        L, P = np.empty(n), np.empty(n)
+        x_lo, x_hi, y_lo, y_hi = cx - 1.25 * sx, cx + 1.25 * sx, cy - 1.25 * sy, cy + 1.25 * sy
+        for i in range(0, n, _CHUNK):
+            sl = slice(i, i + _CHUNK)
+            xs, ys, hs = x[sl], y[sl], H[sl]
+            L[sl], P[sl] = A @ monomials(xs, ys, hs)
+            # Chunk-wise bounds first: the common case (every point inside) costs six reductions.
+            if (xs.min(initial=x_lo) >= x_lo and xs.max(initial=x_hi) <= x_hi and ys.min(initial=y_lo) >= y_lo
+                    and ys.max(initial=y_hi) <= y_hi and np.abs(hs).max(initial=0.0) <= 1.5):
+                continue
+            out = np.flatnonzero(~((xs >= x_lo) & (xs <= x_hi) & (ys >= y_lo) & (ys <= y_hi) & (np.abs(hs) <= 1.5)))
+            uo, vo, ho = (xs[out] - cx) / sx, (ys[out] - cy) / sy, hs[out]
+            L[i + out] = affine[0, 0] + affine[0, 1] * uo + affine[0, 2] * vo + affine[0, 3] * ho
+            P[i + out] = affine[1, 0] + affine[1, 1] * uo + affine[1, 2] * vo + affine[1, 3] * ho
+        return L, P
 
     def _localize_normalised(self, x, y, H, tol, max_iter):
         """Solve x(L, P, H) = x, y(L, P, H) = y for (L, P); returns L, P, converged mask, iterations.
 
-        Chord-Newton: the Jacobian is evaluated at the starting point (within a fraction of a pixel of the
-        solution thanks to the approximate inverse) and refreshed only every third step, so most steps cost
-        a single projection. Steps longer than half the normalised cube are damped.
+        Started from the ground domain (:meth:`_start_normalised`). Chord-Newton: the Jacobian is evaluated at the
+        starting point (within a fraction of a pixel of the solution inside the image of the ground cube) and
+        refreshed every third step, every step after the third (points started outside the cube, cropped RPCs),
+        so most steps cost a single projection. Steps are damped in ground space: at most half a normalised unit,
+        or half the distance from the cube's centre when the point lies farther out. A solution is accepted
+        within ``_MAX_EXTRAPOLATION`` normalised units of the cube and with the cube's orientation (the sign of
+        the Jacobian determinant at its centre): other roots are polynomial artefacts.
         """
+        L, P = self._start_normalised(x, y, H)
         n = x.size
-        L, P = np.empty(n), np.empty(n)
-        A = self._approximate_inverse
-        with np.errstate(all="ignore"):
-            for i in range(0, n, _CHUNK):
-                sl = slice(i, i + _CHUNK)
-                L[sl], P[sl] = A @ monomials(x[sl], y[sl], H[sl])
         converged = np.zeros(n, dtype=bool)
+        det_sign = np.full(n, self._orientation)   # checked for the points that need more than two steps
         tol_x = tol / abs(self.samp_scale)   # tolerances in pixels -> normalised units per axis
         tol_y = tol / abs(self.line_scale)
         active = np.arange(n)
@@ -335,6 +398,8 @@ class RPCModel(SensorModelMixin):
                 ry = y[active] - cy
                 done = (np.abs(rx) <= tol_x) & (np.abs(ry) <= tol_y)
                 converged[active[done]] = True
+                if iterations > 2:
+                    det_sign[active[done]] = np.sign(a[done] * e[done] - b[done] * c[done])
                 keep = ~done & np.isfinite(rx) & np.isfinite(ry)
                 if not np.any(keep):
                     active = active[:0]
@@ -345,24 +410,38 @@ class RPCModel(SensorModelMixin):
                 dL_ = (e * rx - b * ry) / det
                 dP_ = (a * ry - c * rx) / det
                 step = np.maximum(np.abs(dL_), np.abs(dP_))
-                f = np.where(step > 0.5, 0.5 / step, 1.0)
-                L[active] += f * dL_
-                P[active] += f * dP_
-                if iterations % 3 == 0:
+                big = np.flatnonzero(step > 0.5)
+                if big.size:   # damping, in ground space: rare, so only these points pay for it
+                    ab = active[big]
+                    limit = 0.5 * np.maximum(1.0, np.maximum(np.abs(L[ab]), np.abs(P[ab])))
+                    f = np.minimum(1.0, limit / step[big])
+                    dL_[big] *= f
+                    dP_[big] *= f
+                L[active] += dL_
+                P[active] += dP_
+                if iterations % 3 == 0 or iterations > 3:
                     d = self._normalised_jacobian(L[active], P[active], H[active], with_h=False)
                     cx, cy = d["x"], d["y"]
                     a, b, c, e = d["x_L"], d["x_P"], d["y_L"], d["y_P"]
                 else:
                     cx, cy = self._project_normalised(L[active], P[active], H[active])
-        # Solutions far outside the model's normalised domain are polynomial artefacts, not localisations.
-        converged &= (np.abs(L) <= 3.0) & (np.abs(P) <= 3.0)
+        converged &= (np.abs(L) <= _MAX_EXTRAPOLATION) & (np.abs(P) <= _MAX_EXTRAPOLATION)
+        converged &= det_sign == self._orientation
         return L, P, converged, iterations
+
+    @cached_property
+    def _orientation(self) -> float:
+        """Sign of ``det d(x, y)/d(L, P)`` at the ground cube's centre (+1 or -1)."""
+        d = self._normalised_jacobian(np.zeros(1), np.zeros(1), np.zeros(1), with_h=False)
+        return float(np.sign(d["x_L"][0] * d["y_P"][0] - d["x_P"][0] * d["y_L"][0]))
 
     def localize(self, sample: ArrayLike, line: ArrayLike, h: ArrayLike, *, pixel_convention: str = "gdal",
                  tol_px: float = 1e-8, max_iter: int = 20, full_output: bool = False):
         """Image to ground at a given height (METHODS §1): ``(sample, line, h) -> (lon, lat)``.
 
-        Vectorised Newton iteration on the 2x2 system, started from a cubic approximate inverse.
+        Vectorised Newton iteration on the 2x2 system, started from the ground domain: a cubic inverse fitted over
+        the RPC's ground cube inside its image, the cube's affine inverse outside it (cropped RPCs whose offsets
+        lie far from the image), damped in ground space.
         Points that do not converge to ``tol_px`` within ``max_iter`` steps are returned as NaN and counted
         (logged, and returned as :class:`LocalizationStats` when ``full_output=True``).
         """
@@ -437,11 +516,55 @@ class RPCModel(SensorModelMixin):
                                                                     else ")"))
 
 
+#: Plausibility limits of :func:`validate_rpc` (METHODS §1): generous, they only refuse what no sensor produces.
+_LIMITS = {"lat_off": 90.0, "long_off": 360.0, "height_off": 1e5}
+_SCALE_LIMITS = {"lat_scale": (1e-7, 90.0), "long_scale": (1e-7, 360.0), "height_scale": (1e-3, 1e5),
+                 "line_scale": (1e-3, 1e8), "samp_scale": (1e-3, 1e8)}
+#: Largest |coefficient| accepted: RPC00B coefficients act on normalised coordinates, real ones stay below ~10.
+_MAX_COEFF = 1e6
+
+
+def validate_rpc(rpc: "RPCModel") -> "RPCModel":
+    """Refuse a physically implausible RPC with a one-line :class:`RPCFormatError` naming the reason (METHODS §1).
+
+    Checks |LAT_OFF| <= 90, |LONG_OFF| <= 360, |HEIGHT_OFF| <= 1e5 m; scales finite and of plausible magnitude
+    (negative scales stay legal; |LAT_SCALE| of 1e-300 does not: it makes localisation return finite wrong values);
+    every coefficient finite and |c| <= 1e6; a 9 x 9 x 5 grid of the RPC's normalised ground cube projects to finite
+    image points. Called by every reader path (:meth:`RPCModel.from_gdal_metadata`, hence
+    :meth:`RPCModel.from_file`). Returns ``rpc``.
+    """
+    where = rpc._where()
+    for name, limit in _LIMITS.items():
+        value = getattr(rpc, name)
+        if abs(value) > limit:
+            raise RPCFormatError(f"RPC{where}: {name.upper()} = {value:g} is impossible (|{name.upper()}| must be "
+                                 f"<= {limit:g}); check the file")
+    for name, (lo, hi) in _SCALE_LIMITS.items():
+        value = abs(getattr(rpc, name))
+        if not lo <= value <= hi:
+            raise RPCFormatError(f"RPC{where}: {name.upper()} = {getattr(rpc, name):g} is implausible (|"
+                                 f"{name.upper()}| must lie in [{lo:g}, {hi:g}]); check the file")
+    for name, key in _GDAL_COEFF_KEYS.items():
+        worst = float(np.max(np.abs(getattr(rpc, name))))
+        if worst > _MAX_COEFF:
+            raise RPCFormatError(f"RPC{where}: {key} holds a coefficient of magnitude {worst:.3g} (> {_MAX_COEFF:g}"
+                                 "); the RPC is corrupt")
+    g = np.linspace(-1.0, 1.0, 9)
+    L, P, H = (a.ravel() for a in np.meshgrid(g, g, np.linspace(-1.0, 1.0, 5), indexing="ij"))
+    with np.errstate(all="ignore"):
+        x, y = rpc._project_normalised(L, P, H)
+    bad = ~(np.isfinite(x) & np.isfinite(y))
+    if np.any(bad):
+        raise RPCFormatError(f"RPC{where}: {int(bad.sum())} points of its ground cube do not project to finite "
+                             "image points (a denominator vanishes); the RPC is corrupt")
+    return rpc
+
+
 def _parse_number(value, key: str, where: str) -> float:
     try:
         text = str(value).strip().split()[0] if isinstance(value, str) else value
         number = float(text)
-    except (ValueError, IndexError, TypeError):
+    except (ValueError, IndexError, TypeError, OverflowError):
         raise RPCFormatError(f"RPC{where}: {key} is not a number ({str(value)[:40]!r})") from None
     if not math.isfinite(number):
         raise RPCFormatError(f"RPC{where}: {key} is not a finite number ({value!r})")

@@ -90,6 +90,9 @@ def _scalar_token(value: Any, key: str, source: Any) -> str:
     if isinstance(value, bool):
         raise RPCFormatError(f"{source}: RPC key {key} is not a number ({value!r})")
     if isinstance(value, (int, float)):
+        if isinstance(value, int) and abs(value) > 10 ** 300:   # float() would overflow: a 400-digit integer
+            raise RPCFormatError(f"{source}: RPC key {key} is not a finite number (an integer of "
+                                 f"{len(str(abs(value)))} digits)")
         if not math.isfinite(float(value)):
             raise RPCFormatError(f"{source}: RPC key {key} is not a finite number ({value!r})")
         return repr(float(value)) if isinstance(value, float) else str(value)
@@ -117,6 +120,9 @@ def _coeff_tokens(value: Any, key: str, source: Any) -> List[str]:
         for item in value:
             if isinstance(item, bool):
                 raise RPCFormatError(f"{source}: RPC key {key} holds a non-number ({item!r})")
+            if isinstance(item, int) and abs(item) > 10 ** 300:
+                raise RPCFormatError(f"{source}: RPC key {key} holds a non-finite number (an integer of "
+                                     f"{len(str(abs(item)))} digits)")
             tokens.append(repr(float(item)) if isinstance(item, float) else str(item).strip())
     else:
         try:  # numpy arrays and other sequences
@@ -580,8 +586,10 @@ def _read_any(path: str) -> Tuple[Dict[str, Any], str, List[str]]:
     if stripped.startswith(b"{") or stripped.startswith(b"["):
         try:
             data = json.loads(_read_bytes(path).decode("utf-8-sig"))
+        except RecursionError:
+            raise RPCFormatError(f"{path}: JSON nested too deeply to be an RPC file") from None
         except (UnicodeDecodeError, ValueError) as exc:
-            raise RPCFormatError(f"{path}: not valid JSON ({exc})") from None
+            raise RPCFormatError(f"{path}: not valid JSON ({str(exc)[:120]})") from None
         return _parse_json(data, path), "json", [path]
     text = head.decode("latin-1")
     if len(head) == _SNIFF:  # text sidecars are small; read the rest only when there is more
@@ -603,6 +611,12 @@ def _read_xml(path: str) -> Tuple[Dict[str, Any], str, List[str]]:
         root = ET.fromstring(_read_bytes(path))
     except ET.ParseError as exc:
         raise RPCFormatError(f"{path}: not well-formed XML ({exc})") from None
+    except LookupError as exc:   # <?xml encoding="..."?> naming a codec Python does not know
+        raise RPCFormatError(f"{path}: the XML declares an unknown encoding ({exc}); save it as UTF-8") from None
+    except (ValueError, UnicodeError) as exc:
+        raise RPCFormatError(f"{path}: cannot decode the XML ({exc}); save it as UTF-8") from None
+    except RecursionError:
+        raise RPCFormatError(f"{path}: XML nested too deeply to be an RPC file") from None
     md = _parse_gdal_xml(root, path)
     if md is not None:
         return md, "gdal_xml", [path]
@@ -661,8 +675,18 @@ def read_rpc_metadata(path: PathLike) -> Dict[str, str]:
         Unsupported or malformed input; the one-line message names the file and the missing or bad key.
     """
     spath = os.fspath(path)
-    md, _fmt, files = _read_any(spath)
-    result = normalize_rpc_metadata(md, spath)
+    try:
+        md, _fmt, files = _read_any(spath)
+        result = normalize_rpc_metadata(md, spath)
+    except Gf4calError:
+        raise
+    except RecursionError:
+        raise RPCFormatError(f"{spath}: nested too deeply to be an RPC file") from None
+    except (ValueError, TypeError, LookupError, OverflowError, ArithmeticError, UnicodeError, KeyError,
+            IndexError, AttributeError) as exc:
+        # Backstop for malformed input a parser did not foresee: still one line, with the class for a bug report.
+        raise RPCFormatError(f"{spath}: cannot read an RPC from this file ({type(exc).__name__}: "
+                             f"{str(exc)[:120]})") from None
     _register_input(files + [spath])
     return result
 

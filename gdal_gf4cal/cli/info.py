@@ -43,4 +43,6 @@ def format_info(info: dict) -> str:
         lines.append(f"  DEM heights       {lo:.1f} .. {hi:.1f} m over the footprint")
     if info.get("err_bias") is not None:
         lines.append(f"  ERR_BIAS/ERR_RAND {info['err_bias']} / {info['err_rand']} m")
+    for warning in info.get("warnings", ()):
+        lines.append(f"  warning: {warning}")
     return "\n".join(lines)

@@ -128,6 +128,17 @@ def _align_orbit(center, h, altitude, incl, camera, install, s_ref):
         orbit = _orbit_over(target[0], target[1], altitude, incl)
         lon, lat = _probe(orbit, att, install, camera).localize(s_ref, 0.0, h)
         target = target - (np.array([lon, lat]) - np.array(center))
+    # Beyond the ground track's highest latitude (180 - inclination) _orbit_over clips, and the iteration above
+    # chased an unreachable target into the other hemisphere (--center 0 85 gave a scene at lat -82 while truth.json
+    # said 85): check that the orbit really sees the centre.
+    lon, lat = _probe(orbit, att, install, camera).localize(s_ref, 0.0, h)
+    d_lon = (lon - center[0] + 180.0) % 360.0 - 180.0
+    if not (np.isfinite(lon) and np.isfinite(lat)) or abs(lat - center[1]) > 1e-3 or \
+            abs(d_lon) * np.cos(np.radians(center[1])) > 1e-3:
+        reach = 180.0 - incl if incl > 90.0 else incl
+        raise SimulationError(f"the simulated orbit (inclination {incl:g} deg) cannot see the centre "
+                              f"({center[0]:g}, {center[1]:g}): its ground track reaches |lat| ~ {reach:.1f}; "
+                              f"choose a centre with |lat| <= {np.floor(reach) - 2:g}")
     return orbit
 
 
