@@ -15,7 +15,8 @@ from gdal_gf4cal.cli import main
 from gdal_gf4cal.executors import get_executor
 from gdal_gf4cal.rpc import RPCModel
 
-from test_lookangle import HEIGHTS, dense_check, fit_rpc_from_model, frame_model, make_cameras
+from gf4frame import HEIGHTS, dense_check, frame_model, make_cameras
+from gdal_gf4cal.rpc_fit import fit_rpc_from_model
 
 
 @pytest.fixture(scope="module")
@@ -149,7 +150,7 @@ def test_cli_collect_gcps_then_refine_batch_on_a_local_cluster(tmp_path, capsys)
     the missing scene; a rerun skips."""
     from osgeo import gdal
     from gdal_gf4cal.gcp import read_gcps
-    from test_matching_scene import build_scene, error_affine
+    from matchscene import build_scene, error_affine
     scenes = []
     for k, shift in enumerate([(12.2, -9.4), (-7.5, 10.1)]):
         d = tmp_path / f"s{k}"

@@ -9,7 +9,7 @@ import pytest
 from gdal_gf4cal.executors import ExecutorError, get_executor, map_ordered
 from gdal_gf4cal.workflows.collect import collect_gcps_file
 
-from test_matching_scene import build_scene, error_affine
+from matchscene import build_scene, error_affine
 
 SIZE = (320, 320)
 

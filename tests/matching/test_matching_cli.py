@@ -12,7 +12,7 @@ from gdal_gf4cal.cli import main
 from gdal_gf4cal.gcp import read_gcps
 from gdal_gf4cal.matching.correlate import phase_correlate
 
-from test_matching_scene import build_scene, error_affine
+from matchscene import build_scene, error_affine
 
 SIZE = (320, 320)
 

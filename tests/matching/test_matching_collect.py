@@ -19,7 +19,7 @@ from gdal_gf4cal.errors import CancelledError, Gf4calError
 from gdal_gf4cal.gcp import read_gcps, write_gcps
 from gdal_gf4cal.matching import collect_gcps, match_tile, plan_tiles
 
-from test_matching_scene import build_scene, error_affine
+from matchscene import build_scene, error_affine
 
 SIZE = (384, 384)
 # Biased RPC predicts E(true): the matcher must find offsets of ~(+50.3, -37.6) px (62.8 px) plus rotation/scale.
