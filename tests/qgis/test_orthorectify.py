@@ -10,11 +10,11 @@ from osgeo import gdal
 @pytest.fixture(scope="module")
 def oscene(tmp_path_factory):
     from gdal_gf4cal.simulate import write_scene
-    from tests.test_ortho import _geoid_dem
+    from rasters import write_geoid_dem
     d = tmp_path_factory.mktemp("qortho")
     write_scene("gf4", d / "s", seed=5, size=(192, 192), n_gcps=8, render=True, tile=192, reference_ortho=False)
-    _geoid_dem(d / "s" / "dem.tif", d / "dem_egm96.tif", 5773)
-    _geoid_dem(d / "s" / "dem.tif", d / "dem_egm2008.tif", 3855)
+    write_geoid_dem(d / "s" / "dem.tif", d / "dem_egm96.tif", 5773)
+    write_geoid_dem(d / "s" / "dem.tif", d / "dem_egm2008.tif", 3855)
     return d
 
 

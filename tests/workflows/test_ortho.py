@@ -15,11 +15,11 @@ import numpy as np
 import pandas as pd
 import pyproj
 import pytest
-from osgeo import gdal, osr
+from osgeo import gdal
 from scipy.ndimage import binary_erosion, map_coordinates
 
+from rasters import write_geoid_dem
 from gdal_gf4cal.cli import main
-from gdal_gf4cal.dem import _geoid_transformer
 from gdal_gf4cal.geoid import GeoidGridMissing, find_grid, resolve_geoid
 from gdal_gf4cal.rpc import RPCModel
 from gdal_gf4cal.simulate import write_scene
@@ -29,30 +29,13 @@ gdal.UseExceptions()
 RES_M = 50.0
 
 
-def _geoid_dem(src: Path, dst: Path, vertical_epsg: int) -> None:
-    """The ellipsoidal DEM ``src`` as heights above EGM96 (H = h - N), declared as EPSG:4326+``vertical_epsg``."""
-    ds = gdal.Open(str(src))
-    gt = ds.GetGeoTransform()
-    h = ds.ReadAsArray().astype(float)
-    W, H = ds.RasterXSize, ds.RasterYSize
-    lon, lat = np.meshgrid(gt[0] + gt[1] * (np.arange(W) + 0.5), gt[3] + gt[5] * (np.arange(H) + 0.5))
-    _, _, hg = _geoid_transformer("egm96").transform(lon.ravel(), lat.ravel(), h.ravel(), direction="INVERSE")
-    out = gdal.GetDriverByName("GTiff").Create(str(dst), W, H, 1, gdal.GDT_Float64)
-    out.SetGeoTransform(gt)
-    srs = osr.SpatialReference()
-    srs.SetFromUserInput(f"EPSG:4326+{vertical_epsg}")
-    out.SetSpatialRef(srs)
-    out.GetRasterBand(1).WriteArray(hg.reshape(H, W))
-    out = None
-
-
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     d = tmp_path_factory.mktemp("ortho")
     write_scene("gf4", d / "s", seed=3, size=(256, 256), n_gcps=24, gcp_noise_px=0.2, check_fraction=0.4,
                 render=True, tile=256, reference_ortho=False)
-    _geoid_dem(d / "s" / "dem.tif", d / "dem_egm96.tif", 5773)
-    _geoid_dem(d / "s" / "dem.tif", d / "dem_egm2008.tif", 3855)   # mislabelled on purpose: only the label matters
+    write_geoid_dem(d / "s" / "dem.tif", d / "dem_egm96.tif", 5773)
+    write_geoid_dem(d / "s" / "dem.tif", d / "dem_egm2008.tif", 3855)   # mislabelled on purpose: only the label matters
     return d
 
 
