@@ -124,7 +124,7 @@ def weighted_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), fro
     v = y - a @ x
     dof = n_used - pf
     sigma0 = float(math.sqrt(np.sum(w * v * v) / dof)) if dof > 0 else 1.0
-    q = np.einsum("ij,jk,ik->i", af, n_inv, af)
+    q = np.sum((af @ n_inv) * af, axis=1)
     red = np.where(used, 1.0 - w * q, 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         w_out = np.ones(n) if prior is None else np.broadcast_to(np.asarray(prior, dtype=float), (n,))

@@ -398,7 +398,7 @@ def irls(design, obs, weights, weight_fn, *, x0=None, robust: bool = True, start
         return IRLSSolution(x, nmat, rw, outlier, scale, z, steps)
     phase = 1
     for _ in range(max_steps):
-        v = y - np.einsum("nij,j->ni", a, x)
+        v = y - a @ x
         fw, out, scale, z = weight_fn(v)
         if phase == 1:
             out = np.zeros(n, bool)
@@ -408,13 +408,13 @@ def irls(design, obs, weights, weight_fn, *, x0=None, robust: bool = True, start
             raise GCPError(f"only {int((~out).sum())} points left after rejecting outliers{too_few}")
         new_x, nmat = normal_solve(a2, y2, (w_base * rw_new[:, None]).reshape(-1), hint)
         steps += 1
-        change = float(np.max(np.abs(np.einsum("nij,j->ni", a, new_x - x))))
+        change = float(np.max(np.abs(a @ (new_x - x))))
         stable = np.array_equal(out, outlier)
         x, rw, outlier = new_x, rw_new, out
         if change < tol and stable:
             if phase == 2:
                 break
             phase = 2
-    v = y - np.einsum("nij,j->ni", a, x)
+    v = y - a @ x
     _, _, scale, z = weight_fn(v)
     return IRLSSolution(x, nmat, rw, outlier, scale, z, steps)
