@@ -54,7 +54,9 @@ def _subsets(n: int, m: int, n_subsets: int, seed: int) -> np.ndarray:
     if math.comb(n, m) <= MAX_EXHAUSTIVE:
         return np.array(list(combinations(range(n), m)), dtype=np.intp).reshape(-1, m)
     rng = np.random.default_rng(seed)
-    return np.argsort(rng.random((n_subsets, n)), axis=1)[:, :m]
+    # the m smallest of n uniform keys per row: a uniform random m-subset (argpartition: the same sets as a full
+    # argsort, in O(n))
+    return np.argpartition(rng.random((n_subsets, n)), m - 1, axis=1)[:, :m]
 
 
 def _normal_parts(a: np.ndarray, y: np.ndarray, w: np.ndarray, scale: np.ndarray):
@@ -121,13 +123,21 @@ def _inflation(a: np.ndarray, w: np.ndarray, fit_set: np.ndarray, scale: np.ndar
 
 
 def _point_sq(a, y, w, x):
-    """Weighted squared residual norm per point for each parameter row of ``x`` (K, p): (K, n)."""
-    res = y[:, :, None] - np.matmul(a, np.asarray(x).T)             # (n, k, K)
-    return np.sum(w[:, :, None] * res * res, axis=1).T
+    """Weighted squared residual norm per point for each parameter row of ``x`` (K, p): (K, n).
+
+    One (K, n) matrix product per observation axis (k is 1 or 2): no (n, k, K) temporaries."""
+    xt = np.asarray(x).T                                             # (p, K)
+    out = None
+    for j in range(a.shape[1]):
+        r = y[:, j, None] - a[:, j, :] @ xt                          # (n, K)
+        r *= r
+        r *= w[:, j, None]
+        out = r if out is None else out + r
+    return out.T
 
 
-def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int] = None, n_subsets: int = 500,
-                         seed: int = 0, chunk: int = 512, max_search: int = 300) -> Tuple[np.ndarray, float, dict]:
+def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int] = None, n_subsets: int = 300,
+                         seed: int = 0, chunk: int = 512, max_search: int = 120) -> Tuple[np.ndarray, float, dict]:
     """High-breakdown start (least trimmed squares from minimal subsets), see the module docstring.
 
     Parameters
@@ -140,9 +150,9 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
         Random subsets when ``C(n, m)`` exceeds :data:`MAX_EXHAUSTIVE` (seeded with ``seed``).
     max_search : int
         Above this many points the subsets are searched on a seeded sample of that size, and the best fit is
-        then concentrated on all points (cost independent of ``n``; 300 points keep a clean minimal subset among
-        500 random ones near-certain up to 40 % blunders, and the compensation timings of issue 10 within those of
-        the Huber/Tukey start it replaced).
+        then concentrated on all points (cost independent of ``n``). With 300 random subsets a clean minimal
+        subset is near-certain up to 40 % blunders (P(miss) ~ 1e-32 for 3-point subsets, ~ 1e-6 for 6-point ones),
+        and 120 searched points keep the start's cost near the M-estimator start it replaced.
 
     Returns
     -------
@@ -253,7 +263,7 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
 
 def robust_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), frozen: Sequence[str] = (),
                values=None, threshold: float = 4.0, min_points: Optional[int] = None, candidates=None,
-               n_subsets: int = 500, seed: int = 0, max_iter: int = 20, hint: str = "") -> Estimate:
+               n_subsets: int = 300, seed: int = 0, max_iter: int = 20, hint: str = "") -> Estimate:
     """Robust weighted LS over points: high-breakdown start, reweighting, data snooping (module docstring).
 
     Parameters
