@@ -4,7 +4,7 @@
 the image, heights outside the RPC's height range (metres expected; feet named), ground points the RPC projects
 far from where they were measured (lon/lat swapped is detected and named; otherwise the layer's CRS is suspected).
 :func:`correction_precision` is the propagated 1-sigma uncertainty of an estimated correction over the whole image
-(parameter covariance x measured noise, METHODS §4.3 / §6), on a grid: what the GCP layout leaves unknown.
+(parameter covariance x measured noise, METHODS §4, §6), on a grid: what the GCP layout leaves unknown.
 All vectorised; the workflows call them, the estimators stay pure.
 """
 from __future__ import annotations
@@ -109,7 +109,7 @@ def check_gcps_against(rpc, gcps, image_size: Optional[Tuple[int, int]] = None, 
 
 
 def correction_precision(result, image_size: Tuple[int, int], *, grid: int = 21) -> Dict[str, float]:
-    """Propagated 1-sigma uncertainty (px) of an estimated correction over the whole image (METHODS §4.3, §6).
+    """Propagated 1-sigma uncertainty (px) of an estimated correction over the whole image (METHODS §4, §6).
 
     ``result``: a :class:`~gdal_gf4cal.compensation.CompensationResult` (covariance already scaled by the
     measured noise, ``correction_std``). Evaluated on a ``grid`` x ``grid`` lattice over ``image_size`` (W, H)
@@ -129,7 +129,7 @@ def correction_precision(result, image_size: Tuple[int, int], *, grid: int = 21)
 def check_precision(precision: Dict[str, float], model_label: str, *,
                     max_uncertainty_px: float = MAX_UNCERTAINTY_PX) -> Sequence[str]:
     """Refuse a correction whose propagated uncertainty exceeds ``max_uncertainty_px`` (DegenerateGeometryError
-    with a suggestion); returns the warnings (above 1 px). METHODS §4.3."""
+    with a suggestion); returns the warnings (above 1 px). METHODS §4, §6."""
     if not max_uncertainty_px > 0:
         raise GCPError(f"max uncertainty {max_uncertainty_px} px makes no sense: give a positive number of pixels")
     mx, rms = precision["max"], precision["rms"]

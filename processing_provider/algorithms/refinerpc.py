@@ -69,7 +69,7 @@ class RefineRpc(Gf4calAlgorithm):
                                                    QgsProcessingParameterNumber.Double, 10.0, minValue=0.001),
                       "Refuse a correction whose propagated 1-sigma uncertainty (parameter covariance x measured "
                       "noise) exceeds this anywhere in the image: a weak GCP layout (clustered, near-collinear) "
-                      "extrapolates; above 1 px a warning (METHODS §4.3, §6).")
+                      "extrapolates; above 1 px a warning (METHODS §4, §6).")
         p.setFlags(p.flags() | p.FlagAdvanced)
         self._add(QgsProcessingParameterFileDestination(
             self.OUTPUT_RPC, self.tr("Refined RPC"),
