@@ -17,6 +17,8 @@ from .errors import DegenerateGeometryError, GCPError
 
 #: Measured points may lie this share of the image size outside it (edge GCPs, sloppy clicks).
 OUTSIDE_MARGIN = 0.05
+#: Without the image (a standalone RPC) its size is implied by the RPC's offsets and scales: a wider margin.
+IMPLIED_SIZE_MARGIN = 0.25
 #: Predicted vs measured is refused beyond max(PREDICTED_MARGIN_PX, PREDICTED_MARGIN_FRACTION x image diagonal).
 PREDICTED_MARGIN_PX = 500.0
 PREDICTED_MARGIN_FRACTION = 0.10
@@ -56,12 +58,15 @@ def check_gcps_against(rpc, gcps, image_size: Optional[Tuple[int, int]] = None, 
 
     ``gcps``: the GCP table (``lon, lat, h, sample, line``, GDAL convention). ``image_size`` (W, H): the image's
     (default: implied by the RPC's offsets and scales). Refused, in this order: measured points more than
-    ``outside_margin`` x the size outside the image; heights outside the RPC's height range +/- ``height_margin_m``
+    ``outside_margin`` x the size outside the image (25 % when the size is only implied by the RPC); heights outside the RPC's height range +/- ``height_margin_m``
     (named "feet" when /3.28 would fit); points whose RPC prediction lies more than ``predicted_margin_px``
     (default max(500 px, 10 % of the image diagonal)) from their measured position: "lon/lat swapped" when swapping
     brings them in, else "check the layer's CRS". A real bias of tens of px passes. Returns the margins used.
     """
     w, hgt = (float(x) for x in (image_size or rpc.image_size))
+    implied = image_size is None                  # a standalone RPC: its size is a guess from offsets and scales
+    if implied:
+        outside_margin = max(outside_margin, IMPLIED_SIZE_MARGIN)
     n = len(gcps)
     if n == 0:
         return {}
@@ -71,7 +76,8 @@ def check_gcps_against(rpc, gcps, image_size: Optional[Tuple[int, int]] = None, 
     out = ~((s >= -ms) & (s <= w + ms) & (l >= -ml) & (l <= hgt + ml))
     if out.any():
         i = int(np.flatnonzero(out)[0])
-        raise GCPError(f"{out.sum()} of {n} GCPs are measured outside the {w:.0f} x {hgt:.0f} px image (beyond "
+        what = "image implied by the RPC" if implied else "image"
+        raise GCPError(f"{out.sum()} of {n} GCPs are measured outside the {w:.0f} x {hgt:.0f} px {what} (beyond "
                        f"{outside_margin:.0%} of its size; e.g. {_ids(gcps, out, 1)} at sample {s[i]:.1f}, line "
                        f"{l[i]:.1f}): they belong to another image or use other pixel units; remove or fix them")
     # 2. heights within the RPC's height range (+ margin)

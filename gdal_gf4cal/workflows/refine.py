@@ -109,6 +109,9 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     source = os.fspath(source)
     out = os.fspath(out)
     kind = output_kind(out)
+    if max_uncertainty_px is not None and not float(max_uncertainty_px) > 0:
+        raise GCPError(f"max uncertainty {max_uncertainty_px} px makes no sense: give a positive number of pixels "
+                       "(default 10)")
     image_size, inputs = _open_image(source)
     inputs += [os.fspath(x) for x in (gcps, dem) if is_path(x)]
     if kind == "vrt" and image_size is None:

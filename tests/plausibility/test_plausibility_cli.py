@@ -201,3 +201,9 @@ def test_swap_detection_in_the_engine(rpc):
     tab["lon"], tab["lat"] = tab["lat"].to_numpy(), tab["lon"].to_numpy()
     with pytest.raises(GCPError, match=r"lon/lat look swapped: .* swapped they agree \(median (49|50)\.\d px\)"):
         check_gcps_against(rpc, tab, (10240, 10240))
+
+
+def test_max_uncertainty_must_be_positive(scene, rpc, tmp_path):
+    csv = tmp_path / "g.csv"
+    _gcps(rpc).to_csv(csv, index=False)
+    _refused(*_refine(scene, csv, tmp_path, "--model", "affine", "--max-uncertainty", "0"), "positive number")
