@@ -151,8 +151,10 @@ def validate_gcps(gdf, *, source: str = "GCPs", dem=None, need_height: bool = Tr
             # Errors when the DEM has no value under a GCP (never a NaN height from a nodata="nan" DEM).
             df = fill_heights(df, dem, source=source)
     if ((df["lat"].abs() > 90) | (df["lon"].abs() > 360)).any():
+        swapped = bool((df["lon"].abs() <= 90).all() and (df["lat"].abs() <= 360).all())
         raise GCPError(f"{source}: lon/lat out of range; GCP ground coordinates must be WGS84 degrees "
-                       "(reproject the layer to EPSG:4326 or give its CRS)")
+                       + ("(lon and lat look swapped: swap the columns)" if swapped else
+                          "(reproject the layer to EPSG:4326 or give its CRS)"))
     if "role" not in df.columns:
         df["role"] = "control"
     df["role"] = df["role"].fillna("control").astype(str).str.strip().str.lower()

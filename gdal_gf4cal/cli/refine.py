@@ -34,6 +34,12 @@ def add_parser(parser):
     parser.add_argument("--no-robust", action="store_true", help="plain least squares: no blunder detection")
     parser.add_argument("--outlier-threshold", type=float, default=4.0,
                         help="normalised residual above which a GCP is a blunder (default 4)")
+    parser.add_argument("--max-uncertainty", type=float, metavar="PX",
+                        help="refuse a correction whose propagated 1-sigma uncertainty anywhere in the image exceeds "
+                        "PX (default 10; a warning above 1 px)")
+    parser.add_argument("--no-plausibility-check", action="store_true",
+                        help="experts: accept GCPs outside the image, far from the RPC's prediction or with heights "
+                        "outside the RPC's range")
     parser.add_argument("--out", required=True, help="output .RPB, _RPC.TXT, or .vrt (image input)")
     parser.add_argument("--ortho", metavar="ORTHO.tif",
                         help="also orthorectify the image with the refined RPC over --dem into this GeoTIFF")
@@ -77,7 +83,8 @@ def run(args) -> int:
                      check_fraction=args.check_fraction, seed=args.seed, leave_one_out=args.leave_one_out,
                      robust=not args.no_robust, outlier_threshold=args.outlier_threshold, report=args.report,
                      residuals=args.residuals, plot=args.plot, overwrite=args.overwrite,
-                     progress=TextProgressBar(), ortho=args.ortho, ortho_options=ortho_options)
+                     progress=TextProgressBar(), ortho=args.ortho, ortho_options=ortho_options,
+                     check_plausibility=not args.no_plausibility_check, max_uncertainty_px=args.max_uncertainty)
     _print_report(rep)
     if "ortho" in rep:
         print_ortho(rep["ortho"])
@@ -114,6 +121,9 @@ def _print_report(rep) -> None:
     for o in rep["outliers"]:
         print(f"outlier {o['id']} ({o['role']}): normalised residual s/l {_fmt(o['norm_res_sample'])} / "
               f"{_fmt(o['norm_res_line'])}")
+    if "precision_px" in rep:
+        pr = rep["precision_px"]
+        print(f"correction uncertainty over the image (1 sigma): max {pr['max']:.3f} px, rms {pr['rms']:.3f} px")
     ap = rep["apply"]
     if ap["exact"]:
         print("applied exactly (offsets/scales)")

@@ -13,7 +13,7 @@ from ._common import cancel_check, collect_warnings, finish_report, is_path
 
 def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[str] = None, residuals=None,
                     plot=None, report=None, image_size: Optional[Tuple[int, int]] = None, overwrite: bool = False,
-                    progress=None) -> dict:
+                    progress=None, check_plausibility: bool = True) -> dict:
     """Accuracy of an RPC against GCPs (METHODS §6): residuals, per-axis and planar statistics, CE90, internal
     accuracy, per role; optionally written as a styled GeoPackage, a plot and ``report.json`` (all or none).
 
@@ -30,6 +30,9 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
         Fills missing GCP heights (``geoid``: the DEM's geoid).
     residuals, plot, report : optional output paths (``.gpkg``, ``.png``, ``.json``).
     overwrite : replace existing outputs (never an input).
+    check_plausibility : refuse GCPs that cannot belong to the image (outside it, far from the RPC's prediction,
+        lon/lat swapped, wrong CRS, heights outside the RPC's range: :func:`~gdal_gf4cal.plausibility.
+        check_gcps_against` over ``image_size`` or the RPC's); ``False`` for experts.
 
     Returns
     -------
@@ -62,6 +65,9 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
             table = read_gcps(gcps, dem=dem_obj, **({"layer": gcp_layer} if gcp_layer else {}))
         else:
             table = validate_gcps(gcps, dem=dem_obj)
+        if check_plausibility:
+            from ..plausibility import check_gcps_against
+            check_gcps_against(rpc, table, image_size)
         _report(progress, 0.2, "projecting the GCPs")
         lon, lat, h = (table[c].to_numpy(float) for c in ("lon", "lat", "h"))
         s_pred, l_pred = (np.asarray(v, float) for v in rpc.project(lon, lat, h))

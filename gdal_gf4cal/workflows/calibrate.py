@@ -35,13 +35,15 @@ def _check_outputs(paths, inputs, overwrite: bool) -> None:
 
 def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, image=None, dem=None, geoid=None,
                               gcp_layer=None, robust: bool = True, max_condition=None, overwrite: bool = False,
-                              progress=None) -> Dict[str, Any]:
+                              progress=None, check_plausibility: bool = True) -> Dict[str, Any]:
     """File workflow of ``gf4cal calibrate-lookangle`` (METHODS §5): calibrate, recalibrate the RPC, write outputs.
 
     Writes into ``out_dir``: ``camera_new.json``, ``<scene>.RPB`` (the recalibrated RPC), ``<image>.vrt`` over the
     untouched ``image`` when given, ``residuals.gpkg`` (GCPs with residuals before / after, outlier flags and
     residual vectors), ``residuals.png`` and ``report.json``; all together after everything was computed, or
     none (a refused input, a failure, a cancel). Returns the report dict (with ``outputs`` and ``warnings``).
+    GCPs that cannot belong to the image are refused first (:func:`~gdal_gf4cal.plausibility.check_gcps_against`
+    over the camera's size; ``check_plausibility=False`` for experts).
     """
     from .. import progress as _progress
     from ..camera import LookAngleModel
@@ -75,6 +77,9 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
         else:                                         # a GCP table already read (QGIS: the layer's reader)
             from ..gcp import validate_gcps
             gcps = validate_gcps(gcps_path, dem=dem_obj)
+        if check_plausibility:
+            from ..plausibility import check_gcps_against
+            check_gcps_against(rpc, gcps, tuple(current.size))
         res = calibrate_lookangle(rpc, gcps, current, robust=robust,
                                   max_condition=MAX_CONDITION if max_condition is None else max_condition,
                                   progress=_progress.scaled(progress, 0.0, 0.4))

@@ -68,7 +68,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
                leave_one_out: bool = False, robust: bool = True, outlier_threshold: float = 4.0,
                report: Optional[str] = None, residuals: Optional[str] = None, plot: Optional[str] = None,
                overwrite: bool = False, progress=None, ortho=None,
-               ortho_options: Optional[Dict[str, Any]] = None) -> Dict[str, Any]:
+               ortho_options: Optional[Dict[str, Any]] = None, check_plausibility: bool = True,
+               max_uncertainty_px: Optional[float] = None) -> Dict[str, Any]:
     """Refine the RPC of an image or sidecar with GCPs and write it (METHODS §4, §6); ``gf4cal refine``.
 
     Parameters
@@ -88,6 +89,10 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     overwrite : replace existing outputs (never an input); without it any existing output is refused before work
     ortho : also orthorectify the image with the refined RPC over ``dem`` into this GeoTIFF (``ortho_options``:
         ``crs``, ``res_m``, ``resampling`` of :func:`~gdal_gf4cal.workflows.ortho.orthorectify`); report ``ortho``
+    check_plausibility : refuse GCPs that cannot belong to the image
+        (:func:`~gdal_gf4cal.plausibility.check_gcps_against`); ``False`` for experts only
+    max_uncertainty_px : refuse a correction whose propagated 1-sigma uncertainty over the image exceeds it
+        (default :data:`~gdal_gf4cal.plausibility.MAX_UNCERTAINTY_PX`; report ``precision_px``, a warning above 1 px)
 
     Returns
     -------
@@ -104,6 +109,9 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     source = os.fspath(source)
     out = os.fspath(out)
     kind = output_kind(out)
+    if max_uncertainty_px is not None and not float(max_uncertainty_px) > 0:
+        raise GCPError(f"max uncertainty {max_uncertainty_px} px makes no sense: give a positive number of pixels "
+                       "(default 10)")
     image_size, inputs = _open_image(source)
     inputs += [os.fspath(x) for x in (gcps, dem) if is_path(x)]
     if kind == "vrt" and image_size is None:
@@ -137,6 +145,9 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
             from ..gcp import validate_gcps
             table = validate_gcps(gcps, dem=dem_obj)
         table = assign_roles(table, check_fraction, seed=seed)
+        from ..plausibility import MAX_UNCERTAINTY_PX, check_gcps_against, check_precision, correction_precision
+        if check_plausibility:
+            check_gcps_against(rpc, table, image_size)
         _progress.report(progress, 0.1, "estimating the compensation")
         selection = None
         if str(model) == "auto":              # --model auto: leave-one-out error with a parsimony rule
@@ -145,12 +156,16 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
             model = selection.chosen
         result = fit_compensation(rpc, table, model, order=order, along=along, ccd_axis=ccd_axis, dem=dem_obj,
                                   robust=robust, outlier_threshold=outlier_threshold, leave_one_out=leave_one_out)
+        precision = correction_precision(result, image_size or rpc.image_size)
+        warns.extend(check_precision(precision, result.model.label, max_uncertainty_px=MAX_UNCERTAINTY_PX
+                                     if max_uncertainty_px is None else float(max_uncertainty_px)))
         _progress.report(progress, 0.2, "applying the compensation")
         applied = apply_compensation(rpc, result, image_size=image_size,
                                      progress=_progress.scaled(progress, 0.2, 0.9))
         rep: Dict[str, Any] = {"input": source, "gcps": os.fspath(gcps) if is_path(gcps) else None, "output": out}
         rep.update(result.to_dict(rpc))
         rep["apply"] = applied.to_dict()
+        rep["precision_px"] = precision
         if selection is not None:
             rep["model_selection"] = selection.to_dict()
         if leave_one_out:

@@ -38,6 +38,7 @@ class RefineRpc(Gf4calAlgorithm):
     ROBUST = "ROBUST"
     OUTLIER_THRESHOLD = "OUTLIER_THRESHOLD"
     OUTPUT_ORTHO = "OUTPUT_ORTHO"
+    MAX_UNCERTAINTY = "MAX_UNCERTAINTY"
 
     def initAlgorithm(self, config=None):
         self.add_input_rpc()
@@ -64,6 +65,12 @@ class RefineRpc(Gf4calAlgorithm):
                                                    QgsProcessingParameterNumber.Double, 4.0, minValue=1.0),
                       "Normalised residual (residual / its standard deviation) above which a GCP is a blunder.")
         p.setFlags(p.flags() | p.FlagAdvanced)
+        p = self._add(QgsProcessingParameterNumber(self.MAX_UNCERTAINTY, self.tr("Maximum correction uncertainty (px)"),
+                                                   QgsProcessingParameterNumber.Double, 10.0, minValue=0.001),
+                      "Refuse a correction whose propagated 1-sigma uncertainty (parameter covariance x measured "
+                      "noise) exceeds this anywhere in the image: a weak GCP layout (clustered, near-collinear) "
+                      "extrapolates; above 1 px a warning (METHODS §4, §6).")
+        p.setFlags(p.flags() | p.FlagAdvanced)
         self._add(QgsProcessingParameterFileDestination(
             self.OUTPUT_RPC, self.tr("Refined RPC"),
             self.tr("RPB sidecar (*.RPB);;RPC text (*_RPC.TXT);;VRT over the image (*.vrt)")),
@@ -82,7 +89,8 @@ class RefineRpc(Gf4calAlgorithm):
                            ("CHECK_RMS_BEFORE", "Check RMS before (px, planar)"),
                            ("CHECK_RMS_AFTER", "Check RMS after (px, planar)"),
                            ("N_OUTLIERS", "Number of flagged outliers"),
-                           ("REFIT_MAX_PX", "RPC refit maximum error (px)")):
+                           ("REFIT_MAX_PX", "RPC refit maximum error (px)"),
+                           ("PRECISION_MAX_PX", "Correction uncertainty, max over the image (px, 1 sigma)")):
             self.addOutput(QgsProcessingOutputNumber(key, self.tr(label)))
 
     def run_algorithm(self, parameters, context, feedback, progress):
@@ -105,7 +113,8 @@ class RefineRpc(Gf4calAlgorithm):
                          dem=dem, robust=self.parameterAsBool(parameters, self.ROBUST, context),
                          outlier_threshold=self.parameterAsDouble(parameters, self.OUTLIER_THRESHOLD, context),
                          residuals=out_gpkg, plot=out_plot, report=out_report, overwrite=True, progress=progress,
-                         ortho=out_ortho)
+                         ortho=out_ortho,
+                         max_uncertainty_px=self.parameterAsDouble(parameters, self.MAX_UNCERTAINTY, context))
         self.push_warnings(feedback, rep)
         if "model_selection" in rep:
             feedback.pushInfo(f"automatic model choice: {rep['model_selection']['reason']}")
@@ -122,6 +131,10 @@ class RefineRpc(Gf4calAlgorithm):
                 if st.get("n") and when == "after":
                     feedback.pushInfo(f"{role}: {st['n']} GCPs, RMS before {planar_rms(rep[role]['before']):.3f} px, "
                                       f"after {rms:.3f} px (planar)")
+        pr = rep["precision_px"]
+        outputs["PRECISION_MAX_PX"] = float(pr["max"])
+        feedback.pushInfo(f"correction uncertainty over the image (1 sigma): max {pr['max']:.3f} px, "
+                          f"rms {pr['rms']:.3f} px")
         outputs["N_OUTLIERS"] = len(rep["outliers"])
         for o in rep["outliers"]:
             feedback.pushWarning(f"outlier {o['id']} ({o['role']}): normalised residual sample "

@@ -37,10 +37,10 @@ def _run(*args, cwd):
 ])
 def test_bad_input_is_one_line_and_writes_nothing(scene, tmp_path, case, expected):
     one = tmp_path / "one.csv"
-    one.write_text("id,lon,lat,h,sample,line\n1,88.0,31.0,4000,100,100\n")
     not_rpc = tmp_path / "notes.txt"
     not_rpc.write_text("just some text\n")
     tif, rpb, gcps, cam = scene / "scene.tif", scene / "scene.RPB", scene / "gcps.csv", scene / "camera_current.json"
+    one.write_text("".join(gcps.read_text().splitlines(keepends=True)[:2]))   # one real GCP of the scene
     before = sorted(os.listdir(scene))
     args = {
         "refine_too_few": ["refine", tif, "--gcps", one, "--model", "affine", "--out", tmp_path / "o" / "x.RPB"],
