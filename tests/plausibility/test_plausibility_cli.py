@@ -7,7 +7,6 @@ import subprocess
 import sys
 
 import numpy as np
-import pandas as pd
 import pytest
 
 from gcpsim import gcps_from_truth
@@ -123,7 +122,6 @@ def _corner(rng, n):
 
 @pytest.mark.parametrize("model, layout", [("affine", _collinear), ("poly2", _corner)])
 def test_weak_layout_refused_with_its_uncertainty(scene, rpc, tmp_path, model, layout):
-    from gdal_gf4cal.workflows import refine_rpc
     from gdal_gf4cal.compensation import fit_compensation
     from gdal_gf4cal.plausibility import correction_precision
     tab = _gcps(rpc, n=20, layout=layout)

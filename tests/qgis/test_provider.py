@@ -2,6 +2,7 @@
 outputs checked against the known truth, and bad input giving one clear message and no partial outputs."""
 from __future__ import annotations
 
+import json
 import math
 import os
 
@@ -80,6 +81,12 @@ def test_refinerpc_affine_recovers_the_bias(run_alg, scene, tmp_path):
     assert res["CHECK_RMS_AFTER"] < 1.5 * math.sqrt(2) * truth["noise_px"]
     assert res["N_OUTLIERS"] == 1 and truth["blunder"] in fb.text()
     assert res["REFIT_MAX_PX"] < 0.01
+    # layout strength in px (issue 11): in the outputs, the feedback and the report; bounded by the true error below
+    with open(res["OUTPUT_REPORT"]) as f:
+        rep = json.load(f)
+    assert res["PRECISION_MAX_PX"] == pytest.approx(rep["precision_px"]["max"])
+    assert 0.0 < res["PRECISION_MAX_PX"] < 1.0
+    assert "correction uncertainty over the image" in fb.text()
     # the refined RPC predicts the bias-corrected positions everywhere in the image
     new = RPCModel.from_file(res["OUTPUT_RPC"])
     rpc = truth["rpc"]
