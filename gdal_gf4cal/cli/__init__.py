@@ -62,6 +62,16 @@ def _sigterm(signum, frame):  # pragma: no cover - exercised through a subproces
     raise KeyboardInterrupt("terminated")
 
 
+def _is_disk_full(exc: BaseException, text: str) -> bool:
+    """A write that failed for lack of space: ENOSPC/EFBIG from Python, or GDAL/OGR's words for them."""
+    import errno
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
+        return True
+    low = text.lower()
+    return "no space left" in low or "file too large" in low or "disk full" in low or (
+        "write error" in low and isinstance(exc, RuntimeError))
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -86,7 +96,10 @@ def main(argv: Optional[List[str]] = None) -> int:
             raise
         text = str(exc).strip()
         msg = text.splitlines()[0] if text else type(exc).__name__
-        if not isinstance(exc, (Gf4calError, OSError, ValueError)):
+        if _is_disk_full(exc, text):
+            msg = ("the disk is full (or a file-size limit was reached) while writing the outputs; nothing was "
+                   "kept: free space or choose another output folder, then rerun")
+        elif not isinstance(exc, (Gf4calError, OSError, ValueError)):
             msg = f"{type(exc).__name__}: {msg} (unexpected; rerun with GF4CAL_DEBUG=1 and report it)"
         print(f"gf4cal: error: {msg}", file=sys.stderr)
         return 2

@@ -1,0 +1,95 @@
+"""The output policy under real OS faults (issue 11 "Faults"): a full file system (RLIMIT_FSIZE in the child, so
+writes fail with EFBIG as on a full disk) and SIGINT mid-run. Each case runs the real CLI in a subprocess and checks:
+a non-zero exit, one clear line and no traceback, no output file left (hidden temporaries included), inputs
+unchanged (checksums before/after).
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import resource
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from gdal_gf4cal.cli import main
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """A rendered 384 x 384 GF4 scene (seed 5) with GCPs: the inputs of the runs below."""
+    d = tmp_path_factory.mktemp("faults") / "scene"
+    assert main(["simulate", "--sensor", "gf4", "--out", str(d), "--size", "384", "384", "--n-gcps", "30",
+                 "--seed", "5", "--render", "--no-reference-ortho"]) == 0
+    return d
+
+
+def _checksums(folder: Path) -> dict:
+    return {p.relative_to(folder): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _limited(max_bytes: int):
+    """preexec_fn of a child whose files cannot grow beyond ``max_bytes`` (SIGXFSZ ignored: writes get EFBIG)."""
+    def apply():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (max_bytes, max_bytes))
+    return apply
+
+
+def _run(args, **kw):
+    env = dict(os.environ, GF4CAL_DEBUG="0")
+    return subprocess.run([sys.executable, "-m", "gdal_gf4cal.cli", *map(str, args)], capture_output=True, text=True,
+                          env=env, timeout=600, **kw)
+
+
+def _assert_one_clear_line(proc):
+    """Exit 2, no traceback, one ``gf4cal: error:`` line that says a write failed (GDAL may add its own ERROR
+    line); never the catch-all's "unexpected"."""
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+    ours = [line for line in proc.stderr.splitlines() if line.startswith("gf4cal: error:")]
+    assert len(ours) == 1, proc.stderr
+    assert ("disk is full" in ours[0] or "write" in ours[0]) and "unexpected" not in ours[0], ours[0]
+
+
+@pytest.mark.parametrize("limit", [2_000, 40_000, 150_000])
+def test_refine_on_a_full_file_system_leaves_nothing(scene, tmp_path, limit):
+    """The limit falls inside a different output each time (the VRT/report are small, the GeoPackage and the
+    plot larger): whichever write fails, no output and no temporary remains."""
+    before = _checksums(scene)
+    out = tmp_path / "out"
+    out.mkdir()
+    proc = _run(["refine", scene / "scene.tif", "--gcps", scene / "gcps.csv", "--model", "affine",
+                 "--out", out / "refined.vrt", "--report", out / "report.json", "--residuals", out / "res.gpkg",
+                 "--plot", out / "res.png"], preexec_fn=_limited(limit))
+    _assert_one_clear_line(proc)
+    assert sorted(os.listdir(out)) == [], os.listdir(out)
+    assert _checksums(scene) == before
+
+
+def test_simulate_on_a_full_file_system_leaves_nothing(tmp_path):
+    proc = _run(["simulate", "--sensor", "gf4", "--out", tmp_path / "scene", "--size", "256", "256",
+                 "--n-gcps", "10", "--render"], preexec_fn=_limited(100_000))
+    _assert_one_clear_line(proc)
+    assert os.listdir(tmp_path) == []
+
+
+def test_sigint_mid_run_exits_130_and_leaves_no_file(tmp_path):
+    out = tmp_path / "scene"
+    proc = subprocess.Popen([sys.executable, "-m", "gdal_gf4cal.cli", "simulate", "--sensor", "gf4", "--out", str(out),
+                             "--size", "2000", "2000", "--render", "--workers", "1"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not out.exists() and time.monotonic() < deadline:     # wait until the run has started writing
+        time.sleep(0.05)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    assert os.listdir(tmp_path) == []
