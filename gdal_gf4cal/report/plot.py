@@ -26,6 +26,12 @@ def _nice_scale(v: float) -> float:
     return e
 
 
+#: At most this many arrows per panel (a seeded sample beyond; outliers always drawn) and id labels only up to
+#: _MAX_LABELS points: a picture of 1e6 arrows takes minutes and shows nothing more (the statistics use every point).
+_MAX_ARROWS = 5000
+_MAX_LABELS = 200
+
+
 def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = STANDARD_BEFORE,
                    after: Optional[Tuple[str, str]] = STANDARD_AFTER, image_size: Optional[Tuple[int, int]] = None,
                    title: str = "GCP residuals", dpi: int = 110) -> Path:
@@ -68,6 +74,12 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
     role = df["role"].astype(str).to_numpy() if "role" in df.columns else np.full(len(df), "control", object)
     outlier = _as_bool_array(df["outlier"]) if "outlier" in df.columns else np.zeros(len(df), bool)
     ids = df["id"].astype(str).to_numpy() if "id" in df.columns else np.array([str(i) for i in range(len(df))])
+    n_all = len(df)
+    draw = np.ones(n_all, bool)
+    if n_all > _MAX_ARROWS:
+        draw[:] = False
+        draw[np.random.default_rng(0).choice(n_all, _MAX_ARROWS, replace=False)] = True
+        title = f"{title}; {_MAX_ARROWS:,} of {n_all:,} GCPs drawn"
     # Axes: the whole image AND every GCP (points outside the image are drawn too, never clipped away).
     xs = [s[np.isfinite(s)]] + ([np.array([0.0, float(image_size[0])])] if image_size is not None else [])
     ys = [l[np.isfinite(l)]] + ([np.array([0.0, float(image_size[1])])] if image_size is not None else [])
@@ -96,12 +108,12 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
             mag = np.hypot(rs, rl)
             finite = np.isfinite(mag) & np.isfinite(s) & np.isfinite(l)
             for r, colour in (("control", _ROLE_COLOURS["control"]), ("check", _ROLE_COLOURS["check"])):
-                m = finite & (role == r)
+                m = finite & (role == r) & draw
                 if m.any():
                     # y axis is inverted (line down): +res_line draws downwards, like the image.
                     ax.quiver(s[m], l[m], rs[m], rl[m], color=colour, angles="xy", scale_units="xy",
                               scale=1.0 / factor, width=0.004, label=f"{r} ({int(m.sum())})")
-            m = finite & ~np.isin(role, ["control", "check"])
+            m = finite & ~np.isin(role, ["control", "check"]) & draw
             if m.any():
                 ax.quiver(s[m], l[m], rs[m], rl[m], color="#888888", angles="xy", scale_units="xy",
                           scale=1.0 / factor, width=0.004, label=f"other ({int(m.sum())})")
@@ -109,7 +121,7 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
                 ax.scatter(s[outlier & finite], l[outlier & finite], s=60, facecolors="none",
                            edgecolors=_OUTLIER_COLOUR, linewidths=1.2,
                            label=f"outlier ({int((outlier & finite).sum())})")
-            for i in np.flatnonzero(np.isfinite(s) & np.isfinite(l)):
+            for i in np.flatnonzero(np.isfinite(s) & np.isfinite(l)) if n_all <= _MAX_LABELS else ():
                 ax.annotate(ids[i], (s[i], l[i]), xytext=(3, 3), textcoords="offset points", fontsize=6,
                             color="#333333")
             if image_size is not None:
