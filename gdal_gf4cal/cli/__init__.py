@@ -50,6 +50,16 @@ def _debug() -> bool:
     return os.environ.get("GF4CAL_DEBUG", "").strip().lower() in ("1", "yes", "true", "on")
 
 
+def add_gcp_reader_arguments(parser) -> None:
+    """``--columns`` and ``--gcp-pixel-convention``: how to read a GCP file (:func:`gdal_gf4cal.gcp.read_gcps`)."""
+    parser.add_argument("--columns", metavar="MAP",
+                        help="column map of a header-less CSV/text GCP file, e.g. \"id,sample,line,lon,lat,h\" "
+                             "(x,y for map coordinates with --gcp-crs; skip a column with -)")
+    parser.add_argument("--gcp-pixel-convention", choices=("center", "corner"),
+                        help="image coordinates of the GCP file: corner = GDAL (pixel corners at integers), "
+                             "center = pixel centres at integers (orthority, ASP); default: the format's own")
+
+
 def print_warnings(rep, stream=None) -> None:
     """Print ``rep["warnings"]`` (list of one-line str) as ``gf4cal: warning: ...`` lines on stderr."""
     for w in (rep or {}).get("warnings", []) if isinstance(rep, dict) else getattr(rep, "warnings", []) or []:

@@ -16,6 +16,8 @@ def add_parser(parser):
     parser.add_argument("--gcps", required=True,
                         help="GCPs: CSV (id,lon,lat,h,sample,line[,role][,sigma]), GeoPackage or GeoJSON; "
                              "'check' rows are only evaluated")
+    from . import add_gcp_reader_arguments
+    add_gcp_reader_arguments(parser)
     parser.add_argument("--camera", required=True, metavar="CAMERA.json",
                         help="the camera file the RPC was made with ({\"model\": \"lookangle-cubic\", ...}); "
                              "without one, write a nominal camera (see the README) and use it")
@@ -69,7 +71,8 @@ def run(args) -> int:
     from ..workflows import calibrate_lookangle_files
     rep = calibrate_lookangle_files(args.rpc, args.gcps, args.camera, args.out, image=args.image, dem=args.dem,
                                     geoid=args.geoid, robust=not args.no_robust, max_condition=args.max_condition,
-                                    overwrite=args.overwrite, progress=TextProgressBar())
+                                    overwrite=args.overwrite, progress=TextProgressBar(), gcp_columns=args.columns,
+                                    gcp_pixel_convention=args.gcp_pixel_convention)
     print_summary(rep)
     print_warnings(rep)
     return 0

@@ -26,6 +26,8 @@ def add_parser(parser):
     parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
                         "(default: what the DEM's CRS declares, else ellipsoidal; 'none' never converts)")
     parser.add_argument("--gcp-crs", help="CRS of the GCPs' map coordinates when the file does not say")
+    from . import add_gcp_reader_arguments
+    add_gcp_reader_arguments(parser)
     parser.add_argument("--check-fraction", type=float,
                         help="make this share of the GCPs check points (seeded, spread over the image)")
     parser.add_argument("--seed", type=int, default=0, help="seed of --check-fraction (default 0)")
@@ -84,7 +86,8 @@ def run(args) -> int:
                      robust=not args.no_robust, outlier_threshold=args.outlier_threshold, report=args.report,
                      residuals=args.residuals, plot=args.plot, overwrite=args.overwrite,
                      progress=TextProgressBar(), ortho=args.ortho, ortho_options=ortho_options,
-                     check_plausibility=not args.no_plausibility_check, max_uncertainty_px=args.max_uncertainty)
+                     check_plausibility=not args.no_plausibility_check, max_uncertainty_px=args.max_uncertainty,
+                     gcp_columns=args.columns, gcp_pixel_convention=args.gcp_pixel_convention)
     _print_report(rep)
     if "ortho" in rep:
         print_ortho(rep["ortho"])

@@ -11,7 +11,8 @@ from ..dem import DEM
 from ._common import cancel_check, collect_warnings, finish_report, is_path
 
 
-def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[str] = None, residuals=None,
+def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[str] = None,
+                    gcp_columns: Optional[str] = None, gcp_pixel_convention: Optional[str] = None, residuals=None,
                     plot=None, report=None, image_size: Optional[Tuple[int, int]] = None, overwrite: bool = False,
                     progress=None, check_plausibility: bool = True) -> dict:
     """Accuracy of an RPC against GCPs (METHODS §6): residuals, per-axis and planar statistics, CE90, internal
@@ -25,7 +26,7 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
     source : path or RPCModel
         Image with an RPC, RPC file, or a model.
     gcps : GCP table (DESIGN.md schema; :func:`gdal_gf4cal.gcp.validate_gcps` is applied) or a GCP file path
-        (``gcp_layer``: its layer).
+        (``gcp_layer``: its layer; ``gcp_columns``, ``gcp_pixel_convention``: see :func:`~gdal_gf4cal.gcp.read_gcps`).
     dem : DEM, path or height, optional
         Fills missing GCP heights (``geoid``: the DEM's geoid).
     residuals, plot, report : optional output paths (``.gpkg``, ``.png``, ``.json``).
@@ -62,7 +63,8 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
         rpc = source if isinstance(source, RPCModel) else RPCModel.from_file(source)
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         if is_path(gcps):
-            table = read_gcps(gcps, dem=dem_obj, **({"layer": gcp_layer} if gcp_layer else {}))
+            table = read_gcps(gcps, dem=dem_obj, columns=gcp_columns, pixel_convention=gcp_pixel_convention,
+                              **({"layer": gcp_layer} if gcp_layer else {}))
         else:
             table = validate_gcps(gcps, dem=dem_obj)
         if check_plausibility:

@@ -34,8 +34,9 @@ def _check_outputs(paths, inputs, overwrite: bool) -> None:
 
 
 def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, image=None, dem=None, geoid=None,
-                              gcp_layer=None, robust: bool = True, max_condition=None, overwrite: bool = False,
-                              progress=None, check_plausibility: bool = True) -> Dict[str, Any]:
+                              gcp_layer=None, gcp_columns=None, gcp_pixel_convention=None, robust: bool = True,
+                              max_condition=None, overwrite: bool = False, progress=None,
+                              check_plausibility: bool = True) -> Dict[str, Any]:
     """File workflow of ``gf4cal calibrate-lookangle`` (METHODS §5): calibrate, recalibrate the RPC, write outputs.
 
     Writes into ``out_dir``: ``camera_new.json``, ``<scene>.RPB`` (the recalibrated RPC), ``<image>.vrt`` over the
@@ -43,7 +44,9 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
     residual vectors), ``residuals.png`` and ``report.json``; all together after everything was computed, or
     none (a refused input, a failure, a cancel). Returns the report dict (with ``outputs`` and ``warnings``).
     GCPs that cannot belong to the image are refused first (:func:`~gdal_gf4cal.plausibility.check_gcps_against`
-    over the camera's size; ``check_plausibility=False`` for experts).
+    over the camera's size; ``check_plausibility=False`` for experts). ``gcp_columns`` / ``gcp_pixel_convention``:
+    column map of a header-less CSV and the convention of the file's image coordinates
+    (:func:`~gdal_gf4cal.gcp.read_gcps`).
     """
     from .. import progress as _progress
     from ..camera import LookAngleModel
@@ -73,7 +76,8 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
         current = LookAngleModel.from_json(camera_path)
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         if is_path(gcps_path):
-            gcps = read_gcps(gcps_path, dem=dem_obj, **({"layer": gcp_layer} if gcp_layer else {}))
+            gcps = read_gcps(gcps_path, dem=dem_obj, columns=gcp_columns, pixel_convention=gcp_pixel_convention,
+                             **({"layer": gcp_layer} if gcp_layer else {}))
         else:                                         # a GCP table already read (QGIS: the layer's reader)
             from ..gcp import validate_gcps
             gcps = validate_gcps(gcps_path, dem=dem_obj)

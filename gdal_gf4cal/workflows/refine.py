@@ -69,14 +69,17 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
                report: Optional[str] = None, residuals: Optional[str] = None, plot: Optional[str] = None,
                overwrite: bool = False, progress=None, ortho=None,
                ortho_options: Optional[Dict[str, Any]] = None, check_plausibility: bool = True,
-               max_uncertainty_px: Optional[float] = None) -> Dict[str, Any]:
+               max_uncertainty_px: Optional[float] = None, gcp_columns: Optional[str] = None,
+               gcp_pixel_convention: Optional[str] = None) -> Dict[str, Any]:
     """Refine the RPC of an image or sidecar with GCPs and write it (METHODS §4, §6); ``gf4cal refine``.
 
     Parameters
     ----------
     source : image with an RPC (tags, .RPB, _RPC.TXT, NITF, ...) or a standalone RPC file
     gcps : path of a GCP file (CSV, GeoPackage/GeoJSON in any CRS, QGIS .points, raster with GCPs) or a table;
-        ``gcp_layer`` names the layer of a multi-layer vector file
+        ``gcp_layer`` names the layer of a multi-layer vector file; ``gcp_columns`` is the column map of a
+        header-less CSV (``"id,sample,line,lon,lat,h"``) and ``gcp_pixel_convention`` (``"center"``/``"corner"``)
+        the convention of the file's image coordinates (:func:`~gdal_gf4cal.gcp.read_gcps`; METHODS §6)
     model, order, along, ccd_axis, robust, outlier_threshold, leave_one_out : see
         :func:`~gdal_gf4cal.compensation.fit_compensation`; ``model="auto"`` chooses by leave-one-out error
         (:func:`~gdal_gf4cal.model_selection.select_model`; report ``model_selection``)
@@ -103,7 +106,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     """
     from .. import progress as _progress
     from ..compensation import _axis_stats, apply_compensation, fit_compensation
-    from ..gcp_formats import assign_roles, read_gcps_any
+    from ..gcp import read_gcps
+    from ..gcp_formats import assign_roles
     from ..rpc import RPCModel
 
     source = os.fspath(source)
@@ -139,8 +143,9 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         if is_path(gcps):
             kw = {"layer": gcp_layer} if gcp_layer else {}
-            table = read_gcps_any(os.fspath(gcps), dem=dem_obj, crs=gcp_crs,
-                                  image=source if image_size is not None else None, **kw)
+            table = read_gcps(os.fspath(gcps), dem=dem_obj, crs=gcp_crs, columns=gcp_columns,
+                              pixel_convention=gcp_pixel_convention,
+                              image=source if image_size is not None else None, **kw)
         else:
             from ..gcp import validate_gcps
             table = validate_gcps(gcps, dem=dem_obj)

@@ -220,3 +220,48 @@ def test_refine_refuses_a_sidecar_that_would_shadow_the_input_rpc(scene, tmp_pat
     assert main(["refine", str(img), "--gcps", str(scene["gcps"]), "--model", "translation", "--out",
                  str(tmp_path / "tagged_refined.RPB")]) == 0
     assert gdal.Open(str(img)).GetMetadata("RPC") == md
+
+
+def _refined(scene, tmp_path, gcps, name, *extra):
+    """``gf4cal refine --model translation`` with ``gcps``: (RPCModel written, report dict)."""
+    out, rep = tmp_path / f"refined_{name}.RPB", tmp_path / f"refined_{name}.json"
+    assert main(["refine", str(scene["image"]), "--gcps", str(gcps), "--model", "translation", "--out", str(out),
+                 "--report", str(rep), *extra]) == 0
+    return RPCModel.from_file(out), json.loads(rep.read_text())
+
+
+def _same_rpc(a, b, tol=1e-9):
+    """Both RPCs project a grid of ground points to the same image points within ``tol`` px."""
+    lon, lat = a.localize(*np.meshgrid(np.linspace(0, SIZE, 7), np.linspace(0, SIZE, 7)), 150.0)
+    pa, pb = np.asarray(a.project(lon, lat, 150.0)), np.asarray(b.project(lon, lat, 150.0))
+    return float(np.abs(pa - pb).max()) <= tol
+
+
+def test_refine_reads_headerless_csv_and_orthority_geojson_as_the_csv(scene, tmp_path):
+    """Issue 15: a header-less CSV (``--columns``, either ``--gcp-pixel-convention``) and an orthority GeoJSON
+    written from the CSV give the same refined RPC as the CSV; the wrong convention shifts it by 0.5 px."""
+    from gdal_gf4cal.gcp_formats import write_orthority_geojson
+    gcps = pd.read_csv(scene["gcps"])
+    ref, ref_rep = _refined(scene, tmp_path, scene["gcps"], "csv")
+    bare = tmp_path / "bare.txt"            # other column order, no header, pixel centres at integers
+    centred = gcps.assign(sample=gcps["sample"] - 0.5, line=gcps["line"] - 0.5)
+    centred[["line", "sample", "id", "lat", "lon", "h", "role"]].to_csv(bare, index=False, header=False)
+    cols = ["--columns", "line,sample,id,lat,lon,h,role"]
+    from_bare, bare_rep = _refined(scene, tmp_path, bare, "bare", *cols, "--gcp-pixel-convention", "center")
+    assert _same_rpc(ref, from_bare, 1e-6)
+    assert bare_rep["control"]["after"]["n"] == ref_rep["control"]["after"]["n"] == 19   # one blunder out
+    corner = tmp_path / "corner.csv"
+    gcps[["id", "sample", "line", "lon", "lat", "h", "role"]].to_csv(corner, index=False, header=False)
+    assert _same_rpc(ref, _refined(scene, tmp_path, corner, "corner", "--columns", "id,sample,line,lon,lat,h,role",
+                                   "--gcp-pixel-convention", "corner")[0], 1e-9)
+    geojson = tmp_path / "gcps.geojson"
+    write_orthority_geojson(gcps, geojson, image=str(scene["image"]))
+    from_oty, oty_rep = _refined(scene, tmp_path, geojson, "oty")
+    assert _same_rpc(ref, from_oty, 1e-6)
+    assert oty_rep["check"]["after"]["n"] == ref_rep["check"]["after"]["n"] == 10
+    # Read with the wrong convention, every image coordinate is 0.5 px short: the translation follows.
+    wrong, wrong_rep = _refined(scene, tmp_path, geojson, "wrong", "--gcp-pixel-convention", "corner")
+    pw, pr = wrong_rep["model"]["parameters_px"], ref_rep["model"]["parameters_px"]
+    shift = [np.subtract(pw[k], pr[k]) for k in sorted(pr)]
+    assert len(np.ravel(shift)) == 2                        # one shift per axis
+    np.testing.assert_allclose(np.ravel(shift), -0.5, atol=1e-6)
