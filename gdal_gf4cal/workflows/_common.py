@@ -60,3 +60,15 @@ def cancel_check(progress):
         if callable(f):
             return f
     return None
+
+
+def declare_report_outputs(outs, *, residuals=None, plot=None, report=None) -> None:
+    """Declare the optional outputs every estimating job shares: the residual GeoPackage (checked as a vector
+    file), the residual plot and ``report.json`` (:class:`~gdal_gf4cal.outputs.OutputSet`)."""
+    from ..outputs import check_vector
+    if residuals:
+        outs.declare("residuals", residuals, check=check_vector())
+    if plot:
+        outs.declare("plot", plot)
+    if report:
+        outs.declare("report", report)

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..outputs import OutputSet, check_vector
 from ..dem import DEM
-from ._common import cancel_check, collect_warnings, finish_report, is_path
+from ._common import declare_report_outputs, cancel_check, collect_warnings, finish_report, is_path
 
 
 def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[str] = None,
@@ -52,12 +52,7 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
     src_name = None if isinstance(source, RPCModel) else os.fspath(source)
     outs = OutputSet([src_name, gcps if is_path(gcps) else None, dem if is_path(dem) else None],
                      overwrite=overwrite, cancelled=cancel_check(progress))
-    if residuals:
-        outs.declare("residuals", residuals, check=check_vector())
-    if plot:
-        outs.declare("plot", plot)
-    if report:
-        outs.declare("report", report)
+    declare_report_outputs(outs, residuals=residuals, plot=plot, report=report)
     warns: list = []
     with outs, collect_warnings(warns):
         rpc = source if isinstance(source, RPCModel) else RPCModel.from_file(source)

@@ -11,7 +11,7 @@ from typing import Any, Dict, Optional, Sequence
 from ..errors import GCPError, Gf4calError
 from ..outputs import OutputSet, check_not_a_shadowing_sidecar, check_vector, rpc_stem, same_file
 from ..dem import DEM
-from ._common import _open_image, cancel_check, collect_warnings, finish_report, is_path
+from ._common import declare_report_outputs, _open_image, cancel_check, collect_warnings, finish_report, is_path
 
 # Old private names, kept for callers and tests that used them from compensation.py.
 _same_file = same_file
@@ -130,12 +130,7 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     if ortho is not None:
         from ..outputs import check_raster
         outs.declare("ortho", ortho, check=check_raster())
-    if residuals:
-        outs.declare("residuals", residuals, check=check_vector())
-    if plot:
-        outs.declare("plot", plot)
-    if report:
-        outs.declare("report", report)
+    declare_report_outputs(outs, residuals=residuals, plot=plot, report=report)
     warns: list = []
     with outs, collect_warnings(warns):
         _progress.report(progress, 0.0, "reading the RPC and GCPs")

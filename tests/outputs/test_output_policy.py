@@ -277,7 +277,8 @@ def test_simulate_overwrite_keeps_the_users_files_when_cancelled(tmp_path):
     assert os.listdir(tmp_path) == ["keep.txt"]
 
 
-def test_sigterm_mid_run_exits_130_and_leaves_no_file(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_signal_mid_run_exits_130_and_leaves_no_file(tmp_path, sig):
     out = tmp_path / "scene"
     proc = subprocess.Popen([sys.executable, "-m", "gdal_gf4cal.cli", "simulate", "--sensor", "gf4", "--out", str(out),
                              "--size", "2000", "2000", "--render", "--workers", "1"],
@@ -286,7 +287,7 @@ def test_sigterm_mid_run_exits_130_and_leaves_no_file(tmp_path):
     while not out.exists() and time.monotonic() < deadline:     # wait until the run has started writing
         time.sleep(0.05)
     time.sleep(0.5)
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(sig)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err
     assert "interrupted" in err and "Traceback" not in err
