@@ -40,7 +40,7 @@ class RefineRpc(Gf4calAlgorithm):
     OUTPUT_ORTHO = "OUTPUT_ORTHO"
 
     def initAlgorithm(self, config=None):
-        self.add_input_rpc()
+        self.add_input_image()
         self.add_gcp_parameters()
         self._add(QgsProcessingParameterEnum(self.MODEL, self.tr("Compensation model"), MODEL_LABELS,
                                              defaultValue=5),
