@@ -19,6 +19,7 @@ from qgis.core import (
     QgsProcessingParameterFile,
     QgsProcessingParameterFileDestination,
     QgsProcessingParameterRasterLayer,
+    QgsProcessingParameterString,
     QgsWkbTypes,
 )
 from qgis.PyQt.QtCore import QCoreApplication
@@ -28,6 +29,19 @@ from gdal_gf4cal.errors import CancelledError, Gf4calError
 GEOID_OPTIONS = ["As the DEM's CRS declares (ellipsoidal when it declares none)", "Heights above EGM96",
                  "Heights above EGM2008", "Ellipsoidal heights (no conversion, whatever the CRS declares)"]
 _GEOIDS = [None, "egm96", "egm2008", False]
+PIXEL_CONVENTIONS = [None, "corner", "center"]
+PIXEL_CONVENTION_LABELS = ["The file format's own (centre for orthority GeoJSON and ASP .gcp, else corner)",
+                           "Pixel corners at integers (GDAL: first pixel centre at 0.5)",
+                           "Pixel centres at integers (orthority, ASP: first pixel centre at 0)"]
+GEOID_GRID_WORDS = "the 'Geoid grid file' parameter (GEOID_GRID)"
+
+
+def qgis_words(message: str) -> str:
+    """An engine message with its interface-neutral option names in the words of the QGIS dialog."""
+    return (message.replace("(geoid=<grid path>, --geoid) or geoid=False",
+                            f"({GEOID_GRID_WORDS}) or choose 'DEM heights are: Ellipsoidal heights'")
+            .replace("geoid=<grid path>", GEOID_GRID_WORDS)
+            .replace("(--columns)", "(GCP_COLUMNS)").replace("(--gcp-pixel-convention)", "(GCP_PIXEL_CONVENTION)"))
 TRACKER = "https://github.com/gdal-gf4cal/gdal_gf4cal/issues"
 
 
@@ -42,6 +56,25 @@ def planar_rms(stats) -> float:
     if not stats or not stats.get("n"):
         return float("nan")
     return float((stats["sample"]["rms"] ** 2 + stats["line"]["rms"] ** 2) ** 0.5)
+
+
+def _layer_file(layer) -> str:
+    """The file a vector layer reads (OGR ``path|layername=...`` or a delimited-text ``file:///path?...`` URI)."""
+    if layer is None:
+        raise QgsProcessingException("A column map (GCP_COLUMNS) needs a GCP layer read from a file.")
+    from qgis.core import QgsProviderRegistry
+    parts = QgsProviderRegistry.instance().decodeUri(layer.providerType(), layer.source())
+    path = parts.get("path") if parts else None
+    if not path:
+        src = layer.source()
+        if src.startswith("file:"):
+            from qgis.PyQt.QtCore import QUrl
+            path = QUrl(src).toLocalFile()
+        else:
+            path = src.split("|")[0]
+    if not os.path.isfile(path):
+        raise QgsProcessingException(f"A column map (GCP_COLUMNS) needs a GCP layer read from a file, not {path!r}.")
+    return path
 
 
 class FeedbackProgress:
@@ -98,8 +131,11 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
     ID_FIELD = "ID_FIELD"
     ROLE_FIELD = "ROLE_FIELD"
     SIGMA_FIELD = "SIGMA_FIELD"
+    GCP_COLUMNS = "GCP_COLUMNS"
+    GCP_PIXEL_CONVENTION = "GCP_PIXEL_CONVENTION"
     DEM = "DEM"
     GEOID = "GEOID"
+    GEOID_GRID = "GEOID_GRID"
     OUTPUT_RPC = "OUTPUT_RPC"
     OUTPUT_GPKG = "OUTPUT_GPKG"
     OUTPUT_PLOT = "OUTPUT_PLOT"
@@ -128,7 +164,14 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         return self.GROUP_ID
 
     def shortHelpString(self) -> str:
-        return self.tr(self.HELP)
+        """The algorithm's description, then what each parameter means (self-contained: no manual needed)."""
+        lines = [self.tr(self.HELP)]
+        params = [p for p in self.parameterDefinitions() if p.help()]
+        if params:
+            lines.append("")
+            lines.append(self.tr("Parameters:"))
+            lines += [f"- {p.description()} ({p.name()}): {p.help()}" for p in params]
+        return "\n".join(lines)
 
     def helpUrl(self) -> str:
         return "https://github.com/gdal-gf4cal/gdal_gf4cal"
@@ -141,6 +184,13 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         param.setHelp(self.tr(help_text))
         self.addParameter(param)
         return param
+
+    def add_input_image(self, description="Image (with an RPC)", rpc_file: bool = True):
+        """INPUT as a raster layer picker; with ``rpc_file`` a standalone RPC file path is also accepted."""
+        text = "The image, carrying an RPC (TIFF tags, .RPB or _RPC.TXT beside it, NITF)."
+        if rpc_file:
+            text += " From Python or qgis_process a standalone RPC file (.RPB, _RPC.TXT) may be given instead."
+        self._add(QgsProcessingParameterRasterLayer(self.INPUT, self.tr(description)), text)
 
     def add_input_rpc(self, description="Image or RPC file"):
         self._add(QgsProcessingParameterFile(self.INPUT, self.tr(description),
@@ -171,6 +221,17 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
             p = QgsProcessingParameterField(name, self.tr(desc), default, self.GCPS,
                                             QgsProcessingParameterField.Any, optional=True)
             self._add(p, help_text)
+        p = self._add(QgsProcessingParameterString(self.GCP_COLUMNS, self.tr("Column map of a header-less GCP file"),
+                                                   optional=True),
+                      "For a GCP layer read from a CSV/text file without a header line: the meaning of its columns "
+                      "in order, e.g. id,sample,line,lon,lat,h (x,y for map coordinates, - to skip a column). "
+                      "When given, the file is read with this map and the field choices above are not used.")
+        p.setFlags(p.flags() | p.FlagAdvanced)
+        p = self._add(QgsProcessingParameterEnum(self.GCP_PIXEL_CONVENTION, self.tr("GCP image coordinates are"),
+                                                 PIXEL_CONVENTION_LABELS, defaultValue=0, optional=True),
+                      "Pixel convention of the GCPs' image coordinates; a wrong choice biases them by half a pixel. "
+                      "They are converted to GDAL's (corners at integers).")
+        p.setFlags(p.flags() | p.FlagAdvanced)
 
     def add_dem_parameters(self, optional=True):
         self._add(QgsProcessingParameterRasterLayer(self.DEM, self.tr("DEM"), optional=optional),
@@ -178,7 +239,12 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         p = QgsProcessingParameterEnum(self.GEOID, self.tr("DEM heights are"), GEOID_OPTIONS, defaultValue=0,
                                        optional=True)
         p.setFlags(p.flags() | p.FlagAdvanced)
-        self._add(p, "Vertical reference of the DEM: geoid heights are converted to ellipsoidal heights.")
+        self._add(p, "Vertical reference of the DEM: heights above a geoid are converted to ellipsoidal heights "
+                     "with PROJ's geoid grid; 'Ellipsoidal heights' uses them as they are.")
+        p = QgsProcessingParameterFile(self.GEOID_GRID, self.tr("Geoid grid file (optional)"), optional=True,
+                                       behavior=QgsProcessingParameterFile.File)
+        p.setFlags(p.flags() | p.FlagAdvanced)
+        self._add(p, "A geoid grid (.tif/.gtx) to use instead of PROJ's: the DEM's heights are above this geoid.")
 
     def add_plot_output(self, help_text: str):
         self._add(QgsProcessingParameterFileDestination(self.OUTPUT_PLOT, self.tr("Residual plot"),
@@ -196,7 +262,16 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
 
     # ---- reading parameters --------------------------------------------------------------------------------
     def input_path(self, parameters, context) -> str:
-        path = self.parameterAsFile(parameters, self.INPUT, context)
+        definition = self.parameterDefinition(self.INPUT)
+        path = None
+        if isinstance(definition, QgsProcessingParameterRasterLayer):
+            layer = self.parameterAsRasterLayer(parameters, self.INPUT, context)
+            if layer is not None:
+                path = layer.source()
+            else:                           # a standalone RPC file given by path (not a raster)
+                path = self.parameterAsString(parameters, self.INPUT, context)
+        else:
+            path = self.parameterAsFile(parameters, self.INPUT, context)
         if not path:
             raise QgsProcessingException(self.tr("No input given: choose an image with an RPC or an RPC file."))
         if not os.path.exists(path):
@@ -212,6 +287,8 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         from gdal_gf4cal.dem import DEM
         geoid = _GEOIDS[self.parameterAsEnum(parameters, self.GEOID, context)] \
             if self.parameterDefinition(self.GEOID) is not None else None
+        if self.parameterDefinition(self.GEOID_GRID) is not None:
+            geoid = self.parameterAsFile(parameters, self.GEOID_GRID, context) or geoid
         return DEM.from_file(layer.source(), geoid=geoid)
 
     def read_gcps(self, parameters, context, feedback, dem=None):
@@ -260,8 +337,17 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
             parameters, self.GCPS, context, ["gpkg", "geojson", "shp", "fgb"], "gpkg", feedback)
         if feedback is not None and feedback.isCanceled():
             raise CancelledError("cancelled by the user")
+        convention = PIXEL_CONVENTIONS[self.parameterAsEnum(parameters, self.GCP_PIXEL_CONVENTION, context)] \
+            if self.parameterDefinition(self.GCP_PIXEL_CONVENTION) is not None else None
+        columns = self.parameterAsString(parameters, self.GCP_COLUMNS, context) \
+            if self.parameterDefinition(self.GCP_COLUMNS) is not None else ""
+        if columns.strip():
+            from gdal_gf4cal.gcp import read_gcps
+            return read_gcps(_layer_file(self.parameterAsVectorLayer(parameters, self.GCPS, context)), dem=dem,
+                             columns=columns, pixel_convention=convention)
         table = read_gcp_layer(path, layer=layer or None, dem=dem, sample_field=chosen.get("sample"),
-                               line_field=chosen.get("line"), height_field=chosen.get("h"))
+                               line_field=chosen.get("line"), height_field=chosen.get("h"),
+                               pixel_convention=convention)
         changed = False
         for key in ("id", "role", "sigma"):
             field = chosen.get(key)
@@ -366,7 +452,10 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
             raise
         except Gf4calError as exc:
             self._remove_partial_outputs()
-            raise QgsProcessingException(one_line(exc)) from None
+            from gdal_gf4cal.geoid import GeoidGridMissing
+            if isinstance(exc, GeoidGridMissing):
+                exc = exc.phrase(GEOID_GRID_WORDS)
+            raise QgsProcessingException(qgis_words(one_line(exc))) from None
         except (OSError, ValueError, ArithmeticError, RuntimeError) as exc:
             # GDAL (RuntimeError), file-system and numeric errors: still one line, the type says where.
             self._remove_partial_outputs()

@@ -34,7 +34,7 @@ class CalibrateLookAngle(Gf4calAlgorithm):
     OUTPUT_FOLDER = "OUTPUT_FOLDER"
 
     def initAlgorithm(self, config=None):
-        self.add_input_rpc("Scene image or RPC file")
+        self.add_input_image("Scene image (with the RPC made with the camera)")
         self.add_gcp_parameters()
         self._add(QgsProcessingParameterFile(self.CAMERA, self.tr("Current camera file (JSON)"),
                                              behavior=QgsProcessingParameterFile.File, extension="json"),

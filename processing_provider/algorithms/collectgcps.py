@@ -40,7 +40,7 @@ class CollectGcps(Gf4calAlgorithm):
 
     def initAlgorithm(self, config=None):
         Num = QgsProcessingParameterNumber
-        self.add_input_rpc("Raw image (with RPC)")
+        self.add_input_image("Raw image (with RPC)", rpc_file=False)
         self._add(QgsProcessingParameterRasterLayer(self.REFERENCE, self.tr("Reference orthophoto")),
                   "Georeferenced reference image (any GDAL raster, any CRS); overviews are used when it is finer.")
         self.add_dem_parameters(optional=False)

@@ -41,7 +41,7 @@ class RefineRpc(Gf4calAlgorithm):
     MAX_UNCERTAINTY = "MAX_UNCERTAINTY"
 
     def initAlgorithm(self, config=None):
-        self.add_input_rpc()
+        self.add_input_image()
         self.add_gcp_parameters()
         self._add(QgsProcessingParameterEnum(self.MODEL, self.tr("Compensation model"), MODEL_LABELS,
                                              defaultValue=5),
