@@ -393,14 +393,13 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
 
     def load_gpkg_on_completion(self, path: str, layers=("footprint", "residual_vectors_before",
                                                          "residual_vectors", "gcps")) -> None:
-        """Load the residual GeoPackage's layers (those present), bottom to top, with their stored styles."""
-        from osgeo import ogr
-        ds = ogr.Open(path)
-        present = {ds.GetLayer(i).GetName() for i in range(ds.GetLayerCount())} if ds is not None else set()
-        ds = None
+        """Load the residual GeoPackage's layers (those present), bottom to top, with their stored styles, named
+        by their titles (the arrows state their one exaggeration: "residuals before (x37)", "residuals after (x37)")."""
+        from gdal_gf4cal.report.gpkg import layer_titles
+        titles = layer_titles(path)
         for layer in layers:
-            if layer in present:
-                self._to_load.append((f"{path}|layername={layer}", layer, "vector"))
+            if layer in titles:
+                self._to_load.append((f"{path}|layername={layer}", titles[layer], "vector"))
 
     def postProcessAlgorithm(self, context, feedback):
         # Runs in the main thread after processAlgorithm: layers are created here, not in the worker thread.

@@ -30,9 +30,11 @@ def _ogr_type(values: np.ndarray):
 
 
 
-def _create_layer(ds, name, srs, geom_type, fields, description, metadata=None):
+def _create_layer(ds, name, srs, geom_type, fields, description, metadata=None, identifier=None):
     from osgeo import ogr
     opts = [f"DESCRIPTION={description}"] if description else []
+    if identifier:
+        opts.append(f"IDENTIFIER={identifier}")   # gpkg_contents.identifier: the layer's human-readable title
     layer = ds.CreateLayer(name, srs, geom_type, options=opts)
     if layer is None:
         raise Gf4calError(f"cannot create layer {name!r} in the GeoPackage")
@@ -340,7 +342,7 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         meta = {"EXAGGERATION": f"{factor:g}", "MAP_UNITS_PER_PX": f"{scale:.10g}", "EPOCH": epoch,
                 "DIRECTION": "sample->east, line->south", "PIXEL_SIZE_MAP_UNITS": f"{ps:.10g} {pl:.10g}"}
         mag = mag[regular]  # class breaks from the regular points; blunders fall in the open last class
-        vector_layers.append((name, vfields, cols, geoms, desc, meta, mag))
+        vector_layers.append((name, vfields, cols, geoms, desc, meta, mag, residual_layer_title(epoch, factor)))
 
     if path.exists() and not overwrite:  # pragma: no cover - checked above; re-checked for races
         raise Gf4calError(f"{path} exists")
@@ -358,8 +360,8 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         _write_features(gl, fields, columns, [point_wkb(i) for i in range(n)])
         qml, sld = _points_style()
         styles.append(("gcps", gl.GetGeometryColumn(), qml, _sld("gcps", sld), "GCPs by role; outliers as red crosses"))
-        for name, vfields, cols, geoms, desc, meta, mag in vector_layers:
-            vl = _create_layer(ds, name, srs, ogr.wkbLineString, vfields, desc, meta)
+        for name, vfields, cols, geoms, desc, meta, mag, ident in vector_layers:
+            vl = _create_layer(ds, name, srs, ogr.wkbLineString, vfields, desc, meta, ident)
             _write_features(vl, vfields, cols, geoms)
             # The 'before' arrows are drawn half-transparent so the 'after' ones stand out where both are shown.
             qml, sld = _vector_style(_class_breaks(mag), 1.0 if name == "residual_vectors" else 0.5)
@@ -381,6 +383,27 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         ds = None
         _cleanup(tmp)
     return path
+
+
+def residual_layer_title(epoch: str, factor: float) -> str:
+    """The title of a residual-arrow layer, stating its exaggeration: ``"residuals after (x37)"``. The GeoPackage
+    stores it as the layer's ``IDENTIFIER`` (gpkg_contents), and QGIS shows it as the layer name, so before and
+    after arrows drawn with one factor say so in the legend."""
+    return f"residuals {epoch} (x{float(factor):g})"
+
+
+def layer_titles(path: PathLike) -> dict:
+    """``{table name: title}`` of a GeoPackage's layers: the ``IDENTIFIER`` when it differs from the table name
+    (the residual arrows, see :func:`residual_layer_title`), else the table name."""
+    from .._gdal import open_vector
+    ds = open_vector(path, what="GeoPackage")
+    out = {}
+    for i in range(ds.GetLayerCount()):
+        layer = ds.GetLayer(i)
+        name = layer.GetName()
+        out[name] = layer.GetMetadataItem("IDENTIFIER") or name
+    ds = None
+    return out
 
 
 def _metric_offsets(df, epoch, lon, lat, x, y, tf):

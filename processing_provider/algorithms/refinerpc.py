@@ -30,7 +30,8 @@ class RefineRpc(Gf4calAlgorithm):
             "(then gdalwarp -rpc uses it). Translation and shift-drift fold exactly into the RPC; other models "
             "refit it and report the refit error. Blunders are flagged by robust estimation. The GeoPackage holds "
             "the GCPs with residuals before/after, the residual vectors (arrows coloured by magnitude, direction "
-            "sample -> east, line -> south, exaggerated by the factor in the layer) and the footprint.")
+            "sample -> east, line -> south, before and after exaggerated by one factor stated in the layer names, e.g. "
+            "\"residuals after (x37)\") and the footprint.")
 
     MODEL = "MODEL"
     ORDER = "ORDER"

@@ -78,3 +78,42 @@ def test_residual_layers_share_one_exaggeration_and_label_ids(run_alg, oscene, t
     gcps = QgsVectorLayer(f"{gpkg}|layername=gcps", "gcps", "ogr")
     assert gcps.isValid() and gcps.labelsEnabled()                # default style from layer_styles
     assert gcps.labeling().settings().fieldName == "id"
+
+
+def test_loaded_layers_name_one_exaggeration_label_ids_and_ortho_is_georeferenced(qgis_app, oscene, tmp_path):
+    """What a QGIS user sees after `refinerpc` with an ortho (issue 15): the before and after arrow layers are named
+    with the same factor, which is the factor their features were drawn with; the GCP ids are labelled; the ortho
+    (not the RPC VRT) is loaded, georeferenced in UTM over the GCPs."""
+    import re
+
+    import processing
+    from qgis.core import QgsCoordinateTransform, QgsProject, QgsRasterLayer
+    from gdal_gf4cal.gcp import read_gcps
+    QgsProject.instance().removeAllMapLayers()
+    res = processing.runAndLoadResults("gf4cal:refinerpc", {
+        "INPUT": str(oscene / "s" / "scene.tif"), "GCPS": str(oscene / "s" / "gcps.gpkg"), "MODEL": 0,
+        "DEM": str(oscene / "dem_egm96.tif"), "OUTPUT_RPC": str(tmp_path / "r.vrt"),
+        "OUTPUT_GPKG": str(tmp_path / "r.gpkg"), "OUTPUT_ORTHO": str(tmp_path / "ortho.tif")})
+    layers = list(QgsProject.instance().mapLayers().values())
+    names = [lyr.name() for lyr in layers]
+    arrows = {}
+    for lyr in layers:
+        m = re.fullmatch(r"residuals (before|after) \(x([0-9.e+-]+)\)", lyr.name())
+        if m:
+            arrows[m.group(1)] = (float(m.group(2)), lyr)
+    assert set(arrows) == {"before", "after"}, names
+    assert arrows["before"][0] == arrows["after"][0]
+    for factor, lyr in arrows.values():      # the name's factor is the one the arrows were drawn with
+        drawn = {f["exaggeration"] for f in lyr.getFeatures()}
+        assert len(drawn) == 1 and drawn.pop() == pytest.approx(factor, rel=1e-6)
+        assert lyr.renderer().type() == "graduatedSymbol"
+    gcps = next(lyr for lyr in layers if lyr.name() == "gcps")
+    assert gcps.labelsEnabled() and gcps.labeling().settings().fieldName == "id"
+    assert {f["id"] for f in gcps.getFeatures()} == set(read_gcps(oscene / "s" / "gcps.gpkg")["id"].astype(str))
+    ortho = [lyr for lyr in layers if isinstance(lyr, QgsRasterLayer)]
+    assert len(ortho) == 1 and ortho[0].source() == res["OUTPUT_ORTHO"]          # the ortho, not the VRT
+    assert ortho[0].isValid() and ortho[0].crs().authid().startswith("EPSG:326")
+    to_utm = QgsCoordinateTransform(gcps.crs(), ortho[0].crs(), QgsProject.instance())
+    ext = ortho[0].extent()
+    for f in gcps.getFeatures():             # every GCP lies on the ortho
+        assert ext.contains(to_utm.transform(f.geometry().asPoint()))

@@ -15,6 +15,7 @@ from shapely.geometry import box
 
 from gdal_gf4cal.errors import GCPError, InputOverwriteError
 from gdal_gf4cal.report import plot_residuals, write_report_json, write_residuals_gpkg
+from gdal_gf4cal.report.gpkg import layer_titles
 
 ogr.UseExceptions()
 gdal.UseExceptions()
@@ -93,6 +94,7 @@ def test_residual_vectors_direction_length_and_factor(tmp_path, gcps):
         factor = rows[0]["exaggeration"]
         assert all(r["exaggeration"] == factor and r["epoch"] == epoch for r in rows)
         assert meta["EXAGGERATION"] == f"{factor:g}"
+        assert meta["IDENTIFIER"] == f"residuals {epoch} (x{factor:g})"   # the title QGIS shows states the factor
         ds = ogr.Open(str(out))
         desc = ds.ExecuteSQL(f"SELECT description FROM gpkg_contents WHERE table_name = '{layer}'")
         assert f"exaggerated {factor:g}x" in desc.GetNextFeature()["description"]
@@ -125,6 +127,8 @@ def test_explicit_factor_projected_crs_and_before_only(tmp_path, gcps):
     rows, _, meta, srs = _layer_rows(out, "residual_vectors")
     assert srs.GetAuthorityCode(None) == "32647" and meta["EPOCH"] == "before"
     assert all(r["epoch"] == "before" and r["exaggeration"] == 500 for r in rows)
+    assert layer_titles(out) == {"gcps": "gcps", "residual_vectors": "residuals before (x500)",
+                                 "layer_styles": "layer_styles"}
     # the pixel is ~96 m x 111 m at 30 N in UTM: lengths follow residual x pixel size x 500
     ps = rows[0]["map_units_per_px"] / 500
     assert 90 < ps < 115
