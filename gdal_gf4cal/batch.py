@@ -129,9 +129,10 @@ def write_summary(rows: List[Dict[str, Any]], out_dir: str, meta: Optional[Dict[
             w.writeheader()
             w.writerows(rows)
     counts = {s: sum(r["status"] == s for r in rows) for s in ("ok", "failed", "skipped")}
+    from .report.json import report_text     # strict JSON: no NaN, absent values left out (as report.json)
     with atomic_output(json_path) as tmp:
         with open(tmp, "w", encoding="utf-8") as fh:
-            json.dump({**(meta or {}), "counts": counts, "scenes": rows}, fh, indent=1, default=str)
+            fh.write(report_text({**(meta or {}), "counts": counts, "scenes": rows}, indent=1))
     return {"csv": csv_path, "json": json_path}
 
 

@@ -323,3 +323,43 @@ def test_report_warnings_reach_the_cli(gf4, tmp_path, capsys):
                                                          out=tmp_path / "r.RPB")
     assert isinstance(rep["warnings"], list)
     assert np.isfinite(rep["control"]["after"]["sample"]["rms"])
+
+
+# ------------------------------------------------------------------------------------------------ report.json
+def _nulls(obj, path="$"):
+    """Every place where a JSON document holds null."""
+    if obj is None:
+        return [path]
+    if isinstance(obj, dict):
+        return [p for k, v in obj.items() for p in _nulls(v, f"{path}.{k}")]
+    if isinstance(obj, list):
+        return [p for i, v in enumerate(obj) for p in _nulls(v, f"{path}[{i}]")]
+    return []
+
+
+@pytest.mark.parametrize("command", ["refine", "calibrate-lookangle", "apply-calibration", "intersect", "assess"])
+def test_every_report_json_holds_no_null(gf4, zy3, tmp_path, command):
+    """Absent sections instead of nulls (issue 15), for every workflow that writes a report: walk the file."""
+    out = tmp_path / "o"
+    _workflow_calls(gf4, zy3, out)[command](None)
+    reports = [p for p in out.iterdir() if p.name in ("r.json", "report.json", "p.json", "a.json")]
+    assert len(reports) == 1
+    rep = json.loads(reports[0].read_text())
+    assert rep and _nulls(rep) == []
+
+
+def test_report_without_check_points_has_no_check_section(gf4, tmp_path, capsys):
+    """Control points only: `refine` and `assess` leave the check section out of report.json (no "check": null,
+    no statistics of no points) and still print their table."""
+    from gdal_gf4cal.workflows import assess_accuracy
+    g = pd.read_csv(gf4 / "gcps.csv")
+    g["role"] = "control"
+    g.to_csv(tmp_path / "ctl.csv", index=False)
+    assert main(["refine", str(gf4 / "scene.tif"), "--gcps", str(tmp_path / "ctl.csv"), "--model", "translation",
+                 "--out", str(tmp_path / "r.RPB"), "--report", str(tmp_path / "r.json")]) == 0
+    assert "control" in capsys.readouterr().out
+    assess_accuracy(gf4 / "scene.tif", tmp_path / "ctl.csv", report=tmp_path / "a.json")
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert "check" not in rep and rep["control"]["after"]["n"] > 0 and _nulls(rep) == []
+    rep = json.loads((tmp_path / "a.json").read_text())      # assess: "all", and a role only when roles differ
+    assert "check" not in rep and rep["all"]["n"] > 0 and _nulls(rep) == []

@@ -214,12 +214,29 @@ def test_report_json_numpy_safe(tmp_path):
         raise AssertionError(f"non-standard JSON constant {name}")
 
     back = json.loads(out.read_text(), parse_constant=no_constants)
-    assert back == {"n": 3, "rms_px": 0.25, "arr": [0, 1, 2], "flag": True, "nan": None, "inf": None,
+    assert back == {"n": 3, "rms_px": 0.25, "arr": [0, 1, 2], "flag": True,
                     "nested": {"t": [1, 2.5]}, "path": str(tmp_path / "x")}
     assert sorted(os.listdir(tmp_path)) == ["report.json"]
     with pytest.raises(TypeError):
         write_report_json({"x": object()}, tmp_path / "bad.json")
     assert not (tmp_path / "bad.json").exists()
+
+
+def test_report_json_leaves_out_what_was_not_measured(tmp_path):
+    """Absent sections instead of nulls (issue 15): a value that could not be computed is left out, a section of
+    no points (n = 0), an empty one or one of zero counts only is left out; inside arrays NaN stays a positional
+    null; the top level is always an object."""
+    rep = {"model": {"name": "affine", "order": None, "along": None},
+           "control": {"n_outliers": 1, "before": {"n": 5, "line": {"rms": 1.5, "std": float("nan")}, "ce90_m": None}},
+           "check": {"n_outliers": 0, "before": {"n": 0, "line": {"rms": float("nan")}},
+                     "after": {"n": 0, "line": {"rms": None}}},
+           "empty": {}, "zeros": {"n_failed": 0, "n_points": 0}, "counts": {"ok": 0, "n_failed": 0},
+           "series": np.array([1.0, np.nan, 2.0]), "outliers": []}
+    back = json.loads(write_report_json(rep, tmp_path / "r.json").read_text())
+    assert back == {"model": {"name": "affine"},
+                    "control": {"n_outliers": 1, "before": {"n": 5, "line": {"rms": 1.5}}},
+                    "counts": {"ok": 0, "n_failed": 0}, "series": [1.0, None, 2.0], "outliers": []}
+    assert json.loads(write_report_json({"x": None}, tmp_path / "e.json").read_text()) == {}
 
 
 def test_assess_accuracy_against_known_offsets(tmp_path):
