@@ -198,9 +198,11 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
                   "A raster carrying an RPC (TIFF tags, .RPB, _RPC.TXT, NITF) or a standalone RPC sidecar.")
 
     def add_gcp_parameters(self, optional_sigma=True):
+        # TypeVector too: a header-less CSV/text file (no geometry) is read with a column map (GCP_COLUMNS).
         self._add(QgsProcessingParameterFeatureSource(self.GCPS, self.tr("Ground control points"),
-                                                      [QgsProcessing.TypeVectorPoint]),
-                  "Point layer: the geometry is the ground position (any CRS); fields give the image position.")
+                                                      [QgsProcessing.TypeVectorPoint, QgsProcessing.TypeVector]),
+                  "Point layer: the geometry is the ground position (any CRS); fields give the image position. "
+                  "Or a header-less CSV/text file read with a column map (GCP_COLUMNS).")
         fields = [
             (self.SAMPLE_FIELD, "Image column (sample) field", "sample", False,
              "Field holding the image column of each GCP, in pixels, GDAL convention (first pixel centre 0.5)."),
@@ -305,8 +307,18 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         source = self.parameterAsSource(parameters, self.GCPS, context)
         if source is None:
             raise QgsProcessingException(self.invalidSourceError(parameters, self.GCPS))
+        convention = PIXEL_CONVENTIONS[self.parameterAsEnum(parameters, self.GCP_PIXEL_CONVENTION, context)] \
+            if self.parameterDefinition(self.GCP_PIXEL_CONVENTION) is not None else None
+        columns = self.parameterAsString(parameters, self.GCP_COLUMNS, context) \
+            if self.parameterDefinition(self.GCP_COLUMNS) is not None else ""
+        if columns.strip():    # a header-less file: the engine reads it with the map (the fields are not used)
+            from gdal_gf4cal.gcp import read_gcps
+            return read_gcps(_layer_file(self.parameterAsVectorLayer(parameters, self.GCPS, context)), dem=dem,
+                             columns=columns, pixel_convention=convention)
         if QgsWkbTypes.geometryType(source.wkbType()) != QgsWkbTypes.PointGeometry:
-            raise QgsProcessingException(self.tr("The GCP layer must be a point layer (ground positions)."))
+            raise QgsProcessingException(self.tr(
+                "The GCP layer must be a point layer (ground positions), or a header-less CSV/text file read with "
+                "a column map (GCP_COLUMNS)."))
         names = source.fields().names()
         chosen = {}
         for param, key, required in ((self.SAMPLE_FIELD, "sample", True), (self.LINE_FIELD, "line", True),
@@ -337,14 +349,6 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
             parameters, self.GCPS, context, ["gpkg", "geojson", "shp", "fgb"], "gpkg", feedback)
         if feedback is not None and feedback.isCanceled():
             raise CancelledError("cancelled by the user")
-        convention = PIXEL_CONVENTIONS[self.parameterAsEnum(parameters, self.GCP_PIXEL_CONVENTION, context)] \
-            if self.parameterDefinition(self.GCP_PIXEL_CONVENTION) is not None else None
-        columns = self.parameterAsString(parameters, self.GCP_COLUMNS, context) \
-            if self.parameterDefinition(self.GCP_COLUMNS) is not None else ""
-        if columns.strip():
-            from gdal_gf4cal.gcp import read_gcps
-            return read_gcps(_layer_file(self.parameterAsVectorLayer(parameters, self.GCPS, context)), dem=dem,
-                             columns=columns, pixel_convention=convention)
         table = read_gcp_layer(path, layer=layer or None, dem=dem, sample_field=chosen.get("sample"),
                                line_field=chosen.get("line"), height_field=chosen.get("h"),
                                pixel_convention=convention)
