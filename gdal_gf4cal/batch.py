@@ -300,17 +300,35 @@ def collect_gcps_batch(scenes: Sequence, reference, dem, out_dir, *, ext: str = 
                      executor=executor, overwrite=overwrite, progress=progress, command="collect-gcps")
 
 
+def _scene_gcps(gcps_dir: str, scene: str, gcps_ext: str) -> str:
+    """The scene's GCP file: ``gcps_dir/<stem><gcps_ext>``, else the one ``gcps_dir/<stem>.*`` there is (a CSV,
+    header-less with ``--columns``, a QGIS .points, ...)."""
+    import glob
+    stem = scene_stem(scene)
+    path = os.path.join(gcps_dir, stem + gcps_ext)
+    if os.path.exists(path):
+        return path
+    found = sorted(p for p in glob.glob(os.path.join(glob.escape(gcps_dir), glob.escape(stem) + ".*"))
+                   if os.path.isfile(p) and not p.endswith((".aux.xml", ".report.json")))
+    if len(found) == 1:
+        return found[0]
+    if found:
+        raise Gf4calError(f"several GCP files for this scene ({', '.join(os.path.basename(p) for p in found)}); "
+                          f"keep one {stem}.* in {gcps_dir}")
+    raise Gf4calError(f"no GCP table for this scene: {path} (run collect-gcps on it first)")
+
+
 def refine_scene(scene: str, outputs: Dict[str, str], *, gcps_dir: str, gcps_ext: str = ".gpkg",
                  model: str = "affine", overwrite: bool = False, **options) -> Dict[str, Any]:
     """Scene function of batch ``refine`` (METHODS §4): refine ``scene``'s RPC with its own GCP table
-    ``gcps_dir/<stem><gcps_ext>`` (what batch collect-gcps writes) and write ``outputs['rpc']`` (+ ``report``).
+    ``gcps_dir/<stem><gcps_ext>`` (what batch collect-gcps writes; else the one ``<stem>.*`` file there) and write
+    ``outputs['rpc']`` (+ ``report``); ``options`` are :func:`~gdal_gf4cal.workflows.refine_rpc`'s (the GCP
+    reader's ``gcp_columns`` and ``gcp_pixel_convention``, ``max_uncertainty_px``, ``check_plausibility``...).
 
     Returns ``n_control, n_check, control_rms_after_px, check_rms_after_px, check_ce90_after_m, n_outliers``."""
     import math
     from .workflows.refine import refine_rpc
-    gcps = os.path.join(gcps_dir, scene_stem(scene) + gcps_ext)
-    if not os.path.exists(gcps):
-        raise Gf4calError(f"no GCP table for this scene: {gcps} (run collect-gcps on it first)")
+    gcps = _scene_gcps(gcps_dir, scene, gcps_ext)
     rep = refine_rpc(scene, gcps, model, out=outputs["rpc"], report=outputs.get("report"), overwrite=overwrite,
                      **options)
 
@@ -327,6 +345,8 @@ def refine_batch(scenes: Sequence, gcps_dir, model: str, out_dir, *, out_ext: st
                  executor=None, overwrite: bool = False, progress=None, **options) -> Dict[str, Any]:
     """Batch ``refine``: ``out_dir/<stem><out_ext>`` (``.RPB``, ``_RPC.TXT`` or ``.vrt``) and
     ``out_dir/<stem>.report.json`` per scene, from ``gcps_dir/<stem><gcps_ext>``; see :func:`run_batch`."""
+    from .workflows.refine import check_refine_options
+    check_refine_options(**options)       # a value that makes no sense fails once, not once per scene
     out = os.fspath(out_dir)
     return run_batch(refine_scene, scenes, out,
                      lambda s: {"rpc": os.path.join(out, scene_stem(s) + out_ext),

@@ -52,7 +52,8 @@ def add_parser(parser):
     parser.add_argument("--plot", help="write a PNG of the residual vectors before/after")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs (never an input)")
     parser.add_argument("--batch", action="store_true", help="batch form: IMAGE_OR_RPC are many scenes (paths, "
-                        "globs, @list.txt), --gcps a folder of <stem>.gpkg tables, --out a folder (<stem>.RPB + "
+                        "globs, @list.txt), --gcps a folder of <stem>.gpkg tables (or one <stem>.* GCP file each, e.g. header-less "
+                        "<stem>.csv with --columns), --out a folder (<stem>.RPB + "
                         "<stem>.report.json per scene, batch_summary.csv/.json); rerun skips finished scenes")
     from .batch_options import add_batch_options
     add_batch_options(parser, flag=False)
@@ -73,7 +74,9 @@ def run(args) -> int:
             args.source, args.gcps, args.model, args.out, executor=ex, overwrite=args.overwrite, progress=pr,
             order=args.order, along=args.along, ccd_axis=args.ccd_axis, dem=args.dem, geoid=args.geoid,
             gcp_crs=args.gcp_crs, check_fraction=args.check_fraction, seed=args.seed,
-            robust=not args.no_robust, outlier_threshold=args.outlier_threshold))
+            robust=not args.no_robust, outlier_threshold=args.outlier_threshold, leave_one_out=args.leave_one_out,
+            gcp_columns=args.columns, gcp_pixel_convention=args.gcp_pixel_convention,
+            max_uncertainty_px=args.max_uncertainty, check_plausibility=not args.no_plausibility_check))
     if len(args.source) != 1:
         from ..errors import Gf4calError
         raise Gf4calError("several scenes: add --batch (then --gcps is a folder of <stem>.gpkg and --out a folder)")

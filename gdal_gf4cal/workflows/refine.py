@@ -62,6 +62,17 @@ def write_refined_rpc(rpc, out_path, *, image: Optional[str] = None, inputs: Seq
     return out_path
 
 
+def check_refine_options(*, max_uncertainty_px: Optional[float] = None, gcp_columns: Optional[str] = None,
+                         **_ignored) -> None:
+    """Refuse option values that make no sense before any work (also once for a whole batch)."""
+    if max_uncertainty_px is not None and not float(max_uncertainty_px) > 0:
+        raise GCPError(f"max uncertainty {max_uncertainty_px} px makes no sense: give a positive number of pixels "
+                       "(default 10)")
+    if gcp_columns:
+        from ..gcp_formats import parse_columns
+        parse_columns(gcp_columns)
+
+
 def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None,
                along: Optional[str] = None, ccd_axis: str = "sample", dem=None, geoid=None, gcp_crs=None,
                gcp_layer: Optional[str] = None, check_fraction: Optional[float] = None, seed: int = 0,
@@ -113,9 +124,7 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     source = os.fspath(source)
     out = os.fspath(out)
     kind = output_kind(out)
-    if max_uncertainty_px is not None and not float(max_uncertainty_px) > 0:
-        raise GCPError(f"max uncertainty {max_uncertainty_px} px makes no sense: give a positive number of pixels "
-                       "(default 10)")
+    check_refine_options(max_uncertainty_px=max_uncertainty_px, gcp_columns=gcp_columns)
     image_size, inputs = _open_image(source)
     inputs += [os.fspath(x) for x in (gcps, dem) if is_path(x)]
     if kind == "vrt" and image_size is None:
