@@ -5,11 +5,11 @@ import datetime as _dt
 import math
 import os
 from pathlib import Path
-from typing import Any, Mapping, Optional, Sequence, Tuple
+from typing import Any, Callable, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..errors import GCPError, Gf4calError
+from ..errors import CancelledError, GCPError, Gf4calError
 from ._common import _as_bool_array, STANDARD_BEFORE, STANDARD_AFTER, PathLike, _temp_path, _cleanup, _column, _lonlat, _residual_pair, _transformer, _pixel_size, _nice
 from .styles import _class_breaks, _vector_style, _points_style, _footprint_style, _sld
 
@@ -48,49 +48,249 @@ def _create_layer(ds, name, srs, geom_type, fields, description, metadata=None, 
     return layer
 
 
-def _column_values(values, ftype) -> list:
-    """One column as Python values of the field's type, ``None`` where it is null (NaN, inf, None)."""
-    from osgeo import ogr
-    out = []
-    for v in (values.tolist() if isinstance(values, np.ndarray) else list(values)):
-        if v is None or (isinstance(v, float) and not math.isfinite(v)):
-            out.append(None)
-        elif ftype == ogr.OFTReal:
-            out.append(float(v))
-        elif ftype in (ogr.OFTInteger, ogr.OFTInteger64):
-            out.append(int(v))
-        else:
-            out.append(str(v))
-    return out
+# ----------------------------------------------------------------------------------------------------------------
+# bulk writing: OGR creates the layers (fields, SRS, metadata, styles), the rows go in through SQLite in chunks
+# (executemany of GeoPackage geometry blobs built with NumPy), then OGR builds the spatial indexes and the file is
+# re-opened and counted. 1e6 GCPs: seconds, where one OGR feature at a time took minutes.
+# ----------------------------------------------------------------------------------------------------------------
+_CHUNK = 50_000     # rows per executemany: bounds the Python objects alive at once and the cancel latency
 
 
-def _write_features(layer, fields, columns: Mapping[str, np.ndarray], geoms: Sequence) -> None:
-    """Write one feature per geometry; fields by index with typed setters (the by-name setters looked the field
-    up for every value: 1e5 GCPs took minutes)."""
+def _point_records(x, y, srs_id: int):
+    """GeoPackage point blobs as one NumPy record array (header without envelope, as GDAL writes points, + WKB
+    little endian)."""
+    dt = np.dtype([("magic", "S2"), ("version", "u1"), ("flags", "u1"), ("srs", "<i4"), ("bo", "u1"),
+                   ("type", "<u4"), ("x", "<f8"), ("y", "<f8")])
+    rec = np.zeros(x.size, dt)
+    rec["magic"], rec["flags"], rec["srs"], rec["bo"], rec["type"] = b"GP", 0x01, srs_id, 1, 1
+    rec["x"], rec["y"] = x, y
+    return rec, np.isfinite(x) & np.isfinite(y)
+
+
+def _line_records(x0, y0, x1, y1, srs_id: int):
+    """GeoPackage blobs of 2-point line strings (header with the [minx, maxx, miny, maxy] envelope + WKB)."""
+    dt = np.dtype([("magic", "S2"), ("version", "u1"), ("flags", "u1"), ("srs", "<i4"), ("minx", "<f8"),
+                   ("maxx", "<f8"), ("miny", "<f8"), ("maxy", "<f8"), ("bo", "u1"), ("type", "<u4"),
+                   ("npts", "<u4"), ("x0", "<f8"), ("y0", "<f8"), ("x1", "<f8"), ("y1", "<f8")])
+    rec = np.zeros(x0.size, dt)
+    rec["magic"], rec["flags"], rec["srs"], rec["bo"], rec["type"], rec["npts"] = b"GP", 0x03, srs_id, 1, 2, 2
+    rec["minx"], rec["maxx"] = np.minimum(x0, x1), np.maximum(x0, x1)
+    rec["miny"], rec["maxy"] = np.minimum(y0, y1), np.maximum(y0, y1)
+    rec["x0"], rec["y0"], rec["x1"], rec["y1"] = x0, y0, x1, y1
+    return rec, np.isfinite(x0) & np.isfinite(y0) & np.isfinite(x1) & np.isfinite(y1)
+
+
+def _wkb_records(wkb: bytes, bounds, srs_id: int):
+    """One geometry (any type, its WKB) as a GeoPackage blob record with its envelope."""
+    import struct
+    blob = struct.pack("<2sBBi4d", b"GP", 0, 0x03, srs_id, bounds[0], bounds[2], bounds[1], bounds[3]) + wkb
+    rec = np.frombuffer(blob, dtype=np.dtype((np.void, len(blob))))
+    return rec, np.ones(1, bool)
+
+
+def _sql_values(values, ftype) -> list:
+    """A column chunk as Python values SQLite binds, ``None`` where null (NaN, inf, None)."""
     from osgeo import ogr
-    defn = layer.GetLayerDefn()
-    plan = []
-    for fname, (ftype, _) in fields:
-        idx = defn.GetFieldIndex(fname)
-        if ftype == ogr.OFTReal:
-            setter = "SetField"           # by index: no name lookup (no SetFieldDouble in GDAL 3.6)
-        elif ftype in (ogr.OFTInteger, ogr.OFTInteger64):
-            setter = "SetFieldInteger64"
-        else:
-            setter = "SetFieldString"
-        plan.append((idx, setter, _column_values(columns[fname], ftype)))
-    for i, g in enumerate(geoms):
-        feat = ogr.Feature(defn)
-        for idx, setter, vals in plan:
-            v = vals[i]
-            if v is None:
-                feat.SetFieldNull(idx)
-            else:
-                getattr(feat, setter)(idx, v)
-        if g is not None:
-            feat.SetGeometry(ogr.CreateGeometryFromWkb(g))
-        if layer.CreateFeature(feat) != 0:
-            raise Gf4calError(f"cannot write feature {i} of layer {layer.GetName()!r}")
+    a = np.asarray(values)
+    if ftype == ogr.OFTReal or (ftype in (ogr.OFTInteger, ogr.OFTInteger64) and a.dtype.kind in "fO"):
+        f = np.asarray(a, dtype=float) if a.dtype.kind != "O" else np.array(
+            [np.nan if v is None else v for v in a], dtype=float)
+        out = (f if ftype == ogr.OFTReal else np.trunc(f)).astype(object)
+        if ftype != ogr.OFTReal:
+            out[np.isfinite(f)] = f[np.isfinite(f)].astype(np.int64).astype(object)
+        out[~np.isfinite(f)] = None
+        return out.tolist()
+    if ftype in (ogr.OFTInteger, ogr.OFTInteger64):
+        return a.astype(np.int64).tolist()
+    import pandas as pd
+    ser = pd.Series(a, dtype=object)
+    out = ser.astype(str).to_numpy(dtype=object)
+    out[ser.isna().to_numpy()] = None
+    return out.tolist()
+
+
+def _insert_rows(conn, table: str, geom_col: str, records, ok, fields, columns, cancelled) -> None:
+    """Insert every row of one layer: geometry blobs (``records``, null where not ``ok``) and typed fields."""
+    names = [geom_col] + [f for f, _ in fields]
+    sql = (f'INSERT INTO "{table}" ({", ".join(chr(34) + n + chr(34) for n in names)}) '
+           f'VALUES ({", ".join("?" * len(names))})')
+    size = records.dtype.itemsize
+    n = records.size
+    for start in range(0, n, _CHUNK):
+        stop = min(n, start + _CHUNK)
+        blobs = records[start:stop].view(f"V{size}").tolist()     # bytes objects (void keeps trailing zeros)
+        for i in np.flatnonzero(~ok[start:stop]):
+            blobs[i] = None
+        cols = [blobs] + [_sql_values(np.asarray(columns[f])[start:stop], ftype) for f, (ftype, _) in fields]
+        conn.executemany(sql, zip(*cols))
+        if cancelled is not None and cancelled():
+            raise CancelledError("cancelled while writing the residual GeoPackage; nothing was kept")
+    conn.execute("UPDATE gpkg_ogr_contents SET feature_count = ? WHERE lower(table_name) = lower(?)", (n, table))
+
+
+def _extent(records, ok):
+    """(minx, miny, maxx, maxy) of a layer's geometries, None when it has none."""
+    if not ok.any():
+        return None
+    b = _boxes(records, ok)
+    return float(b[:, 0].min()), float(b[:, 2].min()), float(b[:, 1].max()), float(b[:, 3].max())
+
+
+def _srs_ids(path: Path, tables) -> dict:
+    """The ``srs_id`` OGR registered for each layer (gpkg_geometry_columns)."""
+    import sqlite3
+    conn = sqlite3.connect(str(path))
+    try:
+        got = dict(conn.execute("SELECT table_name, srs_id FROM gpkg_geometry_columns"))
+    finally:
+        conn.close()
+    return {t: int(got[t]) for t in tables}
+
+
+def _rtree_cells(boxes: np.ndarray) -> np.ndarray:
+    """(n, 4) [minx, maxx, miny, maxy] as the float32 an SQLite R-tree stores, rounded outwards (as SQLite does)."""
+    f = boxes.astype(np.float32)
+    lo, hi = f[:, [0, 2]], f[:, [1, 3]]
+    f[:, [0, 2]] = np.where(lo > boxes[:, [0, 2]], np.nextafter(lo, np.float32(-np.inf)), lo)
+    f[:, [1, 3]] = np.where(hi < boxes[:, [1, 3]], np.nextafter(hi, np.float32(np.inf)), hi)
+    return f
+
+
+def _str_pack(boxes: np.ndarray, cap: int):
+    """Sort-Tile-Recursive packing of one level: entry order, node of each (ordered) entry, node boxes."""
+    n = len(boxes)
+    n_nodes = -(-n // cap)
+    slab = int(np.ceil(np.sqrt(n_nodes))) * cap
+    cx, cy = boxes[:, 0] + boxes[:, 1], boxes[:, 2] + boxes[:, 3]
+    rank = np.empty(n, np.int64)
+    rank[np.argsort(cx, kind="stable")] = np.arange(n)
+    order = np.lexsort((cy, rank // slab))
+    b = boxes[order]
+    starts = np.arange(0, n, cap)
+    nb = np.column_stack([np.minimum.reduceat(b[:, 0], starts), np.maximum.reduceat(b[:, 1], starts),
+                          np.minimum.reduceat(b[:, 2], starts), np.maximum.reduceat(b[:, 3], starts)])
+    return order, np.arange(n) // cap, nb
+
+
+def _node_blobs(keys, boxes, node_of, n_nodes: int, node_size: int, cap: int, depth: int = 0) -> list:
+    """The R-tree node blobs of one level: 2 bytes depth (root only), 2 bytes count, then per cell a 64-bit id and
+    four float32, all big-endian, zero-padded to the node size (SQLite's rtree.c format)."""
+    out = np.zeros((n_nodes, node_size), np.uint8)
+    counts = np.bincount(node_of, minlength=n_nodes)
+    out[:, 0:2] = np.frombuffer(np.array([depth], ">u2").tobytes(), np.uint8)
+    out[:, 2:4] = np.frombuffer(counts.astype(">u2").tobytes(), np.uint8).reshape(n_nodes, 2)
+    cells = np.zeros(len(keys), np.dtype([("id", ">i8"), ("box", ">f4", (4,))]))
+    cells["id"], cells["box"] = keys, boxes
+    slot = np.arange(len(keys)) - np.concatenate([[0], np.cumsum(counts)[:-1]])[node_of]
+    view = out[:, 4:4 + cap * 24].reshape(n_nodes, cap, 24)
+    view[node_of, slot] = cells.view(np.uint8).reshape(len(keys), 24)
+    return [row.tobytes() for row in out]
+
+
+def _rtree_bulk_load(conn, name: str, fids: np.ndarray, boxes: np.ndarray) -> None:
+    """Fill the (empty) GeoPackage R-tree ``name`` in one go: STR-packed nodes written into its node, rowid and
+    parent tables, where one INSERT per feature (OGR's triggers, or SQLite's own R*-tree insertion) costs
+    tens of microseconds each. ``boxes`` = (n, 4) [minx, maxx, miny, maxy] of the features ``fids``."""
+    if len(fids) == 0:
+        return
+    node_size = len(conn.execute(f'SELECT data FROM "{name}_node" WHERE nodeno = 1').fetchone()[0])
+    cap = (node_size - 4) // 24
+    boxes = _rtree_cells(boxes)
+    keys = np.asarray(fids, np.int64)
+    levels = []                       # bottom-up: (entry keys, entry boxes, node of each entry, number of nodes)
+    while len(keys) > cap:
+        order, node_of, nb = _str_pack(boxes.astype(np.float64), cap)
+        levels.append((keys[order], boxes[order], node_of, len(nb)))
+        keys, boxes = np.arange(len(nb), dtype=np.int64), nb.astype(np.float32)   # next level: child indices
+    # node numbers: the root is 1, then the levels from the top down
+    base, nxt = [0] * len(levels), 2
+    for k in range(len(levels) - 1, -1, -1):
+        base[k], nxt = nxt, nxt + levels[k][3]
+    nodes, parents = [], []
+    for k, (lkeys, lboxes, node_of, n_nodes) in enumerate(levels):
+        ids = lkeys if k == 0 else lkeys + base[k - 1]          # leaves hold fids; others their children's numbers
+        nodes += zip(range(base[k], base[k] + n_nodes), _node_blobs(ids, lboxes, node_of, n_nodes, node_size, cap))
+        if k > 0:
+            parents += zip(ids.tolist(), (base[k] + node_of).tolist())
+    root_ids = keys if not levels else keys + base[-1]
+    nodes.append((1, _node_blobs(root_ids, boxes, np.zeros(len(keys), np.int64), 1, node_size, cap,
+                                 depth=len(levels))[0]))
+    if levels:
+        parents += zip(root_ids.tolist(), [1] * len(root_ids))
+        leaf_keys, _, leaf_node, _ = levels[0]
+        by_fid = np.argsort(leaf_keys)                 # appended in rowid order: no B-tree page splits
+        rowids = zip(leaf_keys[by_fid].tolist(), (base[0] + leaf_node[by_fid]).tolist())
+    else:
+        rowids = zip(keys.tolist(), [1] * len(keys))
+    for table in ("node", "rowid", "parent"):
+        conn.execute(f'DELETE FROM "{name}_{table}"')
+    conn.executemany(f'INSERT INTO "{name}_node"(nodeno, data) VALUES (?, ?)', nodes)
+    conn.executemany(f'INSERT INTO "{name}_parent"(nodeno, parentnode) VALUES (?, ?)', parents)
+    conn.executemany(f'INSERT INTO "{name}_rowid"(rowid, nodeno) VALUES (?, ?)', rowids)
+
+
+def _boxes(records, ok) -> np.ndarray:
+    """(n, 4) [minx, maxx, miny, maxy] of the geometry records ``ok``."""
+    r = records[ok]
+    names = records.dtype.names
+    if names and "minx" in names:
+        return np.column_stack([r["minx"], r["maxx"], r["miny"], r["maxy"]])
+    if names:
+        return np.column_stack([r["x"], r["x"], r["y"], r["y"]])
+    import struct   # one opaque blob (the footprint): its header envelope
+    return np.array([struct.unpack_from("<4d", bytes(rec), 8) for rec in r], float).reshape(-1, 4)
+
+
+def _bulk_write(path: Path, layers, cancelled) -> None:
+    """Fill the layers OGR created in ``path``: ``layers`` = [(table, records, ok, fields, columns, extent)]. One
+    SQLite transaction (all or nothing): OGR's R-tree insert trigger (it calls OGR's SQL functions) is set aside,
+    the rows go in, the R-tree is bulk-loaded and the trigger restored; then OGR re-opens the file and counts."""
+    import sqlite3
+    from osgeo import gdal
+    from .._gdal import gdal_exceptions, first_line
+    try:
+        conn = sqlite3.connect(str(path), isolation_level=None)
+        try:
+            conn.execute("PRAGMA journal_mode = OFF")      # a temporary file: on failure it is removed whole
+            conn.execute("PRAGMA synchronous = OFF")
+            conn.execute("PRAGMA cache_size = -65536")         # 64 MB of page cache
+            conn.execute("BEGIN")
+            geom_cols = dict(conn.execute("SELECT table_name, column_name FROM gpkg_geometry_columns"))
+            for table, records, ok, fields, columns, extent in layers:
+                rtree = f"rtree_{table}_{geom_cols[table]}"
+                # OGR's insert triggers (R-tree, feature count) run per row and call OGR's SQL functions: set
+                # aside, replaced by the bulk R-tree load and the count, then restored as OGR wrote them.
+                triggers = conn.execute("SELECT name, sql FROM sqlite_master WHERE type = 'trigger' AND "
+                                        "tbl_name = ? AND name IN (?, ?)",
+                                        (table, rtree + "_insert", f"trigger_insert_feature_count_{table}")).fetchall()
+                for name, _ in triggers:
+                    conn.execute(f'DROP TRIGGER "{name}"')
+                _insert_rows(conn, table, geom_cols[table], records, ok, fields, columns, cancelled)
+                if conn.execute("SELECT 1 FROM sqlite_master WHERE name = ?", (rtree,)).fetchone():
+                    _rtree_bulk_load(conn, rtree, np.flatnonzero(ok) + 1, _boxes(records, ok))  # fids 1..n
+                for _, sql in triggers:
+                    conn.execute(sql)
+                if extent is not None:
+                    conn.execute("UPDATE gpkg_contents SET min_x = ?, min_y = ?, max_x = ?, max_y = ? "
+                                 "WHERE table_name = ?", (*extent, table))
+            conn.execute("COMMIT")
+        finally:
+            conn.close()
+    except sqlite3.Error as exc:
+        raise Gf4calError(f"cannot write the GeoPackage ({exc}): check the disk is not full; nothing was kept") \
+            from None
+    with gdal_exceptions():
+        try:
+            ds = gdal.OpenEx(str(path), gdal.OF_VECTOR)
+            for table, records, *_ in layers:
+                got = ds.GetLayerByName(table).GetFeatureCount()
+                if got != records.size:
+                    raise Gf4calError(f"the GeoPackage layer {table!r} holds {got} features instead of "
+                                      f"{records.size}; nothing was kept")
+            ds = None
+        except RuntimeError as exc:
+            raise Gf4calError(f"cannot write the GeoPackage: {first_line(exc)}; check the disk is not full") \
+                from None
 
 
 def _write_layer_styles(ds, styles: Sequence[Tuple[str, str, str, str, str]]) -> None:
@@ -151,7 +351,7 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
                          before: Optional[Tuple[str, str]] = STANDARD_BEFORE,
                          after: Optional[Tuple[str, str]] = STANDARD_AFTER,
                          crs: Any = "EPSG:4326", pixel_size=None, overwrite: bool = True,
-                         title: str = "GCP residuals") -> Path:
+                         title: str = "GCP residuals", cancelled: Optional[Callable[[], bool]] = None) -> Path:
     """Write GCPs and their residuals as a styled GeoPackage that QGIS draws at once.
 
     Layers (the styles are the layers' defaults in ``layer_styles``, QML and SLD):
@@ -197,6 +397,9 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         Ground size of a pixel in map units, used only when it cannot be estimated from the GCPs (< 3 points).
     overwrite : bool
         Replace an existing file (default True).
+    cancelled : callable, optional
+        Asked between layers and every 50,000 rows; when it returns True the write stops with
+        :class:`~gdal_gf4cal.errors.CancelledError` and the temporary file is removed (nothing is written).
 
     Returns
     -------
@@ -260,20 +463,10 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         if col in skip or not isinstance(col, str):
             continue
         vals = df[col].to_numpy()
-        if vals.dtype.kind == "O":
-            vals = np.array([None if v is None or (isinstance(v, float) and math.isnan(v)) else str(v)
-                             for v in vals], dtype=object)
-        elif vals.dtype.kind not in "biuf":
-            vals = vals.astype(str)
+        if vals.dtype.kind not in "biufO":
+            vals = vals.astype(str)     # object columns: text, nulls kept (converted chunk-wise when written)
         columns[col] = vals
         fields.append((col, _ogr_type(vals)))
-
-    def point_wkb(i):
-        if not (math.isfinite(x[i]) and math.isfinite(y[i])):
-            return None
-        g = ogr.Geometry(ogr.wkbPoint)
-        g.AddPoint_2D(float(x[i]), float(y[i]))
-        return g.ExportToWkb()
 
     srs = osr.SpatialReference()
     srs.ImportFromWkt(out_crs.to_wkt())
@@ -318,13 +511,9 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         drawn = factor * length
         shrink = np.where(drawn > clip_at, clip_at / np.where(drawn > 0, drawn, 1.0), 1.0)
         clipped = drawn > clip_at
-        geoms = []
-        for i in np.flatnonzero(finite):
-            g = ogr.Geometry(ogr.wkbLineString)
-            g.AddPoint_2D(float(x[i]), float(y[i]))
-            g.AddPoint_2D(float(x[i] + factor * shrink[i] * dx[i]), float(y[i] + factor * shrink[i] * dy[i]))
-            geoms.append(g.ExportToWkb())
         keep = finite
+        geoms = (x[keep], y[keep], x[keep] + factor * shrink[keep] * dx[keep],
+                 y[keep] + factor * shrink[keep] * dy[keep])
         cols = {"id": ids[keep], "role": role[keep], "epoch": np.full(keep.sum(), epoch, dtype=object),
                 "res_sample": s_[keep], "res_line": l_[keep], "res_px": mag[keep], "outlier": outlier[keep],
                 "clipped": clipped[keep], "exaggeration": np.full(keep.sum(), factor),
@@ -348,36 +537,48 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         raise Gf4calError(f"{path} exists")
     tmp = _temp_path(path)
     driver = ogr.GetDriverByName("GPKG")
+    check_cancel = cancelled if cancelled is not None else (lambda: False)
     try:
         ds = driver.CreateDataSource(str(tmp))
         if ds is None:
             raise Gf4calError(f"cannot create a GeoPackage in {path.parent}; check the folder is writable")
-        styles = []
+        styles, bulk = [], []
         if ds.StartTransaction() != 0:
             raise Gf4calError(f"cannot write the GeoPackage {path}; check the folder is writable")
         gl = _create_layer(ds, "gcps", srs, ogr.wkbPoint, fields,
                            f"{title}: ground control / check points with residuals (measured - predicted, px)")
-        _write_features(gl, fields, columns, [point_wkb(i) for i in range(n)])
+        bulk.append(("gcps", fields, columns, lambda sid: _point_records(x, y, sid)))
         qml, sld = _points_style()
         styles.append(("gcps", gl.GetGeometryColumn(), qml, _sld("gcps", sld), "GCPs by role; outliers as red crosses"))
         for name, vfields, cols, geoms, desc, meta, mag, ident in vector_layers:
             vl = _create_layer(ds, name, srs, ogr.wkbLineString, vfields, desc, meta, ident)
-            _write_features(vl, vfields, cols, geoms)
+            bulk.append((name, vfields, cols, lambda sid, g=geoms: _line_records(*g, sid)))
             # The 'before' arrows are drawn half-transparent so the 'after' ones stand out where both are shown.
             qml, sld = _vector_style(_class_breaks(mag), 1.0 if name == "residual_vectors" else 0.5)
             styles.append((name, vl.GetGeometryColumn(), qml, _sld(name, sld),
                            f"residual arrows coloured by magnitude; {desc}"))
         if fp is not None and not fp.is_empty:
-            fl = _create_layer(ds, "footprint", srs, ogr.wkbMultiPolygon, [("name", (ogr.OFTString, ogr.OFSTNone))],
-                               f"{title}: scene footprint")
-            g = ogr.ForceToMultiPolygon(ogr.CreateGeometryFromWkb(fp.wkb))
-            _write_features(fl, [("name", (ogr.OFTString, ogr.OFSTNone))], {"name": ["footprint"]}, [g.ExportToWkb()])
+            ffields = [("name", (ogr.OFTString, ogr.OFSTNone))]
+            fl = _create_layer(ds, "footprint", srs, ogr.wkbMultiPolygon, ffields, f"{title}: scene footprint")
+            wkb = ogr.ForceToMultiPolygon(ogr.CreateGeometryFromWkb(fp.wkb)).ExportToWkb(ogr.wkbNDR)
+            bulk.append(("footprint", ffields, {"name": np.array(["footprint"], dtype=object)},
+                         lambda sid, w=wkb, bb=fp.bounds: _wkb_records(w, bb, sid)))
             qml, sld = _footprint_style()
             styles.append(("footprint", fl.GetGeometryColumn(), qml, _sld("footprint", sld), "scene footprint"))
         _write_layer_styles(ds, styles)
         if ds.CommitTransaction() != 0:
             raise Gf4calError(f"cannot write the GeoPackage {path} (the commit failed: disk full?); nothing was kept")
         ds = None
+        if check_cancel():
+            raise CancelledError("cancelled while writing the residual GeoPackage; nothing was kept")
+        srs_ids = _srs_ids(tmp, [name for name, *_ in bulk])
+        layers = []
+        for name, lfields, lcols, make in bulk:
+            records, ok = make(srs_ids[name])
+            layers.append((name, records, ok, lfields, lcols, _extent(records, ok)))
+        _bulk_write(tmp, layers, check_cancel)
+        if check_cancel():
+            raise CancelledError("cancelled while writing the residual GeoPackage; nothing was kept")
         os.replace(tmp, path)
     finally:
         ds = None

@@ -276,3 +276,52 @@ def test_assess_accuracy_against_known_offsets(tmp_path):
     ds = ogr.Open(str(tmp_path / "acc.gpkg"))
     assert ds.GetLayerByName("footprint").GetFeatureCount() == 1
     assert ds.GetLayerByName("residual_vectors").GetMetadata()["EPOCH"] == "before"
+
+
+@pytest.mark.parametrize("n", [2, 40, 3000])
+def test_bulk_written_gpkg_is_valid_with_spatial_index_styles_and_nulls(tmp_path, n):
+    """The residual GeoPackage is written in bulk (SQLite executemany + an STR-packed R-tree, issue 11): SQLite's own
+    integrity and R-tree checks pass, OGR re-opens it with the right counts, extents and a spatial index that answers
+    like a brute-force search (R-trees of depth 0, 1 and 2 for 2, 40 and 3000 points), a point without ground
+    position is kept with a NULL geometry and no index entry, NaN fields are NULL, and the styles are intact."""
+    import sqlite3
+    rng = np.random.default_rng(n)
+    s, l = rng.integers(0, 1000, n).astype(float), rng.integers(0, 1000, n).astype(float)
+    df = pd.DataFrame({"id": [f"P{i}" for i in range(n)], "lon": 100.0 + s / 1024, "lat": 30.0 - l / 1024,
+                       "h": 50.0, "sample": s, "line": l, "role": "control",
+                       "res_sample_before": rng.normal(2, 1, n), "res_line_before": rng.normal(-1, 1, n),
+                       "res_sample_after": rng.normal(0, .2, n), "res_line_after": rng.normal(0, .2, n),
+                       "note": [None if i % 7 == 0 else f"n{i}" for i in range(n)]})
+    df.loc[n - 1, "lon"] = np.nan                  # no ground position: kept, without geometry
+    df.loc[0, "res_sample_after"] = np.nan
+    out = write_residuals_gpkg(df, tmp_path / "bulk.gpkg", footprint=box(100, 29, 101, 30))
+    conn = sqlite3.connect(str(out))
+    try:
+        assert conn.execute("PRAGMA integrity_check").fetchone() == ("ok",)
+        for table in ("gcps", "residual_vectors", "residual_vectors_before", "footprint"):
+            assert conn.execute(f"SELECT rtreecheck('rtree_{table}_geom')").fetchone() == ("ok",), table
+            n_geom = conn.execute(f'SELECT COUNT(*) FROM "{table}" WHERE geom IS NOT NULL').fetchone()[0]
+            assert conn.execute(f"SELECT COUNT(*) FROM rtree_{table}_geom").fetchone()[0] == n_geom
+        triggers = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'trigger'")}
+        assert {"rtree_gcps_geom_insert", "trigger_insert_feature_count_gcps"} <= triggers   # restored
+        assert conn.execute("SELECT COUNT(*) FROM layer_styles").fetchone()[0] == 4
+    finally:
+        conn.close()
+    ds = ogr.Open(str(out))
+    gl = ds.GetLayerByName("gcps")
+    assert gl.GetFeatureCount() == n and gl.TestCapability(ogr.OLCFastSpatialFilter)
+    ok = df["lon"].notna()
+    assert gl.GetExtent() == pytest.approx((df.lon[ok].min(), df.lon[ok].max(), df.lat[ok].min(), df.lat[ok].max()))
+    for rect in ((100.2, 29.3, 100.6, 29.9), (99.0, 29.0, 101.0, 31.0)):   # edges between the 1/1024 grid points
+        gl.SetSpatialFilterRect(*rect)
+        inside = ok & df.lon.between(rect[0], rect[2]) & df.lat.between(rect[1], rect[3])
+        assert sorted(f["id"] for f in gl) == sorted(df.id[inside])
+    gl.SetSpatialFilter(None)
+    feats = {f["id"]: f for f in gl}
+    assert feats[f"P{n - 1}"].GetGeometryRef() is None
+    assert feats["P0"]["res_sample_after"] is None and feats["P0"]["note"] is None
+    assert feats["P1"]["note"] == "n1" and feats["P1"]["res_sample_before"] == pytest.approx(df.res_sample_before[1])
+    assert feats["P0"].GetGeometryRef().GetPoint_2D() == (df.lon[0], df.lat[0])   # exact: float64 WKB
+    assert ds.GetLayerByName("residual_vectors").GetFeatureCount() == n - 2          # P0: no after residual
+    assert ds.GetLayerByName("residual_vectors_before").GetFeatureCount() == n - 1
+    assert ds.GetLayerByName("footprint").GetFeatureCount() == 1
