@@ -213,13 +213,14 @@ def match_tile(spec: TileSpec) -> Dict[str, np.ndarray]:
 
     Returns a dict of arrays, one entry per window: ``center_sample, center_line`` (the RPC-predicted position
     of the ground point), ``lon, lat, h``, ``dsample, dline`` (offset ``matched - predicted``, px), ``peak,
-    peak_ratio, ncc, precision_px, texture`` and ``status`` (see :data:`STATUS`).
+    peak_ratio, ncc, precision_px, texture``, ``flat`` (flat share of the window's central half, the larger of
+    the two images': water, flat cloud) and ``status`` (see :data:`STATUS`).
     """
     from osgeo import gdal
     c = np.asarray(spec.centers, dtype=float).reshape(-1, 2)
     n = c.shape[0]
     out = {k: np.full(n, np.nan) for k in ("lon", "lat", "h", "dsample", "dline", "peak", "peak_ratio", "ncc",
-                                          "precision_px", "texture")}
+                                          "precision_px", "texture", "flat")}
     out["center_sample"], out["center_line"] = c[:, 0].copy(), c[:, 1].copy()
     status = np.zeros(n, dtype=np.int8)
     out["status"] = status
@@ -403,6 +404,7 @@ def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
     for k in ("peak", "peak_ratio", "ncc", "precision_px"):
         out[k][idx] = res[k]
     out["texture"][idx] = tex
+    out["flat"][idx] = flat
     return out
 
 

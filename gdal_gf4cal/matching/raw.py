@@ -40,7 +40,8 @@ __all__ = ["match_raw", "match_ties", "pan_ms_cells", "cells_from_matches", "ove
 
 #: Columns of :func:`match_raw`'s table, in order.
 RAW_COLUMNS = ("sample", "line", "pred_sample", "pred_line", "ref_sample", "ref_line", "lon", "lat", "h",
-               "d_sample", "d_line", "sigma", "score", "peak", "peak_ratio", "ncc", "texture", "status", "outlier")
+               "d_sample", "d_line", "sigma", "score", "peak", "peak_ratio", "ncc", "texture", "flat", "status",
+               "outlier")
 
 #: Columns of :func:`pan_ms_cells`'s table, in order.
 CELL_COLUMNS = ("cell_id", "col", "row", "sample", "line", "d_sample", "d_line", "sigma_sample", "sigma_line", "n",
@@ -120,7 +121,8 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
     ``model`` predict it); ``ref_sample, ref_line`` the homologous reference position; ``lon, lat, h`` the ground
     point (``model`` on the DEM at the centre); ``d_sample, d_line`` = measured - predicted (px of ``image``;
     METHODS §9's ∇ for image = MS, reference = pan); ``sigma`` the matcher's precision estimate (px, the larger
-    axis); ``score`` (= ``ncc``), ``peak, peak_ratio, ncc, texture``; ``status`` (:data:`.collect.STATUS`; only 0
+    axis); ``score`` (= ``ncc``), ``peak, peak_ratio, ncc, texture``, ``flat`` (flat share of the window's
+    central half: water, flat cloud); ``status`` (:data:`.collect.STATUS`; only 0
     is a match) and ``outlier``. ``df.attrs``: ``windows`` (counts by status), ``scale`` (reference px per image
     px), ``region`` (the box matched).
     """
@@ -163,7 +165,7 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
         "ref_sample": r["ref_sample"], "ref_line": r["ref_line"],
         "lon": r["lon"], "lat": r["lat"], "h": r["h"], "d_sample": d_s, "d_line": d_l,
         "sigma": prec, "score": r["ncc"], "peak": r["peak"], "peak_ratio": r["peak_ratio"], "ncc": r["ncc"],
-        "texture": r["texture"], "status": st, "outlier": outlier})
+        "texture": r["texture"], "flat": r["flat"], "status": st, "outlier": outlier})
     counts = {name: int(np.count_nonzero(st == code)) for code, name in STATUS.items()}
     counts["outliers"] = int(outlier.sum())
     counts["total"] = int(st.size)
@@ -225,9 +227,10 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
     the **MAD-trimmed mean about the median** (:func:`gdal_gf4cal.stats.grouped_trimmed_mean`: accepted, non-outlier
     matches within ``trim_k`` robust standard deviations of the median on both axes), ``sigma_*`` its standard
     error (spread of the kept matches over sqrt(n), floored by their mean precision over sqrt(n)).
-    ``usable`` is False when fewer than ``min_matches`` are kept or the accepted share of the cell's windows is
-    below ``min_accepted_fraction`` (cloud, water, texture-less). ``clear_fraction`` = share of the cell's windows
-    not rejected as no-data, featureless or cloud.
+    ``clear_fraction`` = 1 - the mean ``flat`` share of the central halves of the cell's windows (which about
+    tile the cell): the share of the cell that is neither cloud nor water nor texture-less. ``usable`` is False
+    when fewer than ``min_matches`` are kept, the accepted share of the cell's windows is below
+    ``min_accepted_fraction`` or ``clear_fraction`` is below 0.5 (a cell mostly cloud / water / texture-less).
     """
     import pandas as pd
     from ..stats import grouped_trimmed_mean
@@ -244,20 +247,23 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
     counted = st != 5
     n_windows = np.bincount(cid[counted], minlength=ncell)
     n_acc = np.bincount(cid[st == 0], minlength=ncell)
-    n_clear = np.bincount(cid[counted & ~np.isin(st, (1, 2, 4))], minlength=ncell)
+    flat = matches["flat"].to_numpy(float)
+    has_flat = counted & np.isfinite(flat)
+    n_flat = np.bincount(cid[has_flat], minlength=ncell)
+    sum_flat = np.bincount(cid[has_flat], flat[has_flat], minlength=ncell)
     good = (st == 0) & ~matches["outlier"].to_numpy(bool)
     m = grouped_trimmed_mean(cid[good], np.column_stack([matches["d_sample"].to_numpy(float)[good],
                                                          matches["d_line"].to_numpy(float)[good]]),
                              ncell, k=trim_k, sigma=matches["sigma"].to_numpy(float)[good])
     with np.errstate(invalid="ignore", divide="ignore"):
         acc_frac = np.where(n_windows > 0, n_acc / np.maximum(n_windows, 1), 0.0)
-        clear = np.where(n_windows > 0, n_clear / np.maximum(n_windows, 1), 0.0)
+        clear = np.where(n_flat > 0, 1.0 - sum_flat / np.maximum(n_flat, 1), 0.0)
     cc, rr = np.meshgrid(np.arange(ncol), np.arange(nrow))
     cc, rr = cc.ravel(), rr.ravel()
     x0, y0 = cc * cell, rr * cell
     sample = (x0 + np.minimum(x0 + cell, width)) / 2.0
     line = (y0 + np.minimum(y0 + cell, height)) / 2.0
-    usable = (m.n >= int(min_matches)) & (acc_frac >= float(min_accepted_fraction))
+    usable = (m.n >= int(min_matches)) & (acc_frac >= float(min_accepted_fraction)) & (clear >= 0.5)
     df = pd.DataFrame({"cell_id": np.arange(ncell), "col": cc, "row": rr, "sample": sample, "line": line,
                        "d_sample": m.mean[:, 0], "d_line": m.mean[:, 1], "sigma_sample": m.sigma[:, 0],
                        "sigma_line": m.sigma[:, 1], "n": m.n, "n_windows": n_windows,

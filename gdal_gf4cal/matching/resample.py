@@ -1,8 +1,11 @@
-"""Resample a reference orthophoto into the raw image's geometry through RPC + DEM (automatic GCP collection).
+"""Resample a reference (an orthophoto, or another raw image with its sensor model) into the raw image's geometry
+through RPC + DEM (automatic GCP collection, raw-to-raw matching).
 
 For a stack of regular grids of raw-image positions (one grid per matching window) every grid node is localised
-on the DEM through the RPC (``localize_dem``), transformed to the reference's CRS (pyproj) and to reference pixel
-coordinates (inverse geotransform), and the reference is sampled there with a cubic spline. The result shows, at
+on the DEM through the RPC (``localize_dem``) and mapped to reference pixel coordinates by the reference's
+``ground_to_pixel``: for an ortho (:class:`ReferenceImage`) the reference's CRS (pyproj) and inverse geotransform,
+for a raw reference (:class:`RawReference`) its sensor model's ``project``; the reference is sampled there with a
+cubic spline. The result shows, at
 raw position ``u``, the ground that the RPC says is imaged at ``u``: comparing it with the raw image measures the
 RPC's error (see :mod:`gdal_gf4cal.matching.collect`).
 
