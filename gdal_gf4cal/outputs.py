@@ -208,6 +208,7 @@ class OutputSet:
         self.cancelled = cancelled
         self._outputs: Dict[str, _Output] = {}
         self._created_dirs: List[str] = []
+        self._probed: set = set()
         self._folders: List[tuple] = []
         self._token = uuid.uuid4().hex[:8]
         self._entered = False
@@ -323,9 +324,24 @@ class OutputSet:
             except FileExistsError:
                 continue
             except OSError as exc:
-                raise Gf4calError(f"cannot create the output folder {d}: {exc.strerror}; check the path and "
-                                  "its permissions") from None
+                raise Gf4calError(f"cannot create the output folder {d}: {exc.strerror}; check the path and that "
+                                  f"you can write in {os.path.dirname(d)}") from None
             self._created_dirs.append(d)
+        self._probe(os.path.dirname(os.path.abspath(path)))
+
+    def _probe(self, folder: str) -> None:
+        """Refuse, before any work, a folder where no file can be created (permissions, an immutable or read-only
+        folder: also as root): one line naming the folder instead of a failure at the first write."""
+        if folder in self._probed:
+            return
+        try:
+            fd, probe = tempfile.mkstemp(prefix=f".gf4cal-{self._token}-probe-", dir=folder)
+            os.close(fd)
+            os.remove(probe)
+        except OSError as exc:
+            raise Gf4calError(f"cannot write in the output folder {folder}: {exc.strerror}; choose a folder you "
+                              "can write to") from None
+        self._probed.add(folder)
 
     def __enter__(self) -> "OutputSet":
         self._entered = True
@@ -336,6 +352,8 @@ class OutputSet:
             for path, before in self._folders:
                 if before is None:
                     self._make_folder(os.path.join(path, "x"))
+                else:
+                    self._probe(path)
         except BaseException:
             self.abort()
             raise

@@ -133,6 +133,7 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
     SIGMA_FIELD = "SIGMA_FIELD"
     GCP_COLUMNS = "GCP_COLUMNS"
     GCP_PIXEL_CONVENTION = "GCP_PIXEL_CONVENTION"
+    GCP_RASTER = "GCP_RASTER"
     DEM = "DEM"
     GEOID = "GEOID"
     GEOID_GRID = "GEOID_GRID"
@@ -199,10 +200,13 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
 
     def add_gcp_parameters(self, optional_sigma=True):
         # TypeVector too: a header-less CSV/text file (no geometry) is read with a column map (GCP_COLUMNS).
+        # Optional only so that a raster with embedded GCPs (GCP_RASTER) can replace it; read_gcps needs one.
         self._add(QgsProcessingParameterFeatureSource(self.GCPS, self.tr("Ground control points"),
-                                                      [QgsProcessing.TypeVectorPoint, QgsProcessing.TypeVector]),
+                                                      [QgsProcessing.TypeVectorPoint, QgsProcessing.TypeVector],
+                                                      optional=True),
                   "Point layer: the geometry is the ground position (any CRS); fields give the image position. "
-                  "Or a header-less CSV/text file read with a column map (GCP_COLUMNS).")
+                  "Or a header-less CSV/text file read with a column map (GCP_COLUMNS). Or leave it empty and give "
+                  "a raster with embedded GCPs (GCP_RASTER).")
         fields = [
             (self.SAMPLE_FIELD, "Image column (sample) field", "sample", False,
              "Field holding the image column of each GCP, in pixels, GDAL convention (first pixel centre 0.5)."),
@@ -228,6 +232,13 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
                       "For a GCP layer read from a CSV/text file without a header line: the meaning of its columns "
                       "in order, e.g. id,sample,line,lon,lat,h (x,y for map coordinates, - to skip a column). "
                       "When given, the file is read with this map and the field choices above are not used.")
+        p.setFlags(p.flags() | p.FlagAdvanced)
+        p = self._add(QgsProcessingParameterRasterLayer(self.GCP_RASTER, self.tr("Raster with embedded GCPs "
+                                                                                 "(instead of the GCP layer)"),
+                                                        optional=True),
+                      "A raster whose GCPs (GeoTIFF tie points, GDAL GCPs) are the ground control points, read in "
+                      "the pixel convention below (GeoTIFF: corners at integers unless the file was written with "
+                      "centres); all GCPs are control points.")
         p.setFlags(p.flags() | p.FlagAdvanced)
         p = self._add(QgsProcessingParameterEnum(self.GCP_PIXEL_CONVENTION, self.tr("GCP image coordinates are"),
                                                  PIXEL_CONVENTION_LABELS, defaultValue=0, optional=True),
@@ -304,11 +315,23 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         from gdal_gf4cal.gcp import validate_gcps
         from gdal_gf4cal.gcp_formats import read_gcp_layer
 
+        convention = PIXEL_CONVENTIONS[self.parameterAsEnum(parameters, self.GCP_PIXEL_CONVENTION, context)] \
+            if self.parameterDefinition(self.GCP_PIXEL_CONVENTION) is not None else None
+        raster = self.parameterAsRasterLayer(parameters, self.GCP_RASTER, context) \
+            if self.parameterDefinition(self.GCP_RASTER) is not None else None
+        has_layer = parameters.get(self.GCPS) not in (None, "")
+        if raster is not None:
+            if has_layer:
+                raise QgsProcessingException(self.tr(
+                    "Give either the GCP layer (GCPS) or a raster with embedded GCPs (GCP_RASTER), not both."))
+            from gdal_gf4cal.gcp import read_gcps
+            return read_gcps(raster.source(), dem=dem, pixel_convention=convention)
+        if not has_layer:
+            raise QgsProcessingException(self.tr(
+                "Choose the GCP layer (GCPS), or a raster with embedded GCPs (GCP_RASTER)."))
         source = self.parameterAsSource(parameters, self.GCPS, context)
         if source is None:
             raise QgsProcessingException(self.invalidSourceError(parameters, self.GCPS))
-        convention = PIXEL_CONVENTIONS[self.parameterAsEnum(parameters, self.GCP_PIXEL_CONVENTION, context)] \
-            if self.parameterDefinition(self.GCP_PIXEL_CONVENTION) is not None else None
         columns = self.parameterAsString(parameters, self.GCP_COLUMNS, context) \
             if self.parameterDefinition(self.GCP_COLUMNS) is not None else ""
         if columns.strip():    # a header-less file: the engine reads it with the map (the fields are not used)

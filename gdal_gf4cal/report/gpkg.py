@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import datetime as _dt
+import itertools
 import math
 import os
 from pathlib import Path
@@ -53,7 +54,7 @@ def _create_layer(ds, name, srs, geom_type, fields, description, metadata=None, 
 # (executemany of GeoPackage geometry blobs built with NumPy), then OGR builds the spatial indexes and the file is
 # re-opened and counted. 1e6 GCPs: seconds, where one OGR feature at a time took minutes.
 # ----------------------------------------------------------------------------------------------------------------
-_CHUNK = 50_000     # rows per executemany: bounds the Python objects alive at once and the cancel latency
+_CHUNK = 20_000     # rows per executemany: bounds the Python objects alive at once and the cancel latency
 
 
 def _point_records(x, y, srs_id: int):
@@ -121,7 +122,9 @@ def _insert_rows(conn, table: str, geom_col: str, records, ok, fields, columns, 
         blobs = records[start:stop].view(f"V{size}").tolist()     # bytes objects (void keeps trailing zeros)
         for i in np.flatnonzero(~ok[start:stop]):
             blobs[i] = None
-        cols = [blobs] + [_sql_values(np.asarray(columns[f])[start:stop], ftype) for f, (ftype, _) in fields]
+        cols = [blobs] + [itertools.repeat(_sql_values(np.asarray([columns[f]]), ftype)[0], stop - start)
+                          if np.ndim(columns[f]) == 0 else _sql_values(np.asarray(columns[f])[start:stop], ftype)
+                          for f, (ftype, _) in fields]
         conn.executemany(sql, zip(*cols))
         if cancelled is not None and cancelled():
             raise CancelledError("cancelled while writing the residual GeoPackage; nothing was kept")
@@ -242,7 +245,8 @@ def _boxes(records, ok) -> np.ndarray:
 
 
 def _bulk_write(path: Path, layers, cancelled) -> None:
-    """Fill the layers OGR created in ``path``: ``layers`` = [(table, records, ok, fields, columns, extent)]. One
+    """Fill the layers OGR created in ``path``: ``layers`` = [(table, fields, columns, make)], ``make()`` giving the
+    geometry ``(records, ok)`` when the layer is written (one layer's blobs in memory at a time). One
     SQLite transaction (all or nothing): OGR's R-tree insert trigger (it calls OGR's SQL functions) is set aside,
     the rows go in, the R-tree is bulk-loaded and the trigger restored; then OGR re-opens the file and counts."""
     import sqlite3
@@ -256,7 +260,10 @@ def _bulk_write(path: Path, layers, cancelled) -> None:
             conn.execute("PRAGMA cache_size = -65536")         # 64 MB of page cache
             conn.execute("BEGIN")
             geom_cols = dict(conn.execute("SELECT table_name, column_name FROM gpkg_geometry_columns"))
-            for table, records, ok, fields, columns, extent in layers:
+            counts = {}
+            for table, fields, columns, make in layers:
+                records, ok = make()
+                counts[table] = records.size
                 rtree = f"rtree_{table}_{geom_cols[table]}"
                 # OGR's insert triggers (R-tree, feature count) run per row and call OGR's SQL functions: set
                 # aside, replaced by the bulk R-tree load and the count, then restored as OGR wrote them.
@@ -270,9 +277,11 @@ def _bulk_write(path: Path, layers, cancelled) -> None:
                     _rtree_bulk_load(conn, rtree, np.flatnonzero(ok) + 1, _boxes(records, ok))  # fids 1..n
                 for _, sql in triggers:
                     conn.execute(sql)
+                extent = _extent(records, ok)
                 if extent is not None:
                     conn.execute("UPDATE gpkg_contents SET min_x = ?, min_y = ?, max_x = ?, max_y = ? "
                                  "WHERE table_name = ?", (*extent, table))
+                del records, ok
             conn.execute("COMMIT")
         finally:
             conn.close()
@@ -282,11 +291,11 @@ def _bulk_write(path: Path, layers, cancelled) -> None:
     with gdal_exceptions():
         try:
             ds = gdal.OpenEx(str(path), gdal.OF_VECTOR)
-            for table, records, *_ in layers:
+            for table, expected in counts.items():
                 got = ds.GetLayerByName(table).GetFeatureCount()
-                if got != records.size:
+                if got != expected:
                     raise Gf4calError(f"the GeoPackage layer {table!r} holds {got} features instead of "
-                                      f"{records.size}; nothing was kept")
+                                      f"{expected}; nothing was kept")
             ds = None
         except RuntimeError as exc:
             raise Gf4calError(f"cannot write the GeoPackage: {first_line(exc)}; check the disk is not full") \
@@ -398,7 +407,7 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
     overwrite : bool
         Replace an existing file (default True).
     cancelled : callable, optional
-        Asked between layers and every 50,000 rows; when it returns True the write stops with
+        Asked between layers and every 20,000 rows; when it returns True the write stops with
         :class:`~gdal_gf4cal.errors.CancelledError` and the temporary file is removed (nothing is written).
 
     Returns
@@ -514,10 +523,9 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         keep = finite
         geoms = (x[keep], y[keep], x[keep] + factor * shrink[keep] * dx[keep],
                  y[keep] + factor * shrink[keep] * dy[keep])
-        cols = {"id": ids[keep], "role": role[keep], "epoch": np.full(keep.sum(), epoch, dtype=object),
+        cols = {"id": ids[keep], "role": role[keep], "epoch": epoch,          # scalars: the same in every row
                 "res_sample": s_[keep], "res_line": l_[keep], "res_px": mag[keep], "outlier": outlier[keep],
-                "clipped": clipped[keep], "exaggeration": np.full(keep.sum(), factor),
-                "map_units_per_px": np.full(keep.sum(), scale)}
+                "clipped": clipped[keep], "exaggeration": factor, "map_units_per_px": scale}
         vfields = [("id", (ogr.OFTString, ogr.OFSTNone)), ("role", (ogr.OFTString, ogr.OFSTNone)),
                    ("epoch", (ogr.OFTString, ogr.OFSTNone))] + \
                   [(c, (ogr.OFTReal, ogr.OFSTNone)) for c in ("res_sample", "res_line", "res_px")] + \
@@ -572,11 +580,8 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         if check_cancel():
             raise CancelledError("cancelled while writing the residual GeoPackage; nothing was kept")
         srs_ids = _srs_ids(tmp, [name for name, *_ in bulk])
-        layers = []
-        for name, lfields, lcols, make in bulk:
-            records, ok = make(srs_ids[name])
-            layers.append((name, records, ok, lfields, lcols, _extent(records, ok)))
-        _bulk_write(tmp, layers, check_cancel)
+        _bulk_write(tmp, [(name, lfields, lcols, (lambda m=make, sid=srs_ids[name]: m(sid)))
+                          for name, lfields, lcols, make in bulk], check_cancel)
         if check_cancel():
             raise CancelledError("cancelled while writing the residual GeoPackage; nothing was kept")
         os.replace(tmp, path)

@@ -95,7 +95,7 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
             if image_size is not None:
                 footprint = footprint_from_rpc(rpc, image_size, h=float(rpc.height_off))
             write_residuals_gpkg(table, outs.tmp("residuals"), footprint=footprint, before=("res_sample", "res_line"),
-                                 after=None, title="RPC accuracy")
+                                 after=None, title="RPC accuracy", cancelled=outs.cancelled)
             outs.set_check("residuals", check_vector({"gcps": len(table)}))
         if plot:
             plot_residuals(table, outs.tmp("plot"), before=("res_sample", "res_line"), after=None,

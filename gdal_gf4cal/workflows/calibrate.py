@@ -99,7 +99,7 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
         except Exception:  # a footprint is a convenience layer; the residuals matter
             footprint = None
         write_residuals_gpkg(res.gcps, outs.tmp("residuals_gpkg"), footprint=footprint, overwrite=True,
-                             title="Look-angle calibration residuals")
+                             title="Look-angle calibration residuals", cancelled=outs.cancelled)
         outs.set_check("residuals_gpkg", check_vector({"gcps": len(res.gcps)}))
         plot_residuals(res.gcps, outs.tmp("residuals_png"), image_size=size,
                        title=f"{stem}: GCP residuals before / after look-angle calibration")

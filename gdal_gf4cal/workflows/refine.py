@@ -198,7 +198,7 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
             except Gf4calError:
                 fp = None
             write_residuals_gpkg(_with_ground_offsets(rpc, result.gcps), outs.tmp("residuals"), footprint=fp,
-                                 title=title)
+                                 title=title, cancelled=outs.cancelled)   # a cancel mid-write stops it
             outs.set_check("residuals", check_vector({"gcps": len(result.gcps)}))
         if plot:
             from ..report import plot_residuals

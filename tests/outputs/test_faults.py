@@ -76,3 +76,50 @@ def test_simulate_on_a_full_file_system_leaves_nothing(tmp_path):
                  "--n-gcps", "10", "--render"], preexec_fn=_limited(100_000))
     _assert_one_clear_line(proc)
     assert os.listdir(tmp_path) == []
+
+
+@pytest.fixture
+def immutable_folder(tmp_path):
+    """An empty folder nobody can write in, root included: the tests run as root, for whom permission bits do not
+    apply, so the folder gets the ext4/overlayfs *immutable* attribute (``chattr +i``): creating a file in it fails
+    with EPERM for every user. Removed again afterwards. Skipped where the file system has no such attribute."""
+    folder = tmp_path / "locked"
+    folder.mkdir()
+    if subprocess.run(["chattr", "+i", str(folder)], capture_output=True).returncode != 0:
+        pytest.skip("chattr +i is not supported here")
+    try:
+        try:
+            (folder / "probe").write_text("x")
+        except OSError:
+            pass
+        else:
+            pytest.skip("the immutable attribute does not stop writes here")
+        yield folder
+    finally:
+        subprocess.run(["chattr", "-i", str(folder)], capture_output=True)
+
+
+@pytest.mark.parametrize("where", ["folder", "subfolder"])
+def test_unwritable_output_folder_one_line_exit_2_nothing_written(scene, tmp_path, immutable_folder, where):
+    """Every output in a folder nobody can write in (or a new folder inside it): refused before any work with one
+    line naming the folder, exit 2, nothing written anywhere, inputs unchanged."""
+    before = _checksums(scene)
+    out = immutable_folder if where == "folder" else immutable_folder / "new"
+    proc = _run(["refine", scene / "scene.tif", "--gcps", scene / "gcps.csv", "--model", "affine",
+                 "--out", out / "refined.vrt", "--report", out / "report.json", "--residuals", out / "res.gpkg",
+                 "--plot", out / "res.png"])
+    _assert_one_clear_line(proc)
+    assert str(immutable_folder) in proc.stderr and "Operation not permitted" in proc.stderr
+    assert os.listdir(immutable_folder) == [] and sorted(os.listdir(tmp_path)) == ["locked"]
+    assert _checksums(scene) == before
+
+
+def test_output_under_a_regular_file_one_line_exit_2(scene, tmp_path):
+    """An output folder that is a regular file (ENOTDIR, which fails for root too): one line, exit 2, the file
+    untouched and nothing else written."""
+    blocker = tmp_path / "afile"
+    blocker.write_text("not a folder\n")
+    proc = _run(["refine", scene / "scene.tif", "--gcps", scene / "gcps.csv", "--model", "affine",
+                 "--out", blocker / "refined.RPB", "--report", tmp_path / "report.json"])
+    _assert_one_clear_line(proc)
+    assert sorted(os.listdir(tmp_path)) == ["afile"] and blocker.read_text() == "not a folder\n"

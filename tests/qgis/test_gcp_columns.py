@@ -1,13 +1,14 @@
 """The advanced GCP parameters in headless QGIS (issue 15): a header-less CSV read with a column map
 (GCP_COLUMNS) gives the same GCPs as the GeoPackage it was written from, and the pixel convention
-(GCP_PIXEL_CONVENTION) moves every image coordinate by exactly half a pixel between centre and corner."""
+(GCP_PIXEL_CONVENTION) moves every image coordinate by exactly half a pixel between centre and corner, for a
+layer and for GCPs embedded in a GeoTIFF (GCP_RASTER)."""
 from __future__ import annotations
 
 import pytest
 
 
 def _assess(run_alg, files, gcps, **kw):
-    res, _ = run_alg("gf4cal:assessaccuracy", {"INPUT": files["image"], "GCPS": str(gcps), **kw})
+    res, _ = run_alg("gf4cal:assessaccuracy", {"INPUT": files["image"], "GCPS": str(gcps) if gcps else None, **kw})
     return res
 
 
@@ -54,3 +55,34 @@ def test_pixel_convention_centre_vs_corner_is_half_a_pixel(run_alg, scene, heade
     assert centre["MEAN_SAMPLE"] - corner["MEAN_SAMPLE"] == pytest.approx(0.5, abs=1e-9)
     assert centre["MEAN_LINE"] - corner["MEAN_LINE"] == pytest.approx(0.5, abs=1e-9)
     assert default["MEAN_SAMPLE"] == pytest.approx(corner["MEAN_SAMPLE"], abs=1e-12)   # CSV/GPKG: GDAL's corners
+
+
+def test_geotiff_gcps_centre_vs_corner_is_half_a_pixel(run_alg, scene, tmp_path):
+    """GCPs embedded in a GeoTIFF (GCP_RASTER, no GCP layer): read as corners they equal the GeoPackage's; read as
+    centres every GCP moves by +0.5 px on both axes (the mean residual grows by exactly 0.5 px)."""
+    from osgeo import gdal
+    from gdal_gf4cal.gcp import read_gcps
+    files, truth = scene
+    g = read_gcps(files["gcps"])
+    tif = tmp_path / "with_gcps.tif"
+    gdal.Translate(str(tif), files["norpc"], outputSRS="EPSG:4326", GCPs=[
+        gdal.GCP(float(r.lon), float(r.lat), float(r.h), float(r.sample), float(r.line), "", str(r.id))
+        for r in g.itertuples()])
+    ref = _assess(run_alg, files, files["gcps"])
+    corner = _assess(run_alg, files, "", GCP_RASTER=str(tif), GCP_PIXEL_CONVENTION=1)
+    centre = _assess(run_alg, files, "", GCP_RASTER=str(tif), GCP_PIXEL_CONVENTION=2)
+    default = _assess(run_alg, files, "", GCP_RASTER=str(tif))
+    assert corner["N"] == len(truth["ids"])
+    for key in ("MEAN_SAMPLE", "MEAN_LINE", "RMS_PLANAR"):
+        assert corner[key] == pytest.approx(ref[key], abs=1e-6) and default[key] == corner[key], key
+    assert centre["MEAN_SAMPLE"] - corner["MEAN_SAMPLE"] == pytest.approx(0.5, abs=1e-9)
+    assert centre["MEAN_LINE"] - corner["MEAN_LINE"] == pytest.approx(0.5, abs=1e-9)
+
+
+def test_gcp_layer_and_raster_together_or_neither_is_refused(run_alg, scene, tmp_path):
+    from qgis.core import QgsProcessingException
+    files, _ = scene
+    with pytest.raises(QgsProcessingException, match="GCP_RASTER"):
+        _assess(run_alg, files, "")
+    with pytest.raises(QgsProcessingException, match="not both"):
+        _assess(run_alg, files, files["gcps"], GCP_RASTER=files["image"])
