@@ -218,7 +218,7 @@ def match_ties(image_a, model_a, image_b, model_b, dem, *, ids: Tuple[str, str] 
 
 
 def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, min_matches: int = 4,
-                       min_accepted_fraction: float = 0.5, trim_k: float = 3.0):
+                       min_accepted_fraction: float = 0.5, trim_k: float = 3.0, independent_fraction: float = 1.0):
     """Robust per-cell means of window offsets on a regular grid (METHODS §9 observations).
 
     ``matches``: :func:`match_raw`'s table. Cell ``(col, row)`` covers image pixels ``[col * cell_px, (col + 1) *
@@ -226,7 +226,9 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
     its centre (``pred_sample, pred_line``). Windows ``outside_image`` do not count. Per cell and axis the mean is
     the **MAD-trimmed mean about the median** (:func:`gdal_gf4cal.stats.grouped_trimmed_mean`: accepted, non-outlier
     matches within ``trim_k`` robust standard deviations of the median on both axes), ``sigma_*`` its standard
-    error (spread of the kept matches over sqrt(n), floored by their mean precision over sqrt(n)).
+    error (spread of the kept matches over sqrt(n), floored by their mean precision over sqrt(n)), where overlapping
+    windows count as ``n * independent_fraction`` independent ones (:func:`pan_ms_cells` gives ``(spacing /
+    window)^2``: windows sharing pixels share their noise).
     ``clear_fraction`` = 1 - the mean ``flat`` share of the central halves of the cell's windows (which about
     tile the cell): the share of the cell that is neither cloud nor water nor texture-less. ``usable`` is False
     when fewer than ``min_matches`` are kept, the accepted share of the cell's windows is below
@@ -255,6 +257,10 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
     m = grouped_trimmed_mean(cid[good], np.column_stack([matches["d_sample"].to_numpy(float)[good],
                                                          matches["d_line"].to_numpy(float)[good]]),
                              ncell, k=trim_k, sigma=matches["sigma"].to_numpy(float)[good])
+    sig_s, sig_l = m.sigma[:, 0], m.sigma[:, 1]
+    if independent_fraction < 1.0:
+        n_eff = np.maximum(m.n * float(independent_fraction), 1.0)
+        sig_s, sig_l = sig_s * np.sqrt(m.n / n_eff), sig_l * np.sqrt(m.n / n_eff)
     with np.errstate(invalid="ignore", divide="ignore"):
         acc_frac = np.where(n_windows > 0, n_acc / np.maximum(n_windows, 1), 0.0)
         clear = np.where(n_flat > 0, 1.0 - sum_flat / np.maximum(n_flat, 1), 0.0)
@@ -265,8 +271,8 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
     line = (y0 + np.minimum(y0 + cell, height)) / 2.0
     usable = (m.n >= int(min_matches)) & (acc_frac >= float(min_accepted_fraction)) & (clear >= 0.5)
     df = pd.DataFrame({"cell_id": np.arange(ncell), "col": cc, "row": rr, "sample": sample, "line": line,
-                       "d_sample": m.mean[:, 0], "d_line": m.mean[:, 1], "sigma_sample": m.sigma[:, 0],
-                       "sigma_line": m.sigma[:, 1], "n": m.n, "n_windows": n_windows,
+                       "d_sample": m.mean[:, 0], "d_line": m.mean[:, 1], "sigma_sample": sig_s,
+                       "sigma_line": sig_l, "n": m.n, "n_windows": n_windows,
                        "accepted_fraction": acc_frac, "clear_fraction": clear, "usable": usable})
     return df
 
@@ -291,6 +297,7 @@ def pan_ms_cells(pan, ms, dem, *, pan_model=None, ms_model=None, cell_px: int = 
                   search_px=search_px, band=band, reference_band=pan_band, region=region, executor=executor,
                   workers=workers, progress=progress, margin_px=margin_px, **params)
     _, W, H, _ = _image_info(ms, band)
-    cells = cells_from_matches(t, W, H, cell_px=cell_px, min_matches=min_matches)
+    cells = cells_from_matches(t, W, H, cell_px=cell_px, min_matches=min_matches,
+                               independent_fraction=min(1.0, (float(spacing_px) / float(window_px)) ** 2))
     cells.attrs.update(matches=t, windows=t.attrs["windows"], scale=t.attrs["scale"], cell_px=int(cell_px))
     return cells
