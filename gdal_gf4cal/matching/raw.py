@@ -47,8 +47,9 @@ RAW_COLUMNS = ("sample", "line", "pred_sample", "pred_line", "ref_sample", "ref_
 CELL_COLUMNS = ("cell_id", "col", "row", "sample", "line", "d_sample", "d_line", "sigma_sample", "sigma_line", "n",
                 "n_windows", "accepted_fraction", "clear_fraction", "usable")
 
-#: Smallest precision reported for one window, px (the precision estimate of a noise-free window tends to 0).
-MIN_SIGMA_PX = 0.01
+#: Smallest precision reported for one window, px: the estimate of a noise-free window tends to 0 while resampling
+#: and rendering leave a few hundredths of a pixel (as :func:`.collect.assemble_gcps`).
+MIN_SIGMA_PX = 0.05
 
 
 def _model_or_rpc(model, path: str, what: str):
@@ -95,7 +96,7 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
               search_px: float = 8, band: int = 1, reference_band: int = 1, region: Optional[Sequence[float]] = None,
               executor=None, workers: Optional[int] = None, progress=None, tile_windows: int = 256,
               outlier_model: Optional[str] = "affine", outlier_threshold_px: float = 3.0, seed: int = 0,
-              margin_px: Optional[int] = None, **params):
+              margin_px: Optional[int] = None, min_sigma_px: float = MIN_SIGMA_PX, **params):
     """Match ``image`` against another raw image through both sensor models and the DEM (module docstring).
 
     Parameters
@@ -120,11 +121,11 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
     position in ``image``; ``pred_sample, pred_line`` window centre (where the reference point, the DEM and
     ``model`` predict it); ``ref_sample, ref_line`` the homologous reference position; ``lon, lat, h`` the ground
     point (``model`` on the DEM at the centre); ``d_sample, d_line`` = measured - predicted (px of ``image``;
-    METHODS §9's ∇ for image = MS, reference = pan); ``sigma`` the matcher's precision estimate (px, the larger
-    axis); ``score`` (= ``ncc``), ``peak, peak_ratio, ncc, texture``, ``flat`` (flat share of the window's
-    central half: water, flat cloud); ``status`` (:data:`.collect.STATUS`; only 0
-    is a match) and ``outlier``. ``df.attrs``: ``windows`` (counts by status), ``scale`` (reference px per image
-    px), ``region`` (the box matched).
+    METHODS §9's ∇ for image = MS, reference = pan); ``sigma`` the matcher's precision estimate (px, floored at
+    ``min_sigma_px``); ``score`` (= ``ncc``), ``peak, peak_ratio, ncc, texture``, ``flat`` (flat share of the
+    window's central half: water, flat cloud); ``status`` (:data:`.collect.STATUS`; only 0 is a match) and
+    ``outlier``. ``df.attrs``: ``windows`` (counts by status), ``scale`` (reference px per image px), ``region``
+    (the box matched).
     """
     import pandas as pd
     path, W, H, _ = _image_info(image, band)
@@ -158,7 +159,7 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
         outlier[np.flatnonzero(acc)] = flt.outlier
     d_s = np.where(acc, r["dsample"], np.nan)
     d_l = np.where(acc, r["dline"], np.nan)
-    prec = np.where(acc, np.maximum(np.nan_to_num(r["precision_px"], nan=np.inf), MIN_SIGMA_PX), np.nan)
+    prec = np.where(acc, np.maximum(np.nan_to_num(r["precision_px"], nan=np.inf), min_sigma_px), np.nan)
     df = pd.DataFrame({
         "sample": r["center_sample"] + d_s, "line": r["center_line"] + d_l,
         "pred_sample": r["center_sample"], "pred_line": r["center_line"],
