@@ -170,7 +170,8 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
     counts = {name: int(np.count_nonzero(st == code)) for code, name in STATUS.items()}
     counts["outliers"] = int(outlier.sum())
     counts["total"] = int(st.size)
-    df.attrs.update(windows=counts, scale=scale, region=tuple(box), image=path, reference=ref_path)
+    df.attrs.update(windows=counts, scale=scale, region=tuple(box), image=path, reference=ref_path,
+                    window_px=int(window_px), spacing_px=int(spacing_px))
     report(progress, 1.0, f"{counts['accepted']} matches of {st.size} windows ({counts['outliers']} outliers)")
     return df
 
@@ -219,7 +220,8 @@ def match_ties(image_a, model_a, image_b, model_b, dem, *, ids: Tuple[str, str] 
 
 
 def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, min_matches: int = 4,
-                       min_accepted_fraction: float = 0.5, trim_k: float = 3.0, independent_fraction: float = 1.0):
+                       min_accepted_fraction: float = 0.5, trim_k: float = 3.0, independent_fraction: float = 1.0,
+                       breaks: Optional[Sequence[float]] = None, window_px: Optional[int] = None):
     """Robust per-cell means of window offsets on a regular grid (METHODS §9 observations).
 
     ``matches``: :func:`match_raw`'s table. Cell ``(col, row)`` covers image pixels ``[col * cell_px, (col + 1) *
@@ -229,7 +231,9 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
     matches within ``trim_k`` robust standard deviations of the median on both axes), ``sigma_*`` its standard
     error (spread of the kept matches over sqrt(n), floored by their mean precision over sqrt(n)), where overlapping
     windows count as ``n * independent_fraction`` independent ones (:func:`pan_ms_cells` gives ``(spacing /
-    window)^2``: windows sharing pixels share their noise).
+    window)^2``: windows sharing pixels share their noise). ``breaks``: image columns where the offset field jumps
+    (sub-CCD edges, METHODS §9); windows whose footprint (``window_px``, default ``matches.attrs['window_px']``)
+    straddles one mix both sides and are left out of every count.
     ``clear_fraction`` = 1 - the mean ``flat`` share of the central halves of the cell's windows (which about
     tile the cell): the share of the cell that is neither cloud nor water nor texture-less. ``usable`` is False
     when fewer than ``min_matches`` are kept, the accepted share of the cell's windows is below
@@ -242,6 +246,11 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
         raise Gf4calError(f"cell size must be a positive number of pixels (got {cell_px})")
     ncol, nrow = -(-int(width) // cell), -(-int(height) // cell)
     ncell = ncol * nrow
+    if breaks is not None and len(breaks):
+        w = float(window_px if window_px is not None else matches.attrs.get("window_px", 0))
+        ps = matches["pred_sample"].to_numpy(float)
+        straddle = np.any(np.abs(ps[:, None] - np.asarray(breaks, dtype=float)[None, :]) < w / 2.0, axis=1)
+        matches = matches[~straddle]
     st = matches["status"].to_numpy()
     ps, pl = matches["pred_sample"].to_numpy(float), matches["pred_line"].to_numpy(float)
     col = np.clip(np.floor(ps / cell).astype(int), 0, ncol - 1)
@@ -281,14 +290,15 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
 def pan_ms_cells(pan, ms, dem, *, pan_model=None, ms_model=None, cell_px: int = 64, window_px: int = 32,
                  spacing_px: int = 16, search_px: float = 8, band: int = 1, pan_band: int = 1, min_matches: int = 4,
                  region=None, executor=None, workers: Optional[int] = None, progress=None, margin_px: int = 4,
-                 **params):
+                 breaks: Optional[Sequence[float]] = None, **params):
     """Pan-to-MS misregistration per cell of a regular MS grid (METHODS §9 observations, eq. 13).
 
     Dense :func:`match_raw` of the MS (band ``band``) against the pan (``pan_band``) through their models (default:
     the images' RPCs) and the DEM: windows of ``window_px`` MS px every ``spacing_px`` (several per cell; their
     centres from ``margin_px + window_px / 2`` of the edges, so edge cells are measured too); each
     gives ``∇ = p' - p''`` (MS px). :func:`cells_from_matches` averages them per ``cell_px`` cell (median +
-    MAD-trimmed mean). Returns a DataFrame (:data:`CELL_COLUMNS`): ``sample, line`` cell centre (MS px, GDAL),
+    MAD-trimmed mean; ``breaks``: MS columns of sub-CCD edges, windows straddling one are left out). Returns a
+    DataFrame (:data:`CELL_COLUMNS`): ``sample, line`` cell centre (MS px, GDAL),
     ``d_sample, d_line`` the cell's ∇, ``sigma_sample, sigma_line`` its precision, ``n`` accepted matches,
     ``n_windows``, ``usable`` (False for cells mostly cloud / water / texture-less: fewer than ``min_matches``
     matches or an accepted share < 0.5), ``clear_fraction``; ``attrs['matches']`` holds the window table.
@@ -299,6 +309,7 @@ def pan_ms_cells(pan, ms, dem, *, pan_model=None, ms_model=None, cell_px: int = 
                   workers=workers, progress=progress, margin_px=margin_px, **params)
     _, W, H, _ = _image_info(ms, band)
     cells = cells_from_matches(t, W, H, cell_px=cell_px, min_matches=min_matches,
-                               independent_fraction=min(1.0, (float(spacing_px) / float(window_px)) ** 2))
+                               independent_fraction=min(1.0, (float(spacing_px) / float(window_px)) ** 2),
+                               breaks=breaks)
     cells.attrs.update(matches=t, windows=t.attrs["windows"], scale=t.attrs["scale"], cell_px=int(cell_px))
     return cells
