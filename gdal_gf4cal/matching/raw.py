@@ -177,7 +177,7 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
 
 
 def match_ties(image_a, model_a, image_b, model_b, dem, *, ids: Tuple[str, str] = ("a", "b"), spacing_px: int = 64,
-               window_px: int = 32, search_px: float = 8, band_a: int = 1, band_b: int = 1, region=None,
+               window_px: int = 32, search_px: float = 16, band_a: int = 1, band_b: int = 1, region=None,
                executor=None, workers: Optional[int] = None, progress=None, **params):
     """Tie points between two raw images in their overlap (METHODS §8), as a long observation table.
 
@@ -187,6 +187,7 @@ def match_ties(image_a, model_a, image_b, model_b, dem, *, ids: Tuple[str, str] 
     (GDAL convention), ``kind='tie'``, ``role='control'``, ``sigma`` = the matcher's precision of the offset split
     evenly between the two images (``sigma / sqrt(2)``, in each image's pixels), ``lon, lat, h`` approximate (the
     ground point of the window centre through ``model_a`` on the DEM). Also ``score`` and ``status``.
+    ``search_px`` (default 16: seams of a few pixels between CCDs, band offsets) sets the coarse level.
     Raises :class:`Gf4calError` when the images do not overlap or no window in the overlap matches.
     """
     import pandas as pd

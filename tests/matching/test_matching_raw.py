@@ -249,3 +249,18 @@ def test_union_grid_resampling_equals_per_window_and_specs_pickle(gf7_small):
     again = match_tile(pickle.loads(pickle.dumps(specs[0])))
     for k in ("dsample", "dline", "ref_sample", "status"):
         np.testing.assert_array_equal(direct[k], again[k])
+
+
+def test_region_and_no_overlap_errors(gf7_small):
+    out, _ = gf7_small
+    pan, ms, dem = str(out / "pan" / "scene.tif"), str(out / "ms" / "scene.tif"), str(out / "dem.tif")
+    t = match_raw(ms, None, pan, None, dem, spacing_px=16, window_px=32, region=(0, 0, 64, 70), workers=1)
+    assert len(t) > 0 and (t.pred_sample <= 64).all() and (t.pred_line <= 70).all()
+    assert t.attrs["region"] == (0.0, 0.0, 64.0, 70.0)
+    with pytest.raises(Gf4calError, match="outside its overlap"):
+        match_raw(ms, None, pan, None, dem, region=(500, 500, 600, 600))
+    # A pan RPC that puts the pan 100 km away: no common ground.
+    far = RPCModel.from_file(pan)
+    far = far.replace(long_off=far.long_off + 1.0)
+    with pytest.raises(Gf4calError, match="do not overlap"):
+        pan_ms_cells(pan, ms, dem, pan_model=far)
