@@ -314,7 +314,8 @@ def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
     if idx.size == 0:
         return out
     m = idx.size
-    ref_f = reference_on_grids(rpc, dem, ref, wx0[idx], wy0[idx], w, spacing=1.0, geometry_step=step)
+    ref_f = reference_on_grids(rpc, dem, ref, wx0[idx], wy0[idx], w, spacing=1.0, geometry_step=step,
+                               shared=isinstance(ref, RawReference))
     nan_ref = np.isnan(ref_f).any(axis=(1, 2))
     a = np.where(nan_ref[:, None, None], 0.0, ref_f).astype(np.float32)
     Fs = spectra(a)  # the reference windows do not move: one transform for every pass

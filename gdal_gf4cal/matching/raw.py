@@ -47,8 +47,9 @@ RAW_COLUMNS = ("sample", "line", "pred_sample", "pred_line", "ref_sample", "ref_
 CELL_COLUMNS = ("cell_id", "col", "row", "sample", "line", "d_sample", "d_line", "sigma_sample", "sigma_line", "n",
                 "n_windows", "accepted_fraction", "clear_fraction", "usable")
 
-#: Smallest precision reported for one window, px (the precision estimate of a noise-free window tends to 0).
-MIN_SIGMA_PX = 0.01
+#: Smallest precision reported for one window, px: the estimate of a noise-free window tends to 0 while resampling
+#: and rendering leave a few hundredths of a pixel (as :func:`.collect.assemble_gcps`).
+MIN_SIGMA_PX = 0.05
 
 
 def _model_or_rpc(model, path: str, what: str):
@@ -95,7 +96,7 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
               search_px: float = 8, band: int = 1, reference_band: int = 1, region: Optional[Sequence[float]] = None,
               executor=None, workers: Optional[int] = None, progress=None, tile_windows: int = 256,
               outlier_model: Optional[str] = "affine", outlier_threshold_px: float = 3.0, seed: int = 0,
-              margin_px: Optional[int] = None, **params):
+              margin_px: Optional[int] = None, min_sigma_px: float = MIN_SIGMA_PX, **params):
     """Match ``image`` against another raw image through both sensor models and the DEM (module docstring).
 
     Parameters
@@ -120,11 +121,11 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
     position in ``image``; ``pred_sample, pred_line`` window centre (where the reference point, the DEM and
     ``model`` predict it); ``ref_sample, ref_line`` the homologous reference position; ``lon, lat, h`` the ground
     point (``model`` on the DEM at the centre); ``d_sample, d_line`` = measured - predicted (px of ``image``;
-    METHODS §9's ∇ for image = MS, reference = pan); ``sigma`` the matcher's precision estimate (px, the larger
-    axis); ``score`` (= ``ncc``), ``peak, peak_ratio, ncc, texture``, ``flat`` (flat share of the window's
-    central half: water, flat cloud); ``status`` (:data:`.collect.STATUS`; only 0
-    is a match) and ``outlier``. ``df.attrs``: ``windows`` (counts by status), ``scale`` (reference px per image
-    px), ``region`` (the box matched).
+    METHODS §9's ∇ for image = MS, reference = pan); ``sigma`` the matcher's precision estimate (px, floored at
+    ``min_sigma_px``); ``score`` (= ``ncc``), ``peak, peak_ratio, ncc, texture``, ``flat`` (flat share of the
+    window's central half: water, flat cloud); ``status`` (:data:`.collect.STATUS`; only 0 is a match) and
+    ``outlier``. ``df.attrs``: ``windows`` (counts by status), ``scale`` (reference px per image px), ``region``
+    (the box matched).
     """
     import pandas as pd
     path, W, H, _ = _image_info(image, band)
@@ -158,7 +159,7 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
         outlier[np.flatnonzero(acc)] = flt.outlier
     d_s = np.where(acc, r["dsample"], np.nan)
     d_l = np.where(acc, r["dline"], np.nan)
-    prec = np.where(acc, np.maximum(np.nan_to_num(r["precision_px"], nan=np.inf), MIN_SIGMA_PX), np.nan)
+    prec = np.where(acc, np.maximum(np.nan_to_num(r["precision_px"], nan=np.inf), min_sigma_px), np.nan)
     df = pd.DataFrame({
         "sample": r["center_sample"] + d_s, "line": r["center_line"] + d_l,
         "pred_sample": r["center_sample"], "pred_line": r["center_line"],
@@ -169,13 +170,14 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
     counts = {name: int(np.count_nonzero(st == code)) for code, name in STATUS.items()}
     counts["outliers"] = int(outlier.sum())
     counts["total"] = int(st.size)
-    df.attrs.update(windows=counts, scale=scale, region=tuple(box), image=path, reference=ref_path)
+    df.attrs.update(windows=counts, scale=scale, region=tuple(box), image=path, reference=ref_path,
+                    window_px=int(window_px), spacing_px=int(spacing_px))
     report(progress, 1.0, f"{counts['accepted']} matches of {st.size} windows ({counts['outliers']} outliers)")
     return df
 
 
 def match_ties(image_a, model_a, image_b, model_b, dem, *, ids: Tuple[str, str] = ("a", "b"), spacing_px: int = 64,
-               window_px: int = 32, search_px: float = 8, band_a: int = 1, band_b: int = 1, region=None,
+               window_px: int = 32, search_px: float = 16, band_a: int = 1, band_b: int = 1, region=None,
                executor=None, workers: Optional[int] = None, progress=None, **params):
     """Tie points between two raw images in their overlap (METHODS §8), as a long observation table.
 
@@ -185,6 +187,7 @@ def match_ties(image_a, model_a, image_b, model_b, dem, *, ids: Tuple[str, str] 
     (GDAL convention), ``kind='tie'``, ``role='control'``, ``sigma`` = the matcher's precision of the offset split
     evenly between the two images (``sigma / sqrt(2)``, in each image's pixels), ``lon, lat, h`` approximate (the
     ground point of the window centre through ``model_a`` on the DEM). Also ``score`` and ``status``.
+    ``search_px`` (default 16: seams of a few pixels between CCDs, band offsets) sets the coarse level.
     Raises :class:`Gf4calError` when the images do not overlap or no window in the overlap matches.
     """
     import pandas as pd
@@ -218,7 +221,8 @@ def match_ties(image_a, model_a, image_b, model_b, dem, *, ids: Tuple[str, str] 
 
 
 def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, min_matches: int = 4,
-                       min_accepted_fraction: float = 0.5, trim_k: float = 3.0):
+                       min_accepted_fraction: float = 0.5, trim_k: float = 3.0, independent_fraction: float = 1.0,
+                       breaks: Optional[Sequence[float]] = None, window_px: Optional[int] = None):
     """Robust per-cell means of window offsets on a regular grid (METHODS §9 observations).
 
     ``matches``: :func:`match_raw`'s table. Cell ``(col, row)`` covers image pixels ``[col * cell_px, (col + 1) *
@@ -226,7 +230,11 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
     its centre (``pred_sample, pred_line``). Windows ``outside_image`` do not count. Per cell and axis the mean is
     the **MAD-trimmed mean about the median** (:func:`gdal_gf4cal.stats.grouped_trimmed_mean`: accepted, non-outlier
     matches within ``trim_k`` robust standard deviations of the median on both axes), ``sigma_*`` its standard
-    error (spread of the kept matches over sqrt(n), floored by their mean precision over sqrt(n)).
+    error (spread of the kept matches over sqrt(n), floored by their mean precision over sqrt(n)), where overlapping
+    windows count as ``n * independent_fraction`` independent ones (:func:`pan_ms_cells` gives ``(spacing /
+    window)^2``: windows sharing pixels share their noise). ``breaks``: image columns where the offset field jumps
+    (sub-CCD edges, METHODS §9); windows whose footprint (``window_px``, default ``matches.attrs['window_px']``)
+    straddles one mix both sides and are left out of every count.
     ``clear_fraction`` = 1 - the mean ``flat`` share of the central halves of the cell's windows (which about
     tile the cell): the share of the cell that is neither cloud nor water nor texture-less. ``usable`` is False
     when fewer than ``min_matches`` are kept, the accepted share of the cell's windows is below
@@ -239,6 +247,11 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
         raise Gf4calError(f"cell size must be a positive number of pixels (got {cell_px})")
     ncol, nrow = -(-int(width) // cell), -(-int(height) // cell)
     ncell = ncol * nrow
+    if breaks is not None and len(breaks):
+        w = float(window_px if window_px is not None else matches.attrs.get("window_px", 0))
+        ps = matches["pred_sample"].to_numpy(float)
+        straddle = np.any(np.abs(ps[:, None] - np.asarray(breaks, dtype=float)[None, :]) < w / 2.0, axis=1)
+        matches = matches[~straddle]
     st = matches["status"].to_numpy()
     ps, pl = matches["pred_sample"].to_numpy(float), matches["pred_line"].to_numpy(float)
     col = np.clip(np.floor(ps / cell).astype(int), 0, ncol - 1)
@@ -255,6 +268,10 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
     m = grouped_trimmed_mean(cid[good], np.column_stack([matches["d_sample"].to_numpy(float)[good],
                                                          matches["d_line"].to_numpy(float)[good]]),
                              ncell, k=trim_k, sigma=matches["sigma"].to_numpy(float)[good])
+    sig_s, sig_l = m.sigma[:, 0], m.sigma[:, 1]
+    if independent_fraction < 1.0:
+        n_eff = np.maximum(m.n * float(independent_fraction), 1.0)
+        sig_s, sig_l = sig_s * np.sqrt(m.n / n_eff), sig_l * np.sqrt(m.n / n_eff)
     with np.errstate(invalid="ignore", divide="ignore"):
         acc_frac = np.where(n_windows > 0, n_acc / np.maximum(n_windows, 1), 0.0)
         clear = np.where(n_flat > 0, 1.0 - sum_flat / np.maximum(n_flat, 1), 0.0)
@@ -265,8 +282,8 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
     line = (y0 + np.minimum(y0 + cell, height)) / 2.0
     usable = (m.n >= int(min_matches)) & (acc_frac >= float(min_accepted_fraction)) & (clear >= 0.5)
     df = pd.DataFrame({"cell_id": np.arange(ncell), "col": cc, "row": rr, "sample": sample, "line": line,
-                       "d_sample": m.mean[:, 0], "d_line": m.mean[:, 1], "sigma_sample": m.sigma[:, 0],
-                       "sigma_line": m.sigma[:, 1], "n": m.n, "n_windows": n_windows,
+                       "d_sample": m.mean[:, 0], "d_line": m.mean[:, 1], "sigma_sample": sig_s,
+                       "sigma_line": sig_l, "n": m.n, "n_windows": n_windows,
                        "accepted_fraction": acc_frac, "clear_fraction": clear, "usable": usable})
     return df
 
@@ -274,14 +291,15 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
 def pan_ms_cells(pan, ms, dem, *, pan_model=None, ms_model=None, cell_px: int = 64, window_px: int = 32,
                  spacing_px: int = 16, search_px: float = 8, band: int = 1, pan_band: int = 1, min_matches: int = 4,
                  region=None, executor=None, workers: Optional[int] = None, progress=None, margin_px: int = 4,
-                 **params):
+                 breaks: Optional[Sequence[float]] = None, **params):
     """Pan-to-MS misregistration per cell of a regular MS grid (METHODS §9 observations, eq. 13).
 
     Dense :func:`match_raw` of the MS (band ``band``) against the pan (``pan_band``) through their models (default:
     the images' RPCs) and the DEM: windows of ``window_px`` MS px every ``spacing_px`` (several per cell; their
     centres from ``margin_px + window_px / 2`` of the edges, so edge cells are measured too); each
     gives ``∇ = p' - p''`` (MS px). :func:`cells_from_matches` averages them per ``cell_px`` cell (median +
-    MAD-trimmed mean). Returns a DataFrame (:data:`CELL_COLUMNS`): ``sample, line`` cell centre (MS px, GDAL),
+    MAD-trimmed mean; ``breaks``: MS columns of sub-CCD edges, windows straddling one are left out). Returns a
+    DataFrame (:data:`CELL_COLUMNS`): ``sample, line`` cell centre (MS px, GDAL),
     ``d_sample, d_line`` the cell's ∇, ``sigma_sample, sigma_line`` its precision, ``n`` accepted matches,
     ``n_windows``, ``usable`` (False for cells mostly cloud / water / texture-less: fewer than ``min_matches``
     matches or an accepted share < 0.5), ``clear_fraction``; ``attrs['matches']`` holds the window table.
@@ -291,6 +309,8 @@ def pan_ms_cells(pan, ms, dem, *, pan_model=None, ms_model=None, cell_px: int = 
                   search_px=search_px, band=band, reference_band=pan_band, region=region, executor=executor,
                   workers=workers, progress=progress, margin_px=margin_px, **params)
     _, W, H, _ = _image_info(ms, band)
-    cells = cells_from_matches(t, W, H, cell_px=cell_px, min_matches=min_matches)
+    cells = cells_from_matches(t, W, H, cell_px=cell_px, min_matches=min_matches,
+                               independent_fraction=min(1.0, (float(spacing_px) / float(window_px)) ** 2),
+                               breaks=breaks)
     cells.attrs.update(matches=t, windows=t.attrs["windows"], scale=t.attrs["scale"], cell_px=int(cell_px))
     return cells

@@ -6,6 +6,8 @@ Truth of a tie ``(a: p_a, b: p_b)``: the ground point ``a.true`` shows at ``p_a`
 """
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -16,8 +18,8 @@ from gdal_gf4cal.dem import DEM
 from gdal_gf4cal.errors import Gf4calError
 from gdal_gf4cal.executors import SerialExecutor
 from gdal_gf4cal.rpc import RPCModel
-from gdal_gf4cal.matching import (RawReference, cells_from_matches, match_raw, match_ties, pan_ms_cells,
-                                  reference_on_grids)
+from gdal_gf4cal.matching import (RawReference, cells_from_matches, match_raw, match_tile, match_ties, pan_ms_cells,
+                                  plan_tiles, reference_on_grids)
 from gdal_gf4cal.matching.raw import CELL_COLUMNS, RAW_COLUMNS
 from gdal_gf4cal.simulate import write_scene
 from gdal_gf4cal.simulate.gf7 import cover_weights, true_misregistration, write_gf7_scene
@@ -158,6 +160,15 @@ def test_pan_ms_sign_and_accuracy_on_a_clear_crop(gf7_small):
     assert u.sum() >= 14
     cs, cl = true_misregistration(scene, cells["sample"][u].to_numpy(), cells["line"][u].to_numpy())
     assert _rms(cells.d_sample[u] - cs) <= 0.05 and _rms(cells.d_line[u] - cl) <= 0.05
+    # Windows straddling the sub-CCD edge (a jump of the field) can be left out of the cell means.
+    edges = scene.image("ms").true.camera.edges_in_image()
+    assert len(edges) == 1
+    by_edge = cells_from_matches(t, 128, 128, cell_px=32, breaks=edges)
+    gone = np.abs(t.pred_sample.to_numpy() - edges[0]) < 16
+    assert gone.any() and by_edge.n_windows.sum() == (t.status != 5).sum() - (gone & (t.status != 5).to_numpy()).sum()
+    u = by_edge.usable.to_numpy()
+    cs, cl = true_misregistration(scene, by_edge["sample"][u].to_numpy(), by_edge["line"][u].to_numpy())
+    assert _rms(by_edge.d_sample[u] - cs) <= 0.05 and _rms(by_edge.d_line[u] - cl) <= 0.05
 
 
 @pytest.mark.slow
@@ -217,3 +228,39 @@ def test_cells_from_matches_trims_blunders():
     assert 0.001 < c0.sigma_sample < 0.01
     assert (c0["sample"], c0["line"]) == (32.0, 32.0)
     assert c1.n == 2 and not c1.usable
+
+
+def test_union_grid_resampling_equals_per_window_and_specs_pickle(gf7_small):
+    """Dense windows resampled once on their union grid give the per-window values; a raw-reference tile spec
+    travels through pickle (process pools, Dask) and gives the same matches."""
+    out, _ = gf7_small
+    pan, ms, dem = str(out / "pan" / "scene.tif"), str(out / "ms" / "scene.tif"), DEM.from_user_input(
+        str(out / "dem.tif"))
+    pm, mm = RPCModel.from_file(pan), RPCModel.from_file(ms)
+    ref = RawReference(pan, pm)
+    x0 = np.repeat(np.arange(10.0, 80.0, 8.0), 2)
+    y0 = np.tile([20.0, 36.0], x0.size // 2)
+    shared = reference_on_grids(mm, dem, ref, x0, y0, 32, shared=True)
+    each = reference_on_grids(mm, dem, ref, x0, y0, 32)
+    assert np.isfinite(shared).all()
+    assert np.abs(shared - each).max() < 0.5  # DN of 0-255 texture: geometry nodes differ by < 1e-3 px
+    specs, _ = plan_tiles(ms, mm, pan, dem, 16, 32, search_px=8, reference_model=pm, tile_windows=16)
+    direct = match_tile(specs[0])
+    again = match_tile(pickle.loads(pickle.dumps(specs[0])))
+    for k in ("dsample", "dline", "ref_sample", "status"):
+        np.testing.assert_array_equal(direct[k], again[k])
+
+
+def test_region_and_no_overlap_errors(gf7_small):
+    out, _ = gf7_small
+    pan, ms, dem = str(out / "pan" / "scene.tif"), str(out / "ms" / "scene.tif"), str(out / "dem.tif")
+    t = match_raw(ms, None, pan, None, dem, spacing_px=16, window_px=32, region=(0, 0, 64, 70), workers=1)
+    assert len(t) > 0 and (t.pred_sample <= 64).all() and (t.pred_line <= 70).all()
+    assert t.attrs["region"] == (0.0, 0.0, 64.0, 70.0)
+    with pytest.raises(Gf4calError, match="outside its overlap"):
+        match_raw(ms, None, pan, None, dem, region=(500, 500, 600, 600))
+    # A pan RPC that puts the pan 100 km away: no common ground.
+    far = RPCModel.from_file(pan)
+    far = far.replace(long_off=far.long_off + 1.0)
+    with pytest.raises(Gf4calError, match="do not overlap"):
+        pan_ms_cells(pan, ms, dem, pan_model=far)
