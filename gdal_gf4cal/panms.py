@@ -279,6 +279,25 @@ def _sine_power(lines, y, w, freqs):
     return rss0 - rss1, np.hypot(x[:, 1], x[:, 2]), rss0
 
 
+def row_means(lines, residual):
+    """``(lines, means)``: the residual's mean per cell row along the MS line (plots, METHODS §9)."""
+    r = np.asarray(residual, float)
+    lc, y, _ = _row_series(np.asarray(lines, float), r, np.isfinite(r).astype(float))
+    return lc, y
+
+
+def residual_spectrum(lines, residual, *, line_time_s: Optional[float] = None):
+    """``(frequencies, amplitudes)`` of the residual row means: least-squares sine amplitude (px) per frequency
+    (cycles per MS line, or Hz with ``line_time_s``)."""
+    r = np.asarray(residual, float)
+    lc, y, w = _row_series(np.asarray(lines, float), r, np.isfinite(r).astype(float))
+    freqs, _ = _freq_grid(lc)
+    if freqs.size == 0:
+        return freqs, freqs
+    _, amp, _ = _sine_power(lc, y, w, freqs)
+    return (freqs / line_time_s if line_time_s else freqs), amp
+
+
 def spectrum_peaks(lines, residual, weights, *, n_peaks: int = 3, line_time_s: Optional[float] = None):
     """The ``n_peaks`` largest peaks of the residual spectrum along the line (row means; METHODS §9)."""
     lc, y, sw = _row_series(np.asarray(lines, float), np.asarray(residual, float), np.asarray(weights, float))
@@ -421,9 +440,15 @@ def estimate(cells, *, ms_size, breaks=None, n_sub_ccds: int = 3, jitter="auto",
     if n_use * 2 < 6 + 2 * m * (ORDER + 1) + 4:
         raise PanMSError(f"{n_use} usable cells cannot determine the {6 + 10 * m} parameters of the linear + "
                          f"piecewise model; use smaller cells (--cell) or --reuse MODEL.json")
-    # Step 1 (eq. 14): linear on all usable cells.
+    # Blunders first, on the model that fits (linear + piecewise, robust: high-breakdown start + snooping), so
+    # that the sub-CCD structure the linear step cannot model is not mistaken for blunders.
+    yy = np.where(np.isfinite(y), y, 0.0)
+    est = _robust_step(a, y, w, usable, blocks, ["linear_datum"], np.zeros(a.shape[2]), " (blunder detection)")
+    outlier = est.outlier
+    w_in = np.where((usable & ~outlier)[:, None], w, 0.0)
+    # Step 1 (eq. 14): linear on all cells (usable, not blunders).
     a_lin = a[:, :, :6]
-    est = _robust_step(a_lin, y, w, usable, blocks[:2], [], None, " (linear term)")
+    est = weighted_lsq(a_lin.reshape(-1, 6), yy.ravel(), w_in.ravel(), blocks=blocks[:2], hint=" (linear term)")
     x = np.zeros(a.shape[2])
     x[:6] = est.x
     _set_values(model, x)
@@ -431,9 +456,9 @@ def estimate(cells, *, ms_size, breaks=None, n_sub_ccds: int = 3, jitter="auto",
     report(progress, 0.3, "pan-MS: piecewise term")
     # Step 2 (eq. 15): piecewise on what remains; the linear datum (constant, s) stays frozen (the pieces'
     # constant and linear terms duplicate it), the l terms are refined with it.
-    est = _robust_step(a, y, w, usable, blocks, ["linear_datum"], _values(model), " (piecewise term)")
+    est = weighted_lsq(a.reshape(-1, a.shape[2]), yy.ravel(), w_in.ravel(), blocks=blocks, frozen=["linear_datum"],
+                       values=_values(model), hint=" (piecewise term)")
     _set_values(model, est.x)
-    outlier = est.outlier
     snaps.append(_snapshot(model, "piecewise", ("linear", "piecewise")))
     # Step 3 (eq. 16): jitter on what remains.
     report(progress, 0.6, "pan-MS: jitter term")
