@@ -801,3 +801,39 @@ def check_sizes(pan_size, ms_size) -> int:
     raise PanMSError(f"the pan ({pw} x {ph}) and MS ({mw} x {mh}) sizes are not related by an integer ratio: "
                      "give the pan and MS images of the same scene and product")
 
+
+
+def edge_misregistration(pan_path, image_path, *, band: int = 1, ratio: int = 4, window: int = 64,
+                         region=None, min_ncc: float = 0.5) -> dict:
+    """Measured misregistration (MS px) of an image on the pan's grid (``ms_on_pan.tif`` at 1/``ratio``, or a
+    fused product at the pan's size) against the pan's edges (METHODS §9's halos): both are reduced to MS
+    resolution (block means), cut into ``window`` x ``window`` MS-px windows and phase-correlated; returns the
+    mean and RMS per axis and the planar RMS of the window shifts (``image`` minus pan), over windows whose
+    correlation ``ncc >= min_ncc`` (textured, cloud-free). ``region = (x0, y0, w, h)`` in MS px limits it."""
+    from osgeo import gdal
+    from ._gdal import gdal_exceptions
+    from .matching.correlate import block_reduce, phase_correlate
+    with gdal_exceptions():
+        pan = gdal.Open(os.fspath(pan_path))
+        img = gdal.Open(os.fspath(image_path))
+        W, H = pan.RasterXSize // ratio, pan.RasterYSize // ratio
+        x0, y0, w, h = region if region is not None else (0, 0, W, H)
+        p = block_reduce(pan.GetRasterBand(1).ReadAsArray(x0 * ratio, y0 * ratio, w * ratio, h * ratio), ratio)
+        f = img.RasterXSize // W
+        a = img.GetRasterBand(band).ReadAsArray(x0 * f, y0 * f, w * f, h * f)
+        m = block_reduce(a, f) if f > 1 else a.astype(np.float64)
+    ny, nx = h // window, w // window
+    if nx == 0 or ny == 0:
+        raise PanMSError(f"the region is smaller than one {window} px window")
+    cut = (slice(0, ny * window), slice(0, nx * window))
+
+    def stack(v):
+        return v[cut].reshape(ny, window, nx, window).transpose(0, 2, 1, 3).reshape(-1, window, window)
+    r = phase_correlate(stack(p), stack(m))
+    ok = np.isfinite(r.dx) & np.isfinite(r.dy) & (r.ncc >= min_ncc)
+    dx, dy = r.dx[ok], r.dy[ok]
+    return {"n_windows": int(ok.sum()), "mean_sample_px": float(np.mean(dx)) if dx.size else None,
+            "mean_line_px": float(np.mean(dy)) if dy.size else None,
+            "rms_sample_px": float(np.sqrt(np.mean(dx ** 2))) if dx.size else None,
+            "rms_line_px": float(np.sqrt(np.mean(dy ** 2))) if dy.size else None,
+            "rms_px": float(np.sqrt(np.mean(dx ** 2 + dy ** 2))) if dx.size else None}
