@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import Gf4calError
 from .._gdal import with_gdal_exceptions
 
-__all__ = ["ReferenceImage", "grid_nodes", "read_block", "reference_on_grids"]
+__all__ = ["ReferenceImage", "RawReference", "grid_nodes", "read_block", "reference_on_grids"]
 
 #: Standard deviation (in grid spacings) of the anti-alias low-pass applied to a finer reference: about the
 #: Gaussian equivalent of a pixel's box integration (1/sqrt(12) ~= 0.29) plus optics.
@@ -104,6 +104,10 @@ class ReferenceImage:
         g = self._inv
         return g[0] + g[1] * X + g[2] * Y, g[3] + g[4] * X + g[5] * Y
 
+    def ground_to_pixel(self, lon, lat, h=None) -> Tuple[np.ndarray, np.ndarray]:
+        """Reference pixel (GDAL convention) showing the ground point; an ortho ignores the height."""
+        return self.lonlat_to_pixel(lon, lat)
+
     def read(self, x0: int, y0: int, nx: int, ny: int, decimation: int = 1) -> np.ndarray:
         """Block ``[x0, x0 + nx) x [y0, y0 + ny)`` (full-resolution pixels), averaged by ``decimation``.
 
@@ -112,6 +116,49 @@ class ReferenceImage:
         """
         band = self._open().GetRasterBand(self.band)
         return read_block(band, self.width, self.height, self.nodata, x0, y0, nx, ny, decimation)
+
+
+class RawReference(ReferenceImage):
+    """A raw (not orthorectified) image as the matching reference: ground -> pixel through its sensor model.
+
+    ``model`` is an :class:`~gdal_gf4cal.RPCModel` or any model on the sensor contract
+    (:class:`gdal_gf4cal.sensor.SensorModel`); ``ground_to_pixel(lon, lat, h) = model.project(lon, lat, h)`` (GDAL
+    convention), so :func:`reference_on_grids` resamples the reference raw image into another raw image's
+    geometry through both models and the DEM (raw-to-raw matching, METHODS §8 tie points, §9 pan-MS). A finer
+    reference (pan for an MS image) is decimated and low-passed exactly as a finer ortho. Same reader and
+    pickling as :class:`ReferenceImage` (no geotransform or CRS needed).
+    """
+
+    def __init__(self, path, model, band: int = 1):
+        self.path = os.fspath(path)
+        self.band = int(band)
+        self.model = model
+        self._ds = None
+        self._transformer = None
+        ds = self._open()
+        self.width, self.height = ds.RasterXSize, ds.RasterYSize
+        self.nodata = ds.GetRasterBand(self.band).GetNoDataValue()
+
+    def with_model(self, model) -> "RawReference":
+        """The same opened reader with another sensor model (cheap: shares the dataset)."""
+        other = object.__new__(RawReference)
+        other.__dict__.update(self.__dict__)
+        other.model = model
+        return other
+
+    def lonlat_to_pixel(self, lon, lat):  # pragma: no cover - a raw image needs the height
+        raise TypeError("a raw reference maps (lon, lat, h): use ground_to_pixel")
+
+    def ground_to_pixel(self, lon, lat, h=None) -> Tuple[np.ndarray, np.ndarray]:
+        """Pixel (GDAL convention) of the reference raw image imaging the ground point (``model.project``)."""
+        s, l = self.model.project(lon, lat, h)
+        return np.asarray(s, dtype=float), np.asarray(l, dtype=float)
+
+    def inside(self, sample, line, margin: float = 0.0) -> np.ndarray:
+        """Pixel positions at least ``margin`` px inside the raster (NaN is outside)."""
+        s, l = np.asarray(sample, dtype=float), np.asarray(line, dtype=float)
+        with np.errstate(invalid="ignore"):
+            return (s >= margin) & (s <= self.width - margin) & (l >= margin) & (l <= self.height - margin)
 
 
 def read_block(band, width: int, height: int, nodata, x0: int, y0: int, nx: int, ny: int,
@@ -176,8 +223,10 @@ def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, s
     ``spacing x spacing`` blocks of raw pixels. Returns float64 ``(N, size, size)``, NaN where the DEM, the
     localisation or the reference has no value.
 
+    ``reference`` is an orthophoto (:class:`ReferenceImage`) or another raw image with its sensor model
+    (:class:`RawReference`): either maps the localised ground points to its pixels (``ground_to_pixel``).
     ``geometry_step`` : nodes between exact localisations (bilinear in between); ``order`` spline order (3 =
-    cubic). ``lonlat`` : optional precomputed ``(lon, lat)`` at the exact nodes (shape ``(N, m, m)``).
+    cubic). ``lonlat`` : optional precomputed ``(lon, lat, h)`` at the exact nodes (shape ``(N, m, m)``).
     ``oversample`` : a reference finer than the grid is read decimated down to about this many of its pixels per
     grid spacing (then low-passed). 2 (default) keeps the interpolation accurate to a small fraction of a pixel;
     1 reads 4 times fewer pixels and suits a coarse level, whose raw side is a plain block average anyway.
@@ -190,10 +239,10 @@ def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, s
     S = x0[:, None, None] + pos[None, None, :] + 0 * pos[None, :, None]
     L = y0[:, None, None] + pos[None, :, None] + 0 * pos[None, None, :]
     if lonlat is None:
-        lon, lat, _ = rpc.localize_dem(S, L, dem)
+        lon, lat, h = rpc.localize_dem(S, L, dem)
     else:
-        lon, lat = lonlat
-    rx, ry = reference.lonlat_to_pixel(lon, lat)
+        lon, lat, h = lonlat
+    rx, ry = reference.ground_to_pixel(lon, lat, h)
     rx = np.asarray(rx, dtype=float).reshape(n, nodes.size, nodes.size)
     ry = np.asarray(ry, dtype=float).reshape(n, nodes.size, nodes.size)
     ok_win = np.all(np.isfinite(rx) & np.isfinite(ry), axis=(1, 2))
