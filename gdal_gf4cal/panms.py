@@ -437,6 +437,12 @@ def estimate(cells, *, ms_size, breaks=None, n_sub_ccds: int = 3, jitter="auto",
         model.info["reused_from"] = reuse.info.get("source", "")
         snaps.append(_snapshot(model, "linear (reuse: piecewise term of the reused model)", ("linear", "piecewise")))
         return _finish(model, c, snaps, est.outlier, line_time_s, progress)
+    piece = np.searchsorted(np.asarray(breaks), c["sample"], side="right")
+    for k in range(m):
+        n_cols = np.unique(np.round(c["sample"][usable & (piece == k)], 3)).size
+        if n_cols < ORDER + 2:
+            raise PanMSError(f"sub-CCD {k + 1} has usable cells in only {n_cols} columns, too few for its quartic "
+                             f"(>= {ORDER + 2}): use smaller cells (--cell), check --breaks, or --reuse MODEL.json")
     if n_use * 2 < 6 + 2 * m * (ORDER + 1) + 4:
         raise PanMSError(f"{n_use} usable cells cannot determine the {6 + 10 * m} parameters of the linear + "
                          f"piecewise model; use smaller cells (--cell) or --reuse MODEL.json")

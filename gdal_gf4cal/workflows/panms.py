@@ -116,12 +116,14 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         _progress.report(progress, 0.02, "pan-MS: matching")
         if cells is None:
             from ..matching import pan_ms_cells
-            kw: Dict[str, Any] = {"cell_px": int(cell), "progress": _progress.scaled(progress, 0.02, 0.5)}
+            # >= 16 matching windows per cell (16 px apart for the default 64 px cells)
+            kw: Dict[str, Any] = {"cell_px": int(cell), "spacing_px": int(max(4, min(16, int(cell) // 4))),
+                                  "progress": _progress.scaled(progress, 0.02, 0.5)}
             if workers is not None:
                 kw["workers"] = workers
             if reuse_model is not None:         # sparse: one window per cell, <= 200 cells
-                c = int(max(cell, math.ceil(math.sqrt(mw * mh / REUSE_MAX_MATCHES))))
-                kw.update(cell_px=c, spacing_px=c)
+                c = int(max(8, math.ceil(math.sqrt(mw * mh / REUSE_MAX_MATCHES))))
+                kw.update(cell_px=c, spacing_px=c, min_matches=1)
             cells = pan_ms_cells(pan, ms, dem_obj, pan_model=pan_rpc, ms_model=ms_rpc, **kw)
         cells = cells.reset_index(drop=True)
         if len(cells) == 0 or not np.asarray(cells["usable"], bool).any():
