@@ -99,6 +99,7 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         check = {"correction": check_raster(2), "ms_on_pan": check_raster(), "cells": check_vector()}.get(key)
         outs.declare(key, os.path.join(out, name), check=check)
     warns: list = []
+    clock = _Clock()
     with outs, collect_warnings(warns):
         (pw, ph), _ = _size(pan)
         (mw, mh), n_bands = _size(ms)
@@ -125,6 +126,8 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
                 c = int(max(8, math.ceil(math.sqrt(mw * mh / REUSE_MAX_MATCHES))))
                 kw.update(cell_px=c, spacing_px=c, min_matches=1)
             cells = pan_ms_cells(pan, ms, dem_obj, pan_model=pan_rpc, ms_model=ms_rpc, **kw)
+        n_matches = len(cells.attrs.get("matches", ())) if hasattr(cells, "attrs") else 0
+        clock.lap("matching")
         cells = cells.reset_index(drop=True)
         if len(cells) == 0 or not np.asarray(cells["usable"], bool).any():
             raise panms.PanMSError(f"no usable cell: all {len(cells)} cells are cloud, water or texture-less; "
@@ -133,12 +136,14 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
                                progress=_progress.scaled(progress, 0.5, 0.6))
         model.info["source"] = {"pan": os.fspath(pan), "ms": os.fspath(ms)}
         model.info["ratio"] = ratio
+        clock.lap("estimate")
         _progress.report(progress, 0.6, "pan-MS: writing correction.tif")
         model.to_json(outs.tmp("model"))
         panms.write_correction(model, outs.tmp("correction"), progress=_progress.scaled(progress, 0.6, 0.65))
         panms.resample_ms_on_pan(model, pan, ms, outs.tmp("ms_on_pan"), pan_rpc=pan_rpc, ms_rpc=ms_rpc, dem=dem_obj,
                                  ratio=ratio, progress=_progress.scaled(progress, 0.65, 0.9))
         outs.set_check("ms_on_pan", check_raster(n_bands))
+        clock.lap("correction_and_ms_on_pan")
         _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC")
         try:
             approx, approx_err = panms.approximate_rpc(model, ms_rpc)
@@ -149,12 +154,13 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         n_cells = _write_cells(cells, model, ms_rpc, dem_obj, outs.tmp("cells"))
         outs.set_check("cells", check_vector({"gcps": n_cells}))
         _write_plots(cells, model, outs)
+        clock.lap("rpc_cells_plots")
         rep = {"command": "register-pan-ms",
                "inputs": {"pan": os.fspath(pan), "ms": os.fspath(ms), "dem": _as_text(dem), "geoid": _as_text(geoid),
                           "reuse": _as_text(reuse) if not isinstance(reuse, panms.PanMSModel) else "model"},
                "sizes": {"pan": [pw, ph], "ms": [mw, mh], "ratio": ratio, "ms_on_pan": [pw // ratio, ph // ratio]},
                "overlap_share": overlap, "mode": model.mode, "breaks_ms_px": list(model.breaks),
-               "n_cells": int(len(cells)), "n_usable": int(np.asarray(cells["usable"], bool).sum()),
+               "n_cells": int(len(cells)), "n_matches": int(n_matches), "timings_s": clock.laps, "n_usable": int(np.asarray(cells["usable"], bool).sum()),
                "n_outliers": model.info.get("n_outliers", 0), "noise_floor_px": model.info.get("noise_floor_px"),
                "steps": model.steps, "jitter": model.jitter, "linear": model.to_dict()["linear"],
                "ms_approx_rpc": approx_err, "outputs": outs.paths}
@@ -163,6 +169,19 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
     finish_report(rep, warns)
     _progress.report(progress, 1.0, "done")
     return rep
+
+
+class _Clock:
+    def __init__(self):
+        import time
+        self._time = time.perf_counter
+        self._t = self._time()
+        self.laps: Dict[str, float] = {}
+
+    def lap(self, name: str) -> None:
+        t = self._time()
+        self.laps[name] = round(t - self._t, 3)
+        self._t = t
 
 
 def _as_text(x):
