@@ -75,18 +75,28 @@ def detector_polynomial(y, order: int) -> np.ndarray:
     return np.stack([y ** k for k in range(int(order) + 1)], axis=-1)
 
 
-def piecewise_polynomial(x, breakpoints: Sequence[float], order: int) -> np.ndarray:
+def piecewise_polynomial(x, breakpoints: Sequence[float], order: int, *,
+                         domain: Optional[Tuple[float, float]] = None) -> np.ndarray:
     """A separate polynomial ``sum_k c_jk (x - b_j)^k`` on each interval ``[b_j, b_{j+1})`` (METHODS §9).
 
     ``breakpoints`` are the interior breakpoints ``b_1 < ... < b_m`` (intervals ``(-inf, b_1)``, ...,
     ``[b_m, inf)``; the first interval is developed about ``b_1``). Shape ``(..., (m + 1) (order + 1))``, interval
     by interval; each column is zero outside its interval.
+
+    With ``domain=(lo, hi)`` the outer intervals end at ``lo`` and ``hi`` and each interval is developed in its
+    own normalised variable ``u_j = (x - mid_j) / half_j`` (in [-1, 1] inside it): ``sum_k c_jk u_j^k``, the
+    well-conditioned form of the pan-MS sub-CCD quartics.
     """
     x = np.asarray(x, dtype=float)
     b = np.asarray(sorted(float(t) for t in breakpoints), dtype=float)
     j = np.searchsorted(b, x, side="right")                        # interval index 0..m
-    origin = np.concatenate([b[:1] if b.size else np.zeros(1), b])[j] if b.size else np.zeros_like(x)
-    d = x - origin
+    if domain is not None:
+        ends = np.concatenate([[float(domain[0])], b, [float(domain[1])]])
+        mid, half = 0.5 * (ends[1:] + ends[:-1]), 0.5 * (ends[1:] - ends[:-1])
+        d = (x - mid[j]) / half[j]
+    else:
+        origin = np.concatenate([b[:1] if b.size else np.zeros(1), b])[j] if b.size else np.zeros_like(x)
+        d = x - origin
     cols = []
     for k in range(b.size + 1):
         inside = (j == k)

@@ -210,7 +210,7 @@ def grouped_trimmed_mean(groups, values, n_groups: int, *, k: float = 3.0, sigma
     """
     g = np.asarray(groups, dtype=np.int64).ravel()
     v = np.asarray(values, dtype=float)
-    v = v.reshape(v.shape[0], -1)
+    v = v if v.ndim == 2 else v.reshape(-1, 1)          # (N, axes), also when N == 0
     G, A = int(n_groups), v.shape[1]
     counts = np.bincount(g, minlength=G)
     med = np.column_stack([_grouped_median(g, v[:, a], counts) for a in range(A)])

@@ -27,6 +27,7 @@ COMMANDS = [
     "apply_calibration",
     "experiment",
     "collect_gcps",
+    "register_pan_ms",
 ]
 
 

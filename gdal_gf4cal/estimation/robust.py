@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import DegenerateGeometryError
 from .lsq import Block, weighted_lsq
-from .result import Estimate
+from .result import Estimate, names_and_blocks
 
 #: Largest number of minimal subsets searched exhaustively; beyond it ``n_subsets`` random ones are drawn.
 MAX_EXHAUSTIVE = 3000
@@ -84,7 +84,15 @@ def _batched_fit(a: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray, 
     sign, logdet = np.linalg.slogdet(nmat)
     ok = (sign > 0) & (logdet > p * math.log(1e-10))
     nmat = np.where(ok[:, None, None], nmat, np.eye(p))
-    x = np.linalg.solve(nmat, rhs[:, :, None])[:, :, 0] / scale
+    try:
+        x = np.linalg.solve(nmat, rhs[:, :, None])[:, :, 0] / scale
+    except np.linalg.LinAlgError:          # a subset singular despite its determinant (e.g. an empty piece)
+        x = np.zeros((len(nmat), p))
+        for i in np.flatnonzero(ok):
+            try:
+                x[i] = np.linalg.solve(nmat[i], rhs[i]) / scale
+            except np.linalg.LinAlgError:
+                ok[i] = False
     return x, ok
 
 
@@ -287,14 +295,26 @@ def robust_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), froze
     y = np.asarray(obs, dtype=float).reshape(n, k)
     w0 = np.ones((n, k)) if weights is None else np.broadcast_to(np.asarray(weights, float), (n, k)).copy()
     cand = np.ones(n, bool) if candidates is None else np.asarray(candidates, bool)
-    m = int(min_points) if min_points else int(math.ceil(p / k))
     notes: List[str] = []
     used = cand.copy()
     start_out = np.zeros(n, bool)
-    n_free = p - sum(b.size for b in blocks if b.name in frozen) if blocks else p
+    # The start sees only the free parameters (frozen blocks moved to the right-hand side at their values).
+    free = np.ones(p, bool)
+    if blocks and frozen:
+        _, sl = names_and_blocks(blocks, p)
+        for name in frozen:
+            if name in sl:
+                free[sl[name]] = False
+    n_free = int(free.sum())
+    m = int(min_points) if min_points else int(math.ceil(n_free / k))
     if int(cand.sum()) * k - n_free >= 2 and int(cand.sum()) > m:
         idx = np.flatnonzero(cand)
-        inl, _, _ = high_breakdown_start(a[idx], y[idx], w0[idx], min_points=m, n_subsets=n_subsets, seed=seed)
+        a_s, y_s = a[idx], y[idx]
+        if not free.all():
+            x0 = np.zeros(p) if values is None else np.asarray(values, dtype=float)
+            y_s = y_s - a_s[:, :, ~free] @ x0[~free]
+            a_s = a_s[:, :, free]
+        inl, _, _ = high_breakdown_start(a_s, y_s, w0[idx], min_points=m, n_subsets=n_subsets, seed=seed)
         used = np.zeros(n, bool)
         used[idx[inl]] = True
         start_out = cand & ~used

@@ -155,3 +155,85 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
     finally:
         _cleanup(tmp)
     return path
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# pan-MS registration (METHODS §9): residual maps per step, the residual along the line, the spectrum
+# ----------------------------------------------------------------------------------------------------------------
+def _save(fig, path: PathLike) -> Path:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    path = Path(path)
+    FigureCanvasAgg(fig)
+    tmp = _temp_path(path)
+    try:
+        fig.savefig(str(tmp), format="png")
+        os.replace(tmp, path)
+    finally:
+        _cleanup(tmp)
+    return path
+
+
+def plot_step_residual_maps(sample, line, steps, path: PathLike, *, image_size, used=None,
+                            title: str = "residuals per step", dpi: int = 100) -> Path:
+    """One panel per step: the cells' residual vectors ``(res_sample, res_line)`` (MS px, measured - predicted)
+    at their centres, ONE exaggeration for all panels, colour = magnitude; ``steps`` is a list of
+    ``(name, res_sample, res_line, rms_sample, rms_line, p_le)``; ``used`` marks the cells in the estimate."""
+    from matplotlib.figure import Figure
+    W, H = image_size
+    s, l = np.asarray(sample, float), np.asarray(line, float)
+    used = np.ones(s.size, bool) if used is None else np.asarray(used, bool)
+    mags = [np.hypot(rs, rl)[used] for _, rs, rl, *_ in steps]
+    top = max(float(np.nanpercentile(m, 99)) if m.size else 0.0 for m in mags) or 1.0
+    spacing = math.sqrt(W * H / max(1, s.size))
+    k = 0.9 * spacing / top
+    fig = Figure(figsize=(4.2 * len(steps), 4.8), dpi=dpi)
+    for i, (name, rs, rl, rms_s, rms_l, p_le) in enumerate(steps):
+        ax = fig.add_subplot(1, len(steps), i + 1)
+        m = np.hypot(rs, rl)
+        ax.quiver(s[used], l[used], rs[used] * k, -rl[used] * k, m[used], angles="xy", scale_units="xy", scale=1,
+                  cmap="viridis", clim=(0, top), width=0.004)
+        if (~used).any():
+            ax.plot(s[~used], l[~used], ".", color="0.75", ms=2)
+        ax.set_xlim(0, W)
+        ax.set_ylim(H, 0)
+        ax.set_aspect("equal")
+        ax.set_title(f"{name}\nrms {rms_s:.3f} / {rms_l:.3f} px, P(<=0.25) {100 * p_le:.1f} %", fontsize=9)
+        ax.tick_params(labelsize=7)
+    fig.suptitle(f"{title} (arrows x {k:.0f}; grey: cells left out)", fontsize=10)
+    return _save(fig, path)
+
+
+def plot_line_profiles(series, path: PathLike, *, title: str = "residual along the line",
+                       dpi: int = 100) -> Path:
+    """Residual row means along the MS line, per axis: ``series`` = ``{label: (lines, mean_sample, mean_line)}``
+    (e.g. before and after the jitter term, METHODS §9)."""
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(9, 5), dpi=dpi)
+    for k, axis in enumerate(("sample", "line")):
+        ax = fig.add_subplot(2, 1, k + 1)
+        for label, (lc, ys, yl) in series.items():
+            ax.plot(lc, (ys, yl)[k], label=label, lw=1)
+        ax.set_ylabel(f"{axis} (MS px)")
+        ax.axhline(0, color="0.6", lw=0.5)
+        ax.legend(fontsize=8)
+    ax.set_xlabel("MS line")
+    fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
+def plot_spectrum(amplitudes, path: PathLike, *, chosen=None, unit: str = "Hz",
+                  title: str = "residual spectrum along the line", dpi: int = 100) -> Path:
+    """Amplitude spectra per axis (``amplitudes = {axis: (freqs, amp)}``, px) with the accepted jitter
+    frequencies marked (``chosen = {axis: [frequency]}``), frequencies in ``unit``."""
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(9, 5), dpi=dpi)
+    for k, axis in enumerate(("sample", "line")):
+        ax = fig.add_subplot(2, 1, k + 1)
+        f, a = amplitudes.get(axis, (np.zeros(0), np.zeros(0)))
+        ax.plot(f, a, lw=1)
+        for c in (chosen or {}).get(axis, []):
+            ax.axvline(c, color="tab:red", lw=0.8, ls="--")
+        ax.set_ylabel(f"{axis} amplitude (px)")
+    ax.set_xlabel(f"frequency ({unit}); dashed: accepted jitter components")
+    fig.suptitle(title, fontsize=10)
+    return _save(fig, path)

@@ -12,9 +12,10 @@ from .collect import collect_gcps_file
 from .experiment import run_experiment
 from .intersect import intersect_files, read_tie_points
 from .ortho import orthorectify
+from .panms import register_pan_ms
 from .refine import output_kind, refine_rpc, write_refined_rpc
 from .simulate import simulate_scene
 
 __all__ = ["apply_calibration", "assess_accuracy", "calibrate_lookangle_files", "collect_gcps_file",
-           "run_experiment", "intersect_files", "read_tie_points", "orthorectify", "output_kind", "refine_rpc",
+           "run_experiment", "intersect_files", "read_tie_points", "orthorectify", "register_pan_ms", "output_kind", "refine_rpc",
            "write_refined_rpc", "simulate_scene"]

@@ -5,8 +5,9 @@ from .calibratelookangle import CalibrateLookAngle
 from .collectgcps import CollectGcps
 from .orthorectify import Orthorectify
 from .refinerpc import RefineRpc
+from .registerpanms import RegisterPanMs
 from .rpcinfo import RpcInfo
 from .simulatescene import SimulateScene
 
 ALGORITHMS = [RpcInfo, SimulateScene, CollectGcps, RefineRpc, Orthorectify, CalibrateLookAngle, ApplyCalibration,
-              AssessAccuracy]
+              AssessAccuracy, RegisterPanMs]

@@ -1,0 +1,99 @@
+"""Benchmark of pan-MS registration (issue 13, METHODS §9): a simulated GF7 scene registered end to end by
+``gf4cal register-pan-ms`` (dense matching, model, correction.tif, ms_on_pan.tif, ms_approx.RPB, cells.gpkg,
+plots) in a child process: wall time, peak memory (the child's ``ru_maxrss``), matches/s and cells/s, and the
+stage times from its report. Peer measured in the same run: ``gdalwarp -rpc`` of the same MS image over the DEM
+onto as many pixels as ms_on_pan.tif has (GDAL's own RPC resampler), against our ms_on_pan stage (which also
+applies the correction).
+
+Targets (issue 13): full scene (pan 30720², MS 7680²) in <= 10 min with peak memory <= 3 GB, reading windows only.
+The scene is simulated once in --workdir (rendering the full scene takes long: pass ``--size`` for a crop; the
+timings then scale with the MS pixel count).
+
+Usage: python bench/bench_panms.py [--size 30720] [--workdir DIR] [--workers N] [--cell 64]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+
+def _scene_kw(size):
+    """Full scene, or a crop centred on the first MS sub-CCD edge (so the crop has a jump to model)."""
+    if size >= 30720:
+        return {"seed": 0, "size": None}
+    return {"seed": 0, "size": (size, size), "crop_center_ms_px": 2560}
+
+
+def _breaks(size):
+    from gdal_gf4cal.simulate.gf7 import make_gf7_scene
+    edges = make_gf7_scene(**_scene_kw(size)).image("ms").true.camera.edges_in_image()
+    return ["--breaks", ",".join(f"{e:g}" for e in edges)] if edges else ["--sub-ccds", "1"]
+
+
+def build(workdir, size, workers):
+    from gdal_gf4cal.simulate.gf7 import write_gf7_scene
+    done = os.path.join(workdir, "truth.json")
+    if os.path.exists(done) and os.path.exists(os.path.join(workdir, "ms", "misregistration_truth.tif")):
+        return
+    t = time.perf_counter()
+    write_gf7_scene(workdir, **_scene_kw(size), workers=workers)
+    print(f"simulated the scene in {time.perf_counter() - t:.0f} s (not part of the benchmark)", flush=True)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=30720, help="pan size (default: full GF7, 30720)")
+    ap.add_argument("--workdir", default=None)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--cell", type=int, default=64)
+    a = ap.parse_args(argv)
+    workdir = a.workdir or os.path.join(os.environ.get("TMPDIR", "/tmp"), f"gf4cal_bench_panms_{a.size}")
+    os.makedirs(workdir, exist_ok=True)
+    build(workdir, a.size, a.workers)
+    pan, ms, dem = (os.path.join(workdir, p) for p in ("pan/scene.tif", "ms/scene.tif", "dem.tif"))
+    out = os.path.join(workdir, "out")
+    t = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "gdal_gf4cal.cli", "register-pan-ms", pan, ms, "--dem", dem,
+                           "--out", out, "--cell", str(a.cell), "--overwrite", *_breaks(a.size)], capture_output=True, text=True)
+    wall = time.perf_counter() - t
+    peak_gb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024 ** 2
+    if proc.returncode != 0:
+        print(proc.stderr)
+        return 1
+    rep = json.load(open(os.path.join(out, "report.json")))
+    tm = rep["timings_s"]
+    mw, mh = rep["sizes"]["ms"]
+    # peer: GDAL's RPC warp of the MS over the DEM onto as many pixels as ms_on_pan.tif
+    from osgeo import gdal
+    gdal.UseExceptions()
+    w, h = rep["sizes"]["ms_on_pan"]
+    t = time.perf_counter()
+    gdal.Warp(os.path.join(workdir, "peer_warp.tif"), ms, options=gdal.WarpOptions(
+        rpc=True, transformerOptions=[f"RPC_DEM={dem}"], width=w, height=h, resampleAlg="cubic",
+        creationOptions=["TILED=YES", "COMPRESS=DEFLATE"], multithread=True,
+        warpOptions=[f"NUM_THREADS={a.workers}"]))
+    peer = time.perf_counter() - t
+    ours_resample = tm["correction_and_ms_on_pan"]
+    last = rep["steps"][-1]
+    print(json.dumps({"ms_size": [mw, mh], "wall_s": round(wall, 1), "peak_memory_gb": round(peak_gb, 2),
+                      "stages_s": tm, "matches": rep["n_matches"], "cells": rep["n_cells"],
+                      "matches_per_s": round(rep["n_matches"] / max(tm["matching"], 1e-9)),
+                      "cells_per_s": round(rep["n_cells"] / max(tm["matching"] + tm["estimate"], 1e-9)),
+                      "after": {"rms_sample_px": last["rms_sample_px"], "rms_line_px": last["rms_line_px"],
+                                "p_le_0.25": last["p_le_0.25"]},
+                      "gdalwarp_rpc_s": round(peer, 1), "ours_correction_and_ms_on_pan_s": ours_resample}, indent=1))
+    full = 7680 * 7680 / (mw * mh)
+    print(f"summary: MS {mw}x{mh}: end to end {wall:.0f} s (x{full:.0f} pixels for the full scene: ~{wall * full:.0f}"
+          f" s if linear; target 600 s), peak {peak_gb:.2f} GB (target 3), {rep['n_matches'] / tm['matching']:.0f}"
+          f" matches/s, ms_on_pan+correction {ours_resample:.1f} s vs gdalwarp -rpc {peer:.1f} s "
+          f"(ratio {ours_resample / max(peer, 1e-9):.2f})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,852 @@
+"""Pan-to-multispectral registration compensation (METHODS §9, seed 004, Gaofen-7).
+
+Estimate, then apply:
+
+* :func:`estimate` solves METHODS §9's model ``delta(s, l) = delta_L + delta_I(s) + delta_J(s, l)`` per axis from
+  the dense cell observations (``gdal_gf4cal.matching.pan_ms_cells``: MS cell centres ``sample, line`` and
+  ``nabla = p' - p''`` as ``d_sample, d_line``), **stepwise** (eqs. 14-16): the linear term (6 parameters) on all
+  usable cells, the piecewise quartic per sub-CCD in the MS column (5 x 2 per piece, 30 for 3 sub-CCDs) on what
+  remains, the trigonometric jitter series in the line scaled by ``(1 + B s)`` with frequencies picked from the
+  residual spectrum (a component is accepted only when significant). Every step is a robust estimate of the
+  estimation core (high-breakdown start + data snooping) with the earlier terms' datum frozen. **Reuse mode**
+  (eq. 17): the piecewise term of another scene of the same camera is frozen and only the linear term is solved
+  from a few sparse cells.
+* :class:`PanMSModel` is the plain result: ``predict(sample, line) -> (d_sample, d_line)`` (MS pixels, GDAL
+  convention), per-step statistics ``steps``, JSON round trip.
+* :func:`write_correction` writes ``correction.tif`` (delta at every MS pixel centre, MS grid, tile by tile),
+  :func:`resample_ms_on_pan` writes the MS bands resampled onto the pan's raw grid at MS resolution (what
+  ``gdal_pansharpen.py`` needs: same extent as the pan, no halos), :func:`approximate_rpc` refits the MS RPC
+  with the model (a smooth approximation: an RPC cannot carry the sub-CCD jumps; its error is reported).
+
+``delta`` is where the MS image shows a ground point minus where the pan, the DEM and the MS RPC predict it: the
+MS image shows the ground point predicted at ``p''`` at ``p' = p'' + delta(p')``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .basis import piecewise_polynomial, trigonometric
+from .errors import Gf4calError
+from .estimation import Block, robust_lsq, weighted_lsq
+from .progress import report
+from .stats import axis_stats, share_within
+
+__all__ = ["PanMSModel", "estimate", "default_breaks", "write_correction", "resample_ms_on_pan",
+           "approximate_rpc", "GF7_MS_LINE_TIME_S", "GF7_MS_IFOV_RAD", "GF7_LOOK_TIME_S", "PanMSError"]
+
+AXES = ("sample", "line")
+ORDER = 4
+#: Nominal GF7 backward-camera MS line period (s), instantaneous field of view (rad) and pan-MS look-time
+#: difference (s) (METHODS §9, §10): only used to express jitter in Hz and as attitude angles.
+GF7_MS_LINE_TIME_S = 3.65e-4
+GF7_MS_IFOV_RAD = 5.105e-6
+GF7_LOOK_TIME_S = 0.117
+#: Threshold of the P(<= t) statistic (MS px, METHODS §9).
+P_THRESHOLD_PX = 0.25
+#: False-alarm probability below which a jitter component is accepted (``jitter="auto"``).
+JITTER_FAP = 1e-3
+MAX_JITTER_COMPONENTS = 8
+
+
+class PanMSError(Gf4calError, ValueError):
+    """Pan-MS registration cannot be done with these inputs (the message says what to do)."""
+
+
+# ------------------------------------------------------------------------------------------------ the model
+def default_breaks(ms_width: float, n_sub_ccds: int = 3) -> List[float]:
+    """Equal sub-CCD edges of an MS band ``ms_width`` px wide: ``W k / n``, k = 1..n-1 (MS samples)."""
+    n = int(n_sub_ccds)
+    if n < 1:
+        raise PanMSError(f"--sub-ccds must be at least 1 (got {n})")
+    return [float(ms_width) * k / n for k in range(1, n)]
+
+
+@dataclass
+class PanMSModel:
+    """METHODS §9's registration model of one MS image against its pan (all in MS pixels, GDAL convention).
+
+    ``linear`` = ``A1..A6`` of ``A1 + A2 s + A3 l`` (sample), ``A4 + A5 s + A6 l`` (line) with ``s, l``
+    normalised to [-1, 1] over the MS image; ``piecewise[k, axis, j]`` the quartic coefficient of ``u_k^j`` in
+    sub-CCD ``k`` (``u_k`` in [-1, 1] over the piece between ``breaks``); ``jitter[axis]`` =
+    ``{"b": B, "components": [{"frequency_cycles_per_line", "sin", "cos", ...}]}`` for
+    ``(1 + B s) sum_i (sin_i sin(2 pi f_i l) + cos_i cos(2 pi f_i l))`` with ``l`` in MS lines.
+    """
+
+    ms_size: Tuple[int, int]
+    breaks: Tuple[float, ...]
+    linear: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    piecewise: Optional[np.ndarray] = None
+    jitter: Dict[str, dict] = field(default_factory=dict)
+    steps: List[dict] = field(default_factory=list)
+    mode: str = "solve"
+    info: Dict[str, object] = field(default_factory=dict)
+    #: Per cell of the estimate: flagged as a blunder by the last robust step (not serialised).
+    cell_outlier: Optional[np.ndarray] = field(default=None, repr=False)
+    #: The model after each step (``step_residuals`` evaluates the cells on them; not serialised).
+    snapshots: List[dict] = field(default_factory=list, repr=False)
+
+    def __post_init__(self):
+        self.ms_size = (int(self.ms_size[0]), int(self.ms_size[1]))
+        self.breaks = tuple(sorted(float(b) for b in self.breaks))
+        self.linear = np.asarray(self.linear, dtype=float).reshape(6)
+        if self.piecewise is None:
+            self.piecewise = np.zeros((self.n_sub_ccds, 2, ORDER + 1))
+        self.piecewise = np.asarray(self.piecewise, dtype=float).reshape(self.n_sub_ccds, 2, ORDER + 1)
+        for ax in AXES:
+            self.jitter.setdefault(ax, {"b": 0.0, "components": []})
+
+    @property
+    def n_sub_ccds(self) -> int:
+        return len(self.breaks) + 1
+
+    # -- evaluation -------------------------------------------------------------------------------------
+    def _norm(self, sample, line):
+        W, H = self.ms_size
+        return (np.asarray(sample, float) - W / 2.0) / (W / 2.0), (np.asarray(line, float) - H / 2.0) / (H / 2.0)
+
+    def predict(self, sample, line, *, terms: Sequence[str] = ("linear", "piecewise", "jitter")):
+        """``(d_sample, d_line)`` of the model at MS image points (GDAL convention), MS pixels (METHODS §9)."""
+        s, l = np.broadcast_arrays(np.asarray(sample, dtype=float), np.asarray(line, dtype=float))
+        sn, ln = self._norm(s, l)
+        out = [np.zeros(s.shape), np.zeros(s.shape)]
+        if "linear" in terms:
+            a = self.linear
+            out[0] = out[0] + a[0] + a[1] * sn + a[2] * ln
+            out[1] = out[1] + a[3] + a[4] * sn + a[5] * ln
+        if "piecewise" in terms:
+            # = piecewise_polynomial(s, breaks, 4, domain=(0, W)) @ coefficients, by Horner per point (the
+            # appliers evaluate it at every MS pixel)
+            ends = np.concatenate([[0.0], self.breaks, [float(self.ms_size[0])]])
+            j = np.searchsorted(np.asarray(self.breaks), s, side="right")
+            u = (s - 0.5 * (ends[1:] + ends[:-1])[j]) / (0.5 * (ends[1:] - ends[:-1]))[j]
+            for k in range(2):
+                c = self.piecewise[:, k, :][j]                    # (..., 5)
+                v = c[..., ORDER]
+                for p in range(ORDER - 1, -1, -1):
+                    v = v * u + c[..., p]
+                out[k] = out[k] + v
+        if "jitter" in terms:
+            for k, ax in enumerate(AXES):
+                comps = self.jitter[ax]["components"]
+                if comps:
+                    f = [c["frequency_cycles_per_line"] for c in comps]
+                    coef = np.ravel([(c["sin"], c["cos"]) for c in comps])
+                    out[k] = out[k] + trigonometric(l, f, s=sn, b=self.jitter[ax]["b"]) @ coef
+        return out[0], out[1]
+
+    def compatible_with(self, ms_size, breaks=None) -> None:
+        """Refuse reuse on another camera: another MS width or sub-CCD layout (METHODS §9 reuse mode)."""
+        if int(ms_size[0]) != self.ms_size[0]:
+            raise PanMSError(f"the reuse model is for an MS image {self.ms_size[0]} px wide but this MS image is "
+                             f"{int(ms_size[0])} px wide: reuse only a model of the same camera and product")
+        if breaks is not None and (len(breaks) != len(self.breaks)
+                                   or not np.allclose(sorted(breaks), self.breaks, atol=0.5)):
+            raise PanMSError(f"the reuse model has sub-CCD edges {list(self.breaks)} but {list(breaks)} were "
+                             "asked: reuse only a model of the same camera (drop --sub-ccds/--breaks)")
+
+    # -- serialisation ------------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {"model": "gf4cal-panms", "version": 1, "mode": self.mode, "ms_size": list(self.ms_size),
+                "n_sub_ccds": self.n_sub_ccds, "breaks_ms_px": list(self.breaks),
+                "linear": dict(zip(["A1", "A2", "A3", "A4", "A5", "A6"], self.linear.tolist())),
+                "piecewise": self.piecewise.tolist(), "jitter": self.jitter, "steps": self.steps,
+                "info": self.info, "pixel_convention": "gdal",
+                "definition": "delta = MS image point - (pan point -> pan RPC on the DEM -> MS RPC), MS px "
+                              "(METHODS §9); s_n = (s - W/2)/(W/2), l_n = (l - H/2)/(H/2); linear: sample A1 + "
+                              "A2 s_n + A3 l_n, line A4 + A5 s_n + A6 l_n; piecewise[k][axis][j] u_k^j, u_k = "
+                              "(s - mid_k)/half_k over sub-CCD k between 0, breaks, W; jitter[axis]: (1 + b s_n) "
+                              "sum (sin sin(2 pi f l) + cos cos(2 pi f l)), l in MS lines"}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PanMSModel":
+        if d.get("model") != "gf4cal-panms":
+            raise PanMSError("not a pan-MS registration model (model.json of gf4cal register-pan-ms expected)")
+        lin = d["linear"]
+        return cls(ms_size=tuple(d["ms_size"]), breaks=tuple(d["breaks_ms_px"]),
+                   linear=[lin[k] for k in ("A1", "A2", "A3", "A4", "A5", "A6")],
+                   piecewise=np.asarray(d["piecewise"], float), jitter=d.get("jitter", {}),
+                   steps=d.get("steps", []), mode=d.get("mode", "solve"), info=d.get("info", {}))
+
+    def to_json(self, path) -> str:
+        path = os.fspath(path)
+        with open(path, "w") as fh:
+            json.dump(self.to_dict(), fh, indent=1, default=_json_default)
+        return path
+
+    @classmethod
+    def from_json(cls, path) -> "PanMSModel":
+        try:
+            with open(os.fspath(path)) as fh:
+                d = json.load(fh)
+        except (OSError, ValueError) as exc:
+            raise PanMSError(f"cannot read the reuse model {path}: {exc}") from None
+        return cls.from_dict(d)
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o))
+
+
+# ------------------------------------------------------------------------------------------- designs
+def _linear_design(sn, ln) -> np.ndarray:
+    """(n, 2, 6) design of ``A1..A6`` in the order A1 A2 A4 A5 (datum: constant and s) then A3 A6 (l)."""
+    n = sn.size
+    a = np.zeros((n, 2, 6))
+    one = np.ones(n)
+    a[:, 0, 0], a[:, 0, 1], a[:, 1, 2], a[:, 1, 3] = one, sn, one, sn
+    a[:, 0, 4], a[:, 1, 5] = ln, ln
+    return a
+
+
+_LIN_ORDER = [0, 1, 3, 4, 2, 5]           # design column -> A index
+
+
+def _piecewise_design(s, breaks, width) -> np.ndarray:
+    """(n, 2, 2 m 5) design: sample-axis pieces then line-axis pieces."""
+    b = piecewise_polynomial(s, breaks, ORDER, domain=(0.0, float(width)))
+    n, q = b.shape
+    a = np.zeros((n, 2, 2 * q))
+    a[:, 0, :q], a[:, 1, q:] = b, b
+    return a
+
+
+def _blocks(m: int):
+    names_pw = [f"{ax}_k{k + 1}_u{j}" for ax in AXES for k in range(m) for j in range(ORDER + 1)]
+    return [Block("linear_datum", ("A1", "A2", "A4", "A5")), Block("linear_time", ("A3", "A6")),
+            Block("piecewise", tuple(names_pw))]
+
+
+def _values(model: PanMSModel) -> np.ndarray:
+    lin = model.linear[_LIN_ORDER]
+    pw = np.concatenate([model.piecewise[:, 0, :].ravel(), model.piecewise[:, 1, :].ravel()])
+    return np.concatenate([lin, pw])
+
+
+def _set_values(model: PanMSModel, x: np.ndarray) -> None:
+    lin = np.zeros(6)
+    lin[_LIN_ORDER] = x[:6]
+    model.linear = lin
+    m = model.n_sub_ccds
+    q = m * (ORDER + 1)
+    model.piecewise = np.stack([x[6:6 + q].reshape(m, ORDER + 1), x[6 + q:6 + 2 * q].reshape(m, ORDER + 1)], axis=1)
+
+
+# ------------------------------------------------------------------------------------------- statistics
+def _row_series(l, r, w, n_rows: Optional[int] = None):
+    """Weighted means of residuals ``r`` per cell row (``l`` value; binned when the cells are not on rows)."""
+    ok = np.isfinite(r) & (w > 0)
+    l, r, w = l[ok], r[ok], w[ok]
+    if l.size == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0)
+    ul, inv = np.unique(np.round(l, 3), return_inverse=True)
+    if ul.size > max(8, l.size // 3):
+        nb = n_rows or max(8, int(math.sqrt(l.size)))
+        edges = np.linspace(l.min(), l.max() + 1e-9, nb + 1)
+        inv = np.clip(np.searchsorted(edges, l, side="right") - 1, 0, nb - 1)
+        ul = 0.5 * (edges[1:] + edges[:-1])
+    sw = np.bincount(inv, w, ul.size)
+    keep = sw > 0
+    y = np.bincount(inv, w * r, ul.size)[keep] / sw[keep]
+    lc = np.bincount(inv, w * l, ul.size)[keep] / sw[keep]
+    return lc, y, sw[keep]
+
+
+def _freq_grid(lines, oversample: int = 10):
+    span = float(lines.max() - lines.min()) if lines.size else 0.0
+    if lines.size < 8 or span <= 0:
+        return np.zeros(0), span
+    dl = np.median(np.diff(np.sort(lines)))
+    f_max = 0.5 / dl
+    f_min = 1.0 / span
+    n = int(max(16, oversample * (f_max - f_min) * span))
+    return np.linspace(f_min, f_max, n), span
+
+
+def _sine_power(lines, y, w, freqs):
+    """Weighted LS fit of ``c + a sin + b cos`` at each frequency: RSS reduction and amplitude (vectorised)."""
+    ph = 2.0 * np.pi * freqs[:, None] * lines[None, :]
+    S, C = np.sin(ph), np.cos(ph)
+    one = np.ones_like(S)
+    cols = np.stack([one, S, C], axis=-1)                     # (nf, n, 3)
+    N = np.einsum("fni,n,fnj->fij", cols, w, cols)
+    b = np.einsum("fni,n,n->fi", cols, w, y)
+    x = np.linalg.solve(N + 1e-12 * np.eye(3), b[..., None])[..., 0]
+    ym = np.sum(w * y) / np.sum(w)
+    rss0 = np.sum(w * (y - ym) ** 2)
+    rss1 = np.sum(w * y * y) - np.einsum("fi,fi->f", x, b)
+    return rss0 - rss1, np.hypot(x[:, 1], x[:, 2]), rss0
+
+
+def row_means(lines, residual):
+    """``(lines, means)``: the residual's mean per cell row along the MS line (plots, METHODS §9)."""
+    r = np.asarray(residual, float)
+    lc, y, _ = _row_series(np.asarray(lines, float), r, np.isfinite(r).astype(float))
+    return lc, y
+
+
+def residual_spectrum(lines, residual, *, line_time_s: Optional[float] = None):
+    """``(frequencies, amplitudes)`` of the residual row means: least-squares sine amplitude (px) per frequency
+    (cycles per MS line, or Hz with ``line_time_s``)."""
+    r = np.asarray(residual, float)
+    lc, y, w = _row_series(np.asarray(lines, float), r, np.isfinite(r).astype(float))
+    freqs, _ = _freq_grid(lc)
+    if freqs.size == 0:
+        return freqs, freqs
+    _, amp, _ = _sine_power(lc, y, w, freqs)
+    return (freqs / line_time_s if line_time_s else freqs), amp
+
+
+def spectrum_peaks(lines, residual, weights, *, n_peaks: int = 3, line_time_s: Optional[float] = None):
+    """The ``n_peaks`` largest peaks of the residual spectrum along the line (row means; METHODS §9)."""
+    lc, y, sw = _row_series(np.asarray(lines, float), np.asarray(residual, float), np.asarray(weights, float))
+    freqs, _ = _freq_grid(lc)
+    if freqs.size == 0:
+        return []
+    gain, amp, _ = _sine_power(lc, y, sw, freqs)
+    is_peak = np.r_[False, (gain[1:-1] >= gain[:-2]) & (gain[1:-1] >= gain[2:]), False]
+    idx = np.flatnonzero(is_peak)
+    idx = idx[np.argsort(gain[idx])[::-1][:n_peaks]]
+    return [{"frequency_cycles_per_line": float(freqs[i]),
+             "frequency_hz": float(freqs[i] / line_time_s) if line_time_s else None,
+             "amplitude_px": float(amp[i])} for i in idx]
+
+
+def _snapshot(model: PanMSModel, name: str, terms) -> dict:
+    import copy
+    return {"name": name, "terms": tuple(terms), "linear": model.linear.copy(),
+            "piecewise": model.piecewise.copy(), "jitter": copy.deepcopy(model.jitter)}
+
+
+def step_residuals(model: PanMSModel, snap: dict, sample, line, d_sample, d_line):
+    """Residuals ``nabla - model`` (MS px) of the cells after one step (a :func:`_snapshot` of the model)."""
+    m = PanMSModel(ms_size=model.ms_size, breaks=model.breaks, linear=snap["linear"], piecewise=snap["piecewise"],
+                   jitter=snap["jitter"])
+    ps, pl = m.predict(sample, line, terms=snap["terms"])
+    return np.asarray(d_sample) - ps, np.asarray(d_line) - pl
+
+
+def _step_stats(model, snap, c, inlier, line_time_s):
+    rs, rl = step_residuals(model, snap, c["sample"], c["line"], c["d_sample"], c["d_line"])
+    u = inlier & np.isfinite(rs) & np.isfinite(rl)
+    w = u.astype(float)
+    return {"step": snap["name"], "terms": list(snap["terms"]), "n_cells": int(u.sum()),
+            "sample": axis_stats(rs[u]), "line": axis_stats(rl[u]),
+            "rms_sample_px": axis_stats(rs[u])["rms"], "rms_line_px": axis_stats(rl[u])["rms"],
+            "p_le_0.25": share_within(rs[u], rl[u], P_THRESHOLD_PX),
+            "spectrum_peaks": {"sample": spectrum_peaks(c["line"], rs, w, line_time_s=line_time_s),
+                               "line": spectrum_peaks(c["line"], rl, w, line_time_s=line_time_s)}}
+
+
+# ------------------------------------------------------------------------------------------- estimation
+def _cell_arrays(cells) -> dict:
+    need = ("sample", "line", "d_sample", "d_line")
+    missing = [c for c in need if c not in cells]
+    if missing:
+        raise PanMSError(f"the cell table lacks the columns {', '.join(missing)}")
+    out = {c: np.asarray(cells[c], dtype=float) for c in need}
+    n = out["sample"].size
+    for c in ("sigma_sample", "sigma_line"):
+        v = np.asarray(cells[c], dtype=float) if c in cells else np.full(n, np.nan)
+        out[c] = np.where(np.isfinite(v) & (v > 0), v, np.nan)
+    usable = np.asarray(cells["usable"], dtype=bool) if "usable" in cells else np.ones(n, bool)
+    out["usable"] = usable & np.isfinite(out["d_sample"]) & np.isfinite(out["d_line"])
+    return out
+
+
+def _weights(c) -> np.ndarray:
+    sig = np.stack([c["sigma_sample"], c["sigma_line"]], axis=1)
+    med = np.nanmedian(sig) if np.isfinite(sig).any() else 1.0
+    sig = np.where(np.isfinite(sig), np.maximum(sig, 0.25 * med), med)
+    return np.where(c["usable"][:, None], 1.0 / sig ** 2, 0.0)
+
+
+def _robust_step(a, y, w, usable, blocks, frozen, values, hint):
+    y = np.where(np.isfinite(y), y, 0.0)
+    return robust_lsq(a, y, w, blocks=blocks, frozen=frozen, values=values, candidates=usable, hint=hint,
+                      n_subsets=200)
+
+
+def estimate(cells, *, ms_size, breaks=None, n_sub_ccds: int = 3, jitter="auto", reuse=None,
+             line_time_s: float = GF7_MS_LINE_TIME_S, look_time_s: float = GF7_LOOK_TIME_S,
+             ifov_rad: float = GF7_MS_IFOV_RAD, progress=None) -> PanMSModel:
+    """Solve METHODS §9's pan-MS registration model from cell observations, stepwise (eqs. 14-16) or in reuse
+    mode (eq. 17).
+
+    Parameters
+    ----------
+    cells : DataFrame or mapping of arrays
+        ``sample, line`` (MS cell centre, GDAL convention), ``d_sample, d_line`` (nabla, MS px), optional
+        ``sigma_sample, sigma_line`` (weights ``1/sigma^2``) and ``usable`` (cells mostly cloud/water/texture-less
+        are left out of the estimate but keep their residuals).
+    ms_size : (width, height) of the MS image.
+    breaks : list of MS samples of the sub-CCD edges; default ``n_sub_ccds`` equal pieces of the MS width.
+    jitter : ``"auto"`` (components while significant, false-alarm probability < 1e-3), ``"none"`` or an int
+        (exactly that many per axis).
+    reuse : :class:`PanMSModel` or path of its JSON: keep its piecewise term, solve only the linear term.
+    line_time_s, look_time_s, ifov_rad : MS line period, pan-MS look-time difference and MS IFOV, to report the
+        jitter in Hz and the attitude jitter it implies (gain ``2 |sin(pi f dt)|``).
+
+    Returns
+    -------
+    PanMSModel
+        ``steps``: per step RMS per axis about zero, P(<= 0.25 px) over usable cells, residual spectrum peaks.
+
+    Raises
+    ------
+    PanMSError
+        No usable cell, a reuse model of another camera, bad breakpoints.
+    """
+    c = _cell_arrays(cells)
+    W, H = int(ms_size[0]), int(ms_size[1])
+    if reuse is not None and not isinstance(reuse, PanMSModel):
+        reuse = PanMSModel.from_json(reuse)
+    if reuse is not None:
+        reuse.compatible_with((W, H), breaks)
+        breaks = list(reuse.breaks)
+    if breaks is None:
+        breaks = default_breaks(W, n_sub_ccds)
+    breaks = sorted(float(b) for b in breaks)
+    if any(not (0.0 < b < W) for b in breaks):
+        raise PanMSError(f"sub-CCD breakpoints {breaks} must lie inside the MS image (0..{W} px)")
+    usable = c["usable"]
+    n_use = int(usable.sum())
+    n_all = usable.size
+    if n_use == 0:
+        raise PanMSError(f"no usable cell: all {n_all} cells are cloud, water or texture-less; register a clearer "
+                         "scene and reuse its model with --reuse MODEL.json")
+    w = _weights(c)
+    model = PanMSModel(ms_size=(W, H), breaks=tuple(breaks), mode="solve" if reuse is None else "reuse")
+    model.info = {"n_cells": n_all, "n_usable": n_use, "line_time_s": line_time_s, "look_time_s": look_time_s,
+                  "ifov_rad": ifov_rad,
+                  "noise_floor_px": {"sample": _floor(c["sigma_sample"][usable]),
+                                     "line": _floor(c["sigma_line"][usable])}}
+    y = np.stack([c["d_sample"], c["d_line"]], axis=1)
+    sn, ln = model._norm(c["sample"], c["line"])
+    m = model.n_sub_ccds
+    a = np.concatenate([_linear_design(sn, ln), _piecewise_design(c["sample"], breaks, W)], axis=2)
+    blocks = _blocks(m)
+    snaps = [_snapshot(model, "before", ())]
+    report(progress, 0.05, "pan-MS: linear term")
+    if reuse is not None:
+        model.piecewise = reuse.piecewise.copy()
+        est = _robust_step(a, y, w, usable, blocks, ["piecewise"], _values(model),
+                           " (reuse mode: the linear term from the sparse cells)")
+        _set_values(model, est.x)
+        model.info["reused_from"] = reuse.info.get("source", "")
+        snaps.append(_snapshot(model, "linear (reuse: piecewise term of the reused model)", ("linear", "piecewise")))
+        return _finish(model, c, snaps, est.outlier, line_time_s, progress)
+    piece = np.searchsorted(np.asarray(breaks), c["sample"], side="right")
+    for k in range(m):
+        n_cols = np.unique(np.round(c["sample"][usable & (piece == k)], 3)).size
+        if n_cols < ORDER + 2:
+            raise PanMSError(f"sub-CCD {k + 1} has usable cells in only {n_cols} columns, too few for its quartic "
+                             f"(>= {ORDER + 2}): use smaller cells (--cell), check --breaks, or --reuse MODEL.json")
+    if n_use * 2 < 6 + 2 * m * (ORDER + 1) + 4:
+        raise PanMSError(f"{n_use} usable cells cannot determine the {6 + 10 * m} parameters of the linear + "
+                         f"piecewise model; use smaller cells (--cell) or --reuse MODEL.json")
+    # Blunders first, on the model that fits (linear + piecewise, robust: high-breakdown start + snooping), so
+    # that the sub-CCD structure the linear step cannot model is not mistaken for blunders.
+    yy = np.where(np.isfinite(y), y, 0.0)
+    est = _robust_step(a, y, w, usable, blocks, ["linear_datum"], np.zeros(a.shape[2]), " (blunder detection)")
+    outlier = est.outlier
+    w_in = np.where((usable & ~outlier)[:, None], w, 0.0)
+    # Step 1 (eq. 14): linear on all cells (usable, not blunders).
+    a_lin = a[:, :, :6]
+    est = weighted_lsq(a_lin.reshape(-1, 6), yy.ravel(), w_in.ravel(), blocks=blocks[:2], hint=" (linear term)")
+    x = np.zeros(a.shape[2])
+    x[:6] = est.x
+    _set_values(model, x)
+    snaps.append(_snapshot(model, "linear", ("linear",)))
+    report(progress, 0.3, "pan-MS: piecewise term")
+    # Step 2 (eq. 15): piecewise on what remains; the linear datum (constant, s) stays frozen (the pieces'
+    # constant and linear terms duplicate it), the l terms are refined with it.
+    est = weighted_lsq(a.reshape(-1, a.shape[2]), yy.ravel(), w_in.ravel(), blocks=blocks, frozen=["linear_datum"],
+                       values=_values(model), hint=" (piecewise term)")
+    _set_values(model, est.x)
+    snaps.append(_snapshot(model, "piecewise", ("linear", "piecewise")))
+    # Step 3 (eq. 16): jitter on what remains.
+    report(progress, 0.6, "pan-MS: jitter term")
+    if str(jitter) != "none":
+        n_fixed = None if str(jitter) == "auto" else int(jitter)
+        inl = usable & ~outlier
+        _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn)
+        _describe_jitter(model, line_time_s, look_time_s, ifov_rad)
+        snaps.append(_snapshot(model, "jitter", ("linear", "piecewise", "jitter")))
+    return _finish(model, c, snaps, outlier, line_time_s, progress)
+
+
+def _finish(model, c, snaps, outlier, line_time_s, progress):
+    """Step statistics over the same cells (usable, not flagged as blunders by the last robust step)."""
+    inlier = c["usable"] & ~outlier
+    model.steps = [_step_stats(model, sn, c, inlier, line_time_s) for sn in snaps]
+    model.info["n_outliers"] = int(np.sum(outlier & c["usable"]))
+    model.cell_outlier = outlier
+    model.snapshots = snaps
+    report(progress, 1.0, "pan-MS: model solved")
+    return model
+
+
+def _floor(sig) -> Optional[float]:
+    sig = sig[np.isfinite(sig)]
+    return float(np.sqrt(np.mean(sig ** 2))) if sig.size else None
+
+
+def _select_frequencies(lines, r, w, n_fixed):
+    """Greedy: strongest peak of the residual's row spectrum, refined, kept while significant (F-test with a
+    false-alarm probability over the independent frequencies searched) or exactly ``n_fixed``."""
+    from scipy import optimize, stats
+    lc, y, sw = _row_series(lines, r, w)
+    freqs, span = _freq_grid(lc)
+    chosen: List[float] = []
+    if freqs.size == 0:
+        return chosen
+    n_indep = max(1.0, (freqs[-1] - freqs[0]) * span)
+    limit = MAX_JITTER_COMPONENTS if n_fixed is None else int(n_fixed)
+    df = freqs[1] - freqs[0]
+
+    def rss(fs):
+        cols = [np.ones_like(lc)] + [g(2 * np.pi * f * lc) for f in fs for g in (np.sin, np.cos)]
+        A = np.stack(cols, axis=1) * np.sqrt(sw)[:, None]
+        x, *_ = np.linalg.lstsq(A, y * np.sqrt(sw), rcond=None)
+        v = y * np.sqrt(sw) - A @ x
+        return float(v @ v)
+
+    while len(chosen) < limit:
+        p1 = 1 + 2 * (len(chosen) + 1) + len(chosen) + 1
+        if lc.size - p1 < 3:
+            break
+        base = rss(chosen)
+        cols = [np.ones_like(lc)] + [g(2 * np.pi * f * lc) for f in chosen for g in (np.sin, np.cos)]
+        A = np.stack(cols, axis=1)
+        xw, *_ = np.linalg.lstsq(A * np.sqrt(sw)[:, None], y * np.sqrt(sw), rcond=None)
+        resid = y - A @ xw
+        gain, _, _ = _sine_power(lc, resid, sw, freqs)
+        f0 = float(freqs[int(np.argmax(gain))])
+        opt = optimize.minimize_scalar(lambda f: rss(chosen + [f]), bounds=(max(freqs[0], f0 - 2 * df),
+                                                                             min(freqs[-1], f0 + 2 * df)),
+                                    method="bounded")
+        f_new = float(opt.x)
+        new = rss(chosen + [f_new])
+        if n_fixed is None:
+            F = ((base - new) / 3.0) / (new / (lc.size - p1))
+            p = float(stats.f.sf(F, 3, lc.size - p1))
+            fap = 1.0 - (1.0 - p) ** n_indep if p > 1e-12 else p * n_indep
+            if fap >= JITTER_FAP:
+                break
+        if chosen and min(abs(f_new - f) for f in chosen) < 0.5 / span:
+            break                     # not resolved from a component already taken
+        chosen.append(f_new)
+        if len(chosen) > 1:           # joint refinement of every frequency, kept inside the searched band
+            lo, hi = freqs[0], freqs[-1]
+            res = optimize.minimize(lambda fs: rss(list(np.clip(fs, lo, hi))), np.array(chosen),
+                                    method="Nelder-Mead", options={"xatol": df * 1e-3, "fatol": 1e-12,
+                                                                   "maxiter": 400})
+            chosen = [float(v) for v in np.clip(res.x, lo, hi)]
+    return chosen
+
+
+def _jitter_design(model, l, sn):
+    """(n, 2, q) design of the jitter amplitudes with the current frequencies and B."""
+    n = l.size
+    parts = []
+    for k, ax in enumerate(AXES):
+        f = [cc["frequency_cycles_per_line"] for cc in model.jitter[ax]["components"]]
+        if not f:
+            continue
+        t = trigonometric(l, f, s=sn, b=model.jitter[ax]["b"])
+        blk = np.zeros((n, 2, t.shape[1]))
+        blk[:, k, :] = t
+        parts.append(blk)
+    return np.concatenate(parts, axis=2) if parts else np.zeros((n, 2, 0))
+
+
+def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
+    ps, pl = model.predict(c["sample"], c["line"], terms=("linear", "piecewise"))
+    res = np.stack([c["d_sample"] - ps, c["d_line"] - pl], axis=1)
+    for k, ax in enumerate(AXES):
+        fs = _select_frequencies(c["line"], res[:, k], np.where(inl, w[:, k], 0.0), n_fixed)
+        model.jitter[ax] = {"b": 0.0, "components": [{"frequency_cycles_per_line": f, "sin": 0.0, "cos": 0.0}
+                                                     for f in fs]}
+    if not any(model.jitter[ax]["components"] for ax in AXES):
+        return
+    yy = np.where(np.isfinite(y), y, 0.0)
+    ww = np.where(inl[:, None], w, 0.0)
+    for _ in range(3):                         # amplitudes (with the l terms and pieces refined), then B
+        aj = _jitter_design(model, c["line"], sn)
+        full = np.concatenate([a, aj], axis=2)
+        names = tuple(f"{ax}_{i}_{g}" for ax in AXES for i, _ in enumerate(model.jitter[ax]["components"])
+                      for g in ("sin", "cos"))
+        bl = blocks + [Block("jitter", names)]
+        est = weighted_lsq(full.reshape(-1, full.shape[2]), yy.ravel(), ww.ravel(), blocks=bl,
+                           frozen=["linear_datum"], values=np.concatenate([_values(model), np.zeros(len(names))]),
+                           hint=" (jitter term)")
+        p0 = a.shape[2]
+        _set_values(model, est.x[:p0])
+        xj = est.x[p0:]
+        i = 0
+        for ax in AXES:
+            for comp in model.jitter[ax]["components"]:
+                comp["sin"], comp["cos"] = float(xj[i]), float(xj[i + 1])
+                i += 2
+        ps, pl = model.predict(c["sample"], c["line"], terms=("linear", "piecewise"))
+        res = np.stack([c["d_sample"] - ps, c["d_line"] - pl], axis=1)
+        for k, ax in enumerate(AXES):
+            comps = model.jitter[ax]["components"]
+            if not comps:
+                continue
+            f = [cc["frequency_cycles_per_line"] for cc in comps]
+            j0 = trigonometric(c["line"], f) @ np.ravel([(cc["sin"], cc["cos"]) for cc in comps])
+            g = sn * j0
+            num = np.sum(ww[:, k] * g * (res[:, k] - j0))
+            den = np.sum(ww[:, k] * g * g)
+            model.jitter[ax]["b"] = float(num / den) if den > 0 else 0.0
+
+
+def _describe_jitter(model, line_time_s, look_time_s, ifov_rad):
+    """Each component's amplitude, phase, frequency in Hz and the attitude jitter it implies (METHODS §9:
+    a(t) - a(t - dt) has gain ``2 |sin(pi f dt)|``)."""
+    for ax in AXES:
+        for comp in model.jitter[ax]["components"]:
+            amp = math.hypot(comp["sin"], comp["cos"])
+            comp["amplitude_px"] = amp
+            comp["phase_rad"] = math.atan2(comp["cos"], comp["sin"])
+            if line_time_s:
+                f_hz = comp["frequency_cycles_per_line"] / line_time_s
+                gain = 2.0 * abs(math.sin(math.pi * f_hz * look_time_s)) if look_time_s else float("nan")
+                comp["frequency_hz"] = f_hz
+                comp["gain"] = gain
+                comp["attitude_amplitude_px"] = amp / gain if gain > 1e-9 else None
+                comp["attitude_amplitude_urad"] = (amp / gain * ifov_rad * 1e6
+                                                   if gain > 1e-9 and ifov_rad else None)
+
+
+# ---------------------------------------------------------------------------------------------- appliers
+def write_correction(model: PanMSModel, path, *, tile: int = 512, progress=None) -> str:
+    """Write ``correction.tif``: 2 bands float32, delta sample / delta line (MS px) at every MS pixel centre
+    (GDAL convention), on the MS image grid, tile by tile (METHODS §9)."""
+    from osgeo import gdal
+    from ._gdal import gdal_exceptions
+    W, H = model.ms_size
+    path = os.fspath(path)
+    with gdal_exceptions():
+        ds = gdal.GetDriverByName("GTiff").Create(path, W, H, 2, gdal.GDT_Float32, [
+            "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "PREDICTOR=3",
+            "BIGTIFF=IF_SAFER"])
+        ds.GetRasterBand(1).SetDescription("delta_sample_ms_px")
+        ds.GetRasterBand(2).SetDescription("delta_line_ms_px")
+        ds.SetMetadataItem("GF4CAL_PANMS", "delta = MS image point - pan/DEM/MS-RPC prediction (METHODS §9), MS "
+                           "pixels, at MS pixel centres, GDAL convention")
+        n_t = math.ceil(H / tile) * math.ceil(W / tile)
+        done = 0
+        for y0 in range(0, H, tile):
+            h = min(tile, H - y0)
+            for x0 in range(0, W, tile):
+                w = min(tile, W - x0)
+                s, l = np.meshgrid(x0 + np.arange(w) + 0.5, y0 + np.arange(h) + 0.5)
+                ds_, dl_ = model.predict(s, l)
+                ds.GetRasterBand(1).WriteArray(ds_.astype(np.float32), x0, y0)
+                ds.GetRasterBand(2).WriteArray(dl_.astype(np.float32), x0, y0)
+                done += 1
+                report(progress, done / n_t, f"correction.tif tile {done}/{n_t}")
+        ds.FlushCache()
+        ds = None
+    return path
+
+
+def _predicted_grid(pan_rpc, ms_rpc, dem, ratio, x0, y0, w, h, step):
+    """MS points ``p''`` predicted for the ms_on_pan pixels ``[x0, x0+w) x [y0, y0+h)``: pan pixel centre ->
+    pan RPC on the DEM -> MS RPC, on a coarse node grid (every ``step`` px) interpolated bilinearly (the mapping
+    is smooth; the pan-MS ray angle makes the DEM's fine structure negligible, METHODS §9)."""
+    from scipy import ndimage
+    xs = np.unique(np.r_[np.arange(x0, x0 + w, step), x0 + w]).astype(float)
+    ys = np.unique(np.r_[np.arange(y0, y0 + h, step), y0 + h]).astype(float)
+    X, Y = np.meshgrid(xs, ys)
+    lon, lat, hh = pan_rpc.localize_dem(X * ratio, Y * ratio, dem)
+    s2, l2 = ms_rpc.project(lon, lat, hh)
+    # fractional node index of every pixel centre (nodes are regular but for the last one)
+    fx = np.interp(x0 + np.arange(w) + 0.5, xs, np.arange(xs.size))
+    fy = np.interp(y0 + np.arange(h) + 0.5, ys, np.arange(ys.size))
+    FY, FX = np.meshgrid(fy, fx, indexing="ij")
+    return tuple(ndimage.map_coordinates(np.asarray(v, float), [FY, FX], order=1, mode="nearest")
+                 for v in (s2, l2))
+
+
+def resample_ms_on_pan(model: Optional[PanMSModel], pan_path, ms_path, path, *, pan_rpc, ms_rpc, dem, ratio: int,
+                       tile: int = 512, node_step: int = 8, progress=None) -> str:
+    """Write ``ms_on_pan.tif``: every MS band resampled onto the pan's raw grid at MS resolution (pan size /
+    ``ratio``, same extent as the pan) so that ``gdal_pansharpen.py PAN ms_on_pan.tif fused.tif`` fuses without
+    halos (METHODS §9). Output pixel ``(x, y)`` covers pan pixels ``[x r, (x+1) r)``: its centre, localised with
+    the pan RPC on the DEM and projected with the MS RPC, is ``p''``; the MS shows that ground at ``p' = p'' +
+    delta(p')`` (fixed point, 2 iterations: the field's gradient is ~1e-4 px/px), sampled bicubically. ``model=None`` resamples through the RPCs only
+    (the uncorrected product). Tile by tile, each tile reads only its MS window."""
+    from osgeo import gdal
+    from scipy import ndimage
+    from ._gdal import gdal_exceptions
+    path = os.fspath(path)
+    with gdal_exceptions():
+        pan = gdal.Open(os.fspath(pan_path))
+        ms = gdal.Open(os.fspath(ms_path))
+        PW, PH = pan.RasterXSize, pan.RasterYSize
+        MW, MH, nb = ms.RasterXSize, ms.RasterYSize, ms.RasterCount
+        W, H = PW // ratio, PH // ratio
+        dt = ms.GetRasterBand(1).DataType
+        out = gdal.GetDriverByName("GTiff").Create(path, W, H, nb, dt, [
+            "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "INTERLEAVE=BAND",
+            "BIGTIFF=IF_SAFER"])
+        nodata = ms.GetRasterBand(1).GetNoDataValue()
+        fill = 0.0 if nodata is None else nodata
+        for b in range(nb):
+            ob = out.GetRasterBand(b + 1)
+            ob.SetNoDataValue(fill)
+            ob.SetDescription(ms.GetRasterBand(b + 1).GetDescription())
+            ci = ms.GetRasterBand(b + 1).GetColorInterpretation()
+            if ci:
+                ob.SetColorInterpretation(ci)
+        out.SetMetadataItem("GF4CAL_PANMS", f"MS resampled onto the pan raw grid at 1/{ratio} of its size "
+                            f"({'pan-MS registration model applied' if model else 'RPCs only'}; METHODS §9)")
+        _set_ms_on_pan_rpc(out, pan, ratio)
+        n_t = math.ceil(H / tile) * math.ceil(W / tile)
+        done = 0
+        for y0 in range(0, H, tile):
+            h = min(tile, H - y0)
+            for x0 in range(0, W, tile):
+                w = min(tile, W - x0)
+                s2, l2 = _predicted_grid(pan_rpc, ms_rpc, dem, ratio, x0, y0, w, h, node_step)
+                sp, lp = s2.copy(), l2.copy()
+                if model is not None:
+                    for _ in range(2):
+                        ds_, dl_ = model.predict(sp, lp)
+                        sp, lp = s2 + ds_, l2 + dl_
+                ok = np.isfinite(sp) & np.isfinite(lp)
+                arrs = [np.full((h, w), fill, dtype=np.float64) for _ in range(nb)]
+                if ok.any():
+                    m = 3
+                    wx0 = int(max(0, math.floor(np.nanmin(sp[ok])) - m))
+                    wy0 = int(max(0, math.floor(np.nanmin(lp[ok])) - m))
+                    wx1 = int(min(MW, math.ceil(np.nanmax(sp[ok])) + m))
+                    wy1 = int(min(MH, math.ceil(np.nanmax(lp[ok])) + m))
+                    if wx1 > wx0 and wy1 > wy0:
+                        inside = ok & (sp >= 0) & (sp <= MW) & (lp >= 0) & (lp <= MH)
+                        rows, cols = lp[inside] - 0.5 - wy0, sp[inside] - 0.5 - wx0
+                        for b in range(nb):
+                            src = ms.GetRasterBand(b + 1).ReadAsArray(wx0, wy0, wx1 - wx0, wy1 - wy0)
+                            v = ndimage.map_coordinates(src.astype(np.float64), [rows, cols], order=3,
+                                                        mode="nearest", prefilter=True)
+                            arrs[b][inside] = v
+                for b in range(nb):
+                    a = arrs[b]
+                    if np.issubdtype(_np_dtype(dt), np.integer):
+                        info = np.iinfo(_np_dtype(dt))
+                        a = np.clip(np.round(a), max(info.min, 1 if nodata == 0 else info.min), info.max)
+                        a = np.where(np.isfinite(arrs[b]) & (arrs[b] != fill), a, fill)
+                    out.GetRasterBand(b + 1).WriteArray(a.astype(_np_dtype(dt)), x0, y0)
+                done += 1
+                report(progress, done / n_t, f"ms_on_pan.tif tile {done}/{n_t}")
+        out.FlushCache()
+        out = None
+    return path
+
+
+def _np_dtype(gdal_type):
+    from osgeo import gdal_array
+    return np.dtype(gdal_array.GDALTypeCodeToNumericTypeCode(gdal_type))
+
+
+def _set_ms_on_pan_rpc(out, pan, ratio):
+    """Give ms_on_pan the pan's RPC rescaled to its grid (GDAL: x_out = x_pan / r, i.e. RPC convention
+    ``(x + 0.5) / r - 0.5``) and the pan's geotransform scaled by ``r`` when the pan has one."""
+    md = pan.GetMetadata("RPC")
+    if md:
+        md = dict(md)
+        for off, scale in (("SAMP_OFF", "SAMP_SCALE"), ("LINE_OFF", "LINE_SCALE")):
+            md[off] = repr((float(md[off]) + 0.5) / ratio - 0.5)
+            md[scale] = repr(float(md[scale]) / ratio)
+        out.SetMetadata(md, "RPC")
+    gt = pan.GetGeoTransform(can_return_null=True)
+    if gt is not None:
+        out.SetGeoTransform((gt[0], gt[1] * ratio, gt[2] * ratio, gt[3], gt[4] * ratio, gt[5] * ratio))
+        out.SetProjection(pan.GetProjection())
+
+
+def approximate_rpc(model: PanMSModel, ms_rpc, *, n: int = 41, n_heights: int = 7):
+    """Refit the MS RPC so that it predicts ``p' = p'' + delta(p')`` (METHODS §9): a smooth approximation of
+    the model, which an RPC cannot carry exactly (the sub-CCD jumps). Returns ``(rpc, errors)`` with the refit's
+    RMS and max error (MS px) against the full model on an ``n x n`` grid x ``n_heights`` heights."""
+    from .rpc_fit import fit_rpc
+    W, H = model.ms_size
+    s, l = np.meshgrid((np.arange(n) + 0.5) * W / n, (np.arange(n) + 0.5) * H / n)
+    s, l = s.ravel(), l.ravel()
+    h0, h1 = ms_rpc.height_range
+    lons, lats, hs, ss, ls = [], [], [], [], []
+    ds_, dl_ = model.predict(s, l)
+    for h in np.linspace(h0, h1, n_heights):
+        lon, lat = ms_rpc.localize(s - ds_, l - dl_, np.full(s.shape, h))
+        lons.append(lon), lats.append(lat), hs.append(np.full(s.shape, h)), ss.append(s), ls.append(l)
+    lon, lat, hh, S, L = (np.concatenate(v) for v in (lons, lats, hs, ss, ls))
+    ok = np.isfinite(lon) & np.isfinite(lat)
+    rpc, fit = fit_rpc(lon[ok], lat[ok], hh[ok], S[ok], L[ok])
+    ps, pl = rpc.project(lon[ok], lat[ok], hh[ok])
+    es, el = S[ok] - ps, L[ok] - pl
+    r = np.hypot(es, el)
+    errors = {"rms_sample_px": float(np.sqrt(np.mean(es ** 2))), "rms_line_px": float(np.sqrt(np.mean(el ** 2))),
+              "rms_px": float(np.sqrt(np.mean(r ** 2))), "max_px": float(np.max(r)), "n_points": int(ok.sum()),
+              "note": "an RPC cannot carry the sub-CCD jumps: use correction.tif / ms_on_pan.tif for the exact "
+                      "registration (METHODS §9)"}
+    return rpc, errors
+
+
+def check_sizes(pan_size, ms_size) -> int:
+    """The integer pan/MS size ratio, or :class:`PanMSError` when no integer ratio explains both sizes."""
+    (pw, ph), (mw, mh) = pan_size, ms_size
+    for r in range(1, 17):
+        if abs(pw - r * mw) <= r and abs(ph - r * mh) <= r:
+            return r
+    raise PanMSError(f"the pan ({pw} x {ph}) and MS ({mw} x {mh}) sizes are not related by an integer ratio: "
+                     "give the pan and MS images of the same scene and product")
+
+
+
+def edge_misregistration(pan_path, image_path, *, band: int = 1, ratio: int = 4, window: int = 64,
+                         region=None, min_ncc: float = 0.5) -> dict:
+    """Measured misregistration (MS px) of an image on the pan's grid (``ms_on_pan.tif`` at 1/``ratio``, or a
+    fused product at the pan's size) against the pan's edges (METHODS §9's halos): both are reduced to MS
+    resolution (block means), cut into ``window`` x ``window`` MS-px windows and phase-correlated; returns the
+    mean and RMS per axis and the planar RMS of the window shifts (``image`` minus pan), over windows whose
+    correlation ``ncc >= min_ncc`` (textured, cloud-free). ``region = (x0, y0, w, h)`` in MS px limits it."""
+    from osgeo import gdal
+    from ._gdal import gdal_exceptions
+    from .matching.correlate import block_reduce, phase_correlate
+    with gdal_exceptions():
+        pan = gdal.Open(os.fspath(pan_path))
+        img = gdal.Open(os.fspath(image_path))
+        W, H = pan.RasterXSize // ratio, pan.RasterYSize // ratio
+        x0, y0, w, h = region if region is not None else (0, 0, W, H)
+        p = block_reduce(pan.GetRasterBand(1).ReadAsArray(x0 * ratio, y0 * ratio, w * ratio, h * ratio), ratio)
+        f = img.RasterXSize // W
+        a = img.GetRasterBand(band).ReadAsArray(x0 * f, y0 * f, w * f, h * f)
+        m = block_reduce(a, f) if f > 1 else a.astype(np.float64)
+    ny, nx = h // window, w // window
+    if nx == 0 or ny == 0:
+        raise PanMSError(f"the region is smaller than one {window} px window")
+    cut = (slice(0, ny * window), slice(0, nx * window))
+
+    def stack(v):
+        return v[cut].reshape(ny, window, nx, window).transpose(0, 2, 1, 3).reshape(-1, window, window)
+    r = phase_correlate(stack(p), stack(m))
+    ok = np.isfinite(r.dx) & np.isfinite(r.dy) & (r.ncc >= min_ncc)
+    dx, dy = r.dx[ok], r.dy[ok]
+    return {"n_windows": int(ok.sum()), "mean_sample_px": float(np.mean(dx)) if dx.size else None,
+            "mean_line_px": float(np.mean(dy)) if dy.size else None,
+            "rms_sample_px": float(np.sqrt(np.mean(dx ** 2))) if dx.size else None,
+            "rms_line_px": float(np.sqrt(np.mean(dy ** 2))) if dy.size else None,
+            "rms_px": float(np.sqrt(np.mean(dx ** 2 + dy ** 2))) if dx.size else None}

@@ -1,0 +1,143 @@
+"""Pan-MS registration model (METHODS §9) on cell tables synthesised from the GF7 simulator's truth."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gdal_gf4cal import panms
+from gdal_gf4cal.errors import Gf4calError
+from gdal_gf4cal.simulate.gf7 import make_gf7_scene
+from panmssim import synth_cells, truth_grid
+
+SIGMA = 0.03            # cell-noise floor of the synthetic cells (MS px per axis)
+
+
+@pytest.fixture(scope="module")
+def jitter_scene():
+    return make_gf7_scene(seed=0, jitter=True)
+
+
+@pytest.fixture(scope="module")
+def solved(jitter_scene):
+    cells = synth_cells(jitter_scene, sigma=SIGMA, n_bad=30)
+    return cells, panms.estimate(cells, ms_size=jitter_scene.image("ms").size)
+
+
+def _step(model, name):
+    return next(st for st in model.steps if st["step"] == name)
+
+
+def test_stepwise_numbers_behave_as_the_paper(solved):
+    _, m = solved
+    before, lin, pw, jit = (_step(m, n) for n in ("before", "linear", "piecewise", "jitter"))
+    assert before["p_le_0.25"] < 0.05 and before["rms_sample_px"] > 0.4
+    # linear leaves the sub-CCD structure (paper: P ~ 70 %), the piecewise term removes it
+    assert lin["p_le_0.25"] < 0.85
+    assert pw["p_le_0.25"] > 0.99 and pw["rms_sample_px"] < 0.6 * lin["rms_sample_px"]
+    # jitter simulated: the jitter step lowers the RMS to the cell-noise floor
+    assert jit["rms_sample_px"] < 0.8 * pw["rms_sample_px"] and jit["rms_line_px"] < 0.8 * pw["rms_line_px"]
+    for ax in ("sample", "line"):
+        assert jit[f"rms_{ax}_px"] <= 1.1 * SIGMA
+    assert jit["p_le_0.25"] >= 0.99
+
+
+def test_blunders_are_flagged_and_do_not_bias(solved):
+    cells, m = solved
+    assert 25 <= m.info["n_outliers"] <= 40
+    assert m.cell_outlier.shape == (len(cells),)
+
+
+def test_full_model_against_the_true_field(solved, jitter_scene):
+    _, m = solved
+    s, l, ts, tl = truth_grid(jitter_scene)
+    ps, pl = m.predict(s, l)
+    e = np.hypot(ts - ps, tl - pl)
+    assert np.sqrt(np.mean((ts - ps) ** 2)) <= 0.03 and np.sqrt(np.mean((tl - pl) ** 2)) <= 0.03
+    assert e.max() <= 0.15
+    assert np.mean(e <= 0.25) >= 0.99
+
+
+def test_jitter_components_recovered_with_attitude(solved, jitter_scene):
+    _, m = solved
+    truth = jitter_scene.image("ms").errors["jitter"]
+    roll_f = sorted(f for ax, _, f, _ in truth if ax == "roll")
+    got = sorted(c["frequency_hz"] for c in m.jitter["sample"]["components"])
+    assert len(got) == len(roll_f)
+    assert np.allclose(got, roll_f, atol=0.05)
+    for c in m.jitter["sample"]["components"]:
+        assert 0.01 < c["amplitude_px"] < 0.06
+        assert c["gain"] == pytest.approx(2 * abs(np.sin(np.pi * c["frequency_hz"] * panms.GF7_LOOK_TIME_S)))
+        assert c["attitude_amplitude_urad"] > 0
+
+
+def test_no_jitter_component_accepted_without_jitter():
+    sc = make_gf7_scene(seed=0, jitter=False)
+    m = panms.estimate(synth_cells(sc, sigma=SIGMA), ms_size=sc.image("ms").size)
+    assert m.jitter["sample"]["components"] == [] and m.jitter["line"]["components"] == []
+    assert _step(m, "jitter")["rms_sample_px"] == pytest.approx(_step(m, "piecewise")["rms_sample_px"])
+    assert _step(m, "piecewise")["rms_sample_px"] <= 1.1 * SIGMA
+
+
+def test_fixed_jitter_count_and_none(jitter_scene):
+    cells = synth_cells(jitter_scene, sigma=SIGMA)
+    m = panms.estimate(cells, ms_size=jitter_scene.image("ms").size, jitter=2)
+    assert len(m.jitter["sample"]["components"]) == 2 and len(m.jitter["line"]["components"]) == 2
+    m0 = panms.estimate(cells, ms_size=jitter_scene.image("ms").size, jitter="none")
+    assert [st["step"] for st in m0.steps] == ["before", "linear", "piecewise"]
+
+
+def test_json_round_trip(solved, tmp_path):
+    _, m = solved
+    m2 = panms.PanMSModel.from_json(m.to_json(tmp_path / "model.json"))
+    s, l = np.meshgrid(np.linspace(1, 7679, 37), np.linspace(1, 7679, 29))
+    assert np.allclose(m2.predict(s, l), m.predict(s, l), atol=1e-12)
+    assert m2.steps[-1]["p_le_0.25"] == m.steps[-1]["p_le_0.25"]
+
+
+def test_reuse_mode_with_200_sparse_cells(solved):
+    """Reuse (eq. 17): another scene of the same camera; its piecewise term from scene 0, only the linear term
+    from <= 200 sparse cells; within 10 % of the solve mode's RMS on the same scene (both without jitter term,
+    as the paper's Tables 2 and 3)."""
+    _, m0 = solved
+    sc = make_gf7_scene(seed=7, jitter=True)
+    dense = synth_cells(sc, sigma=SIGMA, seed=3)
+    solve = panms.estimate(dense, ms_size=sc.image("ms").size, jitter="none")
+    sparse = synth_cells(sc, cell=512, sigma=SIGMA, seed=4)
+    assert len(sparse) <= 225
+    sparse = sparse.sample(n=200, random_state=0) if len(sparse) > 200 else sparse
+    reused = panms.estimate(sparse, ms_size=sc.image("ms").size, reuse=m0)
+    assert reused.mode == "reuse"
+    assert np.allclose(reused.piecewise, m0.piecewise)
+    rs, rl = dense["d_sample"] - reused.predict(dense["sample"], dense["line"])[0], \
+        dense["d_line"] - reused.predict(dense["sample"], dense["line"])[1]
+    rms_reuse = np.hypot(np.sqrt(np.mean(rs ** 2)), np.sqrt(np.mean(rl ** 2)))
+    st = solve.steps[-1]
+    rms_solve = np.hypot(st["rms_sample_px"], st["rms_line_px"])
+    assert rms_reuse <= 1.1 * rms_solve
+
+
+def test_reuse_model_of_another_camera_is_refused(solved):
+    _, m0 = solved
+    cells = synth_cells(make_gf7_scene(seed=0, size=(2048, 2048)), sigma=SIGMA)
+    with pytest.raises(Gf4calError, match="reuse"):
+        panms.estimate(cells, ms_size=(512, 512), reuse=m0)
+    with pytest.raises(Gf4calError, match="sub-CCD"):
+        panms.estimate(cells.assign(sample=cells["sample"]), ms_size=m0.ms_size, reuse=m0, breaks=[3000.0])
+
+
+def test_all_cells_cloudy_is_refused(solved):
+    cells, _ = solved
+    with pytest.raises(Gf4calError, match="no usable cell"):
+        panms.estimate(cells.assign(usable=False), ms_size=(7680, 7680))
+
+
+def test_cloudy_cells_left_out():
+    sc = make_gf7_scene(seed=2, jitter=False, clouds=0.3)
+    cells = synth_cells(sc, sigma=SIGMA)
+    # a cloudy cell measures nothing: replace its nabla by garbage; it must not enter the estimate
+    cells.loc[~cells["usable"], ["d_sample", "d_line"]] = 5.0
+    assert 0.15 < 1 - cells["usable"].mean() < 0.5
+    m = panms.estimate(cells, ms_size=sc.image("ms").size)
+    s, l, ts, tl = truth_grid(sc, 80)
+    ps, pl = m.predict(s, l)
+    assert np.sqrt(np.mean((ts - ps) ** 2 + (tl - pl) ** 2)) <= 0.03
