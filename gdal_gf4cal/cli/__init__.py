@@ -27,6 +27,7 @@ COMMANDS = [
     "apply_calibration",
     "experiment",
     "collect_gcps",
+    "block_adjust",
 ]
 
 
