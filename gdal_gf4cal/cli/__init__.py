@@ -28,6 +28,7 @@ COMMANDS = [
     "experiment",
     "collect_gcps",
     "register_pan_ms",
+    "block_adjust",
 ]
 
 

@@ -41,7 +41,7 @@ class PointSolution:
 
 
 def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_min: float = 1e-30,
-                      covariance: bool = True) -> PointSolution:
+                      covariance: bool = True, extra=None) -> PointSolution:
     """Solve the normal equations of point-block observations by Schur complement (module docstring).
 
     Parameters
@@ -52,8 +52,14 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
         ``observed - predicted`` and weights (0: not observed).
     jac_global : ndarray (N, r, p), optional
         Derivatives by the global parameters.
+        Or a ``scipy.sparse`` matrix ``(N * r, p)`` (rows point-major: row ``i * r + k`` is observation ``k`` of
+        point ``i``): the normal equations are then assembled sparsely (each observation touching a few global
+        parameters, as in block adjustment, METHODS §8), cost linear in ``N``.
     det_min : float
         Points whose ``N_pp`` block has ``|det| <= det_min`` are singular (``ok`` False, NaN step).
+    extra : (J (m, p) dense or sparse, residuals (m,), weights (m,)), optional
+        Observations of the global parameters alone (e.g. GCPs, whose ground is known), added to the reduced
+        system.
 
     Raises
     ------
@@ -75,6 +81,11 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
         if ok.any():
             dxp[ok] = np.linalg.solve(npp[ok], bp[ok][..., None])[..., 0]
         return PointSolution(dxp, inv if covariance else np.empty((0, q, q)), ok, np.zeros(0), np.zeros((0, 0)))
+    import scipy.sparse as sp
+    if sp.issparse(jac_global):
+        return _solve_sparse(jp, r, w, npp, bp, ok, inv, sp.csr_matrix(jac_global), extra, covariance)
+    if extra is not None:
+        raise ValueError("extra observations need a sparse jac_global")
     jg = np.asarray(jac_global, dtype=float)
     p = jg.shape[2]
     jg_ok, jp_ok, w_ok, r_ok, inv_ok = jg[ok], jp[ok], w[ok], r[ok], inv[ok]
@@ -115,4 +126,73 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
     if covariance:
         cov_p = inv.copy()
         cov_p[ok] = inv_ok + np.einsum("nqi,ij,nrj->nqr", t, cov_g, t)
+    return PointSolution(dxp, cov_p, ok, dxg, cov_g)
+
+
+def _solve_sparse(jp, r, w, npp, bp, ok, inv, jg, extra, covariance: bool) -> PointSolution:
+    """Sparse assembly of the reduced system (``jac_global`` a sparse ``(N * r, p)`` matrix), see
+    :func:`solve_with_points`. The reduced matrix is ``p x p`` whatever the number of points; it is solved after
+    equilibration by its diagonal (dense below :data:`SPARSE_ABOVE` globals, ``scipy.sparse`` above)."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+    n, k, q = jp.shape
+    p = jg.shape[1]
+    if jg.shape[0] != n * k:
+        raise ValueError(f"sparse jac_global has {jg.shape[0]} rows; expected {n * k} (points x observations)")
+    wk = np.where(ok[:, None], w, 0.0)                                        # singular points leave the system
+    wf = wk.ravel()
+    rows = np.repeat(np.arange(n * k), q)
+    cols = (np.arange(n)[:, None, None] * q + np.arange(q)[None, None, :] + np.zeros((1, k, 1), int)).ravel()
+    pmat = sp.csr_matrix(((jp * wk[:, :, None]).ravel(), (rows, cols)), shape=(n * k, n * q))
+    npg = (pmat.T @ jg).tocsr()                                               # (N q, p): sum_k w jp^T jg
+    ngg = (jg.T @ sp.diags(wf) @ jg).tocsr()
+    bg = jg.T @ (wf * r.ravel())
+    if extra is not None:
+        je = sp.csr_matrix(extra[0])
+        re_ = np.nan_to_num(np.asarray(extra[1], dtype=float))
+        we = np.asarray(extra[2], dtype=float)
+        ngg = ngg + (je.T @ sp.diags(we) @ je).tocsr()
+        bg = bg + je.T @ (we * re_)
+    inv0 = np.where(ok[:, None, None], np.nan_to_num(inv), 0.0)
+    bi = np.arange(n * q).reshape(n, q)
+    minv = sp.csr_matrix((inv0.ravel(), (np.repeat(bi, q, axis=1).ravel(), np.tile(bi, (1, q)).ravel())),
+                         shape=(n * q, n * q))
+    t = (minv @ npg).tocsr()                                                  # N_pp^-1 N_pg
+    bp0 = np.where(ok[:, None], bp, 0.0)
+    s_mat = (ngg - npg.T @ t).tocsc()
+    b_red = bg - npg.T @ np.einsum("nij,nj->ni", inv0, bp0).ravel()
+    d = np.sqrt(np.abs(s_mat.diagonal()))
+    if not np.all(d > 0):
+        raise DegenerateGeometryError(f"{int(np.sum(d <= 0))} global parameter(s) have no observation; freeze "
+                                      "blocks or add observations")
+    dinv = sp.diags(1.0 / d)
+    s_eq = (dinv @ s_mat @ dinv)
+    if p > SPARSE_ABOVE:
+        try:
+            z = spla.spsolve(s_eq.tocsc(), b_red / d)
+        except RuntimeError as exc:
+            raise DegenerateGeometryError(f"the global parameters are not determined ({exc}); freeze blocks or "
+                                          "add observations") from None
+        s_dense = s_eq.toarray() if covariance else None
+    else:
+        s_dense = s_eq.toarray()
+        sv = np.linalg.svd(s_dense, compute_uv=False)
+        if sv[-1] <= 1e-12 * sv[0]:
+            raise DegenerateGeometryError(f"the global parameters are not determined (condition number "
+                                          f"{sv[0] / max(sv[-1], 1e-300):.3g}); freeze blocks or add observations")
+        z = np.linalg.solve(s_dense, b_red / d)
+    dxg = z / d
+    if not np.all(np.isfinite(dxg)):
+        raise DegenerateGeometryError("the global parameters are not determined; freeze blocks or add observations")
+    dxp = np.full((n, q), np.nan)
+    corr = (npg @ dxg).reshape(n, q)
+    dxp[ok] = np.einsum("nij,nj->ni", inv[ok], bp[ok] - corr[ok])
+    cov_g = np.zeros((0, 0))
+    cov_p = np.empty((0, q, q))
+    if covariance:
+        cov_g = np.linalg.inv(s_dense) / np.outer(d, d)
+        tt = t.toarray().reshape(n, q, p) if n * q * p <= 5e7 else None
+        cov_p = inv.copy()
+        if tt is not None:
+            cov_p[ok] = inv[ok] + np.einsum("nqi,ij,nrj->nqr", tt[ok], cov_g, tt[ok])
     return PointSolution(dxp, cov_p, ok, dxg, cov_g)

@@ -24,11 +24,12 @@ qgis, PyQt or the estimation modules (callers pass what it needs); the styles ar
 from __future__ import annotations
 
 from ._common import PathLike, RESIDUAL_FIELDS, STANDARD_AFTER, STANDARD_BEFORE, _RAMP  # noqa: F401 (kept importable)
-from .gpkg import footprint_from_rpc, write_residuals_gpkg
+from .gpkg import footprint_from_rpc, write_points_layer, write_residuals_gpkg
 from .json import write_report_json
-from .plot import plot_residuals
+from .plot import plot_residuals, plot_seams
 
 __all__ = [
-    "write_residuals_gpkg", "plot_residuals", "write_report_json", "footprint_from_rpc",
+    "write_residuals_gpkg", "plot_residuals", "write_report_json", "footprint_from_rpc", "plot_seams",
+    "write_points_layer",
     "RESIDUAL_FIELDS", "STANDARD_BEFORE", "STANDARD_AFTER",
 ]

@@ -6,7 +6,7 @@ import itertools
 import math
 import os
 from pathlib import Path
-from typing import Any, Callable, Optional, Sequence, Tuple
+from typing import Any, Callable, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -305,6 +305,10 @@ def _bulk_write(path: Path, layers, cancelled) -> None:
 def _write_layer_styles(ds, styles: Sequence[Tuple[str, str, str, str, str]]) -> None:
     """QGIS's ``layer_styles`` table (same fields, types and FID name as QGIS creates), one default per layer."""
     from osgeo import ogr
+    layer = ds.GetLayerByName("layer_styles")
+    if layer is not None:                      # appending layers to a GeoPackage that has styles already
+        _add_styles(layer, styles)
+        return
     layer = ds.CreateLayer("layer_styles", None, ogr.wkbNone, options=["FID=id"])
     spec = [("f_table_catalog", ogr.OFTString, 256), ("f_table_schema", ogr.OFTString, 256),
             ("f_table_name", ogr.OFTString, 256), ("f_geometry_column", ogr.OFTString, 256),
@@ -320,6 +324,11 @@ def _write_layer_styles(ds, styles: Sequence[Tuple[str, str, str, str, str]]) ->
         if name == "update_time":
             fd.SetDefault("CURRENT_TIMESTAMP")
         layer.CreateField(fd)
+    _add_styles(layer, styles)
+
+
+def _add_styles(layer, styles) -> None:
+    from osgeo import ogr
     now = _dt.datetime.now(_dt.timezone.utc)
     for table, geom_col, qml, sld, description in styles:
         f = ogr.Feature(layer.GetLayerDefn())
@@ -327,7 +336,7 @@ def _write_layer_styles(ds, styles: Sequence[Tuple[str, str, str, str, str]]) ->
         f.SetField("f_table_schema", "")
         f.SetField("f_table_name", table)
         f.SetField("f_geometry_column", geom_col)
-        f.SetField("styleName", table)
+        f.SetField("styleName", table[:30])          # QGIS's field width
         f.SetField("styleQML", qml)
         f.SetField("styleSLD", sld)
         f.SetField("useAsDefault", 1)
@@ -360,7 +369,8 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
                          before: Optional[Tuple[str, str]] = STANDARD_BEFORE,
                          after: Optional[Tuple[str, str]] = STANDARD_AFTER,
                          crs: Any = "EPSG:4326", pixel_size=None, overwrite: bool = True,
-                         title: str = "GCP residuals", cancelled: Optional[Callable[[], bool]] = None) -> Path:
+                         title: str = "GCP residuals", cancelled: Optional[Callable[[], bool]] = None,
+                         layer_prefix: str = "", append: bool = False) -> Path:
     """Write GCPs and their residuals as a styled GeoPackage that QGIS draws at once.
 
     Layers (the styles are the layers' defaults in ``layer_styles``, QML and SLD):
@@ -409,6 +419,11 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
     cancelled : callable, optional
         Asked between layers and every 20,000 rows; when it returns True the write stops with
         :class:`~gdal_gf4cal.errors.CancelledError` and the temporary file is removed (nothing is written).
+    layer_prefix : str
+        Prefix of every layer name and title (``<prefix>gcps``, ...): several images' layers in one GeoPackage.
+    append : bool
+        Add the layers to the existing GeoPackage ``path`` instead of replacing it (the caller owns atomicity, e.g.
+        an :class:`~gdal_gf4cal.outputs.OutputSet` temporary).
 
     Returns
     -------
@@ -421,7 +436,7 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
     path = Path(path)
     if path.suffix.lower() != ".gpkg":
         raise GCPError(f"residuals are written as a GeoPackage: give a .gpkg path, not {path.name!r}")
-    if path.exists() and not overwrite:
+    if path.exists() and not overwrite and not append:
         from ..errors import InputOverwriteError
         raise InputOverwriteError(f"{path} exists; remove it or pass overwrite=True")
     df = gcps if isinstance(gcps, pd.DataFrame) else pd.DataFrame(gcps)
@@ -515,7 +530,7 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         else:
             factor = _nice(0.1 * extent / longest_all) if longest_all > 0 else 1.0
             clip_at = 3.0 * longest_all * factor  # auto mode: blunders drawn at most 3x the longest regular arrow
-        name = "residual_vectors" if k == 0 else "residual_vectors_before"
+        name = layer_prefix + ("residual_vectors" if k == 0 else "residual_vectors_before")
         scale = factor * math.sqrt(ps * pl)
         drawn = factor * length
         shrink = np.where(drawn > clip_at, clip_at / np.where(drawn > 0, drawn, 1.0), 1.0)
@@ -539,40 +554,44 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         meta = {"EXAGGERATION": f"{factor:g}", "MAP_UNITS_PER_PX": f"{scale:.10g}", "EPOCH": epoch,
                 "DIRECTION": "sample->east, line->south", "PIXEL_SIZE_MAP_UNITS": f"{ps:.10g} {pl:.10g}"}
         mag = mag[regular]  # class breaks from the regular points; blunders fall in the open last class
-        vector_layers.append((name, vfields, cols, geoms, desc, meta, mag, residual_layer_title(epoch, factor)))
+        vector_layers.append((name, vfields, cols, geoms, desc, meta, mag,
+                              layer_prefix + residual_layer_title(epoch, factor)))
 
-    if path.exists() and not overwrite:  # pragma: no cover - checked above; re-checked for races
+    if path.exists() and not overwrite and not append:  # pragma: no cover - checked above; re-checked for races
         raise Gf4calError(f"{path} exists")
-    tmp = _temp_path(path)
+    appending = append and path.exists()
+    tmp = path if appending else _temp_path(path)
     driver = ogr.GetDriverByName("GPKG")
     check_cancel = cancelled if cancelled is not None else (lambda: False)
     try:
-        ds = driver.CreateDataSource(str(tmp))
+        ds = ogr.Open(str(path), update=1) if appending else driver.CreateDataSource(str(tmp))
         if ds is None:
             raise Gf4calError(f"cannot create a GeoPackage in {path.parent}; check the folder is writable")
         styles, bulk = [], []
         if ds.StartTransaction() != 0:
             raise Gf4calError(f"cannot write the GeoPackage {path}; check the folder is writable")
-        gl = _create_layer(ds, "gcps", srs, ogr.wkbPoint, fields,
+        gname = layer_prefix + "gcps"
+        gl = _create_layer(ds, gname, srs, ogr.wkbPoint, fields,
                            f"{title}: ground control / check points with residuals (measured - predicted, px)")
-        bulk.append(("gcps", fields, columns, lambda sid: _point_records(x, y, sid)))
+        bulk.append((gname, fields, columns, lambda sid: _point_records(x, y, sid)))
         qml, sld = _points_style()
-        styles.append(("gcps", gl.GetGeometryColumn(), qml, _sld("gcps", sld), "GCPs by role; outliers as red crosses"))
+        styles.append((gname, gl.GetGeometryColumn(), qml, _sld(gname, sld), "GCPs by role; outliers as red crosses"))
         for name, vfields, cols, geoms, desc, meta, mag, ident in vector_layers:
             vl = _create_layer(ds, name, srs, ogr.wkbLineString, vfields, desc, meta, ident)
             bulk.append((name, vfields, cols, lambda sid, g=geoms: _line_records(*g, sid)))
             # The 'before' arrows are drawn half-transparent so the 'after' ones stand out where both are shown.
-            qml, sld = _vector_style(_class_breaks(mag), 1.0 if name == "residual_vectors" else 0.5)
+            qml, sld = _vector_style(_class_breaks(mag), 1.0 if name.endswith("residual_vectors") else 0.5)
             styles.append((name, vl.GetGeometryColumn(), qml, _sld(name, sld),
                            f"residual arrows coloured by magnitude; {desc}"))
         if fp is not None and not fp.is_empty:
             ffields = [("name", (ogr.OFTString, ogr.OFSTNone))]
-            fl = _create_layer(ds, "footprint", srs, ogr.wkbMultiPolygon, ffields, f"{title}: scene footprint")
+            fname = layer_prefix + "footprint"
+            fl = _create_layer(ds, fname, srs, ogr.wkbMultiPolygon, ffields, f"{title}: scene footprint")
             wkb = ogr.ForceToMultiPolygon(ogr.CreateGeometryFromWkb(fp.wkb)).ExportToWkb(ogr.wkbNDR)
-            bulk.append(("footprint", ffields, {"name": np.array(["footprint"], dtype=object)},
+            bulk.append((fname, ffields, {"name": np.array(["footprint"], dtype=object)},
                          lambda sid, w=wkb, bb=fp.bounds: _wkb_records(w, bb, sid)))
             qml, sld = _footprint_style()
-            styles.append(("footprint", fl.GetGeometryColumn(), qml, _sld("footprint", sld), "scene footprint"))
+            styles.append((fname, fl.GetGeometryColumn(), qml, _sld(fname, sld), "scene footprint"))
         _write_layer_styles(ds, styles)
         if ds.CommitTransaction() != 0:
             raise Gf4calError(f"cannot write the GeoPackage {path} (the commit failed: disk full?); nothing was kept")
@@ -584,10 +603,43 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
                           for name, lfields, lcols, make in bulk], check_cancel)
         if check_cancel():
             raise CancelledError("cancelled while writing the residual GeoPackage; nothing was kept")
-        os.replace(tmp, path)
+        if not appending:
+            os.replace(tmp, path)
     finally:
         ds = None
-        _cleanup(tmp)
+        if not appending:
+            _cleanup(tmp)
+    return path
+
+
+def write_points_layer(path: PathLike, layer: str, columns: Mapping[str, np.ndarray], lon, lat, *,
+                       description: str = "") -> Path:
+    """Add a point layer (EPSG:4326, one feature per row of ``columns``) to the GeoPackage ``path`` (created when
+    absent), styled as the ``gcps`` layers (e.g. block calibration's ``seams``: one feature per overlap tie point).
+    Written as the residual layers are: OGR creates the layer and its style, the rows go in in bulk."""
+    from osgeo import ogr, osr
+    path = Path(path)
+    ds = ogr.Open(str(path), update=1) if path.exists() else ogr.GetDriverByName("GPKG").CreateDataSource(str(path))
+    if ds is None:
+        raise Gf4calError(f"cannot write the GeoPackage {path}; check the folder is writable")
+    srs = osr.SpatialReference()
+    srs.ImportFromEPSG(4326)
+    srs.SetAxisMappingStrategy(osr.OAMS_TRADITIONAL_GIS_ORDER)
+    cols = {k: np.asarray(v) for k, v in columns.items()}
+    fields = [(k, _ogr_type(v)) for k, v in cols.items()]
+    lon, lat = np.asarray(lon, float), np.asarray(lat, float)
+    try:
+        if ds.StartTransaction() != 0:
+            raise Gf4calError(f"cannot write the GeoPackage {path}; check the folder is writable")
+        lyr = _create_layer(ds, layer, srs, ogr.wkbPoint, fields, description)
+        qml, sld = _points_style()
+        _write_layer_styles(ds, [(layer, lyr.GetGeometryColumn(), qml, _sld(layer, sld), description)])
+        if ds.CommitTransaction() != 0:
+            raise Gf4calError(f"cannot write the GeoPackage {path} (the commit failed: disk full?)")
+    finally:
+        ds = None
+    sid = _srs_ids(path, [layer])[layer]
+    _bulk_write(path, [(layer, fields, cols, lambda: _point_records(lon, lat, sid))], None)
     return path
 
 

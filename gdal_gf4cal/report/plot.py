@@ -173,6 +173,54 @@ def _save(fig, path: PathLike) -> Path:
     return path
 
 
+def plot_seams(seams, path: PathLike, *, residual_rms=None, title: str = "Seams between adjacent CCDs",
+               dpi: int = 110) -> Path:
+    """Seam offsets along track, before and after (METHODS §8 seam report), and residual RMS per image (a PNG).
+
+    ``seams``: the list of :func:`gdal_gf4cal.block.seam_offsets` (each with ``pair`` and ``points``: ``line_b``,
+    ``ds_before``, ``dl_before``, ``ds_after``, ``dl_after``, px). Left panels: sample and line offset of each
+    overlap's tie points against their line (before faded, after solid). ``residual_rms``: ``{image: (before,
+    after)}`` planar RMS px, drawn as bars on the right.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    ncol = 3 if residual_rms else 2
+    fig = Figure(figsize=(5.0 * ncol, 4.6), dpi=dpi)
+    FigureCanvasAgg(fig)
+    axes = [fig.add_subplot(1, ncol, i + 1) for i in range(ncol)]
+    colours = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f"]
+    for k, entry in enumerate(s for s in seams if s.get("points")):
+        p = entry["points"]
+        c = colours[k % len(colours)]
+        label = f"{entry['pair'][0]} | {entry['pair'][1]}"
+        for ax, key in zip(axes[:2], ("ds", "dl")):
+            ax.plot(p["line_b"], p[f"{key}_before"], ".", color=c, alpha=0.25, ms=3)
+            ax.plot(p["line_b"], p[f"{key}_after"], "o", color=c, ms=3, label=label + " (after)")
+    for ax, name in zip(axes[:2], ("sample", "line")):
+        ax.axhline(0.0, color="k", lw=0.6)
+        ax.set_xlabel("line (right image of the pair)")
+        ax.set_ylabel(f"{name} offset, px (faded: before)")
+        ax.set_title(f"{name} seam offset")
+    if seams:
+        axes[0].legend(fontsize=7, loc="best")
+    if residual_rms:
+        names = list(residual_rms)
+        before = [residual_rms[n][0] for n in names]
+        after = [residual_rms[n][1] for n in names]
+        xs = np.arange(len(names))
+        axes[2].bar(xs - 0.2, before, 0.4, color="#bbbbbb", label="before")
+        axes[2].bar(xs + 0.2, after, 0.4, color="#1f4fd1", label="after")
+        axes[2].set_xticks(xs)
+        axes[2].set_xticklabels(names, rotation=90, fontsize=7)
+        axes[2].set_yscale("log")
+        axes[2].set_ylabel("planar RMS residual, px")
+        axes[2].set_title("residuals per CCD and band")
+        axes[2].legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 def plot_step_residual_maps(sample, line, steps, path: PathLike, *, image_size, used=None,
                             title: str = "residuals per step", dpi: int = 100) -> Path:
     """One panel per step: the cells' residual vectors ``(res_sample, res_line)`` (MS px, measured - predicted)

@@ -74,7 +74,8 @@ def _class_breaks(magnitudes: np.ndarray, n: int = len(_RAMP)) -> list:
     top = float(m.max()) if m.size and m.max() > 0 else 1.0
     step = _nice(top / n)
     while step * n < top * 0.999:  # rounding down may leave the largest value out of the classes
-        step = _nice(step * 1.05)
+        nxt = _nice(step * 1.05)
+        step = nxt if nxt > step else _nice(step * 1.2)   # 1.05 x 1.0 rounds back to 1.0 (round half to even)
     return [i * step for i in range(n)] + [max(step * n, top) * 1e6]
 
 

@@ -86,6 +86,11 @@ def simulate_gcps(scene: SimScene, *, n_gcps: int = 200, gcp_noise_px: float = 0
         ts, tl = im.true.project(lon, lat, h)
         W, H = im.size
         inside = np.isfinite(ts) & np.isfinite(tl) & (ts >= 0) & (ts <= W) & (tl >= 0) & (tl <= H)
+        # A true camera's cubic distortion, extrapolated far outside its CCD, can fold a distant ground point into
+        # the image (jl1 MS bands): keep only points the current model also sees nearby (errors are < 100 px).
+        cs, cl = im.current.project(lon[inside], lat[inside], h[inside])
+        near = np.isfinite(cs) & np.isfinite(cl) & (np.abs(cs - ts[inside]) < 100) & (np.abs(cl - tl[inside]) < 100)
+        inside[np.flatnonzero(inside)[~near]] = False
         k = int(inside.sum())
         noise_s = rng.normal(0.0, gcp_noise_px, k) if gcp_noise_px > 0 else np.zeros(k)
         noise_l = rng.normal(0.0, gcp_noise_px, k) if gcp_noise_px > 0 else np.zeros(k)

@@ -1,0 +1,324 @@
+"""``gf4cal block-adjust`` / QGIS ``gf4cal:blockadjust``: multi-CCD / band-to-band block calibration of one group
+from its RPC images (METHODS §8; engine :mod:`gdal_gf4cal.block`). All outputs together or none.
+
+Images are named by a **key**: the file name without extension when those are unique, else the image's folder name
+(simulated groups: ``ccd1/scene.tif`` -> ``ccd1``). The observation files' ``image`` column names images by key,
+file name or path. Outputs in ``out``: ``<key>.RPB`` per image (refit, METHODS §3, error reported),
+``calibration.json`` (the group's exterior and every image's interior, for ``apply-calibration``), ``report.json``,
+``residuals.gpkg`` (layers ``<key>_gcps`` / ``<key>_residual_vectors`` per image and ``seams``) and ``seams.png``.
+"""
+from __future__ import annotations
+
+import os
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
+
+import numpy as np
+
+from ..block import BlockError
+from ..outputs import OutputSet, check_vector
+from ._common import _open_image, cancel_check, collect_warnings, finish_report
+
+__all__ = ["block_adjust", "image_keys", "parse_bands_of"]
+
+
+def image_keys(paths: Sequence) -> List[str]:
+    """Keys of images (module docstring): file stems when unique, else folder names; unique or an error."""
+    from .calibrate import _scene_stem
+    stems = [_scene_stem(p) for p in paths]
+    if len(set(s.casefold() for s in stems)) == len(stems):
+        return stems
+    folders = [os.path.basename(os.path.dirname(os.path.abspath(os.fspath(p)))) for p in paths]
+    if len(set(f.casefold() for f in folders)) == len(folders):
+        return folders
+    raise BlockError("two images have the same file name and folder name; give each image of the group a distinct "
+                     "name")
+
+
+def _resolve(name: str, paths: Sequence[str], keys: Sequence[str], what: str) -> str:
+    """The key of the image ``name`` (a key, file name, path or stem)."""
+    from .calibrate import _scene_stem
+    name = str(name).strip()
+    low = name.casefold()
+    for p, k in zip(paths, keys):
+        if low in (k.casefold(), os.path.basename(p).casefold(), _scene_stem(p).casefold()) and \
+                sum(low in (kk.casefold(), os.path.basename(pp).casefold()) for pp, kk in zip(paths, keys)) <= 1:
+            return k
+        if os.path.abspath(name) == os.path.abspath(p):
+            return k
+    raise BlockError(f"{what} names image {name!r}, which is not among the images given "
+                     f"({', '.join(keys[:6])}{', ...' if len(keys) > 6 else ''}); give that image or fix the name")
+
+
+def parse_bands_of(items: Union[None, Mapping[str, str], Sequence[str]]) -> Dict[str, str]:
+    """``["IMAGE=REFIMAGE", ...]`` (CLI/QGIS) or a mapping -> ``{band image: reference-band image}``."""
+    if not items:
+        return {}
+    if isinstance(items, Mapping):
+        return {str(k): str(v) for k, v in items.items()}
+    out = {}
+    for it in items:
+        if "=" not in str(it):
+            raise BlockError(f"--bands-of {it!r}: write IMAGE=REFIMAGE (a band image and the reference-band image of "
+                             "its CCD)")
+        a, b = str(it).split("=", 1)
+        out[a.strip()] = b.strip()
+    return out
+
+
+def _read_obs(paths: Sequence[str], keys: Sequence[str], files: Sequence, dem) -> Any:
+    import pandas as pd
+    from ..observations import read_observations
+    tables = []
+    for f in files:
+        t = read_observations(f, need_height=False, dem=dem)
+        ids = {i: _resolve(i, paths, keys, f"the observation file {os.path.basename(os.fspath(f))}")
+               for i in t["image_id"].unique()}
+        t["image_id"] = t["image_id"].map(ids)
+        tables.append(t)
+    if not tables:
+        return None
+    tab = pd.concat(tables, ignore_index=True)
+    return tab.drop_duplicates(["point_id", "image_id"]).reset_index(drop=True)
+
+
+def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None, match_ties: bool = False,
+                 reference_ortho=None, bands_of=None, solver: str = "simultaneous", reference_ccd=None,
+                 overwrite: bool = False, progress=None) -> Dict[str, Any]:
+    """Block calibration of one group (METHODS §8) from files; see the module docstring for names and outputs.
+
+    Parameters
+    ----------
+    images : image paths (RPC embedded or as a sidecar). The reference-band CCD images come **in their order
+        across track** (adjacent ones must overlap); the other bands' images anywhere, each named in ``bands_of``.
+    dem : DEM path or number (tie-point heights); ``geoid``: its vertical datum (``auto``/``none``/``egm96``/...).
+    gcps, ties : observation files (CSV/GeoPackage, long format: ``point_id, image, sample, line`` [``lon, lat, h``,
+        ``role``, ``sigma``]); a single file may hold both (rows are de-duplicated).
+    match_ties : tie points by raw-to-raw matching (adjacent CCDs and each band against its reference band).
+    reference_ortho : an orthophoto to collect GCPs from for every reference-band image.
+    bands_of : ``{band image: reference-band image}`` or ``["IMAGE=REFIMAGE", ...]``.
+    solver : ``simultaneous`` or ``alternating``; ``alternating`` also runs the simultaneous solve and compares
+        them in the report (``solver_comparison``).
+    reference_ccd : the CCD image fixing the datum (default: the middle reference-band CCD).
+
+    Returns
+    -------
+    dict: the report written as ``report.json`` (+ ``outputs``, ``warnings``).
+    """
+    from .. import progress as _progress
+    from ..block import adjust_block, calibration_dict, corrected_model, seam_offsets
+    from ..dem import DEM
+    from ..report import plot_seams, write_points_layer, write_report_json, write_residuals_gpkg
+    from ..rpc import RPCModel
+    from ..rpc_fit import fit_rpc_from_model
+    from ..rpc_io import write_rpb
+    from ..stats import accuracy_by_role
+    from ..block import write_calibration
+
+    paths = [os.fspath(p) for p in images]
+    if len(paths) < 2:
+        raise BlockError("a block needs the images of at least two CCDs; give every CCD image of the group")
+    if solver not in ("simultaneous", "alternating"):
+        raise BlockError(f"solver {solver!r} unknown; choose simultaneous or alternating")
+    if not (gcps or reference_ortho):
+        raise BlockError("no control: give GCPs (--gcps) or a reference ortho (--reference-ortho) to fix the datum")
+    if not (ties or match_ties):
+        raise BlockError("no tie points: give --ties or --match-ties to tie the CCDs and bands together")
+    keys = image_keys(paths)
+    bmap = {_resolve(a, paths, keys, "--bands-of"): _resolve(b, paths, keys, "--bands-of")
+            for a, b in parse_bands_of(bands_of).items()}
+    order = [k for k in keys if k not in bmap]
+    ref_ccd = _resolve(reference_ccd, paths, keys, "--reference-ccd") if reference_ccd else None
+    sizes, inputs = {}, []
+    models = {}
+    for p, k in zip(paths, keys):
+        size, files = _open_image(p)
+        inputs += files
+        models[k] = RPCModel.from_file(p)
+        sizes[k] = size
+    obs_files = [os.fspath(f) for f in (gcps, ties) if f]
+    obs_files = list(dict.fromkeys(obs_files))
+    inputs += obs_files + [os.fspath(f) for f in (dem, reference_ortho) if isinstance(f, (str, os.PathLike))]
+    dem_obj = DEM.from_user_input(dem, geoid=geoid)
+    from ..block import derive_layout
+    layout = derive_layout(models, order, bands_of=bmap, sizes={k: s for k, s in sizes.items() if s},
+                           reference_ccd=ref_ccd)
+    tab = _read_obs(paths, keys, obs_files, dem_obj)
+    # declare every output before any work
+    outd = os.fspath(out)
+    outs = OutputSet(inputs, overwrite=overwrite, cancelled=cancel_check(progress))
+    for k in keys:
+        outs.declare(f"rpb:{k}", os.path.join(outd, f"{k}.RPB"))
+    outs.declare("calibration", os.path.join(outd, "calibration.json"))
+    outs.declare("report", os.path.join(outd, "report.json"))
+    outs.declare("residuals", os.path.join(outd, "residuals.gpkg"), check=check_vector())
+    outs.declare("seams_plot", os.path.join(outd, "seams.png"))
+    warns: List[str] = []
+    with outs, collect_warnings(warns):
+        extra = []
+        if reference_ortho:
+            extra.append(_collect_from_ortho(paths, keys, order, models, reference_ortho, dem_obj,
+                                             _progress.scaled(progress, 0.0, 0.2)))
+        if match_ties:
+            extra.append(_match_ties(paths, keys, layout, models, dem_obj, _progress.scaled(progress, 0.2, 0.35)))
+        if extra:
+            import pandas as pd
+            tab = pd.concat(([tab] if tab is not None else []) + extra, ignore_index=True)
+            tab = tab.drop_duplicates(["point_id", "image_id"]).reset_index(drop=True)
+        est = adjust_block(tab, models, dem_obj, layout=layout, solver=solver, compare=(solver == "alternating"),
+                           progress=_progress.scaled(progress, 0.35, 0.7))
+        corrected = {k: corrected_model(est, k, models[k]) for k in keys}
+        images_rep: Dict[str, Any] = {}
+        for i, (p, k) in enumerate(zip(paths, keys)):
+            _progress.report(progress, 0.7 + 0.2 * i / len(keys), f"refitting the RPC of {k}")
+            new_rpc, fit = fit_rpc_from_model(corrected[k], size=layout.images[k].size,
+                                              height_range=tuple(models[k].height_range))
+            write_rpb(new_rpc, outs.tmp(f"rpb:{k}"), overwrite=True)
+            rows = est.table[est.table["image_id"] == k]
+            g = rows[rows["kind"] == "gcp"]
+            t = rows[rows["kind"] == "tie"]
+            images_rep[k] = {"image": p, "rpb": outs.path(f"rpb:{k}"), "ccd": layout.images[k].ccd,
+                             "reference_band_image": layout.images[k].reference,
+                             "rpc_fit": fit.to_dict(), "gcps": accuracy_by_role(g) if len(g) else None,
+                             "ties": accuracy_by_role(t.assign(role="control"), roles=("control",))["control"]
+                             if len(t) else None}
+        pairs = list(layout.adjacent_pairs())
+        pairs += _band_pairs(layout, est.table)
+        seams = seam_offsets(est.table, models, corrected, dem_obj, pairs)
+        band_reg = _band_to_band(est.table, layout)
+        rep: Dict[str, Any] = {
+            "command": "block-adjust", "method": "METHODS §8 block calibration in RPC space",
+            "solver": solver, "layout": layout.to_dict(), "estimate": est.to_dict(), "stages": est.stages,
+            "exterior": {n: float(v) for n, v in zip(est.names[:5], est.x[:5])},
+            "images": images_rep,
+            "seams": [{k: v for k, v in s.items() if k != "points"} for s in seams],
+            "band_to_band": band_reg,
+            "n_outliers": int(np.count_nonzero(est.outlier)),
+            "outliers": [{"point_id": str(r.point_id), "image": str(r.image_id), "kind": str(r.kind)}
+                         for r in est.table[est.table["outlier"]].itertuples()][:1000]}
+        if est.comparison is not None:
+            rep["solver_comparison"] = {
+                solver: {"iterations": [s["iterations"] for s in est.stages],
+                         "converged": [s["converged"] for s in est.stages],
+                         "sigma0": float(est.sigma0)},
+                est.comparison["solver"]: {"iterations": [s["iterations"] for s in est.comparison["stages"]],
+                                           "converged": [s["converged"] for s in est.comparison["stages"]]},
+                "max_prediction_difference_px": _max_difference(est.table, est.comparison["table"])}
+        rep["warnings"] = list(est.warnings)
+        write_calibration(calibration_dict(est), outs.tmp("calibration"))
+        # residual GeoPackage: per image its GCPs (and tie rays), then the seams layer
+        gp = outs.tmp("residuals")
+        for k in keys:
+            rows = est.table[est.table["image_id"] == k].rename(columns={"point_id": "id"})
+            rows = rows[np.isfinite(rows["lon"].to_numpy(float))]
+            if len(rows) == 0:
+                continue
+            write_residuals_gpkg(rows.drop(columns=[c for c in ("image_id",) if c in rows.columns]), gp,
+                                 layer_prefix=f"{k}_", append=True, overwrite=True, title=f"{k} residuals")
+        sp = [s for s in seams if s.get("points")]
+        if sp:
+            cols: Dict[str, Any] = {"pair": np.concatenate([np.full(len(s["points"]["point_id"]),
+                                                                    f"{s['pair'][0]}|{s['pair'][1]}", dtype=object)
+                                                            for s in sp])}
+            for c in ("point_id", "line_b", "ds_before", "dl_before", "ds_after", "dl_after"):
+                cols[c] = np.concatenate([np.asarray(s["points"][c]) for s in sp])
+            cols["point_id"] = cols["point_id"].astype(str).astype(object)
+            cols["offset_px_before"] = np.hypot(cols["ds_before"], cols["dl_before"])
+            cols["offset_px_after"] = np.hypot(cols["ds_after"], cols["dl_after"])
+            write_points_layer(gp, "seams", cols, np.concatenate([s["points"]["lon"] for s in sp]),
+                               np.concatenate([s["points"]["lat"] for s in sp]),
+                               description="one feature per overlap tie point: offset (px of the right image) of "
+                                           "its measurement from the left image's prediction, before and after")
+        rms = {k: (_planar_rms(est.table, k, "before"), _planar_rms(est.table, k, "after")) for k in keys}
+        plot_seams(seams, outs.tmp("seams_plot"), residual_rms=rms)
+        rep["outputs"] = outs.paths
+        finish_report(rep, warns)
+        write_report_json(rep, outs.tmp("report"))
+    finish_report(rep, warns)
+    _progress.report(progress, 1.0, "done")
+    return rep
+
+
+def _planar_rms(table, k, when) -> float:
+    r = table[(table["image_id"] == k) & ~table["outlier"]]
+    v = np.hypot(r[f"res_sample_{when}"].to_numpy(float), r[f"res_line_{when}"].to_numpy(float))
+    v = v[np.isfinite(v)]
+    return float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")
+
+
+def _max_difference(a, b) -> float:
+    d = np.hypot(a["pred_sample_after"].to_numpy(float) - b["pred_sample_after"].to_numpy(float),
+                 a["pred_line_after"].to_numpy(float) - b["pred_line_after"].to_numpy(float))
+    return float(np.nanmax(d)) if np.isfinite(d).any() else float("nan")
+
+
+def _band_pairs(layout, table) -> list:
+    """Adjacent-CCD pairs of the other bands: band images whose reference images are adjacent and that share ties."""
+    adj = set(layout.adjacent_pairs())
+    ties = table[table["kind"] == "tie"]
+    pts = ties.groupby("image_id")["point_id"].apply(set).to_dict()
+    out = []
+    bands = layout.band_images
+    for a in bands:
+        for b in bands:
+            ra, rb = layout.images[a].reference, layout.images[b].reference
+            if (ra, rb) in adj and pts.get(a, set()) & pts.get(b, set()):
+                out.append((a, b))
+    return out
+
+
+def _band_to_band(table, layout) -> Dict[str, Any]:
+    """Band-to-band registration: per band image, residual RMS of its tie rays shared with its reference image."""
+    out = {}
+    ties = table[(table["kind"] == "tie") & ~table["outlier"]]
+    for b in layout.band_images:
+        ref = layout.images[b].reference
+        pb = set(ties.loc[ties["image_id"] == ref, "point_id"])
+        r = ties[(ties["image_id"] == b) & ties["point_id"].isin(pb)]
+        ent = {"reference": ref, "n": int(len(r))}
+        for when in ("before", "after"):
+            v = np.hypot(r[f"res_sample_{when}"].to_numpy(float), r[f"res_line_{when}"].to_numpy(float))
+            v = v[np.isfinite(v)]
+            ent[f"rms_px_{when}"] = float(np.sqrt(np.mean(v ** 2))) if v.size else None
+        out[b] = ent
+    return out
+
+
+def _collect_from_ortho(paths, keys, order, models, reference, dem, progress):
+    """GCPs collected against an orthophoto for every reference-band image (issue 7's matcher)."""
+    import pandas as pd
+    from ..matching.collect import collect_gcps
+    from ..observations import from_gcps
+    tabs = []
+    for i, k in enumerate(order):
+        p = paths[keys.index(k)]
+        g = collect_gcps(p, models[k], os.fspath(reference), dem, progress=None)
+        g = g[~g["outlier"].to_numpy(bool)] if "outlier" in g.columns else g
+        g = g.assign(id=[f"O{k}_{j}" for j in g["id"]])
+        tabs.append(from_gcps(g[["id", "lon", "lat", "h", "sample", "line", "role", "sigma"]], k))
+        if progress:
+            progress((i + 1) / len(order), f"GCPs of {k} from the reference ortho")
+    return pd.concat(tabs, ignore_index=True)
+
+
+def _match_ties(paths, keys, layout, models, dem, progress):
+    """Tie points by raw-to-raw matching (adjacent CCDs; every band against its reference band)."""
+    import pandas as pd
+    try:
+        from ..matching import match_ties
+    except ImportError:
+        raise BlockError("--match-ties needs the raw-to-raw matcher, which this installation lacks; give tie points "
+                         "with --ties") from None
+    pairs = list(layout.adjacent_pairs()) + [(layout.images[b].reference, b) for b in layout.band_images]
+    tabs = []
+    for i, (a, b) in enumerate(pairs):
+        t = match_ties(paths[keys.index(a)], models[a], paths[keys.index(b)], models[b], dem, ids=(a, b))
+        if t is not None and len(t):
+            t = t.copy()
+            t["point_id"] = [f"M{i}_{p}" for p in t["point_id"]]
+            tabs.append(t)
+        if progress:
+            progress((i + 1) / len(pairs), f"matched {a} and {b}")
+    if not tabs:
+        raise BlockError("raw-to-raw matching found no tie points; check the images overlap and have texture, or "
+                         "give --ties")
+    return pd.concat(tabs, ignore_index=True)
