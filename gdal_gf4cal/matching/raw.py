@@ -78,6 +78,9 @@ def overlap_region(image, model, reference, reference_model, dem, *, band: int =
     ys = np.append(np.arange(0.0, H, step), float(H))
     S, L = np.meshgrid(xs, ys)
     lon, lat, h = model.localize_dem(S, L, dem_)
+    if not np.isfinite(np.asarray(h, dtype=float)).any():
+        raise Gf4calError(f"the DEM gives no height under {os.path.basename(path)}; give a DEM that covers the "
+                          "scene (or a constant height)")
     rs, rl = ref.ground_to_pixel(lon, lat, h)
     inside = ref.inside(rs, rl)
     if not inside.any():
