@@ -78,6 +78,9 @@ def overlap_region(image, model, reference, reference_model, dem, *, band: int =
     ys = np.append(np.arange(0.0, H, step), float(H))
     S, L = np.meshgrid(xs, ys)
     lon, lat, h = model.localize_dem(S, L, dem_)
+    if not np.isfinite(np.asarray(h, dtype=float)).any():
+        raise Gf4calError(f"the DEM gives no height under {os.path.basename(path)}; give a DEM that covers the "
+                          "scene (or a constant height)")
     rs, rl = ref.ground_to_pixel(lon, lat, h)
     inside = ref.inside(rs, rl)
     if not inside.any():
@@ -230,7 +233,7 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
     its centre (``pred_sample, pred_line``). Windows ``outside_image`` do not count. Per cell and axis the mean is
     the **MAD-trimmed mean about the median** (:func:`gdal_gf4cal.stats.grouped_trimmed_mean`: accepted, non-outlier
     matches within ``trim_k`` robust standard deviations of the median on both axes), ``sigma_*`` its standard
-    error (spread of the kept matches over sqrt(n), floored by their mean precision over sqrt(n)), where overlapping
+    error (spread of the kept matches over sqrt(n); a lone match: its own ``sigma``), where overlapping
     windows count as ``n * independent_fraction`` independent ones (:func:`pan_ms_cells` gives ``(spacing /
     window)^2``: windows sharing pixels share their noise). ``breaks``: image columns where the offset field jumps
     (sub-CCD edges, METHODS §9); windows whose footprint (``window_px``, default ``matches.attrs['window_px']``)
@@ -266,12 +269,15 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
     sum_flat = np.bincount(cid[has_flat], flat[has_flat], minlength=ncell)
     good = (st == 0) & ~matches["outlier"].to_numpy(bool)
     m = grouped_trimmed_mean(cid[good], np.column_stack([matches["d_sample"].to_numpy(float)[good],
-                                                         matches["d_line"].to_numpy(float)[good]]),
-                             ncell, k=trim_k, sigma=matches["sigma"].to_numpy(float)[good])
+                                                         matches["d_line"].to_numpy(float)[good]]), ncell, k=trim_k)
     sig_s, sig_l = m.sigma[:, 0], m.sigma[:, 1]
     if independent_fraction < 1.0:
         n_eff = np.maximum(m.n * float(independent_fraction), 1.0)
         sig_s, sig_l = sig_s * np.sqrt(m.n / n_eff), sig_l * np.sqrt(m.n / n_eff)
+    # A single match: its own precision estimate.
+    one = np.bincount(cid[good], np.nan_to_num(matches["sigma"].to_numpy(float)[good]), minlength=ncell)
+    sig_s = np.where(m.n == 1, one, sig_s)
+    sig_l = np.where(m.n == 1, one, sig_l)
     with np.errstate(invalid="ignore", divide="ignore"):
         acc_frac = np.where(n_windows > 0, n_acc / np.maximum(n_windows, 1), 0.0)
         clear = np.where(n_flat > 0, 1.0 - sum_flat / np.maximum(n_flat, 1), 0.0)
