@@ -93,6 +93,10 @@ def _sql_values(values, ftype) -> list:
     """A column chunk as Python values SQLite binds, ``None`` where null (NaN, inf, None)."""
     from osgeo import ogr
     a = np.asarray(values)
+    if ftype == ogr.OFTReal and a.dtype.kind in "biuf":      # SQLite binds NaN as NULL; infinities made NaN
+        f = a.astype(float)
+        f[np.isinf(f)] = np.nan
+        return f.tolist()
     if ftype == ogr.OFTReal or (ftype in (ogr.OFTInteger, ogr.OFTInteger64) and a.dtype.kind in "fO"):
         f = np.asarray(a, dtype=float) if a.dtype.kind != "O" else np.array(
             [np.nan if v is None else v for v in a], dtype=float)
@@ -164,7 +168,7 @@ def _str_pack(boxes: np.ndarray, cap: int):
     n = len(boxes)
     n_nodes = -(-n // cap)
     slab = int(np.ceil(np.sqrt(n_nodes))) * cap
-    cx, cy = boxes[:, 0] + boxes[:, 1], boxes[:, 2] + boxes[:, 3]
+    cx, cy = boxes[:, 0] * 0.5 + boxes[:, 1] * 0.5, boxes[:, 2] * 0.5 + boxes[:, 3] * 0.5
     rank = np.empty(n, np.int64)
     rank[np.argsort(cx, kind="stable")] = np.arange(n)
     order = np.lexsort((cy, rank // slab))
@@ -201,10 +205,12 @@ def _rtree_bulk_load(conn, name: str, fids: np.ndarray, boxes: np.ndarray) -> No
     boxes = _rtree_cells(boxes)
     keys = np.asarray(fids, np.int64)
     levels = []                       # bottom-up: (entry keys, entry boxes, node of each entry, number of nodes)
+    leaf_order = None
     while len(keys) > cap:
-        order, node_of, nb = _str_pack(boxes.astype(np.float64), cap)
+        order, node_of, nb = _str_pack(boxes, cap)      # float32 boxes: exact min/max, ordering only approximate
+        leaf_order = order if leaf_order is None else leaf_order
         levels.append((keys[order], boxes[order], node_of, len(nb)))
-        keys, boxes = np.arange(len(nb), dtype=np.int64), nb.astype(np.float32)   # next level: child indices
+        keys, boxes = np.arange(len(nb), dtype=np.int64), nb   # next level: child indices
     # node numbers: the root is 1, then the levels from the top down
     base, nxt = [0] * len(levels), 2
     for k in range(len(levels) - 1, -1, -1):
@@ -218,18 +224,18 @@ def _rtree_bulk_load(conn, name: str, fids: np.ndarray, boxes: np.ndarray) -> No
     root_ids = keys if not levels else keys + base[-1]
     nodes.append((1, _node_blobs(root_ids, boxes, np.zeros(len(keys), np.int64), 1, node_size, cap,
                                  depth=len(levels))[0]))
+    fids = np.asarray(fids, np.int64)
+    leaf_of = np.ones(len(fids), np.int64)           # the leaf node of each feature, in fid order
     if levels:
         parents += zip(root_ids.tolist(), [1] * len(root_ids))
-        leaf_keys, _, leaf_node, _ = levels[0]
-        by_fid = np.argsort(leaf_keys)                 # appended in rowid order: no B-tree page splits
-        rowids = zip(leaf_keys[by_fid].tolist(), (base[0] + leaf_node[by_fid]).tolist())
-    else:
-        rowids = zip(keys.tolist(), [1] * len(keys))
+        leaf_of[leaf_order] = base[0] + levels[0][2]
     for table in ("node", "rowid", "parent"):
         conn.execute(f'DELETE FROM "{name}_{table}"')
     conn.executemany(f'INSERT INTO "{name}_node"(nodeno, data) VALUES (?, ?)', nodes)
     conn.executemany(f'INSERT INTO "{name}_parent"(nodeno, parentnode) VALUES (?, ?)', parents)
-    conn.executemany(f'INSERT INTO "{name}_rowid"(rowid, nodeno) VALUES (?, ?)', rowids)
+    for start in range(0, len(fids), 5 * _CHUNK):     # appended in rowid order (no page splits), chunk by chunk
+        conn.executemany(f'INSERT INTO "{name}_rowid"(rowid, nodeno) VALUES (?, ?)',
+                         zip(fids[start:start + 5 * _CHUNK].tolist(), leaf_of[start:start + 5 * _CHUNK].tolist()))
 
 
 def _boxes(records, ok) -> np.ndarray:
