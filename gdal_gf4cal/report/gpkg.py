@@ -251,8 +251,8 @@ def _boxes(records, ok) -> np.ndarray:
 
 
 def _bulk_write(path: Path, layers, cancelled) -> None:
-    """Fill the layers OGR created in ``path``: ``layers`` = [(table, fields, columns, make)], ``make()`` giving the
-    geometry ``(records, ok)`` when the layer is written (one layer's blobs in memory at a time). One
+    """Fill the layers OGR created in ``path``: ``layers`` = [(table, fields, make)], ``make()`` giving the geometry
+    ``(records, ok)`` and the ``columns`` when the layer is written (one layer's data in memory at a time). One
     SQLite transaction (all or nothing): OGR's R-tree insert trigger (it calls OGR's SQL functions) is set aside,
     the rows go in, the R-tree is bulk-loaded and the trigger restored; then OGR re-opens the file and counts."""
     import sqlite3
@@ -267,8 +267,8 @@ def _bulk_write(path: Path, layers, cancelled) -> None:
             conn.execute("BEGIN")
             geom_cols = dict(conn.execute("SELECT table_name, column_name FROM gpkg_geometry_columns"))
             counts = {}
-            for table, fields, columns, make in layers:
-                records, ok = make()
+            for table, fields, make in layers:
+                records, ok, columns = make()
                 counts[table] = records.size
                 rtree = f"rtree_{table}_{geom_cols[table]}"
                 # OGR's insert triggers (R-tree, feature count) run per row and call OGR's SQL functions: set
@@ -287,7 +287,7 @@ def _bulk_write(path: Path, layers, cancelled) -> None:
                 if extent is not None:
                     conn.execute("UPDATE gpkg_contents SET min_x = ?, min_y = ?, max_x = ?, max_y = ? "
                                  "WHERE table_name = ?", (*extent, table))
-                del records, ok
+                del records, ok, columns
             conn.execute("COMMIT")
         finally:
             conn.close()
@@ -505,47 +505,55 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         lens = [v[np.isfinite(v) & ~outlier] if (np.isfinite(v) & ~outlier).any() else v[np.isfinite(v)]
                 for v in lens]
         longest_all = max([float(v.max()) for v in lens if v.size] + [0.0]) or longest_all
-    for k, epoch in enumerate(epochs):
+    clip_at = np.inf
+    if exaggeration is not None:
+        factor = float(exaggeration)
+    else:
+        factor = _nice(0.1 * extent / longest_all) if longest_all > 0 else 1.0
+        clip_at = 3.0 * longest_all * factor  # auto mode: blunders drawn at most 3x the longest regular arrow
+    scale = factor * math.sqrt(ps * pl)
+
+    def arrows(epoch):
+        """One epoch's arrows: residuals, map offsets, magnitude, drawable mask, blunder shortening."""
         s_, l_ = res[epoch]
         dx, dy = s_ * ps, -l_ * pl  # sample -> east, line -> south (image rows go down)
         if metric[epoch] is not None:
             dx, dy = metric[epoch]   # the RPC ground offsets (res_east_m_/res_north_m_ columns), in map units
-        length = np.hypot(dx, dy)
-        mag = np.hypot(s_, l_)
-        finite = np.isfinite(length) & np.isfinite(x) & np.isfinite(y)
-        # Scale and classes follow the ordinary points: one blunder must not shrink every other arrow to nothing.
-        regular = finite & ~outlier if (finite & ~outlier).any() else finite
-        clip_at = np.inf
-        if exaggeration is not None:
-            factor = float(exaggeration)
-        else:
-            factor = _nice(0.1 * extent / longest_all) if longest_all > 0 else 1.0
-            clip_at = 3.0 * longest_all * factor  # auto mode: blunders drawn at most 3x the longest regular arrow
-        name = "residual_vectors" if k == 0 else "residual_vectors_before"
-        scale = factor * math.sqrt(ps * pl)
-        drawn = factor * length
+        drawn = factor * np.hypot(dx, dy)
+        finite = np.isfinite(drawn) & np.isfinite(x) & np.isfinite(y)
         shrink = np.where(drawn > clip_at, clip_at / np.where(drawn > 0, drawn, 1.0), 1.0)
-        clipped = drawn > clip_at
-        keep = finite
-        geoms = (x[keep], y[keep], x[keep] + factor * shrink[keep] * dx[keep],
-                 y[keep] + factor * shrink[keep] * dy[keep])
+        return s_, l_, dx, dy, np.hypot(s_, l_), finite, shrink, drawn > clip_at
+
+    def arrow_layer(epoch, srs_id):
+        """The epoch's line records and fields, built when the layer is written (one epoch in memory at a time)."""
+        s_, l_, dx, dy, mag, keep, shrink, clipped = arrows(epoch)
+        f = factor * shrink[keep]
+        records, ok = _line_records(x[keep], y[keep], x[keep] + f * dx[keep], y[keep] + f * dy[keep], srs_id)
         cols = {"id": ids[keep], "role": role[keep], "epoch": epoch,          # scalars: the same in every row
                 "res_sample": s_[keep], "res_line": l_[keep], "res_px": mag[keep], "outlier": outlier[keep],
                 "clipped": clipped[keep], "exaggeration": factor, "map_units_per_px": scale}
-        vfields = [("id", (ogr.OFTString, ogr.OFSTNone)), ("role", (ogr.OFTString, ogr.OFSTNone)),
-                   ("epoch", (ogr.OFTString, ogr.OFSTNone))] + \
-                  [(c, (ogr.OFTReal, ogr.OFSTNone)) for c in ("res_sample", "res_line", "res_px")] + \
-                  [("outlier", (ogr.OFTInteger, ogr.OFSTBoolean)), ("clipped", (ogr.OFTInteger, ogr.OFSTBoolean)),
-                   ("exaggeration", (ogr.OFTReal, ogr.OFSTNone)), ("map_units_per_px", (ogr.OFTReal, ogr.OFSTNone))]
+        return records, ok, cols
+
+    vfields = [("id", (ogr.OFTString, ogr.OFSTNone)), ("role", (ogr.OFTString, ogr.OFSTNone)),
+               ("epoch", (ogr.OFTString, ogr.OFSTNone))] + \
+              [(c, (ogr.OFTReal, ogr.OFSTNone)) for c in ("res_sample", "res_line", "res_px")] + \
+              [("outlier", (ogr.OFTInteger, ogr.OFSTBoolean)), ("clipped", (ogr.OFTInteger, ogr.OFSTBoolean)),
+               ("exaggeration", (ogr.OFTReal, ogr.OFSTNone)), ("map_units_per_px", (ogr.OFTReal, ogr.OFSTNone))]
+    for k, epoch in enumerate(epochs):
+        _, _, _, _, mag, finite, _, clipped = arrows(epoch)
+        # Scale and classes follow the ordinary points: one blunder must not shrink every other arrow to nothing.
+        regular = finite & ~outlier if (finite & ~outlier).any() else finite
+        name = "residual_vectors" if k == 0 else "residual_vectors_before"
         desc = (f"{title}: {epoch} residuals (measured - predicted, px) drawn from each GCP's ground position with "
                 f"sample -> east and line -> south, exaggerated {factor:g}x (1 px of residual = {scale:.6g} map "
                 f"units; pixel size {ps:.6g} x {pl:.6g} map units from {ps_source})")
-        if clipped.any():
-            desc += f"; {int(clipped.sum())} blunder arrow(s) shortened to 3x the longest other one (clipped = 1)"
+        if clipped[finite].any():
+            desc += (f"; {int(clipped[finite].sum())} blunder arrow(s) shortened to 3x the longest other one "
+                     "(clipped = 1)")
         meta = {"EXAGGERATION": f"{factor:g}", "MAP_UNITS_PER_PX": f"{scale:.10g}", "EPOCH": epoch,
                 "DIRECTION": "sample->east, line->south", "PIXEL_SIZE_MAP_UNITS": f"{ps:.10g} {pl:.10g}"}
         mag = mag[regular]  # class breaks from the regular points; blunders fall in the open last class
-        vector_layers.append((name, vfields, cols, geoms, desc, meta, mag, residual_layer_title(epoch, factor)))
+        vector_layers.append((name, vfields, epoch, desc, meta, mag, residual_layer_title(epoch, factor)))
 
     if path.exists() and not overwrite:  # pragma: no cover - checked above; re-checked for races
         raise Gf4calError(f"{path} exists")
@@ -561,12 +569,12 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
             raise Gf4calError(f"cannot write the GeoPackage {path}; check the folder is writable")
         gl = _create_layer(ds, "gcps", srs, ogr.wkbPoint, fields,
                            f"{title}: ground control / check points with residuals (measured - predicted, px)")
-        bulk.append(("gcps", fields, columns, lambda sid: _point_records(x, y, sid)))
+        bulk.append(("gcps", fields, lambda sid: (*_point_records(x, y, sid), columns)))
         qml, sld = _points_style()
         styles.append(("gcps", gl.GetGeometryColumn(), qml, _sld("gcps", sld), "GCPs by role; outliers as red crosses"))
-        for name, vfields, cols, geoms, desc, meta, mag, ident in vector_layers:
+        for name, vfields, epoch, desc, meta, mag, ident in vector_layers:
             vl = _create_layer(ds, name, srs, ogr.wkbLineString, vfields, desc, meta, ident)
-            bulk.append((name, vfields, cols, lambda sid, g=geoms: _line_records(*g, sid)))
+            bulk.append((name, vfields, lambda sid, e=epoch: arrow_layer(e, sid)))
             # The 'before' arrows are drawn half-transparent so the 'after' ones stand out where both are shown.
             qml, sld = _vector_style(_class_breaks(mag), 1.0 if name == "residual_vectors" else 0.5)
             styles.append((name, vl.GetGeometryColumn(), qml, _sld(name, sld),
@@ -575,8 +583,8 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
             ffields = [("name", (ogr.OFTString, ogr.OFSTNone))]
             fl = _create_layer(ds, "footprint", srs, ogr.wkbMultiPolygon, ffields, f"{title}: scene footprint")
             wkb = ogr.ForceToMultiPolygon(ogr.CreateGeometryFromWkb(fp.wkb)).ExportToWkb(ogr.wkbNDR)
-            bulk.append(("footprint", ffields, {"name": np.array(["footprint"], dtype=object)},
-                         lambda sid, w=wkb, bb=fp.bounds: _wkb_records(w, bb, sid)))
+            bulk.append(("footprint", ffields,
+                         lambda sid, w=wkb, bb=fp.bounds: (*_wkb_records(w, bb, sid), {"name": "footprint"})))
             qml, sld = _footprint_style()
             styles.append(("footprint", fl.GetGeometryColumn(), qml, _sld("footprint", sld), "scene footprint"))
         _write_layer_styles(ds, styles)
@@ -586,8 +594,8 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         if check_cancel():
             raise CancelledError("cancelled while writing the residual GeoPackage; nothing was kept")
         srs_ids = _srs_ids(tmp, [name for name, *_ in bulk])
-        _bulk_write(tmp, [(name, lfields, lcols, (lambda m=make, sid=srs_ids[name]: m(sid)))
-                          for name, lfields, lcols, make in bulk], check_cancel)
+        _bulk_write(tmp, [(name, lfields, (lambda m=make, sid=srs_ids[name]: m(sid))) for name, lfields, make in bulk],
+                    check_cancel)
         if check_cancel():
             raise CancelledError("cancelled while writing the residual GeoPackage; nothing was kept")
         os.replace(tmp, path)
