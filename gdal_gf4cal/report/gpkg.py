@@ -93,6 +93,10 @@ def _sql_values(values, ftype) -> list:
     """A column chunk as Python values SQLite binds, ``None`` where null (NaN, inf, None)."""
     from osgeo import ogr
     a = np.asarray(values)
+    if ftype == ogr.OFTReal and a.dtype.kind in "biuf":      # SQLite binds NaN as NULL; infinities made NaN
+        f = a.astype(float)
+        f[np.isinf(f)] = np.nan
+        return f.tolist()
     if ftype == ogr.OFTReal or (ftype in (ogr.OFTInteger, ogr.OFTInteger64) and a.dtype.kind in "fO"):
         f = np.asarray(a, dtype=float) if a.dtype.kind != "O" else np.array(
             [np.nan if v is None else v for v in a], dtype=float)
@@ -164,7 +168,7 @@ def _str_pack(boxes: np.ndarray, cap: int):
     n = len(boxes)
     n_nodes = -(-n // cap)
     slab = int(np.ceil(np.sqrt(n_nodes))) * cap
-    cx, cy = boxes[:, 0] + boxes[:, 1], boxes[:, 2] + boxes[:, 3]
+    cx, cy = boxes[:, 0] * 0.5 + boxes[:, 1] * 0.5, boxes[:, 2] * 0.5 + boxes[:, 3] * 0.5
     rank = np.empty(n, np.int64)
     rank[np.argsort(cx, kind="stable")] = np.arange(n)
     order = np.lexsort((cy, rank // slab))
@@ -201,10 +205,12 @@ def _rtree_bulk_load(conn, name: str, fids: np.ndarray, boxes: np.ndarray) -> No
     boxes = _rtree_cells(boxes)
     keys = np.asarray(fids, np.int64)
     levels = []                       # bottom-up: (entry keys, entry boxes, node of each entry, number of nodes)
+    leaf_order = None
     while len(keys) > cap:
-        order, node_of, nb = _str_pack(boxes.astype(np.float64), cap)
+        order, node_of, nb = _str_pack(boxes, cap)      # float32 boxes: exact min/max, ordering only approximate
+        leaf_order = order if leaf_order is None else leaf_order
         levels.append((keys[order], boxes[order], node_of, len(nb)))
-        keys, boxes = np.arange(len(nb), dtype=np.int64), nb.astype(np.float32)   # next level: child indices
+        keys, boxes = np.arange(len(nb), dtype=np.int64), nb   # next level: child indices
     # node numbers: the root is 1, then the levels from the top down
     base, nxt = [0] * len(levels), 2
     for k in range(len(levels) - 1, -1, -1):
@@ -218,18 +224,18 @@ def _rtree_bulk_load(conn, name: str, fids: np.ndarray, boxes: np.ndarray) -> No
     root_ids = keys if not levels else keys + base[-1]
     nodes.append((1, _node_blobs(root_ids, boxes, np.zeros(len(keys), np.int64), 1, node_size, cap,
                                  depth=len(levels))[0]))
+    fids = np.asarray(fids, np.int64)
+    leaf_of = np.ones(len(fids), np.int64)           # the leaf node of each feature, in fid order
     if levels:
         parents += zip(root_ids.tolist(), [1] * len(root_ids))
-        leaf_keys, _, leaf_node, _ = levels[0]
-        by_fid = np.argsort(leaf_keys)                 # appended in rowid order: no B-tree page splits
-        rowids = zip(leaf_keys[by_fid].tolist(), (base[0] + leaf_node[by_fid]).tolist())
-    else:
-        rowids = zip(keys.tolist(), [1] * len(keys))
+        leaf_of[leaf_order] = base[0] + levels[0][2]
     for table in ("node", "rowid", "parent"):
         conn.execute(f'DELETE FROM "{name}_{table}"')
     conn.executemany(f'INSERT INTO "{name}_node"(nodeno, data) VALUES (?, ?)', nodes)
     conn.executemany(f'INSERT INTO "{name}_parent"(nodeno, parentnode) VALUES (?, ?)', parents)
-    conn.executemany(f'INSERT INTO "{name}_rowid"(rowid, nodeno) VALUES (?, ?)', rowids)
+    for start in range(0, len(fids), 5 * _CHUNK):     # appended in rowid order (no page splits), chunk by chunk
+        conn.executemany(f'INSERT INTO "{name}_rowid"(rowid, nodeno) VALUES (?, ?)',
+                         zip(fids[start:start + 5 * _CHUNK].tolist(), leaf_of[start:start + 5 * _CHUNK].tolist()))
 
 
 def _boxes(records, ok) -> np.ndarray:
@@ -245,8 +251,8 @@ def _boxes(records, ok) -> np.ndarray:
 
 
 def _bulk_write(path: Path, layers, cancelled) -> None:
-    """Fill the layers OGR created in ``path``: ``layers`` = [(table, fields, columns, make)], ``make()`` giving the
-    geometry ``(records, ok)`` when the layer is written (one layer's blobs in memory at a time). One
+    """Fill the layers OGR created in ``path``: ``layers`` = [(table, fields, make)], ``make()`` giving the geometry
+    ``(records, ok)`` and the ``columns`` when the layer is written (one layer's data in memory at a time). One
     SQLite transaction (all or nothing): OGR's R-tree insert trigger (it calls OGR's SQL functions) is set aside,
     the rows go in, the R-tree is bulk-loaded and the trigger restored; then OGR re-opens the file and counts."""
     import sqlite3
@@ -261,8 +267,8 @@ def _bulk_write(path: Path, layers, cancelled) -> None:
             conn.execute("BEGIN")
             geom_cols = dict(conn.execute("SELECT table_name, column_name FROM gpkg_geometry_columns"))
             counts = {}
-            for table, fields, columns, make in layers:
-                records, ok = make()
+            for table, fields, make in layers:
+                records, ok, columns = make()
                 counts[table] = records.size
                 rtree = f"rtree_{table}_{geom_cols[table]}"
                 # OGR's insert triggers (R-tree, feature count) run per row and call OGR's SQL functions: set
@@ -281,7 +287,7 @@ def _bulk_write(path: Path, layers, cancelled) -> None:
                 if extent is not None:
                     conn.execute("UPDATE gpkg_contents SET min_x = ?, min_y = ?, max_x = ?, max_y = ? "
                                  "WHERE table_name = ?", (*extent, table))
-                del records, ok
+                del records, ok, columns
             conn.execute("COMMIT")
         finally:
             conn.close()
@@ -514,48 +520,55 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         lens = [v[np.isfinite(v) & ~outlier] if (np.isfinite(v) & ~outlier).any() else v[np.isfinite(v)]
                 for v in lens]
         longest_all = max([float(v.max()) for v in lens if v.size] + [0.0]) or longest_all
-    for k, epoch in enumerate(epochs):
+    clip_at = np.inf
+    if exaggeration is not None:
+        factor = float(exaggeration)
+    else:
+        factor = _nice(0.1 * extent / longest_all) if longest_all > 0 else 1.0
+        clip_at = 3.0 * longest_all * factor  # auto mode: blunders drawn at most 3x the longest regular arrow
+    scale = factor * math.sqrt(ps * pl)
+
+    def arrows(epoch):
+        """One epoch's arrows: residuals, map offsets, magnitude, drawable mask, blunder shortening."""
         s_, l_ = res[epoch]
         dx, dy = s_ * ps, -l_ * pl  # sample -> east, line -> south (image rows go down)
         if metric[epoch] is not None:
             dx, dy = metric[epoch]   # the RPC ground offsets (res_east_m_/res_north_m_ columns), in map units
-        length = np.hypot(dx, dy)
-        mag = np.hypot(s_, l_)
-        finite = np.isfinite(length) & np.isfinite(x) & np.isfinite(y)
-        # Scale and classes follow the ordinary points: one blunder must not shrink every other arrow to nothing.
-        regular = finite & ~outlier if (finite & ~outlier).any() else finite
-        clip_at = np.inf
-        if exaggeration is not None:
-            factor = float(exaggeration)
-        else:
-            factor = _nice(0.1 * extent / longest_all) if longest_all > 0 else 1.0
-            clip_at = 3.0 * longest_all * factor  # auto mode: blunders drawn at most 3x the longest regular arrow
-        name = layer_prefix + ("residual_vectors" if k == 0 else "residual_vectors_before")
-        scale = factor * math.sqrt(ps * pl)
-        drawn = factor * length
+        drawn = factor * np.hypot(dx, dy)
+        finite = np.isfinite(drawn) & np.isfinite(x) & np.isfinite(y)
         shrink = np.where(drawn > clip_at, clip_at / np.where(drawn > 0, drawn, 1.0), 1.0)
-        clipped = drawn > clip_at
-        keep = finite
-        geoms = (x[keep], y[keep], x[keep] + factor * shrink[keep] * dx[keep],
-                 y[keep] + factor * shrink[keep] * dy[keep])
+        return s_, l_, dx, dy, np.hypot(s_, l_), finite, shrink, drawn > clip_at
+
+    def arrow_layer(epoch, srs_id):
+        """The epoch's line records and fields, built when the layer is written (one epoch in memory at a time)."""
+        s_, l_, dx, dy, mag, keep, shrink, clipped = arrows(epoch)
+        f = factor * shrink[keep]
+        records, ok = _line_records(x[keep], y[keep], x[keep] + f * dx[keep], y[keep] + f * dy[keep], srs_id)
         cols = {"id": ids[keep], "role": role[keep], "epoch": epoch,          # scalars: the same in every row
                 "res_sample": s_[keep], "res_line": l_[keep], "res_px": mag[keep], "outlier": outlier[keep],
                 "clipped": clipped[keep], "exaggeration": factor, "map_units_per_px": scale}
-        vfields = [("id", (ogr.OFTString, ogr.OFSTNone)), ("role", (ogr.OFTString, ogr.OFSTNone)),
-                   ("epoch", (ogr.OFTString, ogr.OFSTNone))] + \
-                  [(c, (ogr.OFTReal, ogr.OFSTNone)) for c in ("res_sample", "res_line", "res_px")] + \
-                  [("outlier", (ogr.OFTInteger, ogr.OFSTBoolean)), ("clipped", (ogr.OFTInteger, ogr.OFSTBoolean)),
-                   ("exaggeration", (ogr.OFTReal, ogr.OFSTNone)), ("map_units_per_px", (ogr.OFTReal, ogr.OFSTNone))]
+        return records, ok, cols
+
+    vfields = [("id", (ogr.OFTString, ogr.OFSTNone)), ("role", (ogr.OFTString, ogr.OFSTNone)),
+               ("epoch", (ogr.OFTString, ogr.OFSTNone))] + \
+              [(c, (ogr.OFTReal, ogr.OFSTNone)) for c in ("res_sample", "res_line", "res_px")] + \
+              [("outlier", (ogr.OFTInteger, ogr.OFSTBoolean)), ("clipped", (ogr.OFTInteger, ogr.OFSTBoolean)),
+               ("exaggeration", (ogr.OFTReal, ogr.OFSTNone)), ("map_units_per_px", (ogr.OFTReal, ogr.OFSTNone))]
+    for k, epoch in enumerate(epochs):
+        _, _, _, _, mag, finite, _, clipped = arrows(epoch)
+        # Scale and classes follow the ordinary points: one blunder must not shrink every other arrow to nothing.
+        regular = finite & ~outlier if (finite & ~outlier).any() else finite
+        name = layer_prefix + ("residual_vectors" if k == 0 else "residual_vectors_before")
         desc = (f"{title}: {epoch} residuals (measured - predicted, px) drawn from each GCP's ground position with "
                 f"sample -> east and line -> south, exaggerated {factor:g}x (1 px of residual = {scale:.6g} map "
                 f"units; pixel size {ps:.6g} x {pl:.6g} map units from {ps_source})")
-        if clipped.any():
-            desc += f"; {int(clipped.sum())} blunder arrow(s) shortened to 3x the longest other one (clipped = 1)"
+        if clipped[finite].any():
+            desc += (f"; {int(clipped[finite].sum())} blunder arrow(s) shortened to 3x the longest other one "
+                     "(clipped = 1)")
         meta = {"EXAGGERATION": f"{factor:g}", "MAP_UNITS_PER_PX": f"{scale:.10g}", "EPOCH": epoch,
                 "DIRECTION": "sample->east, line->south", "PIXEL_SIZE_MAP_UNITS": f"{ps:.10g} {pl:.10g}"}
         mag = mag[regular]  # class breaks from the regular points; blunders fall in the open last class
-        vector_layers.append((name, vfields, cols, geoms, desc, meta, mag,
-                              layer_prefix + residual_layer_title(epoch, factor)))
+        vector_layers.append((name, vfields, epoch, desc, meta, mag, layer_prefix + residual_layer_title(epoch, factor)))
 
     if path.exists() and not overwrite and not append:  # pragma: no cover - checked above; re-checked for races
         raise Gf4calError(f"{path} exists")
@@ -573,12 +586,12 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         gname = layer_prefix + "gcps"
         gl = _create_layer(ds, gname, srs, ogr.wkbPoint, fields,
                            f"{title}: ground control / check points with residuals (measured - predicted, px)")
-        bulk.append((gname, fields, columns, lambda sid: _point_records(x, y, sid)))
+        bulk.append((gname, fields, lambda sid: (*_point_records(x, y, sid), columns)))
         qml, sld = _points_style()
         styles.append((gname, gl.GetGeometryColumn(), qml, _sld(gname, sld), "GCPs by role; outliers as red crosses"))
-        for name, vfields, cols, geoms, desc, meta, mag, ident in vector_layers:
+        for name, vfields, epoch, desc, meta, mag, ident in vector_layers:
             vl = _create_layer(ds, name, srs, ogr.wkbLineString, vfields, desc, meta, ident)
-            bulk.append((name, vfields, cols, lambda sid, g=geoms: _line_records(*g, sid)))
+            bulk.append((name, vfields, lambda sid, e=epoch: arrow_layer(e, sid)))
             # The 'before' arrows are drawn half-transparent so the 'after' ones stand out where both are shown.
             qml, sld = _vector_style(_class_breaks(mag), 1.0 if name.endswith("residual_vectors") else 0.5)
             styles.append((name, vl.GetGeometryColumn(), qml, _sld(name, sld),
@@ -588,8 +601,8 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
             fname = layer_prefix + "footprint"
             fl = _create_layer(ds, fname, srs, ogr.wkbMultiPolygon, ffields, f"{title}: scene footprint")
             wkb = ogr.ForceToMultiPolygon(ogr.CreateGeometryFromWkb(fp.wkb)).ExportToWkb(ogr.wkbNDR)
-            bulk.append((fname, ffields, {"name": np.array(["footprint"], dtype=object)},
-                         lambda sid, w=wkb, bb=fp.bounds: _wkb_records(w, bb, sid)))
+            bulk.append((fname, ffields,
+                         lambda sid, w=wkb, bb=fp.bounds: (*_wkb_records(w, bb, sid), {"name": "footprint"})))
             qml, sld = _footprint_style()
             styles.append((fname, fl.GetGeometryColumn(), qml, _sld(fname, sld), "scene footprint"))
         _write_layer_styles(ds, styles)
@@ -599,8 +612,8 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
         if check_cancel():
             raise CancelledError("cancelled while writing the residual GeoPackage; nothing was kept")
         srs_ids = _srs_ids(tmp, [name for name, *_ in bulk])
-        _bulk_write(tmp, [(name, lfields, lcols, (lambda m=make, sid=srs_ids[name]: m(sid)))
-                          for name, lfields, lcols, make in bulk], check_cancel)
+        _bulk_write(tmp, [(name, lfields, (lambda m=make, sid=srs_ids[name]: m(sid))) for name, lfields, make in bulk],
+                    check_cancel)
         if check_cancel():
             raise CancelledError("cancelled while writing the residual GeoPackage; nothing was kept")
         if not appending:
@@ -639,7 +652,7 @@ def write_points_layer(path: PathLike, layer: str, columns: Mapping[str, np.ndar
     finally:
         ds = None
     sid = _srs_ids(path, [layer])[layer]
-    _bulk_write(path, [(layer, fields, cols, lambda: _point_records(lon, lat, sid))], None)
+    _bulk_write(path, [(layer, fields, lambda: (*_point_records(lon, lat, sid), cols))], None)
     return path
 
 

@@ -241,7 +241,7 @@ def _with_ground_offsets(rpc, tab):
     ``res_north_m_*``, ``res_m_*`` for before/after (the GeoPackage's arrows are drawn from them)."""
     import numpy as np
     from ..compensation import ground_offsets_m
-    tab = tab.copy()
+    tab = tab.copy(deep=False)      # new columns only: the 1e6-row table is not duplicated
     lon, lat, h = (tab[c].to_numpy(float) for c in ("lon", "lat", "h"))
     for epoch in ("before", "after"):
         cs, cl = f"res_sample_{epoch}", f"res_line_{epoch}"
