@@ -32,7 +32,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from .basis import piecewise_polynomial, trigonometric
-from .errors import Gf4calError
+from .errors import DegenerateGeometryError, Gf4calError
 from .estimation import Block, robust_lsq, weighted_lsq
 from .progress import report
 from .stats import axis_stats, share_within
@@ -123,22 +123,38 @@ class PanMSModel:
             # = piecewise_polynomial(s, breaks, 4, domain=(0, W)) @ coefficients, by Horner per point (the
             # appliers evaluate it at every MS pixel)
             ends = np.concatenate([[0.0], self.breaks, [float(self.ms_size[0])]])
+            mid, half = 0.5 * (ends[1:] + ends[:-1]), 0.5 * (ends[1:] - ends[:-1])
             j = np.searchsorted(np.asarray(self.breaks), s, side="right")
-            u = (s - 0.5 * (ends[1:] + ends[:-1])[j]) / (0.5 * (ends[1:] - ends[:-1]))[j]
+            one = j.size > 0 and int(j.min()) == int(j.max())          # one piece (most tiles): scalars
+            jj = int(j.flat[0]) if one else j
+            u = (s - mid[jj]) / half[jj]
             for k in range(2):
-                c = self.piecewise[:, k, :][j]                    # (..., 5)
-                v = c[..., ORDER]
+                coef = self.piecewise[:, k, :]
+                v = np.full(u.shape, coef[jj, ORDER]) if one else np.take(coef[:, ORDER], j)
                 for p in range(ORDER - 1, -1, -1):
-                    v = v * u + c[..., p]
+                    v *= u
+                    v += coef[jj, p] if one else np.take(coef[:, p], j)
                 out[k] = out[k] + v
         if "jitter" in terms:
             for k, ax in enumerate(AXES):
                 comps = self.jitter[ax]["components"]
                 if comps:
-                    f = [c["frequency_cycles_per_line"] for c in comps]
-                    coef = np.ravel([(c["sin"], c["cos"]) for c in comps])
-                    out[k] = out[k] + trigonometric(l, f, s=sn, b=self.jitter[ax]["b"]) @ coef
+                    out[k] = out[k] + self._jitter_series(ax, l) * (1.0 + self.jitter[ax]["b"] * sn)
         return out[0], out[1]
+
+    def _jitter_series(self, ax: str, l):
+        """``sum_i (sin_i sin(2 pi f_i l) + cos_i cos(2 pi f_i l))`` (basis.trigonometric). Many points: from a
+        table every MS line, linearly interpolated (the jitter is < 0.01 cycle per line: error < 1e-6 px)."""
+        comps = self.jitter[ax]["components"]
+        f = [c["frequency_cycles_per_line"] for c in comps]
+        coef = np.ravel([(c["sin"], c["cos"]) for c in comps])
+        if l.size < 20000 or not np.all(np.isfinite(l)) or max(f) > 0.02:
+            return trigonometric(l, f) @ coef
+        lo, hi = math.floor(float(l.min())) - 1, math.ceil(float(l.max())) + 2
+        if hi - lo > l.size:
+            return trigonometric(l, f) @ coef
+        grid = np.arange(lo, hi, dtype=float)
+        return np.interp(l, grid, trigonometric(grid, f) @ coef)
 
     def compatible_with(self, ms_size, breaks=None) -> None:
         """Refuse reuse on another camera: another MS width or sub-CCD layout (METHODS §9 reuse mode)."""
@@ -551,7 +567,11 @@ def _select_frequencies(lines, r, w, n_fixed):
             res = optimize.minimize(lambda fs: rss(list(np.clip(fs, lo, hi))), np.array(chosen),
                                     method="Nelder-Mead", options={"xatol": df * 1e-3, "fatol": 1e-12,
                                                                    "maxiter": 400})
-            chosen = [float(v) for v in np.clip(res.x, lo, hi)]
+            refined = sorted(float(v) for v in np.clip(res.x, lo, hi))
+            if np.min(np.diff(refined)) < 0.5 / span or refined[0] <= lo or refined[-1] >= hi:
+                chosen.pop()          # the refinement merged two components or ran to the band's edge: stop
+                break
+            chosen = refined
     return chosen
 
 
@@ -581,15 +601,25 @@ def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
         return
     yy = np.where(np.isfinite(y), y, 0.0)
     ww = np.where(inl[:, None], w, 0.0)
-    for _ in range(3):                         # amplitudes (with the l terms and pieces refined), then B
+    done = 0
+    while done < 3:                            # amplitudes (with the l terms and pieces refined), then B
         aj = _jitter_design(model, c["line"], sn)
         full = np.concatenate([a, aj], axis=2)
         names = tuple(f"{ax}_{i}_{g}" for ax in AXES for i, _ in enumerate(model.jitter[ax]["components"])
                       for g in ("sin", "cos"))
         bl = blocks + [Block("jitter", names)]
-        est = weighted_lsq(full.reshape(-1, full.shape[2]), yy.ravel(), ww.ravel(), blocks=bl,
-                           frozen=["linear_datum"], values=np.concatenate([_values(model), np.zeros(len(names))]),
-                           hint=" (jitter term)")
+        try:
+            est = weighted_lsq(full.reshape(-1, full.shape[2]), yy.ravel(), ww.ravel(), blocks=bl,
+                               frozen=["linear_datum"],
+                               values=np.concatenate([_values(model), np.zeros(len(names))]), hint=" (jitter term)")
+        except DegenerateGeometryError:
+            # a component the design cannot separate (from the l terms or another one): drop the last one found
+            # on the axis with the most components and solve again
+            ax = max(AXES, key=lambda x_: len(model.jitter[x_]["components"]))
+            model.jitter[ax]["components"].pop()
+            if not any(model.jitter[a]["components"] for a in AXES):
+                return
+            continue
         p0 = a.shape[2]
         _set_values(model, est.x[:p0])
         xj = est.x[p0:]
@@ -610,6 +640,7 @@ def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
             num = np.sum(ww[:, k] * g * (res[:, k] - j0))
             den = np.sum(ww[:, k] * g * g)
             model.jitter[ax]["b"] = float(num / den) if den > 0 else 0.0
+        done += 1
 
 
 def _describe_jitter(model, line_time_s, look_time_s, ifov_rad):
