@@ -662,6 +662,11 @@ def _describe_jitter(model, line_time_s, look_time_s, ifov_rad):
 
 
 # ---------------------------------------------------------------------------------------------- appliers
+def _tiles(W: int, H: int, tile: int) -> List[Tuple[int, int, int, int]]:
+    """``(x0, y0, w, h)`` of the ``tile`` x ``tile`` blocks of a ``W`` x ``H`` grid, row by row."""
+    return [(x0, y0, min(tile, W - x0), min(tile, H - y0)) for y0 in range(0, H, tile) for x0 in range(0, W, tile)]
+
+
 def write_correction(model: PanMSModel, path, *, tile: int = 512, progress=None) -> str:
     """Write ``correction.tif``: 2 bands float32, delta sample / delta line (MS px) at every MS pixel centre
     (GDAL convention), on the MS image grid, tile by tile (METHODS §9)."""
@@ -677,18 +682,13 @@ def write_correction(model: PanMSModel, path, *, tile: int = 512, progress=None)
         ds.GetRasterBand(2).SetDescription("delta_line_ms_px")
         ds.SetMetadataItem("GF4CAL_PANMS", "delta = MS image point - pan/DEM/MS-RPC prediction (METHODS §9), MS "
                            "pixels, at MS pixel centres, GDAL convention")
-        n_t = math.ceil(H / tile) * math.ceil(W / tile)
-        done = 0
-        for y0 in range(0, H, tile):
-            h = min(tile, H - y0)
-            for x0 in range(0, W, tile):
-                w = min(tile, W - x0)
-                s, l = np.meshgrid(x0 + np.arange(w) + 0.5, y0 + np.arange(h) + 0.5)
-                ds_, dl_ = model.predict(s, l)
-                ds.GetRasterBand(1).WriteArray(ds_.astype(np.float32), x0, y0)
-                ds.GetRasterBand(2).WriteArray(dl_.astype(np.float32), x0, y0)
-                done += 1
-                report(progress, done / n_t, f"correction.tif tile {done}/{n_t}")
+        tiles = _tiles(W, H, tile)
+        for done, (x0, y0, w, h) in enumerate(tiles, start=1):
+            s, l = np.meshgrid(x0 + np.arange(w) + 0.5, y0 + np.arange(h) + 0.5)
+            ds_, dl_ = model.predict(s, l)
+            ds.GetRasterBand(1).WriteArray(ds_.astype(np.float32), x0, y0)
+            ds.GetRasterBand(2).WriteArray(dl_.astype(np.float32), x0, y0)
+            report(progress, done / len(tiles), f"correction.tif tile {done}/{len(tiles)}")
         ds.FlushCache()
         ds = None
     return path
@@ -746,43 +746,38 @@ def resample_ms_on_pan(model: Optional[PanMSModel], pan_path, ms_path, path, *, 
         out.SetMetadataItem("GF4CAL_PANMS", f"MS resampled onto the pan raw grid at 1/{ratio} of its size "
                             f"({'pan-MS registration model applied' if model else 'RPCs only'}; METHODS §9)")
         _set_ms_on_pan_rpc(out, pan, ratio)
-        n_t = math.ceil(H / tile) * math.ceil(W / tile)
-        done = 0
-        for y0 in range(0, H, tile):
-            h = min(tile, H - y0)
-            for x0 in range(0, W, tile):
-                w = min(tile, W - x0)
-                s2, l2 = _predicted_grid(pan_rpc, ms_rpc, dem, ratio, x0, y0, w, h, node_step)
-                sp, lp = s2.copy(), l2.copy()
-                if model is not None:
-                    for _ in range(2):
-                        ds_, dl_ = model.predict(sp, lp)
-                        sp, lp = s2 + ds_, l2 + dl_
-                ok = np.isfinite(sp) & np.isfinite(lp)
-                arrs = [np.full((h, w), fill, dtype=np.float64) for _ in range(nb)]
-                if ok.any():
-                    m = 3
-                    wx0 = int(max(0, math.floor(np.nanmin(sp[ok])) - m))
-                    wy0 = int(max(0, math.floor(np.nanmin(lp[ok])) - m))
-                    wx1 = int(min(MW, math.ceil(np.nanmax(sp[ok])) + m))
-                    wy1 = int(min(MH, math.ceil(np.nanmax(lp[ok])) + m))
-                    if wx1 > wx0 and wy1 > wy0:
-                        inside = ok & (sp >= 0) & (sp <= MW) & (lp >= 0) & (lp <= MH)
-                        rows, cols = lp[inside] - 0.5 - wy0, sp[inside] - 0.5 - wx0
-                        for b in range(nb):
-                            src = ms.GetRasterBand(b + 1).ReadAsArray(wx0, wy0, wx1 - wx0, wy1 - wy0)
-                            v = ndimage.map_coordinates(src.astype(np.float64), [rows, cols], order=3,
-                                                        mode="nearest", prefilter=True)
-                            arrs[b][inside] = v
-                for b in range(nb):
-                    a = arrs[b]
-                    if np.issubdtype(_np_dtype(dt), np.integer):
-                        info = np.iinfo(_np_dtype(dt))
-                        a = np.clip(np.round(a), max(info.min, 1 if nodata == 0 else info.min), info.max)
-                        a = np.where(np.isfinite(arrs[b]) & (arrs[b] != fill), a, fill)
-                    out.GetRasterBand(b + 1).WriteArray(a.astype(_np_dtype(dt)), x0, y0)
-                done += 1
-                report(progress, done / n_t, f"ms_on_pan.tif tile {done}/{n_t}")
+        tiles = _tiles(W, H, tile)
+        for done, (x0, y0, w, h) in enumerate(tiles, start=1):
+            s2, l2 = _predicted_grid(pan_rpc, ms_rpc, dem, ratio, x0, y0, w, h, node_step)
+            sp, lp = s2.copy(), l2.copy()
+            if model is not None:
+                for _ in range(2):
+                    ds_, dl_ = model.predict(sp, lp)
+                    sp, lp = s2 + ds_, l2 + dl_
+            ok = np.isfinite(sp) & np.isfinite(lp)
+            arrs = [np.full((h, w), fill, dtype=np.float64) for _ in range(nb)]
+            if ok.any():
+                m = 3
+                wx0 = int(max(0, math.floor(np.nanmin(sp[ok])) - m))
+                wy0 = int(max(0, math.floor(np.nanmin(lp[ok])) - m))
+                wx1 = int(min(MW, math.ceil(np.nanmax(sp[ok])) + m))
+                wy1 = int(min(MH, math.ceil(np.nanmax(lp[ok])) + m))
+                if wx1 > wx0 and wy1 > wy0:
+                    inside = ok & (sp >= 0) & (sp <= MW) & (lp >= 0) & (lp <= MH)
+                    rows, cols = lp[inside] - 0.5 - wy0, sp[inside] - 0.5 - wx0
+                    for b in range(nb):
+                        src = ms.GetRasterBand(b + 1).ReadAsArray(wx0, wy0, wx1 - wx0, wy1 - wy0)
+                        v = ndimage.map_coordinates(src.astype(np.float64), [rows, cols], order=3,
+                                                    mode="nearest", prefilter=True)
+                        arrs[b][inside] = v
+            for b in range(nb):
+                a = arrs[b]
+                if np.issubdtype(_np_dtype(dt), np.integer):
+                    info = np.iinfo(_np_dtype(dt))
+                    a = np.clip(np.round(a), max(info.min, 1 if nodata == 0 else info.min), info.max)
+                    a = np.where(np.isfinite(arrs[b]) & (arrs[b] != fill), a, fill)
+                out.GetRasterBand(b + 1).WriteArray(a.astype(_np_dtype(dt)), x0, y0)
+            report(progress, done / len(tiles), f"ms_on_pan.tif tile {done}/{len(tiles)}")
         out.FlushCache()
         out = None
     return path
