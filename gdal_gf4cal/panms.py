@@ -32,7 +32,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from .basis import piecewise_polynomial, trigonometric
-from .errors import Gf4calError
+from .errors import DegenerateGeometryError, Gf4calError
 from .estimation import Block, robust_lsq, weighted_lsq
 from .progress import report
 from .stats import axis_stats, share_within
@@ -123,22 +123,38 @@ class PanMSModel:
             # = piecewise_polynomial(s, breaks, 4, domain=(0, W)) @ coefficients, by Horner per point (the
             # appliers evaluate it at every MS pixel)
             ends = np.concatenate([[0.0], self.breaks, [float(self.ms_size[0])]])
+            mid, half = 0.5 * (ends[1:] + ends[:-1]), 0.5 * (ends[1:] - ends[:-1])
             j = np.searchsorted(np.asarray(self.breaks), s, side="right")
-            u = (s - 0.5 * (ends[1:] + ends[:-1])[j]) / (0.5 * (ends[1:] - ends[:-1]))[j]
+            one = j.size > 0 and int(j.min()) == int(j.max())          # one piece (most tiles): scalars
+            jj = int(j.flat[0]) if one else j
+            u = (s - mid[jj]) / half[jj]
             for k in range(2):
-                c = self.piecewise[:, k, :][j]                    # (..., 5)
-                v = c[..., ORDER]
+                coef = self.piecewise[:, k, :]
+                v = np.full(u.shape, coef[jj, ORDER]) if one else np.take(coef[:, ORDER], j)
                 for p in range(ORDER - 1, -1, -1):
-                    v = v * u + c[..., p]
+                    v *= u
+                    v += coef[jj, p] if one else np.take(coef[:, p], j)
                 out[k] = out[k] + v
         if "jitter" in terms:
             for k, ax in enumerate(AXES):
                 comps = self.jitter[ax]["components"]
                 if comps:
-                    f = [c["frequency_cycles_per_line"] for c in comps]
-                    coef = np.ravel([(c["sin"], c["cos"]) for c in comps])
-                    out[k] = out[k] + trigonometric(l, f, s=sn, b=self.jitter[ax]["b"]) @ coef
+                    out[k] = out[k] + self._jitter_series(ax, l) * (1.0 + self.jitter[ax]["b"] * sn)
         return out[0], out[1]
+
+    def _jitter_series(self, ax: str, l):
+        """``sum_i (sin_i sin(2 pi f_i l) + cos_i cos(2 pi f_i l))`` (basis.trigonometric). Many points: from a
+        table every MS line, linearly interpolated (the jitter is < 0.01 cycle per line: error < 1e-6 px)."""
+        comps = self.jitter[ax]["components"]
+        f = [c["frequency_cycles_per_line"] for c in comps]
+        coef = np.ravel([(c["sin"], c["cos"]) for c in comps])
+        if l.size < 20000 or not np.all(np.isfinite(l)) or max(f) > 0.02:
+            return trigonometric(l, f) @ coef
+        lo, hi = math.floor(float(l.min())) - 1, math.ceil(float(l.max())) + 2
+        if hi - lo > l.size:
+            return trigonometric(l, f) @ coef
+        grid = np.arange(lo, hi, dtype=float)
+        return np.interp(l, grid, trigonometric(grid, f) @ coef)
 
     def compatible_with(self, ms_size, breaks=None) -> None:
         """Refuse reuse on another camera: another MS width or sub-CCD layout (METHODS §9 reuse mode)."""
@@ -551,7 +567,11 @@ def _select_frequencies(lines, r, w, n_fixed):
             res = optimize.minimize(lambda fs: rss(list(np.clip(fs, lo, hi))), np.array(chosen),
                                     method="Nelder-Mead", options={"xatol": df * 1e-3, "fatol": 1e-12,
                                                                    "maxiter": 400})
-            chosen = [float(v) for v in np.clip(res.x, lo, hi)]
+            refined = sorted(float(v) for v in np.clip(res.x, lo, hi))
+            if np.min(np.diff(refined)) < 0.5 / span or refined[0] <= lo or refined[-1] >= hi:
+                chosen.pop()          # the refinement merged two components or ran to the band's edge: stop
+                break
+            chosen = refined
     return chosen
 
 
@@ -581,15 +601,25 @@ def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
         return
     yy = np.where(np.isfinite(y), y, 0.0)
     ww = np.where(inl[:, None], w, 0.0)
-    for _ in range(3):                         # amplitudes (with the l terms and pieces refined), then B
+    done = 0
+    while done < 3:                            # amplitudes (with the l terms and pieces refined), then B
         aj = _jitter_design(model, c["line"], sn)
         full = np.concatenate([a, aj], axis=2)
         names = tuple(f"{ax}_{i}_{g}" for ax in AXES for i, _ in enumerate(model.jitter[ax]["components"])
                       for g in ("sin", "cos"))
         bl = blocks + [Block("jitter", names)]
-        est = weighted_lsq(full.reshape(-1, full.shape[2]), yy.ravel(), ww.ravel(), blocks=bl,
-                           frozen=["linear_datum"], values=np.concatenate([_values(model), np.zeros(len(names))]),
-                           hint=" (jitter term)")
+        try:
+            est = weighted_lsq(full.reshape(-1, full.shape[2]), yy.ravel(), ww.ravel(), blocks=bl,
+                               frozen=["linear_datum"],
+                               values=np.concatenate([_values(model), np.zeros(len(names))]), hint=" (jitter term)")
+        except DegenerateGeometryError:
+            # a component the design cannot separate (from the l terms or another one): drop the last one found
+            # on the axis with the most components and solve again
+            ax = max(AXES, key=lambda x_: len(model.jitter[x_]["components"]))
+            model.jitter[ax]["components"].pop()
+            if not any(model.jitter[a]["components"] for a in AXES):
+                return
+            continue
         p0 = a.shape[2]
         _set_values(model, est.x[:p0])
         xj = est.x[p0:]
@@ -610,6 +640,7 @@ def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
             num = np.sum(ww[:, k] * g * (res[:, k] - j0))
             den = np.sum(ww[:, k] * g * g)
             model.jitter[ax]["b"] = float(num / den) if den > 0 else 0.0
+        done += 1
 
 
 def _describe_jitter(model, line_time_s, look_time_s, ifov_rad):
@@ -631,6 +662,11 @@ def _describe_jitter(model, line_time_s, look_time_s, ifov_rad):
 
 
 # ---------------------------------------------------------------------------------------------- appliers
+def _tiles(W: int, H: int, tile: int) -> List[Tuple[int, int, int, int]]:
+    """``(x0, y0, w, h)`` of the ``tile`` x ``tile`` blocks of a ``W`` x ``H`` grid, row by row."""
+    return [(x0, y0, min(tile, W - x0), min(tile, H - y0)) for y0 in range(0, H, tile) for x0 in range(0, W, tile)]
+
+
 def write_correction(model: PanMSModel, path, *, tile: int = 512, progress=None) -> str:
     """Write ``correction.tif``: 2 bands float32, delta sample / delta line (MS px) at every MS pixel centre
     (GDAL convention), on the MS image grid, tile by tile (METHODS §9)."""
@@ -646,18 +682,13 @@ def write_correction(model: PanMSModel, path, *, tile: int = 512, progress=None)
         ds.GetRasterBand(2).SetDescription("delta_line_ms_px")
         ds.SetMetadataItem("GF4CAL_PANMS", "delta = MS image point - pan/DEM/MS-RPC prediction (METHODS §9), MS "
                            "pixels, at MS pixel centres, GDAL convention")
-        n_t = math.ceil(H / tile) * math.ceil(W / tile)
-        done = 0
-        for y0 in range(0, H, tile):
-            h = min(tile, H - y0)
-            for x0 in range(0, W, tile):
-                w = min(tile, W - x0)
-                s, l = np.meshgrid(x0 + np.arange(w) + 0.5, y0 + np.arange(h) + 0.5)
-                ds_, dl_ = model.predict(s, l)
-                ds.GetRasterBand(1).WriteArray(ds_.astype(np.float32), x0, y0)
-                ds.GetRasterBand(2).WriteArray(dl_.astype(np.float32), x0, y0)
-                done += 1
-                report(progress, done / n_t, f"correction.tif tile {done}/{n_t}")
+        tiles = _tiles(W, H, tile)
+        for done, (x0, y0, w, h) in enumerate(tiles, start=1):
+            s, l = np.meshgrid(x0 + np.arange(w) + 0.5, y0 + np.arange(h) + 0.5)
+            ds_, dl_ = model.predict(s, l)
+            ds.GetRasterBand(1).WriteArray(ds_.astype(np.float32), x0, y0)
+            ds.GetRasterBand(2).WriteArray(dl_.astype(np.float32), x0, y0)
+            report(progress, done / len(tiles), f"correction.tif tile {done}/{len(tiles)}")
         ds.FlushCache()
         ds = None
     return path
@@ -715,43 +746,38 @@ def resample_ms_on_pan(model: Optional[PanMSModel], pan_path, ms_path, path, *, 
         out.SetMetadataItem("GF4CAL_PANMS", f"MS resampled onto the pan raw grid at 1/{ratio} of its size "
                             f"({'pan-MS registration model applied' if model else 'RPCs only'}; METHODS §9)")
         _set_ms_on_pan_rpc(out, pan, ratio)
-        n_t = math.ceil(H / tile) * math.ceil(W / tile)
-        done = 0
-        for y0 in range(0, H, tile):
-            h = min(tile, H - y0)
-            for x0 in range(0, W, tile):
-                w = min(tile, W - x0)
-                s2, l2 = _predicted_grid(pan_rpc, ms_rpc, dem, ratio, x0, y0, w, h, node_step)
-                sp, lp = s2.copy(), l2.copy()
-                if model is not None:
-                    for _ in range(2):
-                        ds_, dl_ = model.predict(sp, lp)
-                        sp, lp = s2 + ds_, l2 + dl_
-                ok = np.isfinite(sp) & np.isfinite(lp)
-                arrs = [np.full((h, w), fill, dtype=np.float64) for _ in range(nb)]
-                if ok.any():
-                    m = 3
-                    wx0 = int(max(0, math.floor(np.nanmin(sp[ok])) - m))
-                    wy0 = int(max(0, math.floor(np.nanmin(lp[ok])) - m))
-                    wx1 = int(min(MW, math.ceil(np.nanmax(sp[ok])) + m))
-                    wy1 = int(min(MH, math.ceil(np.nanmax(lp[ok])) + m))
-                    if wx1 > wx0 and wy1 > wy0:
-                        inside = ok & (sp >= 0) & (sp <= MW) & (lp >= 0) & (lp <= MH)
-                        rows, cols = lp[inside] - 0.5 - wy0, sp[inside] - 0.5 - wx0
-                        for b in range(nb):
-                            src = ms.GetRasterBand(b + 1).ReadAsArray(wx0, wy0, wx1 - wx0, wy1 - wy0)
-                            v = ndimage.map_coordinates(src.astype(np.float64), [rows, cols], order=3,
-                                                        mode="nearest", prefilter=True)
-                            arrs[b][inside] = v
-                for b in range(nb):
-                    a = arrs[b]
-                    if np.issubdtype(_np_dtype(dt), np.integer):
-                        info = np.iinfo(_np_dtype(dt))
-                        a = np.clip(np.round(a), max(info.min, 1 if nodata == 0 else info.min), info.max)
-                        a = np.where(np.isfinite(arrs[b]) & (arrs[b] != fill), a, fill)
-                    out.GetRasterBand(b + 1).WriteArray(a.astype(_np_dtype(dt)), x0, y0)
-                done += 1
-                report(progress, done / n_t, f"ms_on_pan.tif tile {done}/{n_t}")
+        tiles = _tiles(W, H, tile)
+        for done, (x0, y0, w, h) in enumerate(tiles, start=1):
+            s2, l2 = _predicted_grid(pan_rpc, ms_rpc, dem, ratio, x0, y0, w, h, node_step)
+            sp, lp = s2.copy(), l2.copy()
+            if model is not None:
+                for _ in range(2):
+                    ds_, dl_ = model.predict(sp, lp)
+                    sp, lp = s2 + ds_, l2 + dl_
+            ok = np.isfinite(sp) & np.isfinite(lp)
+            arrs = [np.full((h, w), fill, dtype=np.float64) for _ in range(nb)]
+            if ok.any():
+                m = 3
+                wx0 = int(max(0, math.floor(np.nanmin(sp[ok])) - m))
+                wy0 = int(max(0, math.floor(np.nanmin(lp[ok])) - m))
+                wx1 = int(min(MW, math.ceil(np.nanmax(sp[ok])) + m))
+                wy1 = int(min(MH, math.ceil(np.nanmax(lp[ok])) + m))
+                if wx1 > wx0 and wy1 > wy0:
+                    inside = ok & (sp >= 0) & (sp <= MW) & (lp >= 0) & (lp <= MH)
+                    rows, cols = lp[inside] - 0.5 - wy0, sp[inside] - 0.5 - wx0
+                    for b in range(nb):
+                        src = ms.GetRasterBand(b + 1).ReadAsArray(wx0, wy0, wx1 - wx0, wy1 - wy0)
+                        v = ndimage.map_coordinates(src.astype(np.float64), [rows, cols], order=3,
+                                                    mode="nearest", prefilter=True)
+                        arrs[b][inside] = v
+            for b in range(nb):
+                a = arrs[b]
+                if np.issubdtype(_np_dtype(dt), np.integer):
+                    info = np.iinfo(_np_dtype(dt))
+                    a = np.clip(np.round(a), max(info.min, 1 if nodata == 0 else info.min), info.max)
+                    a = np.where(np.isfinite(arrs[b]) & (arrs[b] != fill), a, fill)
+                out.GetRasterBand(b + 1).WriteArray(a.astype(_np_dtype(dt)), x0, y0)
+            report(progress, done / len(tiles), f"ms_on_pan.tif tile {done}/{len(tiles)}")
         out.FlushCache()
         out = None
     return path

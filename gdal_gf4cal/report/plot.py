@@ -15,6 +15,20 @@ from ._common import _as_bool_array, STANDARD_BEFORE, STANDARD_AFTER, _ROLE_COLO
 # ----------------------------------------------------------------------------------------------------------------
 # plot
 # ----------------------------------------------------------------------------------------------------------------
+def _save(fig, path: PathLike) -> Path:
+    """Write ``fig`` as a PNG at ``path`` atomically (temporary file in the folder, then :func:`os.replace`)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    path = Path(path)
+    FigureCanvasAgg(fig)
+    tmp = _temp_path(path)
+    try:
+        fig.savefig(str(tmp), format="png")
+        os.replace(tmp, path)
+    finally:
+        _cleanup(tmp)
+    return path
+
+
 def _nice_scale(v: float) -> float:
     """1, 2 or 5 x 10^k, not above v (the scale arrow's length in px)."""
     if not math.isfinite(v) or v <= 0:
@@ -148,29 +162,7 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
             # Legend below the axes: never over an arrow.
             ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3, fontsize=7, frameon=False)
         fig.tight_layout()
-    tmp = _temp_path(path)
-    try:
-        fig.savefig(str(tmp), format="png")
-        os.replace(tmp, path)
-    finally:
-        _cleanup(tmp)
-    return path
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# pan-MS registration (METHODS §9): residual maps per step, the residual along the line, the spectrum
-# ----------------------------------------------------------------------------------------------------------------
-def _save(fig, path: PathLike) -> Path:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    path = Path(path)
-    FigureCanvasAgg(fig)
-    tmp = _temp_path(path)
-    try:
-        fig.savefig(str(tmp), format="png")
-        os.replace(tmp, path)
-    finally:
-        _cleanup(tmp)
-    return path
+    return _save(fig, path)
 
 
 def plot_seams(seams, path: PathLike, *, residual_rms=None, title: str = "Seams between adjacent CCDs",
@@ -221,6 +213,9 @@ def plot_seams(seams, path: PathLike, *, residual_rms=None, title: str = "Seams 
     return _save(fig, path)
 
 
+# ----------------------------------------------------------------------------------------------------------------
+# pan-MS registration (METHODS §9): residual maps per step, the residual along the line, the spectrum
+# ----------------------------------------------------------------------------------------------------------------
 def plot_step_residual_maps(sample, line, steps, path: PathLike, *, image_size, used=None,
                             title: str = "residuals per step", dpi: int = 100) -> Path:
     """One panel per step: the cells' residual vectors ``(res_sample, res_line)`` (MS px, measured - predicted)

@@ -11,7 +11,7 @@ import pytest
 
 
 EXPECTED = {"rpcinfo", "simulatescene", "refinerpc", "orthorectify", "calibratelookangle", "applycalibration",
-            "assessaccuracy", "collectgcps"}
+            "assessaccuracy", "collectgcps", "registerpanms"}
 
 
 def _exc():
