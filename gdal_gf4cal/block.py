@@ -506,7 +506,7 @@ def _run_stage(stage: _Stage, x, free_sets, *, robust: bool, tol: float, max_ite
     rejected = np.zeros(len(stage.rows), bool)
     phase = 0 if robust else 2            # 0: a-priori weights, 1: down-weighting, 2: rejection
     history: List[float] = []
-    small_in_row = 0
+    small_in_row = in_phase = 0
     converged = False
     it = 0
     for it in range(1, max_iter + 1):
@@ -520,15 +520,19 @@ def _run_stage(stage: _Stage, x, free_sets, *, robust: bool, tol: float, max_ite
         mx, my = metres_per_degree(plat, 0.0)
         plon = plon + dp[:, 0] / mx
         plat = plat + dp[:, 1] / my
+        # change: the largest move of a corrected position through the global parameters, and the 99th percentile
+        # of the tie points' moves (a blunder's point may cycle over a DEM kink until it is rejected)
         move = np.abs(np.einsum("nkc,nc->nk", stage.design, dx[stage.cols]))
-        if stage.tie_rows.size:
-            move[stage.tie_rows] += np.abs(np.einsum("nkq,nq->nk", jp, dp[stage.point_of]))
         change = float(np.max(move[stage.base_w > 0])) if (stage.base_w > 0).any() else 0.0
+        if stage.tie_rows.size:
+            pm = np.abs(np.einsum("nkq,nq->nk", jp, dp[stage.point_of])).max(axis=1)
+            change = max(change, float(np.percentile(pm, 99)))
         history.append(change)
         if progress is not None:
             progress(min(it / max_iter, 0.99), f"iteration {it}: largest change {change:.3g} px")
         small_in_row = small_in_row + 1 if change < tol else 0
-        if small_in_row >= len(free_sets):
+        in_phase += 1
+        if small_in_row >= len(free_sets) or (phase < 2 and in_phase >= 4 * len(free_sets) and change < 100 * tol):
             if phase == 2:
                 pred, _, _, _ = stage.evaluate(x, plon, plat, with_jacobian=False)
                 v = stage.meas - pred
@@ -540,7 +544,7 @@ def _run_stage(stage: _Stage, x, free_sets, *, robust: bool, tol: float, max_ite
                 small_in_row = 0
                 continue
             phase += 1
-            small_in_row = 0
+            small_in_row = in_phase = 0
         if phase >= 1 and robust:
             pred, _, _, _ = stage.evaluate(x, plon, plat, with_jacobian=False)
             v = stage.meas - pred

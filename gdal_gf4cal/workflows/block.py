@@ -105,7 +105,7 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
     dict: the report written as ``report.json`` (+ ``outputs``, ``warnings``).
     """
     from .. import progress as _progress
-    from ..block import adjust_block, calibration_dict, corrected_model, seam_offsets
+    from ..block import adjust_block, calibration_dict, corrected_model, prediction_std, seam_offsets
     from ..dem import DEM
     from ..report import plot_seams, write_points_layer, write_report_json, write_residuals_gpkg
     from ..rpc import RPCModel
@@ -176,7 +176,11 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
             rows = est.table[est.table["image_id"] == k]
             g = rows[rows["kind"] == "gcp"]
             t = rows[rows["kind"] == "tie"]
+            W, H = layout.images[k].size
+            S, L = (a.ravel() for a in np.meshgrid(np.linspace(0.5, W - 0.5, 11), np.linspace(0.5, H - 0.5, 11)))
+            fs, fl = prediction_std(est, k, S, L)
             images_rep[k] = {"image": p, "rpb": outs.path(f"rpb:{k}"), "ccd": layout.images[k].ccd,
+                             "precision_px": float(np.sqrt(np.mean(fs ** 2 + fl ** 2))),
                              "reference_band_image": layout.images[k].reference,
                              "rpc_fit": fit.to_dict(), "gcps": accuracy_by_role(g) if len(g) else None,
                              "ties": accuracy_by_role(t.assign(role="control"), roles=("control",))["control"]
