@@ -44,7 +44,7 @@ def cli_args(d: str, names=NAMES, bands=True):
 
 
 @functools.lru_cache(maxsize=3)
-def truth_scene(seed: int = SEED, size=SIZE, orbit_seed=None):
+def truth_scene(seed: int = SEED, size=SIZE, orbit_seed=None):  # positional: one cache key per scene
     from gdal_gf4cal.simulate import make_scene
     return make_scene("jl1", seed=seed, size=tuple(size), options=None if orbit_seed is None else
                       {"orbit_seed": orbit_seed})
@@ -61,7 +61,7 @@ def errors_vs_truth(out: str, d: str, names=NAMES, orbit_seed=None):
     """Per image: (sample, line) error of the recalibrated RPC (``out/<name>.RPB``) against the true model at true
     ground points of a grid (px of the image), and the same for the original RPC (``before``)."""
     from gdal_gf4cal.rpc import RPCModel
-    scene = truth_scene(orbit_seed=orbit_seed)
+    scene = truth_scene(SEED, SIZE, orbit_seed)
     res = {}
     for name in names:
         im = scene.image(name)
@@ -78,13 +78,13 @@ def rms(e) -> float:
     return float(np.sqrt(np.mean(np.sum(np.asarray(e) ** 2, axis=0))))
 
 
-def true_seams(out: str, d: str, orbit_seed=None):
+def true_seams(out: str, d: str, orbit_seed=None, seed=SEED, size=SIZE, bands=("pan",) + MS_BANDS):
     """Per adjacent pair of one band: largest |seam| (px of the band) in the overlap after and before: the relative
     error of the two images' models at true ground points (what a mosaic shows)."""
     from gdal_gf4cal.rpc import RPCModel
-    scene = truth_scene(orbit_seed=orbit_seed)
+    scene = truth_scene(seed, tuple(size), orbit_seed)
     out_seams = {}
-    for band in ("pan",) + MS_BANDS:
+    for band in bands:
         nm = [f"ccd{k}" if band == "pan" else f"ccd{k}_{band}" for k in range(1, 5)]
         for a, b in zip(nm[:-1], nm[1:]):
             ia, ib = scene.image(a), scene.image(b)
@@ -108,7 +108,7 @@ def band_to_band(out: str, d: str, names=NAMES):
     """Per band image: RMS registration error against its CCD's blue image at true ground points of a grid, in px of
     the MS bands (3 m; pan errors x 0.25): ``(err_b - err_blue)`` after and before."""
     from gdal_gf4cal.rpc import RPCModel
-    scene = truth_scene()
+    scene = truth_scene(SEED, SIZE, None)
     res = {}
     for b in names:
         if b in REF:

@@ -65,14 +65,30 @@ def parse_bands_of(items: Union[None, Mapping[str, str], Sequence[str]]) -> Dict
     return out
 
 
-def _read_obs(paths: Sequence[str], keys: Sequence[str], files: Sequence, dem) -> Any:
+def _read_obs(paths: Sequence[str], keys: Sequence[str], files: Sequence, dem, gcp_files=(), warns=None) -> Any:
+    """Read and merge the observation files, image names resolved to keys. Tie rows naming an image that is not
+    given are an error; GCP rows of such images (a GCP file of more images than the block) are dropped, with a
+    warning."""
     import pandas as pd
     from ..observations import read_observations
     tables = []
     for f in files:
         t = read_observations(f, need_height=False, dem=dem)
-        ids = {i: _resolve(i, paths, keys, f"the observation file {os.path.basename(os.fspath(f))}")
-               for i in t["image_id"].unique()}
+        where = f"the observation file {os.path.basename(os.fspath(f))}"
+        ids = {}
+        left_out = []
+        for i in t["image_id"].unique():
+            try:
+                ids[i] = _resolve(i, paths, keys, where)
+            except BlockError:
+                rows = t["image_id"] == i
+                if f not in gcp_files or (t.loc[rows, "kind"] == "tie").any():
+                    raise
+                left_out.append(str(i))
+        if left_out and warns is not None:
+            warns.append(f"{where}: GCPs of {len(left_out)} image(s) not given left out ({', '.join(left_out[:4])}"
+                         f"{', ...' if len(left_out) > 4 else ''})")
+        t = t[t["image_id"].isin(list(ids))].copy()
         t["image_id"] = t["image_id"].map(ids)
         tables.append(t)
     if not tables:
@@ -142,7 +158,9 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
     from ..block import derive_layout
     layout = derive_layout(models, order, bands_of=bmap, sizes={k: s for k, s in sizes.items() if s},
                            reference_ccd=ref_ccd)
-    tab = _read_obs(paths, keys, obs_files, dem_obj)
+    early_warns: List[str] = []
+    tab = _read_obs(paths, keys, obs_files, dem_obj, gcp_files=[os.fspath(gcps)] if gcps else [],
+                    warns=early_warns)
     # declare every output before any work
     outd = os.fspath(out)
     outs = OutputSet(inputs, overwrite=overwrite, cancelled=cancel_check(progress))
@@ -152,7 +170,7 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
     outs.declare("report", os.path.join(outd, "report.json"))
     outs.declare("residuals", os.path.join(outd, "residuals.gpkg"), check=check_vector())
     outs.declare("seams_plot", os.path.join(outd, "seams.png"))
-    warns: List[str] = []
+    warns: List[str] = list(early_warns)
     with outs, collect_warnings(warns):
         extra = []
         if reference_ortho:

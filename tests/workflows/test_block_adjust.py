@@ -132,6 +132,7 @@ def test_bad_inputs_one_line_nothing_written(scene, tmp_path_factory, tmp_path, 
     import pandas as pd
     t = pd.read_csv(obs, dtype={"point_id": str})
     t = t[t["image_id"].isin(B.REF)]
+    t = t[(t["kind"] == "gcp") | (t.groupby("point_id")["image_id"].transform("size") >= 2)]
     keep = (t["kind"] == "tie") | (t["point_id"].isin(t.loc[t["kind"] == "gcp", "point_id"].unique()[:3]))
     few = str(tmp_path / "few.csv")
     t[keep].to_csv(few, index=False)
@@ -141,7 +142,8 @@ def test_bad_inputs_one_line_nothing_written(scene, tmp_path_factory, tmp_path, 
 
 def test_calibration_applies_to_another_orbit(tmp_path_factory, clean_run, tmp_path):
     """calibration.json regenerates another orbit's RPCs (same camera and group, own attitude error): its seams go
-    from 2-5 px to <= 0.1 px without any control; what remains is the orbit's common attitude error."""
+    from 2-5 px to what that orbit's yaw error makes of the 0.6 s stagger between the two CCD rows (a yaw error
+    kappa moves the rows apart by kappa x 5600 pan px across track), without any control."""
     d = B.block_scene(str(tmp_path_factory.getbasetemp()), orbit_seed=7)
     out = str(tmp_path / "applied")
     scenes = [B.image_path(d, n) for n in B.NAMES]
@@ -149,5 +151,32 @@ def test_calibration_applies_to_another_orbit(tmp_path_factory, clean_run, tmp_p
                  "--out", out]) == 0
     assert {f"{n}.RPB" for n in B.NAMES} <= set(os.listdir(out))
     seams = B.true_seams(out, d, orbit_seed=7)
+    with open(os.path.join(d, "truth.json"), encoding="utf-8") as f:
+        import json
+        yaw = abs(json.load(f)["block"]["orbit_attitude_error"]["yaw_rad"])
+    for pair, s in seams.items():
+        f = 1.0 if "_" not in pair else 0.25                          # pan px / MS px
+        assert s["before_mean"] >= 2.0 and s["after"] <= 0.1 + 1.2 * yaw * 5600 * f, (pair, s, yaw)
+
+
+def test_match_ties(tmp_path_factory, tmp_path):
+    """--match-ties: tie points by raw-to-raw matching of the rendered pan CCDs (no tie file) remove the seams."""
+    import pandas as pd
+    from gdal_gf4cal.simulate import write_scene
+    d = str(tmp_path_factory.mktemp("jl1_rendered"))
+    write_scene("jl1", d, seed=5, size=(512, 512), render=True, n_gcps=30, gcp_noise_px=0.2, reference_ortho=False,
+                check_grid_n=5)
+    t = pd.read_csv(os.path.join(d, "observations.csv"), dtype={"point_id": str})
+    gcps = str(tmp_path / "gcps.csv")
+    t[t["kind"] == "gcp"].to_csv(gcps, index=False)
+    out = str(tmp_path / "out")
+    pan = [os.path.join(d, f"ccd{k}", "scene.tif") for k in range(1, 5)]
+    assert main(["block-adjust", *pan, "--dem", os.path.join(d, "dem.tif"), "--gcps", gcps, "--match-ties",
+                 "--out", out]) == 0
+    rep = B.read_report(out)
+    assert all(s["n"] >= 5 for s in rep["seams"])
+    assert any("not given left out" in w for w in rep["warnings"])          # the MS images' GCPs
+    seams = B.true_seams(out, d, seed=5, size=(512, 512), bands=("pan",))
+    assert len(seams) == 3
     for pair, s in seams.items():
         assert s["before_mean"] >= 2.0 and s["after"] <= 0.1, (pair, s)
