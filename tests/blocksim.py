@@ -132,3 +132,20 @@ def band_to_band(out: str, d: str, names=NAMES):
 def read_report(out: str):
     with open(os.path.join(out, "report.json"), encoding="utf-8") as f:
         return json.load(f)
+
+
+def orbit_seams(orbit_seed: int, pairs):
+    """Largest seam (px of the band) that an orbit's own attitude error leaves between two CCD images even with a
+    perfect calibration: the relative displacement of their true models with and without that error."""
+    c, o = truth_scene(SEED, SIZE, None), truth_scene(SEED, SIZE, orbit_seed)
+    out = {}
+    for a, b in pairs:
+        ib = o.image(b)
+        ov = float(ib.info["overlap_pan_px"]) / (1 if "_" not in b else 4)
+        S, L = _grid(ib, (7, 9), (0.5, 0.8 * ov))
+        lon, lat, h = ib.true.localize_dem(S, L, o.dem)
+
+        def shift(n):
+            return np.stack(o.image(n).true.project(lon, lat, h)) - np.stack(c.image(n).true.project(lon, lat, h))
+        out[f"{a}|{b}"] = float(np.max(np.hypot(*(shift(b) - shift(a)))))
+    return out

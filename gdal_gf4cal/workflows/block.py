@@ -10,7 +10,7 @@ file name or path. Outputs in ``out``: ``<key>.RPB`` per image (refit, METHODS Â
 from __future__ import annotations
 
 import os
-from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
+from typing import Any, Dict, List, Mapping, Sequence, Union
 
 import numpy as np
 

@@ -142,8 +142,8 @@ def test_bad_inputs_one_line_nothing_written(scene, tmp_path_factory, tmp_path, 
 
 def test_calibration_applies_to_another_orbit(tmp_path_factory, clean_run, tmp_path):
     """calibration.json regenerates another orbit's RPCs (same camera and group, own attitude error): its seams go
-    from 2-5 px to what that orbit's yaw error makes of the 0.6 s stagger between the two CCD rows (a yaw error
-    kappa moves the rows apart by kappa x 5600 pan px across track), without any control."""
+    from 2-5 px to what that orbit's attitude error alone makes of the CCDs' stagger (the relative displacement of
+    the true models with and without it; 0.04-0.2 px here), without any control."""
     d = B.block_scene(str(tmp_path_factory.getbasetemp()), orbit_seed=7)
     out = str(tmp_path / "applied")
     scenes = [B.image_path(d, n) for n in B.NAMES]
@@ -151,12 +151,9 @@ def test_calibration_applies_to_another_orbit(tmp_path_factory, clean_run, tmp_p
                  "--out", out]) == 0
     assert {f"{n}.RPB" for n in B.NAMES} <= set(os.listdir(out))
     seams = B.true_seams(out, d, orbit_seed=7)
-    with open(os.path.join(d, "truth.json"), encoding="utf-8") as f:
-        import json
-        yaw = abs(json.load(f)["block"]["orbit_attitude_error"]["yaw_rad"])
+    implied = B.orbit_seams(7, [tuple(p.split("|")) for p in seams])
     for pair, s in seams.items():
-        f = 1.0 if "_" not in pair else 0.25                          # pan px / MS px
-        assert s["before_mean"] >= 2.0 and s["after"] <= 0.1 + 1.2 * yaw * 5600 * f, (pair, s, yaw)
+        assert s["before_mean"] >= 2.0 and s["after"] <= 0.1 + implied[pair], (pair, s, implied[pair])
 
 
 def test_match_ties(tmp_path_factory, tmp_path):
