@@ -146,3 +146,28 @@ def test_bad_inputs():
     far = dict(models, c4=ccd_rpc(3, lon0=121.0))
     with pytest.raises(BlockError, match="c4 overlaps none"):
         derive_layout(far, ["c1", "c2", "c3", "c4"], sizes=sizes)
+
+
+def test_exterior_of_another_scene_from_a_calibration():
+    """Another scene of the same group (its own exterior, same interiors): 5 GCPs fix its exterior."""
+    models, truth, layout, obs, _ = group(seed=5)
+    cal = calibration_dict(adjust_block(obs, models, DEM0, layout=layout))
+    other = {}
+    rng = np.random.default_rng(9)
+    ext = np.array([-3.0, 2.5, 0.1, 0.2, -0.4])
+    for n in models:
+        c = truth[n].corr
+        other[n] = BlockCorrectedRPC(models[n], ImageCorrection(c.layout, c.time_scale, ext, c.interior))
+    rows = []
+    for i, n in enumerate(list(models)[:2] + list(models)[2:] * 1):
+        s, l = rng.uniform(0, W, 2), rng.uniform(0, H, 2)
+        lon, lat, h = models[n].localize_dem(s, l, DEM0)
+        ms, ml = other[n].project(lon, lat, h)
+        rows.append(pd.DataFrame({"point_id": [f"G{i}a", f"G{i}b"], "image_id": n, "kind": "gcp", "sample": ms,
+                                  "line": ml, "sigma": 0.2, "role": "control", "lon": lon, "lat": lat, "h": h}))
+    few = pd.concat(rows, ignore_index=True)
+    est = adjust_block(few, models, DEM0, calibration=cal)
+    np.testing.assert_allclose(est.block("exterior")[:2], ext[:2], atol=0.2)   # + the calibration's own error
+    assert [s["stage"] for s in est.stages] == ["exterior"]
+    with pytest.raises(BlockError, match=">= 3"):
+        adjust_block(few.iloc[:2], models, DEM0, calibration=cal)
