@@ -94,9 +94,16 @@ class SceneTask:
 class _Tracker:
     """Driver side of a batch's progress: the fraction done of each running scene and the cancel flag."""
 
-    def __init__(self):
+    def __init__(self, outer_cancelled: Optional[Callable[[], bool]] = None):
         self.fractions: Dict[int, float] = {}
         self.cancel = threading.Event()
+        self.outer_cancelled = outer_cancelled      # the caller's own cancel flag (QGIS feedback), thread-safe
+        self.notify: Optional[Callable[[int, float], None]] = None   # serial: report from the scene itself
+
+    def cancelled(self) -> bool:
+        if not self.cancel.is_set() and self.outer_cancelled is not None and self.outer_cancelled():
+            self.cancel.set()
+        return self.cancel.is_set()
 
     def partial(self) -> float:
         return sum(f for f in list(self.fractions.values()) if f < 1.0)
@@ -119,11 +126,13 @@ class _LocalSceneProgress:
 
     def __call__(self, fraction: float, message: str = "") -> None:
         self.tracker.fractions[self.index] = float(fraction)
-        if self.tracker.cancel.is_set():
+        if self.tracker.notify is not None:
+            self.tracker.notify(self.index, float(fraction))
+        if self.tracker.cancelled():
             raise CancelledError("batch cancelled")
 
     def is_cancelled(self) -> bool:
-        return self.tracker.cancel.is_set()
+        return self.tracker.cancelled()
 
 
 class _DaskSceneProgress:
@@ -270,7 +279,8 @@ def run_batch(fn: Callable[..., Dict[str, Any]], scenes: Sequence, out_dir, outp
     report(progress, 0.0, f"{len(todo)} of {len(plans)} scenes to run")
     t0 = time.perf_counter()
     from .executors import SerialExecutor, dask_client
-    tracker = _Tracker()
+    from .workflows._common import cancel_check
+    tracker = _Tracker(cancel_check(progress))
     client = dask_client(executor)
     topic = f"gf4cal-batch-{os.getpid()}-{id(tracker)}"
     if client is not None:
@@ -278,6 +288,9 @@ def run_batch(fn: Callable[..., Dict[str, Any]], scenes: Sequence, out_dir, outp
         prog: List[Any] = [_DaskSceneProgress(topic, k) for k in range(len(todo))]
     elif executor is None or isinstance(executor, (SerialExecutor, cf.ThreadPoolExecutor)):
         prog = [_LocalSceneProgress(tracker, k) for k in range(len(todo))]
+        if executor is None or isinstance(executor, SerialExecutor):
+            # Serially the scene runs in this thread: its progress (e.g. over tiles) goes straight to the bar.
+            tracker.notify = lambda k, f: batch_progress((k + min(f, 1.0)) / len(todo), f"scene {k + 1}/{len(todo)}")
     else:                                 # another executor (a process pool): scenes report no sub-progress
         prog = [None] * len(todo)
     tasks = [SceneTask(fn, plans[i][0], plans[i][1], dict(params or {}, overwrite=overwrite), prog[k])

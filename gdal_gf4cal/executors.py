@@ -51,6 +51,9 @@ def _quiet_tornado():
     # Debian's distributed + tornado 6.2 warn "make_current is deprecated" when an event loop starts.
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", category=DeprecationWarning)
+        # The scheduler's HTTP server (unused: no dashboard) falls back to another port when 8787 is taken, e.g.
+        # by a second cluster on the same machine; that is fine, not a warning for our users.
+        warnings.filterwarnings("ignore", message=r"(?s).*Port 8787 is already in use", category=UserWarning)
         yield
 
 
@@ -215,5 +218,26 @@ def map_ordered(fn: Callable, items: Sequence, executor: Optional[cf.Executor] =
             for fut, i in futures.items():
                 if done is not None and fut.done() and not fut.cancelled() and fut.exception() is None:
                     out[i], done[i] = fut.result(), True
+        elif dask_client(executor) is not None:
+            _drain_workers(dask_client(executor))
         raise
     return out
+
+
+def _executing(dask_worker) -> int:
+    return len(dask_worker.state.executing)
+
+
+def _drain_workers(client, timeout_s: float = 30.0) -> None:
+    """After a cancel: wait (at most ``timeout_s``) until the workers run no task any more, so that the cancelled
+    tasks have stopped at their next progress call and removed their partial outputs before the caller closes
+    the cluster or reports."""
+    import time
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            if not sum(client.run(_executing).values()):
+                return
+        except Exception:  # noqa: BLE001 - workers gone or another distributed version: nothing to wait for
+            return
+        time.sleep(0.1)
