@@ -12,10 +12,12 @@ and the one-line ``error``. One failing scene never stops the others; a rerun sk
 """
 from __future__ import annotations
 
+import concurrent.futures as cf
 import csv
 import glob
 import json
 import os
+import threading
 import time
 import traceback
 from dataclasses import dataclass
@@ -27,6 +29,8 @@ from .progress import report
 
 SUMMARY_CSV = "batch_summary.csv"
 SUMMARY_JSON = "batch_summary.json"
+#: row statuses: done now, failed (the error says why), done by an earlier run, not run (the batch was cancelled)
+STATUSES = ("ok", "failed", "skipped", "cancelled")
 _FIRST = ["scene", "status", "seconds", "outputs", "error"]
 
 
@@ -77,17 +81,105 @@ def scene_stem(path: str) -> str:
 @dataclass(frozen=True)
 class SceneTask:
     """One scene of a batch: plain picklable data (a dataclass, not a tuple: Dask would run a tuple that starts
-    with a callable as a task of its own)."""
+    with a callable as a task of its own). ``progress`` is the scene's own progress/cancel callback
+    (:class:`_LocalSceneProgress` on threads, :class:`_DaskSceneProgress` on a cluster)."""
 
     fn: Callable[..., Dict[str, Any]]
     scene: str
     outputs: Dict[str, str]
     params: Dict[str, Any]
+    progress: Any = None
+
+
+class _Tracker:
+    """Driver side of a batch's progress: the fraction done of each running scene and the cancel flag."""
+
+    def __init__(self, outer_cancelled: Optional[Callable[[], bool]] = None):
+        self.fractions: Dict[int, float] = {}
+        self.cancel = threading.Event()
+        self.outer_cancelled = outer_cancelled      # the caller's own cancel flag (QGIS feedback), thread-safe
+        self.notify: Optional[Callable[[int, float], None]] = None   # serial: report from the scene itself
+
+    def cancelled(self) -> bool:
+        if not self.cancel.is_set() and self.outer_cancelled is not None and self.outer_cancelled():
+            self.cancel.set()
+        return self.cancel.is_set()
+
+    def partial(self) -> float:
+        return sum(f for f in list(self.fractions.values()) if f < 1.0)
+
+    def on_event(self, event) -> None:          # distributed topic handler: (timestamp, (index, fraction))
+        try:
+            i, f = event[1]
+            self.fractions[int(i)] = float(f)
+        except (TypeError, ValueError, IndexError):
+            pass
+
+
+class _LocalSceneProgress:
+    """A scene's progress on threads (or serially): its fraction into the tracker; raises
+    :class:`CancelledError` once the batch is cancelled, so the scene stops and its OutputSet removes what it
+    wrote (the finished scenes stay)."""
+
+    def __init__(self, tracker: _Tracker, index: int):
+        self.tracker, self.index = tracker, index
+
+    def __call__(self, fraction: float, message: str = "") -> None:
+        self.tracker.fractions[self.index] = float(fraction)
+        if self.tracker.notify is not None:
+            self.tracker.notify(self.index, float(fraction))
+        if self.tracker.cancelled():
+            raise CancelledError("batch cancelled")
+
+    def is_cancelled(self) -> bool:
+        return self.tracker.cancelled()
+
+
+class _DaskSceneProgress:
+    """A scene's progress on a Dask worker (picklable): fractions go to the driver as worker events on
+    ``topic`` (at most every 0.5 s), and the task stops when the driver cancelled its future."""
+
+    def __init__(self, topic: str, index: int):
+        self.topic, self.index = topic, index
+        self._t = 0.0
+
+    def __call__(self, fraction: float, message: str = "") -> None:
+        now = time.monotonic()
+        if fraction >= 1.0 or now - self._t >= 0.5:
+            self._t = now
+            try:
+                from distributed import get_worker
+                get_worker().log_event(self.topic, (self.index, float(fraction)))
+            except (ImportError, ValueError):     # not on a worker: nothing to tell
+                pass
+        if self.is_cancelled():
+            raise CancelledError("batch cancelled")
+
+    def is_cancelled(self) -> bool:
+        try:
+            from distributed import get_worker
+            w = get_worker()
+            ts = w.state.tasks.get(w.get_current_task())
+        except Exception:  # noqa: BLE001 - not on a worker, or another distributed version: no remote cancel
+            return False
+        return ts is not None and ts.state in ("cancelled", "released", "forgotten")
+
+
+def _takes_progress(fn) -> bool:
+    """Whether a scene function takes ``progress=`` (ours do; a user's may not)."""
+    import inspect
+    try:
+        ps = inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+    return "progress" in ps or any(p.kind is p.VAR_KEYWORD for p in ps.values())
 
 
 def _run_scene(task: SceneTask) -> Dict[str, Any]:
     """Worker side: run one scene function, catch its error into the row (never raises but for cancel)."""
-    fn, scene, outputs, params = task.fn, task.scene, task.outputs, task.params
+    fn, scene, outputs, params = task.fn, task.scene, task.outputs, dict(task.params)
+    if task.progress is not None and _takes_progress(fn):
+        params["progress"] = task.progress
     t0 = time.perf_counter()
     row: Dict[str, Any] = {"scene": scene, "status": "ok", "seconds": 0.0,
                            "outputs": ";".join(outputs.values()), "error": ""}
@@ -128,7 +220,7 @@ def write_summary(rows: List[Dict[str, Any]], out_dir: str, meta: Optional[Dict[
             w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore")
             w.writeheader()
             w.writerows(rows)
-    counts = {s: sum(r["status"] == s for r in rows) for s in ("ok", "failed", "skipped")}
+    counts = {s: sum(r["status"] == s for r in rows) for s in STATUSES}
     from .report.json import report_text     # strict JSON: no NaN, absent values left out (as report.json)
     with atomic_output(json_path) as tmp:
         with open(tmp, "w", encoding="utf-8") as fh:
@@ -143,14 +235,18 @@ def run_batch(fn: Callable[..., Dict[str, Any]], scenes: Sequence, out_dir, outp
 
     Parameters
     ----------
-    fn : top-level scene function ``fn(scene, outputs, **params) -> dict of figures`` (picklable).
+    fn : top-level scene function ``fn(scene, outputs, **params) -> dict of figures`` (picklable); when it takes
+        ``progress=``, it gets the scene's own progress/cancel callback (its fraction joins the batch's, on
+        threads and on Dask; it raises :class:`CancelledError` once the batch is cancelled).
     scenes : scene paths, globs or ``@list.txt`` (see :func:`expand_scenes`).
     out_dir : output folder (created).
     outputs_for : ``scene -> {role: output path}``; all existing = the scene is complete (skipped on rerun).
     executor : a :class:`concurrent.futures.Executor` (``None``: serial); see :func:`gdal_gf4cal.executors.get_executor`.
     overwrite : rerun complete scenes too (their outputs replaced; never an input).
-    progress : ``callable(fraction, message)`` over scenes; raising :class:`CancelledError` cancels the pending
-        scenes (finished ones stay, and the summary is written).
+    progress : ``callable(fraction, message)`` over scenes (and the running scenes' own progress, e.g. tiles);
+        raising :class:`CancelledError` cancels: finished scenes stay, running ones stop and remove their
+        partial outputs, the summary (``status`` ``cancelled``, ``"cancelled": true``) is written, and
+        :class:`CancelledError` propagates.
 
     Returns
     -------
@@ -183,18 +279,53 @@ def run_batch(fn: Callable[..., Dict[str, Any]], scenes: Sequence, out_dir, outp
             todo.append(i)
     report(progress, 0.0, f"{len(todo)} of {len(plans)} scenes to run")
     t0 = time.perf_counter()
-    tasks = [SceneTask(fn, plans[i][0], plans[i][1], dict(params or {}, overwrite=overwrite)) for i in todo]
-    meta = {"command": command}
+    from .executors import SerialExecutor, dask_client
+    from .workflows._common import cancel_check
+    tracker = _Tracker(cancel_check(progress))
+    client = dask_client(executor)
+    topic = f"gf4cal-batch-{os.getpid()}-{id(tracker)}"
+    if client is not None:
+        client.subscribe_topic(topic, tracker.on_event)
+        prog: List[Any] = [_DaskSceneProgress(topic, k) for k in range(len(todo))]
+    elif executor is None or isinstance(executor, (SerialExecutor, cf.ThreadPoolExecutor)):
+        prog = [_LocalSceneProgress(tracker, k) for k in range(len(todo))]
+        if executor is None or isinstance(executor, SerialExecutor):
+            # Serially the scene runs in this thread: its progress (e.g. over tiles) goes straight to the bar.
+            tracker.notify = lambda k, f: batch_progress((k + min(f, 1.0)) / len(todo), f"scene {k + 1}/{len(todo)}")
+    else:                                 # another executor (a process pool): scenes report no sub-progress
+        prog = [None] * len(todo)
+    tasks = [SceneTask(fn, plans[i][0], plans[i][1], dict(params or {}, overwrite=overwrite), prog[k])
+             for k, i in enumerate(todo)]
+    meta: Dict[str, Any] = {"command": command}
+
+    def batch_progress(fraction, message):
+        try:
+            report(progress, fraction, message)
+        except BaseException:
+            tracker.cancel.set()          # running scenes on threads stop at their next progress call
+            raise
+
+    done = [False] * len(tasks)
+    res: List[Any] = [None] * len(tasks)
     try:
-        res = map_ordered(_run_scene, tasks, executor, progress=progress, label="scene", return_exceptions=True)
+        res = map_ordered(_run_scene, tasks, executor, progress=batch_progress, label="scene",
+                          return_exceptions=True, partial=tracker.partial, done=done, out=res)
     except BaseException:
-        # Cancelled: keep what is done (the outputs are complete), and say which scenes did not run.
-        for i in todo:
-            if rows[i] is None:
-                rows[i] = {"scene": plans[i][0], "status": "failed", "seconds": 0.0,
-                           "outputs": ";".join(plans[i][1].values()), "error": "cancelled"}
+        tracker.cancel.set()
+        # Cancelled: the finished scenes stay (their outputs are complete); the others are said cancelled.
+        for k, i in enumerate(todo):
+            rows[i] = res[k] if done[k] and isinstance(res[k], dict) else {
+                "scene": plans[i][0], "status": "cancelled", "seconds": 0.0,
+                "outputs": ";".join(plans[i][1].values()), "error": "cancelled by the user"}
+        meta.update(cancelled=True, wall_seconds=round(time.perf_counter() - t0, 3))
         write_summary(rows, out_dir, meta)  # type: ignore[arg-type]
         raise
+    finally:
+        if client is not None:
+            try:
+                client.unsubscribe_topic(topic)
+            except Exception:  # noqa: BLE001 - the cluster may be gone already
+                pass
     for i, r in zip(todo, res):
         if isinstance(r, BaseException):   # the task itself was lost (e.g. KilledWorker after retries)
             msg = str(r).strip().splitlines()[0] if str(r).strip() else ""
@@ -203,15 +334,15 @@ def run_batch(fn: Callable[..., Dict[str, Any]], scenes: Sequence, out_dir, outp
         rows[i] = r
     meta["wall_seconds"] = round(time.perf_counter() - t0, 3)
     paths = write_summary(rows, out_dir, meta)  # type: ignore[arg-type]
-    counts = {s: sum(r["status"] == s for r in rows) for s in ("ok", "failed", "skipped")}  # type: ignore[index]
+    counts = {s: sum(r["status"] == s for r in rows) for s in STATUSES}  # type: ignore[index]
     report(progress, 1.0, f"{counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped")
     return {"command": command, "scenes": rows, "counts": counts, "summary": paths,
             "wall_seconds": meta["wall_seconds"]}
 
 
 # --------------------------------------------------------------------------------------------- scene functions
-def apply_calibration_scene(scene: str, outputs: Dict[str, str], *, current, new, overwrite: bool = False
-                            ) -> Dict[str, Any]:
+def apply_calibration_scene(scene: str, outputs: Dict[str, str], *, current, new, overwrite: bool = False,
+                            progress=None) -> Dict[str, Any]:
     """Scene function of batch ``apply-calibration`` (METHODS §5 step 4): recalibrate one scene's RPC for the
     ``new`` camera and write ``outputs['rpb']`` (+ ``outputs['vrt']`` over the untouched image for rasters).
 
@@ -225,13 +356,16 @@ def apply_calibration_scene(scene: str, outputs: Dict[str, str], *, current, new
     from .rpc_io import write_rpb, write_rpc_vrt
     cur = current if hasattr(current, "tan_angles") else LookAngleModel.from_json(current)
     nw = new if hasattr(new, "tan_angles") else LookAngleModel.from_json(new)
+    from .workflows._common import cancel_check
     outs = OutputSet([scene] + [c for c in (current, new) if isinstance(c, (str, os.PathLike))],
-                     overwrite=overwrite)
+                     overwrite=overwrite, cancelled=cancel_check(progress))
     for role, p in outputs.items():
         outs.declare(role, p)
     with outs:
         rpc = RPCModel.from_file(scene)
+        report(progress, 0.1, "refitting the RPC")
         new_rpc, fit = recalibrate_rpc(rpc, cur, nw)
+        report(progress, 0.9, "writing")
         write_rpb(new_rpc, outs.tmp("rpb"), overwrite=True)
         if "vrt" in outputs:
             write_rpc_vrt(scene, new_rpc, outs.tmp("vrt"), overwrite=True)
@@ -273,7 +407,7 @@ def apply_calibration_batch(current, new, scenes: Sequence, out_dir, *, executor
 
 
 def collect_gcps_scene(scene: str, outputs: Dict[str, str], *, reference, dem, overwrite: bool = False,
-                       **options) -> Dict[str, Any]:
+                       progress=None, **options) -> Dict[str, Any]:
     """Scene function of batch ``collect-gcps`` (issue 7): match ``scene`` against ``reference`` + ``dem`` and
     write ``outputs['gcps']``; tiles run serially inside the task (the batch is the parallel unit).
 
@@ -281,7 +415,8 @@ def collect_gcps_scene(scene: str, outputs: Dict[str, str], *, reference, dem, o
     import numpy as np
     from .workflows.collect import collect_gcps_file
     options.setdefault("workers", 1)
-    rep = collect_gcps_file(scene, reference, dem, outputs["gcps"], overwrite=overwrite, **options)
+    rep = collect_gcps_file(scene, reference, dem, outputs["gcps"], overwrite=overwrite, progress=progress,
+                            **options)
     g = rep["gcps"]
     inl = ~g["outlier"].to_numpy(bool)
     return {"n_gcps": rep["n_gcps"], "n_outliers": rep["n_outliers"], "windows": rep["windows"]["total"],
@@ -319,7 +454,7 @@ def _scene_gcps(gcps_dir: str, scene: str, gcps_ext: str) -> str:
 
 
 def refine_scene(scene: str, outputs: Dict[str, str], *, gcps_dir: str, gcps_ext: str = ".gpkg",
-                 model: str = "affine", overwrite: bool = False, **options) -> Dict[str, Any]:
+                 model: str = "affine", overwrite: bool = False, progress=None, **options) -> Dict[str, Any]:
     """Scene function of batch ``refine`` (METHODS §4): refine ``scene``'s RPC with its own GCP table
     ``gcps_dir/<stem><gcps_ext>`` (what batch collect-gcps writes; else the one ``<stem>.*`` file there) and write
     ``outputs['rpc']`` (+ ``report``); ``options`` are :func:`~gdal_gf4cal.workflows.refine_rpc`'s (the GCP
@@ -330,7 +465,7 @@ def refine_scene(scene: str, outputs: Dict[str, str], *, gcps_dir: str, gcps_ext
     from .workflows.refine import refine_rpc
     gcps = _scene_gcps(gcps_dir, scene, gcps_ext)
     rep = refine_rpc(scene, gcps, model, out=outputs["rpc"], report=outputs.get("report"), overwrite=overwrite,
-                     **options)
+                     progress=progress, **options)
 
     def rms(role):
         a = rep[role]["after"]

@@ -51,6 +51,9 @@ def _quiet_tornado():
     # Debian's distributed + tornado 6.2 warn "make_current is deprecated" when an event loop starts.
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", category=DeprecationWarning)
+        # The scheduler's HTTP server (unused: no dashboard) falls back to another port when 8787 is taken, e.g.
+        # by a second cluster on the same machine; that is fine, not a warning for our users.
+        warnings.filterwarnings("ignore", message=r"(?s).*Port 8787 is already in use", category=UserWarning)
         yield
 
 
@@ -139,20 +142,37 @@ def get_executor(spec: Any = None, *, workers: Optional[int] = None,
     raise ExecutorError(f"unknown executor {s!r}; use serial, threads[:N], local[:N] or tcp://HOST:PORT")
 
 
+def dask_client(executor):
+    """The ``distributed.Client`` behind an executor from :func:`get_executor` (``None`` for threads/serial)."""
+    return getattr(executor, "_client", None)
+
+
 def map_ordered(fn: Callable, items: Sequence, executor: Optional[cf.Executor] = None, *,
                 progress=None, start: float = 0.0, stop: float = 1.0, label: str = "task",
-                return_exceptions: bool = False) -> List[Any]:
+                return_exceptions: bool = False, partial: Optional[Callable[[], float]] = None,
+                poll_s: float = 0.25, done: Optional[List[bool]] = None,
+                out: Optional[List[Any]] = None) -> List[Any]:
     """Run ``fn(item)`` for every item on ``executor`` (``None``: serially) and return the results in
     submission order (deterministic output whatever the executor).
 
-    Progress goes over completed tasks from ``start`` to ``stop``; a :class:`CancelledError` raised by
-    ``progress`` (or Ctrl-C) cancels the pending tasks and propagates. With ``return_exceptions`` a failing task
-    gives its exception in its slot instead of raising.
+    Progress goes over completed tasks from ``start`` to ``stop`` (plus ``partial()``, the summed fractions of
+    the running tasks, when given); while tasks run it is reported every ``poll_s`` seconds, so a
+    :class:`CancelledError` raised by ``progress`` (or Ctrl-C) cancels the pending tasks promptly and propagates.
+    On cancel, tasks already running on threads are waited for (they see the cancel through their own progress
+    and clean up). With ``return_exceptions`` a failing task gives its exception in its slot instead of raising.
+    ``done`` (a list of n False) is set True per slot as results arrive, in ``out`` (a list of n, else a new
+    one): what finished before a cancel.
     """
     n = len(items)
-    out: List[Any] = [None] * n
+    if out is None:
+        out = [None] * n
     if n == 0:
         return out
+
+    def frac(k):
+        extra = min(max(float(partial()), 0.0), n - k) if partial is not None else 0.0
+        return start + (stop - start) * (k + extra) / n
+
     if executor is None or isinstance(executor, SerialExecutor):
         for i, item in enumerate(items):
             try:
@@ -163,24 +183,61 @@ def map_ordered(fn: Callable, items: Sequence, executor: Optional[cf.Executor] =
                 if not return_exceptions:
                     raise
                 out[i] = exc
+            if done is not None:
+                done[i] = True
             report(progress, start + (stop - start) * (i + 1) / n, f"{label} {i + 1}/{n}")
         return out
     futures = {}
+    k = 0
     try:
         for i, item in enumerate(items):
             futures[executor.submit(fn, item)] = i
-        for k, fut in enumerate(cf.as_completed(futures)):
-            i = futures[fut]
-            exc = fut.exception()
-            if exc is not None:
-                if not return_exceptions:
-                    raise exc
-                out[i] = exc
-            else:
-                out[i] = fut.result()
-            report(progress, start + (stop - start) * (k + 1) / n, f"{label} {k + 1}/{n}")
+        pending = set(futures)
+        while pending:
+            finished, pending = cf.wait(pending, timeout=poll_s, return_when=cf.FIRST_COMPLETED)
+            for fut in sorted(finished, key=futures.__getitem__):
+                i = futures[fut]
+                exc = fut.exception()
+                if exc is not None:
+                    if not return_exceptions:
+                        raise exc
+                    out[i] = exc
+                else:
+                    out[i] = fut.result()
+                if done is not None:
+                    done[i] = True
+                k += 1
+            report(progress, frac(k), f"{label} {k}/{n}")
     except BaseException:
         for fut in futures:
             fut.cancel()
+        if isinstance(executor, cf.ThreadPoolExecutor):
+            # Running threads cannot be stopped from outside: wait until they have seen the cancel (through
+            # their progress callbacks) and removed their partial outputs, or finished.
+            cf.wait([f for f in futures if not f.cancelled()])
+            for fut, i in futures.items():
+                if done is not None and fut.done() and not fut.cancelled() and fut.exception() is None:
+                    out[i], done[i] = fut.result(), True
+        elif dask_client(executor) is not None:
+            _drain_workers(dask_client(executor))
         raise
     return out
+
+
+def _executing(dask_worker) -> int:
+    return len(dask_worker.state.executing)
+
+
+def _drain_workers(client, timeout_s: float = 30.0) -> None:
+    """After a cancel: wait (at most ``timeout_s``) until the workers run no task any more, so that the cancelled
+    tasks have stopped at their next progress call and removed their partial outputs before the caller closes
+    the cluster or reports."""
+    import time
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            if not sum(client.run(_executing).values()):
+                return
+        except Exception:  # noqa: BLE001 - workers gone or another distributed version: nothing to wait for
+            return
+        time.sleep(0.1)

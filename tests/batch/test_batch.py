@@ -65,7 +65,7 @@ def test_fifty_gf4_scenes_on_a_local_cluster_one_corrupt_rerun_does_nothing(gf4,
     out = tmp_path / "out"
     with get_executor("local:2") as ex:
         rep = apply_calibration_batch(gf4["current"], gf4["true"], paths, out, executor=ex)
-    assert rep["counts"] == {"ok": 49, "failed": 1, "skipped": 0}
+    assert rep["counts"] == {"ok": 49, "failed": 1, "skipped": 0, "cancelled": 0}
     df = pd.read_csv(out / "batch_summary.csv")
     bad = df[df["status"] == "failed"]
     assert list(bad["scene"]) == [paths[25]] and "RPC" in bad["error"].iloc[0].upper()
@@ -73,7 +73,7 @@ def test_fifty_gf4_scenes_on_a_local_cluster_one_corrupt_rerun_does_nothing(gf4,
     _check_against_truth(out, truth)
     mt = {p: os.stat(out / p).st_mtime_ns for p in os.listdir(out) if p.endswith(".RPB")}
     rep2 = apply_calibration_batch(gf4["current"], gf4["true"], paths, out)
-    assert rep2["counts"] == {"ok": 0, "failed": 1, "skipped": 49}
+    assert rep2["counts"] == {"ok": 0, "failed": 1, "skipped": 49, "cancelled": 0}
     assert {p: os.stat(out / p).st_mtime_ns for p in mt} == mt
 
 
@@ -87,15 +87,15 @@ def test_batch_threads_missing_and_corrupt_scene_reported_rerun_skips(gf4, tmp_p
     out = tmp_path / "out"
     with get_executor("threads:2") as ex:
         rep = apply_calibration_batch(gf4["current"], gf4["true"], scenes, out, executor=ex)
-    assert rep["counts"] == {"ok": 5, "failed": 2, "skipped": 0}
+    assert rep["counts"] == {"ok": 5, "failed": 2, "skipped": 0, "cancelled": 0}
     rows = {r["scene"]: r for r in json.loads((out / "batch_summary.json").read_text())["scenes"]}
     assert rows[missing]["error"] == f"scene not found: {missing}"
     assert rows[paths[3]]["status"] == "failed" and rows[paths[3]]["error"]
     _check_against_truth(out, truth)
     rep2 = apply_calibration_batch(gf4["current"], gf4["true"], scenes, out)
-    assert rep2["counts"] == {"ok": 0, "failed": 2, "skipped": 5}
+    assert rep2["counts"] == {"ok": 0, "failed": 2, "skipped": 5, "cancelled": 0}
     rep3 = apply_calibration_batch(gf4["current"], gf4["true"], scenes, out, overwrite=True)
-    assert rep3["counts"] == {"ok": 5, "failed": 2, "skipped": 0}
+    assert rep3["counts"] == {"ok": 5, "failed": 2, "skipped": 0, "cancelled": 0}
 
 
 def _kill_one_worker_then_run(scene, outputs, *, delay_s, victim_file, overwrite=False):
@@ -124,7 +124,7 @@ def test_a_worker_killed_mid_batch_its_tasks_are_retried(tmp_path):
     with get_executor("local:2") as ex:
         rep = run_batch(_kill_one_worker_then_run, scenes, out, lambda s: {"out": str(out / os.path.basename(s))},
                         params={"delay_s": 0.2, "victim_file": str(tmp_path / "victim")}, executor=ex)
-    assert rep["counts"] == {"ok": 8, "failed": 0, "skipped": 0}, [r["error"] for r in rep["scenes"]]
+    assert rep["counts"] == {"ok": 8, "failed": 0, "skipped": 0, "cancelled": 0}, [r["error"] for r in rep["scenes"]]
     for s in scenes:
         assert (out / os.path.basename(s)).read_text() == s
 
