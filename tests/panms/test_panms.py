@@ -10,6 +10,7 @@ from gdal_gf4cal.simulate.gf7 import make_gf7_scene
 from panmssim import synth_cells, truth_grid
 
 SIGMA = 0.03            # cell-noise floor of the synthetic cells (MS px per axis)
+CELL = 96               # 80 x 80 cells over the full MS array (26 cell columns per sub-CCD)
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +20,7 @@ def jitter_scene():
 
 @pytest.fixture(scope="module")
 def solved(jitter_scene):
-    cells = synth_cells(jitter_scene, sigma=SIGMA, n_bad=30)
+    cells = synth_cells(jitter_scene, cell=CELL, sigma=SIGMA, n_bad=30)
     return cells, panms.estimate(cells, ms_size=jitter_scene.image("ms").size)
 
 
@@ -49,7 +50,7 @@ def test_blunders_are_flagged_and_do_not_bias(solved):
 
 def test_full_model_against_the_true_field(solved, jitter_scene):
     _, m = solved
-    s, l, ts, tl = truth_grid(jitter_scene)
+    s, l, ts, tl = truth_grid(jitter_scene, 100)
     ps, pl = m.predict(s, l)
     e = np.hypot(ts - ps, tl - pl)
     assert np.sqrt(np.mean((ts - ps) ** 2)) <= 0.03 and np.sqrt(np.mean((tl - pl) ** 2)) <= 0.03
@@ -72,14 +73,14 @@ def test_jitter_components_recovered_with_attitude(solved, jitter_scene):
 
 def test_no_jitter_component_accepted_without_jitter():
     sc = make_gf7_scene(seed=0, jitter=False)
-    m = panms.estimate(synth_cells(sc, sigma=SIGMA), ms_size=sc.image("ms").size)
+    m = panms.estimate(synth_cells(sc, cell=CELL, sigma=SIGMA), ms_size=sc.image("ms").size)
     assert m.jitter["sample"]["components"] == [] and m.jitter["line"]["components"] == []
     assert _step(m, "jitter")["rms_sample_px"] == pytest.approx(_step(m, "piecewise")["rms_sample_px"])
     assert _step(m, "piecewise")["rms_sample_px"] <= 1.1 * SIGMA
 
 
 def test_fixed_jitter_count_and_none(jitter_scene):
-    cells = synth_cells(jitter_scene, sigma=SIGMA)
+    cells = synth_cells(jitter_scene, cell=CELL, sigma=SIGMA)
     m = panms.estimate(cells, ms_size=jitter_scene.image("ms").size, jitter=2)
     assert len(m.jitter["sample"]["components"]) == 2 and len(m.jitter["line"]["components"]) == 2
     m0 = panms.estimate(cells, ms_size=jitter_scene.image("ms").size, jitter="none")
@@ -100,7 +101,7 @@ def test_reuse_mode_with_200_sparse_cells(solved):
     as the paper's Tables 2 and 3)."""
     _, m0 = solved
     sc = make_gf7_scene(seed=7, jitter=True)
-    dense = synth_cells(sc, sigma=SIGMA, seed=3)
+    dense = synth_cells(sc, cell=CELL, sigma=SIGMA, seed=3)
     solve = panms.estimate(dense, ms_size=sc.image("ms").size, jitter="none")
     sparse = synth_cells(sc, cell=512, sigma=SIGMA, seed=4)
     assert len(sparse) <= 225
@@ -133,7 +134,7 @@ def test_all_cells_cloudy_is_refused(solved):
 
 def test_cloudy_cells_left_out():
     sc = make_gf7_scene(seed=2, jitter=False, clouds=0.3)
-    cells = synth_cells(sc, sigma=SIGMA)
+    cells = synth_cells(sc, cell=CELL, sigma=SIGMA)
     # a cloudy cell measures nothing: replace its nabla by garbage; it must not enter the estimate
     cells.loc[~cells["usable"], ["d_sample", "d_line"]] = 5.0
     assert 0.15 < 1 - cells["usable"].mean() < 0.5
