@@ -27,6 +27,15 @@ from .progress import report
 #: seconds to wait for a remote scheduler before giving up
 CONNECT_TIMEOUT_S = 5.0
 
+#: Environment of the worker processes of a ``local`` cluster. Dask's default sets ``MALLOC_TRIM_THRESHOLD_=65536``
+#: (memory back to the OS at once), which also switches off glibc's adaptive mmap threshold: every array above
+#: 128 KB (the windows, spectra and stacks of matching) is then a fresh mmap, paid in page faults, and matching ran
+#: ~1.5x slower in a worker than in a thread (4x the minor faults, bench/bench_scale.py). Explicit thresholds at
+#: glibc's own adaptive maxima keep tile-sized arrays on the heap; memory stays bounded by the tile. For workers
+#: you start yourself, set the same in ``distributed.nanny.pre-spawn-environ`` (README).
+WORKER_ENV = {"MALLOC_MMAP_THRESHOLD_": 32 * 2 ** 20, "MALLOC_TRIM_THRESHOLD_": 64 * 2 ** 20,
+              "OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1}
+
 
 class ExecutorError(Gf4calError, ConnectionError):
     """The executor could not be started or reached (exit code 2 at the CLI)."""
@@ -51,9 +60,6 @@ def _quiet_tornado():
     # Debian's distributed + tornado 6.2 warn "make_current is deprecated" when an event loop starts.
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", category=DeprecationWarning)
-        # The scheduler's HTTP server (unused: no dashboard) falls back to another port when 8787 is taken, e.g.
-        # by a second cluster on the same machine; that is fine, not a warning for our users.
-        warnings.filterwarnings("ignore", message=r"(?s).*Port 8787 is already in use", category=UserWarning)
         yield
 
 
@@ -110,9 +116,13 @@ def get_executor(spec: Any = None, *, workers: Optional[int] = None,
                             "(pip), or run without --dask") from None
     if kind == "local":
         import dask
-        with _quiet_tornado(), dask.config.set({"distributed.worker.daemon": False}):
+        with _quiet_tornado(), dask.config.set({"distributed.worker.daemon": False,
+                                                "distributed.nanny.pre-spawn-environ": dict(WORKER_ENV)}):
+            # No dashboard; the scheduler's HTTP server (metrics) on a free port: the default 8787 is often taken
+            # by another cluster, and distributed 2022.12 then leaks a socket and warns.
             cluster = distributed.LocalCluster(n_workers=count, threads_per_worker=1, processes=True,
-                                               dashboard_address=None, silence_logs=40)
+                                               dashboard_address=None, silence_logs=40,
+                                               scheduler_kwargs={"dashboard": False, "dashboard_address": ":0"})
             try:
                 client = distributed.Client(cluster)
             except BaseException:

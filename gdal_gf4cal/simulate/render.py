@@ -122,6 +122,19 @@ def texture_value(lon, lat, seed: int = 0, scale_m: float = 150.0, edge_m: Optio
     return np.clip(v, 0.0, 1.0)
 
 
+def create_ortho_tif(path, nx: int, ny: int, top_left, resolution_deg: float):
+    """A new tiled DEFLATE Byte GeoTIFF in EPSG:4326 (``top_left = (lon, lat)`` of the outer corner), open for
+    writing block by block (call ``FlushCache()`` after each block to keep memory at a block)."""
+    from osgeo import gdal, osr
+    ds = gdal.GetDriverByName("GTiff").Create(os.fspath(path), nx, ny, 1, gdal.GDT_Byte,
+                                              ["TILED=YES", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"])
+    ds.SetGeoTransform((top_left[0], resolution_deg, 0.0, top_left[1], 0.0, -resolution_deg))
+    srs = osr.SpatialReference()
+    srs.ImportFromEPSG(4326)
+    ds.SetProjection(srs.ExportToWkt())
+    return ds
+
+
 @with_gdal_exceptions
 def write_reference_ortho(path, bounds, resolution_deg: float, seed: int = 0, scale_m: float = 150.0,
                           block: int = 512, workers: int = 2) -> str:
@@ -129,7 +142,6 @@ def write_reference_ortho(path, bounds, resolution_deg: float, seed: int = 0, sc
     max_lat)`` at ``resolution_deg``: a reference DOM for matching tests (values at pixel centres).
 
     Blocks are computed by ``workers`` threads (NumPy releases the GIL), at most ``2 * workers`` in flight."""
-    from osgeo import gdal, osr
     x0, y0, x1, y1 = bounds
     nx = int(np.ceil((x1 - x0) / resolution_deg))
     ny = int(np.ceil((y1 - y0) / resolution_deg))
@@ -137,12 +149,7 @@ def write_reference_ortho(path, bounds, resolution_deg: float, seed: int = 0, sc
         raise Gf4calError(f"reference ortho of {nx} x {ny} px is unreasonable; choose a coarser resolution")
     path = os.fspath(path)
     with atomic_output(path) as tmp:
-        ds = gdal.GetDriverByName("GTiff").Create(tmp, nx, ny, 1, gdal.GDT_Byte,
-                                                  ["TILED=YES", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"])
-        ds.SetGeoTransform((x0, resolution_deg, 0.0, y1, 0.0, -resolution_deg))
-        srs = osr.SpatialReference()
-        srs.ImportFromEPSG(4326)
-        ds.SetProjection(srs.ExportToWkt())
+        ds = create_ortho_tif(tmp, nx, ny, (x0, y1), resolution_deg)
         band = ds.GetRasterBand(1)
 
         def do_block(i, j):

@@ -17,9 +17,6 @@ from gdal_gf4cal.errors import CancelledError
 from gdal_gf4cal.executors import get_executor
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-# distributed 2022.12 leaves the socket of its scheduler's HTTP server port probe to the garbage collector; that
-# ResourceWarning surfaces in whichever test runs when it is collected.
-pytestmark = pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
 
 
 def _slow_scene(scene, outputs, *, steps, overwrite=False, progress=None):
