@@ -282,7 +282,7 @@ def _freq_grid(lines, oversample: int = 10):
     if lines.size < 8 or span <= 0:
         return np.zeros(0), span
     dl = np.median(np.diff(np.sort(lines)))
-    f_max = 0.5 / dl
+    f_max = 0.45 / dl                 # short of Nyquist, where a sine fit on the rows is ill-conditioned
     f_min = 1.0 / span
     n = int(max(16, oversample * (f_max - f_min) * span))
     return np.linspace(f_min, f_max, n), span
