@@ -313,7 +313,12 @@ def _collect_from_ortho(paths, keys, order, models, reference, dem, progress):
     tabs = []
     for i, k in enumerate(order):
         p = paths[keys.index(k)]
-        g = collect_gcps(p, models[k], os.fspath(reference), dem, progress=None)
+        W, H = _open_image(p)[0] or (512, 512)
+        # dense enough for a cubic per CCD: about 8 x 8 windows per image (the matcher's default 256 px is for a
+        # 6-parameter bias of a whole scene)
+        spacing = int(max(32, min(256, min(W, H) // 8)))
+        g = collect_gcps(p, models[k], os.fspath(reference), dem, spacing_px=spacing,
+                         window_px=int(min(64, 2 * spacing)), progress=None)
         g = g[~g["outlier"].to_numpy(bool)] if "outlier" in g.columns else g
         g = g.assign(id=[f"O{k}_{j}" for j in g["id"]])
         tabs.append(from_gcps(g[["id", "lon", "lat", "h", "sample", "line", "role", "sigma"]], k))

@@ -177,3 +177,30 @@ def test_match_ties(tmp_path_factory, tmp_path):
     assert len(seams) == 3
     for pair, s in seams.items():
         assert s["before_mean"] >= 2.0 and s["after"] <= 0.1, (pair, s)
+
+
+def test_reference_ortho_and_matched_ties(tmp_path_factory, tmp_path):
+    """No observation file at all: GCPs collected from a reference ortho, tie points matched (rendered pan CCDs)."""
+    import numpy as np
+    from gdal_gf4cal.rpc import RPCModel
+    from gdal_gf4cal.simulate import write_reference_ortho, write_scene
+    from gdal_gf4cal.simulate.render import model_bounds
+    d = str(tmp_path_factory.mktemp("jl1_ortho"))
+    write_scene("jl1", d, seed=5, size=(512, 512), render=True, n_gcps=5, reference_ortho=False, check_grid_n=5)
+    scene = B.truth_scene(5, (512, 512), None)
+    b = np.array([model_bounds(scene.image(f"ccd{k}").current) for k in range(1, 5)])
+    ortho = str(tmp_path / "ortho.tif")
+    write_reference_ortho(ortho, (b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()), 0.5 / 111000.0,
+                          seed=5, scale_m=3 * 0.75)           # the texture write_scene rendered the pan CCDs with
+    out = str(tmp_path / "out")
+    pan = [os.path.join(d, f"ccd{k}", "scene.tif") for k in range(1, 5)]
+    assert main(["block-adjust", *pan, "--dem", os.path.join(d, "dem.tif"), "--reference-ortho", ortho,
+                 "--match-ties", "--out", out]) == 0
+    seams = B.true_seams(out, d, seed=5, size=(512, 512), bands=("pan",))
+    assert all(s["before_mean"] >= 2.0 and s["after"] <= 0.1 for s in seams.values()), seams
+    for k in range(1, 5):
+        im = scene.image(f"ccd{k}")
+        S, L = B._grid(im)
+        lon, lat, h = im.true.localize_dem(S, L, scene.dem)
+        m = RPCModel.from_file(os.path.join(out, f"ccd{k}.RPB"))
+        assert B.rms(np.stack(m.project(lon, lat, h)) - np.stack([S, L])) <= 0.1
