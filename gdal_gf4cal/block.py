@@ -49,7 +49,8 @@ from .sensor import SensorModelMixin
 
 __all__ = ["EXTERIOR_NAMES", "DATUM_TERMS", "ImageLayout", "BlockLayout", "BlockEstimate", "BlockCorrectedRPC",
            "derive_layout", "adjust_block", "corrected_model", "seam_offsets", "calibration_dict",
-           "write_calibration", "read_calibration", "calibrated_model", "prediction_std", "BlockError"]
+           "write_calibration", "read_calibration", "calibrated_model", "prediction_std", "layout_from_calibration",
+           "BlockError"]
 
 EXTERIOR_NAMES = ("e0", "e1", "e3", "e4", "kappa_mrad")
 INTERIOR_NAMES = ("a0", "a1", "a2", "a3", "b0", "b1", "b2", "b3")
@@ -372,7 +373,7 @@ class _Stage:
         self.max_rays = int(counts.max()) if counts.size else 1
         order = np.argsort(self.point_of, kind="stable")
         slot = np.empty(tie_rows.size, int)
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(int) if counts.size else np.zeros(0, int)
         slot[order] = np.arange(tie_rows.size) - np.repeat(starts, counts)
         self.tie_rows, self.slot = tie_rows, slot
         self.models, self.dem = models, dem
@@ -440,6 +441,8 @@ class _Stage:
         pf = int(free.sum())
         N, m = self.point_ids.size, self.max_rays
         k = 2 * m
+        if jp is None:
+            jp = np.zeros((0, 2, 2))
         # tie rows -> padded point layout
         jpp = np.zeros((N, k, 2))
         rr = np.zeros((N, k))
@@ -506,7 +509,7 @@ def _run_stage(stage: _Stage, x, free_sets, *, robust: bool, tol: float, max_ite
     rejected = np.zeros(len(stage.rows), bool)
     phase = 0 if robust else 2            # 0: a-priori weights, 1: down-weighting, 2: rejection
     history: List[float] = []
-    small_in_row = 0
+    small_in_row = in_phase = 0
     converged = False
     it = 0
     for it in range(1, max_iter + 1):
@@ -520,15 +523,19 @@ def _run_stage(stage: _Stage, x, free_sets, *, robust: bool, tol: float, max_ite
         mx, my = metres_per_degree(plat, 0.0)
         plon = plon + dp[:, 0] / mx
         plat = plat + dp[:, 1] / my
+        # change: the largest move of a corrected position through the global parameters, and the 99th percentile
+        # of the tie points' moves (a blunder's point may cycle over a DEM kink until it is rejected)
         move = np.abs(np.einsum("nkc,nc->nk", stage.design, dx[stage.cols]))
-        if stage.tie_rows.size:
-            move[stage.tie_rows] += np.abs(np.einsum("nkq,nq->nk", jp, dp[stage.point_of]))
         change = float(np.max(move[stage.base_w > 0])) if (stage.base_w > 0).any() else 0.0
+        if stage.tie_rows.size:
+            pm = np.abs(np.einsum("nkq,nq->nk", jp, dp[stage.point_of])).max(axis=1)
+            change = max(change, float(np.percentile(pm, 99)))
         history.append(change)
         if progress is not None:
             progress(min(it / max_iter, 0.99), f"iteration {it}: largest change {change:.3g} px")
         small_in_row = small_in_row + 1 if change < tol else 0
-        if small_in_row >= len(free_sets):
+        in_phase += 1
+        if small_in_row >= len(free_sets) or (phase < 2 and in_phase >= 4 * len(free_sets) and change < 100 * tol):
             if phase == 2:
                 pred, _, _, _ = stage.evaluate(x, plon, plat, with_jacobian=False)
                 v = stage.meas - pred
@@ -540,7 +547,7 @@ def _run_stage(stage: _Stage, x, free_sets, *, robust: bool, tol: float, max_ite
                 small_in_row = 0
                 continue
             phase += 1
-            small_in_row = 0
+            small_in_row = in_phase = 0
         if phase >= 1 and robust:
             pred, _, _, _ = stage.evaluate(x, plon, plat, with_jacobian=False)
             v = stage.meas - pred
@@ -584,7 +591,7 @@ def adjust_block(observations, models: Mapping[str, Any], dem, *, layout: Option
                  order: Optional[Sequence[str]] = None, bands_of: Optional[Mapping[str, str]] = None,
                  reference_ccd: Optional[str] = None, solver: str = "simultaneous", robust: bool = True,
                  compare: bool = False, tol: float = 1e-3, max_iter: int = 60, reject_k: float = 5.0,
-                 progress=None) -> BlockEstimate:
+                 calibration: Optional[Mapping[str, Any]] = None, progress=None) -> BlockEstimate:
     """Block calibration of one group in RPC space (METHODS §8; module docstring).
 
     Parameters
@@ -601,6 +608,9 @@ def adjust_block(observations, models: Mapping[str, Any], dem, *, layout: Option
     robust : robust reweighting and blunder rejection (module docstring).
     compare : also run the other solver and keep its stages (iterations, parameters) in ``comparison``.
     tol : convergence: largest change of any predicted position in one iteration, px.
+    calibration : a group calibration (:func:`calibration_dict`; ``models`` keyed by its image names): only the
+        scene's exterior is estimated, every interior held at the calibrated values (another scene of the same
+        camera and group with a few GCPs, METHODS §8's validation); ``layout`` comes from the calibration.
 
     Returns
     -------
@@ -625,6 +635,8 @@ def adjust_block(observations, models: Mapping[str, Any], dem, *, layout: Option
         raise BlockError(f"the observations name image {unknown[0]!r}, which is not among the images "
                          f"({', '.join(list(models)[:6])}{', ...' if len(models) > 6 else ''}); give that image or "
                          "fix the observation file's image column")
+    if calibration is not None:
+        layout = layout_from_calibration(calibration, models)
     if layout is None:
         bands_of = dict(bands_of or {})
         if order is None:
@@ -633,6 +645,12 @@ def adjust_block(observations, models: Mapping[str, Any], dem, *, layout: Option
     gcp = (tab["kind"] == "gcp").to_numpy()
     if gcp.any() and not np.all(np.isfinite(tab.loc[gcp, "h"].to_numpy(float))):
         raise BlockError("some GCPs have no height; give h or a DEM to take it from")
+    if calibration is not None:
+        n = int(tab.loc[(tab["kind"] == "gcp") & (tab["role"] == "control"), "point_id"].nunique())
+        if n < 3:
+            raise BlockError(f"{n} control GCP(s); the scene's exterior (5 terms) needs >= 3; add GCPs (--gcps)")
+        return _adjust(tab, models, dem, layout, solver, robust, tol, max_iter, reject_k, progress,
+                       start=calibration)
     _check_control(tab, layout)
     result = _adjust(tab, models, dem, layout, solver, robust, tol, max_iter, reject_k, progress)
     if compare:
@@ -644,7 +662,24 @@ def adjust_block(observations, models: Mapping[str, Any], dem, *, layout: Option
     return result
 
 
-def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter, reject_k, progress) -> BlockEstimate:
+def layout_from_calibration(cal: Mapping[str, Any], models: Optional[Mapping[str, Any]] = None) -> BlockLayout:
+    """The layout stored in a calibration (:func:`calibration_dict`); ``models`` must all be in it."""
+    ims = {k: ImageLayout(k, v["reference"], int(v["ccd"]), tuple(int(x) for x in v["size"]), float(v["ratio"]),
+                          float(v["x0_px"]), float(v.get("y_px", 0.0))) for k, v in cal["images"].items()}
+    missing = [m for m in (models or {}) if m not in ims]
+    if missing:
+        raise BlockError(f"image {missing[0]!r} is not in the calibration (images: {', '.join(list(ims)[:8])}); name "
+                         "the scene's images as in the calibrated group")
+    keep = [k for k in ims if models is None or k in models]
+    order = [o for o in cal["order"] if o in keep]
+    if cal["reference_ccd"] not in keep:
+        raise BlockError(f"the calibration's reference CCD {cal['reference_ccd']!r} is not among the images; give it")
+    return BlockLayout({k: ims[k] for k in order + [k for k in keep if k not in order]}, order,
+                       str(cal["reference_ccd"]), float(cal["time_scale"]))
+
+
+def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter, reject_k, progress,
+            start: Optional[Mapping[str, Any]] = None) -> BlockEstimate:
     from . import progress as _progress
     blocks, index = _parameter_blocks(layout)
     names = [n for b in blocks for n in b.names]
@@ -680,6 +715,13 @@ def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter
     specs = [("reference", ref_imgs, False, ext | is_ref_int)]
     if band_imgs:
         specs.append(("bands", band_imgs, True, is_band_int))
+    if start is not None:                                   # another scene: its exterior only, interiors calibrated
+        for im in layout.images:
+            idx = index[im]
+            x[idx[5:]] = [float(start["images"][im]["interior"][n]) for n in INTERIOR_NAMES]
+        x[sl["exterior"]] = [float(start["exterior"][n]) for n in EXTERIOR_NAMES]
+        specs = [("exterior", ref_imgs + band_imgs, False, ext)]
+        used_gcp_ref = control
     final_stage = []
     for si, (label, imgs, band_stage, free_all) in enumerate(specs):
         rows = _stage_rows(tab, imgs, band_stage, ref_imgs + band_imgs)

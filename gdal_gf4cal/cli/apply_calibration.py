@@ -3,15 +3,17 @@ from __future__ import annotations
 
 NAME = "apply-calibration"
 HELP = ("Recalibrate the RPCs of scenes made with the --current camera for the --new camera (from "
-        "calibrate-lookangle); write DIR/<scene>.RPB (+ .vrt for images) and report.json.")
+        "calibrate-lookangle), or of another scene of a block-calibrated group (--calibration from block-adjust); "
+        "write DIR/<scene>.RPB (+ .vrt for images) and report.json.")
 
 
 def add_parser(parser):
     parser.add_argument("scenes", nargs="+", metavar="SCENE", help="images with an RPC or RPC sidecars (paths, "
                         "globs or @list.txt)")
-    parser.add_argument("--current", required=True, metavar="OLD.json", help="the camera the scenes' RPCs were "
-                                                                           "made with")
-    parser.add_argument("--new", required=True, metavar="NEW.json", help="the recalibrated camera")
+    parser.add_argument("--current", metavar="OLD.json", help="the camera the scenes' RPCs were made with")
+    parser.add_argument("--new", metavar="NEW.json", help="the recalibrated camera")
+    parser.add_argument("--calibration", metavar="CAL.json", help="instead of --current/--new: a block calibration "
+                        "(calibration.json of block-adjust); SCENEs are the group's images, named as calibrated")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs (never an input)")
     from .batch_options import add_batch_options
@@ -19,6 +21,13 @@ def add_parser(parser):
 
 
 def run(args) -> int:
+    from ..errors import GCPError
+    if args.calibration:
+        if args.current or args.new:
+            raise GCPError("give either --calibration (block) or --current and --new (camera files), not both")
+        return _run_block(args)
+    if not (args.current and args.new):
+        raise GCPError("give --current and --new (camera files) or --calibration (block calibration)")
     if args.batch or args.dask:
         from .batch_options import run_batch_command
         from ..batch import apply_calibration_batch
@@ -33,6 +42,21 @@ def run(args) -> int:
         print(f"{e['scene']}: image moved by mean {e['image_shift_px']['mean']:.2f} px, max "
               f"{e['image_shift_px']['max']:.2f} px; RPC fit max {fit['max_px']:.2e} px -> {e['rpb']}"
               + (f" and {e['vrt']}" if e["vrt"] else ""))
+    print(f"wrote report: {rep['outputs']['report']}")
+    from . import print_warnings
+    print_warnings(rep)
+    return 0
+
+
+def _run_block(args) -> int:
+    from ..workflows import apply_block_calibration
+    from ..progress import TextProgressBar
+    rep = apply_block_calibration(args.calibration, args.scenes, args.out, overwrite=args.overwrite,
+                                  progress=TextProgressBar())
+    for e in rep["scenes"]:
+        fit = e["fit"]["check"] or e["fit"]["fit"]
+        print(f"{e['scene']} ({e['image']}): image moved by mean {e['image_shift_px']['mean']:.2f} px, max "
+              f"{e['image_shift_px']['max']:.2f} px; RPC fit max {fit['max_px']:.2e} px -> {e['rpb']}")
     print(f"wrote report: {rep['outputs']['report']}")
     from . import print_warnings
     print_warnings(rep)

@@ -70,12 +70,20 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
     r = np.nan_to_num(np.asarray(residuals, dtype=float))
     w = np.asarray(weights, dtype=float)
     n, _, q = jp.shape
-    npp = np.einsum("nr,nri,nrj->nij", w, jp, jp)
-    bp = np.einsum("nr,nri,nr->ni", w, jp, r)
-    ok = np.abs(np.linalg.det(npp)) > det_min
+    jw = (jp * w[:, :, None]).transpose(0, 2, 1)                              # (n, q, r): matmul, not 3-way einsum
+    npp = np.matmul(jw, jp)
+    bp = np.matmul(jw, r[:, :, None])[:, :, 0]
     inv = np.full((n, q, q), np.nan)
-    if ok.any():
-        inv[ok] = np.linalg.inv(npp[ok])
+    if q == 2:                                                                # closed form (many 2x2 blocks)
+        det = npp[:, 0, 0] * npp[:, 1, 1] - npp[:, 0, 1] * npp[:, 1, 0]
+        ok = np.abs(det) > det_min
+        d = np.where(ok, det, 1.0)
+        inv[ok] = (np.stack([npp[:, 1, 1], -npp[:, 0, 1], -npp[:, 1, 0], npp[:, 0, 0]], axis=1)
+                   / d[:, None]).reshape(n, 2, 2)[ok]
+    else:
+        ok = np.abs(np.linalg.det(npp)) > det_min
+        if ok.any():
+            inv[ok] = np.linalg.inv(npp[ok])
     if jac_global is None:
         dxp = np.full((n, q), np.nan)
         if ok.any():
@@ -175,12 +183,19 @@ def _solve_sparse(jp, r, w, npp, bp, ok, inv, jg, extra, covariance: bool) -> Po
                                           "add observations") from None
         s_dense = s_eq.toarray() if covariance else None
     else:
+        from scipy.linalg import LinAlgError, cho_factor, cho_solve
         s_dense = s_eq.toarray()
-        sv = np.linalg.svd(s_dense, compute_uv=False)
-        if sv[-1] <= 1e-12 * sv[0]:
+        try:                                         # Cholesky: the equilibrated S is SPD when determined
+            fac = cho_factor(s_dense, check_finite=False)
+            piv = np.abs(np.diag(fac[0]))
+            if piv.min() ** 2 <= 1e-12 * piv.max() ** 2:
+                raise LinAlgError("ill-conditioned")
+        except LinAlgError:
+            sv = np.linalg.svd(s_dense, compute_uv=False)
             raise DegenerateGeometryError(f"the global parameters are not determined (condition number "
-                                          f"{sv[0] / max(sv[-1], 1e-300):.3g}); freeze blocks or add observations")
-        z = np.linalg.solve(s_dense, b_red / d)
+                                          f"{sv[0] / max(sv[-1], 1e-300):.3g}); freeze blocks or add observations") \
+                from None
+        z = cho_solve(fac, b_red / d, check_finite=False)
     dxg = z / d
     if not np.all(np.isfinite(dxg)):
         raise DegenerateGeometryError("the global parameters are not determined; freeze blocks or add observations")
@@ -190,9 +205,11 @@ def _solve_sparse(jp, r, w, npp, bp, ok, inv, jg, extra, covariance: bool) -> Po
     cov_g = np.zeros((0, 0))
     cov_p = np.empty((0, q, q))
     if covariance:
-        cov_g = np.linalg.inv(s_dense) / np.outer(d, d)
+        cov_g = (cho_solve(fac, np.eye(p), check_finite=False) if p <= SPARSE_ABOVE else np.linalg.inv(s_dense)) \
+            / np.outer(d, d)
         tt = t.toarray().reshape(n, q, p) if n * q * p <= 5e7 else None
         cov_p = inv.copy()
         if tt is not None:
-            cov_p[ok] = inv[ok] + np.einsum("nqi,ij,nrj->nqr", tt[ok], cov_g, tt[ok])
+            t_ok = tt[ok]
+            cov_p[ok] = inv[ok] + np.matmul(t_ok @ cov_g, t_ok.transpose(0, 2, 1))
     return PointSolution(dxp, cov_p, ok, dxg, cov_g)

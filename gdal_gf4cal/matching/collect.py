@@ -49,10 +49,10 @@ from ..errors import Gf4calError
 from ..progress import report
 from .correlate import correlate_spectra, phase_correlate, spectra, window_measures
 from .filters import reject_outliers
-from .resample import ReferenceImage, read_block, reference_on_grids
+from .resample import RawReference, ReferenceImage, read_block, reference_on_grids
 from .._gdal import with_gdal_exceptions
 
-__all__ = ["TileSpec", "STATUS", "collect_gcps", "plan_tiles", "match_tile", "assemble_gcps"]
+__all__ = ["TileSpec", "STATUS", "collect_gcps", "plan_tiles", "match_tile", "assemble_gcps", "run_tiles"]
 
 #: Status codes of windows, as returned by :func:`match_tile` and counted in ``gcps.attrs['windows']``.
 STATUS = {0: "accepted", 1: "nodata", 2: "featureless", 3: "weak_correlation", 4: "cloud_or_change",
@@ -74,6 +74,7 @@ class TileSpec:
     window_px: int
     factor: int                               # coarse level's block size (1 = no coarse level)
     params: Dict[str, float] = field(default_factory=dict)
+    reference_model: Any = None               # None: ``reference`` is an ortho; else the raw reference's model
 
 
 # ---------------------------------------------------------------------------------------------- worker side
@@ -183,19 +184,43 @@ def _predict_offsets(centers, dx, dy, pilots, rest, res, ok, p):
     return pred[:, 0], pred[:, 1]
 
 
+def _raw_reference_footprint(ref: RawReference, rpc, dem, c, w: int, out, status):
+    """Raw reference: the homologous reference position of every window centre (``ref_sample, ref_line``) and
+    status ``outside_image`` for windows whose footprint (corners) is not wholly inside the reference raster, so
+    only the overlap of two images is matched. Returns the windows within the resampling margin of its edge
+    (no-data there means outside as well)."""
+    rs, rl = ref.ground_to_pixel(out["lon"], out["lat"], out["h"])
+    out["ref_sample"], out["ref_line"] = np.atleast_1d(rs).astype(float), np.atleast_1d(rl).astype(float)
+    half = w / 2.0
+    cs = c[:, 0][:, None] + np.array([-half, half, -half, half])[None, :]
+    cl = c[:, 1][:, None] + np.array([-half, -half, half, half])[None, :]
+    lon, lat, h = rpc.localize_dem(cs, cl, dem)
+    xs, ys = ref.ground_to_pixel(lon, lat, h)
+    # Reference pixels per image pixel (the anti-alias low-pass of a finer reference reaches ~3 of them).
+    with np.errstate(invalid="ignore"):
+        ratio = np.hypot(xs[:, 1] - xs[:, 0], ys[:, 1] - ys[:, 0]) / w
+    margin = 8.0 + 3.0 * np.nan_to_num(ratio, nan=1.0)[:, None]
+    inside = np.all(ref.inside(xs, ys), axis=1)
+    status[(status == 0) & ~inside] = 5
+    with np.errstate(invalid="ignore"):
+        return ~np.all((xs >= margin) & (ys >= margin) & (xs <= ref.width - margin) & (ys <= ref.height - margin),
+                       axis=1)
+
+
 @with_gdal_exceptions
 def match_tile(spec: TileSpec) -> Dict[str, np.ndarray]:
     """Match every window of one tile (the unit of parallel work; see the module docstring).
 
     Returns a dict of arrays, one entry per window: ``center_sample, center_line`` (the RPC-predicted position
     of the ground point), ``lon, lat, h``, ``dsample, dline`` (offset ``matched - predicted``, px), ``peak,
-    peak_ratio, ncc, precision_px, texture`` and ``status`` (see :data:`STATUS`).
+    peak_ratio, ncc, precision_px, texture``, ``flat`` (flat share of the window's central half, the larger of
+    the two images': water, flat cloud) and ``status`` (see :data:`STATUS`).
     """
     from osgeo import gdal
     c = np.asarray(spec.centers, dtype=float).reshape(-1, 2)
     n = c.shape[0]
     out = {k: np.full(n, np.nan) for k in ("lon", "lat", "h", "dsample", "dline", "peak", "peak_ratio", "ncc",
-                                          "precision_px", "texture")}
+                                          "precision_px", "texture", "flat")}
     out["center_sample"], out["center_line"] = c[:, 0].copy(), c[:, 1].copy()
     status = np.zeros(n, dtype=np.int8)
     out["status"] = status
@@ -203,8 +228,13 @@ def match_tile(spec: TileSpec) -> Dict[str, np.ndarray]:
         return out
     rpc = spec.rpc
     dem = _dem_from_spec(spec.dem)
-    ref = _cached(("ref", spec.reference_band) + _file_key(spec.reference),
-                  lambda: ReferenceImage(spec.reference, spec.reference_band))
+    if spec.reference_model is None:
+        ref = _cached(("ref", spec.reference_band) + _file_key(spec.reference),
+                      lambda: ReferenceImage(spec.reference, spec.reference_band))
+    else:
+        ref = _cached(("rawref", spec.reference_band) + _file_key(spec.reference),
+                      lambda: RawReference(spec.reference, spec.reference_model, spec.reference_band))
+        ref = ref.with_model(spec.reference_model)
     ds = _cached(("img",) + _file_key(spec.image), lambda: gdal.Open(spec.image))
     try:
         return _match_windows(spec, c, out, status, rpc, dem, ref, ds)
@@ -225,6 +255,9 @@ def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
     out["lon"], out["lat"], out["h"] = np.atleast_1d(lon), np.atleast_1d(lat), np.atleast_1d(h)
     status[~np.isfinite(out["lon"]) | ~np.isfinite(out["h"])] = 1
     step = int(p.get("geometry_step", 4))
+    near_edge = np.zeros(n, dtype=bool)
+    if isinstance(ref, RawReference):
+        near_edge = _raw_reference_footprint(ref, rpc, dem, c, w, out, status)
 
     # ---- search range of the fine window (as when it was cut from one pre-read block per window): beyond it
     # the window is flagged, never read far away.
@@ -281,7 +314,8 @@ def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
     if idx.size == 0:
         return out
     m = idx.size
-    ref_f = reference_on_grids(rpc, dem, ref, wx0[idx], wy0[idx], w, spacing=1.0, geometry_step=step)
+    ref_f = reference_on_grids(rpc, dem, ref, wx0[idx], wy0[idx], w, spacing=1.0, geometry_step=step,
+                               shared=isinstance(ref, RawReference))
     nan_ref = np.isnan(ref_f).any(axis=(1, 2))
     a = np.where(nan_ref[:, None, None], 0.0, ref_f).astype(np.float32)
     Fs = spectra(a)  # the reference windows do not move: one transform for every pass
@@ -349,7 +383,7 @@ def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
     st = status[idx]
     # Fine window beyond the raster: the ground point is (truly) not in the image.
     fx0, fy0 = wx0[idx] + ox, wy0[idx] + oy
-    beyond = outside | (fx0 < 0) | (fy0 < 0) | (fx0 + w > W) | (fy0 + w > H)
+    beyond = outside | (fx0 < 0) | (fy0 < 0) | (fx0 + w > W) | (fy0 + w > H) | near_edge[idx]
     st[~okw] = np.where(beyond[~okw], 5, 1)
     # Texture over the whole window, and no more than half of its central half flat: a GCP is the window centre,
     # so a window centred on water or on a flat cloud is skipped even when a shoreline elsewhere would correlate.
@@ -371,6 +405,7 @@ def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
     for k in ("peak", "peak_ratio", "ncc", "precision_px"):
         out[k][idx] = res[k]
     out["texture"][idx] = tex
+    out["flat"][idx] = flat
     return out
 
 
@@ -394,11 +429,15 @@ def _image_info(image, band: int):
 
 def plan_tiles(image, rpc, reference, dem, spacing_px: int = 256, window_px: int = 64, *, search_px: float = 64,
                tile_windows: int = 64, band: int = 1, reference_band: int = 1, margin_px: Optional[int] = None,
+               reference_model: Any = None, region: Optional[Sequence[float]] = None,
                **params) -> Tuple[List[TileSpec], Dict[str, Any]]:
     """The window grid and its tiles: ``(specs, context)`` for :func:`match_tile` and :func:`assemble_gcps`.
 
     Window centres form a regular grid of step ``spacing_px`` kept ``margin_px`` (default half a window) from
-    the image edges; they are grouped into square tiles of about ``tile_windows`` windows.
+    the image edges; they are grouped into square tiles of about ``tile_windows`` windows. ``region`` =
+    ``(sample0, line0, sample1, line1)`` keeps only the centres inside that box (the grid itself does not move).
+    ``reference_model`` (a sensor model) makes ``reference`` a raw image seen through it
+    (:class:`.resample.RawReference`) instead of an orthophoto.
     """
     from ..rpc import RPCModel
     path, W, H, nodata = _image_info(image, band)
@@ -406,7 +445,9 @@ def plan_tiles(image, rpc, reference, dem, spacing_px: int = 256, window_px: int
         rpc = RPCModel.from_file(path)
     # Compute the RPC's derived matrices (least squares, matmul) once, here: they travel with the pickled spec,
     # so every worker process uses the same bits whatever its BLAS threads (bit-identical GCPs, issue 14).
-    rpc._approximate_inverse, rpc._coeffs_with_derivatives, rpc._coeffs  # noqa: B018
+    for model in (rpc, reference_model):
+        if isinstance(model, RPCModel):
+            model._approximate_inverse, model._coeffs_with_derivatives, model._coeffs  # noqa: B018
     w = int(window_px)
     if w < 16 or w % 2:
         raise Gf4calError(f"window must be an even number of pixels >= 16 (got {window_px})")
@@ -416,7 +457,10 @@ def plan_tiles(image, rpc, reference, dem, spacing_px: int = 256, window_px: int
     ref_path = os.fspath(reference)
     if not os.path.exists(ref_path) and not ref_path.startswith("/vsi"):
         raise Gf4calError(f"reference not found: {ref_path}")
-    ReferenceImage(ref_path, reference_band)  # fail early with a clear message
+    if reference_model is None:  # fail early with a clear message
+        ReferenceImage(ref_path, reference_band)
+    else:
+        RawReference(ref_path, reference_model, reference_band)
     dem_spec = _dem_spec(dem)
     if dem_spec[0] == "file" and not os.path.exists(str(dem_spec[1])) and not str(dem_spec[1]).startswith("/vsi"):
         raise Gf4calError(f"DEM not found: {dem_spec[1]}")
@@ -432,6 +476,13 @@ def plan_tiles(image, rpc, reference, dem, spacing_px: int = 256, window_px: int
     # Centre the grid; centres at integer + w/2 so that window corners are whole pixels.
     xs = np.floor(xs + (W - margin - w / 2 - xs[-1]) / 2 - w / 2) + w / 2
     ys = np.floor(ys + (H - margin - w / 2 - ys[-1]) / 2 - w / 2) + w / 2
+    if region is not None:
+        r0, r1, r2, r3 = (float(v) for v in region)
+        xs = xs[(xs >= r0) & (xs <= r2)]
+        ys = ys[(ys >= r1) & (ys <= r3)]
+        if xs.size == 0 or ys.size == 0:
+            raise Gf4calError(f"no {w}-px window of {path} fits in the region {tuple(region)}; enlarge the region "
+                              "or use a smaller window")
     per_side = max(1, int(round(math.sqrt(tile_windows))))
     specs = []
     p = dict(DEFAULTS)
@@ -443,9 +494,9 @@ def plan_tiles(image, rpc, reference, dem, spacing_px: int = 256, window_px: int
             centers = np.column_stack([gx.ravel(), gy.ravel()])
             specs.append(TileSpec(image=path, band=band, image_nodata=nodata, rpc=rpc, reference=ref_path,
                                   reference_band=reference_band, dem=dem_spec, centers=centers, window_px=w,
-                                  factor=f, params=p))
+                                  factor=f, params=p, reference_model=reference_model))
     ctx = dict(rpc=rpc, image=path, reference=ref_path, n_windows=int(xs.size * ys.size), window_px=w,
-               spacing_px=spacing, factor=f)
+               spacing_px=spacing, factor=f, reference_model=reference_model)
     return specs, ctx
 
 
@@ -490,6 +541,29 @@ def assemble_gcps(results: Sequence[Dict[str, np.ndarray]], ctx: Dict[str, Any],
     return gdf
 
 
+def run_tiles(specs: Sequence[TileSpec], executor: Optional[cf.Executor] = None, *, workers: Optional[int] = None,
+              progress=None, stop: float = 0.95) -> List[Dict[str, np.ndarray]]:
+    """:func:`match_tile` on every spec, results in submission order (deterministic whatever the executor).
+
+    Without ``executor``: a thread pool of ``workers`` threads (default: CPU count; 1 runs in the calling thread).
+    """
+    own = None
+    if executor is None and (workers is None or workers > 1) and len(specs) > 1:
+        nw = min(workers or os.cpu_count() or 1, len(specs))
+        if nw > 1:
+            # Threads: every heavy step of match_tile (GDAL reads, FFTs, spline interpolation, NumPy on whole
+            # stacks) releases the GIL, and threads share the datasets' block caches and start at once; a
+            # process pool paid ~0.3 s of start-up and pickling on a 10240^2 scene for no gain in throughput.
+            own = executor = cf.ThreadPoolExecutor(max_workers=nw)
+    try:
+        # Results in submission order whatever the executor (gdal_gf4cal.executors, issue 14).
+        from ..executors import map_ordered
+        return map_ordered(match_tile, specs, executor, progress=progress, stop=stop, label="tile")
+    finally:
+        if own is not None:
+            own.shutdown(wait=True, cancel_futures=True)
+
+
 def collect_gcps(image, rpc, reference, dem, spacing_px: int = 256, window_px: int = 64, *,
                  workers: Optional[int] = None, executor: Optional[cf.Executor] = None, min_peak: float = 0.2,
                  min_peak_ratio: float = 2.0, min_ncc: float = 0.3, min_texture: float = 1.5,
@@ -531,22 +605,7 @@ def collect_gcps(image, rpc, reference, dem, spacing_px: int = 256, window_px: i
                             min_peak=min_peak, min_peak_ratio=min_peak_ratio, min_ncc=min_ncc,
                             min_texture=min_texture, geometry_step=geometry_step)
     report(progress, 0.0, f"matching {ctx['n_windows']} windows in {len(specs)} tiles")
-    results: List[Dict[str, np.ndarray]] = []
-    own = None
-    if executor is None and (workers is None or workers > 1) and len(specs) > 1:
-        nw = min(workers or os.cpu_count() or 1, len(specs))
-        if nw > 1:
-            # Threads: every heavy step of match_tile (GDAL reads, FFTs, spline interpolation, NumPy on whole
-            # stacks) releases the GIL, and threads share the datasets' block caches and start at once; a
-            # process pool paid ~0.3 s of start-up and pickling on a 10240^2 scene for no gain in throughput.
-            own = executor = cf.ThreadPoolExecutor(max_workers=nw)
-    try:
-        # Results in submission order whatever the executor (gdal_gf4cal.executors, issue 14).
-        from ..executors import map_ordered
-        results = map_ordered(match_tile, specs, executor, progress=progress, stop=0.95, label="tile")
-    finally:
-        if own is not None:
-            own.shutdown(wait=True, cancel_futures=True)
+    results = run_tiles(specs, executor, workers=workers, progress=progress)
     gdf = assemble_gcps(results, ctx, outlier_model=outlier_model, outlier_threshold_px=outlier_threshold_px,
                         seed=seed)
     report(progress, 1.0, f"{len(gdf)} GCPs ({gdf.attrs['windows']['outliers']} outliers)")

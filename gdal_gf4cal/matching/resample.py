@@ -1,8 +1,11 @@
-"""Resample a reference orthophoto into the raw image's geometry through RPC + DEM (automatic GCP collection).
+"""Resample a reference (an orthophoto, or another raw image with its sensor model) into the raw image's geometry
+through RPC + DEM (automatic GCP collection, raw-to-raw matching).
 
 For a stack of regular grids of raw-image positions (one grid per matching window) every grid node is localised
-on the DEM through the RPC (``localize_dem``), transformed to the reference's CRS (pyproj) and to reference pixel
-coordinates (inverse geotransform), and the reference is sampled there with a cubic spline. The result shows, at
+on the DEM through the RPC (``localize_dem``) and mapped to reference pixel coordinates by the reference's
+``ground_to_pixel``: for an ortho (:class:`ReferenceImage`) the reference's CRS (pyproj) and inverse geotransform,
+for a raw reference (:class:`RawReference`) its sensor model's ``project``; the reference is sampled there with a
+cubic spline. The result shows, at
 raw position ``u``, the ground that the RPC says is imaged at ``u``: comparing it with the raw image measures the
 RPC's error (see :mod:`gdal_gf4cal.matching.collect`).
 
@@ -24,7 +27,7 @@ import numpy as np
 from ..errors import Gf4calError
 from .._gdal import with_gdal_exceptions
 
-__all__ = ["ReferenceImage", "grid_nodes", "read_block", "reference_on_grids"]
+__all__ = ["ReferenceImage", "RawReference", "grid_nodes", "read_block", "reference_on_grids"]
 
 #: Standard deviation (in grid spacings) of the anti-alias low-pass applied to a finer reference: about the
 #: Gaussian equivalent of a pixel's box integration (1/sqrt(12) ~= 0.29) plus optics.
@@ -104,6 +107,10 @@ class ReferenceImage:
         g = self._inv
         return g[0] + g[1] * X + g[2] * Y, g[3] + g[4] * X + g[5] * Y
 
+    def ground_to_pixel(self, lon, lat, h=None) -> Tuple[np.ndarray, np.ndarray]:
+        """Reference pixel (GDAL convention) showing the ground point; an ortho ignores the height."""
+        return self.lonlat_to_pixel(lon, lat)
+
     def read(self, x0: int, y0: int, nx: int, ny: int, decimation: int = 1) -> np.ndarray:
         """Block ``[x0, x0 + nx) x [y0, y0 + ny)`` (full-resolution pixels), averaged by ``decimation``.
 
@@ -112,6 +119,49 @@ class ReferenceImage:
         """
         band = self._open().GetRasterBand(self.band)
         return read_block(band, self.width, self.height, self.nodata, x0, y0, nx, ny, decimation)
+
+
+class RawReference(ReferenceImage):
+    """A raw (not orthorectified) image as the matching reference: ground -> pixel through its sensor model.
+
+    ``model`` is an :class:`~gdal_gf4cal.RPCModel` or any model on the sensor contract
+    (:class:`gdal_gf4cal.sensor.SensorModel`); ``ground_to_pixel(lon, lat, h) = model.project(lon, lat, h)`` (GDAL
+    convention), so :func:`reference_on_grids` resamples the reference raw image into another raw image's
+    geometry through both models and the DEM (raw-to-raw matching, METHODS §8 tie points, §9 pan-MS). A finer
+    reference (pan for an MS image) is decimated and low-passed exactly as a finer ortho. Same reader and
+    pickling as :class:`ReferenceImage` (no geotransform or CRS needed).
+    """
+
+    def __init__(self, path, model, band: int = 1):
+        self.path = os.fspath(path)
+        self.band = int(band)
+        self.model = model
+        self._ds = None
+        self._transformer = None
+        ds = self._open()
+        self.width, self.height = ds.RasterXSize, ds.RasterYSize
+        self.nodata = ds.GetRasterBand(self.band).GetNoDataValue()
+
+    def with_model(self, model) -> "RawReference":
+        """The same opened reader with another sensor model (cheap: shares the dataset)."""
+        other = object.__new__(RawReference)
+        other.__dict__.update(self.__dict__)
+        other.model = model
+        return other
+
+    def lonlat_to_pixel(self, lon, lat):  # pragma: no cover - a raw image needs the height
+        raise TypeError("a raw reference maps (lon, lat, h): use ground_to_pixel")
+
+    def ground_to_pixel(self, lon, lat, h=None) -> Tuple[np.ndarray, np.ndarray]:
+        """Pixel (GDAL convention) of the reference raw image imaging the ground point (``model.project``)."""
+        s, l = self.model.project(lon, lat, h)
+        return np.asarray(s, dtype=float), np.asarray(l, dtype=float)
+
+    def inside(self, sample, line, margin: float = 0.0) -> np.ndarray:
+        """Pixel positions at least ``margin`` px inside the raster (NaN is outside)."""
+        s, l = np.asarray(sample, dtype=float), np.asarray(line, dtype=float)
+        with np.errstate(invalid="ignore"):
+            return (s >= margin) & (s <= self.width - margin) & (l >= margin) & (l <= self.height - margin)
 
 
 def read_block(band, width: int, height: int, nodata, x0: int, y0: int, nx: int, ny: int,
@@ -167,8 +217,52 @@ def _interp_matrix(n: int, nodes: np.ndarray) -> np.ndarray:
     return m
 
 
+def _lowpass(ratio: float, oversample: float):
+    """``(decimation, gaussian sigma, read margin)`` for a reference with ``ratio`` pixels per grid spacing."""
+    ratio = max(ratio, 1e-6)
+    dec = max(1, int(math.floor(ratio / max(float(oversample), 1.0))))
+    sigma = math.sqrt(max((ANTIALIAS_SIGMA * ratio / dec) ** 2 - (1.0 / 12.0 if dec > 1 else 0.0), 0.0))
+    sigma = sigma if ratio > 1.25 else 0.0  # a reference at about the raw resolution is used as it is
+    margin = int(math.ceil(3 * sigma + 3)) * dec + dec
+    return dec, sigma, margin
+
+
+def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int, oversample: float):
+    """:func:`reference_on_grids` of dense, overlapping windows (pixel spacing, whole-pixel corners) as one grid
+    over their union, resampled once and cut into the windows; None when the windows are not dense."""
+    ix0, iy0 = np.round(x0).astype(int), np.round(y0).astype(int)
+    if not (np.array_equal(ix0, x0) and np.array_equal(iy0, y0)):
+        return None
+    ux0, uy0 = int(ix0.min()), int(iy0.min())
+    Wu, Hu = int(ix0.max()) - ux0 + size, int(iy0.max()) - uy0 + size
+    if Wu * Hu > 0.8 * x0.size * size * size:
+        return None
+    nx, ny = grid_nodes(Wu, step), grid_nodes(Hu, step)
+    S = np.broadcast_to(ux0 + nx[None, :] + 0.5, (ny.size, nx.size))
+    L = np.broadcast_to(uy0 + ny[:, None] + 0.5, (ny.size, nx.size))
+    lon, lat, h = rpc.localize_dem(S, L, dem)
+    rx, ry = (np.asarray(v, dtype=float).reshape(S.shape) for v in reference.ground_to_pixel(lon, lat, h))
+    fin = np.isfinite(rx) & np.isfinite(ry)
+    if not fin.any():
+        return np.full((x0.size, size, size), np.nan)
+    Mx, My = _interp_matrix(Wu, nx), _interp_matrix(Hu, ny)
+    fx = My @ np.where(fin, rx, 0.0) @ Mx.T
+    fy = My @ np.where(fin, ry, 0.0) @ Mx.T
+    bad = (My @ (~fin).astype(float) @ Mx.T) > 0
+    step_len = np.hypot(np.diff(rx, axis=1), np.diff(ry, axis=1)) / np.diff(nx)[None, :]
+    ok = np.isfinite(step_len)
+    dec, sigma, margin = _lowpass(float(np.median(step_len[ok])) if ok.any() else 1.0, oversample)
+    if bad.any():
+        fx[bad], fy[bad] = float(np.mean(fx[~bad])), float(np.mean(fy[~bad]))
+    vals = _sample_reference(reference, fx, fy, dec, sigma, margin, order)
+    vals[bad] = np.nan
+    r = np.arange(size)
+    return vals[(iy0 - uy0)[:, None, None] + r[None, :, None], (ix0 - ux0)[:, None, None] + r[None, None, :]]
+
+
 def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, spacing: float = 1.0, *,
-                       geometry_step: int = 4, order: int = 3, lonlat=None, oversample: float = 2.0) -> np.ndarray:
+                       geometry_step: int = 4, order: int = 3, lonlat=None, oversample: float = 2.0,
+                       shared: bool = False) -> np.ndarray:
     """The reference resampled on ``N`` square grids of the raw image (METHODS §1 localisation, §2 DEM).
 
     Grid ``i`` has ``size x size`` nodes at raw positions ``(x0[i] + spacing * (j + 0.5), y0[i] + spacing *
@@ -176,24 +270,33 @@ def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, s
     ``spacing x spacing`` blocks of raw pixels. Returns float64 ``(N, size, size)``, NaN where the DEM, the
     localisation or the reference has no value.
 
+    ``reference`` is an orthophoto (:class:`ReferenceImage`) or another raw image with its sensor model
+    (:class:`RawReference`): either maps the localised ground points to its pixels (``ground_to_pixel``).
     ``geometry_step`` : nodes between exact localisations (bilinear in between); ``order`` spline order (3 =
-    cubic). ``lonlat`` : optional precomputed ``(lon, lat)`` at the exact nodes (shape ``(N, m, m)``).
+    cubic). ``lonlat`` : optional precomputed ``(lon, lat, h)`` at the exact nodes (shape ``(N, m, m)``).
     ``oversample`` : a reference finer than the grid is read decimated down to about this many of its pixels per
     grid spacing (then low-passed). 2 (default) keeps the interpolation accurate to a small fraction of a pixel;
     1 reads 4 times fewer pixels and suits a coarse level, whose raw side is a plain block average anyway.
+    ``shared``: dense overlapping windows at pixel spacing (raw-to-raw pan-MS cells) are resampled once on the
+    grid of their union and cut out of it (up to 4 times less localisation and interpolation; geometry nodes every
+    ``geometry_step`` pixels of the union instead of each window).
     """
     x0 = np.atleast_1d(np.asarray(x0, dtype=float))
     y0 = np.atleast_1d(np.asarray(y0, dtype=float))
     n = x0.size
+    if shared and lonlat is None and n > 1 and spacing == 1.0:
+        vals = _on_union_grid(rpc, dem, reference, x0, y0, size, geometry_step, order, oversample)
+        if vals is not None:
+            return vals
     nodes = grid_nodes(size, geometry_step)
     pos = spacing * (nodes + 0.5)
     S = x0[:, None, None] + pos[None, None, :] + 0 * pos[None, :, None]
     L = y0[:, None, None] + pos[None, :, None] + 0 * pos[None, None, :]
     if lonlat is None:
-        lon, lat, _ = rpc.localize_dem(S, L, dem)
+        lon, lat, h = rpc.localize_dem(S, L, dem)
     else:
-        lon, lat = lonlat
-    rx, ry = reference.lonlat_to_pixel(lon, lat)
+        lon, lat, h = lonlat
+    rx, ry = reference.ground_to_pixel(lon, lat, h)
     rx = np.asarray(rx, dtype=float).reshape(n, nodes.size, nodes.size)
     ry = np.asarray(ry, dtype=float).reshape(n, nodes.size, nodes.size)
     ok_win = np.all(np.isfinite(rx) & np.isfinite(ry), axis=(1, 2))
@@ -206,11 +309,7 @@ def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, s
     # Reference pixels per grid spacing (median over windows): decides decimation and low-pass.
     step_len = np.hypot(np.diff(rx, axis=2), np.diff(ry, axis=2)) / (np.diff(nodes)[None, None, :])
     ratio = float(np.nanmedian(step_len[ok_win])) if np.isfinite(step_len[ok_win]).any() else 1.0
-    ratio = max(ratio, 1e-6)
-    dec = max(1, int(math.floor(ratio / max(float(oversample), 1.0))))
-    sigma = math.sqrt(max((ANTIALIAS_SIGMA * ratio / dec) ** 2 - (1.0 / 12.0 if dec > 1 else 0.0), 0.0))
-    sigma = sigma if ratio > 1.25 else 0.0  # a reference at about the raw resolution is used as it is
-    margin = int(math.ceil(3 * sigma + 3)) * dec + dec
+    dec, sigma, margin = _lowpass(ratio, oversample)
     ok_idx = np.flatnonzero(ok_win)
     if ok_idx.size < n:
         fx, fy = fx[ok_idx], fy[ok_idx]

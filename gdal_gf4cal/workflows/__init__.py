@@ -5,7 +5,7 @@ existing file without ``overwrite=True``) and returns its report dict (with ``wa
 """
 from __future__ import annotations
 
-from .apply import apply_calibration
+from .apply import apply_block_calibration, apply_calibration
 from .assess import assess_accuracy
 from .block import block_adjust
 from .calibrate import calibrate_lookangle_files
@@ -16,6 +16,6 @@ from .ortho import orthorectify
 from .refine import output_kind, refine_rpc, write_refined_rpc
 from .simulate import simulate_scene
 
-__all__ = ["apply_calibration", "assess_accuracy", "block_adjust", "calibrate_lookangle_files", "collect_gcps_file",
+__all__ = ["apply_block_calibration", "apply_calibration", "assess_accuracy", "block_adjust", "calibrate_lookangle_files", "collect_gcps_file",
            "run_experiment", "intersect_files", "read_tie_points", "orthorectify", "output_kind", "refine_rpc",
            "write_refined_rpc", "simulate_scene"]

@@ -79,3 +79,68 @@ def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: boo
     finish_report(rep, warns)
     _progress.report(progress, 1.0, "done")
     return rep
+
+
+def apply_block_calibration(calibration, scenes: Sequence, out_dir, *, overwrite: bool = False,
+                            progress=None) -> Dict[str, Any]:
+    """Recalibrate other scenes of a block-calibrated camera group (METHODS §8 outputs, as §5 step 4).
+
+    ``calibration``: the ``calibration.json`` of ``block-adjust`` (or its dict); ``scenes``: the images of another
+    scene of the same camera and group, named as the calibrated ones (file stem, else folder name: see
+    :func:`gdal_gf4cal.workflows.block.image_keys`). Each image's RPC is composed with the group's exterior and its
+    interior and refitted (METHODS §3, error reported); writes ``out_dir/<key>.RPB`` (+ ``<key>.vrt`` over the
+    untouched image) and ``out_dir/report.json``; all files or none.
+    """
+    from .. import progress as _progress
+    from ..block import calibrated_model, read_calibration
+    from ..report import write_report_json
+    from ..rpc import RPCModel
+    from ..rpc_fit import fit_rpc_from_model
+    from ..rpc_io import rpc_file_format, write_rpb, write_rpc_vrt
+    from ._common import _open_image
+    from .block import image_keys
+
+    cal = calibration if isinstance(calibration, dict) else read_calibration(calibration)
+    scenes = [os.fspath(s) for s in scenes]
+    if not scenes:
+        raise GCPError("no scene given; name the images (with their RPCs) to recalibrate")
+    keys = image_keys(scenes)
+    out = os.fspath(out_dir)
+    inputs = list(scenes) + ([calibration] if isinstance(calibration, (str, os.PathLike)) else [])
+    outs = OutputSet(inputs, overwrite=overwrite, cancelled=cancel_check(progress))
+    plans = []
+    for s, k in zip(scenes, keys):
+        is_image = rpc_file_format(s) == "gdal"
+        outs.declare(f"rpb:{k}", os.path.join(out, f"{k}.RPB"))
+        if is_image:
+            outs.declare(f"vrt:{k}", os.path.join(out, f"{k}.vrt"))
+        plans.append((s, k, is_image))
+    outs.declare("report", os.path.join(out, "report.json"))
+    warns: list = []
+    with outs, collect_warnings(warns):
+        entries = []
+        for i, (s, k, is_image) in enumerate(plans):
+            rpc = RPCModel.from_file(s)
+            size, _ = _open_image(s)
+            model = calibrated_model(cal, k, rpc, size)
+            new_rpc, fit = fit_rpc_from_model(model, size=model.size, height_range=tuple(rpc.height_range),
+                                              progress=_progress.scaled(progress, i / len(plans),
+                                                                        (i + 0.9) / len(plans)))
+            write_rpb(new_rpc, outs.tmp(f"rpb:{k}"), overwrite=True)
+            if is_image:
+                write_rpc_vrt(s, new_rpc, outs.tmp(f"vrt:{k}"), overwrite=True)
+            W, H = model.size
+            S, L = (a.ravel() for a in np.meshgrid(np.linspace(0, W, 11), np.linspace(0, H, 11)))
+            lon, lat = rpc.localize(S, L, np.full(S.shape, rpc.height_off))
+            ns, nl = new_rpc.project(lon, lat, rpc.height_off)
+            shift = np.hypot(ns - S, nl - L)
+            entries.append({"scene": s, "image": k, "rpb": outs.path(f"rpb:{k}"),
+                            "vrt": outs.path(f"vrt:{k}") if is_image else None, "fit": fit.to_dict(),
+                            "image_shift_px": {"mean": float(np.nanmean(shift)), "max": float(np.nanmax(shift))}})
+        rep = {"command": "apply-calibration", "calibration": calibration if isinstance(calibration, str) else "",
+               "model": cal.get("model"), "scenes": entries, "outputs": {"report": outs.path("report")}}
+        finish_report(rep, warns)
+        write_report_json(rep, outs.tmp("report"))
+    finish_report(rep, warns)
+    _progress.report(progress, 1.0, "done")
+    return rep

@@ -10,7 +10,7 @@ file name or path. Outputs in ``out``: ``<key>.RPB`` per image (refit, METHODS Â
 from __future__ import annotations
 
 import os
-from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
+from typing import Any, Dict, List, Mapping, Sequence, Union
 
 import numpy as np
 
@@ -65,14 +65,30 @@ def parse_bands_of(items: Union[None, Mapping[str, str], Sequence[str]]) -> Dict
     return out
 
 
-def _read_obs(paths: Sequence[str], keys: Sequence[str], files: Sequence, dem) -> Any:
+def _read_obs(paths: Sequence[str], keys: Sequence[str], files: Sequence, dem, gcp_files=(), warns=None) -> Any:
+    """Read and merge the observation files, image names resolved to keys. Tie rows naming an image that is not
+    given are an error; GCP rows of such images (a GCP file of more images than the block) are dropped, with a
+    warning."""
     import pandas as pd
     from ..observations import read_observations
     tables = []
     for f in files:
         t = read_observations(f, need_height=False, dem=dem)
-        ids = {i: _resolve(i, paths, keys, f"the observation file {os.path.basename(os.fspath(f))}")
-               for i in t["image_id"].unique()}
+        where = f"the observation file {os.path.basename(os.fspath(f))}"
+        ids = {}
+        left_out = []
+        for i in t["image_id"].unique():
+            try:
+                ids[i] = _resolve(i, paths, keys, where)
+            except BlockError:
+                rows = t["image_id"] == i
+                if f not in gcp_files or (t.loc[rows, "kind"] == "tie").any():
+                    raise
+                left_out.append(str(i))
+        if left_out and warns is not None:
+            warns.append(f"{where}: GCPs of {len(left_out)} image(s) not given left out ({', '.join(left_out[:4])}"
+                         f"{', ...' if len(left_out) > 4 else ''})")
+        t = t[t["image_id"].isin(list(ids))].copy()
         t["image_id"] = t["image_id"].map(ids)
         tables.append(t)
     if not tables:
@@ -105,7 +121,7 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
     dict: the report written as ``report.json`` (+ ``outputs``, ``warnings``).
     """
     from .. import progress as _progress
-    from ..block import adjust_block, calibration_dict, corrected_model, seam_offsets
+    from ..block import adjust_block, calibration_dict, corrected_model, prediction_std, seam_offsets
     from ..dem import DEM
     from ..report import plot_seams, write_points_layer, write_report_json, write_residuals_gpkg
     from ..rpc import RPCModel
@@ -142,7 +158,9 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
     from ..block import derive_layout
     layout = derive_layout(models, order, bands_of=bmap, sizes={k: s for k, s in sizes.items() if s},
                            reference_ccd=ref_ccd)
-    tab = _read_obs(paths, keys, obs_files, dem_obj)
+    early_warns: List[str] = []
+    tab = _read_obs(paths, keys, obs_files, dem_obj, gcp_files=[os.fspath(gcps)] if gcps else [],
+                    warns=early_warns)
     # declare every output before any work
     outd = os.fspath(out)
     outs = OutputSet(inputs, overwrite=overwrite, cancelled=cancel_check(progress))
@@ -152,7 +170,7 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
     outs.declare("report", os.path.join(outd, "report.json"))
     outs.declare("residuals", os.path.join(outd, "residuals.gpkg"), check=check_vector())
     outs.declare("seams_plot", os.path.join(outd, "seams.png"))
-    warns: List[str] = []
+    warns: List[str] = list(early_warns)
     with outs, collect_warnings(warns):
         extra = []
         if reference_ortho:
@@ -176,7 +194,11 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
             rows = est.table[est.table["image_id"] == k]
             g = rows[rows["kind"] == "gcp"]
             t = rows[rows["kind"] == "tie"]
+            W, H = layout.images[k].size
+            S, L = (a.ravel() for a in np.meshgrid(np.linspace(0.5, W - 0.5, 11), np.linspace(0.5, H - 0.5, 11)))
+            fs, fl = prediction_std(est, k, S, L)
             images_rep[k] = {"image": p, "rpb": outs.path(f"rpb:{k}"), "ccd": layout.images[k].ccd,
+                             "precision_px": float(np.sqrt(np.mean(fs ** 2 + fl ** 2))),
                              "reference_band_image": layout.images[k].reference,
                              "rpc_fit": fit.to_dict(), "gcps": accuracy_by_role(g) if len(g) else None,
                              "ties": accuracy_by_role(t.assign(role="control"), roles=("control",))["control"]

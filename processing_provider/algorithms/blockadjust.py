@@ -49,9 +49,8 @@ class BlockAdjust(Gf4calAlgorithm):
             "and a 'seams' layer) and seams.png. Images are named in the tables by their file name without "
             "extension, or by their folder name when file names repeat (ccd1/scene.tif -> ccd1).")
 
-    IMAGES = "IMAGES"
-    GCP_TABLE = "GCP_TABLE"
-    TIE_TABLE = "TIE_TABLE"
+    GCPS_FILE = "GCPS_FILE"
+    TIES_FILE = "TIES_FILE"
     MATCH_TIES = "MATCH_TIES"
     REFERENCE_ORTHO = "REFERENCE_ORTHO"
     BANDS_OF = "BANDS_OF"
@@ -60,17 +59,17 @@ class BlockAdjust(Gf4calAlgorithm):
     OUTPUT_FOLDER = "OUTPUT_FOLDER"
 
     def initAlgorithm(self, config=None):
-        self._add(QgsProcessingParameterMultipleLayers(self.IMAGES, self.tr("Images of the group (with RPCs)"),
+        self._add(QgsProcessingParameterMultipleLayers(self.INPUT, self.tr("Images of the group (with RPCs)"),
                                                        QgsProcessing.TypeRaster),
                   "Every CCD image of the group, each with its RPC: the reference-band CCD images in their order "
-                  "across track (adjacent ones overlap), and the other bands' images (named in BANDS_OF).")
+                  "across track (adjacent ones overlap), and the other bands' images (named in BANDS_OF). From Python or qgis_process, file paths.")
         self.add_dem_parameters(optional=False)
-        self._add(QgsProcessingParameterFile(self.GCP_TABLE, self.tr("GCP observations (long table)"), optional=True,
+        self._add(QgsProcessingParameterFile(self.GCPS_FILE, self.tr("GCP observations (long table)"), optional=True,
                                              behavior=QgsProcessingParameterFile.File, fileFilter=OBS_FILTER),
                   "CSV or GeoPackage, one row per point and image: point_id, image, sample, line (GDAL convention: "
                   "first pixel centre 0.5), lon, lat, h, optional role (control/check) and sigma (px). 'image' is "
                   "the image's file name (or folder name, see above).")
-        self._add(QgsProcessingParameterFile(self.TIE_TABLE, self.tr("Tie-point observations (long table)"),
+        self._add(QgsProcessingParameterFile(self.TIES_FILE, self.tr("Tie-point observations (long table)"),
                                              optional=True, behavior=QgsProcessingParameterFile.File,
                                              fileFilter=OBS_FILTER),
                   "CSV or GeoPackage: point_id, image, sample, line, optional sigma (px); rows with the same "
@@ -85,7 +84,7 @@ class BlockAdjust(Gf4calAlgorithm):
         self._add(QgsProcessingParameterString(self.BANDS_OF, self.tr("Bands of (IMAGE=REFIMAGE, ...)"),
                                                optional=True, multiLine=True),
                   "Which image is another band of which CCD: items IMAGE=REFIMAGE (the band image and the "
-                  "reference-band image of its CCD), separated by commas or new lines, e.g. ccd1_green=ccd1_blue. "
+                  "reference-band image of its CCD), separated by commas, semicolons or new lines, e.g. ccd1_green=ccd1_blue. "
                   "These bands are calibrated relatively (interior only, reference exterior fixed).")
         self._add(QgsProcessingParameterEnum(self.SOLVER, self.tr("Solver"), SOLVER_LABELS, defaultValue=0),
                   "How the group is solved (METHODS §8).")
@@ -103,7 +102,7 @@ class BlockAdjust(Gf4calAlgorithm):
         self.addOutput(QgsProcessingOutputFile(self.OUTPUT_PLOT, self.tr("Seam plot")))
         self.addOutput(QgsProcessingOutputFile(self.OUTPUT_REPORT, self.tr("Report (JSON)")))
         for key, label in (("MAX_SEAM_BEFORE_PX", "Largest mean seam offset before (px)"),
-                           ("MAX_SEAM_AFTER_PX", "Largest mean seam offset after (px)"),
+                           ("MAX_SEAM_PX", "Largest mean seam offset after (px)"),
                            ("MAX_BAND_RMS_AFTER_PX", "Largest band-to-band tie RMS after (px)"),
                            ("N_OUTLIERS", "Number of flagged outliers"), ("ITERATIONS", "Iterations")):
             self.addOutput(QgsProcessingOutputNumber(key, self.tr(label)))
@@ -111,9 +110,9 @@ class BlockAdjust(Gf4calAlgorithm):
     def run_algorithm(self, parameters, context, feedback, progress):
         from gdal_gf4cal.workflows import block_adjust
 
-        images = self.parameterAsFileList(parameters, self.IMAGES, context)
+        images = self.parameterAsFileList(parameters, self.INPUT, context)
         if len(images) < 2:
-            raise self.error("Give the images of at least two CCDs of the group (IMAGES).")
+            raise self.error("Give the images of at least two CCDs of the group (INPUT).")
         dem, geoid = self.dem_source(parameters, context)
         if dem is None:
             raise self.error("Give a DEM (DEM): tie-point heights come from it.")
@@ -121,8 +120,8 @@ class BlockAdjust(Gf4calAlgorithm):
         folder = self.output_folder(parameters, self.OUTPUT_FOLDER, context)
         rep = block_adjust(
             images, dem=dem, geoid=geoid, out=folder, overwrite=True, progress=progress,
-            gcps=self.parameterAsFile(parameters, self.GCP_TABLE, context) or None,
-            ties=self.parameterAsFile(parameters, self.TIE_TABLE, context) or None,
+            gcps=self.parameterAsFile(parameters, self.GCPS_FILE, context) or None,
+            ties=self.parameterAsFile(parameters, self.TIES_FILE, context) or None,
             match_ties=self.parameterAsBool(parameters, self.MATCH_TIES, context),
             reference_ortho=ortho.source() if ortho is not None else None,
             bands_of=split_bands_of(self.parameterAsString(parameters, self.BANDS_OF, context)),
@@ -145,6 +144,6 @@ class BlockAdjust(Gf4calAlgorithm):
                 "OUTPUT_CALIBRATION": outputs["calibration"], self.OUTPUT_GPKG: outputs["residuals"],
                 self.OUTPUT_PLOT: outputs["seams_plot"], self.OUTPUT_REPORT: outputs["report"],
                 "MAX_SEAM_BEFORE_PX": max((s["before"]["mean_px"] for s in seams), default=nan),
-                "MAX_SEAM_AFTER_PX": max((s["after"]["mean_px"] for s in seams), default=nan),
+                "MAX_SEAM_PX": max((s["after"]["mean_px"] for s in seams), default=nan),
                 "MAX_BAND_RMS_AFTER_PX": max(band_after, default=nan),
                 "N_OUTLIERS": rep["n_outliers"], "ITERATIONS": sum(st["iterations"] for st in rep["stages"])}

@@ -1,74 +1,63 @@
-"""``gf4cal:blockadjust`` in real headless QGIS on a small simulated Jilin-1 group (METHODS §8): the four blue CCD
-images and their pan images, GCPs at 0.2 px and tie points at 0.1 px; seams removed, bands registered, every output
+"""``gf4cal:blockadjust`` (METHODS §8) in real headless QGIS on a small simulated Jilin-1 group (tests/blocksim.py:
+blue CCDs + the other bands, GCPs at 0.2 px, tie points at 0.1 px): seams removed, bands registered, every output
 written; bad input gives one line and nothing written."""
-from __future__ import annotations
-
 import json
 import os
 
 import pytest
 
-pytestmark = pytest.mark.slow
-
-REF = [f"ccd{k}_blue" for k in range(1, 5)]
-PAN = [f"ccd{k}" for k in range(1, 5)]
+import blocksim as B
 
 
-@pytest.fixture(scope="module")
-def group(tmp_path_factory):
-    """The group's files: images (blue CCDs across track, then pan), DEM, the full observation table and the one
-    restricted to these eight images."""
-    import pandas as pd
-
-    from gdal_gf4cal.simulate import write_scene
-    d = tmp_path_factory.mktemp("jl1")
-    write_scene("jl1", d, seed=3, size=(256, 128), n_gcps=30, gcp_noise_px=0.2, check_grid_n=5,
-                reference_ortho=False)
-    obs = pd.read_csv(d / "observations.csv")
-    obs = obs[obs["image_id"].isin(REF + PAN)]
-    obs = obs[obs.groupby("point_id")["image_id"].transform("size").gt(1) | obs["kind"].eq("gcp")]
-    obs.to_csv(d / "obs8.csv", index=False)
-    return {"dir": str(d), "images": [str(d / n / "scene.tif") for n in REF + PAN], "dem": str(d / "dem.tif"),
-            "obs_all": str(d / "observations.csv"), "obs": str(d / "obs8.csv"),
-            "bands_of": ", ".join(f"{p}={p}_blue" for p in PAN)}
+def _bands(sep=";"):
+    return sep.join(f"{n}={n.split('_')[0]}_blue" for n in B.NAMES if n not in B.REF)
 
 
-def test_blockadjust_removes_seams_and_registers_bands(run_alg, group, tmp_path):
-    out = tmp_path / "out"
-    res, fb = run_alg("gf4cal:blockadjust", {
-        "IMAGES": group["images"], "DEM": group["dem"], "GCP_TABLE": group["obs"], "TIE_TABLE": group["obs"],
-        "BANDS_OF": group["bands_of"], "SOLVER": 0, "OUTPUT_FOLDER": str(out)})
-    names = sorted(os.path.basename(p) for p in res["OUTPUT_RPCS"])
-    assert names == sorted(f"{n}.RPB" for n in REF + PAN)
+@pytest.mark.slow
+def test_blockadjust_runs_and_removes_the_seams(run_alg, tmp_path_factory, tmp_path):
+    d = B.block_scene(str(tmp_path_factory.getbasetemp()))
+    obs = os.path.join(d, "observations.csv")
+    images = [B.image_path(d, n) for n in B.NAMES]
+    res, fb = run_alg("gf4cal:blockadjust", {"INPUT": images, "DEM": os.path.join(d, "dem.tif"), "GCPS_FILE": obs,
+                                             "TIES_FILE": obs, "BANDS_OF": _bands(), "SOLVER": 0,
+                                             "OUTPUT_FOLDER": str(tmp_path / "out")})
+    assert len(res["OUTPUT_RPCS"]) == 20 and all(os.path.getsize(p) > 0 for p in res["OUTPUT_RPCS"])
+    assert sorted(os.path.basename(p) for p in res["OUTPUT_RPCS"]) == sorted(f"{n}.RPB" for n in B.NAMES)
     for key in ("OUTPUT_CALIBRATION", "OUTPUT_GPKG", "OUTPUT_PLOT", "OUTPUT_REPORT"):
         assert os.path.getsize(res[key]) > 0, key
-    for p in res["OUTPUT_RPCS"]:
-        assert os.path.getsize(p) > 0
     # the simulator draws 2.5-4.5 px seams; after the adjustment the overlaps agree to the matching noise
     assert res["MAX_SEAM_BEFORE_PX"] > 1.5
-    assert res["MAX_SEAM_AFTER_PX"] < 0.15
+    assert res["MAX_SEAM_PX"] < 0.1
     assert res["MAX_BAND_RMS_AFTER_PX"] < 0.3
+    seams = B.true_seams(str(tmp_path / "out"), d)
+    assert max(s["after"] for s in seams.values()) <= 0.1
     with open(res["OUTPUT_REPORT"]) as fh:
-        rep = json.load(fh)
-    assert set(rep["images"]) == set(REF + PAN)
+        assert set(json.load(fh)["images"]) == set(B.NAMES)
     with open(res["OUTPUT_CALIBRATION"]) as fh:
         assert json.load(fh)["model"] == "block-rpc-cubic"
     assert "seam ccd1_blue | ccd2_blue" in fb.text()
 
 
-def test_blockadjust_bad_input_is_one_line_and_writes_nothing(run_alg, group, tmp_path):
+def test_blockadjust_bad_input(run_alg, tmp_path):
     from qgis.core import QgsProcessingException
+    data = os.path.join(os.path.dirname(__file__), "..", "data", "matching")
+    out = tmp_path / "out"
+    with pytest.raises(QgsProcessingException, match="at least two CCDs"):
+        run_alg("gf4cal:blockadjust", {"INPUT": [os.path.join(data, "pleiades_ventoux_left.tif")],
+                                       "DEM": os.path.join(data, "srtm_ventoux_crop.tif"), "OUTPUT_FOLDER": str(out)})
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_blockadjust_bad_group_input_is_one_line_and_writes_nothing(run_alg, tmp_path_factory, tmp_path):
+    from qgis.core import QgsProcessingException
+    d = B.block_scene(str(tmp_path_factory.getbasetemp()))
+    obs = os.path.join(d, "observations.csv")
     out = tmp_path / "bad"
-    # the full table names the green, red and nir images, which are not given
-    with pytest.raises(QgsProcessingException, match="(?i)not among the images") as info:
-        run_alg("gf4cal:blockadjust", {
-            "IMAGES": group["images"], "DEM": group["dem"], "GCP_TABLE": group["obs_all"],
-            "TIE_TABLE": group["obs_all"], "BANDS_OF": group["bands_of"], "OUTPUT_FOLDER": str(out)})
-    assert "\n" not in str(info.value).strip()
-    assert not out.exists() or os.listdir(out) == []
-    with pytest.raises(QgsProcessingException, match="IMAGE=REFIMAGE") as info:
-        run_alg("gf4cal:blockadjust", {
-            "IMAGES": group["images"], "DEM": group["dem"], "GCP_TABLE": group["obs"], "TIE_TABLE": group["obs"],
-            "BANDS_OF": "ccd1 ccd2_blue", "OUTPUT_FOLDER": str(out)})
-    assert "\n" not in str(info.value).strip()
-    assert not out.exists() or os.listdir(out) == []
+    base = {"INPUT": [B.image_path(d, n) for n in B.NAMES], "DEM": os.path.join(d, "dem.tif"), "GCPS_FILE": obs,
+            "TIES_FILE": obs, "OUTPUT_FOLDER": str(out)}
+    for bands, match in (("ccd1 ccd2_blue", "IMAGE=REFIMAGE"), (_bands(",") + ", ccd9=ccd1_blue", "ccd9")):
+        with pytest.raises(QgsProcessingException, match=match) as info:
+            run_alg("gf4cal:blockadjust", dict(base, BANDS_OF=bands))
+        assert "\n" not in str(info.value).strip()
+        assert not out.exists() or os.listdir(out) == []

@@ -74,3 +74,25 @@ def test_one_geodesy_helper_gives_the_wgs84_radii():
     mx, my = geodesy.metres_per_degree(0.0, 0.0)
     assert mx == pytest.approx(111319.4908, abs=1e-3) and my == pytest.approx(np.radians(1.0) * 6356752.314245 ** 2 / 6378137.0, abs=1e-4)
     assert sim_geodesy.WGS84_A is geodesy.WGS84_A and sim_geodesy.WGS84_E2 is geodesy.WGS84_E2
+
+
+def test_grouped_trimmed_mean_matches_a_loop_and_trims_blunders():
+    from gdal_gf4cal.stats import grouped_trimmed_mean
+    rng = np.random.default_rng(3)
+    g = rng.integers(0, 5, 300)
+    g[g == 4] = 3  # group 4 empty
+    v = np.column_stack([g + 0.1 * rng.standard_normal(300), -g + 0.1 * rng.standard_normal(300)])
+    v[:6, 0] += 50.0  # blunders on one axis: the whole observation goes
+    r = grouped_trimmed_mean(g, v, 5, k=3.0, sigma=np.full(300, 0.1))
+    for k in range(4):
+        x = v[g == k]
+        med = np.median(x, axis=0)
+        mad = np.median(np.abs(x - med), axis=0)
+        keep = np.all(np.abs(x - med) <= 3 * 1.4826 * mad + 1e-12, axis=1)
+        np.testing.assert_allclose(r.median[k], med)
+        assert r.n[k] == keep.sum()
+        np.testing.assert_allclose(r.mean[k], x[keep].mean(axis=0))
+        se = np.maximum(x[keep].std(axis=0, ddof=1), 0.1) / np.sqrt(keep.sum())
+        np.testing.assert_allclose(r.sigma[k], se)
+    assert np.all(np.abs(r.mean[:4, 0] - np.arange(4)) < 0.05)
+    assert r.n[4] == 0 and np.isnan(r.mean[4]).all() and np.isnan(r.sigma[4]).all()

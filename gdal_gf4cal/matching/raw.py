@@ -1,0 +1,319 @@
+"""Raw-to-raw matching through two sensor models and the DEM: CCD overlaps, band to band, pan to MS (METHODS §8, §9).
+
+The matcher of :mod:`.collect` with a raw image as the reference (:class:`.resample.RawReference`): for each window
+of a regular grid over ``image`` (GDAL pixel convention),
+
+1. its centre ``c`` is localised on the DEM with ``model``: ground point ``X = (lon, lat, h)``;
+2. the reference raw image is resampled into ``image``'s geometry around ``c``: node ``u`` of the window shows the
+   reference at ``reference_model.project(model.localize_dem(u))`` (decimated and low-passed when the reference is
+   finer, e.g. pan for an MS image);
+3. phase correlation finds where ``image`` truly shows what the reference shows at ``X``: ``c + d``.
+
+So the reference point ``p = reference_model.project(X)`` (``ref_sample, ref_line``) and the image point
+``c + d`` (``sample, line``) are homologous, ``pred_sample, pred_line = c`` is where ``p`` localised on the DEM with
+``reference_model`` and projected with ``model`` falls, and ``d = (sample, line) - (pred_sample, pred_line)``.
+With ``image`` = MS and reference = pan that is exactly METHODS §9's ``∇ = p' - p''`` (MS pixels).
+
+Windows whose footprint is not wholly inside the reference are ``outside_image`` (status 5), and the window grid is
+first restricted to the part of ``image`` the reference covers, so only the overlap of two CCDs is ever read.
+
+- :func:`match_raw` one row per window (DataFrame);
+- :func:`match_ties` tie points between two images in the long observation table (:mod:`gdal_gf4cal.observations`);
+- :func:`pan_ms_cells` dense pan-MS matches averaged robustly on a regular MS grid (METHODS §9 observations).
+"""
+from __future__ import annotations
+
+import math
+import os
+from typing import Optional, Sequence, Tuple
+
+import numpy as np
+
+from ..errors import Gf4calError
+from ..progress import report
+from .collect import STATUS, _dem_from_spec, _dem_spec, _image_info, plan_tiles, run_tiles
+from .filters import reject_outliers
+from .resample import RawReference
+
+__all__ = ["match_raw", "match_ties", "pan_ms_cells", "cells_from_matches", "overlap_region", "RAW_COLUMNS",
+           "CELL_COLUMNS"]
+
+#: Columns of :func:`match_raw`'s table, in order.
+RAW_COLUMNS = ("sample", "line", "pred_sample", "pred_line", "ref_sample", "ref_line", "lon", "lat", "h",
+               "d_sample", "d_line", "sigma", "score", "peak", "peak_ratio", "ncc", "texture", "flat", "status",
+               "outlier")
+
+#: Columns of :func:`pan_ms_cells`'s table, in order.
+CELL_COLUMNS = ("cell_id", "col", "row", "sample", "line", "d_sample", "d_line", "sigma_sample", "sigma_line", "n",
+                "n_windows", "accepted_fraction", "clear_fraction", "usable")
+
+#: Smallest precision reported for one window, px: the estimate of a noise-free window tends to 0 while resampling
+#: and rendering leave a few hundredths of a pixel (as :func:`.collect.assemble_gcps`).
+MIN_SIGMA_PX = 0.05
+
+
+def _model_or_rpc(model, path: str, what: str):
+    if model is not None:
+        return model
+    from ..rpc import RPCModel
+    try:
+        return RPCModel.from_file(path)
+    except Gf4calError as exc:
+        raise Gf4calError(f"{what} {path}: no sensor model given and {exc}") from None
+
+
+def overlap_region(image, model, reference, reference_model, dem, *, band: int = 1, reference_band: int = 1,
+                   step_px: float = 32.0) -> Tuple[Tuple[float, float, float, float], float]:
+    """Part of ``image`` that ``reference`` also shows: ``((sample0, line0, sample1, line1), scale)``.
+
+    Nodes every ``step_px`` over ``image`` are localised on the DEM with ``model`` and projected into the reference
+    with ``reference_model``; the box bounds those landing inside the reference (plus one step), and ``scale`` is
+    the median number of reference pixels per image pixel there. Raises :class:`Gf4calError` when none does.
+    """
+    path, W, H, _ = _image_info(image, band)
+    ref = RawReference(os.fspath(reference), reference_model, reference_band)
+    dem_ = _dem_from_spec(_dem_spec(dem))
+    step = max(float(step_px), 1.0)
+    xs = np.append(np.arange(0.0, W, step), float(W))
+    ys = np.append(np.arange(0.0, H, step), float(H))
+    S, L = np.meshgrid(xs, ys)
+    lon, lat, h = model.localize_dem(S, L, dem_)
+    rs, rl = ref.ground_to_pixel(lon, lat, h)
+    inside = ref.inside(rs, rl)
+    if not inside.any():
+        raise Gf4calError(f"{os.path.basename(path)} and {os.path.basename(ref.path)} do not overlap on the ground "
+                          "(through their sensor models and the DEM); give images that see common ground")
+    box = (max(float(S[inside].min()) - step, 0.0), max(float(L[inside].min()) - step, 0.0),
+           min(float(S[inside].max()) + step, float(W)), min(float(L[inside].max()) + step, float(H)))
+    with np.errstate(invalid="ignore"):
+        ds = np.hypot(np.diff(rs, axis=1), np.diff(rl, axis=1)) / np.diff(xs)[None, :]
+    ok = np.isfinite(ds) & inside[:, 1:]
+    scale = float(np.median(ds[ok])) if ok.any() else 1.0
+    return box, scale
+
+
+def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px: int = 64, window_px: int = 32,
+              search_px: float = 8, band: int = 1, reference_band: int = 1, region: Optional[Sequence[float]] = None,
+              executor=None, workers: Optional[int] = None, progress=None, tile_windows: int = 256,
+              outlier_model: Optional[str] = "affine", outlier_threshold_px: float = 3.0, seed: int = 0,
+              margin_px: Optional[int] = None, min_sigma_px: float = MIN_SIGMA_PX, **params):
+    """Match ``image`` against another raw image through both sensor models and the DEM (module docstring).
+
+    Parameters
+    ----------
+    image, reference_image : paths of two raw images (any GDAL raster); ``band``, ``reference_band`` the bands.
+    model, reference_model : their sensor models (:class:`~gdal_gf4cal.RPCModel` or any model on the sensor
+        contract); ``None`` reads the image's RPC.
+    dem : :class:`~gdal_gf4cal.DEM`, DEM path (ellipsoidal heights) or a constant height (m).
+    spacing_px, window_px : grid step and (even) window size, pixels of ``image``.
+    search_px : largest offset to find (px of ``image``); beyond ~``window_px / 4`` a coarse level is used.
+    region : ``(sample0, line0, sample1, line1)`` box of ``image`` to match in (default all); it is always
+        intersected with the overlap of the two images (:func:`overlap_region`). ``margin_px``: distance of the
+        window centres' grid from the image edges (default half a window).
+    executor, workers : as :func:`.collect.collect_gcps` (tiles of ``tile_windows`` windows).
+    outlier_model, outlier_threshold_px, seed : RANSAC + MAD consistency check of the accepted offsets
+        (:func:`.filters.reject_outliers`; ``None`` skips it): ``outlier`` column.
+    params : matcher thresholds (``min_peak, min_peak_ratio, min_ncc, min_texture, sigma_px, geometry_step``).
+
+    Returns
+    -------
+    pandas.DataFrame, one row per window (row-major), columns :data:`RAW_COLUMNS`: ``sample, line`` measured
+    position in ``image``; ``pred_sample, pred_line`` window centre (where the reference point, the DEM and
+    ``model`` predict it); ``ref_sample, ref_line`` the homologous reference position; ``lon, lat, h`` the ground
+    point (``model`` on the DEM at the centre); ``d_sample, d_line`` = measured - predicted (px of ``image``;
+    METHODS §9's ∇ for image = MS, reference = pan); ``sigma`` the matcher's precision estimate (px, floored at
+    ``min_sigma_px``); ``score`` (= ``ncc``), ``peak, peak_ratio, ncc, texture``, ``flat`` (flat share of the
+    window's central half: water, flat cloud); ``status`` (:data:`.collect.STATUS`; only 0 is a match) and
+    ``outlier``. ``df.attrs``: ``windows`` (counts by status), ``scale`` (reference px per image px), ``region``
+    (the box matched).
+    """
+    import pandas as pd
+    path, W, H, _ = _image_info(image, band)
+    ref_path = os.fspath(reference_image)
+    if not os.path.exists(ref_path) and not ref_path.startswith("/vsi"):
+        raise Gf4calError(f"reference image not found: {ref_path}")
+    model = _model_or_rpc(model, path, "image")
+    reference_model = _model_or_rpc(reference_model, ref_path, "reference image")
+    box, scale = overlap_region(path, model, ref_path, reference_model, dem, band=band,
+                                reference_band=reference_band, step_px=max(16, min(int(window_px), 64)))
+    if region is not None:
+        r = [float(v) for v in region]
+        box = (max(box[0], r[0]), max(box[1], r[1]), min(box[2], r[2]), min(box[3], r[3]))
+        if box[2] <= box[0] or box[3] <= box[1]:
+            raise Gf4calError(f"region {tuple(region)} of {os.path.basename(path)} is outside its overlap with "
+                              f"{os.path.basename(ref_path)}; give a region inside the overlap")
+    specs, ctx = plan_tiles(path, model, ref_path, dem, spacing_px, window_px, search_px=search_px,
+                            tile_windows=tile_windows, band=band, reference_band=reference_band,
+                            reference_model=reference_model, region=box, margin_px=margin_px, **params)
+    report(progress, 0.0, f"matching {ctx['n_windows']} windows in {len(specs)} tiles")
+    results = run_tiles(specs, executor, workers=workers, progress=progress, stop=0.97)
+    r = {k: np.concatenate([np.atleast_1d(t[k]) for t in results]) for k in results[0]}
+    order = np.lexsort((r["center_sample"], r["center_line"]))
+    r = {k: v[order] for k, v in r.items()}
+    st = r["status"].astype(np.int8)
+    acc = st == 0
+    outlier = np.zeros(st.size, dtype=bool)
+    if outlier_model is not None and acc.sum() >= 8:
+        flt = reject_outliers(r["center_sample"][acc], r["center_line"][acc], r["dsample"][acc], r["dline"][acc],
+                              model=outlier_model, threshold_px=outlier_threshold_px, seed=seed)
+        outlier[np.flatnonzero(acc)] = flt.outlier
+    d_s = np.where(acc, r["dsample"], np.nan)
+    d_l = np.where(acc, r["dline"], np.nan)
+    prec = np.where(acc, np.maximum(np.nan_to_num(r["precision_px"], nan=np.inf), min_sigma_px), np.nan)
+    df = pd.DataFrame({
+        "sample": r["center_sample"] + d_s, "line": r["center_line"] + d_l,
+        "pred_sample": r["center_sample"], "pred_line": r["center_line"],
+        "ref_sample": r["ref_sample"], "ref_line": r["ref_line"],
+        "lon": r["lon"], "lat": r["lat"], "h": r["h"], "d_sample": d_s, "d_line": d_l,
+        "sigma": prec, "score": r["ncc"], "peak": r["peak"], "peak_ratio": r["peak_ratio"], "ncc": r["ncc"],
+        "texture": r["texture"], "flat": r["flat"], "status": st, "outlier": outlier})
+    counts = {name: int(np.count_nonzero(st == code)) for code, name in STATUS.items()}
+    counts["outliers"] = int(outlier.sum())
+    counts["total"] = int(st.size)
+    df.attrs.update(windows=counts, scale=scale, region=tuple(box), image=path, reference=ref_path,
+                    window_px=int(window_px), spacing_px=int(spacing_px))
+    report(progress, 1.0, f"{counts['accepted']} matches of {st.size} windows ({counts['outliers']} outliers)")
+    return df
+
+
+def match_ties(image_a, model_a, image_b, model_b, dem, *, ids: Tuple[str, str] = ("a", "b"), spacing_px: int = 64,
+               window_px: int = 32, search_px: float = 16, band_a: int = 1, band_b: int = 1, region=None,
+               executor=None, workers: Optional[int] = None, progress=None, **params):
+    """Tie points between two raw images in their overlap (METHODS §8), as a long observation table.
+
+    :func:`match_raw` of ``image_a`` against ``image_b`` (restricted to their overlap automatically; windows are
+    laid out over ``image_a``); every accepted, consistent window gives two rows with one ``point_id``:
+    ``image_id = ids[0]`` at the measured position in ``a`` and ``ids[1]`` at the homologous position in ``b``
+    (GDAL convention), ``kind='tie'``, ``role='control'``, ``sigma`` = the matcher's precision of the offset split
+    evenly between the two images (``sigma / sqrt(2)``, in each image's pixels), ``lon, lat, h`` approximate (the
+    ground point of the window centre through ``model_a`` on the DEM). Also ``score`` and ``status``.
+    ``search_px`` (default 16: seams of a few pixels between CCDs, band offsets) sets the coarse level.
+    Raises :class:`Gf4calError` when the images do not overlap or no window in the overlap matches.
+    """
+    import pandas as pd
+    t = match_raw(image_a, model_a, image_b, model_b, dem, spacing_px=spacing_px, window_px=window_px,
+                  search_px=search_px, band=band_a, reference_band=band_b, region=region, executor=executor,
+                  workers=workers, progress=progress, **params)
+    ok = (t["status"].to_numpy() == 0) & ~t["outlier"].to_numpy()
+    if not ok.any():
+        w = t.attrs["windows"]
+        raise Gf4calError(f"no tie point between {ids[0]} and {ids[1]} ({w['total']} windows in the overlap: "
+                          + ", ".join(f"{v} {k}" for k, v in w.items() if v and k != "total")
+                          + "); check the images overlap with texture, or use a larger --search/--window")
+    g = t[ok]
+    n = len(g)
+    pid = np.array([f"{ids[0]}~{ids[1]}~{k + 1:05d}" for k in range(n)], dtype=object)
+    sig = g["sigma"].to_numpy() / math.sqrt(2.0)
+    scale = float(t.attrs.get("scale", 1.0))
+    common = dict(kind="tie", role="control", lon=g["lon"].to_numpy(), lat=g["lat"].to_numpy(),
+                  h=g["h"].to_numpy(), score=g["score"].to_numpy(), status=g["status"].to_numpy())
+    a = pd.DataFrame(dict(point_id=pid, image_id=ids[0], sample=g["sample"].to_numpy(), line=g["line"].to_numpy(),
+                          sigma=sig, **common))
+    b = pd.DataFrame(dict(point_id=pid, image_id=ids[1], sample=g["ref_sample"].to_numpy(),
+                          line=g["ref_line"].to_numpy(), sigma=sig * scale, **common))
+    out = pd.concat([a, b], ignore_index=True)
+    # Rows of one point together: a, b, a, b, ...
+    out = out.iloc[np.argsort(np.r_[np.arange(n) * 2, np.arange(n) * 2 + 1], kind="stable")].reset_index(drop=True)
+    cols = ["point_id", "image_id", "kind", "sample", "line", "sigma", "role", "lon", "lat", "h", "score", "status"]
+    out = out[cols]
+    out.attrs.update(windows=t.attrs["windows"], scale=scale, region=t.attrs["region"])
+    return out
+
+
+def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, min_matches: int = 4,
+                       min_accepted_fraction: float = 0.5, trim_k: float = 3.0, independent_fraction: float = 1.0,
+                       breaks: Optional[Sequence[float]] = None, window_px: Optional[int] = None):
+    """Robust per-cell means of window offsets on a regular grid (METHODS §9 observations).
+
+    ``matches``: :func:`match_raw`'s table. Cell ``(col, row)`` covers image pixels ``[col * cell_px, (col + 1) *
+    cell_px) x [row * cell_px, ...)`` (the last ones clipped to the image); a window belongs to the cell holding
+    its centre (``pred_sample, pred_line``). Windows ``outside_image`` do not count. Per cell and axis the mean is
+    the **MAD-trimmed mean about the median** (:func:`gdal_gf4cal.stats.grouped_trimmed_mean`: accepted, non-outlier
+    matches within ``trim_k`` robust standard deviations of the median on both axes), ``sigma_*`` its standard
+    error (spread of the kept matches over sqrt(n); a lone match: its own ``sigma``), where overlapping
+    windows count as ``n * independent_fraction`` independent ones (:func:`pan_ms_cells` gives ``(spacing /
+    window)^2``: windows sharing pixels share their noise). ``breaks``: image columns where the offset field jumps
+    (sub-CCD edges, METHODS §9); windows whose footprint (``window_px``, default ``matches.attrs['window_px']``)
+    straddles one mix both sides and are left out of every count.
+    ``clear_fraction`` = 1 - the mean ``flat`` share of the central halves of the cell's windows (which about
+    tile the cell): the share of the cell that is neither cloud nor water nor texture-less. ``usable`` is False
+    when fewer than ``min_matches`` are kept, the accepted share of the cell's windows is below
+    ``min_accepted_fraction`` or ``clear_fraction`` is below 0.5 (a cell mostly cloud / water / texture-less).
+    """
+    import pandas as pd
+    from ..stats import grouped_trimmed_mean
+    cell = int(cell_px)
+    if cell < 1:
+        raise Gf4calError(f"cell size must be a positive number of pixels (got {cell_px})")
+    ncol, nrow = -(-int(width) // cell), -(-int(height) // cell)
+    ncell = ncol * nrow
+    if breaks is not None and len(breaks):
+        w = float(window_px if window_px is not None else matches.attrs.get("window_px", 0))
+        ps = matches["pred_sample"].to_numpy(float)
+        straddle = np.any(np.abs(ps[:, None] - np.asarray(breaks, dtype=float)[None, :]) < w / 2.0, axis=1)
+        matches = matches[~straddle]
+    st = matches["status"].to_numpy()
+    ps, pl = matches["pred_sample"].to_numpy(float), matches["pred_line"].to_numpy(float)
+    col = np.clip(np.floor(ps / cell).astype(int), 0, ncol - 1)
+    row = np.clip(np.floor(pl / cell).astype(int), 0, nrow - 1)
+    cid = row * ncol + col
+    counted = st != 5
+    n_windows = np.bincount(cid[counted], minlength=ncell)
+    n_acc = np.bincount(cid[st == 0], minlength=ncell)
+    flat = matches["flat"].to_numpy(float)
+    has_flat = counted & np.isfinite(flat)
+    n_flat = np.bincount(cid[has_flat], minlength=ncell)
+    sum_flat = np.bincount(cid[has_flat], flat[has_flat], minlength=ncell)
+    good = (st == 0) & ~matches["outlier"].to_numpy(bool)
+    m = grouped_trimmed_mean(cid[good], np.column_stack([matches["d_sample"].to_numpy(float)[good],
+                                                         matches["d_line"].to_numpy(float)[good]]), ncell, k=trim_k)
+    sig_s, sig_l = m.sigma[:, 0], m.sigma[:, 1]
+    if independent_fraction < 1.0:
+        n_eff = np.maximum(m.n * float(independent_fraction), 1.0)
+        sig_s, sig_l = sig_s * np.sqrt(m.n / n_eff), sig_l * np.sqrt(m.n / n_eff)
+    # A single match: its own precision estimate.
+    one = np.bincount(cid[good], np.nan_to_num(matches["sigma"].to_numpy(float)[good]), minlength=ncell)
+    sig_s = np.where(m.n == 1, one, sig_s)
+    sig_l = np.where(m.n == 1, one, sig_l)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        acc_frac = np.where(n_windows > 0, n_acc / np.maximum(n_windows, 1), 0.0)
+        clear = np.where(n_flat > 0, 1.0 - sum_flat / np.maximum(n_flat, 1), 0.0)
+    cc, rr = np.meshgrid(np.arange(ncol), np.arange(nrow))
+    cc, rr = cc.ravel(), rr.ravel()
+    x0, y0 = cc * cell, rr * cell
+    sample = (x0 + np.minimum(x0 + cell, width)) / 2.0
+    line = (y0 + np.minimum(y0 + cell, height)) / 2.0
+    usable = (m.n >= int(min_matches)) & (acc_frac >= float(min_accepted_fraction)) & (clear >= 0.5)
+    df = pd.DataFrame({"cell_id": np.arange(ncell), "col": cc, "row": rr, "sample": sample, "line": line,
+                       "d_sample": m.mean[:, 0], "d_line": m.mean[:, 1], "sigma_sample": sig_s,
+                       "sigma_line": sig_l, "n": m.n, "n_windows": n_windows,
+                       "accepted_fraction": acc_frac, "clear_fraction": clear, "usable": usable})
+    return df
+
+
+def pan_ms_cells(pan, ms, dem, *, pan_model=None, ms_model=None, cell_px: int = 64, window_px: int = 32,
+                 spacing_px: int = 16, search_px: float = 8, band: int = 1, pan_band: int = 1, min_matches: int = 4,
+                 region=None, executor=None, workers: Optional[int] = None, progress=None, margin_px: int = 4,
+                 breaks: Optional[Sequence[float]] = None, **params):
+    """Pan-to-MS misregistration per cell of a regular MS grid (METHODS §9 observations, eq. 13).
+
+    Dense :func:`match_raw` of the MS (band ``band``) against the pan (``pan_band``) through their models (default:
+    the images' RPCs) and the DEM: windows of ``window_px`` MS px every ``spacing_px`` (several per cell; their
+    centres from ``margin_px + window_px / 2`` of the edges, so edge cells are measured too); each
+    gives ``∇ = p' - p''`` (MS px). :func:`cells_from_matches` averages them per ``cell_px`` cell (median +
+    MAD-trimmed mean; ``breaks``: MS columns of sub-CCD edges, windows straddling one are left out). Returns a
+    DataFrame (:data:`CELL_COLUMNS`): ``sample, line`` cell centre (MS px, GDAL),
+    ``d_sample, d_line`` the cell's ∇, ``sigma_sample, sigma_line`` its precision, ``n`` accepted matches,
+    ``n_windows``, ``usable`` (False for cells mostly cloud / water / texture-less: fewer than ``min_matches``
+    matches or an accepted share < 0.5), ``clear_fraction``; ``attrs['matches']`` holds the window table.
+    Memory is bounded by tiles (:func:`.collect.plan_tiles`), work runs on ``executor`` (gdal_gf4cal.executors).
+    """
+    t = match_raw(ms, ms_model, pan, pan_model, dem, spacing_px=spacing_px, window_px=window_px,
+                  search_px=search_px, band=band, reference_band=pan_band, region=region, executor=executor,
+                  workers=workers, progress=progress, margin_px=margin_px, **params)
+    _, W, H, _ = _image_info(ms, band)
+    cells = cells_from_matches(t, W, H, cell_px=cell_px, min_matches=min_matches,
+                               independent_fraction=min(1.0, (float(spacing_px) / float(window_px)) ** 2),
+                               breaks=breaks)
+    cells.attrs.update(matches=t, windows=t.attrs["windows"], scale=t.attrs["scale"], cell_px=int(cell_px))
+    return cells
