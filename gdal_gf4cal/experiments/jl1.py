@@ -19,14 +19,14 @@ The paper's validation rebuilt on simulated truth (METHODS §8, §10) through th
   own random attitude error (N(0, 3.6 arcsec) per axis, simulator option ``orbit_seed``). Planar error of the pan
   images' grid points localised on the DEM, in metres; CE90 over all points of all orbits, against the **CE90 the
   attitude errors imply**: per point ``hypot(D roll, D pitch, x yaw)`` with ``D`` the satellite-to-ground distance
-  (altitude - terrain height) and ``x`` the point's cross-track distance from the group centre (small angles, the
+  (orbit radius - the point's geocentric radius: 545 km at 44 deg N for the 535 km orbit) and ``x`` the point's cross-track distance from the group centre (small angles, the
   roll/pitch/yaw of that orbit as drawn; the cross term pitch x yaw is dropped, it averages out across the swath),
   then its 90th percentile over the same points. Also the CE90 the error *distribution* implies:
   ``2.146 D sigma`` (Rayleigh, roll and pitch; the paper's < 20 m). Band-to-band after calibration per orbit.
 * **Table 6** (5 scenes with 5 GCPs): other orbits again; per scene 5 well-spread GCPs over the four pan CCDs
-  update the group's exterior offsets (``e0, e1, kappa``: roll, pitch, yaw) of the calibration by weighted least
-  squares (:func:`~gdal_gf4cal.estimation.weighted_lsq`; interiors kept); the other GCPs (>= 10) are check points:
-  planar RMS in metres at 0.75 m GSD (the paper: < 2 m).
+  re-estimate the group's exterior (offsets and drifts) with the calibrated interiors held
+  (:func:`~gdal_gf4cal.block.adjust_block` with ``calibration=``); the other GCPs (>= 10) are check points,
+  localised on the DEM: planar RMS in metres at 0.75 m GSD (the paper: < 2 m).
 
 Other scenes of the same group share the calibration scene's DEM (``make_scene(dem=...)``) and so its nominal
 (current) camera: their vendor RPCs are the calibration scene's (checked, refitted otherwise).
@@ -142,58 +142,18 @@ def _ground_errors(models, scene, names):
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
-def _implied_errors(scene, h, x) -> np.ndarray:
-    """Planar ground error (m) the orbit's attitude error implies at points of height ``h`` and cross-track
+def _distance(scene, lon, lat, h) -> np.ndarray:
+    """Satellite-to-ground distance ``D`` (m): orbit radius - geocentric radius of the ground points."""
+    from ..simulate.geodesy import geodetic_to_ecef
+    radius = float(scene.images[0].info["group"]["orbit"]["radius_m"])
+    return radius - np.linalg.norm(np.asarray(geodetic_to_ecef(lon, lat, h)), axis=-1)
+
+
+def _implied_errors(scene, D, x) -> np.ndarray:
+    """Planar ground error (m) the orbit's attitude error implies at points at distance ``D`` and cross-track
     distance ``x`` (module docstring)."""
-    from ..simulate.jl1 import ALTITUDE_M
     err = scene.images[0].info["group"]["orbit_attitude_error"]
-    D = ALTITUDE_M - np.asarray(h, float)
     return np.sqrt((D * err["roll_rad"]) ** 2 + (D * err["pitch_rad"]) ** 2 + (np.asarray(x) * err["yaw_rad"]) ** 2)
-
-
-def _with_exterior(cal, delta):
-    from ..block import EXTERIOR_NAMES
-    c = dict(cal)
-    c["exterior"] = {n: float(cal["exterior"][n]) + float(d) for n, d in zip(EXTERIOR_NAMES, delta)}
-    return c
-
-
-def _update_exterior(cal, rpcs, gcps, names, free=("e0", "e1", "kappa_mrad"), n_iter: int = 3):
-    """The calibration with its exterior offsets re-estimated from GCP rows (``image``, ``sample``, ``line``,
-    ``lon``, ``lat``, ``h``, ``sigma``): Gauss-Newton with numerical derivatives of
-    :func:`~gdal_gf4cal.block.calibrated_model` by each free exterior term, solved by
-    :func:`~gdal_gf4cal.estimation.weighted_lsq`. Returns (calibration, Estimate)."""
-    from ..block import EXTERIOR_NAMES, calibrated_model
-    from ..estimation import Block, weighted_lsq
-    idx = [EXTERIOR_NAMES.index(f) for f in free]
-    delta = np.zeros(len(EXTERIOR_NAMES))
-    est = None
-
-    def predict(d):
-        c = _with_exterior(cal, d)
-        out = np.empty((len(gcps), 2))
-        for n in names:
-            sel = (gcps["image"] == n).to_numpy()
-            if sel.any():
-                g = gcps[sel]
-                s, l = calibrated_model(c, n, rpcs[n]).project(*(g[k].to_numpy(float) for k in ("lon", "lat", "h")))
-                out[sel] = np.stack([s, l], axis=1)
-        return out
-
-    meas = gcps[["sample", "line"]].to_numpy(float)
-    w = np.repeat(1.0 / gcps["sigma"].to_numpy(float) ** 2, 2)
-    for _ in range(n_iter):
-        p0 = predict(delta)
-        cols = []
-        for i in idx:
-            d = delta.copy()
-            d[i] += 1.0
-            cols.append((predict(d) - p0).ravel())
-        est = weighted_lsq(np.stack(cols, axis=1), (meas - p0).ravel(), w, blocks=[Block("exterior", list(free))])
-        delta[idx] += est.x
-        if np.max(np.abs(est.x)) < 1e-6:
-            break
-    return _with_exterior(cal, delta), est
 
 
 def run(out_dir, *, seed: int = 3, progress=None, size=DEFAULT_SIZE, gcp_noise_px: float = GCP_NOISE_PX,
@@ -274,8 +234,8 @@ def run(out_dir, *, seed: int = 3, progress=None, size=DEFAULT_SIZE, gcp_noise_p
 
     # ---- Table 5: orbits without control
     orbits: List[Dict[str, Any]] = []
-    all_err, all_implied = [], []
-    from ..simulate.jl1 import ALTITUDE_M, ORBIT_ATTITUDE_SIGMA_ARCSEC
+    all_err, all_implied, all_dist = [], [], []
+    from ..simulate.jl1 import ORBIT_ATTITUDE_SIGMA_ARCSEC
     for i in range(n_orbits):
         _report(progress, 0.4 + 0.35 * i / max(n_orbits, 1), f"Table 5: orbit {i + 1} of {n_orbits} without control")
         osc = _orbit_scene(seed, size, terrain, 1000 + i)
@@ -283,7 +243,8 @@ def run(out_dir, *, seed: int = 3, progress=None, size=DEFAULT_SIZE, gcp_noise_p
         models = {n: calibrated_model(cal, n, orpcs[n]) for n in names}
         g = _ground_errors(models, osc, pan_names)
         err = np.hypot(g["de"], g["dn"])
-        implied = _implied_errors(osc, g["h"], g["x"])
+        dist = _distance(osc, g["lon"], g["lat"], g["h"])
+        implied = _implied_errors(osc, dist, g["x"])
         att = osc.images[0].info["group"]["orbit_attitude_error"]
         b2b = [_band_to_band(models, osc, k, b) for k in range(1, N_CCD + 1) for b in BANDS if b != REFERENCE_BAND]
         orbits.append({"orbit_seed": att["orbit_seed"],
@@ -292,12 +253,13 @@ def run(out_dir, *, seed: int = 3, progress=None, size=DEFAULT_SIZE, gcp_noise_p
                        "band_to_band_max_px": float(np.nanmax(b2b)), "band_to_band_rms_px": _rms(b2b)})
         all_err.append(err)
         all_implied.append(implied)
+        all_dist.append(dist)
     summary5: Dict[str, Any] = {}
     if orbits:
         e, im_ = np.concatenate(all_err), np.concatenate(all_implied)
         summary5 = {"n_orbits": len(orbits), "n_points": int(e.size), "ce90_m": ce90(e), "implied_ce90_m": ce90(im_),
-                    "expected_ce90_m": RAYLEIGH_90 * (ALTITUDE_M - float(np.mean(scene.dem.height(
-                        *scene.center)))) * ORBIT_ATTITUDE_SIGMA_ARCSEC * ARCSEC,
+                    "expected_ce90_m": RAYLEIGH_90 * float(np.mean(np.concatenate(all_dist))) *
+                    ORBIT_ATTITUDE_SIGMA_ARCSEC * ARCSEC,
                     "band_to_band_max_px": max(o["band_to_band_max_px"] for o in orbits)}
         summary5["ratio"] = summary5["ce90_m"] / summary5["implied_ce90_m"]
 
@@ -309,11 +271,17 @@ def run(out_dir, *, seed: int = 3, progress=None, size=DEFAULT_SIZE, gcp_noise_p
         orpcs = _rpcs_for(osc, scene, rpcs)
         per = max(4, -(-(n_scene_gcps + 12) // len(pan_names)))
         tables = simulate_gcps(osc, n_gcps=per, gcp_noise_px=gcp_noise_px, check_fraction=0.0, seed=seed + 7 * i)
-        g = pd.concat([tables[n].assign(image=n) for n in pan_names], ignore_index=True)
+        g = pd.concat([tables[n].assign(image=n, id=n + ":" + tables[n]["id"].astype(str)) for n in pan_names],
+                      ignore_index=True)                   # drawn per image: ids made unique across images
         order = spread_order(g["lon"].to_numpy(float), g["lat"].to_numpy(float))
         ctrl = np.zeros(len(g), bool)
         ctrl[order[:n_scene_gcps]] = True
-        cal_i, est_i = _update_exterior(cal, orpcs, g[ctrl].reset_index(drop=True), pan_names)
+        # the scene's exterior from its 5 GCPs, the calibrated interiors held (adjust_block(calibration=...))
+        ctrl_obs = g[ctrl].rename(columns={"id": "point_id", "image": "image_id"}).assign(kind="gcp")
+        scene_models = {n: orpcs[n] for n in pan_names + ref_names}
+        est_i = adjust_block(ctrl_obs[["point_id", "image_id", "kind", "sample", "line", "sigma", "role", "lon", "lat",
+                                       "h"]], scene_models, osc.dem, calibration=cal)
+        cal_i = calibration_dict(est_i)
         chk = g[~ctrl]
         res = {}
         for tag, c in (("no_gcp", cal), ("gcps", cal_i)):
@@ -331,7 +299,7 @@ def run(out_dir, *, seed: int = 3, progress=None, size=DEFAULT_SIZE, gcp_noise_p
             res[tag] = {"planar_rms_m": _rms(np.hypot(de, dn)), "east_rms_m": _rms(de), "north_rms_m": _rms(dn)}
         scenes.append({"orbit_seed": 2000 + i, "n_control": int(ctrl.sum()), "n_check": int(len(chk)),
                        "control_per_image": {n: int(((g["image"] == n) & ctrl).sum()) for n in pan_names},
-                       "control_rms_px": float(np.sqrt(np.mean(est_i.residuals ** 2))),
+                       "control_rms_px": _rms(est_i.residuals), "exterior": cal_i["exterior"],
                        "before": res["no_gcp"], "after": res["gcps"]})
     summary6 = {"n_scenes": len(scenes),
                 "check_planar_rms_m": _rms([s["after"]["planar_rms_m"] for s in scenes]) if scenes else None,
@@ -355,10 +323,10 @@ def run(out_dir, *, seed: int = 3, progress=None, size=DEFAULT_SIZE, gcp_noise_p
                   "Table 4: blue pixels carried into the band by the models minus by the true models, px of the 3 m MS "
                   "band",
                   "Table 5: implied CE90 = 90th percentile of hypot(D roll, D pitch, x yaw) over the same points "
-                  "(D = altitude - terrain height, x = cross-track distance from the group centre, the orbit's drawn "
+                  "(D = orbit radius - geocentric radius of the point, x = cross-track distance from the group centre, the orbit's drawn "
                   "attitude errors); expected = 2.146 D sigma (sigma = 3.6 arcsec per axis)",
-                  "Table 6: 5 well-spread GCPs per scene over the 4 pan CCDs re-estimate the exterior offsets "
-                  "(e0, e1, kappa) of the calibration; the other GCPs are check points (localised on the DEM)"],
+                  "Table 6: 5 well-spread GCPs per scene over the 4 pan CCDs re-estimate the exterior (interiors "
+                  "calibrated); the other GCPs are check points (localised on the DEM)"],
     }
     rep["elapsed_s"] = time.perf_counter() - t0
     text = format_tables(rep)
@@ -407,7 +375,7 @@ def format_tables(rep: Dict[str, Any], bands: Optional[Sequence[str]] = None) ->
                      f"{s['band_to_band_max_px']:10.3f}   CE90 / implied = {s['ratio']:.3f}; expected from "
                      f"3.6\" per axis: {s['expected_ce90_m']:.1f} m (paper < 20 m)")
     t6 = rep["table6"]
-    lines += ["", f"Table 6. {len(t6['scenes'])} scenes with GCPs (exterior offsets re-estimated; check points, m)",
+    lines += ["", f"Table 6. {len(t6['scenes'])} scenes with GCPs (exterior re-estimated; check points, m)",
               f"{'scene':>6} {'GCPs':>5} {'checks':>6} {'no GCP RMS':>10} {'RMS':>7} {'east':>7} {'north':>7}"]
     for sc in t6["scenes"]:
         a = sc["after"]
