@@ -22,10 +22,10 @@ def _check(rep, *, ce90_tol=0.10):
         assert max(v["before"]["across"], v["before"]["along"]) > 0.5, name
         assert v["after"]["across"] <= 0.1 and v["after"]["along"] <= 0.1, (name, v["after"])
     assert s["interior_max_rms_px"] <= 0.1
-    # Table 4: bands register to <= 0.1 px of the MS band (paper < 0.3 px), from > 1 px before
+    # Table 4: bands register to <= 0.1 px of the MS band (paper < 0.3 px), from ~1-5 px before
     for ccd, row in rep["table4"].items():
         for band, v in row.items():
-            assert v["before"] > 1.0 and v["after"] <= 0.1, (ccd, band, v)
+            assert v["before"] > 0.5 and v["after"] <= 0.1, (ccd, band, v)
     # Table 5: without control, the error is what the orbits' attitude errors imply (within 10 %), ~20 m (paper)
     t5 = rep["table5"]["summary"]
     assert abs(t5["ratio"] - 1.0) <= ce90_tol
@@ -34,7 +34,8 @@ def _check(rep, *, ce90_tol=0.10):
     # Table 6: 5 GCPs per scene and >= 10 check points: check planar RMS <= 2 m at 0.75 m GSD (paper < 2 m)
     for sc in rep["table6"]["scenes"]:
         assert sc["n_control"] == 5 and sc["n_check"] >= 10
-        assert sc["after"]["planar_rms_m"] <= 2.0 < sc["before"]["planar_rms_m"] + 2.0
+        assert sc["after"]["planar_rms_m"] <= 2.0
+        assert sc["after"]["planar_rms_m"] < sc["before"]["planar_rms_m"]
     assert rep["table6"]["summary"]["gsd_m"] == pytest.approx(0.75)
 
 
