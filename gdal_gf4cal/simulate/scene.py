@@ -87,9 +87,18 @@ def simulate_gcps(scene: SimScene, *, n_gcps: int = 200, gcp_noise_px: float = 0
         W, H = im.size
         inside = np.isfinite(ts) & np.isfinite(tl) & (ts >= 0) & (ts <= W) & (tl >= 0) & (tl <= H)
         # A true camera's cubic distortion, extrapolated far outside its CCD, can fold a distant ground point into
-        # the image (jl1 MS bands): keep only points the current model also sees nearby (errors are < 100 px).
+        # the image (jl1 MS bands): keep only points the current model also sees in the image, give or take the
+        # largest simulated error (hj1: 75 px at the edge of 12000 px; jl1 MS: a few px of 128).
         cs, cl = im.current.project(lon[inside], lat[inside], h[inside])
-        near = np.isfinite(cs) & np.isfinite(cl) & (np.abs(cs - ts[inside]) < 100) & (np.abs(cl - tl[inside]) < 100)
+        mw, mh = 0.05 * W + 30.0, 0.05 * H + 30.0
+        near = (np.isfinite(cs) & np.isfinite(cl) & (cs >= -mw) & (cs <= W + mw) & (cl >= -mh) & (cl <= H + mh)
+                & (np.abs(cs - ts[inside]) < 100) & (np.abs(cl - tl[inside]) < 100))
+        # ... and whose true image point localises back to them (a folded projection does not)
+        blon, blat = im.true.localize(ts[inside], tl[inside], h[inside])
+        from ..geodesy import metres_per_degree
+        mx, my = metres_per_degree(lat[inside])
+        back = np.hypot((np.asarray(blon) - lon[inside]) * mx, (np.asarray(blat) - lat[inside]) * my)
+        near &= np.isfinite(back) & (back < 0.01 * im.gsd_m)
         inside[np.flatnonzero(inside)[~near]] = False
         k = int(inside.sum())
         noise_s = rng.normal(0.0, gcp_noise_px, k) if gcp_noise_px > 0 else np.zeros(k)
