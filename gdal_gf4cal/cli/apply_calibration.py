@@ -25,6 +25,8 @@ def run(args) -> int:
     if args.calibration:
         if args.current or args.new:
             raise GCPError("give either --calibration (block) or --current and --new (camera files), not both")
+        if args.batch or args.dask:
+            raise GCPError("--calibration recalibrates the images of one group together; drop --batch/--dask")
         return _run_block(args)
     if not (args.current and args.new):
         raise GCPError("give --current and --new (camera files) or --calibration (block calibration)")
