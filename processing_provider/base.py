@@ -292,17 +292,25 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
                                                  f"(INPUT)."))
         return path
 
-    def read_dem(self, parameters, context):
-        """The DEM parameter as an engine :class:`gdal_gf4cal.dem.DEM`, or None."""
+    def dem_source(self, parameters, context):
+        """``(path, geoid)`` of the DEM parameter for a workflow taking a DEM path and a geoid choice, or
+        ``(None, None)``: the geoid as the engine's ``geoid=`` (None, 'egm96', 'egm2008', False or a grid path)."""
         layer = self.parameterAsRasterLayer(parameters, self.DEM, context)
         if layer is None:
-            return None
-        from gdal_gf4cal.dem import DEM
+            return None, None
         geoid = _GEOIDS[self.parameterAsEnum(parameters, self.GEOID, context)] \
             if self.parameterDefinition(self.GEOID) is not None else None
         if self.parameterDefinition(self.GEOID_GRID) is not None:
             geoid = self.parameterAsFile(parameters, self.GEOID_GRID, context) or geoid
-        return DEM.from_file(layer.source(), geoid=geoid)
+        return layer.source(), geoid
+
+    def read_dem(self, parameters, context):
+        """The DEM parameter as an engine :class:`gdal_gf4cal.dem.DEM`, or None."""
+        path, geoid = self.dem_source(parameters, context)
+        if path is None:
+            return None
+        from gdal_gf4cal.dem import DEM
+        return DEM.from_file(path, geoid=geoid)
 
     def read_gcps(self, parameters, context, feedback, dem=None):
         """The GCP layer as an engine GCP table (DESIGN.md schema, EPSG:4326), read by the engine's own reader.

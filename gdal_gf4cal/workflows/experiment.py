@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
 import pkgutil
 from typing import Any, Dict, List
@@ -24,6 +25,10 @@ def run_experiment(name: str, out_dir, *, overwrite: bool = False, progress=None
     if name not in names:
         raise Gf4calError(f"unknown experiment {name!r}; choose one of: {', '.join(names)}")
     mod = importlib.import_module(f"gdal_gf4cal.experiments.{name}")
+    accepted = inspect.signature(mod.run).parameters
+    for key in options:
+        if key not in accepted:
+            raise Gf4calError(f"experiment {name!r} takes no {key} option; leave out --{key}")
     outs = OutputSet((), overwrite=overwrite, cancelled=cancel_check(progress))
     outs.declare_folder("experiment", out_dir)
     warns: list = []
