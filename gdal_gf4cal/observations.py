@@ -145,6 +145,17 @@ def fill_heights(gcps, dem, *, source: str = "GCPs"):
     return df
 
 
+def _clean_roles(role):
+    """The role column filled (``control``), as text, stripped and lower-cased: on its distinct values when they
+    are all text (one GCP table of 1e6 rows has one or two roles), else value by value."""
+    import pandas as pd
+    codes, uniques = pd.factorize(role, use_na_sentinel=True)
+    if all(type(u) is str for u in uniques):
+        clean = np.array([u.strip().lower() for u in uniques] + ["control"], dtype=object)
+        return pd.Series(clean[codes], index=role.index, name=role.name)
+    return role.fillna("control").astype(str).str.strip().str.lower()
+
+
 def validate_gcps(gdf, *, source: str = "GCPs", dem=None, need_height: bool = True):
     """Check and complete a GCP table: required columns, finite numbers, ids, roles, sigma, heights.
 
@@ -192,7 +203,7 @@ def validate_gcps(gdf, *, source: str = "GCPs", dem=None, need_height: bool = Tr
                           "(reproject the layer to EPSG:4326 or give its CRS)"))
     if "role" not in df.columns:
         df["role"] = "control"
-    df["role"] = df["role"].fillna("control").astype(str).str.strip().str.lower()
+    df["role"] = _clean_roles(df["role"])
     bad = ~df["role"].isin(ROLES)
     if bad.any():
         raise GCPError(f"{source}: role {df['role'][bad].iloc[0]!r} is not 'control' or 'check'")

@@ -183,3 +183,18 @@ def test_gcp_points_same_geometries_as_shapely_points():
         if np.isfinite(x):
             assert (g.x, g.y) == (x, y) and g.distance(ref) == 0.0 and g.equals(ref)
             assert pickle.loads(pickle.dumps(g)).wkb == ref.wkb
+
+
+def test_roles_cleaned_as_pandas_does_value_by_value():
+    """The role column (filled, text, stripped, lower-cased) on distinct values is what pandas' string methods
+    give value by value, also with missing values, numbers, categories and an index."""
+    from gdal_gf4cal.observations import _clean_roles
+
+    def ref(r):
+        return r.fillna("control").astype(str).str.strip().str.lower()
+    cases = [pd.Series(["control"] * 5), pd.Series([" Check", None, "CONTROL ", np.nan, "x"]),
+             pd.Series([1, 1.0, None]), pd.Series([], dtype=object), pd.Series(["a", "b"], index=[5, 7], name="role"),
+             pd.Series(pd.Categorical(["check", "control", None]))]
+    for r in cases:
+        got, want = _clean_roles(r), ref(r)
+        assert got.equals(want) and got.dtype == want.dtype and list(got.index) == list(want.index)
