@@ -164,3 +164,37 @@ def test_outlier_levels_cumulative(tmp_path):
         pd.testing.assert_frame_equal(back, t, check_exact=True)
     with pytest.raises(GCPError, match="4 observations"):
         flag_outliers(t, [True], "snooping")
+
+
+def test_gcp_points_same_geometries_as_shapely_points():
+    """The GCP table's point geometries (fast path on shapely 1.8) are the ones ``Point(x, y)`` makes, also for
+    NaN and extreme coordinates, and behave as points (coordinates, WKB, distance, pickling)."""
+    import pickle
+    from shapely.geometry import Point
+    from gdal_gf4cal.observations import _point_array
+    lon = np.array([0.0, -179.999999999, 1e-300, 123.456789012345678, np.nan, -0.0])
+    lat = np.array([0.0, 89.5, -1e300, -33.3, 1.0, 5.0])
+    got = _point_array(lon, lat)
+    assert str(got.crs).upper().endswith("4326")
+    for g, x, y in zip(got, lon.tolist(), lat.tolist()):
+        ref = Point(x, y)
+        assert g.geom_type == "Point" and not g.has_z
+        assert g.wkb == ref.wkb
+        if np.isfinite(x):
+            assert (g.x, g.y) == (x, y) and g.distance(ref) == 0.0 and g.equals(ref)
+            assert pickle.loads(pickle.dumps(g)).wkb == ref.wkb
+
+
+def test_roles_cleaned_as_pandas_does_value_by_value():
+    """The role column (filled, text, stripped, lower-cased) on distinct values is what pandas' string methods
+    give value by value, also with missing values, numbers, categories and an index."""
+    from gdal_gf4cal.observations import _clean_roles
+
+    def ref(r):
+        return r.fillna("control").astype(str).str.strip().str.lower()
+    cases = [pd.Series(["control"] * 5), pd.Series([" Check", None, "CONTROL ", np.nan, "x"]),
+             pd.Series([1, 1.0, None]), pd.Series([], dtype=object), pd.Series(["a", "b"], index=[5, 7], name="role"),
+             pd.Series(pd.Categorical(["check", "control", None]))]
+    for r in cases:
+        got, want = _clean_roles(r), ref(r)
+        assert got.equals(want) and got.dtype == want.dtype and list(got.index) == list(want.index)
