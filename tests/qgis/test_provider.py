@@ -11,7 +11,8 @@ import pytest
 
 
 EXPECTED = {"rpcinfo", "simulatescene", "refinerpc", "orthorectify", "calibratelookangle", "applycalibration",
-            "assessaccuracy", "collectgcps", "registerpanms"}
+            "assessaccuracy", "collectgcps", "registerpanms", "blockadjust", "collectgcpsbatch", "refinerpcbatch",
+            "applycalibrationbatch"}
 
 
 def _exc():
