@@ -95,7 +95,7 @@ def _run_cli_on_a_terminal(args, cwd):
     import pty
     master, slave = pty.openpty()
     env = dict(os.environ, COLUMNS="120", PYTHONPATH=os.pathsep.join([os.path.dirname(HERE), HERE]))
-    proc = subprocess.Popen([sys.executable, "-m", "gdal_gf4cal.cli", *args], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "gdal_gf4cal.cli", *args], stdout=subprocess.DEVNULL,
                             stderr=slave, cwd=cwd, env=env)
     os.close(slave)
     chunks = []
