@@ -37,7 +37,7 @@ from .estimation import Block, robust_lsq, weighted_lsq
 from .progress import report
 from .stats import axis_stats, share_within
 
-__all__ = ["PanMSModel", "estimate", "default_breaks", "write_correction", "resample_ms_on_pan",
+__all__ = ["PanMSModel", "estimate", "default_breaks", "pan_edges_in_ms", "merge_breaks", "write_correction", "resample_ms_on_pan",
            "approximate_rpc", "GF7_MS_LINE_TIME_S", "GF7_MS_IFOV_RAD", "GF7_LOOK_TIME_S", "PanMSError"]
 
 AXES = ("sample", "line")
@@ -65,6 +65,38 @@ def default_breaks(ms_width: float, n_sub_ccds: int = 3) -> List[float]:
     if n < 1:
         raise PanMSError(f"--sub-ccds must be at least 1 (got {n})")
     return [float(ms_width) * k / n for k in range(1, n)]
+
+
+def pan_edges_in_ms(pan_model, ms_model, dem, pan_size, n_sub_ccds: int = 3, n_lines: int = 9) -> List[float]:
+    """The pan's equal sub-CCD edges (pan samples ``W_pan k / n``) mapped into MS samples (METHODS §9: the pan's
+    jumps show in the pan-MS misregistration too): each edge column is localised on the DEM with the pan model at
+    ``n_lines`` lines and projected with the MS model; the median MS sample is the edge. NaN-free or an error."""
+    pw, ph = pan_size
+    edges = default_breaks(pw, n_sub_ccds)
+    if not edges:
+        return []
+    s = np.repeat(np.asarray(edges, float), n_lines)
+    l = np.tile((np.arange(n_lines) + 0.5) * float(ph) / n_lines, len(edges))
+    with np.errstate(all="ignore"):
+        lon, lat, h = pan_model.localize_dem(s, l, dem)
+        ms_s, _ = ms_model.project(lon, lat, h)
+    ms_s = np.asarray(ms_s, float).reshape(len(edges), n_lines)
+    if not np.isfinite(ms_s).any(axis=1).all():
+        raise PanMSError("cannot map the pan's sub-CCD edges into the MS image (no DEM height or no MS projection "
+                         "there): give --breaks as MS columns")
+    return [float(v) for v in np.nanmedian(ms_s, axis=1)]
+
+
+def merge_breaks(*lists, width: float, tol_px: float = 1.0) -> List[float]:
+    """Sorted union of breakpoint lists inside ``(0, width)``; edges closer than ``tol_px`` are one (their mean)."""
+    b = np.sort(np.asarray([float(v) for lst in lists for v in lst if 0.0 < float(v) < float(width)], float))
+    out: List[List[float]] = []
+    for v in b:
+        if out and v - out[-1][-1] < tol_px:
+            out[-1].append(float(v))
+        else:
+            out.append([float(v)])
+    return [float(np.mean(g)) for g in out]
 
 
 @dataclass

@@ -16,10 +16,11 @@ def add_parser(parser):
     parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
                         "(default: what the DEM's CRS declares, else ellipsoidal; 'none' never converts)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    grp = parser.add_mutually_exclusive_group()
-    grp.add_argument("--sub-ccds", type=int, default=None, metavar="N",
-                     help="N equal sub-CCDs per MS band (default 3, GF7)")
-    grp.add_argument("--breaks", metavar="S1,S2,...", help="MS columns of the sub-CCD edges")
+    parser.add_argument("--sub-ccds", type=int, default=None, metavar="N",
+                        help="N equal sub-CCDs per band (default 3, GF7)")
+    parser.add_argument("--breaks", metavar="S1,S2,...",
+                        help="sub-CCD edges: MS columns, and/or 'ms' (the MS band's N equal edges) and 'pan' (the "
+                             "pan's N equal edges mapped into the MS through the RPCs and DEM), e.g. ms,pan")
     parser.add_argument("--cell", type=int, default=64, metavar="PX", help="cell size in MS px (default 64)")
     parser.add_argument("--jitter", default="auto", metavar="auto|none|N",
                         help="jitter components per axis: auto (while significant), none, or N")

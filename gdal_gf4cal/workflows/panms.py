@@ -47,13 +47,38 @@ def check_overlap(pan_rpc, ms_rpc, pan_size, ms_size, dem, n: int = 7) -> float:
 
 
 def _parse_breaks(breaks) -> Optional[list]:
+    """``--breaks``: MS columns and/or the words ``ms`` (the MS band's equal sub-CCD edges) and ``pan`` (the pan's
+    equal sub-CCD edges mapped into the MS through the RPCs and the DEM), e.g. ``2560,5120`` or ``ms,pan``."""
     from ..panms import PanMSError
-    if breaks is None or isinstance(breaks, (list, tuple)):
-        return None if breaks is None else [float(b) for b in breaks]
-    try:
-        return [float(b) for b in str(breaks).split(",") if b.strip()]
-    except ValueError:
-        raise PanMSError(f"--breaks {breaks!r}: give MS columns separated by commas, e.g. 2560,5120") from None
+    if breaks is None:
+        return None
+    items = list(breaks) if isinstance(breaks, (list, tuple)) else [b for b in str(breaks).split(",") if b.strip()]
+    out: list = []
+    for b in items:
+        word = str(b).strip().lower()
+        if word in ("ms", "pan"):
+            out.append(word)
+            continue
+        try:
+            out.append(float(b))
+        except ValueError:
+            raise PanMSError(f"--breaks {breaks!r}: give MS columns and/or the words ms, pan separated by commas, "
+                             "e.g. 2560,5120 or ms,pan") from None
+    return out
+
+
+def _resolve_breaks(spec, *, n_sub_ccds, pan_rpc, ms_rpc, dem, pan_size, ms_size) -> list:
+    """MS columns of the sub-CCD edges from a parsed ``--breaks`` (numbers, ``ms``, ``pan``)."""
+    from .. import panms
+    n = 3 if n_sub_ccds is None else n_sub_ccds
+    cols = [b for b in spec if not isinstance(b, str)]
+    if "ms" in spec:
+        cols += panms.default_breaks(ms_size[0], n)
+    if "pan" in spec:
+        cols += panms.pan_edges_in_ms(pan_rpc, ms_rpc, dem, pan_size, n)
+    if all(isinstance(b, str) for b in spec) or "ms" in spec or "pan" in spec:
+        return panms.merge_breaks(cols, width=ms_size[0])
+    return [float(b) for b in cols]
 
 
 def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] = None, breaks=None,
@@ -67,7 +92,8 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
     (cells with residuals before/after each step, styled arrows) and the plots (``residual_maps.png``,
     ``residual_along_line.png``, ``spectrum.png``).
 
-    ``n_sub_ccds`` / ``breaks`` (MS columns, a list or "S1,S2"): the sub-CCD edges (default 3 equal pieces);
+    ``n_sub_ccds`` / ``breaks`` (MS columns, a list or "S1,S2", and/or the words ``ms`` / ``pan``: the MS band's
+    equal sub-CCD edges / the pan's mapped into the MS): the sub-CCD edges (default ``ms``, 3 equal pieces);
     ``cell``: cell size (MS px); ``jitter``: ``auto`` | ``none`` | N; ``reuse``: a ``model.json`` of another
     scene of the same camera: only the linear term is solved, from <= 200 sparse matches. ``cells``: a cell
     table already measured (skips the matching). Returns the report dict.
@@ -79,9 +105,10 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
     from ..rpc import RPCModel
     from ..rpc_io import write_rpb
 
-    if n_sub_ccds is not None and breaks is not None:
-        raise panms.PanMSError("give either --sub-ccds or --breaks, not both")
     breaks = _parse_breaks(breaks)
+    if n_sub_ccds is not None and breaks is not None and not ({"ms", "pan"} & set(b for b in breaks
+                                                                                 if isinstance(b, str))):
+        raise panms.PanMSError("give either --sub-ccds or --breaks with MS columns, not both")
     if str(jitter) not in ("auto", "none"):
         try:
             jitter = int(jitter)
@@ -107,6 +134,9 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         pan_rpc, ms_rpc = RPCModel.from_file(pan), RPCModel.from_file(ms)
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         overlap = check_overlap(pan_rpc, ms_rpc, (pw, ph), (mw, mh), dem_obj)
+        if breaks is not None:
+            breaks = _resolve_breaks(breaks, n_sub_ccds=n_sub_ccds, pan_rpc=pan_rpc, ms_rpc=ms_rpc, dem=dem_obj,
+                                     pan_size=(pw, ph), ms_size=(mw, mh))
         reuse_model = None
         if reuse is not None:
             reuse_model = reuse if isinstance(reuse, panms.PanMSModel) else panms.PanMSModel.from_json(reuse)

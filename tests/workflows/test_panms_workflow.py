@@ -59,6 +59,18 @@ def test_workflow_with_a_measured_cell_table(inputs, tmp_path):
     assert rep["steps"][-1]["rms_sample_px"] <= 1.1 * 0.03 and rep["steps"][-1]["rms_line_px"] <= 1.1 * 0.03
 
 
+def test_breaks_words_resolved_through_the_rpcs(inputs, tmp_path):
+    """``--breaks 256,pan``: the MS column and the pan's three equal pieces of this crop mapped into the MS through
+    the RPCs and the DEM (pan columns 682.7 and 1365.3 -> MS ~170.7 and ~341.3)."""
+    from gdal_gf4cal.workflows import register_pan_ms
+    pan, ms, dem = inputs
+    cells = synth_cells(make_gf7_scene(**KW), cell=8, sigma=0.03)          # >= 6 cell columns per piece
+    rep = register_pan_ms(pan, ms, dem=dem, out=tmp_path / "o", breaks="256,pan", cells=cells)
+    b = rep["breaks_ms_px"]
+    assert len(b) == 3 and b[1] == 256.0
+    assert b[0] == pytest.approx(2048 / 3 / 4, abs=2.0) and b[2] == pytest.approx(2 * 2048 / 3 / 4, abs=2.0)
+
+
 def test_outputs_and_report(registered):
     out, rep = registered
     assert sorted(os.listdir(out)) == sorted(["correction.tif", "ms_on_pan.tif", "model.json", "ms_approx.RPB",
@@ -136,7 +148,7 @@ def test_gdal_pansharpen_on_ms_on_pan_removes_the_halo(registered, inputs, tmp_p
     ("no_overlap", "overlap"),
     ("no_ratio", "integer ratio"),
     ("reuse_other_camera", "reuse"),
-    ("sub_ccds_and_breaks", "not allowed with"),
+    ("sub_ccds_and_breaks", "not both"),
     ("all_cloudy", "no usable cell"),
 ])
 def test_bad_input_is_one_line_exit_2_nothing_left(inputs, scene_dir, tmp_path, case, expected):
