@@ -85,21 +85,40 @@ def _point_array(lon: np.ndarray, lat: np.ndarray):
         return gpd.points_from_xy(lon, lat, crs="EPSG:4326")
     from geopandas.array import GeometryArray
     arr = np.empty(len(lon), dtype=object)
-    for i, p in enumerate(_points_18(lon.tolist(), lat.tolist())):
+    for i, p in enumerate(_points_18(lon, lat)):
         arr[i] = p
     return GeometryArray(arr, crs="EPSG:4326")
 
 
-def _points_18(xs, ys):
-    """Shapely 1.8 ``Point(x, y)`` objects, made with the four GEOS calls ``Point(x, y)`` makes (coordinate
-    sequence, x, y, point) and the three attributes its constructor sets, without its per-call argument
-    inspection and attribute-deprecation checks (1.6x faster; the geometries are the same, tested)."""
+def _points_18(lon, lat, from_buffer: bool = True):
+    """Shapely 1.8 ``Point(x, y)`` objects made with GEOS directly and the three attributes its constructor
+    sets, without its per-call argument inspection and attribute-deprecation checks: each coordinate sequence
+    copied from the (x, y) buffer (GEOS >= 3.10: two GEOS calls a point) or else set value by value (the four
+    calls ``Point(x, y)`` makes). 2x faster; the geometries are the same (tested)."""
+    import ctypes
     from shapely.geometry import Point
     from shapely.geos import lgeos
+    new, put = Point.__new__, object.__setattr__
+    lib, handle = getattr(lgeos, "_lgeos", None), getattr(lgeos, "geos_handle", None)
+    from_buffer = getattr(lib, "GEOSCoordSeq_copyFromBuffer_r", None) if handle and from_buffer else None
+    if from_buffer is not None:
+        from_buffer.restype = ctypes.c_void_p
+        from_buffer.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint, ctypes.c_int, ctypes.c_int]
+        make = lib.GEOSGeom_createPoint_r
+        make.restype, make.argtypes = ctypes.c_void_p, [ctypes.c_void_p, ctypes.c_void_p]
+        xy = np.ascontiguousarray(np.column_stack([np.asarray(lon, float), np.asarray(lat, float)]))
+        base = xy.ctypes.data
+        for addr in range(base, base + 16 * len(xy), 16):
+            p = new(Point)
+            put(p, "__geom__", make(handle, from_buffer(handle, addr, 1, 0, 0)))
+            put(p, "_is_empty", False)
+            put(p, "_ndim", 2)
+            yield p
+        del xy
+        return
     create, set_x = lgeos.GEOSCoordSeq_create, lgeos.GEOSCoordSeq_setX
     set_y, make = lgeos.GEOSCoordSeq_setY, lgeos.GEOSGeom_createPoint
-    new, put = Point.__new__, object.__setattr__
-    for x, y in zip(xs, ys):
+    for x, y in zip(np.asarray(lon, float).tolist(), np.asarray(lat, float).tolist()):
         cs = create(1, 2)
         set_x(cs, 0, x)
         set_y(cs, 0, y)

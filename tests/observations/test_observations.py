@@ -176,6 +176,11 @@ def test_gcp_points_same_geometries_as_shapely_points():
     lat = np.array([0.0, 89.5, -1e300, -33.3, 1.0, 5.0])
     got = _point_array(lon, lat)
     assert str(got.crs).upper().endswith("4326")
+    import shapely
+    if int(shapely.__version__.split(".")[0]) < 2:              # the fallback for GEOS < 3.10 (shapely 1.8 only)
+        from gdal_gf4cal.observations import _points_18
+        slow = list(_points_18(lon, lat, from_buffer=False))
+        assert len(slow) == len(lon) and all(a.wkb == b.wkb for a, b in zip(slow, got))
     for g, x, y in zip(got, lon.tolist(), lat.tolist()):
         ref = Point(x, y)
         assert g.geom_type == "Point" and not g.has_z
