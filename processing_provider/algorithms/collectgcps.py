@@ -16,6 +16,33 @@ from ..base import Gf4calAlgorithm
 OUTLIER_MODELS = ["translation", "affine", "poly2", "poly3"]
 
 
+def add_matching_parameters(alg) -> None:
+    """The matching parameters (SPACING, WINDOW, SEARCH, OUTLIER_MODEL, SEED) of ``alg``: one declaration for the
+    single-scene and the batch algorithm."""
+    Num = QgsProcessingParameterNumber
+    alg._add(Num(alg.SPACING, alg.tr("Grid spacing (px)"), Num.Integer, 256, minValue=8),
+             "Distance between window centres in raw image pixels.")
+    alg._add(Num(alg.WINDOW, alg.tr("Window size (px)"), Num.Integer, 64, minValue=16, maxValue=1024),
+             "Matching window size in raw image pixels (even).")
+    for p, text in ((Num(alg.SEARCH, alg.tr("Largest initial offset (px)"), Num.Double, 64.0, minValue=1.0),
+                     "Largest offset between the RPC's prediction and the truth to search for."),
+                    (QgsProcessingParameterEnum(alg.OUTLIER_MODEL, alg.tr("Outlier rejection model"), OUTLIER_MODELS,
+                                                defaultValue=1),
+                     "Low-order image model for RANSAC + MAD outlier rejection."),
+                    (Num(alg.SEED, alg.tr("RANSAC seed"), Num.Integer, 0, minValue=0),
+                     "Seed of the RANSAC outlier filter (same seed, same result).")):
+        alg._add(p, text).setFlags(p.flags() | p.FlagAdvanced)
+
+
+def matching_options(alg, parameters, context) -> dict:
+    """The engine keywords of the parameters :func:`add_matching_parameters` declared."""
+    return dict(spacing_px=alg.parameterAsInt(parameters, alg.SPACING, context),
+                window_px=alg.parameterAsInt(parameters, alg.WINDOW, context),
+                search_px=alg.parameterAsDouble(parameters, alg.SEARCH, context),
+                outlier_model=OUTLIER_MODELS[alg.parameterAsEnum(parameters, alg.OUTLIER_MODEL, context)],
+                seed=alg.parameterAsInt(parameters, alg.SEED, context))
+
+
 class CollectGcps(Gf4calAlgorithm):
     NAME = "collectgcps"
     DISPLAY = "Collect GCPs by matching a reference orthophoto"
@@ -44,20 +71,7 @@ class CollectGcps(Gf4calAlgorithm):
         self._add(QgsProcessingParameterRasterLayer(self.REFERENCE, self.tr("Reference orthophoto")),
                   "Georeferenced reference image (any GDAL raster, any CRS); overviews are used when it is finer.")
         self.add_dem_parameters(optional=False)
-        self._add(Num(self.SPACING, self.tr("Grid spacing (px)"), Num.Integer, 256, minValue=8),
-                  "Distance between window centres in raw image pixels.")
-        self._add(Num(self.WINDOW, self.tr("Window size (px)"), Num.Integer, 64, minValue=16, maxValue=1024),
-                  "Matching window size in raw image pixels (even).")
-        p = self._add(Num(self.SEARCH, self.tr("Largest initial offset (px)"), Num.Double, 64.0, minValue=1.0),
-                      "Largest offset between the RPC's prediction and the truth to search for.")
-        p.setFlags(p.flags() | p.FlagAdvanced)
-        p = self._add(QgsProcessingParameterEnum(self.OUTLIER_MODEL, self.tr("Outlier rejection model"),
-                                                 OUTLIER_MODELS, defaultValue=1),
-                      "Low-order image model for RANSAC + MAD outlier rejection.")
-        p.setFlags(p.flags() | p.FlagAdvanced)
-        p = self._add(Num(self.SEED, self.tr("RANSAC seed"), Num.Integer, 0, minValue=0),
-                      "Seed of the RANSAC outlier filter (same seed, same result).")
-        p.setFlags(p.flags() | p.FlagAdvanced)
+        add_matching_parameters(self)
         p = self._add(Num(self.THREADS, self.tr("Threads"), Num.Integer, 2, minValue=1),
                       "Matching threads (QGIS runs the tiles in a thread pool).")
         p.setFlags(p.flags() | p.FlagAdvanced)
@@ -87,13 +101,7 @@ class CollectGcps(Gf4calAlgorithm):
         # Threads, not processes: inside QGIS a process pool would start QGIS executables.
         with ThreadPoolExecutor(max_workers=self.parameterAsInt(parameters, self.THREADS, context)) as pool:
             rep = collect_gcps_file(image, ref_layer.source(), dem, out, keep_outliers=keep, overwrite=True,
-                                spacing_px=self.parameterAsInt(parameters, self.SPACING, context),
-                                window_px=self.parameterAsInt(parameters, self.WINDOW, context),
-                                search_px=self.parameterAsDouble(parameters, self.SEARCH, context),
-                                outlier_model=OUTLIER_MODELS[self.parameterAsEnum(parameters, self.OUTLIER_MODEL,
-                                                                                  context)],
-                                seed=self.parameterAsInt(parameters, self.SEED, context), executor=pool,
-                                progress=progress)
+                                executor=pool, progress=progress, **matching_options(self, parameters, context))
         self.push_warnings(feedback, rep)
         gcps, table, w = rep["gcps"], rep["table"], rep["windows"]
         inliers = ~gcps["outlier"].to_numpy(bool)

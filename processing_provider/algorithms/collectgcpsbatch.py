@@ -5,12 +5,11 @@ from qgis.core import (
     QgsProcessing,
     QgsProcessingParameterBoolean,
     QgsProcessingParameterEnum,
-    QgsProcessingParameterNumber,
     QgsProcessingParameterRasterLayer,
 )
 
 from ..batch import BATCH_HELP, BatchAlgorithm
-from .collectgcps import OUTLIER_MODELS
+from .collectgcps import add_matching_parameters, matching_options
 
 GEOIDS = ["", "egm96", "egm2008", "none"]
 GEOID_LABELS = ["As the DEM's CRS declares (ellipsoidal when it declares none)", "Heights above EGM96",
@@ -36,7 +35,6 @@ class CollectGcpsBatch(BatchAlgorithm):
     DEM_GEOID = "GEOID"
 
     def initAlgorithm(self, config=None):
-        Num = QgsProcessingParameterNumber
         self.add_scenes_parameter(QgsProcessing.TypeRaster, "Raw images (with RPCs)",
                                   "Raw images, each carrying its RPC (TIFF tags, .RPB or _RPC.TXT beside it, NITF).")
         self._add(QgsProcessingParameterRasterLayer(self.REFERENCE, self.tr("Reference orthophoto")),
@@ -47,20 +45,7 @@ class CollectGcpsBatch(BatchAlgorithm):
                                                  defaultValue=0),
                       "Vertical reference of the DEM: heights above a geoid are converted with PROJ's grid.")
         p.setFlags(p.flags() | p.FlagAdvanced)
-        self._add(Num(self.SPACING, self.tr("Grid spacing (px)"), Num.Integer, 256, minValue=8),
-                  "Distance between window centres in raw image pixels.")
-        self._add(Num(self.WINDOW, self.tr("Window size (px)"), Num.Integer, 64, minValue=16, maxValue=1024),
-                  "Matching window size in raw image pixels (even).")
-        p = self._add(Num(self.SEARCH, self.tr("Largest initial offset (px)"), Num.Double, 64.0, minValue=1.0),
-                      "Largest offset between the RPC's prediction and the truth to search for.")
-        p.setFlags(p.flags() | p.FlagAdvanced)
-        p = self._add(QgsProcessingParameterEnum(self.OUTLIER_MODEL, self.tr("Outlier rejection model"),
-                                                 OUTLIER_MODELS, defaultValue=1),
-                      "Low-order image model for RANSAC + MAD outlier rejection.")
-        p.setFlags(p.flags() | p.FlagAdvanced)
-        p = self._add(Num(self.SEED, self.tr("RANSAC seed"), Num.Integer, 0, minValue=0),
-                      "Seed of the RANSAC outlier filter (same seed, same result).")
-        p.setFlags(p.flags() | p.FlagAdvanced)
+        add_matching_parameters(self)
         self._add(QgsProcessingParameterBoolean(self.KEEP_OUTLIERS, self.tr("Keep flagged outliers"),
                                                 defaultValue=False),
                   "Also write the rejected matches (field outlier = true); by default only the inliers.")
@@ -76,11 +61,7 @@ class CollectGcpsBatch(BatchAlgorithm):
             raise self.error("Give the reference orthophoto (REFERENCE) and the DEM (DEM).")
         opts = dict(geoid=GEOIDS[self.parameterAsEnum(parameters, self.DEM_GEOID, context)] or None,
                     keep_outliers=self.parameterAsBool(parameters, self.KEEP_OUTLIERS, context),
-                    spacing_px=self.parameterAsInt(parameters, self.SPACING, context),
-                    window_px=self.parameterAsInt(parameters, self.WINDOW, context),
-                    search_px=self.parameterAsDouble(parameters, self.SEARCH, context),
-                    outlier_model=OUTLIER_MODELS[self.parameterAsEnum(parameters, self.OUTLIER_MODEL, context)],
-                    seed=self.parameterAsInt(parameters, self.SEED, context))
+                    **matching_options(self, parameters, context))
         outputs, _ = self.run_batch_job(parameters, context, feedback, progress, lambda ex, pr, ow, folder:
                                         collect_gcps_batch(scenes, ref.source(), dem.source(), folder, executor=ex,
                                                            overwrite=ow, progress=pr, **opts))
