@@ -33,7 +33,7 @@ from .sensor import GDAL_PIXEL_OFFSET, SensorModelMixin, pixel_shift
 
 __all__ = [
     "MODEL_NAMES", "CompensationModel", "CompensationResult", "CompensatedRPC", "AppliedCompensation",
-    "fit_compensation", "apply_compensation", "ground_offsets_m", "accuracy_by_role",
+    "fit_compensation", "apply_compensation", "ground_offsets_m", "ground_jacobian", "accuracy_by_role",
 ]
 
 #: Model names accepted by :meth:`CompensationModel.from_name` (and ``gf4cal refine --model``).
@@ -387,13 +387,15 @@ def _axis_stats(x) -> Dict[str, Optional[float]]:
     return {k: _f(v) for k, v in axis_stats(x).items() if k != "n"}
 
 
-def ground_offsets_m(rpc, lon, lat, h, dsample, dline) -> Tuple[np.ndarray, np.ndarray]:
+def ground_offsets_m(rpc, lon, lat, h, dsample, dline, *, jacobian=None) -> Tuple[np.ndarray, np.ndarray]:
     """East/north ground offsets (m) equivalent to image offsets ``(dsample, dline)`` (px) at ``(lon, lat, h)``.
 
     Uses the RPC ground Jacobian ``d(s, l)/d(lon, lat)`` at fixed height; for CE90 of image residuals (METHODS §6).
+    ``jacobian``: that Jacobian at these points when already known (:func:`ground_jacobian`), e.g. for the
+    before and after residuals of the same points.
     """
     lon, lat, h = (np.asarray(a, dtype=float) for a in (lon, lat, h))
-    jac = _jacobian(rpc, lon, lat, h)[..., :2]          # (..., 2, 2): d(s,l)/d(lon,lat)
+    jac = ground_jacobian(rpc, lon, lat, h) if jacobian is None else jacobian
     rhs = np.stack([np.asarray(dsample, float), np.asarray(dline, float)], axis=-1)[..., None]
     with np.errstate(all="ignore"):
         dll = np.linalg.solve(jac, rhs)[..., 0]
@@ -402,6 +404,11 @@ def ground_offsets_m(rpc, lon, lat, h, dsample, dline) -> Tuple[np.ndarray, np.n
     east = np.radians(dll[..., 0]) * (rn + h) * np.cos(phi)
     north = np.radians(dll[..., 1]) * (rm + h)
     return east, north
+
+
+def ground_jacobian(rpc, lon, lat, h) -> np.ndarray:
+    """``d(sample, line)/d(lon, lat)`` (..., 2, 2) at fixed height, as :func:`ground_offsets_m` uses it."""
+    return _jacobian(rpc, np.asarray(lon, float), np.asarray(lat, float), np.asarray(h, float))[..., :2]
 
 
 def _jacobian(model, lon, lat, h):
@@ -432,9 +439,14 @@ def accuracy_by_role(gcps, rpc=None) -> Dict[str, Any]:
     ground = None
     if rpc is not None:
         lon, lat, h = (gcps[c].to_numpy(float) for c in ("lon", "lat", "h"))
+        jac = {}        # per row selection (a role): the ground Jacobian, shared by before and after
 
         def ground(sel, rs, rl):
-            return ground_offsets_m(rpc, lon[sel], lat[sel], h[sel], rs, rl)
+            key = sel.tobytes()
+            if key not in jac:
+                jac.clear()
+                jac[key] = ground_jacobian(rpc, lon[sel], lat[sel], h[sel])
+            return ground_offsets_m(rpc, lon[sel], lat[sel], h[sel], rs, rl, jacobian=jac[key])
     return _by_role(gcps, ground_offsets=ground)
 
 

@@ -240,13 +240,16 @@ def _with_ground_offsets(rpc, tab):
     """``tab`` with the residuals as ground offsets in metres through the RPC (METHODS §6): ``res_east_m_*``,
     ``res_north_m_*``, ``res_m_*`` for before/after (the GeoPackage's arrows are drawn from them)."""
     import numpy as np
-    from ..compensation import ground_offsets_m
+    from ..compensation import ground_jacobian, ground_offsets_m
     tab = tab.copy(deep=False)      # new columns only: the 1e6-row table is not duplicated
     lon, lat, h = (tab[c].to_numpy(float) for c in ("lon", "lat", "h"))
+    jac = None                      # the same points before and after: one Jacobian
     for epoch in ("before", "after"):
         cs, cl = f"res_sample_{epoch}", f"res_line_{epoch}"
         if cs in tab.columns and cl in tab.columns:
-            e, n = ground_offsets_m(rpc, lon, lat, h, tab[cs].to_numpy(float), tab[cl].to_numpy(float))
+            jac = ground_jacobian(rpc, lon, lat, h) if jac is None else jac
+            e, n = ground_offsets_m(rpc, lon, lat, h, tab[cs].to_numpy(float), tab[cl].to_numpy(float),
+                                    jacobian=jac)
             tab[f"res_east_m_{epoch}"], tab[f"res_north_m_{epoch}"] = e, n
             tab[f"res_m_{epoch}"] = np.hypot(e, n)
     return tab
