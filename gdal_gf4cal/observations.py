@@ -103,9 +103,9 @@ def _points_18(lon, lat, from_buffer: bool = True):
     copied from the (x, y) buffer (GEOS >= 3.10: two GEOS calls a point) or else set value by value (the four
     calls ``Point(x, y)`` makes). 2x faster; the geometries are the same (tested)."""
     import ctypes
+    from shapely.geometry import Point
     from shapely.geos import lgeos
-    cls = globals().get("_GCPPoint") or __getattr__("_GCPPoint")
-    new, put = cls.__new__, object.__setattr__
+    new, put = Point.__new__, object.__setattr__
     lib, handle = getattr(lgeos, "_lgeos", None), getattr(lgeos, "geos_handle", None)
     from_buffer = getattr(lib, "GEOSCoordSeq_copyFromBuffer_r", None) if handle and from_buffer else None
     if from_buffer is not None:
@@ -116,7 +116,7 @@ def _points_18(lon, lat, from_buffer: bool = True):
         xy = np.ascontiguousarray(np.column_stack([np.asarray(lon, float), np.asarray(lat, float)]))
         base = xy.ctypes.data
         for addr in range(base, base + 16 * len(xy), 16):
-            p = new(cls)
+            p = new(Point)
             put(p, "__geom__", make(handle, from_buffer(handle, addr, 1, 0, 0)))
             put(p, "_is_empty", False)
             put(p, "_ndim", 2)
@@ -129,44 +129,11 @@ def _points_18(lon, lat, from_buffer: bool = True):
         cs = create(1, 2)
         set_x(cs, 0, x)
         set_y(cs, 0, y)
-        p = new(cls)
+        p = new(Point)
         put(p, "__geom__", make(cs))
         put(p, "_is_empty", False)
         put(p, "_ndim", 2)
         yield p
-
-
-def _make_gcp_point_class():
-    """``_GCPPoint``: a shapely 1.8 ``Point`` whose finaliser frees its GEOS geometry without ``Point``'s three
-    attribute writes through the deprecation-checking ``__setattr__`` (1e6 GCP points: 1.5 -> 0.6 s)."""
-    from shapely.geometry import Point
-    from shapely.geos import lgeos
-
-    class _GCPPoint(Point):
-        """A ``shapely.geometry.Point`` of a GCP table (shapely 1.8), faster to free."""
-        _destroy = staticmethod(lgeos.GEOSGeom_destroy)
-
-        def __del__(self):
-            d = self.__dict__
-            geom = d.get("__geom__")
-            if geom and not d.get("_other_owned", False):
-                try:
-                    self._destroy(geom)
-                except (AttributeError, TypeError):     # interpreter shutdown, as shapely's own finaliser
-                    pass
-                d["__geom__"] = None
-
-    _GCPPoint.__module__, _GCPPoint.__qualname__ = __name__, "_GCPPoint"
-    return _GCPPoint
-
-
-def __getattr__(name):
-    """``_GCPPoint`` made on first use (shapely imported only then; unpickling finds it here)."""
-    if name == "_GCPPoint":
-        cls = _make_gcp_point_class()
-        globals()["_GCPPoint"] = cls
-        return cls
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _to_geodataframe(df):
