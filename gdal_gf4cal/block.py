@@ -678,6 +678,33 @@ def layout_from_calibration(cal: Mapping[str, Any], models: Optional[Mapping[str
                        str(cal["reference_ccd"]), float(cal["time_scale"]))
 
 
+def _propagate_frozen(stage: _Stage, xs, free, frozen, w, jp, cov) -> None:
+    """Add to ``cov`` (in place) what the errors of the ``frozen`` parameters (an earlier stage's, with their
+    covariance already in ``cov``) do to this stage's ``free`` ones: the band stage fits each band's interior to the
+    reference band's corrected positions, so a reference exterior or interior error is absorbed by the band interior
+    (METHODS §6 propagation). Linear response ``S = d x_free / d x_frozen`` (one reduced solve per frozen parameter
+    that this stage's rows see, tie points re-eliminated); ``cov_ff += S C S^T``, ``cov_fF = S C``."""
+    fr = np.flatnonzero(frozen)
+    if not fr.size:
+        return
+    seen = np.zeros(cov.shape[0], bool)
+    seen[np.unique(stage.cols[np.any(stage.design != 0, axis=1)].ravel())] = True
+    fr = fr[seen[fr]]
+    if not fr.size:
+        return
+    fi = np.flatnonzero(free)
+    sens = np.zeros((fi.size, fr.size))
+    for j, c in enumerate(fr):
+        dv = -stage.design[:, :, :] * (stage.cols == c)[:, None, :]
+        dx, _, _ = stage.solve(xs, free, dv.sum(axis=2), w, jp)
+        sens[:, j] = dx[fi]
+    c_ff = cov[np.ix_(fr, fr)]
+    cross = sens @ c_ff
+    cov[np.ix_(fi, fi)] += cross @ sens.T
+    cov[np.ix_(fi, fr)] = cross
+    cov[np.ix_(fr, fi)] = cross.T
+
+
 def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter, reject_k, progress,
             start: Optional[Mapping[str, Any]] = None) -> BlockEstimate:
     from . import progress as _progress
@@ -763,6 +790,7 @@ def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter
     wsum = float(np.nansum(weights * v_all ** 2))
     dof = sum(d - 2 * npt - int(f.sum()) for _, _, _, _, _, f, d, npt in final_stage)
     sigma0 = math.sqrt(wsum / dof) if dof > 0 else 1.0
+    earlier = np.zeros(p, bool)                             # parameters of the stages before (frozen now)
     for stage, xs, plon, plat, fw, free_all, _, _ in final_stage:
         pred, _, jp, _ = stage.evaluate(xs, plon, plat)
         w = np.repeat(fw[:, None], 2, axis=1)
@@ -770,8 +798,10 @@ def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter
             _, _, sol = stage.solve(xs, free_all, stage.meas - pred, w, jp, covariance=True)
             fi = np.flatnonzero(free_all)
             cov[np.ix_(fi, fi)] = sigma0 ** 2 * sol.cov_global
+            _propagate_frozen(stage, xs, free_all, earlier, w, jp, cov)
         except DegenerateGeometryError:
             pass
+        earlier |= free_all
     table = tab.copy()
     table[["lon", "lat", "h"]] = ground
     for tag, pr in (("before", pred_before), ("after", pred_after)):
@@ -912,8 +942,9 @@ def calibrated_model(cal: Mapping[str, Any], key: str, rpc, size: Optional[Tuple
 
 def prediction_std(estimate: BlockEstimate, image_id: str, sample, line) -> Tuple[np.ndarray, np.ndarray]:
     """Propagated 1-sigma of the correction of ``image_id`` at ``(sample, line)`` (px, per axis) from the estimate's
-    covariance: the precision floor the GCP and matching noise allow (METHODS §6). Parameters of an earlier stage
-    that were frozen in the image's own stage count with their own covariance (cross-covariances ignored)."""
+    covariance: the precision floor the GCP and matching noise allow (METHODS §6). A band image's interior carries
+    the reference band's errors it absorbed (its covariance with the frozen exterior and reference interiors,
+    :func:`_propagate_frozen`), so its floor is the reference image's plus the band-to-band matching noise."""
     idx = _parameter_blocks(estimate.layout)[1][image_id]
     d = _local_design(estimate.layout.images[image_id], estimate.layout.time_scale, sample, line)
     c = estimate.cov[np.ix_(idx, idx)]
