@@ -335,6 +335,14 @@ class BlockEstimate(Estimate):
     layout: Optional[BlockLayout] = None
     stages: List[Dict[str, Any]] = field(default_factory=list)
     comparison: Optional[Dict[str, Any]] = None
+    cov_pending: List[Any] = field(default_factory=list, repr=False)
+
+    def complete_covariance(self) -> np.ndarray:
+        """Add to :attr:`cov` what the earlier stages' errors do to the band stage's parameters
+        (:func:`_propagate_frozen`; computed once, on demand: :func:`prediction_std` calls it). Returns ``cov``."""
+        while self.cov_pending:
+            _propagate_frozen(*self.cov_pending.pop(0), self.cov)
+        return self.cov
 
     def correction(self, image_id: str) -> ImageCorrection:
         idx = _parameter_blocks(self.layout)[1][image_id]
@@ -791,6 +799,7 @@ def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter
     dof = sum(d - 2 * npt - int(f.sum()) for _, _, _, _, _, f, d, npt in final_stage)
     sigma0 = math.sqrt(wsum / dof) if dof > 0 else 1.0
     earlier = np.zeros(p, bool)                             # parameters of the stages before (frozen now)
+    pending: List[Any] = []
     for stage, xs, plon, plat, fw, free_all, _, _ in final_stage:
         pred, _, jp, _ = stage.evaluate(xs, plon, plat)
         w = np.repeat(fw[:, None], 2, axis=1)
@@ -798,7 +807,8 @@ def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter
             _, _, sol = stage.solve(xs, free_all, stage.meas - pred, w, jp, covariance=True)
             fi = np.flatnonzero(free_all)
             cov[np.ix_(fi, fi)] = sigma0 ** 2 * sol.cov_global
-            _propagate_frozen(stage, xs, free_all, earlier, w, jp, cov)
+            if earlier.any():                          # on demand (one reduced solve per frozen parameter)
+                pending.append((stage, xs, free_all, earlier.copy(), w, jp))
         except DegenerateGeometryError:
             pass
         earlier |= free_all
@@ -819,7 +829,7 @@ def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter
                         residuals=v_all.ravel(), normalised=normalised, weights=weights.ravel(), blocks=sl,
                         frozen=frozen, outlier=outl, outlier_level=np.where(outl, "robust", ""),
                         iterations=int(sum(s["iterations"] for s in stages_out)), table=table, layout=layout,
-                        stages=stages_out)
+                        stages=stages_out, cov_pending=pending)
     est.notes.append(f"datum: {', '.join(DATUM_TERMS)} of {layout.reference_ccd} fixed at 0 (they duplicate e0, e1, "
                      "kappa)")
     for s in stages_out:
@@ -945,6 +955,7 @@ def prediction_std(estimate: BlockEstimate, image_id: str, sample, line) -> Tupl
     covariance: the precision floor the GCP and matching noise allow (METHODS §6). A band image's interior carries
     the reference band's errors it absorbed (its covariance with the frozen exterior and reference interiors,
     :func:`_propagate_frozen`), so its floor is the reference image's plus the band-to-band matching noise."""
+    estimate.complete_covariance()
     idx = _parameter_blocks(estimate.layout)[1][image_id]
     d = _local_design(estimate.layout.images[image_id], estimate.layout.time_scale, sample, line)
     c = estimate.cov[np.ix_(idx, idx)]
