@@ -52,6 +52,8 @@ P_THRESHOLD_PX = 0.25
 #: False-alarm probability below which a jitter component is accepted (``jitter="auto"``).
 JITTER_FAP = 1e-3
 MAX_JITTER_COMPONENTS = 8
+REUSE_MAX_RMS_PX = 0.1         # reuse mode: refuse a fit worse than this and ...
+REUSE_MAX_FLOOR_RATIO = 3.0     # ... this many times the cells' noise floor (another camera's model)
 
 
 class PanMSError(Gf4calError, ValueError):
@@ -460,7 +462,9 @@ def estimate(cells, *, ms_size, breaks=None, n_sub_ccds: int = 3, jitter="auto",
         _set_values(model, est.x)
         model.info["reused_from"] = reuse.info.get("source", "")
         snaps.append(_snapshot(model, "linear (reuse: piecewise term of the reused model)", ("linear", "piecewise")))
-        return _finish(model, c, snaps, est.outlier, line_time_s, progress)
+        model = _finish(model, c, snaps, est.outlier, line_time_s, progress)
+        _check_reuse_fit(model)
+        return model
     piece = np.searchsorted(np.asarray(breaks), c["sample"], side="right")
     for k in range(m):
         n_cols = np.unique(np.round(c["sample"][usable & (piece == k)], 3)).size
@@ -510,6 +514,20 @@ def _finish(model, c, snaps, outlier, line_time_s, progress):
     model.snapshots = snaps
     report(progress, 1.0, "pan-MS: model solved")
     return model
+
+
+def _check_reuse_fit(model) -> None:
+    """Reuse mode (METHODS §9 eq. 17) refuses a model that does not fit: the sparse cells' RMS after the linear
+    term must stay within ``REUSE_MAX_FLOOR_RATIO`` x their noise floor or below ``REUSE_MAX_RMS_PX``. A model of
+    another camera of the same design (same size and layout, other sub-CCD truth) otherwise passes every layout
+    check and leaves ~0.2 px with P(<= 0.25 px) ~ 55 %."""
+    st, fl = model.steps[-1], model.info["noise_floor_px"]
+    for ax in AXES:
+        rms, floor = st[f"rms_{ax}_px"], fl.get(ax)
+        if rms > REUSE_MAX_RMS_PX and (floor is None or rms > REUSE_MAX_FLOOR_RATIO * floor):
+            raise PanMSError(f"the reuse model does not fit this scene: {ax} RMS {rms:.3f} px after the linear "
+                             f"term (cell noise {floor or float('nan'):.3f} px); reuse only a model of the same "
+                             "camera, or register this scene without --reuse")
 
 
 def _floor(sig) -> Optional[float]:

@@ -142,3 +142,13 @@ def test_cloudy_cells_left_out():
     s, l, ts, tl = truth_grid(sc, 80)
     ps, pl = m.predict(s, l)
     assert np.sqrt(np.mean((ts - ps) ** 2 + (tl - pl) ** 2)) <= 0.03
+
+
+def test_reuse_model_of_another_camera_of_the_same_design_is_refused(solved):
+    """Same MS size and sub-CCD layout, other sub-CCD truth (camera_seed 21): every layout check passes, the
+    linear-only fit leaves ~0.17 px (P ~ 56 %) -- refused, not written (found by verify13)."""
+    _, m0 = solved
+    sc = make_gf7_scene(seed=13, camera_seed=21, jitter=False)
+    sparse = synth_cells(sc, cell=512, sigma=SIGMA, seed=4)
+    with pytest.raises(Gf4calError, match="reuse model does not fit"):
+        panms.estimate(sparse, ms_size=sc.image("ms").size, reuse=m0)
