@@ -335,6 +335,14 @@ class BlockEstimate(Estimate):
     layout: Optional[BlockLayout] = None
     stages: List[Dict[str, Any]] = field(default_factory=list)
     comparison: Optional[Dict[str, Any]] = None
+    cov_pending: List[Any] = field(default_factory=list, repr=False)
+
+    def complete_covariance(self) -> np.ndarray:
+        """Add to :attr:`cov` what the earlier stages' errors do to the band stage's parameters
+        (:func:`_propagate_frozen`; computed once, on demand: :func:`prediction_std` calls it). Returns ``cov``."""
+        while self.cov_pending:
+            _propagate_frozen(*self.cov_pending.pop(0), self.cov)
+        return self.cov
 
     def correction(self, image_id: str) -> ImageCorrection:
         idx = _parameter_blocks(self.layout)[1][image_id]
@@ -678,6 +686,33 @@ def layout_from_calibration(cal: Mapping[str, Any], models: Optional[Mapping[str
                        str(cal["reference_ccd"]), float(cal["time_scale"]))
 
 
+def _propagate_frozen(stage: _Stage, xs, free, frozen, w, jp, cov) -> None:
+    """Add to ``cov`` (in place) what the errors of the ``frozen`` parameters (an earlier stage's, with their
+    covariance already in ``cov``) do to this stage's ``free`` ones: the band stage fits each band's interior to the
+    reference band's corrected positions, so a reference exterior or interior error is absorbed by the band interior
+    (METHODS §6 propagation). Linear response ``S = d x_free / d x_frozen`` (one reduced solve per frozen parameter
+    that this stage's rows see, tie points re-eliminated); ``cov_ff += S C S^T``, ``cov_fF = S C``."""
+    fr = np.flatnonzero(frozen)
+    if not fr.size:
+        return
+    seen = np.zeros(cov.shape[0], bool)
+    seen[np.unique(stage.cols[np.any(stage.design != 0, axis=1)].ravel())] = True
+    fr = fr[seen[fr]]
+    if not fr.size:
+        return
+    fi = np.flatnonzero(free)
+    sens = np.zeros((fi.size, fr.size))
+    for j, c in enumerate(fr):
+        dv = -stage.design[:, :, :] * (stage.cols == c)[:, None, :]
+        dx, _, _ = stage.solve(xs, free, dv.sum(axis=2), w, jp)
+        sens[:, j] = dx[fi]
+    c_ff = cov[np.ix_(fr, fr)]
+    cross = sens @ c_ff
+    cov[np.ix_(fi, fi)] += cross @ sens.T
+    cov[np.ix_(fi, fr)] = cross
+    cov[np.ix_(fr, fi)] = cross.T
+
+
 def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter, reject_k, progress,
             start: Optional[Mapping[str, Any]] = None) -> BlockEstimate:
     from . import progress as _progress
@@ -763,6 +798,8 @@ def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter
     wsum = float(np.nansum(weights * v_all ** 2))
     dof = sum(d - 2 * npt - int(f.sum()) for _, _, _, _, _, f, d, npt in final_stage)
     sigma0 = math.sqrt(wsum / dof) if dof > 0 else 1.0
+    earlier = np.zeros(p, bool)                             # parameters of the stages before (frozen now)
+    pending: List[Any] = []
     for stage, xs, plon, plat, fw, free_all, _, _ in final_stage:
         pred, _, jp, _ = stage.evaluate(xs, plon, plat)
         w = np.repeat(fw[:, None], 2, axis=1)
@@ -770,8 +807,11 @@ def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter
             _, _, sol = stage.solve(xs, free_all, stage.meas - pred, w, jp, covariance=True)
             fi = np.flatnonzero(free_all)
             cov[np.ix_(fi, fi)] = sigma0 ** 2 * sol.cov_global
+            if earlier.any():                          # on demand (one reduced solve per frozen parameter)
+                pending.append((stage, xs, free_all, earlier.copy(), w, jp))
         except DegenerateGeometryError:
             pass
+        earlier |= free_all
     table = tab.copy()
     table[["lon", "lat", "h"]] = ground
     for tag, pr in (("before", pred_before), ("after", pred_after)):
@@ -789,7 +829,7 @@ def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter
                         residuals=v_all.ravel(), normalised=normalised, weights=weights.ravel(), blocks=sl,
                         frozen=frozen, outlier=outl, outlier_level=np.where(outl, "robust", ""),
                         iterations=int(sum(s["iterations"] for s in stages_out)), table=table, layout=layout,
-                        stages=stages_out)
+                        stages=stages_out, cov_pending=pending)
     est.notes.append(f"datum: {', '.join(DATUM_TERMS)} of {layout.reference_ccd} fixed at 0 (they duplicate e0, e1, "
                      "kappa)")
     for s in stages_out:
@@ -912,8 +952,10 @@ def calibrated_model(cal: Mapping[str, Any], key: str, rpc, size: Optional[Tuple
 
 def prediction_std(estimate: BlockEstimate, image_id: str, sample, line) -> Tuple[np.ndarray, np.ndarray]:
     """Propagated 1-sigma of the correction of ``image_id`` at ``(sample, line)`` (px, per axis) from the estimate's
-    covariance: the precision floor the GCP and matching noise allow (METHODS §6). Parameters of an earlier stage
-    that were frozen in the image's own stage count with their own covariance (cross-covariances ignored)."""
+    covariance: the precision floor the GCP and matching noise allow (METHODS §6). A band image's interior carries
+    the reference band's errors it absorbed (its covariance with the frozen exterior and reference interiors,
+    :func:`_propagate_frozen`), so its floor is the reference image's plus the band-to-band matching noise."""
+    estimate.complete_covariance()
     idx = _parameter_blocks(estimate.layout)[1][image_id]
     d = _local_design(estimate.layout.images[image_id], estimate.layout.time_scale, sample, line)
     c = estimate.cov[np.ix_(idx, idx)]

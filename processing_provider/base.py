@@ -41,7 +41,8 @@ def qgis_words(message: str) -> str:
     return (message.replace("(geoid=<grid path>, --geoid) or geoid=False",
                             f"({GEOID_GRID_WORDS}) or choose 'DEM heights are: Ellipsoidal heights'")
             .replace("geoid=<grid path>", GEOID_GRID_WORDS)
-            .replace("(--columns)", "(GCP_COLUMNS)").replace("(--gcp-pixel-convention)", "(GCP_PIXEL_CONVENTION)"))
+            .replace("(--columns)", "(GCP_COLUMNS)").replace("(--gcp-pixel-convention)", "(GCP_PIXEL_CONVENTION)")
+            .replace("(--bands-of)", "(BANDS_OF)"))
 TRACKER = "https://github.com/gdal-gf4cal/gdal_gf4cal/issues"
 
 

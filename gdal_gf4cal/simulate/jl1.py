@@ -199,18 +199,26 @@ def build_jl1(rng, center, size, h_mid, *, orbit_seed: Optional[int] = None) -> 
 
 def _seam_vector(left: SimImage, right: SimImage, h, n_lines: int = 5):
     """Mean seam (sample, line) in px of the band: (true - current) position of ``right`` minus that of ``left`` at
-    ground points (height ``h``) in the middle of their overlap, on ``n_lines`` lines of ``right``."""
+    ground points (height ``h``) in the middle of their overlap, on ``n_lines`` lines of ``right``. Points whose
+    projection leaves a push-broom crop's time range (NaN, or far outside: tiny crops of the MS bands, 32 x 16 px,
+    where the along-track band offset and a few px of interior move the ground past the crop) are left out; more
+    lines are tried when none is left, and ``(0, 0)`` is returned when no line works."""
     W, H = right.size
     f = 1 if right.info.get("band", "pan") == "pan" else MS_FACTOR
     ov = right.info.get("overlap_pan_px", OVERLAP_PX) / f
-    s = np.full(n_lines, 0.5 * ov)
-    l = (np.arange(n_lines) + 0.5) * H / n_lines
-    hh = np.full(n_lines, float(h))
-    lon, lat = right.current.localize(s, l, hh)
-    rs, rl = right.true.project(lon, lat, hh)
-    ts, tl = left.true.project(lon, lat, hh)
-    cs, cl = left.current.project(lon, lat, hh)
-    return np.array([np.mean((rs - s) - (ts - cs)), np.mean((rl - l) - (tl - cl))])
+    for n in (n_lines, 8 * n_lines):
+        s = np.full(n, 0.5 * ov)
+        l = (np.arange(n) + 0.5) * H / n
+        hh = np.full(n, float(h))
+        lon, lat = right.current.localize(s, l, hh)
+        rs, rl = right.true.project(lon, lat, hh)
+        ts, tl = left.true.project(lon, lat, hh)
+        cs, cl = left.current.project(lon, lat, hh)
+        ds, dl = (rs - s) - (ts - cs), (rl - l) - (tl - cl)
+        ok = np.isfinite(ds) & np.isfinite(dl) & (np.abs(ds) < W) & (np.abs(dl) < H)
+        if ok.any():
+            return np.array([np.mean(ds[ok]), np.mean(dl[ok])])
+    return np.zeros(2)
 
 
 def overlap_width_px(left: SimImage, right: SimImage, h, n_lines: int = 7, model: str = "true"):

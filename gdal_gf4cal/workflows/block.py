@@ -49,6 +49,10 @@ def _resolve(name: str, paths: Sequence[str], keys: Sequence[str], what: str) ->
                      f"({', '.join(keys[:6])}{', ...' if len(keys) > 6 else ''}); give that image or fix the name")
 
 
+#: How messages name the bands-of option; the QGIS provider words ``(--bands-of)`` as ``(BANDS_OF)``.
+BANDS_OF = "bands of (--bands-of)"
+
+
 def parse_bands_of(items: Union[None, Mapping[str, str], Sequence[str]]) -> Dict[str, str]:
     """``["IMAGE=REFIMAGE", ...]`` (CLI/QGIS) or a mapping -> ``{band image: reference-band image}``."""
     if not items:
@@ -58,7 +62,7 @@ def parse_bands_of(items: Union[None, Mapping[str, str], Sequence[str]]) -> Dict
     out = {}
     for it in items:
         if "=" not in str(it):
-            raise BlockError(f"--bands-of {it!r}: write IMAGE=REFIMAGE (a band image and the reference-band image of "
+            raise BlockError(f"bands of (--bands-of) {it!r}: write IMAGE=REFIMAGE (a band image and the reference-band image of "
                              "its CCD)")
         a, b = str(it).split("=", 1)
         out[a.strip()] = b.strip()
@@ -140,7 +144,7 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
     if not (ties or match_ties):
         raise BlockError("no tie points: give --ties or --match-ties to tie the CCDs and bands together")
     keys = image_keys(paths)
-    bmap = {_resolve(a, paths, keys, "--bands-of"): _resolve(b, paths, keys, "--bands-of")
+    bmap = {_resolve(a, paths, keys, BANDS_OF): _resolve(b, paths, keys, BANDS_OF)
             for a, b in parse_bands_of(bands_of).items()}
     order = [k for k in keys if k not in bmap]
     ref_ccd = _resolve(reference_ccd, paths, keys, "--reference-ccd") if reference_ccd else None

@@ -142,3 +142,35 @@ def test_cloudy_cells_left_out():
     s, l, ts, tl = truth_grid(sc, 80)
     ps, pl = m.predict(s, l)
     assert np.sqrt(np.mean((ts - ps) ** 2 + (tl - pl) ** 2)) <= 0.03
+
+
+def test_reuse_model_of_another_camera_of_the_same_design_is_refused(solved):
+    """Same MS size and sub-CCD layout, other sub-CCD truth (camera_seed 21): every layout check passes, the
+    linear-only fit leaves ~0.17 px (P ~ 56 %) -- refused, not written (found by verify13)."""
+    _, m0 = solved
+    sc = make_gf7_scene(seed=13, camera_seed=21, jitter=False)
+    sparse = synth_cells(sc, cell=512, sigma=SIGMA, seed=4)
+    with pytest.raises(Gf4calError, match="reuse model does not fit"):
+        panms.estimate(sparse, ms_size=sc.image("ms").size, reuse=m0)
+    # half the cells off by a pixel: the robust fit keeps the half that fits; refused by the share rejected
+    same = synth_cells(make_gf7_scene(seed=13, jitter=False), cell=512, sigma=SIGMA, seed=4)
+    half = same.assign(d_sample=same["d_sample"] + np.where(np.arange(len(same)) % 2 == 0, 1.0, 0.0))
+    assert panms.estimate(same, ms_size=m0.ms_size, reuse=m0).mode == "reuse"
+    with pytest.raises(Gf4calError, match="rejected as blunders"):
+        panms.estimate(half, ms_size=m0.ms_size, reuse=m0)
+
+
+def test_jitter_found_on_a_short_crop():
+    """A 768-line crop holds < 1 cycle of the 1-3 Hz jitter in 12 cell rows: the significance test takes the
+    row means' noise from the cells' scatter within their rows, not from the rows left over (which still hold
+    the signal): the jitter is found (seed 11 / camera 9 missed it, leaving 0.028 px against the true field)."""
+    from gdal_gf4cal.simulate.gf7 import true_misregistration
+    sc = make_gf7_scene(seed=11, camera_seed=9, jitter=True, size=(3072, 3072), crop_center_ms_px=5120,
+                        center=(112.3, 31.7))
+    cells = synth_cells(sc, cell=64, sigma=0.015, seed=2)
+    m = panms.estimate(cells, ms_size=sc.image("ms").size, breaks=[384.0])
+    assert m.jitter["sample"]["components"]
+    s, l = np.meshgrid(np.arange(4, 768, 8) + 0.5, np.arange(4, 768, 8) + 0.5)
+    ts, tl = true_misregistration(sc, s.ravel(), l.ravel())
+    ps, pl = m.predict(s.ravel(), l.ravel())
+    assert np.sqrt(np.mean((ps - ts) ** 2)) <= 0.02 and np.sqrt(np.mean((pl - tl) ** 2)) <= 0.02

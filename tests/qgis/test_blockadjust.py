@@ -60,4 +60,5 @@ def test_blockadjust_bad_group_input_is_one_line_and_writes_nothing(run_alg, tmp
         with pytest.raises(QgsProcessingException, match=match) as info:
             run_alg("gf4cal:blockadjust", dict(base, BANDS_OF=bands))
         assert "\n" not in str(info.value).strip()
+        assert "(BANDS_OF)" in str(info.value) and "--bands-of" not in str(info.value)   # the dialog's name
         assert not out.exists() or os.listdir(out) == []
