@@ -44,7 +44,7 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 import numpy as np
 
 from .errors import DegenerateGeometryError, GCPError
-from .estimation import Block, Estimate
+from .estimation import Block, Estimate, weighted_lsq
 from .sensor import SensorModelMixin
 
 __all__ = ["EXTERIOR_NAMES", "DATUM_TERMS", "ImageLayout", "BlockLayout", "BlockEstimate", "BlockCorrectedRPC",
@@ -847,8 +847,10 @@ def seam_offsets(table, models_before: Mapping[str, Any], models_after: Mapping[
     For a tie point seen by ``a`` and ``b``: ``a``'s measurement is localised on the DEM with ``a``'s model and
     projected with ``b``'s; the offset is ``b``'s measurement minus that prediction (px of ``b``, sample and line;
     matching noise included: ``sqrt(2)`` x the tie sigma per axis). Rows flagged ``outlier`` are left out.
-    Returns one dict per pair with ``n``, per epoch ``mean``/``rms``/``max`` per axis and planar, and the
-    per-point arrays under ``points`` (``point_id, lon, lat, line_b, ds/dl before/after``).
+    Returns one dict per pair with ``n``, per epoch ``mean``/``rms``/``max`` per axis and planar (``max_px``: the
+    largest single tie offset, noise included), ``seam_max_px`` (the seam itself, noise averaged: the offsets fitted
+    by a straight line along the overlap's lines, its largest magnitude over them), and the per-point arrays under
+    ``points`` (``point_id, lon, lat, line_b, ds/dl before/after``).
     """
     out = []
     ok = ~table["outlier"].to_numpy(bool) if "outlier" in table.columns else np.ones(len(table), bool)
@@ -876,10 +878,26 @@ def seam_offsets(table, models_before: Mapping[str, Any], models_after: Mapping[
                           "mean_px": float(math.hypot(np.nanmean(ds), np.nanmean(dl))),
                           "rms_sample_px": float(np.sqrt(np.nanmean(ds ** 2))),
                           "rms_line_px": float(np.sqrt(np.nanmean(dl ** 2))),
-                          "rms_px": float(np.sqrt(np.nanmean(rad ** 2))), "max_px": float(np.nanmax(rad))}
+                          "rms_px": float(np.sqrt(np.nanmean(rad ** 2))), "max_px": float(np.nanmax(rad)),
+                          "seam_max_px": _systematic_seam(lb, ds, dl)}
         entry["points"] = pts
         out.append(entry)
     return out
+
+
+def _systematic_seam(line, ds, dl) -> float:
+    """Largest magnitude over ``line``'s range of the straight line (in ``line``) fitted to the offsets ``ds, dl``:
+    a seam that drifts along track, without the matching noise of single ties."""
+    ok = np.isfinite(line) & np.isfinite(ds) & np.isfinite(dl)
+    if ok.sum() < 3:
+        return float(np.nanmax(np.hypot(ds, dl))) if ok.any() else float("nan")
+    lo, hi = float(line[ok].min()), float(line[ok].max())
+    u = (line[ok] - 0.5 * (lo + hi)) / max(0.5 * (hi - lo), 1.0)
+    a = np.column_stack([np.ones(u.size), u])
+    fs = weighted_lsq(a, ds[ok]).x
+    fl = weighted_lsq(a, dl[ok]).x
+    ends = np.array([[1.0, -1.0], [1.0, 1.0]])
+    return float(np.max(np.hypot(ends @ fs, ends @ fl)))
 
 
 # ----------------------------------------------------------------------------------------------------- calibration

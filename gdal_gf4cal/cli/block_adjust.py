@@ -46,7 +46,8 @@ def run(args) -> int:
     for s in rep["seams"]:
         if s.get("n"):
             print(f"seam {s['pair'][0]} | {s['pair'][1]}: mean offset {s['before']['mean_px']:.3f} px before, "
-                  f"{s['after']['mean_px']:.3f} px after ({s['n']} tie points)")
+                  f"{s['after']['mean_px']:.3f} px after; largest along the overlap {s['before']['seam_max_px']:.3f} "
+                  f"-> {s['after']['seam_max_px']:.3f} px ({s['n']} tie points)")
     for k, v in rep["band_to_band"].items():
         if v["rms_px_after"] is not None:
             print(f"band {k} vs {v['reference']}: tie RMS {v['rms_px_before']:.3f} -> {v['rms_px_after']:.3f} px")
