@@ -331,6 +331,12 @@ def _collect_from_ortho(paths, keys, order, models, reference, dem, progress):
     return pd.concat(tabs, ignore_index=True)
 
 
+#: Overlap strips narrower than this (px) are matched with 16 px windows and a 6 px search.
+NARROW_STRIP_PX = 64
+#: Matching windows aimed at per image pair (the grid spacing follows the overlap's area, 8 to 64 px).
+TIES_PER_PAIR = 200
+
+
 def _match_ties(paths, keys, layout, models, dem, progress):
     """Tie points by raw-to-raw matching (adjacent CCDs; every band against its reference band)."""
     import pandas as pd
@@ -339,10 +345,19 @@ def _match_ties(paths, keys, layout, models, dem, progress):
     except ImportError:
         raise BlockError("--match-ties needs the raw-to-raw matcher, which this installation lacks; give tie points "
                          "with --ties") from None
+    from ..matching.raw import overlap_region
     pairs = list(layout.adjacent_pairs()) + [(layout.images[b].reference, b) for b in layout.band_images]
     tabs = []
     for i, (a, b) in enumerate(pairs):
-        t = match_ties(paths[keys.index(a)], models[a], paths[keys.index(b)], models[b], dem, ids=(a, b))
+        pa, pb = paths[keys.index(a)], paths[keys.index(b)]
+        # An MS overlap strip is ~50 px wide (200 pan px / 4): narrower than the default window plus its search
+        # range, so narrow strips are matched with small windows; the spacing gives ~TIES_PER_PAIR windows.
+        box, _ = overlap_region(pa, models[a], pb, models[b], dem, step_px=NARROW_STRIP_PX // 4)
+        w, h = box[2] - box[0] - NARROW_STRIP_PX // 2, box[3] - box[1] - NARROW_STRIP_PX // 2
+        kw: Dict[str, Any] = {"spacing_px": int(np.clip(np.sqrt(max(w, 1.0) * max(h, 1.0) / TIES_PER_PAIR), 8, 64))}
+        if min(w, h) < NARROW_STRIP_PX:
+            kw.update(window_px=16, search_px=6)
+        t = match_ties(pa, models[a], pb, models[b], dem, ids=(a, b), **kw)
         if t is not None and len(t):
             t = t.copy()
             t["point_id"] = [f"M{i}_{p}" for p in t["point_id"]]
