@@ -33,7 +33,7 @@ import numpy as np
 
 from .basis import piecewise_polynomial, trigonometric
 from .errors import DegenerateGeometryError, Gf4calError
-from .estimation import Block, robust_lsq, weighted_lsq
+from .estimation import Block, normal_solve, robust_lsq, weighted_lsq
 from .progress import report
 from .stats import axis_stats, share_within
 
@@ -601,11 +601,12 @@ def _select_frequencies(lines, r, w, n_fixed):
     limit = MAX_JITTER_COMPONENTS if n_fixed is None else int(n_fixed)
     df = freqs[1] - freqs[0]
 
+    def design(fs):
+        return np.stack([np.ones_like(lc)] + [g(2 * np.pi * f * lc) for f in fs for g in (np.sin, np.cos)], axis=1)
+
     def rss(fs):
-        cols = [np.ones_like(lc)] + [g(2 * np.pi * f * lc) for f in fs for g in (np.sin, np.cos)]
-        A = np.stack(cols, axis=1) * np.sqrt(sw)[:, None]
-        x, *_ = np.linalg.lstsq(A, y * np.sqrt(sw), rcond=None)
-        v = y * np.sqrt(sw) - A @ x
+        A = design(fs)
+        v = (y - A @ normal_solve(A, y, sw)[0]) * np.sqrt(sw)
         return float(v @ v)
 
     while len(chosen) < limit:
@@ -613,10 +614,8 @@ def _select_frequencies(lines, r, w, n_fixed):
         if lc.size - p1 < 3:
             break
         base = rss(chosen)
-        cols = [np.ones_like(lc)] + [g(2 * np.pi * f * lc) for f in chosen for g in (np.sin, np.cos)]
-        A = np.stack(cols, axis=1)
-        xw, *_ = np.linalg.lstsq(A * np.sqrt(sw)[:, None], y * np.sqrt(sw), rcond=None)
-        resid = y - A @ xw
+        A = design(chosen)
+        resid = y - A @ normal_solve(A, y, sw)[0]
         gain, _, _ = _sine_power(lc, resid, sw, freqs)
         f0 = float(freqs[int(np.argmax(gain))])
         opt = optimize.minimize_scalar(lambda f: rss(chosen + [f]), bounds=(max(freqs[0], f0 - 2 * df),
