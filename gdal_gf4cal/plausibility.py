@@ -149,8 +149,9 @@ def check_measured_inside(rpc, gcps, image_size: Optional[Tuple[int, int]] = Non
         what_img = "image implied by the RPC" if implied else "image"
         away = max(max(-s[i], s[i] - w, 0.0) / w, max(-l[i], l[i] - hgt, 0.0) / hgt)
         raise GCPError(f"{bad.sum()} of {n} {what} are measured outside the {w:.0f} x {hgt:.0f} px {what_img}, "
-                       f"beyond {OUTSIDE_USE_MARGIN:.0%} of its size or its RPC's domain (e.g. {_ids(gcps, bad, 1)} "
-                       f"at sample {s[i]:.1f}, line {l[i]:.1f}: {away:.1f} image sizes out): they belong to another "
+                       f"beyond {OUTSIDE_USE_MARGIN:.0%} of its size or its RPC's domain ({_ids(gcps, bad)}; e.g. "
+                       f"{_id_array(gcps)[i]} at sample {s[i]:.1f}, line {l[i]:.1f}, {away:.1f} image sizes out): "
+                       "they belong to another "
                        f"image or use other pixel units; remove or fix them, or {OVERRIDE_WORDS}")
     if not out.any():
         return 0

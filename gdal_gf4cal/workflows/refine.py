@@ -157,7 +157,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
         table = assign_roles(table, check_fraction, seed=seed)
         from ..plausibility import MAX_UNCERTAINTY_PX, check_gcps_against, check_precision, correction_precision
         if check_plausibility:
-            check_gcps_against(rpc, table, image_size, dem=dem_obj)
+            with collect_warnings(warns):         # now: the report written below lists them
+                check_gcps_against(rpc, table, image_size, dem=dem_obj)
         _progress.report(progress, 0.1, "estimating the compensation")
         selection = None
         if str(model) == "auto":              # --model auto: leave-one-out error with a parsimony rule
