@@ -35,7 +35,7 @@ PIXEL_CONVENTION_LABELS = ["The file format's own (centre for orthority GeoJSON 
                            "Pixel corners at integers (GDAL: first pixel centre at 0.5)",
                            "Pixel centres at integers (orthority, ASP: first pixel centre at 0)"]
 GEOID_GRID_WORDS = "the 'Geoid grid file' parameter (GEOID_GRID)"
-PLAUSIBILITY_WORDS = "advanced parameter 'Check the GCPs' plausibility' (CHECK_PLAUSIBILITY)"
+PLAUSIBILITY_WORDS = "CHECK_PLAUSIBILITY, an advanced parameter"
 
 
 def qgis_words(message: str) -> str:

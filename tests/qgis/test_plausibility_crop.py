@@ -51,7 +51,7 @@ def test_refinerpc_far_points_refused_naming_the_qgis_override(run_alg, crop, tm
     with pytest.raises(QgsProcessingException) as info:
         run_alg("gf4cal:refinerpc", _params(img, dem, gcps, out))
     msg = str(info.value)
-    assert "4 of 10 GCPs" in msg and "(CHECK_PLAUSIBILITY)" in msg and "--no-plausibility-check" not in msg, msg
+    assert "4 of 10 GCPs" in msg and "off (CHECK_PLAUSIBILITY, an advanced parameter)" in msg and "--no-plausibility-check" not in msg, msg
     assert os.listdir(out) == []
     res, _ = run_alg("gf4cal:refinerpc", _params(img, dem, gcps, out, MODEL=0, CHECK_PLAUSIBILITY=False))
     assert os.path.getsize(res["OUTPUT_RPC"]) > 0
