@@ -51,7 +51,7 @@ from .sensor import SensorModelMixin
 __all__ = ["EXTERIOR_NAMES", "DATUM_TERMS", "ImageLayout", "BlockLayout", "BlockEstimate", "BlockCorrectedRPC",
            "derive_layout", "adjust_block", "corrected_model", "seam_offsets", "calibration_dict",
            "write_calibration", "read_calibration", "calibrated_model", "prediction_std", "layout_from_calibration",
-           "BlockError"]
+           "BlockError", "supported_degree"]
 
 EXTERIOR_NAMES = ("e0", "e1", "e3", "e4", "kappa_mrad")
 INTERIOR_NAMES = ("a0", "a1", "a2", "a3", "b0", "b1", "b2", "b3")

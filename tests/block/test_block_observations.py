@@ -10,7 +10,11 @@ import pandas as pd
 import pytest
 
 import blocksim as B
+import gdal_gf4cal.block as engine
 from gdal_gf4cal.cli import main
+from gdal_gf4cal.observations import validate_observations
+from gdal_gf4cal.rpc import RPCModel
+from gdal_gf4cal.workflows.block import check_observations
 
 pytestmark = pytest.mark.slow
 
@@ -49,12 +53,9 @@ def test_ties_5000px_outside_their_image_are_refused(scene, tmp_path, capsys):
     msg = _fails(_args(scene, obs), capsys, str(tmp_path / "out"))
     assert "ccd2_blue" in msg and "30 of" in msg and "tie points" in msg and "--no-plausibility-check" in msg, msg
     # a few stray measurements just outside are blunders for the robust adjustment (a warning), not a refusal
-    from gdal_gf4cal.workflows.block import check_observations
-    from gdal_gf4cal.rpc import RPCModel
     t = _ref_obs(scene)
     models = {n: RPCModel.from_file(B.image_path(scene, n)) for n in B.REF}
     sizes = {n: (128, 64) for n in B.REF}
-    from gdal_gf4cal.observations import validate_observations
     tab = validate_observations(t, need_height=False)
     tab.loc[tab.index[(tab["image_id"] == "ccd2_blue") & (tab["kind"] == "tie")][:2], "line"] += 60.0
     with pytest.warns(UserWarning, match="2 of .* tie points of ccd2_blue .* left to the robust adjustment"):
@@ -76,7 +77,6 @@ def test_interior_not_extrapolated_beyond_the_observed_detector_range(scene, tmp
     """ccd1_blue observed on its last 28 of 128 columns only (its overlap with ccd2_blue): its interior is held to a
     constant, not a cubic extrapolated over the detector. Seeded: 1.2 px rms over the image against the truth
     (4.9 px before); the unconstrained cubic 15.6 px (35 px at worst), with NumPy overflows on the way."""
-    import gdal_gf4cal.block as engine
     t = _ref_obs(scene)
     t = t[~((t["image_id"] == "ccd1_blue") & (t["sample"] < 100.0))]
     t = t[(t["kind"] == "gcp") | (t.groupby("point_id")["image_id"].transform("size") >= 2)]
@@ -106,3 +106,13 @@ def test_interior_not_extrapolated_beyond_the_observed_detector_range(scene, tmp
     assert free["ccd1_blue"] > 5 * held["ccd1_blue"], (held, free)
     # the other CCDs, fully observed, are as good either way
     assert all(held[n] < 0.15 and free[n] < 0.15 for n in B.REF[1:]), (held, free)
+
+
+@pytest.mark.parametrize("lo, hi, degree", [(-1.0, 1.0, 3), (-0.875, 0.676, 3), (-0.6, 0.6, 2), (-0.3, 0.3, 1),
+                                            (-1.0, 0.0, 1), (0.56, 1.0, 0), (0.96, 1.0, 0)])
+def test_supported_degree_by_coverage(lo, hi, degree):
+    """The degree a detector coverage supports (leverage over the detector <= 25 x the worst at an observation):
+    a cubic from ~70 % centred or 78 % from one edge (the matched-ties test's last CCD), a slope from a third."""
+    u = np.random.default_rng(1).uniform(lo, hi, 100)
+    assert engine.supported_degree(u) == degree
+    assert engine.supported_degree(u[:2], 3) <= 1 and engine.supported_degree(np.full(5, 0.3)) == 0
