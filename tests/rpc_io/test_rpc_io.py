@@ -45,6 +45,7 @@ FORMATS = {
     "ventoux_left_image.geom": "geom",
     "RPC_PHR1A_P_202503191043438_SEN_7342362101-1.XML": "dimap",
     "wv3_20.NTF": "gdal",
+    "PHRDIMAP_P1BP--2018122638935449CP_excerpt.XML": "dimap",
 }
 
 
@@ -276,6 +277,27 @@ def test_unsupported_and_non_rpc_inputs(tmp_path):
         RPCModel.from_file(tmp_path / "plain.tif")
     with pytest.raises(ValueError):
         rpc_io.read_rpc_metadata(tmp_path / "empty.txt")
+
+
+def test_pleiades_dimap_v1_inverse_model_inverts_its_direct_model():
+    """Pleiades DIMAP v1.4 (PHR_Dimap_Document): the RPC read from the inverse model F_COL/F_ROW takes every ground
+    point of the product's own direct model F_LON/F_LAT (an independent fit, DIMAP pixel centres at 1) back to the
+    pixel it came from, GDAL convention = DIMAP - 0.5 (Shareloc's test_rpc_phrdimap: within 2e-2 px)."""
+    from xml.etree import ElementTree as ET
+    from gdal_gf4cal.rpc import monomials
+    path = DATA / "PHRDIMAP_P1BP--2018122638935449CP_excerpt.XML"
+    rpc = RPCModel.from_file(path)
+    root = ET.parse(path).getroot()
+    coeff = {n: np.array(root.find(f".//Direct_Model/{n}").text.split(), float) for n in ("F_LON", "F_LAT")}
+    ab = {n: [float(root.find(f".//RFM_Validity/{n}/{k}").text) for k in "AB"] for n in ("Lon", "Lat", "Alt", "Col", "Row")}
+    col, row, h = (a.ravel() for a in np.meshgrid(np.linspace(1, 40000, 9), np.linspace(1, 38248, 9), [490.0, 660.0]))
+    x, y, z = ((v - ab[n][1]) / ab[n][0] for v, n in ((col, "Col"), (row, "Row"), (h, "Alt")))
+    m = monomials(x, y, z).T            # direct model: L <- normalised column, P <- normalised row
+    lon, lat = ((m @ c[:20]) / (m @ c[20:]) * ab[n][0] + ab[n][1] for c, n in ((coeff["F_LON"], "Lon"),
+                                                                             (coeff["F_LAT"], "Lat")))
+    s, l = rpc.project(lon, lat, h)
+    assert np.max(np.abs(s - (col - 0.5))) < 2e-2 and np.max(np.abs(l - (row - 0.5))) < 2e-2
+    assert (rpc.min_long, rpc.max_lat) == (2.111390777763922, 31.11614087798913)
 
 
 # ------------------------------------------------------------------------------------------------- writing
