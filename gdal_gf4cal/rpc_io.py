@@ -667,6 +667,10 @@ def _read_xml(path: str) -> Tuple[Dict[str, Any], str, List[str]]:
         return _parse_isd(rpb, path), "isd", [path]
     if _first_named(root, "Global_RFM") is not None or _first_named(root, "Rational_Function_Model") is not None:
         return _parse_dimap(root, path), "dimap", [path]
+    per_band = [b for b in _iter_named(root, "bandID") if _first_named(b, "ROW_NUM_01") is not None]
+    if per_band:
+        raise RPCFormatError(f"{path}: one RPC per band ({len(per_band)} bands, EnMAP-style metadata), not one RPC "
+                             "of the image: not read; give the RPC of the band you use as its own file (GDAL keys)")
     if _local(root.tag) == "PAMDataset":
         raise RPCFormatError(f"{path}: no <Metadata domain=\"RPC\"> in this GDAL .aux.xml file")
     return _read_gdal(path, "xml")  # e.g. a VRT without an RPC block: GDAL is the judge

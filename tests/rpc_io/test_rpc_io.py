@@ -260,13 +260,16 @@ def test_unsupported_and_non_rpc_inputs(tmp_path):
         "<F_COL>0 1</F_COL><F_ROW>0 1</F_ROW></Inverse_Model></Global_RFM></Rational_Sensor_Model>"
         "</Geoposition></PHR_Dimap_Document>")
     (tmp_path / "empty.txt").write_text("")
+    (tmp_path / "bands.xml").write_text("<level_X><RPC>" + "".join(
+        f'<bandID number="{b}"><ROW_OFF>512</ROW_OFF><ROW_NUM_01>0.1</ROW_NUM_01></bandID>' for b in (1, 2))
+        + "</RPC></level_X>")
     (tmp_path / "broken.xml").write_text("<isd><RPB>")
     (tmp_path / "list.json").write_text("[1, 2]")
     (tmp_path / "noise.bin").write_bytes(bytes(range(256)) * 4)
     ds = gdal.GetDriverByName("GTiff").Create(str(tmp_path / "plain.tif"), 4, 4)
     ds = None
     cases = {
-        "PHRDIMAP.XML": "DIMAP v1", "empty.txt": "no RPC found", "broken.xml": "not well-formed XML",
+        "PHRDIMAP.XML": "DIMAP v1", "empty.txt": "no RPC found", "bands.xml": "one RPC per band (2 bands", "broken.xml": "not well-formed XML",
         "list.json": "JSON", "noise.bin": "GDAL", "plain.tif": "no RPC metadata", "missing.RPB": "no such file",
     }
     for name, words in cases.items():
