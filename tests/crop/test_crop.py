@@ -136,3 +136,32 @@ def test_ortho_of_the_crop_lands_on_its_product_pixels(tmp_path, crop, srtm_path
     got_l = map_coordinates(ds.GetRasterBand(2).ReadAsArray(), [py, px], order=1, cval=np.nan)
     assert np.max(np.abs(got_s - (col[inside] - ORIGIN[0]))) < 1.0
     assert np.max(np.abs(got_l - (row[inside] - ORIGIN[1]))) < 1.0
+
+
+def test_intersect_of_the_stereo_crops_with_their_products_rpcs(tmp_path):
+    """gf4cal intersect with IMAGE=RPC entries: tie points measured in the two crops' own pixels (left: where the
+    physical grid puts each ground point; right: the right product's RPC minus the right crop's origin (4915, 5162))
+    intersect back on the grid's ground points."""
+    import pandas as pd
+    from gdal_gf4cal.cli import main
+    left = write_crop(tmp_path / "left_image.tif")
+    right = write_crop(tmp_path / "right_image.tif", gt=(4915.0, 1.0, 0.0, 5162.0, 0.0, 1.0), size=(498, 495))
+    right_geom = DATA / "crop_ventoux" / "right_image.geom"
+    col, row, alts, lon, lat = grid_nodes()
+    inside = (col > ORIGIN[0]) & (col < ORIGIN[0] + SIZE[0]) & (row > ORIGIN[1]) & (row < ORIGIN[1] + SIZE[1])
+    k = list(alts).index(485.0)
+    x, y, h = lon[k, inside], lat[k, inside], np.full(inside.sum(), 485.0)
+    s2, l2 = RPCModel.from_file(right_geom).project(x, y, h)
+    pts = pd.DataFrame({"id": [f"n{i}" for i in range(x.size)], "sample_1": col[inside] - ORIGIN[0],
+                        "line_1": row[inside] - ORIGIN[1], "sample_2": s2 - 4915.0, "line_2": l2 - 5162.0,
+                        "lon": x, "lat": y, "h": h})
+    pts.to_csv(tmp_path / "ties.csv", index=False)
+    assert main(["intersect", "--rpc", f"{left}={GEOM}", f"{right}={right_geom}", "--points",
+                 str(tmp_path / "ties.csv"), "--out", str(tmp_path / "pts.csv"), "--report",
+                 str(tmp_path / "rep.json")]) == 0
+    out = pd.read_csv(tmp_path / "pts.csv")
+    assert np.max(np.abs(out["err_h_m"])) < 0.05
+    assert np.max(np.hypot(out["err_east_m"], out["err_north_m"])) < 0.05
+    import json
+    notes = json.loads((tmp_path / "rep.json").read_text())["notes"]
+    assert any("right_image.tif is a crop at (4915, 5162)" in n for n in notes)
