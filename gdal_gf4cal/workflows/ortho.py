@@ -45,7 +45,13 @@ def footprint_lonlat(rpc, image_size: Tuple[int, int], h_range_m: Tuple[float, f
         lons.append(np.asarray(lon, float))
         lats.append(np.asarray(lat, float))
     lon, lat = np.concatenate(lons), np.concatenate(lats)
-    w, e, so, n = np.nanmin(lon), np.nanmax(lon), np.nanmin(lat), np.nanmax(lat)
+    ok = np.isfinite(lon) & np.isfinite(lat)
+    if not np.any(ok):
+        raise Gf4calError(f"the RPC cannot localise the image's border ({W} x {H} px) at heights {h_range_m[0]:.0f} "
+                          f"to {h_range_m[-1]:.0f} m: it does not describe this image's pixels (another image, or a "
+                          "crop whose origin is not stated)")
+    lon, lat = lon[ok], lat[ok]
+    w, e, so, n = lon.min(), lon.max(), lat.min(), lat.max()
     dx, dy = (e - w) * margin + 1e-4, (n - so) * margin + 1e-4
     return (float(w - dx), float(so - dy), float(e + dx), float(n + dy))
 

@@ -152,3 +152,18 @@ def test_killed_run_temporary_removed_by_the_next_run(tmp_path, crop):
     res = gf4cal(*ortho_args(crop, out))
     assert res.returncode == 0, res.stderr
     assert sorted(os.listdir(tmp_path)) == sorted(["o.tif", alive.name])
+
+
+def test_rpc_of_other_pixels_is_named(tmp_path):
+    """An RPC whose image lies 50,000 scales away from the image's pixels (none of its border localises)."""
+    from gdal_gf4cal import RPCModel
+    far = RPCModel.from_file(GEOM).replace(samp_off=5e7, samp_scale=1000.0)
+    rpb = far.write_rpb(tmp_path / "far.RPB")
+    img = tmp_path / "plain.tif"
+    ds = gdal.GetDriverByName("GTiff").Create(str(img), 64, 64, 1, gdal.GDT_Byte)
+    ds.GetRasterBand(1).Fill(7)
+    ds = None
+    out = tmp_path / "out"
+    out.mkdir()
+    res = gf4cal("ortho", img, "--rpc", rpb, "--dem", SRTM, "--geoid", "egm96", "--out", out / "o.tif")
+    assert_one_line_refusal(res, "the RPC cannot localise the image's border (64 x 64 px)", out)
