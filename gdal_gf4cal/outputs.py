@@ -188,9 +188,21 @@ MAX_RASTER_PIXELS = 4_000_000_000
 
 def raster_has_data(ds, sample: int = 1024) -> bool:
     """True when the raster holds a valid pixel: its mask (no-data, alpha) is set and, without a no-data value or
-    alpha, a value is not 0 (GDAL's warper fills with 0). Read decimated to at most ``sample`` x ``sample``
-    (nearest neighbour), so a large raster costs one small read per band."""
+    alpha, a value is not 0 (GDAL's warper fills with 0). GDAL's approximate min/max (a sample of blocks) answers
+    for most rasters; only a raster that looks empty there is read decimated to at most ``sample`` x ``sample``
+    (nearest neighbour) per band."""
     import numpy as np
+    from ._gdal import gdal_exceptions
+    for i in range(1, ds.RasterCount + 1):
+        band = ds.GetRasterBand(i)
+        try:
+            with gdal_exceptions():
+                lo, hi = band.ComputeRasterMinMax(True)
+        except (RuntimeError, TypeError):
+            continue                                  # no valid value in the sample: read below
+        plain = band.GetNoDataValue() is None and not (band.GetMaskFlags() & 0x04)      # GMF_ALPHA
+        if np.isfinite(lo) and np.isfinite(hi) and not (plain and lo == 0 and hi == 0):
+            return True
     W, H = ds.RasterXSize, ds.RasterYSize
     bw, bh = min(W, sample), min(H, sample)
     for i in range(1, ds.RasterCount + 1):
