@@ -6,6 +6,9 @@ exceptions on for the duration of a ``with`` block (or a decorated function) and
 GDAL 3.6 keeps that state in one process-wide flag per module (``gdal.ExceptionMgr`` only exists from 3.7), so the
 scopes are reference-counted under a lock: the first scope to enter saves the state, the last to leave restores it,
 which keeps worker threads that open files concurrently from switching exceptions off under each other.
+Inside a scope GDAL's own error printer is silenced too (a quiet handler pushed for the calling thread): its errors
+reach the caller as the exception's message, and nothing from GDAL (``ERROR 1: sqlite3_exec ...`` on a full disk,
+``Warning 1: ...``) lands on the user's stderr beside the one line the interfaces print.
 """
 from __future__ import annotations
 
@@ -52,14 +55,18 @@ def _exit() -> None:
 
 @contextmanager
 def gdal_exceptions() -> Iterator[None]:
-    """Raise ``RuntimeError`` from GDAL/OGR/OSR calls inside the block; restore the previous setting on exit.
+    """Raise ``RuntimeError`` from GDAL/OGR/OSR calls inside the block, GDAL's printer silenced; restore the
+    previous setting and handler on exit.
 
     Usable as a decorator too (:func:`with_gdal_exceptions`). Nested and concurrent scopes are safe.
     """
+    from osgeo import gdal
     _enter()
+    gdal.PushErrorHandler("CPLQuietErrorHandler")    # per thread; popped in the same thread below
     try:
         yield
     finally:
+        gdal.PopErrorHandler()
         _exit()
 
 
@@ -81,6 +88,16 @@ def quiet() -> Iterator[None]:
         yield
     finally:
         gdal.PopErrorHandler()
+
+
+def with_quiet_errors(func):
+    """Decorator: GDAL's error printer silenced for the whole call (:func:`quiet`), for writers that check GDAL's
+    return codes themselves (a full disk must reach the user as one line, not as ``ERROR 1: sqlite3_exec ...``)."""
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        with quiet():
+            return func(*args, **kwargs)
+    return wrapper
 
 
 def first_line(exc: BaseException) -> str:

@@ -12,7 +12,14 @@ basename, so writers that look at suffixes such as ``_RPC.TXT`` see the right on
 not empty, and the output's own check passes: GDAL/OGR re-open, feature counts) and, when every output is
 written, all are renamed into place together. On any failure, cancel (:class:`CancelledError`), ``KeyboardInterrupt``
 or SIGTERM (the CLI turns it into ``KeyboardInterrupt``) every temporary and every folder the run created is
-removed, and targets that were being replaced are restored.
+removed, and targets that were being replaced are restored. A temporary's name carries the writing process's id
+(``.gf4cal-<pid>x<hex>-<name>``): the next run writing the same target removes the temporaries a killed run
+(SIGKILL, power loss) left behind, recognised by that name and a process id that no longer runs (or, for the names
+of earlier versions without a pid, ``.gf4cal-<8 hex>-<name>``, by an age of over an hour).
+
+A raster whose size comes from user input (a resolution, a CRS) is checked before it is written
+(:func:`check_raster_size`: a pixel limit, passed with ``force``, and the free space of the output's disk); a
+written raster with no valid pixel is refused (:func:`check_raster` ``require_data=True``).
 
 :func:`atomic_output` (single file: write next to the target, then ``os.replace``) lives here too; the writers of
 the engine use it, so a file written outside an ``OutputSet`` is still never half-written.
@@ -20,8 +27,11 @@ the engine use it, so a file written outside an ``OutputSet`` is still never hal
 from __future__ import annotations
 
 import os
+import re
+import shutil
 import tempfile
 import threading
+import time
 import uuid
 from contextlib import contextmanager
 from typing import Callable, Dict, Iterable, Iterator, List, Optional, Sequence
@@ -29,7 +39,8 @@ from typing import Callable, Dict, Iterable, Iterator, List, Optional, Sequence
 from .errors import Gf4calError, InputOverwriteError
 
 __all__ = ["OutputSet", "atomic_output", "fix_mode", "same_file", "rpc_stem", "check_not_a_shadowing_sidecar",
-           "count_features", "check_raster", "check_vector"]
+           "count_features", "check_raster", "check_vector", "check_raster_size", "remove_stale_temporaries",
+           "process_tempdir", "raster_has_data", "MAX_RASTER_PIXELS"]
 
 # Set by the CLI's SIGTERM/SIGINT handler: a run that has been told to stop never commits its outputs, even when the
 # KeyboardInterrupt was swallowed on the way (e.g. raised inside a GDAL callback that ignores Python exceptions).
@@ -151,16 +162,152 @@ def check_vector(expected: Optional[Dict[str, int]] = None) -> Callable[[str], N
     return check
 
 
-def check_raster(bands: Optional[int] = None) -> Callable[[str], None]:
-    """A check for :meth:`OutputSet.declare`: the file re-opens with GDAL (with ``bands`` bands when given)."""
+def check_raster(bands: Optional[int] = None, *, require_data: bool = False,
+                 empty_reason: str = "") -> Callable[[str], None]:
+    """A check for :meth:`OutputSet.declare`: the file re-opens with GDAL (with ``bands`` bands when given); with
+    ``require_data`` it must hold a valid pixel (:func:`raster_has_data`), else the run fails naming
+    ``empty_reason``."""
     def check(path: str) -> None:
         from ._gdal import open_raster
         ds = open_raster(path, what="written raster")
         n = ds.RasterCount
+        empty = require_data and not raster_has_data(ds)
         ds = None
         if bands is not None and n != bands:
             raise Gf4calError(f"the written raster has {n} bands instead of {bands}; check the disk and write again")
+        if empty:
+            raise Gf4calError("the output raster came out without a single valid pixel"
+                              + (f": {empty_reason}" if empty_reason else "") + "; nothing was kept")
     return check
+
+
+#: Largest raster (pixels) written from a size the user chose, unless ``force``: 4e9 px is a 60000 x 60000 px
+#: ortho (a whole 0.3 m scene); beyond it a resolution is almost surely a typing error (e.g. degrees for metres).
+MAX_RASTER_PIXELS = 4_000_000_000
+
+
+def raster_has_data(ds, sample: int = 1024) -> bool:
+    """True when the raster holds a valid pixel: its mask (no-data, alpha) is set and, without a no-data value or
+    alpha, a value is not 0 (GDAL's warper fills with 0). GDAL's approximate min/max (a sample of blocks) answers
+    for most rasters; only a raster that looks empty there is read decimated to at most ``sample`` x ``sample``
+    (nearest neighbour) per band."""
+    import numpy as np
+    from ._gdal import gdal_exceptions
+    for i in range(1, ds.RasterCount + 1):
+        band = ds.GetRasterBand(i)
+        try:
+            with gdal_exceptions():
+                lo, hi = band.ComputeRasterMinMax(True)
+        except (RuntimeError, TypeError):
+            continue                                  # no valid value in the sample: read below
+        plain = band.GetNoDataValue() is None and not (band.GetMaskFlags() & 0x04)      # GMF_ALPHA
+        if np.isfinite(lo) and np.isfinite(hi) and not (plain and lo == 0 and hi == 0):
+            return True
+    W, H = ds.RasterXSize, ds.RasterYSize
+    bw, bh = min(W, sample), min(H, sample)
+    for i in range(1, ds.RasterCount + 1):
+        band = ds.GetRasterBand(i)
+        data = band.ReadAsArray(0, 0, W, H, buf_xsize=bw, buf_ysize=bh)
+        valid = band.GetMaskBand().ReadAsArray(0, 0, W, H, buf_xsize=bw, buf_ysize=bh) > 0
+        if band.GetNoDataValue() is None and not (band.GetMaskFlags() & 0x04):   # GMF_ALPHA
+            valid &= data != 0
+        valid &= np.isfinite(data) if data.dtype.kind == "f" else True
+        if np.any(valid):
+            return True
+    return False
+
+
+def _human_bytes(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
+        if n < 1024 or unit == "PB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024.0
+    return f"{n:.1f} PB"
+
+
+def check_raster_size(width: float, height: float, *, bands: int, bytes_per_sample: int, out_path, what: str,
+                      force: bool = False, limit: int = MAX_RASTER_PIXELS, force_option: str = "--force") -> None:
+    """Refuse, before writing, a raster whose size came from user input and is too large: more than ``limit`` pixels
+    (unless ``force``) or more bytes (uncompressed) than the free space of ``out_path``'s disk (unless ``force``:
+    compression may make it fit). ``what`` names the size's origin in the message (e.g. "at --res 0.0005 m")."""
+    pixels = float(width) * float(height)
+    size = f"{int(width):,} x {int(height):,} px"
+    if pixels > limit and not force:
+        raise Gf4calError(f"the output raster would be {size} ({pixels:.2g} px) {what}: more than the limit of "
+                          f"{limit:.2g} px; check the value, or pass {force_option} to write it anyway")
+    need = pixels * bands * bytes_per_sample
+    folder = os.path.dirname(os.path.abspath(os.fspath(out_path)))
+    while folder and not os.path.isdir(folder):
+        folder = os.path.dirname(folder)
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return
+    if need > free and not force:
+        raise Gf4calError(f"the output raster would be {size} {what}, {_human_bytes(need)} uncompressed, and "
+                          f"{folder} has {_human_bytes(free)} free; free space, choose another folder, or pass "
+                          f"{force_option} if compression will make it fit")
+
+
+_TMP_RE = re.compile(r"^\.gf4cal-(?:(?P<pid>\d+)x[0-9a-f]{6}|(?P<legacy>[0-9a-f]{8}))-(?:old-)?(?P<name>.+)$")
+#: Age after which a temporary of an earlier version (no process id in its name) is taken as left by a dead run.
+_LEGACY_STALE_S = 3600.0
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:           # e.g. EPERM: it runs, as another user
+        return True
+    return True
+
+
+def process_tempdir(prefix: str) -> "tempfile.TemporaryDirectory":
+    """A ``tempfile.TemporaryDirectory`` named ``<prefix><pid>_...`` in the system's temporary folder, after removing
+    the ones of the same prefix whose process no longer runs (left by a killed run)."""
+    base = tempfile.gettempdir()
+    pattern = re.compile(re.escape(prefix) + r"(\d+)_")
+    try:
+        entries = os.listdir(base)
+    except OSError:
+        entries = []
+    for entry in entries:
+        m = pattern.match(entry)
+        if m and not _pid_alive(int(m.group(1))):
+            shutil.rmtree(os.path.join(base, entry), ignore_errors=True)
+    return tempfile.TemporaryDirectory(prefix=f"{prefix}{os.getpid()}_")
+
+
+def remove_stale_temporaries(path) -> List[str]:
+    """Remove the temporaries (and their companions) a killed earlier run left for the output ``path``: hidden
+    ``.gf4cal-<pid>x<hex>-<name>`` (also ``-old-``) next to it whose process no longer runs, and legacy
+    ``.gf4cal-<8 hex>-<name>`` over an hour old. Returns the names removed."""
+    folder, name = os.path.split(os.path.abspath(os.fspath(path)))
+    try:
+        entries = os.listdir(folder)
+    except OSError:
+        return []
+    removed = []
+    for entry in entries:
+        m = _TMP_RE.match(entry)
+        if not m or m.group("name") != name:
+            continue
+        full = os.path.join(folder, entry)
+        if m.group("pid") is not None:
+            stale = not _pid_alive(int(m.group("pid")))
+        else:
+            try:
+                stale = time.time() - os.lstat(full).st_mtime > _LEGACY_STALE_S
+            except OSError:
+                stale = False
+        if stale:
+            _remove(full)
+            removed.append(entry)
+    return removed
 
 
 def _remove(path: str) -> None:
@@ -210,7 +357,7 @@ class OutputSet:
         self._created_dirs: List[str] = []
         self._probed: set = set()
         self._folders: List[tuple] = []
-        self._token = uuid.uuid4().hex[:8]
+        self._token = f"{os.getpid()}x{uuid.uuid4().hex[:6]}"
         self._entered = False
         self.committed = False
 
@@ -258,6 +405,7 @@ class OutputSet:
         if path.startswith("/vsi"):
             tmp = path
         else:
+            remove_stale_temporaries(path)
             folder, name = os.path.split(os.path.abspath(path))
             tmp = os.path.join(folder, f".gf4cal-{self._token}-{name}")
         self._outputs[key] = _Output(key, path, tmp, check, directory)

@@ -21,7 +21,9 @@ Formats are recognised by content, not by name (vendors use ``.rpc``, ``.rpb``, 
 ``rpc_txt``    GeoEye/IKONOS/Planet ``_RPC.TXT`` (``LINE_OFF: 1234 pixels``, ``LINE_NUM_COEFF_1: ...``) and
                flat ``KEY=value`` lists (``gdalinfo`` output, GDAL key dumps)
 ``dimap``      Pleiades/SPOT DIMAP v2 (and v3) ``RPC_*.XML``: the inverse model; offsets shifted from the
-               DIMAP first-pixel convention (1, 1, or ``FIRST_COL`` of DIMAP v3) to RPC00B as GDAL does
+               DIMAP first-pixel convention (1, 1, or ``FIRST_COL`` of DIMAP v3) to RPC00B as GDAL does; and
+               Pleiades DIMAP v1 (``PHR_Dimap_Document`` profile 1.4, ``Global_RFM`` with ``F_COL``/``F_ROW``),
+               read as CNES Shareloc reads it
 ``isd``        DigitalGlobe/Maxar ISD XML (``<isd><RPB><IMAGE>`` ... ``<LINENUMCOEFList>``)
 ``gdal_xml``   GDAL VRT or PAM ``.aux.xml`` with a ``<Metadata domain="RPC">`` block
 ``json``       a JSON dict: DFC2019 / Sat-NeRF / rpcm style (``"rpc": {"row_offset": ...}``) or GDAL keys
@@ -483,8 +485,7 @@ def _parse_dimap(root: ET.Element, source: str) -> Dict[str, str]:
     flat = _xml_to_dotted(model)
     if any(k.endswith(".f_col") or k.endswith(".f_row") for k in flat) and not any(
             k.endswith("line_num_coeff_1") for k in flat):
-        raise RPCFormatError(f"{source}: Pleiades DIMAP v1 (PHR) rational model is not supported; "
-                             "use the product's DIMAP v2 RPC_*.XML or the image with RPC tags")
+        return _parse_dimap_phr(flat, source)
     first_col = 1.0
     validity = _first_named(root, "ImagetoGround_Validity_Domain")
     if validity is not None:
@@ -515,6 +516,47 @@ def _parse_dimap(root: ET.Element, source: str) -> Dict[str, str]:
                 raise _missing(source, f"Inverse_Model/{key}_{j}", "DIMAP")
             values.append(value)
         md[key] = " ".join(values)
+    return md
+
+
+#: Pleiades DIMAP v1 (``PHR_Dimap_Document``, profile 1.4) ``RFM_Validity`` children: ``A`` is the scale, ``B`` the
+#: offset (as CNES Shareloc reads them, ``rpc_reader_dimap_v1``).
+_PHR_SCALARS = (("LONG", "lon"), ("LAT", "lat"), ("HEIGHT", "alt"), ("SAMP", "col"), ("LINE", "row"))
+_PHR_BOX = (("MIN_LONG", "first_lon"), ("MIN_LAT", "first_lat"), ("MAX_LONG", "last_lon"), ("MAX_LAT", "last_lat"))
+
+
+def _parse_dimap_phr(flat: Dict[str, str], source: str) -> Dict[str, str]:
+    """Pleiades DIMAP v1 (PHR, profile 1.4) ``Global_RFM``: the inverse model ``F_COL``/``F_ROW`` (40 numbers each:
+    20 numerator then 20 denominator coefficients, RPC00B term order with L = longitude, P = latitude), scales and
+    offsets ``RFM_Validity/{Lon,Lat,Alt,Col,Row}/{A,B}``; image offsets in DIMAP's first-pixel-centre-at-1
+    convention, so SAMP_OFF = Col/B - 1 and LINE_OFF = Row/B - 1 (RPC00B: first pixel centre at 0), as Shareloc."""
+    md: Dict[str, str] = {}
+    for key, name in _PHR_SCALARS:
+        for suffix, child in (("_OFF", "b"), ("_SCALE", "a")):
+            value = flat.get(f"rfm_validity.{name}.{child}")
+            if value is None:
+                raise _missing(source, f"RFM_Validity/{name.capitalize()}/{child.upper()}", "Pleiades DIMAP v1")
+            if key in ("SAMP", "LINE") and suffix == "_OFF":
+                number = _number(value)
+                if number is None:
+                    raise RPCFormatError(f"{source}: RPC key RFM_Validity/{name.capitalize()}/B is not a number "
+                                         f"({value!r})")
+                value = repr(number - 1.0)
+            md[key + suffix] = value
+    for key, name in (("SAMP", "f_col"), ("LINE", "f_row")):
+        text = flat.get(f"inverse_model.{name}")
+        if text is None:
+            raise _missing(source, f"Inverse_Model/{name.upper()}", "Pleiades DIMAP v1")
+        values = text.split()
+        if len(values) != 2 * _N_COEFF:
+            raise RPCFormatError(f"{source}: RPC key Inverse_Model/{name.upper()} has {len(values)} coefficients "
+                                 f"instead of {2 * _N_COEFF} (20 numerator + 20 denominator)")
+        md[f"{key}_NUM_COEFF"] = " ".join(values[:_N_COEFF])
+        md[f"{key}_DEN_COEFF"] = " ".join(values[_N_COEFF:])
+    for key, name in _PHR_BOX:
+        value = flat.get(f"rfm_validity.inverse_model_validity_domain.{name}")
+        if value is not None:
+            md[key] = value
     return md
 
 
@@ -625,6 +667,10 @@ def _read_xml(path: str) -> Tuple[Dict[str, Any], str, List[str]]:
         return _parse_isd(rpb, path), "isd", [path]
     if _first_named(root, "Global_RFM") is not None or _first_named(root, "Rational_Function_Model") is not None:
         return _parse_dimap(root, path), "dimap", [path]
+    per_band = [b for b in _iter_named(root, "bandID") if _first_named(b, "ROW_NUM_01") is not None]
+    if per_band:
+        raise RPCFormatError(f"{path}: one RPC per band ({len(per_band)} bands, EnMAP-style metadata), not one RPC "
+                             "of the image: not read; give the RPC of the band you use as its own file (GDAL keys)")
     if _local(root.tag) == "PAMDataset":
         raise RPCFormatError(f"{path}: no <Metadata domain=\"RPC\"> in this GDAL .aux.xml file")
     return _read_gdal(path, "xml")  # e.g. a VRT without an RPC block: GDAL is the judge

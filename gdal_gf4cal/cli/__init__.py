@@ -3,7 +3,10 @@
 The CLI only parses options, calls the library and prints. Any :class:`Gf4calError` becomes one line on stderr and
 exit status 2 (any other exception too); a cancelled or interrupted run (Ctrl-C, SIGTERM) exits 130 and keeps no
 output. No traceback reaches the user (``GF4CAL_DEBUG=1`` shows it, ``0`` does not). Commands call the workflows
-layer (:mod:`gdal_gf4cal.workflows`) and print its report, with ``report["warnings"]`` as ``warning:`` lines.
+layer (:mod:`gdal_gf4cal.workflows`) and print its report, with ``report["notes"]`` and ``report["warnings"]`` as
+``gf4cal: note:`` / ``gf4cal: warning:`` lines. Python warnings raised outside a workflow's own collection (NumPy,
+matplotlib, ...) never reach stderr in their raw two-line form: a run that succeeds prints each once as a
+``gf4cal: warning:`` line, a run that fails prints only its error line.
 """
 from __future__ import annotations
 
@@ -12,6 +15,7 @@ import importlib
 import os
 import signal
 import sys
+import warnings
 from typing import List, Optional
 
 from ..errors import CancelledError, Gf4calError
@@ -71,7 +75,10 @@ def add_plausibility_argument(parser, what: str = "GCPs") -> None:
 
 
 def print_warnings(rep, stream=None) -> None:
-    """Print ``rep["warnings"]`` (list of one-line str) as ``gf4cal: warning: ...`` lines on stderr."""
+    """Print ``rep["notes"]`` and ``rep["warnings"]`` (lists of one-line str) as ``gf4cal: note: ...`` and
+    ``gf4cal: warning: ...`` lines on stderr."""
+    for n in (rep or {}).get("notes", []) if isinstance(rep, dict) else []:
+        print(f"gf4cal: note: {n}", file=stream or sys.stderr)
     for w in (rep or {}).get("warnings", []) if isinstance(rep, dict) else getattr(rep, "warnings", []) or []:
         print(f"gf4cal: warning: {w}", file=stream or sys.stderr)
 
@@ -92,9 +99,30 @@ def _is_disk_full(exc: BaseException, text: str) -> bool:
         "write error" in low and isinstance(exc, RuntimeError))
 
 
+def _print_caught(caught) -> None:
+    """Each recorded Python warning once, as one ``gf4cal: warning:`` line (deprecations left out)."""
+    seen = set()
+    for w in caught:
+        if issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning, ResourceWarning)):
+            continue
+        text = (str(w.message).strip().splitlines() or [w.category.__name__])[0]
+        if text not in seen:
+            seen.add(text)
+            print(f"gf4cal: warning: {text}", file=sys.stderr)
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        status = _main(args)
+    if status == 0 or _debug():
+        _print_caught(caught)
+    return status
+
+
+def _main(args) -> int:
     previous = {}
     try:
         for sig in (signal.SIGTERM, signal.SIGINT):          # SIGTERM cleans up like Ctrl-C (outputs removed)

@@ -7,7 +7,9 @@ HELP = "Intersect tie points seen in two or more RPC images; planar/height preci
 
 def add_parser(parser):
     parser.add_argument("--rpc", nargs="+", required=True, metavar="RPC",
-                        help="two or more images / RPC files, in the order of the points file's image numbers")
+                        help="two or more images / RPC files, in the order of the points file's image numbers; "
+                             "IMAGE=RPC for an image whose RPC is a separate file (a crop and its product's .geom: "
+                             "the crop's origin is applied)")
     parser.add_argument("--points", required=True,
                         help="CSV: id,sample_1,line_1,sample_2,line_2,... or id,image,sample,line "
                              "(GDAL pixel convention; optional lon,lat,h truth columns)")

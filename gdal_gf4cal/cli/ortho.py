@@ -21,6 +21,9 @@ def add_ortho_arguments(parser, out_required=True):
                         help="output CRS: EPSG:XXXX or 'utm' (default: the UTM zone of the scene centre)")
     parser.add_argument("--res", type=float, metavar="METRES", help="output pixel size (default: GDAL's choice)")
     parser.add_argument("--resampling", choices=RESAMPLING, default="bilinear", help="resampling (default bilinear)")
+    parser.add_argument("--force", action="store_true",
+                        help="write an ortho larger than the size limit (4e9 px) or than the free space uncompressed "
+                             "(without it such a --res is refused before anything is written)")
 
 
 def add_parser(parser):
@@ -54,7 +57,8 @@ def run(args) -> int:
     from ..progress import TextProgressBar
     from ..workflows import orthorectify
     rep = cli_geoid_errors(orthorectify, args.image, dem=args.dem, out=args.out, rpc=args.rpc, geoid=args.geoid,
-                           crs=args.crs, res_m=args.res, resampling=args.resampling, overwrite=args.overwrite,
+                           crs=args.crs, res_m=args.res, resampling=args.resampling, force=args.force,
+                           overwrite=args.overwrite,
                            progress=TextProgressBar())
     print_ortho(rep)
     for k, v in rep["outputs"].items():

@@ -81,7 +81,7 @@ def run(args) -> int:
         raise Gf4calError("several scenes: add --batch (then --gcps is a folder of <stem>.gpkg and --out a folder)")
     args.source = args.source[0]
     from .ortho import cli_geoid_errors, print_ortho
-    ortho_options = {"crs": args.crs, "res_m": args.res, "resampling": args.resampling}
+    ortho_options = {"crs": args.crs, "res_m": args.res, "resampling": args.resampling, "force": args.force}
     rep = cli_geoid_errors(refine_rpc, args.source, args.gcps, args.model, out=args.out, order=args.order, along=args.along,
                      ccd_axis=args.ccd_axis, dem=args.dem, geoid=args.geoid, gcp_crs=args.gcp_crs,
                      check_fraction=args.check_fraction, seed=args.seed, leave_one_out=args.leave_one_out,
@@ -134,8 +134,6 @@ def _print_report(rep) -> None:
         print("applied exactly (offsets/scales)")
     else:
         print(f"applied by refitting the RPC: max error {ap['refit_max_px']:.2e} px, rms {ap['refit_rms_px']:.2e} px")
-    for note in rep.get("notes", []):
-        print(f"note: {note}")
     for warning in rep.get("warnings", []):
         print(f"warning: {warning}")
     for k, v in rep["outputs"].items():

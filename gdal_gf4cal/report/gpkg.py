@@ -9,6 +9,7 @@ from typing import Any, Callable, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
+from .._gdal import with_quiet_errors
 from ..errors import CancelledError, GCPError, Gf4calError
 from ._common import _as_bool_array, STANDARD_BEFORE, STANDARD_AFTER, PathLike, _temp_path, _cleanup, _column, _lonlat, _residual_pair, _transformer, _pixel_size, _nice
 from .styles import _class_breaks, _vector_style, _points_style, _footprint_style, _sld
@@ -399,6 +400,7 @@ def _footprint_geometry(footprint, transform):
     return geom
 
 
+@with_quiet_errors
 def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: Optional[float] = None,
                          before: Optional[Tuple[str, str]] = STANDARD_BEFORE,
                          after: Optional[Tuple[str, str]] = STANDARD_AFTER,
@@ -653,6 +655,7 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
     return path
 
 
+@with_quiet_errors
 def write_points_layer(path: PathLike, layer: str, columns: Mapping[str, np.ndarray], lon, lat, *,
                        description: str = "") -> Path:
     """Add a point layer (EPSG:4326, one feature per row of ``columns``) to the GeoPackage ``path`` (created when

@@ -10,6 +10,7 @@ from typing import Any, Dict, Optional, Sequence
 import numpy as np
 
 from ..errors import DegenerateGeometryError, GCPError
+from ..crop import image_rpc
 from ..outputs import OutputSet, check_vector
 from ._common import cancel_check, collect_warnings, finish_report
 
@@ -70,9 +71,22 @@ def read_tie_points(path, n_images: int, names: Sequence[str] = ()):
     return list(df["id"].astype(str)), pts, truth
 
 
+def _image_and_rpc(entry: str):
+    """``IMAGE=RPC`` (an image whose RPC is a separate file, e.g. a crop and its product's ``.geom``) -> the two
+    paths; any other entry (an image with its RPC, or an RPC file) -> (entry, None)."""
+    if "=" in entry and not os.path.exists(entry):
+        image, rpc = entry.split("=", 1)
+        return image, rpc
+    return entry, None
+
+
 def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional[str] = None, sigma_px: float = 1.0,
                     report: Optional[str] = None, overwrite: bool = False, progress=None) -> Dict[str, Any]:
     """``gf4cal intersect``: read RPCs and tie points, intersect (METHODS §7), write points and a report.
+
+    Each of ``rpc_paths`` is an image with its RPC, an RPC file, or ``IMAGE=RPC``: the RPC of the image's own pixel
+    grid through :func:`gdal_gf4cal.crop.image_rpc` (a crop with its product's RPC: shifted by the crop's origin, the
+    report's ``notes`` say so).
 
     ``out`` (``.csv``, ``.gpkg`` or ``.geojson``) gets one row per point: ``id, lon, lat, h, n_images,
     sigma_planar_m, sigma_height_m, sigma0`` and, with ground truth, ``err_east_m, err_north_m, err_h_m``.
@@ -80,21 +94,23 @@ def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional
     """
     import pandas as pd
     from ..intersection import ground_errors_m, intersect, intersection_accuracy
-    from ..rpc import RPCModel
     paths = [os.fspath(p) for p in rpc_paths]
     if len(paths) < 2:
         raise DegenerateGeometryError("forward intersection needs at least 2 RPCs (--rpc A B [C ...])")
     out = os.fspath(out) if out else None
     if out and not out.lower().endswith((".csv", ".gpkg", ".geojson")):
         raise GCPError(f"output {out!r}: use a name ending in .csv, .gpkg or .geojson")
-    outs = OutputSet(paths + [os.fspath(points_path)], overwrite=overwrite, cancelled=cancel_check(progress))
+    pairs = [_image_and_rpc(p) for p in paths]
+    inputs = [p for pair in pairs for p in pair if p] + [os.fspath(points_path)]
+    outs = OutputSet(inputs, overwrite=overwrite, cancelled=cancel_check(progress))
     if out:
         outs.declare("points", out, check=check_vector() if not out.lower().endswith(".csv") else None)
     if report:
         outs.declare("report", report)
     warns: list = []
     with outs, collect_warnings(warns):
-        models = [RPCModel.from_file(p) for p in paths]
+        loaded = [image_rpc(image, rpc) for image, rpc in pairs]
+        models = [m for m, _ in loaded]
         ids, pts, truth = read_tie_points(points_path, len(models), paths)
         res = intersect(models, pts, sigma_px=sigma_px, progress=progress)
         table = pd.DataFrame({"id": ids, "lon": res.lon, "lat": res.lat, "h": res.h, "n_images": res.n_images,
@@ -106,6 +122,8 @@ def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional
                                              if np.isfinite(res.sigma_planar_m).any() else None,
                                              "sigma_height_m_median": float(np.nanmedian(res.sigma_height_m))
                                              if np.isfinite(res.sigma_height_m).any() else None}}
+        if any(note for _, note in loaded):
+            rep["notes"] = [note for _, note in loaded if note]
         if truth is not None:
             e, n, u = ground_errors_m(res.lon, res.lat, res.h, *truth)
             table["err_east_m"], table["err_north_m"], table["err_h_m"] = e, n, u

@@ -11,7 +11,6 @@ instead of silently ignored. The result equals ``gdalwarp -rpc -to RPC_DEM=<elli
 from __future__ import annotations
 
 import os
-import tempfile
 from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
@@ -46,7 +45,13 @@ def footprint_lonlat(rpc, image_size: Tuple[int, int], h_range_m: Tuple[float, f
         lons.append(np.asarray(lon, float))
         lats.append(np.asarray(lat, float))
     lon, lat = np.concatenate(lons), np.concatenate(lats)
-    w, e, so, n = np.nanmin(lon), np.nanmax(lon), np.nanmin(lat), np.nanmax(lat)
+    ok = np.isfinite(lon) & np.isfinite(lat)
+    if not np.any(ok):
+        raise Gf4calError(f"the RPC cannot localise the image's border ({W} x {H} px) at heights {h_range_m[0]:.0f} "
+                          f"to {h_range_m[-1]:.0f} m: it does not describe this image's pixels (another image, or a "
+                          "crop whose origin is not stated)")
+    lon, lat = lon[ok], lat[ok]
+    w, e, so, n = lon.min(), lon.max(), lat.min(), lat.max()
     dx, dy = (e - w) * margin + 1e-4, (n - so) * margin + 1e-4
     return (float(w - dx), float(so - dy), float(e + dx), float(n + dy))
 
@@ -110,21 +115,132 @@ def write_ellipsoidal_dem(dem_path: str, grid: str, bounds_lonlat, out_path: str
     return out_path
 
 
+#: An output CRS is refused when the scene's centre lies farther than this (degrees) outside the CRS's area of use
+#: (generous: a neighbouring UTM zone is fine; a zone on the other side of the Earth or a polar CRS is not).
+AREA_OF_USE_MARGIN_DEG = 10.0
+
+
 def _target_srs(crs, bounds_lonlat) -> str:
+    """The output CRS as GDAL takes it; refused (one line, the cause) when unknown, geocentric, not horizontal, or
+    made for another part of the Earth than the scene (its area of use)."""
     from osgeo import osr
+    from .._gdal import gdal_exceptions, quiet
     if crs is None or str(crs).strip().lower() == "utm":
         w, s, e, n = bounds_lonlat
         return f"EPSG:{utm_epsg((w + e) / 2.0, (s + n) / 2.0)}"
     srs = osr.SpatialReference()
     try:
-        srs.SetFromUserInput(str(crs))
+        with gdal_exceptions(), quiet():
+            srs.SetFromUserInput(str(crs))
     except RuntimeError:
         raise Gf4calError(f"unknown output CRS {crs!r}; give EPSG:XXXX, a WKT/PROJ string or 'utm'") from None
+    if srs.IsGeocentric():
+        raise Gf4calError(f"the output CRS {crs} is geocentric (X, Y, Z from the Earth's centre): it cannot hold an "
+                          "ortho; give a projected or geographic CRS (e.g. utm or EPSG:4326)")
+    if not (srs.IsProjected() or srs.IsGeographic()):
+        raise Gf4calError(f"the output CRS {crs} is not a horizontal (projected or geographic) CRS: it cannot hold "
+                          "an ortho; give e.g. utm or EPSG:4326")
+    _check_area_of_use(crs, srs, bounds_lonlat)
     return str(crs)
 
 
+def _check_area_of_use(crs, srs, bounds_lonlat) -> None:
+    area = srs.GetAreaOfUse()
+    if area is None:
+        return
+    w, s, e, n = bounds_lonlat
+    lon, lat = (w + e) / 2.0, (s + n) / 2.0
+    west, east = area.west_lon_degree, area.east_lon_degree
+    span = (east - west) % 360.0 or 360.0
+    dlon = 0.0 if (lon - west) % 360.0 <= span else min((west - lon) % 360.0, (lon - east) % 360.0)
+    dlat = max(area.south_lat_degree - lat, lat - area.north_lat_degree, 0.0)
+    if max(dlon, dlat) > AREA_OF_USE_MARGIN_DEG:
+        raise Gf4calError(
+            f"the output CRS {crs} ({area.name.rstrip('.')}: lon {west:g} to {east:g}, lat {area.south_lat_degree:g} to "
+            f"{area.north_lat_degree:g}) is made for another part of the Earth than the scene (lon {lon:.2f}, lat "
+            f"{lat:.2f}); give a CRS for the scene's area (e.g. utm)")
+
+
+def _extent_in(dst_srs: str, bounds_lonlat) -> Tuple[float, float]:
+    """(width, height) of the footprint's bounding box in the output CRS's units; refused when it cannot be
+    expressed there."""
+    import pyproj
+    w, s, e, n = bounds_lonlat
+    t = np.linspace(0.0, 1.0, 21)
+    lon = np.concatenate([w + (e - w) * t, np.full_like(t, e), e - (e - w) * t, np.full_like(t, w)])
+    lat = np.concatenate([np.full_like(t, s), s + (n - s) * t, np.full_like(t, n), n - (n - s) * t])
+    try:
+        x, y = pyproj.Transformer.from_crs("EPSG:4326", pyproj.CRS.from_user_input(dst_srs),
+                                           always_xy=True).transform(lon, lat, errcheck=False)
+    except pyproj.exceptions.ProjError as exc:
+        raise Gf4calError(f"the scene cannot be expressed in the output CRS {dst_srs} ({exc}); give a CRS for the "
+                          "scene's area (e.g. utm)") from None
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        raise Gf4calError(f"the scene cannot be expressed in the output CRS {dst_srs} (its projection is not defined "
+                          "over the whole footprint); give a CRS for the scene's area (e.g. utm)")
+    return float(np.ptp(x)), float(np.ptp(y))
+
+
+def check_ortho_size(image: str, image_size, dst_srs: str, bounds_lonlat, res_m: Optional[float], out_path: str,
+                     force: bool = False) -> None:
+    """Refuse, before writing, an ortho the output resolution makes 1 px wide or larger than the pixel limit or
+    the free space (:func:`~gdal_gf4cal.outputs.check_raster_size`, ``--force`` passes); the footprint in the output
+    CRS is checked in any case."""
+    from osgeo import gdal
+    from ..outputs import check_raster_size
+    from .._gdal import open_raster
+    dx, dy = _extent_in(dst_srs, bounds_lonlat)
+    if res_m is None:
+        return
+    res = float(res_m)
+    if res >= min(dx, dy):
+        gsd = min(dx, dy) / max(min(image_size), 1)
+        raise Gf4calError(f"--res {res:g} is coarser than the scene's footprint ({dx:.4g} x {dy:.4g} in {dst_srs}'s "
+                          f"units): the ortho would be a pixel or two; give a resolution near the image's ground "
+                          f"sampling (about {gsd:.3g})")
+    ds = open_raster(image, what="image")
+    bytes_per_sample = gdal.GetDataTypeSize(ds.GetRasterBand(1).DataType) // 8
+    check_raster_size(np.ceil(dx / res), np.ceil(dy / res), bands=ds.RasterCount, bytes_per_sample=bytes_per_sample,
+                      out_path=out_path, what=f"at --res {res:g} in {dst_srs}", force=force)
+
+
+def _check_dem_covers(dem_obj, dem: str, bounds_lonlat) -> None:
+    """Refuse a DEM without a single height over the scene (one line naming the DEM and the scene)."""
+    w, s, e, n = bounds_lonlat
+    lon, lat = np.meshgrid(np.linspace(w, e, 9), np.linspace(s, n, 9))
+    h = np.asarray(dem_obj.sample(lon.ravel(), lat.ravel(), nodata="nan"), float)
+    if not np.any(np.isfinite(h)):
+        raise DEMError(f"the DEM {os.path.basename(dem)} has no height over the scene (lon {w:.4f} to {e:.4f}, lat "
+                       f"{s:.4f} to {n:.4f}); give a DEM that covers it")
+
+
+def _warp_failure(exc: BaseException, out_path: str) -> Gf4calError:
+    """One line naming what stopped GDAL's warper: a full disk (by GDAL's words or the folder's free space), else
+    GDAL's own first line."""
+    import shutil
+    from .._gdal import first_line
+    text = first_line(exc)
+    folder = os.path.dirname(os.path.abspath(out_path))
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        free = None
+    low = text.lower()
+    if any(w in low for w in ("no space left", "disk full", "disk is full", "file too large")) or (
+            free is not None and free < FULL_DISK_BYTES):
+        return Gf4calError(f"the disk is full: writing the ortho in {folder} failed ({text}); free space or choose "
+                           "another output folder; nothing was kept")
+    return Gf4calError(f"orthorectification failed: {text}")
+
+
+#: A write that failed with less than this free in the output folder is reported as a full disk.
+FULL_DISK_BYTES = 64 * 1024 * 1024
+
+
 def orthorectify(image, *, dem, out, rpc=None, geoid="auto", crs="utm", res_m: Optional[float] = None,
-                 resampling: str = "bilinear", overwrite: bool = False, progress=None) -> Dict[str, Any]:
+                 resampling: str = "bilinear", overwrite: bool = False, force: bool = False,
+                 progress=None) -> Dict[str, Any]:
     """Orthorectify ``image`` with its RPC (or ``rpc``) over ``dem`` into a GeoTIFF (METHODS §2, §4.2).
 
     Parameters
@@ -137,17 +253,22 @@ def orthorectify(image, *, dem, out, rpc=None, geoid="auto", crs="utm", res_m: O
     crs : output CRS (``"utm"``: the UTM zone of the scene centre; else ``EPSG:XXXX`` or any GDAL CRS string)
     res_m : output pixel size in CRS units (metres for UTM); default GDAL's choice (about the image's GSD)
     resampling : one of :data:`RESAMPLING`
+    force : write an ortho larger than :data:`~gdal_gf4cal.outputs.MAX_RASTER_PIXELS` (or than the free space,
+        uncompressed); without it such a ``res_m`` is refused before anything is written
 
     Returns
     -------
     dict
         ``input``, ``rpc``, ``dem``, ``geoid`` (``{"name", "grid"}``, absent when heights are used as they are),
-        ``crs``, ``res_m``, ``size_px``, ``resampling``, ``outputs``, ``warnings``.
-        Raises :class:`~gdal_gf4cal.geoid.GeoidGridMissing` (nothing written) when a geoid cannot be applied.
+        ``crs``, ``res_m``, ``size_px``, ``resampling``, ``outputs``, ``warnings``, ``notes`` (e.g. the crop origin
+        applied, :func:`gdal_gf4cal.crop.image_rpc`).
+        Raises :class:`~gdal_gf4cal.geoid.GeoidGridMissing` (nothing written) when a geoid cannot be applied; a
+        :class:`Gf4calError` (nothing written) for an output CRS that cannot hold the scene, a resolution coarser than
+        the footprint or beyond the size limit, a full disk, or an ortho without a valid pixel.
     """
     from .. import progress as _progress
+    from ..crop import image_rpc
     from ..geoid import resolve_geoid
-    from ..rpc import RPCModel
 
     image, out, dem = os.fspath(image), os.fspath(out), os.fspath(dem)
     check_ortho_options(resampling, res_m)
@@ -165,9 +286,11 @@ def orthorectify(image, *, dem, out, rpc=None, geoid="auto", crs="utm", res_m: O
     rep: Dict[str, Any] = {"input": image, "rpc": rpc or image, "dem": dem}
     with outs, collect_warnings(warns):
         _progress.report(progress, 0.0, "reading the RPC and the DEM")
-        model = RPCModel.from_file(rpc or image)
+        model, note = image_rpc(image, rpc)
+        if note:
+            rep.setdefault("notes", []).append(note)
         rep.update(warp_ortho(image, image_size, model if rpc is not None else None, dem, grid, outs.tmp("ortho"),
-                              crs=crs, res_m=res_m, resampling=resampling, progress=progress))
+                              crs=crs, res_m=res_m, resampling=resampling, force=force, progress=progress))
         rep["outputs"] = outs.paths
     finish_report(rep, warns)
     _progress.report(progress, 1.0, "done")
@@ -183,31 +306,38 @@ def check_ortho_options(resampling: str = "bilinear", res_m: Optional[float] = N
 
 
 def warp_ortho(image: str, image_size, model, dem: str, grid: Optional[str], out_path: str, *, crs="utm",
-               res_m: Optional[float] = None, resampling: str = "bilinear", progress=None) -> Dict[str, Any]:
+               res_m: Optional[float] = None, resampling: str = "bilinear", force: bool = False,
+               progress=None) -> Dict[str, Any]:
     """Warp ``image`` (with ``model`` as its RPC, or its own when None) over ``dem`` into ``out_path`` (a temporary
     of an :class:`OutputSet`); ``grid``: the geoid grid making the DEM ellipsoidal (None: heights used as they are).
 
     Returns the ortho part of the report: ``geoid`` (when applied), ``crs``, ``res_m``, ``size_px``, ``resampling``.
+    The output CRS and size are checked before anything is written (:func:`check_ortho_size`); a result without a
+    valid pixel is refused.
     """
     from osgeo import gdal
     from .. import progress as _progress
     from ..dem import DEM
     from ..rpc import RPCModel
-    from .._gdal import first_line, gdal_exceptions, open_raster
+    from ..outputs import process_tempdir, raster_has_data
+    from .._gdal import gdal_exceptions, open_raster
     rep: Dict[str, Any] = {}
-    with tempfile.TemporaryDirectory(prefix="gf4cal_ortho_") as tmpdir:
+    with process_tempdir("gf4cal_ortho_") as tmpdir:
         rpc_model = model if model is not None else RPCModel.from_file(image)
         dem_obj = DEM.from_file(dem, geoid=grid if grid else False)
         lo, hi = dem_obj.height_range()
         pad = 120.0 if grid else 0.0           # geoid undulations are within +-110 m
         bounds = footprint_lonlat(rpc_model, image_size, (lo - pad, hi + pad))
+        dst_srs = _target_srs(crs, bounds)
+        mid = footprint_lonlat(rpc_model, image_size, ((lo + hi) / 2.0,), margin=0.0)
+        _check_dem_covers(dem_obj, dem, mid)
+        check_ortho_size(image, image_size, dst_srs, mid, res_m, out_path, force=force)
         if grid:
             _progress.report(progress, 0.05, "writing the ellipsoidal DEM")
             dem_used = write_ellipsoidal_dem(dem, grid, bounds, os.path.join(tmpdir, "dem_ellipsoidal.tif"))
             rep["geoid"] = {"name": os.path.basename(grid), "grid": grid}
         else:
             dem_used = dem
-        dst_srs = _target_srs(crs, bounds)
         rep["crs"] = dst_srs
         src_path = image
         if model is not None:                   # the image's pixels with the given RPC
@@ -241,13 +371,17 @@ def warp_ortho(image: str, image_size, model, dem: str, grid: Optional[str], out
                 gt = ds.GetGeoTransform()
                 rep["res_m"] = float(abs(gt[1]))
                 rep["size_px"] = [ds.RasterXSize, ds.RasterYSize]
+                empty = not cancelled and not raster_has_data(ds)
                 ds = None
         except RuntimeError as exc:
             if cancelled:
                 raise cancelled[0] from None
-            raise Gf4calError(f"orthorectification failed: {first_line(exc)}; check the DEM covers the scene") \
-                from None
+            raise _warp_failure(exc, out_path) from None
         if cancelled:
             raise cancelled[0]
+        if empty:
+            raise Gf4calError(f"the ortho came out without a single valid pixel: the image's RPC does not see the "
+                              f"DEM {os.path.basename(dem)} (the DEM does not cover the scene, or the RPC is not the "
+                              "image's); nothing was kept")
     rep["resampling"] = resampling
     return rep

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from qgis.core import (
     QgsProcessingOutputNumber,
+    QgsProcessingParameterBoolean,
     QgsProcessingParameterCrs,
     QgsProcessingParameterEnum,
     QgsProcessingParameterFile,
@@ -39,6 +40,7 @@ class Orthorectify(Gf4calAlgorithm):
     CRS = "CRS"
     RESOLUTION = "RESOLUTION"
     RESAMPLING = "RESAMPLING"
+    FORCE = "FORCE"
     OUTPUT = "OUTPUT"
 
     def initAlgorithm(self, config=None):
@@ -64,11 +66,17 @@ class Orthorectify(Gf4calAlgorithm):
                   "Output pixel size in the output CRS's units (metres for UTM); 0 lets GDAL choose (about the GSD).")
         self._add(QgsProcessingParameterEnum(self.RESAMPLING, self.tr("Resampling"), RESAMPLINGS, defaultValue=1),
                   "How image values are interpolated (bilinear by default).")
+        p = self._add(QgsProcessingParameterBoolean(self.FORCE, self.tr("Write past the size limit"),
+                                                    defaultValue=False, optional=True),
+                      "Write an orthoimage larger than 4e9 pixels, or larger (uncompressed) than the free space; "
+                      "without it such a pixel size is refused before anything is written.")
+        p.setFlags(p.flags() | p.FlagAdvanced)
         self._add(QgsProcessingParameterRasterDestination(self.OUTPUT, self.tr("Orthoimage")),
                   "The orthoimage (GeoTIFF, tiled, deflate-compressed). Never an input.")
         self.addOutput(QgsProcessingOutputNumber("RESOLUTION_OUT", self.tr("Pixel size of the orthoimage")))
 
     def run_algorithm(self, parameters, context, feedback, progress):
+        from gdal_gf4cal.errors import Gf4calError
         from gdal_gf4cal.geoid import GeoidGridMissing
         from gdal_gf4cal.workflows import orthorectify
 
@@ -87,9 +95,14 @@ class Orthorectify(Gf4calAlgorithm):
             rep = orthorectify(image.source(), dem=dem.source(), out=out, rpc=rpc, geoid=geoid, crs=crs_text,
                                res_m=res if res > 0 else None,
                                resampling=RESAMPLINGS[self.parameterAsEnum(parameters, self.RESAMPLING, context)],
-                               overwrite=True, progress=progress)
+                               overwrite=True, force=self.parameterAsBool(parameters, self.FORCE, context),
+                               progress=progress)
         except GeoidGridMissing as exc:
             raise self.error(str(exc.phrase("the 'Geoid grid file' parameter (GEOID_GRID)"))) from None
+        except Gf4calError as exc:
+            if "--force" not in str(exc):
+                raise
+            raise self.error(str(exc).replace("pass --force", "tick 'Write past the size limit' (FORCE)")) from None
         self.push_warnings(feedback, rep)
         g = rep.get("geoid")
         feedback.pushInfo(f"orthoimage {rep['size_px'][0]} x {rep['size_px'][1]} px of {rep['res_m']:.3f} in "

@@ -45,6 +45,7 @@ FORMATS = {
     "ventoux_left_image.geom": "geom",
     "RPC_PHR1A_P_202503191043438_SEN_7342362101-1.XML": "dimap",
     "wv3_20.NTF": "gdal",
+    "PHRDIMAP_P1BP--2018122638935449CP_excerpt.XML": "dimap",
 }
 
 
@@ -259,13 +260,16 @@ def test_unsupported_and_non_rpc_inputs(tmp_path):
         "<F_COL>0 1</F_COL><F_ROW>0 1</F_ROW></Inverse_Model></Global_RFM></Rational_Sensor_Model>"
         "</Geoposition></PHR_Dimap_Document>")
     (tmp_path / "empty.txt").write_text("")
+    (tmp_path / "bands.xml").write_text("<level_X><RPC>" + "".join(
+        f'<bandID number="{b}"><ROW_OFF>512</ROW_OFF><ROW_NUM_01>0.1</ROW_NUM_01></bandID>' for b in (1, 2))
+        + "</RPC></level_X>")
     (tmp_path / "broken.xml").write_text("<isd><RPB>")
     (tmp_path / "list.json").write_text("[1, 2]")
     (tmp_path / "noise.bin").write_bytes(bytes(range(256)) * 4)
     ds = gdal.GetDriverByName("GTiff").Create(str(tmp_path / "plain.tif"), 4, 4)
     ds = None
     cases = {
-        "PHRDIMAP.XML": "DIMAP v1", "empty.txt": "no RPC found", "broken.xml": "not well-formed XML",
+        "PHRDIMAP.XML": "DIMAP v1", "empty.txt": "no RPC found", "bands.xml": "one RPC per band (2 bands", "broken.xml": "not well-formed XML",
         "list.json": "JSON", "noise.bin": "GDAL", "plain.tif": "no RPC metadata", "missing.RPB": "no such file",
     }
     for name, words in cases.items():
@@ -276,6 +280,27 @@ def test_unsupported_and_non_rpc_inputs(tmp_path):
         RPCModel.from_file(tmp_path / "plain.tif")
     with pytest.raises(ValueError):
         rpc_io.read_rpc_metadata(tmp_path / "empty.txt")
+
+
+def test_pleiades_dimap_v1_inverse_model_inverts_its_direct_model():
+    """Pleiades DIMAP v1.4 (PHR_Dimap_Document): the RPC read from the inverse model F_COL/F_ROW takes every ground
+    point of the product's own direct model F_LON/F_LAT (an independent fit, DIMAP pixel centres at 1) back to the
+    pixel it came from, GDAL convention = DIMAP - 0.5 (Shareloc's test_rpc_phrdimap: within 2e-2 px)."""
+    from xml.etree import ElementTree as ET
+    from gdal_gf4cal.rpc import monomials
+    path = DATA / "PHRDIMAP_P1BP--2018122638935449CP_excerpt.XML"
+    rpc = RPCModel.from_file(path)
+    root = ET.parse(path).getroot()
+    coeff = {n: np.array(root.find(f".//Direct_Model/{n}").text.split(), float) for n in ("F_LON", "F_LAT")}
+    ab = {n: [float(root.find(f".//RFM_Validity/{n}/{k}").text) for k in "AB"] for n in ("Lon", "Lat", "Alt", "Col", "Row")}
+    col, row, h = (a.ravel() for a in np.meshgrid(np.linspace(1, 40000, 9), np.linspace(1, 38248, 9), [490.0, 660.0]))
+    x, y, z = ((v - ab[n][1]) / ab[n][0] for v, n in ((col, "Col"), (row, "Row"), (h, "Alt")))
+    m = monomials(x, y, z).T            # direct model: L <- normalised column, P <- normalised row
+    lon, lat = ((m @ c[:20]) / (m @ c[20:]) * ab[n][0] + ab[n][1] for c, n in ((coeff["F_LON"], "Lon"),
+                                                                             (coeff["F_LAT"], "Lat")))
+    s, l = rpc.project(lon, lat, h)
+    assert np.max(np.abs(s - (col - 0.5))) < 2e-2 and np.max(np.abs(l - (row - 0.5))) < 2e-2
+    assert (rpc.min_long, rpc.max_lat) == (2.111390777763922, 31.11614087798913)
 
 
 # ------------------------------------------------------------------------------------------------- writing
