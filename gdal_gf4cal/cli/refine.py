@@ -134,7 +134,5 @@ def _print_report(rep) -> None:
         print("applied exactly (offsets/scales)")
     else:
         print(f"applied by refitting the RPC: max error {ap['refit_max_px']:.2e} px, rms {ap['refit_rms_px']:.2e} px")
-    for warning in rep.get("warnings", []):
-        print(f"warning: {warning}")
     for k, v in rep["outputs"].items():
         print(f"wrote {k}: {v}")
