@@ -113,6 +113,9 @@ class DEM:
         self._west = min(gt[0], gt[0] + gt[1] * self.width)
         # A DEM of up to 16 Mpx (128 MB as float64) is read once and sampled without tiling.
         self._whole = None
+        self._max_step = None
+        self._xy_poly = None
+        self._local_max = {}
         self._whole_limit = 16 * 1024 * 1024
 
     # ------------------------------------------------------------------ constructors
@@ -283,6 +286,80 @@ class DEM:
                 gy[bad] = 0.0
         return z, gx, gy
 
+    # ------------------------------------------------------------------ raster-space access (line-of-sight marches)
+    def to_pixel(self, lon, lat):
+        """Pixel coordinates ``(px, py)`` of (lon, lat) WGS84 degrees in this raster, pixel centres at integers
+        (flat float arrays; the coordinates :meth:`sample_pixel` takes). Not for a constant DEM."""
+        x = np.asarray(lon, dtype=float).ravel()
+        y = np.asarray(lat, dtype=float).ravel()
+        if self._to_dem is not None:
+            x, y = self._dem_xy(x, y)
+        elif self._lon_wrap:
+            x = self._wrap_lon(x)
+        gt = self._gt
+        return (x - gt[0]) / gt[1] - 0.5, (y - gt[3]) / gt[5] - 0.5
+
+    def sample_pixel(self, px, py):
+        """Stored heights (band scale/offset applied, geoid not) at pixel coordinates, bilinear: NaN outside the
+        raster or next to no-data (METHODS §2). Windowed tile reads for large rasters, as :meth:`sample`."""
+        px = np.asarray(px, dtype=float).ravel()
+        py = np.asarray(py, dtype=float).ravel()
+        if self.width * self.height_px <= self._whole_limit:
+            return self._sample_whole(px, py)
+        return self._sample_tiles_gradient(px, py)[0]
+
+    def geoid_undulation(self, lon, lat):
+        """Ellipsoidal minus stored height at (lon, lat): the geoid undulation N when a geoid applies, else 0."""
+        lon = np.asarray(lon, dtype=float).ravel()
+        lat = np.asarray(lat, dtype=float).ravel()
+        if self._geoid is None:
+            return np.zeros(lon.size)
+        _, _, n = self._geoid.transform(lon, lat, np.zeros(lon.size))
+        return np.asarray(n, dtype=float)
+
+    def local_max(self, px, py, radius_px: int):
+        """Largest stored height (m) within ``radius_px`` pixels (a square) of the pixels nearest to (px, py),
+        clipped into the raster; -inf where that window holds no data. None for a raster too large to hold in
+        memory. The windowed maxima are computed once per radius (rounded up to a power of two) and kept."""
+        if self.is_constant or self.width * self.height_px > self._whole_limit:
+            return None
+        r = 1 << max(0, int(np.ceil(np.log2(max(radius_px, 1)))))
+        if self._local_max.get(r) is None:
+            from scipy.ndimage import maximum_filter
+            self._sample_whole(np.zeros(1), np.zeros(1))      # loads the raster
+            z = np.where(np.isnan(self._whole), -np.inf, self._whole)
+            self._local_max[r] = maximum_filter(z, size=2 * r + 1, mode="nearest")
+        i = np.clip(np.rint(np.nan_to_num(py, nan=0.0)), 0, self.height_px - 1).astype(np.intp)
+        j = np.clip(np.rint(np.nan_to_num(px, nan=0.0)), 0, self.width - 1).astype(np.intp)
+        return self._local_max[r][i, j]
+
+    def pixel_size_m(self) -> Tuple[float, float]:
+        """Approximate pixel size in metres (x, y) at the raster's centre (projected CRS: its units, metres)."""
+        if self.is_constant:
+            return (np.inf, np.inf)
+        gt = self._gt
+        if self._lon_wrap:
+            lat = gt[3] + gt[5] * self.height_px / 2
+            return (abs(gt[1]) * 111320.0 * max(np.cos(np.radians(lat)), 1e-6), abs(gt[5]) * 110574.0)
+        return (abs(gt[1]), abs(gt[5]))
+
+    def max_step_px(self) -> Tuple[float, float]:
+        """Largest height difference (m) between neighbouring pixels along x and along y: bounds of the bilinear
+        surface's slopes in metres per pixel (no-data ignored). ``(inf, inf)`` for a raster too large to hold in
+        memory (no bound known without reading it all)."""
+        if self.is_constant:
+            return (0.0, 0.0)
+        if self.width * self.height_px > self._whole_limit:
+            return (np.inf, np.inf)
+        if self._max_step is None:
+            self._sample_whole(np.zeros(1), np.zeros(1))      # loads the raster
+            z = self._whole
+            with np.errstate(invalid="ignore"):
+                dx = np.abs(np.diff(z, axis=1)) if z.shape[1] > 1 else np.zeros(1)
+                dy = np.abs(np.diff(z, axis=0)) if z.shape[0] > 1 else np.zeros(1)
+            self._max_step = (float(np.nanmax(dx, initial=0.0)), float(np.nanmax(dy, initial=0.0)))
+        return self._max_step
+
     def _sample_tiles_gradient(self, px, py):
         """Bilinear value and gradient (per pixel) of a large raster, by windowed tile reads (one per tile)."""
         W, H = self.width, self.height_px
@@ -331,8 +408,7 @@ class DEM:
             return h.reshape(shape) if shape else float(h[0])
         x, y = lon.ravel(), lat.ravel()
         if self._to_dem is not None:
-            x, y = self._to_dem.transform(x, y)
-            x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+            x, y = self._dem_xy(x, y)
         if self._lon_wrap:
             x = self._wrap_lon(x)
         h = self._sample_bilinear(x, y)
@@ -343,6 +419,49 @@ class DEM:
                 h[ok] = h_ell
         h = self._apply_nodata(h, lon.ravel(), lat.ravel(), policy)
         return h.reshape(shape) if shape else float(h[0])
+
+    def _dem_xy(self, lon, lat):
+        """(lon, lat) -> DEM CRS coordinates: a cubic polynomial fitted over the DEM's footprint where it
+        reproduces PROJ to 1e-6 pixel (checked when fitted), PROJ itself elsewhere or when it does not."""
+        if self._xy_poly is None:
+            self._xy_poly = self._fit_xy_poly()
+        fit = self._xy_poly
+        if fit is False:
+            x, y = self._to_dem.transform(lon, lat)
+            return np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        (lo0, la0, lo_s, la_s), coef = fit
+        u = (lon - lo0) / lo_s
+        v = (lat - la0) / la_s
+        with np.errstate(invalid="ignore"):
+            inside = (np.abs(u) <= 1.0) & (np.abs(v) <= 1.0)
+        xy = coef @ _cubic_terms(u, v)
+        x, y = xy[0], xy[1]
+        if not np.all(inside):
+            out = np.flatnonzero(~inside & np.isfinite(u) & np.isfinite(v))
+            if out.size:
+                xo, yo = self._to_dem.transform(lon[out], lat[out])
+                x[out], y[out] = xo, yo
+        return x, y
+
+    def _fit_xy_poly(self):
+        """((lon0, lat0, lon_scale, lat_scale), (2, 10) coefficients) or False (see :meth:`_dem_xy`)."""
+        w, s_, e, n = self.bounds_lonlat()
+        if not (np.isfinite([w, s_, e, n]).all() and e > w and n > s_) or e - w > 2.0 or n - s_ > 2.0:
+            return False
+        lo0, la0 = 0.5 * (w + e), 0.5 * (s_ + n)
+        # The footprint and around it (lines of sight are fitted over their whole height range, which can
+        # reach far beyond a small DSM): half its size, 0.02 deg at least, each side.
+        lo_s, la_s = max(e - w, 0.02), max(n - s_, 0.02)
+        g = np.cos(np.pi * np.arange(12) / 11)
+        u, v = (a.ravel() for a in np.meshgrid(g, g))
+        x, y = self._to_dem.transform(lo0 + lo_s * u, la0 + la_s * v)
+        coef = np.linalg.lstsq(_cubic_terms(u, v).T, np.column_stack([x, y]), rcond=None)[0].T
+        c = np.linspace(-0.97, 0.97, 15)
+        u, v = (a.ravel() for a in np.meshgrid(c, c))
+        x, y = self._to_dem.transform(lo0 + lo_s * u, la0 + la_s * v)
+        px = coef @ _cubic_terms(u, v)
+        err = max(np.max(np.abs(px[0] - x)) / abs(self._gt[1]), np.max(np.abs(px[1] - y)) / abs(self._gt[5]))
+        return ((lo0, la0, lo_s, la_s), coef) if err <= 1e-6 else False
 
     def _wrap_lon(self, x):
         """Longitudes (DEM CRS degrees) outside ``[west, west + 360)`` moved into it by whole turns."""
@@ -479,6 +598,11 @@ class DEM:
         return f"DEM.from_file({self.path!r}, geoid={self._geoid_name!r})"
 
 
+def _cubic_terms(u, v) -> np.ndarray:
+    """The ten monomials of a bivariate cubic (rows)."""
+    return np.array([np.ones_like(u), u, v, u * v, u * u, v * v, u ** 3, u * u * v, u * v * v, v ** 3])
+
+
 def _bilinear(block: np.ndarray, lx, ly, fx, fy) -> np.ndarray:
     """Bilinear interpolation in ``block`` at integer corners (lx, ly) plus fractions (fx, fy).
 
@@ -505,8 +629,10 @@ def _bilinear_flat(flat, W, H, px, py, z, gx=None, gy=None):
     """
     with np.errstate(invalid="ignore"):
         outside = ~((px >= -0.5) & (py >= -0.5) & (px <= W - 0.5) & (py <= H - 0.5))
-    x = np.clip(px, 0.0, W - 1.0)
-    y = np.clip(py, 0.0, H - 1.0)
+    x = np.minimum(px, W - 1.0)              # np.clip with scalars is several times slower
+    np.maximum(x, 0.0, out=x)
+    y = np.minimum(py, H - 1.0)
+    np.maximum(y, 0.0, out=y)
     x[outside] = 0.0
     y[outside] = 0.0
     x0 = np.minimum(x.astype(np.intp), W - 2)
