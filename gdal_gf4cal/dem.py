@@ -188,6 +188,11 @@ class DEM:
     def is_constant(self) -> bool:
         return self.constant_height is not None
 
+    @property
+    def is_geographic(self) -> bool:
+        """True for a raster in a geographic CRS (longitudes compared modulo 360)."""
+        return not self.is_constant and bool(self._lon_wrap)
+
     def bounds_lonlat(self) -> Tuple[float, float, float, float]:
         """(min_lon, min_lat, max_lon, max_lat) of the raster, in WGS84 degrees."""
         if self.is_constant:

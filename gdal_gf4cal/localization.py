@@ -324,6 +324,9 @@ _STEP_PX = 1.0
 #: Window radii (pixels) of the windowed DEM maxima that let the march jump over empty space, shortest first.
 _JUMP_PX = (4, 8)
 
+#: Rays marched together (their state, 18 floats each, stays in cache).
+_MARCH_CHUNK = 16384
+
 #: Bisection steps that locate a hole's edges along a line of sight (1/32 of a step).
 _EDGE_STEPS = 5
 
@@ -456,42 +459,51 @@ def _march(ray, dem):
     steps = 0
     jump = dem.local_max(np.zeros(1), np.zeros(1), 1) is not None
     with np.errstate(invalid="ignore"):
-        while S.shape[0]:
-            steps += 1
-            T = S.T
-            t = T[10]
-            px, py = _horner(T[0:4], t), _horner(T[4:8], t)
-            z = dem.sample_pixel(px, py)
-            f = z - (T[8] + T[9] * t)
-            fin = np.isfinite(f)
-            above = fin & (f < 0)
-            hit = fin & ~above
-            has_above = np.isfinite(T[14])
-            j = np.flatnonzero(hit & has_above)
-            if j.size:
-                hits.append((T[17, j].astype(np.intp), T[13, j], T[14, j], t[j], f[j], T[15, j], T[16, j]))
-            T[15] = np.where(above, np.nan, np.where(has_above & ~fin & np.isnan(T[15]), t, T[15]))
-            T[13] = np.where(above, t, T[13])
-            T[14] = np.where(above, f, T[14])
-            keep = ~hit & (t > T[11])
-            if not keep.all():
-                S = S[keep]
-                T = S.T
-            T[16] = T[10]
-            # Jump _JUMP_PX - 2 pixels at once where the ray stays above the highest DEM point within _JUMP_PX
-            # pixels (a windowed maximum): no crossing can lie in between (-2: rounding, bilinear neighbours).
-            step = T[12]
-            if jump:
-                pxk, pyk = (px, py) if keep.all() else (px[keep], py[keep])
-                for r in _JUMP_PX:                      # the longest jump allowed wins (last)
-                    far = (r - 2) * T[12]
-                    zmax = dem.local_max(pxk, pyk, r)
-                    step = np.where(T[8] + T[9] * (T[10] - far) > zmax + 0.01, far, step)
-            T[10] = np.maximum(T[10] - step, T[11])
+        for i in range(0, S.shape[0], _MARCH_CHUNK):      # chunks: the state of a chunk stays in cache
+            steps = max(steps, _march_chunk(S[i:i + _MARCH_CHUNK], dem, jump, hits))
         if hits:
             _settle(ray, dem, out, *(np.concatenate(v) for v in zip(*hits)))
     out.steps = steps
     return out
+
+
+def _march_chunk(S, dem, jump, hits) -> int:
+    """The march loop of :func:`_march` on the state rows ``S`` of some rays; appends the crossings found to
+    ``hits``; returns the number of steps."""
+    steps = 0
+    while S.shape[0]:
+        steps += 1
+        T = S.T
+        t = T[10]
+        px, py = _horner(T[0:4], t), _horner(T[4:8], t)
+        z = dem.sample_pixel(px, py)
+        f = z - (T[8] + T[9] * t)
+        fin = np.isfinite(f)
+        above = fin & (f < 0)
+        hit = fin & ~above
+        has_above = np.isfinite(T[14])
+        j = np.flatnonzero(hit & has_above)
+        if j.size:
+            hits.append((T[17, j].astype(np.intp), T[13, j], T[14, j], t[j], f[j], T[15, j], T[16, j]))
+        T[15] = np.where(above, np.nan, np.where(has_above & ~fin & np.isnan(T[15]), t, T[15]))
+        T[13] = np.where(above, t, T[13])
+        T[14] = np.where(above, f, T[14])
+        keep = ~hit & (t > T[11])
+        if not keep.all():
+            S = S[keep]
+            T = S.T
+        T[16] = T[10]
+        # Jump r - 2 pixels at once where the ray stays above the highest DEM point within r pixels (a windowed
+        # maximum, r in _JUMP_PX): no crossing can lie in between (-2: rounding, bilinear neighbours).
+        step = T[12]
+        if jump:
+            pxk, pyk = (px, py) if keep.all() else (px[keep], py[keep])
+            for r in _JUMP_PX:                      # the longest jump allowed wins (last)
+                far = (r - 2) * T[12]
+                zmax = dem.local_max(pxk, pyk, r)
+                step = np.where(T[8] + T[9] * (T[10] - far) > zmax + 0.01, far, step)
+        T[10] = np.maximum(T[10] - step, T[11])
+    return steps
 
 
 def _start_below_local_max(ray, dem, rate, t_lo, t_hi) -> None:
@@ -771,6 +783,8 @@ def _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, dem, tol_m,
         return out
     Rp, Jp, xp, yp = R[:, idx], J[:, idx], x[idx], y[idx]
     up, sp, bp = u[idx], slope[idx], bridged[idx]
+    u_last = np.full(idx.size, np.nan)          # the previous polish step's height and |DEM - h| (secant slope)
+    f_last = np.full(idx.size, np.nan)
     dL = np.zeros(idx.size)
     dP = np.zeros(idx.size)
     tol_x, tol_y = 1e-8 / abs(rpc.samp_scale), 1e-8 / abs(rpc.line_scale)
@@ -807,9 +821,13 @@ def _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, dem, tol_m,
         j = idx[done]
         out[0, j], out[1, j], out[2, j] = lon[done], lat[done], h[done]
         keep = np.flatnonzero(~done & exact & np.isfinite(f))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            secant = (f - f_last) / (up - u_last)
+        sp = np.where(np.isfinite(secant) & (secant < 0), secant, sp)
         idx, Rp, Jp, xp, yp, sp = idx[keep], Rp[:, keep], Jp[:, keep], xp[keep], yp[keep], sp[keep]
         bp = bp[keep]
         dL, dP = (L - Lr)[keep], (P - Pr)[keep]
+        u_last, f_last = up[keep], f[keep]
         up = up[keep] - f[keep] / sp
     return out
 
@@ -824,6 +842,9 @@ def _march_rpc_ray(G, h0, dem, todo, u, slope, ready, bridged, missed):
         uu = h - h0
         return _horner(G[0:4], uu), _horner(G[4:8], uu)
 
+    near = _near_footprint(dem, *lonlat_at(h_lo), *lonlat_at(h_hi))
+    missed[todo[~near]] = True
+    todo, G = todo[near], G[:, near]
     ray = _LineOfSight.from_lonlat(lonlat_at, dem, np.full(todo.size, h_lo), np.full(todo.size, h_hi))
     br = _march(ray, dem)
     missed[todo[~br.found]] = True
@@ -837,6 +858,21 @@ def _march_rpc_ray(G, h0, dem, todo, u, slope, ready, bridged, missed):
     ok = br.found & np.isfinite(hb)
     j = todo[ok]
     u[j], slope[j], ready[j], bridged[j] = hb[ok] - h0, sl[ok], True, br.bridged[ok]
+
+
+def _near_footprint(dem, lon0, lat0, lon1, lat1) -> np.ndarray:
+    """False for the rays whose ground track (lon0, lat0) -> (lon1, lat1) lies wholly beyond one side of the
+    DEM's lon/lat bounds widened by 10 % (they cannot cross it: known at once, before any fit or sample)."""
+    w, s_, e, n = dem.bounds_lonlat()
+    mx, my = 0.1 * (e - w) + 1e-6, 0.1 * (n - s_) + 1e-6
+    if not dem.is_geographic and (e - w > 5.0 or n - s_ > 5.0 or max(abs(s_), abs(n)) > 80.0):
+        return np.ones(np.shape(lon0), dtype=bool)     # a projected footprint its corners may not bound
+    if dem.is_geographic:              # longitudes compared modulo 360, as the DEM samples them
+        lon0, lon1 = w + np.mod(lon0 - w, 360.0), w + np.mod(lon1 - w, 360.0)
+    with np.errstate(invalid="ignore"):
+        beyond = ((lon0 < w - mx) & (lon1 < w - mx)) | ((lon0 > e + mx) & (lon1 > e + mx)) | \
+                 ((lat0 < s_ - my) & (lat1 < s_ - my)) | ((lat0 > n + my) & (lat1 > n + my))
+    return ~beyond
 
 
 def _illinois_on_ray(ray, dem, i, a, b, fa, fb, tol, max_iter: int = 30):
