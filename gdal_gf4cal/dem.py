@@ -322,21 +322,32 @@ class DEM:
         _, _, n = self._geoid.transform(lon, lat, np.zeros(lon.size))
         return np.asarray(n, dtype=float)
 
-    def local_max(self, px, py, radius_px: int):
+    def local_max(self, px, py, radius_px):
         """Largest stored height (m) within ``radius_px`` pixels (a square) of the pixels nearest to (px, py),
-        clipped into the raster; -inf where that window holds no data. None for a raster too large to hold in
-        memory. The windowed maxima are computed once per radius (rounded up to a power of two) and kept."""
+        clipped into the raster; -inf where that window holds no data. ``radius_px`` may be a tuple of radii
+        (then a list, one array per radius). None for a raster too large to hold in memory. The windowed maxima
+        are computed once per radius (rounded up to a power of two) and kept."""
         if self.is_constant or self.width * self.height_px > self._whole_limit:
             return None
+        radii = radius_px if isinstance(radius_px, tuple) else (radius_px,)
+        tables = [self._local_max_table(r) for r in radii]
+        W, H = self.width, self.height_px
+        i = np.fmin(np.fmax(np.asarray(py, dtype=float) + 0.5, 0.0), H - 1.0).astype(np.intp)   # NaN -> 0
+        j = np.fmin(np.fmax(np.asarray(px, dtype=float) + 0.5, 0.0), W - 1.0).astype(np.intp)
+        k = i * W
+        k += j
+        out = [t.take(k) for t in tables]
+        return out if isinstance(radius_px, tuple) else out[0]
+
+    def _local_max_table(self, radius_px: int) -> np.ndarray:
         r = 1 << max(0, int(np.ceil(np.log2(max(radius_px, 1)))))
         if self._local_max.get(r) is None:
             from scipy.ndimage import maximum_filter
-            self._sample_whole(np.zeros(1), np.zeros(1))      # loads the raster
+            if self._whole is None:
+                self._load_whole()
             z = np.where(np.isnan(self._whole), -np.inf, self._whole)
-            self._local_max[r] = maximum_filter(z, size=2 * r + 1, mode="nearest")
-        i = np.clip(np.rint(np.nan_to_num(py, nan=0.0)), 0, self.height_px - 1).astype(np.intp)
-        j = np.clip(np.rint(np.nan_to_num(px, nan=0.0)), 0, self.width - 1).astype(np.intp)
-        return self._local_max[r][i, j]
+            self._local_max[r] = maximum_filter(z, size=2 * r + 1, mode="nearest").ravel()
+        return self._local_max[r]
 
     def pixel_size_m(self) -> Tuple[float, float]:
         """Approximate pixel size in metres (x, y) at the raster's centre (projected CRS: its units, metres)."""
@@ -357,7 +368,8 @@ class DEM:
         if self.width * self.height_px > self._whole_limit:
             return (np.inf, np.inf)
         if self._max_step is None:
-            self._sample_whole(np.zeros(1), np.zeros(1))      # loads the raster
+            if self._whole is None:
+                self._load_whole()
             z = self._whole
             with np.errstate(invalid="ignore"):
                 dx = np.abs(np.diff(z, axis=1)) if z.shape[1] > 1 else np.zeros(1)
@@ -533,6 +545,15 @@ class DEM:
         return out
 
     @with_gdal_exceptions
+    def _load_whole(self) -> None:
+        """Read the whole raster once (no-data as NaN, band scale/offset applied) for :meth:`_sample_whole`."""
+        block = self._band.ReadAsArray().astype(float)
+        if self._nodata_value is not None:
+            block[block == self._nodata_value] = np.nan
+        if self._scale != 1.0 or self._offset != 0.0:
+            block = block * self._scale + self._offset
+        self._whole = block
+
     def _sample_whole(self, px, py, gradient: bool = False):
         """Bilinear sampling of a small DEM held in memory, at pixel coordinates (pixel centres at integers).
 
@@ -543,12 +564,7 @@ class DEM:
         generic ``map_coordinates``).
         """
         if self._whole is None:
-            block = self._band.ReadAsArray().astype(float)
-            if self._nodata_value is not None:
-                block[block == self._nodata_value] = np.nan
-            if self._scale != 1.0 or self._offset != 0.0:
-                block = block * self._scale + self._offset
-            self._whole = block
+            self._load_whole()
         W, H = self.width, self.height_px
         px = np.asarray(px, dtype=float).ravel()
         py = np.asarray(py, dtype=float).ravel()

@@ -441,9 +441,12 @@ def _march(ray, dem):
     _start_below_local_max(ray, dem, rate, t_lo, t_hi)
     # A ray starting in a hole starts from the top after all: a crossing in the hole is bridged from the last
     # data above it, wherever that is (as a march from the top does).
+    f_start = np.full(t_hi.size, np.nan)
     with np.errstate(invalid="ignore"):
         live = np.flatnonzero((t_lo <= t_hi) & (t_hi < t_top))
-        hole = live[np.isnan(ray.f(dem, live, t_hi[live]))]
+        f_start[live] = ray.f(dem, live, t_hi[live])
+        hole = live[np.isnan(f_start[live])]
+        f_start[f_start >= 0] = np.nan
     t_hi[hole] = t_top[hole]
     idx = np.flatnonzero(t_lo <= t_hi)
     # State of the live rays, one row per ray (compacted with one contiguous gather per step): the ray's cubic
@@ -455,6 +458,10 @@ def _march(ray, dem):
     S[:, 10], S[:, 11], S[:, 12] = t_hi[idx], t_lo[idx], dt[idx]
     S[:, 13:16] = np.nan
     S[:, 16], S[:, 17] = t_hi[idx], idx
+    # Rays whose start sample is known above the surface (below a local maximum) take their first step at once.
+    known = np.isfinite(f_start[idx])
+    S[known, 13], S[known, 14] = t_hi[idx[known]], f_start[idx[known]]
+    S[known, 10] = np.maximum(S[known, 10] - S[known, 12], S[known, 11])
     hits = []
     steps = 0
     jump = dem.local_max(np.zeros(1), np.zeros(1), 1) is not None
@@ -498,9 +505,8 @@ def _march_chunk(S, dem, jump, hits) -> int:
         step = T[12]
         if jump:
             pxk, pyk = (px, py) if keep.all() else (px[keep], py[keep])
-            for r in _JUMP_PX:                      # the longest jump allowed wins (last)
+            for r, zmax in zip(_JUMP_PX, dem.local_max(pxk, pyk, _JUMP_PX)):   # the longest jump allowed wins
                 far = (r - 2) * T[12]
-                zmax = dem.local_max(pxk, pyk, r)
                 step = np.where(T[8] + T[9] * (T[10] - far) > zmax + 0.01, far, step)
         T[10] = np.maximum(T[10] - step, T[11])
     return steps
