@@ -339,15 +339,42 @@ class DEM:
         out = [t.take(k) for t in tables]
         return out if isinstance(radius_px, tuple) else out[0]
 
-    def _local_max_table(self, radius_px: int) -> np.ndarray:
+    def local_max_slope(self, px, py, radius_px: int):
+        """Steepest slope (m/m) of the bilinear surface within ``radius_px`` pixels of (px, py) (as
+        :meth:`local_max`; no-data ignored). None for a raster too large to hold in memory."""
+        if self.is_constant or self.width * self.height_px > self._whole_limit:
+            return None
+        W, H = self.width, self.height_px
+        i = np.fmin(np.fmax(np.asarray(py, dtype=float) + 0.5, 0.0), H - 1.0).astype(np.intp)
+        j = np.fmin(np.fmax(np.asarray(px, dtype=float) + 0.5, 0.0), W - 1.0).astype(np.intp)
+        return self._local_max_table(radius_px, slope=True).take(i * W + j)
+
+    def _local_max_table(self, radius_px: int, slope: bool = False) -> np.ndarray:
+        """Windowed maxima (flat) of the heights, or of the cell slopes, radius rounded up to a power of two."""
         r = 1 << max(0, int(np.ceil(np.log2(max(radius_px, 1)))))
-        if self._local_max.get(r) is None:
+        key = (r, slope)
+        if self._local_max.get(key) is None:
             from scipy.ndimage import maximum_filter
             if self._whole is None:
                 self._load_whole()
-            z = np.where(np.isnan(self._whole), -np.inf, self._whole)
-            self._local_max[r] = maximum_filter(z, size=2 * r + 1, mode="nearest").ravel()
-        return self._local_max[r]
+            z = self._whole
+            if slope:
+                mx, my = self.pixel_size_m()
+                g = np.zeros(z.shape)
+                with np.errstate(invalid="ignore"):
+                    if z.shape[1] > 1:
+                        dx = np.nan_to_num(np.abs(np.diff(z, axis=1)) / mx)
+                        g[:, :-1] = np.maximum(g[:, :-1], dx)
+                        g[:, 1:] = np.maximum(g[:, 1:], dx)
+                    if z.shape[0] > 1:
+                        dy = np.nan_to_num(np.abs(np.diff(z, axis=0)) / my)
+                        g[:-1] = np.maximum(g[:-1], dy)
+                        g[1:] = np.maximum(g[1:], dy)
+                table = maximum_filter(g, size=2 * r + 3, mode="nearest")    # + the cells' own extent
+            else:
+                table = maximum_filter(np.where(np.isnan(z), -np.inf, z), size=2 * r + 1, mode="nearest")
+            self._local_max[key] = table.ravel()
+        return self._local_max[key]
 
     def pixel_size_m(self) -> Tuple[float, float]:
         """Approximate pixel size in metres (x, y) at the raster's centre (projected CRS: its units, metres)."""

@@ -234,6 +234,26 @@ def _one_crossing(dem: DEM, tan_view) -> np.ndarray:
     return _max_slope(dem) * np.sqrt(2.0) * np.asarray(tan_view) < 0.9
 
 
+def _one_crossing_near(dem: DEM, G, h0) -> np.ndarray:
+    """:func:`_one_crossing` per ray of the cubic rays ``G`` (lon, lat in u = h - h0), with the steepest slope
+    of the DEM near each ray's track (within the track's length of its point at h0) where the DEM is held in
+    memory, the DEM's steepest slope otherwise."""
+    tan_view = 1.1 * np.hypot(G[1] * 111320.0 * np.cos(np.radians(G[4])), G[5] * 110574.0)
+    if G.shape[1] == 0:
+        return np.zeros(0, dtype=bool)
+    if np.all(_one_crossing(dem, tan_view)):
+        return np.ones(G.shape[1], dtype=bool)
+    h_lo, h_hi = _dem_height_bounds(dem)
+    radius = float(np.max(tan_view)) * max(h_hi - h0, h0 - h_lo) / min(dem.pixel_size_m()) + 2.0
+    if not np.isfinite(radius) or radius > 512:
+        return _one_crossing(dem, tan_view)
+    px, py = dem.to_pixel(G[0], G[4])
+    slope = dem.local_max_slope(px, py, int(np.ceil(radius)))
+    if slope is None:
+        return _one_crossing(dem, tan_view)
+    return slope * np.sqrt(2.0) * tan_view < 0.9
+
+
 def _view_tangent(loc, n, h_lo, h_hi) -> float:
     """Largest tan(view angle) (ground metres per metre of height) over a subsample of the points (NaN -> inf)."""
     sub = np.arange(0, n, max(1, n // 64))
@@ -742,9 +762,8 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
     u = np.zeros(m)
     slope = np.full(m, -1.0)
     ready = np.zeros(m, dtype=bool)
-    tan_view = np.hypot(G[1] * 111320.0 * np.cos(np.radians(G[4])), G[5] * 110574.0)
-    idx = np.flatnonzero(np.isfinite(G[0]) & np.isfinite(G[4]) & np.isfinite(R[1]) & np.isfinite(R[5]) &
-                         _one_crossing(dem, 1.1 * tan_view))
+    idx = np.flatnonzero(np.isfinite(G[0]) & np.isfinite(G[4]) & np.isfinite(R[1]) & np.isfinite(R[5]))
+    idx = idx[_one_crossing_near(dem, G[:, idx], h0)]
     Ga = G[:, idx]
     uu = np.zeros(idx.size)
     f_prev = np.full(idx.size, np.nan)
