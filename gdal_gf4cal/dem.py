@@ -116,6 +116,7 @@ class DEM:
         self._max_step = None
         self._xy_poly = None
         self._local_max = {}
+        self._height_range = None
         self._whole_limit = 16 * 1024 * 1024
 
     # ------------------------------------------------------------------ constructors
@@ -205,12 +206,22 @@ class DEM:
         return (float(np.min(xs)), float(np.min(ys)), float(np.max(xs)), float(np.max(ys)))
 
     def height_range(self) -> Tuple[float, float]:
-        """(min, max) of the stored heights (approximate statistics; geoid not applied).
+        """(min, max) of the stored heights (geoid not applied): exact for a raster held in memory (see
+        :attr:`height_range_is_exact`), GDAL's approximate statistics for a larger one.
 
         Raises :class:`DEMError` if the raster holds no valid height at all (every pixel no-data).
         """
         if self.is_constant:
             return (self.constant_height, self.constant_height)
+        if self.height_range_is_exact:
+            if self._height_range is None:
+                if self._whole is None:
+                    self._load_whole()
+                if np.all(np.isnan(self._whole)):
+                    raise DEMError(f"DEM {self.path} has no valid height (every pixel is no-data); use a DEM with "
+                                   "data over the scene")
+                self._height_range = (float(np.nanmin(self._whole)), float(np.nanmax(self._whole)))
+            return self._height_range
         for approx in (True, False):       # approximate statistics may sample only voids: then scan it all
             try:
                 lo_hi = self._band.ComputeRasterMinMax(approx)
@@ -221,6 +232,11 @@ class DEM:
                 return (lo, hi)
         raise DEMError(f"DEM {self.path} has no valid height (every pixel is no-data); use a DEM with data over "
                        "the scene")
+
+    @property
+    def height_range_is_exact(self) -> bool:
+        """True when :meth:`height_range` is the exact range (a raster small enough to hold in memory)."""
+        return self.is_constant or self.width * self.height_px <= self._whole_limit
 
     # ------------------------------------------------------------------ sampling
     def sample(self, lon, lat, *, nodata: Optional[NodataPolicy] = None):

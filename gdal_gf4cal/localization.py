@@ -2,17 +2,23 @@
 
 Localisation lives apart from the models (as in Shareloc): a model only has to ``localize(sample, line, h)``;
 this module intersects its lines of sight with a :class:`~gdal_gf4cal.dem.DEM` through the DEM's public sampling
-API (:meth:`DEM.sample`, :meth:`DEM.sample_with_gradient`) and never reads a private DEM attribute.
+API (:meth:`DEM.sample`, :meth:`DEM.sample_with_gradient`, and the raster-space :meth:`DEM.to_pixel`,
+:meth:`DEM.sample_pixel`, :meth:`DEM.local_max`) and never reads a private DEM attribute.
 
-Generic path: the intersection height solves ``f(h) = DEM(localize(s, l, h)) - h = 0``. Most points converge by
-the plain height iteration ``h <- DEM(localize(s, l, h))`` in a few steps; where it oscillates or diverges (steep
-terrain seen obliquely: |slope x tan(view angle)| >= 1) the root is bracketed by scanning heights from the top of
-the DEM's range down (the first sign change seen from the satellite is the visible surface) and refined by the
-Illinois variant of regula falsi. Every stage is vectorised over the points still unsolved.
+The answer is the first crossing of f(h) = DEM(localize(s, l, h)) - h seen from above. Where a ray can cross the
+DEM only once (|slope x tan(view angle)| < 1 everywhere near it: smooth terrain) any root is that one, and Newton
+or height iterations find it in a few steps. Elsewhere (a DSM's walls, cliffs seen obliquely, holes) the ray is
+marched from the top of the DEM's range down (:func:`_march`, as Shareloc and Rugged do over DTM cells): the ray as
+a cubic in DEM pixel space, one pixel of ground track per step, longer jumps where windowed maxima of the DEM show
+empty space below the ray; no-data samples are stepped over and a crossing inside a hole is bridged (f linear
+along the ray between the hole's edges); a ray whose track leaves the raster gives up at once (NaN). The bracket
+is refined by the Illinois variant of regula falsi, then polished with the exact model. Every stage is
+vectorised over the points still unsolved.
 
 RPC fast path (models with ``rational_polynomial = True``, i.e. :class:`~gdal_gf4cal.rpc.RPCModel`): a cubic
-model of the line of sight, Newton steps for the height on it with DEM samples and slopes only, then an exact
-polish (see :func:`_rpc_localize_dem_fast`); the points it does not settle take the generic path.
+model of the line of sight, Newton steps for the height on it with DEM samples and slopes only (rays crossing
+once) or the march on it (the others), then an exact polish (see :func:`_rpc_localize_dem_fast`); the points it
+does not settle take the generic path.
 """
 from __future__ import annotations
 
@@ -83,8 +89,11 @@ def localize_dem(model, sample, line, dem, *, pixel_convention: str = "gdal", to
 
     Returns
     -------
-    lon, lat, h : arrays (or Python floats for scalar input); NaN where there is no intersection (off the DEM,
-    no convergence). With ``full_output=True`` a fourth item, :class:`LocalizationStats`.
+    lon, lat, h : arrays (or Python floats for scalar input): the first crossing of each line of sight with the
+    DEM seen from above (on a DSM: the roof or wall, never the ground hidden behind it); across no-data holes
+    inside the raster the surface is bridged (interpolated linearly along the ray between the hole's edges).
+    NaN where there is no intersection (off the DEM, no convergence), or the DEM's fallback height where its
+    no-data policy is a number. With ``full_output=True`` a fourth item, :class:`LocalizationStats`.
     """
     dem = DEM.coerce(dem)
     sample, line = np.broadcast_arrays(np.asarray(sample, dtype=float), np.asarray(line, dtype=float))
@@ -94,11 +103,28 @@ def localize_dem(model, sample, line, dem, *, pixel_convention: str = "gdal", to
         lon, lat, hgt, iters = _localize_dem_flat(model, s, l, dem, pixel_convention, tol_m, max_iter, scan_steps)
     else:
         lon, lat, hgt, iters = _localize_dem_generic(model, s, l, dem, pixel_convention, tol_m, max_iter, scan_steps)
+    _fallback_height(model, s, l, dem, pixel_convention, lon, lat, hgt)
     _warn_implausible_heights(model, dem, hgt)
     out = (_shape_out(lon, shape), _shape_out(lat, shape), _shape_out(hgt, shape))
     if not full_output:
         return out
     return out + (_dem_stats(model, s, l, dem, pixel_convention, lon, lat, hgt, iters),)
+
+
+def _fallback_height(model, s, l, dem, pixel_convention, lon, lat, hgt) -> None:
+    """A DEM with a numeric no-data policy (a fallback height): the points whose line of sight meets no DEM
+    surface (off the raster, or into no-data it cannot bridge) are localised at that height. In place."""
+    policy = dem.nodata_policy
+    if isinstance(policy, str) or dem.is_constant:
+        return
+    todo = np.flatnonzero(~np.isfinite(hgt))
+    if todo.size == 0:
+        return
+    kw = {"pixel_convention": pixel_convention} if pixel_convention != "gdal" else {}
+    lo, la = model.localize(s[todo], l[todo], np.full(todo.size, float(policy)), **kw)
+    lo, la = np.asarray(lo, dtype=float).reshape(-1), np.asarray(la, dtype=float).reshape(-1)
+    ok = np.isfinite(lo) & np.isfinite(la)
+    lon[todo[ok]], lat[todo[ok]], hgt[todo[ok]] = lo[ok], la[ok], float(policy)
 
 
 def _warn_implausible_heights(model, dem, hgt) -> None:
@@ -282,8 +308,8 @@ def _bracket_and_refine(loc, terrain, todo, h_lo, h_hi, tol_m, max_iter, scan_st
     localisations; holes bridged (:func:`_march`). Returns the number of height evaluations made.
 
     The line of sight of each point is modelled as a cubic in h through four exact localisations (for the
-    march only); the bracket the march finds is then refined with ``loc`` itself. ``scan_steps`` bounds the
-    march's step (the height range in at least that many steps) when no DEM raster is given."""
+    march only); the bracket the march finds is then refined with ``loc`` itself. (``scan_steps``, the fixed
+    scan of earlier versions, is no longer used: the march steps one DEM pixel of ground track.)"""
     if dem is None or dem.is_constant:
         return 0
     ray = _LineOfSight.from_localizer(loc, todo, dem, h_lo, h_hi)
@@ -449,6 +475,8 @@ def _march(ray, dem):
     out = _Brackets(np.zeros(m, bool), np.zeros(m, bool), *(np.full(m, np.nan) for _ in range(5)), 0)
     t_lo, t_hi = _clip_to_raster(ray, dem)
     z_lo, z_hi = dem.height_range()
+    if not dem.height_range_is_exact:          # approximate statistics: leave room above and below
+        z_lo, z_hi = z_lo - 0.05 * (z_hi - z_lo) - 1.0, z_hi + 0.05 * (z_hi - z_lo) + 1.0
     with np.errstate(divide="ignore", invalid="ignore"):
         t_hi = np.fmin(t_hi, (z_hi + ray.n_geoid + 0.5 - ray.h_mid) / ray.h_half)
         t_lo = np.fmax(t_lo, (z_lo + ray.n_geoid - 0.5 - ray.h_mid) / ray.h_half)

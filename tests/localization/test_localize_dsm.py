@@ -89,8 +89,15 @@ def test_first_crossing_on_a_dsm_with_holes(ventoux, dsm, fast_path):
     assert np.max(np.hypot(s2 - s[found], l2 - l[found])) <= 1e-6
     z = dsm.sample(lon[found], lat[found], nodata="nan")
     on_data = np.isfinite(z)
-    assert np.max(np.abs(z[on_data] - h[found][on_data])) <= 1e-3
-    assert np.count_nonzero(~on_data) >= 0.02 * found.size
+    off = np.abs(z[on_data] - h[found][on_data]) > 1e-3
+    # Off the surface only where bridged at a hole's very edge (no-data within a pixel), and rarely.
+    px, py = dsm.to_pixel(lon[found][on_data][off], lat[found][on_data][off])
+    near_hole = np.zeros(px.size, dtype=bool)
+    for dx in (-1.0, 0.0, 1.0):
+        for dy in (-1.0, 0.0, 1.0):
+            near_hole |= np.isnan(dsm.sample_pixel(px + dx, py + dy))
+    assert np.all(near_hole) and np.count_nonzero(off) <= 0.005 * found.size
+    assert np.count_nonzero(~on_data) >= 0.02 * found.size          # bridged: inside holes
     assert stats.n_failed == np.count_nonzero(~found)
 
 
