@@ -117,6 +117,7 @@ class DEM:
         self._xy_poly = None
         self._local_max = {}
         self._height_range = None
+        self._bounds_lonlat = None
         self._whole_limit = 16 * 1024 * 1024
 
     # ------------------------------------------------------------------ constructors
@@ -198,6 +199,11 @@ class DEM:
         """(min_lon, min_lat, max_lon, max_lat) of the raster, in WGS84 degrees."""
         if self.is_constant:
             return (-180.0, -90.0, 180.0, 90.0)
+        if self._bounds_lonlat is None:
+            self._bounds_lonlat = self._compute_bounds_lonlat()
+        return self._bounds_lonlat
+
+    def _compute_bounds_lonlat(self) -> Tuple[float, float, float, float]:
         gt = self._gt
         xs = gt[0] + gt[1] * np.array([0, self.width, 0, self.width, self.width / 2])
         ys = gt[3] + gt[5] * np.array([0, 0, self.height_px, self.height_px, self.height_px / 2])
@@ -494,8 +500,7 @@ class DEM:
         v = (lat - la0) / la_s
         with np.errstate(invalid="ignore"):
             inside = (np.abs(u) <= 1.0) & (np.abs(v) <= 1.0)
-        xy = coef @ _cubic_terms(u, v)
-        x, y = xy[0], xy[1]
+        x, y = _cubic_eval(coef[0], u, v), _cubic_eval(coef[1], u, v)
         if not np.all(inside):
             out = np.flatnonzero(~inside & np.isfinite(u) & np.isfinite(v))
             if out.size:
@@ -660,6 +665,26 @@ class DEM:
         if self.is_constant:
             return f"DEM.constant({self.constant_height})"
         return f"DEM.from_file({self.path!r}, geoid={self._geoid_name!r})"
+
+
+def _cubic_eval(c, u, v) -> np.ndarray:
+    """``c @ _cubic_terms(u, v)`` for one row of coefficients, nested (no (10, n) temporary)."""
+    a = c[6] * u
+    a += c[7] * v
+    a += c[4]
+    a *= u
+    a += c[3] * v
+    a += c[1]
+    a *= u
+    b = c[9] * v
+    b += c[8] * u
+    b += c[5]
+    b *= v
+    b += c[2]
+    b *= v
+    a += b
+    a += c[0]
+    return a
 
 
 def _cubic_terms(u, v) -> np.ndarray:

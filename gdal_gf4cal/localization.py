@@ -271,13 +271,15 @@ def _one_crossing_near(dem: DEM, G, h0) -> np.ndarray:
         return np.ones(G.shape[1], dtype=bool)
     h_lo, h_hi = _dem_height_bounds(dem)
     radius = float(np.max(tan_view)) * max(h_hi - h0, h0 - h_lo) / min(dem.pixel_size_m()) + 2.0
-    if not np.isfinite(radius) or radius > 512:
+    if not np.isfinite(radius) or radius > 512 or dem.local_max_slope(np.zeros(1), np.zeros(1), 1) is None:
         return _one_crossing(dem, tan_view)
-    px, py = dem.to_pixel(G[0], G[4])
-    slope = dem.local_max_slope(px, py, int(np.ceil(radius)))
-    if slope is None:
-        return _one_crossing(dem, tan_view)
-    return slope * np.sqrt(2.0) * tan_view < 0.9
+    # Rays that never fly over the DEM: to the march, which drops them at once.
+    near = np.flatnonzero(_near_footprint(dem, _horner(G[0:4], h_lo - h0), _horner(G[4:8], h_lo - h0),
+                                          _horner(G[0:4], h_hi - h0), _horner(G[4:8], h_hi - h0)))
+    px, py = dem.to_pixel(G[0, near], G[4, near])
+    once = np.zeros(G.shape[1], dtype=bool)
+    once[near] = dem.local_max_slope(px, py, int(np.ceil(radius))) * np.sqrt(2.0) * tan_view[near] < 0.9
+    return once
 
 
 def _view_tangent(loc, n, h_lo, h_hi) -> float:
@@ -487,15 +489,15 @@ def _march(ray, dem):
         dt = np.minimum(_STEP_PX / rate, 2.0)
     t_top = t_hi.copy()
     _start_below_local_max(ray, dem, rate, t_lo, t_hi)
-    # A ray starting in a hole starts from the top after all: a crossing in the hole is bridged from the last
-    # data above it, wherever that is (as a march from the top does).
     f_start = np.full(t_hi.size, np.nan)
     with np.errstate(invalid="ignore"):
         live = np.flatnonzero((t_lo <= t_hi) & (t_hi < t_top))
         f_start[live] = ray.f(dem, live, t_hi[live])
-        hole = live[np.isnan(f_start[live])]
         f_start[f_start >= 0] = np.nan
-    t_hi[hole] = t_top[hole]
+        hole = live[np.isnan(f_start[live])]
+        # A ray starting in a hole: a crossing in the hole is bridged from the last data above it, wherever that
+        # is (as a march from the top does): look for it upwards, step by step (all above the surface there).
+        t_up, f_up, t_nan = _data_above(ray, dem, hole, t_hi[hole], t_top[hole], dt[hole])
     idx = np.flatnonzero(t_lo <= t_hi)
     # State of the live rays, one row per ray (compacted with one contiguous gather per step): the ray's cubic
     # (8), h_mid - geoid, h_half, then t, t_end, dt, the last sample above the surface (tp, fp), the first no-data
@@ -506,9 +508,15 @@ def _march(ray, dem):
     S[:, 10], S[:, 11], S[:, 12] = t_hi[idx], t_lo[idx], dt[idx]
     S[:, 13:16] = np.nan
     S[:, 16], S[:, 17] = t_hi[idx], idx
-    # Rays whose start sample is known above the surface (below a local maximum) take their first step at once.
+    # Rays whose start sample is known above the surface (below a local maximum) take their first step at once;
+    # those starting in a hole carry the data above it (tp, fp) and the hole's entry (tn).
     known = np.isfinite(f_start[idx])
     S[known, 13], S[known, 14] = t_hi[idx[known]], f_start[idx[known]]
+    row = np.full(m, -1)
+    row[idx] = np.arange(idx.size)
+    k = row[hole]
+    S[k, 13], S[k, 14], S[k, 15] = t_up, f_up, t_nan
+    known[k] = True
     S[known, 10] = np.maximum(S[known, 10] - S[known, 12], S[known, 11])
     hits = []
     steps = 0
@@ -520,6 +528,28 @@ def _march(ray, dem):
             _settle(ray, dem, out, *(np.concatenate(v) for v in zip(*hits)))
     out.steps = steps
     return out
+
+
+def _data_above(ray, dem, i, t0, t_top, dt):
+    """Walk rays ``i`` up from t0 (a no-data sample) by ``dt`` to t_top at most: ``(t, f, t_nan)``, the first
+    sample with data (NaN where none), f there, and the no-data sample just below it (the hole's entry)."""
+    t_found = np.full(i.size, np.nan)
+    f_found = np.full(i.size, np.nan)
+    t_nan = t0.copy()
+    k = np.arange(i.size)
+    t = t0.copy()
+    while k.size:
+        t_next = np.minimum(t + dt[k], t_top[k])
+        f = ray.f(dem, i[k], t_next)
+        data = np.isfinite(f)
+        t_found[k[data]], f_found[k[data]] = t_next[data], f[data]
+        go = ~data & (t_next < t_top[k])
+        t_nan[k[~data]] = t_next[~data]
+        k, t = k[go], t_next[go]
+    f_found[f_found >= 0] = np.nan          # cannot happen below the local maximum; never a false bracket
+    t_found[np.isnan(f_found)] = np.nan
+    t_nan[np.isnan(f_found)] = np.nan
+    return t_found, f_found, t_nan
 
 
 def _march_chunk(S, dem, jump, hits) -> int:
