@@ -18,6 +18,7 @@ from typing import Optional, Tuple, Union
 import numpy as np
 
 from .errors import DEMError
+from .estimation import normal_solve
 from ._gdal import with_gdal_exceptions
 from .geoid import declared_geoid, grid_path, proj_search_dirs
 
@@ -520,7 +521,11 @@ class DEM:
         g = np.cos(np.pi * np.arange(12) / 11)
         u, v = (a.ravel() for a in np.meshgrid(g, g))
         x, y = self._to_dem.transform(lo0 + lo_s * u, la0 + la_s * v)
-        coef = np.linalg.lstsq(_cubic_terms(u, v).T, np.column_stack([x, y]), rcond=None)[0].T
+        x0, y0 = self._to_dem.transform(lo0, la0)
+        design, ones = _cubic_terms(u, v).T, np.ones(u.size)
+        coef = np.array([normal_solve(design, x - x0, ones, hint="DEM CRS polynomial")[0],
+                         normal_solve(design, y - y0, ones, hint="DEM CRS polynomial")[0]])
+        coef[:, 0] += (x0, y0)
         c = np.linspace(-0.97, 0.97, 15)
         u, v = (a.ravel() for a in np.meshgrid(c, c))
         x, y = self._to_dem.transform(lo0 + lo_s * u, la0 + la_s * v)
