@@ -120,3 +120,15 @@ def test_rays_off_the_dsm_give_up_at_once(ventoux, dsm, monkeypatch):
     lon_in, lat_in, h_in = ventoux.localize_dem(s[~outside], l[~outside], dsm)
     np.testing.assert_allclose(h_in, h[~outside], atol=1e-6)
     assert n_all <= 1.02 * sum(counted)          # the rays outside cost (almost) no DEM sample
+
+
+def test_a_fallback_height_serves_the_rays_off_the_dsm(ventoux, dsm):
+    """A numeric no-data policy: rays meeting no DSM surface are localised at that height, the others as before."""
+    s, l = _footprint_points(ventoux, dsm, 600, seed=6, widen=2.0)
+    h_nan = ventoux.localize_dem(s, l, dsm)[2]
+    lon, lat, h = ventoux.localize_dem(s, l, dsm.with_nodata(1000.0))
+    miss = np.isnan(h_nan)
+    assert 0.4 < miss.mean() < 0.7 and np.all(h[miss] == 1000.0)
+    np.testing.assert_allclose(h[~miss], h_nan[~miss], atol=1e-6)
+    s2, l2 = ventoux.project(lon, lat, h)
+    assert np.max(np.hypot(s2 - s, l2 - l)) <= 1e-6
