@@ -18,6 +18,7 @@ from typing import Optional, Tuple, Union
 import numpy as np
 
 from .errors import DEMError
+from .estimation import normal_solve
 from ._gdal import with_gdal_exceptions
 from .geoid import declared_geoid, grid_path, proj_search_dirs
 
@@ -113,6 +114,11 @@ class DEM:
         self._west = min(gt[0], gt[0] + gt[1] * self.width)
         # A DEM of up to 16 Mpx (128 MB as float64) is read once and sampled without tiling.
         self._whole = None
+        self._max_step = None
+        self._xy_poly = None
+        self._local_max = {}
+        self._height_range = None
+        self._bounds_lonlat = None
         self._whole_limit = 16 * 1024 * 1024
 
     # ------------------------------------------------------------------ constructors
@@ -185,10 +191,20 @@ class DEM:
     def is_constant(self) -> bool:
         return self.constant_height is not None
 
+    @property
+    def is_geographic(self) -> bool:
+        """True for a raster in a geographic CRS (longitudes compared modulo 360)."""
+        return not self.is_constant and bool(self._lon_wrap)
+
     def bounds_lonlat(self) -> Tuple[float, float, float, float]:
         """(min_lon, min_lat, max_lon, max_lat) of the raster, in WGS84 degrees."""
         if self.is_constant:
             return (-180.0, -90.0, 180.0, 90.0)
+        if self._bounds_lonlat is None:
+            self._bounds_lonlat = self._compute_bounds_lonlat()
+        return self._bounds_lonlat
+
+    def _compute_bounds_lonlat(self) -> Tuple[float, float, float, float]:
         gt = self._gt
         xs = gt[0] + gt[1] * np.array([0, self.width, 0, self.width, self.width / 2])
         ys = gt[3] + gt[5] * np.array([0, 0, self.height_px, self.height_px, self.height_px / 2])
@@ -197,12 +213,22 @@ class DEM:
         return (float(np.min(xs)), float(np.min(ys)), float(np.max(xs)), float(np.max(ys)))
 
     def height_range(self) -> Tuple[float, float]:
-        """(min, max) of the stored heights (approximate statistics; geoid not applied).
+        """(min, max) of the stored heights (geoid not applied): exact for a raster held in memory (see
+        :attr:`height_range_is_exact`), GDAL's approximate statistics for a larger one.
 
         Raises :class:`DEMError` if the raster holds no valid height at all (every pixel no-data).
         """
         if self.is_constant:
             return (self.constant_height, self.constant_height)
+        if self.height_range_is_exact:
+            if self._height_range is None:
+                if self._whole is None:
+                    self._load_whole()
+                if np.all(np.isnan(self._whole)):
+                    raise DEMError(f"DEM {self.path} has no valid height (every pixel is no-data); use a DEM with "
+                                   "data over the scene")
+                self._height_range = (float(np.nanmin(self._whole)), float(np.nanmax(self._whole)))
+            return self._height_range
         for approx in (True, False):       # approximate statistics may sample only voids: then scan it all
             try:
                 lo_hi = self._band.ComputeRasterMinMax(approx)
@@ -213,6 +239,11 @@ class DEM:
                 return (lo, hi)
         raise DEMError(f"DEM {self.path} has no valid height (every pixel is no-data); use a DEM with data over "
                        "the scene")
+
+    @property
+    def height_range_is_exact(self) -> bool:
+        """True when :meth:`height_range` is the exact range (a raster small enough to hold in memory)."""
+        return self.is_constant or self.width * self.height_px <= self._whole_limit
 
     # ------------------------------------------------------------------ sampling
     def sample(self, lon, lat, *, nodata: Optional[NodataPolicy] = None):
@@ -283,6 +314,119 @@ class DEM:
                 gy[bad] = 0.0
         return z, gx, gy
 
+    # ------------------------------------------------------------------ raster-space access (line-of-sight marches)
+    def to_pixel(self, lon, lat):
+        """Pixel coordinates ``(px, py)`` of (lon, lat) WGS84 degrees in this raster, pixel centres at integers
+        (flat float arrays; the coordinates :meth:`sample_pixel` takes). Not for a constant DEM."""
+        x = np.asarray(lon, dtype=float).ravel()
+        y = np.asarray(lat, dtype=float).ravel()
+        if self._to_dem is not None:
+            x, y = self._dem_xy(x, y)
+        elif self._lon_wrap:
+            x = self._wrap_lon(x)
+        gt = self._gt
+        return (x - gt[0]) / gt[1] - 0.5, (y - gt[3]) / gt[5] - 0.5
+
+    def sample_pixel(self, px, py):
+        """Stored heights (band scale/offset applied, geoid not) at pixel coordinates, bilinear: NaN outside the
+        raster or next to no-data (METHODS §2). Windowed tile reads for large rasters, as :meth:`sample`."""
+        px = np.asarray(px, dtype=float).ravel()
+        py = np.asarray(py, dtype=float).ravel()
+        if self.width * self.height_px <= self._whole_limit:
+            return self._sample_whole(px, py)
+        return self._sample_tiles_gradient(px, py)[0]
+
+    def geoid_undulation(self, lon, lat):
+        """Ellipsoidal minus stored height at (lon, lat): the geoid undulation N when a geoid applies, else 0."""
+        lon = np.asarray(lon, dtype=float).ravel()
+        lat = np.asarray(lat, dtype=float).ravel()
+        if self._geoid is None:
+            return np.zeros(lon.size)
+        _, _, n = self._geoid.transform(lon, lat, np.zeros(lon.size))
+        return np.asarray(n, dtype=float)
+
+    def local_max(self, px, py, radius_px):
+        """Largest stored height (m) within ``radius_px`` pixels (a square) of the pixels nearest to (px, py),
+        clipped into the raster; -inf where that window holds no data. ``radius_px`` may be a tuple of radii
+        (then a list, one array per radius). None for a raster too large to hold in memory. The windowed maxima
+        are computed once per radius (rounded up to a power of two) and kept."""
+        if self.is_constant or self.width * self.height_px > self._whole_limit:
+            return None
+        radii = radius_px if isinstance(radius_px, tuple) else (radius_px,)
+        tables = [self._local_max_table(r) for r in radii]
+        W, H = self.width, self.height_px
+        i = np.fmin(np.fmax(np.asarray(py, dtype=float) + 0.5, 0.0), H - 1.0).astype(np.intp)   # NaN -> 0
+        j = np.fmin(np.fmax(np.asarray(px, dtype=float) + 0.5, 0.0), W - 1.0).astype(np.intp)
+        k = i * W
+        k += j
+        out = [t.take(k) for t in tables]
+        return out if isinstance(radius_px, tuple) else out[0]
+
+    def local_max_slope(self, px, py, radius_px: int):
+        """Steepest slope (m/m) of the bilinear surface within ``radius_px`` pixels of (px, py) (as
+        :meth:`local_max`; no-data ignored). None for a raster too large to hold in memory."""
+        if self.is_constant or self.width * self.height_px > self._whole_limit:
+            return None
+        W, H = self.width, self.height_px
+        i = np.fmin(np.fmax(np.asarray(py, dtype=float) + 0.5, 0.0), H - 1.0).astype(np.intp)
+        j = np.fmin(np.fmax(np.asarray(px, dtype=float) + 0.5, 0.0), W - 1.0).astype(np.intp)
+        return self._local_max_table(radius_px, slope=True).take(i * W + j)
+
+    def _local_max_table(self, radius_px: int, slope: bool = False) -> np.ndarray:
+        """Windowed maxima (flat) of the heights, or of the cell slopes, radius rounded up to a power of two."""
+        r = 1 << max(0, int(np.ceil(np.log2(max(radius_px, 1)))))
+        key = (r, slope)
+        if self._local_max.get(key) is None:
+            from scipy.ndimage import maximum_filter
+            if self._whole is None:
+                self._load_whole()
+            z = self._whole
+            if slope:
+                mx, my = self.pixel_size_m()
+                g = np.zeros(z.shape)
+                with np.errstate(invalid="ignore"):
+                    if z.shape[1] > 1:
+                        dx = np.nan_to_num(np.abs(np.diff(z, axis=1)) / mx)
+                        g[:, :-1] = np.maximum(g[:, :-1], dx)
+                        g[:, 1:] = np.maximum(g[:, 1:], dx)
+                    if z.shape[0] > 1:
+                        dy = np.nan_to_num(np.abs(np.diff(z, axis=0)) / my)
+                        g[:-1] = np.maximum(g[:-1], dy)
+                        g[1:] = np.maximum(g[1:], dy)
+                table = maximum_filter(g, size=2 * r + 3, mode="nearest")    # + the cells' own extent
+            else:
+                table = maximum_filter(np.where(np.isnan(z), -np.inf, z), size=2 * r + 1, mode="nearest")
+            self._local_max[key] = table.ravel()
+        return self._local_max[key]
+
+    def pixel_size_m(self) -> Tuple[float, float]:
+        """Approximate pixel size in metres (x, y) at the raster's centre (projected CRS: its units, metres)."""
+        if self.is_constant:
+            return (np.inf, np.inf)
+        gt = self._gt
+        if self._lon_wrap:
+            lat = gt[3] + gt[5] * self.height_px / 2
+            return (abs(gt[1]) * 111320.0 * max(np.cos(np.radians(lat)), 1e-6), abs(gt[5]) * 110574.0)
+        return (abs(gt[1]), abs(gt[5]))
+
+    def max_step_px(self) -> Tuple[float, float]:
+        """Largest height difference (m) between neighbouring pixels along x and along y: bounds of the bilinear
+        surface's slopes in metres per pixel (no-data ignored). ``(inf, inf)`` for a raster too large to hold in
+        memory (no bound known without reading it all)."""
+        if self.is_constant:
+            return (0.0, 0.0)
+        if self.width * self.height_px > self._whole_limit:
+            return (np.inf, np.inf)
+        if self._max_step is None:
+            if self._whole is None:
+                self._load_whole()
+            z = self._whole
+            with np.errstate(invalid="ignore"):
+                dx = np.abs(np.diff(z, axis=1)) if z.shape[1] > 1 else np.zeros(1)
+                dy = np.abs(np.diff(z, axis=0)) if z.shape[0] > 1 else np.zeros(1)
+            self._max_step = (float(np.nanmax(dx, initial=0.0)), float(np.nanmax(dy, initial=0.0)))
+        return self._max_step
+
     def _sample_tiles_gradient(self, px, py):
         """Bilinear value and gradient (per pixel) of a large raster, by windowed tile reads (one per tile)."""
         W, H = self.width, self.height_px
@@ -331,8 +475,7 @@ class DEM:
             return h.reshape(shape) if shape else float(h[0])
         x, y = lon.ravel(), lat.ravel()
         if self._to_dem is not None:
-            x, y = self._to_dem.transform(x, y)
-            x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+            x, y = self._dem_xy(x, y)
         if self._lon_wrap:
             x = self._wrap_lon(x)
         h = self._sample_bilinear(x, y)
@@ -343,6 +486,52 @@ class DEM:
                 h[ok] = h_ell
         h = self._apply_nodata(h, lon.ravel(), lat.ravel(), policy)
         return h.reshape(shape) if shape else float(h[0])
+
+    def _dem_xy(self, lon, lat):
+        """(lon, lat) -> DEM CRS coordinates: a cubic polynomial fitted over the DEM's footprint where it
+        reproduces PROJ to 1e-6 pixel (checked when fitted), PROJ itself elsewhere or when it does not."""
+        if self._xy_poly is None:
+            self._xy_poly = self._fit_xy_poly()
+        fit = self._xy_poly
+        if fit is False:
+            x, y = self._to_dem.transform(lon, lat)
+            return np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        (lo0, la0, lo_s, la_s), coef = fit
+        u = (lon - lo0) / lo_s
+        v = (lat - la0) / la_s
+        with np.errstate(invalid="ignore"):
+            inside = (np.abs(u) <= 1.0) & (np.abs(v) <= 1.0)
+        x, y = _cubic_eval(coef[0], u, v), _cubic_eval(coef[1], u, v)
+        if not np.all(inside):
+            out = np.flatnonzero(~inside & np.isfinite(u) & np.isfinite(v))
+            if out.size:
+                xo, yo = self._to_dem.transform(lon[out], lat[out])
+                x[out], y[out] = xo, yo
+        return x, y
+
+    def _fit_xy_poly(self):
+        """((lon0, lat0, lon_scale, lat_scale), (2, 10) coefficients) or False (see :meth:`_dem_xy`)."""
+        w, s_, e, n = self.bounds_lonlat()
+        if not (np.isfinite([w, s_, e, n]).all() and e > w and n > s_) or e - w > 2.0 or n - s_ > 2.0:
+            return False
+        lo0, la0 = 0.5 * (w + e), 0.5 * (s_ + n)
+        # The footprint and around it (lines of sight are fitted over their whole height range, which can
+        # reach far beyond a small DSM): half its size, 0.02 deg at least, each side.
+        lo_s, la_s = max(e - w, 0.02), max(n - s_, 0.02)
+        g = np.cos(np.pi * np.arange(12) / 11)
+        u, v = (a.ravel() for a in np.meshgrid(g, g))
+        x, y = self._to_dem.transform(lo0 + lo_s * u, la0 + la_s * v)
+        x0, y0 = self._to_dem.transform(lo0, la0)
+        design, ones = _cubic_terms(u, v).T, np.ones(u.size)
+        coef = np.array([normal_solve(design, x - x0, ones, hint="DEM CRS polynomial")[0],
+                         normal_solve(design, y - y0, ones, hint="DEM CRS polynomial")[0]])
+        coef[:, 0] += (x0, y0)
+        c = np.linspace(-0.97, 0.97, 15)
+        u, v = (a.ravel() for a in np.meshgrid(c, c))
+        x, y = self._to_dem.transform(lo0 + lo_s * u, la0 + la_s * v)
+        px = coef @ _cubic_terms(u, v)
+        err = max(np.max(np.abs(px[0] - x)) / abs(self._gt[1]), np.max(np.abs(px[1] - y)) / abs(self._gt[5]))
+        return ((lo0, la0, lo_s, la_s), coef) if err <= 1e-6 else False
 
     def _wrap_lon(self, x):
         """Longitudes (DEM CRS degrees) outside ``[west, west + 360)`` moved into it by whole turns."""
@@ -409,6 +598,15 @@ class DEM:
         return out
 
     @with_gdal_exceptions
+    def _load_whole(self) -> None:
+        """Read the whole raster once (no-data as NaN, band scale/offset applied) for :meth:`_sample_whole`."""
+        block = self._band.ReadAsArray().astype(float)
+        if self._nodata_value is not None:
+            block[block == self._nodata_value] = np.nan
+        if self._scale != 1.0 or self._offset != 0.0:
+            block = block * self._scale + self._offset
+        self._whole = block
+
     def _sample_whole(self, px, py, gradient: bool = False):
         """Bilinear sampling of a small DEM held in memory, at pixel coordinates (pixel centres at integers).
 
@@ -419,12 +617,7 @@ class DEM:
         generic ``map_coordinates``).
         """
         if self._whole is None:
-            block = self._band.ReadAsArray().astype(float)
-            if self._nodata_value is not None:
-                block[block == self._nodata_value] = np.nan
-            if self._scale != 1.0 or self._offset != 0.0:
-                block = block * self._scale + self._offset
-            self._whole = block
+            self._load_whole()
         W, H = self.width, self.height_px
         px = np.asarray(px, dtype=float).ravel()
         py = np.asarray(py, dtype=float).ravel()
@@ -479,6 +672,31 @@ class DEM:
         return f"DEM.from_file({self.path!r}, geoid={self._geoid_name!r})"
 
 
+def _cubic_eval(c, u, v) -> np.ndarray:
+    """``c @ _cubic_terms(u, v)`` for one row of coefficients, nested (no (10, n) temporary)."""
+    a = c[6] * u
+    a += c[7] * v
+    a += c[4]
+    a *= u
+    a += c[3] * v
+    a += c[1]
+    a *= u
+    b = c[9] * v
+    b += c[8] * u
+    b += c[5]
+    b *= v
+    b += c[2]
+    b *= v
+    a += b
+    a += c[0]
+    return a
+
+
+def _cubic_terms(u, v) -> np.ndarray:
+    """The ten monomials of a bivariate cubic (rows)."""
+    return np.array([np.ones_like(u), u, v, u * v, u * u, v * v, u ** 3, u * u * v, u * v * v, v ** 3])
+
+
 def _bilinear(block: np.ndarray, lx, ly, fx, fy) -> np.ndarray:
     """Bilinear interpolation in ``block`` at integer corners (lx, ly) plus fractions (fx, fy).
 
@@ -505,8 +723,10 @@ def _bilinear_flat(flat, W, H, px, py, z, gx=None, gy=None):
     """
     with np.errstate(invalid="ignore"):
         outside = ~((px >= -0.5) & (py >= -0.5) & (px <= W - 0.5) & (py <= H - 0.5))
-    x = np.clip(px, 0.0, W - 1.0)
-    y = np.clip(py, 0.0, H - 1.0)
+    x = np.minimum(px, W - 1.0)              # np.clip with scalars is several times slower
+    np.maximum(x, 0.0, out=x)
+    y = np.minimum(py, H - 1.0)
+    np.maximum(y, 0.0, out=y)
     x[outside] = 0.0
     y[outside] = 0.0
     x0 = np.minimum(x.astype(np.intp), W - 2)

@@ -170,3 +170,41 @@ def test_unknown_vertical_datum_is_an_error(tmp_path, srtm_path):
     with pytest.raises(DEMError, match="vertical datum"):
         DEM.from_file(path)
     assert np.isfinite(DEM.from_file(path, geoid=False, nodata="nan").height(5.5, 44.5))
+
+
+def test_raster_space_access_agrees_with_sample(data_dir, tmp_path):
+    """to_pixel + sample_pixel + geoid_undulation (the line-of-sight march's sampler) give DEM.sample; the CRS
+    polynomial of a small projected DEM reproduces PROJ."""
+    import pyproj
+    dem = DEM.from_file(data_dir / "dem" / "N44E005_UTM.tif", geoid="egm96", nodata="nan")
+    rng = np.random.default_rng(5)
+    lon, lat = rng.uniform(5.1, 5.6, 500), rng.uniform(44.05, 44.4, 500)
+    px, py = dem.to_pixel(lon, lat)
+    h = dem.sample_pixel(px, py) + dem.geoid_undulation(lon, lat)
+    np.testing.assert_allclose(h, dem.sample(lon, lat), atol=1e-6)
+    # A 200 m UTM DSM: its CRS transform is a fitted cubic, within 1e-6 pixel of PROJ over its footprint.
+    gt = (682857.0, 0.5, 0.0, 4889588.0, 0.0, -0.5)
+    small = DEM.from_file(write_tif(tmp_path / "small.tif", np.zeros((400, 400), np.float32), gt=gt, epsg=32631))
+    to_utm = pyproj.Transformer.from_crs("EPSG:4326", "EPSG:32631", always_xy=True)
+    lo, la = to_utm.transform(gt[0] + rng.uniform(0, 200, 300), gt[3] - rng.uniform(0, 200, 300),
+                              direction="INVERSE")
+    xp, yp = small.to_pixel(lo, la)
+    xe, ye = to_utm.transform(lo, la)
+    np.testing.assert_allclose(xp, (xe - gt[0]) / 0.5 - 0.5, atol=1e-6)
+    np.testing.assert_allclose(yp, (ye - gt[3]) / -0.5 - 0.5, atol=1e-6)
+
+
+def test_local_max_and_slopes(tmp_path):
+    """Windowed maxima of the heights (no-data ignored, -inf where a window holds none) and of the slopes."""
+    arr = np.zeros((64, 64), np.float32)
+    arr[10, 20] = 50.0                    # a 50 m spike: slopes 50 m / 10 m around it
+    arr[40:50, 40:50] = -9999.0           # a hole
+    path = write_tif(tmp_path / "spike.tif", arr, gt=(500000.0, 10.0, 0, 4900000.0, 0, -10.0), epsg=32631,
+                     nodata=-9999.0)
+    dem = DEM.from_file(path, nodata="nan")
+    z4 = dem.local_max(np.array([20.0, 20.0, 28.0, 45.0]), np.array([10.0, 13.6, 10.0, 45.0]), 4)
+    np.testing.assert_array_equal(z4, [50.0, 50.0, 0.0, -np.inf])     # radius 4: the spike 8 px away is not seen
+    z1, z8 = dem.local_max(np.array([45.0]), np.array([45.0]), (1, 8))
+    assert z1[0] == -np.inf and z8[0] == 0.0
+    np.testing.assert_allclose(dem.local_max_slope(np.array([20.0, 40.0]), np.array([10.0, 40.0]), 2), [5.0, 0.0])
+    assert dem.max_step_px() == (50.0, 50.0) and dem.pixel_size_m() == (10.0, 10.0)

@@ -95,12 +95,15 @@ def test_steep_oblique_terrain_uses_bracketing(tmp_path, monkeypatch):
     # The generic height iteration oscillates here: most points really go through stage 2 (bracketing).
     *_, stats = localization.localize_dem(rpc, s, l, dem, full_output=True, fast_path=False)
     assert stats.n_failed == 0 and bracketed and bracketed[0] > 100
-    # The RPC fast path solves most of them by Newton steps (the ramp faces the sensor: one root per ray) and
-    # hands the rest (steps that stop shrinking |DEM - h|) to the same fallback.
+    # The RPC fast path sees that these rays may cross the cliff more than once (slope x tan(view) > 1) and
+    # finds their first crossing from the top with the same march, on its cubic rays, without the fallback.
     bracketed.clear()
+    marched = []
+    march = localization._march
+    monkeypatch.setattr(localization, "_march", lambda ray, dem: marched.append(ray.C.shape[1]) or march(ray, dem))
     lon, lat, h, stats = rpc.localize_dem(s, l, dem, full_output=True)
     assert stats.n_failed == 0
-    assert bracketed and bracketed[0] > 0
+    assert marched == [s.size] and not bracketed
     s2, l2 = rpc.project(lon, lat, h)
     assert np.max(np.hypot(s2 - s, l2 - l)) <= 1e-6
     assert np.max(np.abs(dem.height(lon, lat) - h)) <= 1e-3
