@@ -647,8 +647,8 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
             except DegenerateGeometryError:
                 break                                        # undetermined subset: handled below
             # Hysteresis (estimation.readmissible): a point out of the fit comes back only when it also fits.
-            back = readmissible(np.stack([norm_s, norm_l], axis=1), min(dof), sigma=max(sig_s, sig_l),
-                                start_sigma=start_info.get("lts_scale", 0.0))
+            back = readmissible(np.stack([norm_s, norm_l], axis=1), min(dof), threshold=outlier_threshold,
+                                sigma=max(sig_s, sig_l), start_sigma=start_info.get("lts_scale", 0.0))
             new_used = ctrl & ~_exceeds(norm_s, norm_l, outlier_threshold, dof) & (used | back)
             if new_used.sum() < model.min_gcps or (new_used.sum() - max(p_s, p_l)) < 1:
                 notes.append("too many GCPs look like blunders for a robust estimate; all control points kept")

@@ -56,24 +56,41 @@ def critical_value(threshold: float, dof: int) -> float:
     return float(stats.t.isf(stats.norm.sf(threshold), dof))
 
 
-def readmissible(normalised, dof: int, *, sigma: float = 1.0, start_sigma: float = 0.0,
+def readmissible(normalised, dof: int, *, threshold: float = 4.0, sigma: float = 1.0, start_sigma: float = 0.0,
                  level: Optional[float] = None) -> np.ndarray:
     """Per point out of a fit, True when its ``k`` normalised residuals (``(n, k)``, each scaled by the fit's
-    ``sigma`` and its own prediction variance) are jointly consistent with the fit: ``sum(w^2) / k`` below the
-    ``1 - level`` quantile of ``F(k, dof)`` (the nested F test of adding the point; ``dof`` those of the
-    fit's sigma). The re-admission side of the snooping hysteresis (module docstring, step 3).
+    ``sigma`` and its own prediction variance) are jointly consistent with the fit: ``q = sum(w^2) / k`` below
+    the ``1 - level`` quantile of ``F(k, dof)`` (the nested F test of adding the point; ``dof`` those of the fit's
+    sigma), or below the snooping ``threshold`` taken with a known sigma (chi-square of the same probability as
+    the per-axis test; the bound with large redundancy). The re-admission side of the snooping hysteresis
+    (module docstring, step 3): with 4 degrees of freedom a point stays out above q = 18 (the Student-t
+    threshold would let it back up to |w| = 17 per axis), with 40 above q = 9 (|w| ~ 4.2 on one axis).
 
     ``start_sigma`` (the ``lts_scale`` of :func:`high_breakdown_start`) floors the sigma: the plain scale of a
     trimmed set that was chosen for fitting best is biased low (4 of 6 points), the LTS scale is corrected for
     the trimming."""
     w = np.nan_to_num(np.asarray(normalised, dtype=float), nan=0.0)
     w = w.reshape(w.shape[0], -1)
+    k = w.shape[1]
     if start_sigma > sigma > 0:
         w = w * (sigma / start_sigma)
     if dof <= 0:
         return np.ones(w.shape[0], bool)
     level = READMIT_LEVEL if level is None else level
-    return np.sum(w * w, axis=1) / w.shape[1] <= _f_ppf(1.0 - level, w.shape[1], int(dof))
+    bound = max(_f_ppf(1.0 - level, k, int(dof)), _chi2_isf(k * _norm_sf2(threshold), k) / k)
+    return np.sum(w * w, axis=1) / k <= bound
+
+
+@lru_cache(maxsize=64)
+def _norm_sf2(threshold: float) -> float:
+    from scipy import stats
+    return float(2.0 * stats.norm.sf(threshold))
+
+
+@lru_cache(maxsize=64)
+def _chi2_isf(p: float, k: int) -> float:
+    from scipy import stats
+    return float(stats.chi2.isf(min(p, 1.0), k))
 
 
 def min_subset_points(design) -> int:
@@ -372,7 +389,8 @@ def robust_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), froze
         crit = critical_value(threshold, est.dof)
         norm = np.nan_to_num(est.normalised, nan=0.0).reshape(n, k)
         bad = np.max(np.abs(norm), axis=1) > crit
-        new = cand & ~bad & (used | readmissible(norm, est.dof, sigma=est.sigma0, start_sigma=start_sigma))
+        new = cand & ~bad & (used | readmissible(norm, est.dof, threshold=threshold, sigma=est.sigma0,
+                                                               start_sigma=start_sigma))
         if int(new.sum()) * k - n_free < 1:
             notes.append("too many points look like blunders for a robust estimate; all candidates kept")
             new = cand.copy()
