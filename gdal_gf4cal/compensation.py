@@ -700,19 +700,19 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
 
 
 def suspected_blunders(tab, n: int = 3) -> List[Tuple[str, str, float]]:
-    """The points most likely to be blunders when the check points fit worse after compensation than before:
-    ``(id, role, planar residual after compensation px)`` of the ``n`` worst points not already flagged (a
-    blunder in the fit drags the correction and leaves residuals on its fellow points too, so the list is where
-    to look, not a verdict). Empty when the check points fit as well or better."""
-    if _check_rms(tab) is None:
+    """The control points most likely to be blunders when the check points fit worse after compensation than
+    before: ``(id, role, planar residual after compensation px)`` of the ``n`` control points in the estimate with
+    the largest normalised residuals (a blunder in the fit drags the correction and leaves residuals on its
+    fellow points too, so the list is where to look, not a verdict; check points are only its victims). Empty
+    when the check points fit as well or better."""
+    rms = _check_rms(tab)
+    if rms is None or not rms[1] > rms[0]:
         return []
-    before, after = _check_rms(tab)
-    if not after > before:
-        return []
-    outl = tab["outlier"].to_numpy(bool)
+    cand = (tab["role"] == "control").to_numpy() & ~tab["outlier"].to_numpy(bool)
+    z = np.hypot(tab["norm_res_sample"].to_numpy(float), tab["norm_res_line"].to_numpy(float))
+    z = np.where(cand, np.nan_to_num(z, nan=0.0), -np.inf)
+    order = np.lexsort((np.arange(z.size), -z))[:min(n, int(cand.sum()))]   # ties: input order
     r = np.hypot(tab["res_sample_after"].to_numpy(float), tab["res_line_after"].to_numpy(float))
-    r = np.where(outl, -np.inf, r)
-    order = np.lexsort((np.arange(r.size), -r))[:min(n, int((~outl).sum()))]   # ties: input order
     ids, roles = tab["id"].astype(str).to_numpy(), tab["role"].astype(str).to_numpy()
     return [(ids[i], roles[i], float(r[i])) for i in order]
 

@@ -148,7 +148,7 @@ def check_precision(precision: Dict[str, float], model_label: str, *,
         raise DegenerateGeometryError(
             f"the {model_label} correction is uncertain by up to {mx:.1f} px and the check points fit worse after it: "
             f"blunders are suspected among the GCPs, the worst: {describe_suspects(precision['suspects'])}; check or "
-            "remove them (or raise --max-uncertainty)")
+            "remove them, else use a simpler model (or raise --max-uncertainty)")
     if not mx <= max_uncertainty_px:
         raise DegenerateGeometryError(
             f"the GCP layout leaves the {model_label} correction uncertain by up to {mx:.1f} px (1 sigma, rms "

@@ -76,19 +76,28 @@ def test_two_blunders_in_seven_flagged_on_spot6(spot6, model):
         assert not res.warnings or "blunders are suspected" in res.warnings[0]
 
 
-def test_worse_check_points_name_suspected_blunders(spot6):
+def test_worse_check_points_name_suspected_blunders(spot6, tmp_path, capsys):
     """Without the robust estimate the blunders drag the affine: the warning says blunders are suspected and names
-    the worst points (the two blunders among them), not the layout."""
+    the worst control points (both blunders among them), and the uncertainty refusal blames them, not the
+    layout."""
     gcps = spot6_gcps(spot6, 3)
     res = fit_compensation(spot6, gcps, "affine", robust=False)
     assert check_rms(res) > 10.0
     sus = suspected_blunders(res.gcps)
-    assert len(sus) == 3 and {"g1", "g4"} & {s[0] for s in sus}
-    assert sus == res.suspects and sus[0][2] >= sus[1][2] >= sus[2][2]
+    assert len(sus) == 3 and {"g1", "g4"} <= {s[0] for s in sus} and {s[1] for s in sus} == {"control"}
+    assert sus == res.suspects
     (msg,) = [w for w in res.warnings if "fit worse" in w]
-    assert "blunders are suspected" in msg and sus[0][0] in msg
+    assert "blunders are suspected" in msg and "g1 (control" in msg and "g4 (control" in msg
     # Flagged points are never listed again.
     assert not {"g1", "g4"} & {s[0] for s in fit_compensation(spot6, gcps, "affine").suspects}
+    csv = tmp_path / "gcps.csv"
+    gcps[["id", "lon", "lat", "h", "sample", "line", "role"]].to_csv(csv, index=False)
+    out = tmp_path / "x.RPB"
+    assert main(["refine", str(SPOT6), "--gcps", str(csv), "--model", "affine", "--no-robust", "--out",
+                 str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "blunders are suspected" in err[0] and "g1 (control" in err[0]
+    assert "layout" not in err[0] and "--max-uncertainty" in err[0] and not out.exists()
 
 
 def test_refine_spot6_public_api_and_cli(spot6, tmp_path):
