@@ -12,6 +12,7 @@ from typing import Any, Dict, List, Optional
 from qgis.core import (
     QgsProcessing,
     QgsProcessingAlgorithm,
+    QgsProcessingParameterBoolean,
     QgsProcessingException,
     QgsProcessingParameterEnum,
     QgsProcessingParameterFeatureSource,
@@ -34,6 +35,7 @@ PIXEL_CONVENTION_LABELS = ["The file format's own (centre for orthority GeoJSON 
                            "Pixel corners at integers (GDAL: first pixel centre at 0.5)",
                            "Pixel centres at integers (orthority, ASP: first pixel centre at 0)"]
 GEOID_GRID_WORDS = "the 'Geoid grid file' parameter (GEOID_GRID)"
+PLAUSIBILITY_WORDS = "CHECK_PLAUSIBILITY, an advanced parameter"
 
 
 def qgis_words(message: str) -> str:
@@ -42,7 +44,8 @@ def qgis_words(message: str) -> str:
                             f"({GEOID_GRID_WORDS}) or choose 'DEM heights are: Ellipsoidal heights'")
             .replace("geoid=<grid path>", GEOID_GRID_WORDS)
             .replace("(--columns)", "(GCP_COLUMNS)").replace("(--gcp-pixel-convention)", "(GCP_PIXEL_CONVENTION)")
-            .replace("(--bands-of)", "(BANDS_OF)"))
+            .replace("(--bands-of)", "(BANDS_OF)")
+            .replace("(--no-plausibility-check)", f"({PLAUSIBILITY_WORDS})").replace("(--geoid)", "(GEOID)"))
 TRACKER = "https://github.com/gdal-gf4cal/gdal_gf4cal/issues"
 
 
@@ -142,6 +145,7 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
     OUTPUT_GPKG = "OUTPUT_GPKG"
     OUTPUT_PLOT = "OUTPUT_PLOT"
     OUTPUT_REPORT = "OUTPUT_REPORT"
+    CHECK_PLAUSIBILITY = "CHECK_PLAUSIBILITY"
 
     def __init__(self):
         super().__init__()
@@ -246,6 +250,24 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
                       "Pixel convention of the GCPs' image coordinates; a wrong choice biases them by half a pixel. "
                       "They are converted to GDAL's (corners at integers).")
         p.setFlags(p.flags() | p.FlagAdvanced)
+
+    def add_plausibility_parameter(self):
+        """CHECK_PLAUSIBILITY (advanced, default on): the engine's GCP plausibility check (CLI
+        ``--no-plausibility-check``); its refusals name this parameter (:func:`qgis_words`)."""
+        p = self._add(QgsProcessingParameterBoolean(self.CHECK_PLAUSIBILITY, self.tr("Check the GCPs' plausibility"),
+                                                    defaultValue=True, optional=True),
+                      "Refuse GCPs that cannot belong to this image: beyond its RPC's domain, lon/lat swapped, "
+                      "another CRS or scene, heights in feet or on another vertical datum than the DEM's. GCPs "
+                      "outside the image but inside its RPC's domain (field GCPs just outside a crop) are used "
+                      "with a warning either way. Untick only for points you know to be right.")
+        p.setFlags(p.flags() | p.FlagAdvanced)
+        return p
+
+    def check_plausibility(self, parameters, context) -> bool:
+        """The CHECK_PLAUSIBILITY choice (True when not given)."""
+        if parameters.get(self.CHECK_PLAUSIBILITY) is None:
+            return True
+        return self.parameterAsBool(parameters, self.CHECK_PLAUSIBILITY, context)
 
     def add_dem_parameters(self, optional=True):
         self._add(QgsProcessingParameterRasterLayer(self.DEM, self.tr("DEM"), optional=optional),

@@ -62,6 +62,14 @@ def add_gcp_reader_arguments(parser) -> None:
                              "center = pixel centres at integers (orthority, ASP); default: the format's own")
 
 
+def add_plausibility_argument(parser, what: str = "GCPs") -> None:
+    """``--no-plausibility-check``: the override every plausibility refusal names (:mod:`gdal_gf4cal.plausibility`)."""
+    parser.add_argument("--no-plausibility-check", action="store_true",
+                        help=f"experts: accept {what} beyond the RPC's domain, far from the RPC's prediction, with "
+                        "heights outside the RPC's range or disagreeing with --dem (feet, vertical datum); points "
+                        "outside the image but inside its RPC's domain are used anyway, with a warning")
+
+
 def print_warnings(rep, stream=None) -> None:
     """Print ``rep["warnings"]`` (list of one-line str) as ``gf4cal: warning: ...`` lines on stderr."""
     for w in (rep or {}).get("warnings", []) if isinstance(rep, dict) else getattr(rep, "warnings", []) or []:

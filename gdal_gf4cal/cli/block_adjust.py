@@ -29,6 +29,8 @@ def add_parser(parser):
     parser.add_argument("--solver", choices=("simultaneous", "alternating"), default="simultaneous",
                         help="one sparse Gauss-Newton solve (default) or the paper's alternation of exterior and "
                              "interior (compared with the simultaneous solve in report.json)")
+    from . import add_plausibility_argument
+    add_plausibility_argument(parser, "GCPs and tie points")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs (never an input)")
 
@@ -38,7 +40,8 @@ def run(args) -> int:
     from ..workflows import block_adjust
     rep = block_adjust(args.images, dem=args.dem, geoid=args.geoid, gcps=args.gcps, ties=args.ties,
                        match_ties=args.match_ties, reference_ortho=args.reference_ortho, bands_of=args.bands_of,
-                       solver=args.solver, out=args.out, overwrite=args.overwrite, progress=TextProgressBar())
+                       solver=args.solver, out=args.out, overwrite=args.overwrite, progress=TextProgressBar(),
+                       check_plausibility=not args.no_plausibility_check)
     for st in rep["stages"]:
         print(f"{st['stage']} stage ({st['solver']}): {st['iterations']} iterations, "
               f"{'converged' if st['converged'] else 'NOT converged'}, {st['n_tie_points']} tie points, "

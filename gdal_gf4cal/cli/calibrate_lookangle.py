@@ -29,6 +29,8 @@ def add_parser(parser):
     parser.add_argument("--no-robust", action="store_true", help="plain least squares: no blunder detection")
     parser.add_argument("--max-condition", type=float, default=None,
                         help="refuse GCP layouts whose condition number exceeds this (default 1e6)")
+    from . import add_plausibility_argument
+    add_plausibility_argument(parser)
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs (never an input)")
 
 
@@ -72,7 +74,8 @@ def run(args) -> int:
     rep = calibrate_lookangle_files(args.rpc, args.gcps, args.camera, args.out, image=args.image, dem=args.dem,
                                     geoid=args.geoid, robust=not args.no_robust, max_condition=args.max_condition,
                                     overwrite=args.overwrite, progress=TextProgressBar(), gcp_columns=args.columns,
-                                    gcp_pixel_convention=args.gcp_pixel_convention)
+                                    gcp_pixel_convention=args.gcp_pixel_convention,
+                                    check_plausibility=not args.no_plausibility_check)
     print_summary(rep)
     print_warnings(rep)
     return 0

@@ -39,9 +39,8 @@ def add_parser(parser):
     parser.add_argument("--max-uncertainty", type=float, metavar="PX",
                         help="refuse a correction whose propagated 1-sigma uncertainty anywhere in the image exceeds "
                         "PX (default 10; a warning above 1 px)")
-    parser.add_argument("--no-plausibility-check", action="store_true",
-                        help="experts: accept GCPs outside the image, far from the RPC's prediction or with heights "
-                        "outside the RPC's range")
+    from . import add_plausibility_argument
+    add_plausibility_argument(parser)
     parser.add_argument("--out", required=True, help="output .RPB, _RPC.TXT, or .vrt (image input)")
     parser.add_argument("--ortho", metavar="ORTHO.tif",
                         help="also orthorectify the image with the refined RPC over --dem into this GeoTIFF")

@@ -64,7 +64,8 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
             table = validate_gcps(gcps, dem=dem_obj)
         if check_plausibility:
             from ..plausibility import check_gcps_against
-            check_gcps_against(rpc, table, image_size)
+            with collect_warnings(warns):         # now: the report written below lists them
+                check_gcps_against(rpc, table, image_size, dem=dem_obj)
         _report(progress, 0.2, "projecting the GCPs")
         lon, lat, h = (table[c].to_numpy(float) for c in ("lon", "lat", "h"))
         s_pred, l_pred = (np.asarray(v, float) for v in rpc.project(lon, lat, h))

@@ -18,7 +18,7 @@ from ..block import BlockError
 from ..outputs import OutputSet, check_vector
 from ._common import _open_image, cancel_check, collect_warnings, finish_report
 
-__all__ = ["block_adjust", "image_keys", "parse_bands_of"]
+__all__ = ["block_adjust", "check_observations", "image_keys", "parse_bands_of"]
 
 
 def image_keys(paths: Sequence) -> List[str]:
@@ -103,7 +103,7 @@ def _read_obs(paths: Sequence[str], keys: Sequence[str], files: Sequence, dem, g
 
 def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None, match_ties: bool = False,
                  reference_ortho=None, bands_of=None, solver: str = "simultaneous", reference_ccd=None,
-                 overwrite: bool = False, progress=None) -> Dict[str, Any]:
+                 overwrite: bool = False, progress=None, check_plausibility: bool = True) -> Dict[str, Any]:
     """Block calibration of one group (METHODS §8) from files; see the module docstring for names and outputs.
 
     Parameters
@@ -119,6 +119,9 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
     solver : ``simultaneous`` or ``alternating``; ``alternating`` also runs the simultaneous solve and compares
         them in the report (``solver_comparison``).
     reference_ccd : the CCD image fixing the datum (default: the middle reference-band CCD).
+    check_plausibility : every observation checked against its image as ``refine`` does (:func:`check_observations`:
+        GCPs and tie measurements beyond the RPC's domain, GCP heights in feet or on another datum than the DEM's,
+        GCPs far from their RPC prediction are refused before any work); ``False`` for experts only.
 
     Returns
     -------
@@ -165,6 +168,9 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
     early_warns: List[str] = []
     tab = _read_obs(paths, keys, obs_files, dem_obj, gcp_files=[os.fspath(gcps)] if gcps else [],
                     warns=early_warns)
+    if check_plausibility and tab is not None:
+        with collect_warnings(early_warns):
+            check_observations(tab, models, sizes, dem_obj)
     # declare every output before any work
     outd = os.fspath(out)
     outs = OutputSet(inputs, overwrite=overwrite, cancelled=cancel_check(progress))
@@ -262,6 +268,28 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
     finish_report(rep, warns)
     _progress.report(progress, 1.0, "done")
     return rep
+
+
+def check_observations(tab, models: Mapping[str, Any], sizes: Mapping[str, Any], dem=None) -> None:
+    """Every observation against its image, as ``refine`` checks GCPs (:mod:`gdal_gf4cal.plausibility`; issue 19):
+    per image its GCP rows (:func:`~gdal_gf4cal.plausibility.check_gcps_against`, heights against ``dem``) and its
+    tie measurements (:func:`~gdal_gf4cal.plausibility.check_measured_inside`). A refusal (GCPError) names the
+    image and the override; points outside an image but inside its RPC's domain are used, with a warning."""
+    from ..errors import GCPError
+    from ..plausibility import STRAY_FRACTION, check_gcps_against, check_measured_inside
+    rows = tab.rename(columns={"point_id": "id"})
+    for k, t in rows.groupby("image_id", sort=False):
+        gcp = (t["kind"] == "gcp").to_numpy()
+        try:
+            if gcp.any():
+                check_gcps_against(models[k], t[gcp], sizes.get(k), dem=dem, what=f"GCPs of {k}")
+            if (~gcp).any():
+                check_measured_inside(models[k], t[~gcp], sizes.get(k), what=f"tie points of {k}",
+                                      stray_fraction=STRAY_FRACTION)
+        except BlockError:
+            raise
+        except GCPError as exc:
+            raise BlockError(f"{k}: {exc}") from None
 
 
 def _planar_rms(table, k, when) -> float:

@@ -83,7 +83,8 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
             gcps = validate_gcps(gcps_path, dem=dem_obj)
         if check_plausibility:
             from ..plausibility import check_gcps_against
-            check_gcps_against(rpc, gcps, tuple(current.size))
+            with collect_warnings(warns):         # now: the report written below lists them
+                check_gcps_against(rpc, gcps, tuple(current.size), dem=dem_obj)
         res = calibrate_lookangle(rpc, gcps, current, robust=robust,
                                   max_condition=MAX_CONDITION if max_condition is None else max_condition,
                                   progress=_progress.scaled(progress, 0.0, 0.4))

@@ -103,7 +103,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     overwrite : replace existing outputs (never an input); without it any existing output is refused before work
     ortho : also orthorectify the image with the refined RPC over ``dem`` into this GeoTIFF (``ortho_options``:
         ``crs``, ``res_m``, ``resampling`` of :func:`~gdal_gf4cal.workflows.ortho.orthorectify`); report ``ortho``
-    check_plausibility : refuse GCPs that cannot belong to the image
+    check_plausibility : refuse GCPs that cannot belong to the image, use those measured outside it but inside the
+        RPC's domain with a warning, compare heights with ``dem`` (feet, vertical datum)
         (:func:`~gdal_gf4cal.plausibility.check_gcps_against`); ``False`` for experts only
     max_uncertainty_px : refuse a correction whose propagated 1-sigma uncertainty over the image exceeds it
         (default :data:`~gdal_gf4cal.plausibility.MAX_UNCERTAINTY_PX`; report ``precision_px``, a warning above 1 px)
@@ -156,7 +157,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
         table = assign_roles(table, check_fraction, seed=seed)
         from ..plausibility import MAX_UNCERTAINTY_PX, check_gcps_against, check_precision, correction_precision
         if check_plausibility:
-            check_gcps_against(rpc, table, image_size)
+            with collect_warnings(warns):         # now: the report written below lists them
+                check_gcps_against(rpc, table, image_size, dem=dem_obj)
         _progress.report(progress, 0.1, "estimating the compensation")
         selection = None
         if str(model) == "auto":              # --model auto: leave-one-out error with a parsimony rule

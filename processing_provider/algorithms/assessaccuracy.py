@@ -26,6 +26,7 @@ class AssessAccuracy(Gf4calAlgorithm):
         self.add_input_rpc()
         self.add_gcp_parameters()
         self.add_dem_parameters()
+        self.add_plausibility_parameter()
         self._add(QgsProcessingParameterFileDestination(self.OUTPUT_GPKG, self.tr("Residuals GeoPackage"),
                                                         self.tr("GeoPackage (*.gpkg)"), optional=True),
                   "GCPs with residuals, residual arrows and footprint, styled for QGIS.")
@@ -53,7 +54,8 @@ class AssessAccuracy(Gf4calAlgorithm):
             from gdal_gf4cal.rpc import RPCModel
             size = RPCModel.from_file(source).image_size
         rep = assess_accuracy(source, gcps, residuals=out_gpkg, plot=out_plot, report=out_report, image_size=size,
-                              overwrite=True, progress=progress)
+                              overwrite=True, progress=progress,
+                              check_plausibility=self.check_plausibility(parameters, context))
         self.push_warnings(feedback, rep)
         a = rep["all"]
         outputs = {"N": rep["n"], "RMS_SAMPLE": a["sample"]["rms"], "RMS_LINE": a["line"]["rms"],

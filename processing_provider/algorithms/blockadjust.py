@@ -93,6 +93,7 @@ class BlockAdjust(Gf4calAlgorithm):
                       "The reference-band CCD image whose constant and linear interior terms are fixed (the datum); "
                       "default: the middle one.")
         p.setFlags(p.flags() | p.FlagAdvanced)
+        self.add_plausibility_parameter()
         self._add(QgsProcessingParameterFolderDestination(self.OUTPUT_FOLDER, self.tr("Output folder")),
                   "Folder receiving the recalibrated RPCs, calibration.json, report.json, residuals.gpkg and "
                   "seams.png.")
@@ -126,7 +127,8 @@ class BlockAdjust(Gf4calAlgorithm):
             reference_ortho=ortho.source() if ortho is not None else None,
             bands_of=split_bands_of(self.parameterAsString(parameters, self.BANDS_OF, context)),
             solver=SOLVERS[self.parameterAsEnum(parameters, self.SOLVER, context)],
-            reference_ccd=self.parameterAsString(parameters, self.REFERENCE_CCD, context) or None)
+            reference_ccd=self.parameterAsString(parameters, self.REFERENCE_CCD, context) or None,
+            check_plausibility=self.check_plausibility(parameters, context))
         self.push_warnings(feedback, rep)
         for st in rep["stages"]:
             feedback.pushInfo(f"{st['stage']} stage ({st['solver']}): {st['iterations']} iterations, "

@@ -45,6 +45,7 @@ class CalibrateLookAngle(Gf4calAlgorithm):
                                                     defaultValue=True),
                       "Reweight iteratively and flag blunders; off = plain least squares.")
         p.setFlags(p.flags() | p.FlagAdvanced)
+        self.add_plausibility_parameter()
         self._add(QgsProcessingParameterFolderDestination(self.OUTPUT_FOLDER, self.tr("Output folder")),
                   "Folder receiving camera_new.json, the recalibrated RPC, residuals and report.")
         self.addOutput(QgsProcessingOutputFile("OUTPUT_CAMERA", self.tr("New camera file")))
@@ -74,7 +75,8 @@ class CalibrateLookAngle(Gf4calAlgorithm):
         folder = self.output_folder(parameters, self.OUTPUT_FOLDER, context)
         image = source if image_size_of(source) is not None else None
         rep = calibrate_lookangle_files(source, gcps, camera, folder, image=image, robust=self.parameterAsBool(
-            parameters, self.ROBUST, context), overwrite=True, progress=progress)
+            parameters, self.ROBUST, context), overwrite=True, progress=progress,
+            check_plausibility=self.check_plausibility(parameters, context))
         self.push_warnings(feedback, rep)
         cal, paths = rep["calibration"], rep["outputs"]
         feedback.pushInfo(f"{cal['n_control']} control GCPs, {cal['n_outliers']} outliers, {cal['iterations']} "

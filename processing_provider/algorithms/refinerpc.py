@@ -72,6 +72,7 @@ class RefineRpc(Gf4calAlgorithm):
                       "noise) exceeds this anywhere in the image: a weak GCP layout (clustered, near-collinear) "
                       "extrapolates; above 1 px a warning (METHODS §4, §6).")
         p.setFlags(p.flags() | p.FlagAdvanced)
+        self.add_plausibility_parameter()
         self._add(QgsProcessingParameterFileDestination(
             self.OUTPUT_RPC, self.tr("Refined RPC"),
             self.tr("RPB sidecar (*.RPB);;RPC text (*_RPC.TXT);;VRT over the image (*.vrt)")),
@@ -115,7 +116,8 @@ class RefineRpc(Gf4calAlgorithm):
                          outlier_threshold=self.parameterAsDouble(parameters, self.OUTLIER_THRESHOLD, context),
                          residuals=out_gpkg, plot=out_plot, report=out_report, overwrite=True, progress=progress,
                          ortho=out_ortho,
-                         max_uncertainty_px=self.parameterAsDouble(parameters, self.MAX_UNCERTAINTY, context))
+                         max_uncertainty_px=self.parameterAsDouble(parameters, self.MAX_UNCERTAINTY, context),
+                         check_plausibility=self.check_plausibility(parameters, context))
         self.push_warnings(feedback, rep)
         if "model_selection" in rep:
             feedback.pushInfo(f"automatic model choice: {rep['model_selection']['reason']}")

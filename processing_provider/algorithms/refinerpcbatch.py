@@ -33,6 +33,7 @@ class RefineRpcBatch(BatchAlgorithm):
                   "Image-space correction estimated per scene.")
         self._add(QgsProcessingParameterEnum(self.FORMAT, self.tr("Refined RPC format"), OUT_EXTS, defaultValue=0),
                   "RPB, _RPC.TXT or a VRT over the untouched image carrying the refined RPC.")
+        self.add_plausibility_parameter()
         self.add_batch_parameters("Folder receiving the refined RPC and report.json per scene.")
 
     def run_algorithm(self, parameters, context, feedback, progress):
@@ -42,7 +43,8 @@ class RefineRpcBatch(BatchAlgorithm):
         gcps_dir = self.parameterAsFile(parameters, self.GCP_FOLDER, context)
         model = MODELS[self.parameterAsEnum(parameters, self.MODEL, context)]
         ext = OUT_EXTS[self.parameterAsEnum(parameters, self.FORMAT, context)]
+        check = self.check_plausibility(parameters, context)
         outputs, _ = self.run_batch_job(parameters, context, feedback, progress, lambda ex, pr, ow, folder:
                                         refine_batch(scenes, gcps_dir, model, folder, out_ext=ext, executor=ex,
-                                                     overwrite=ow, progress=pr))
+                                                     overwrite=ow, progress=pr, check_plausibility=check))
         return outputs
