@@ -28,6 +28,7 @@ import numpy as np
 
 from .basis import detector_terms, monomial_derivatives, monomials, term_name
 from .errors import DegenerateGeometryError, GCPError
+from .estimation import critical_value, high_breakdown_start, readmissible
 from .geodesy import radii_of_curvature
 from .sensor import GDAL_PIXEL_OFFSET, SensorModelMixin, pixel_shift
 
@@ -184,7 +185,8 @@ class CompensationResult:
     notes : list of str
         What the caller should know (robust estimation skipped, blunder threshold raised, ...).
     warnings : list of str
-        What is likely wrong (the check points fit worse after compensation than before); never silent.
+        What is likely wrong (the check points fit worse after compensation than before: blunders suspected, the
+        worst points named, see ``suspects``); never silent.
     """
 
     model: CompensationModel
@@ -335,6 +337,11 @@ class CompensationResult:
                         blocks={"sample": slice(0, p_s), "line": slice(p_s, p)}, outlier=outlier,
                         outlier_level=level, condition_number=float(self.condition_number),
                         iterations=int(self.iterations), notes=list(self.notes), warnings=list(self.warnings))
+
+    @property
+    def suspects(self) -> List[Tuple[str, str, float]]:
+        """:func:`suspected_blunders` of this result (empty unless the check points fit worse after it)."""
+        return suspected_blunders(self.gcps)
 
     @property
     def outliers(self):
@@ -620,11 +627,10 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
     if robust and redundancy_min >= 2:
         # Phase 1: high-breakdown start (least trimmed squares from every minimal subset of the control points,
         # or seeded random ones when there are many): several blunders, even coherent ones, cannot mask each other.
-        from .estimation import high_breakdown_start
         idx = np.flatnonzero(ctrl)
         design = np.zeros((idx.size, 2, p_s + p_l))
         design[:, 0, :p_s], design[:, 1, p_s:] = a_s[idx], a_l[idx]
-        inl, _, _ = high_breakdown_start(design, np.stack([y_s[idx], y_l[idx]], axis=1),
+        inl, _, start_info = high_breakdown_start(design, np.stack([y_s[idx], y_l[idx]], axis=1),
                                          np.repeat(w0[idx, None], 2, axis=1), min_points=model.min_gcps)
         used = np.zeros(len(tab), bool)
         used[idx[inl]] = True
@@ -637,10 +643,13 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
                 used = ctrl.copy()
                 break
             try:
-                norm_s, norm_l, *_, dof = _normalised(a_s, a_l, y_s, y_l, w0, used)
+                norm_s, norm_l, *_, sig_s, sig_l, _, dof = _normalised(a_s, a_l, y_s, y_l, w0, used)
             except DegenerateGeometryError:
                 break                                        # undetermined subset: handled below
-            new_used = ctrl & ~_exceeds(norm_s, norm_l, outlier_threshold, dof)
+            # Hysteresis (estimation.readmissible): a point out of the fit comes back only when it also fits.
+            back = readmissible(np.stack([norm_s, norm_l], axis=1), min(dof), threshold=outlier_threshold,
+                                sigma=max(sig_s, sig_l), start_sigma=start_info.get("lts_scale", 0.0))
+            new_used = ctrl & ~_exceeds(norm_s, norm_l, outlier_threshold, dof) & (used | back)
             if new_used.sum() < model.min_gcps or (new_used.sum() - max(p_s, p_l)) < 1:
                 notes.append("too many GCPs look like blunders for a robust estimate; all control points kept")
                 new_used = ctrl.copy()
@@ -690,34 +699,61 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
                               warnings=warns)
 
 
+def suspected_blunders(tab, n: int = 3) -> List[Tuple[str, str, float]]:
+    """The control points most likely to be blunders when the check points fit worse after compensation than
+    before: ``(id, role, planar residual after compensation px)`` of the ``n`` control points in the estimate with
+    the largest normalised residuals (a blunder in the fit drags the correction and leaves residuals on its
+    fellow points too, so the list is where to look, not a verdict; check points are only its victims). Empty
+    when the check points fit as well or better."""
+    rms = _check_rms(tab)
+    if rms is None or not rms[1] > rms[0]:
+        return []
+    cand = (tab["role"] == "control").to_numpy() & ~tab["outlier"].to_numpy(bool)
+    z = np.hypot(tab["norm_res_sample"].to_numpy(float), tab["norm_res_line"].to_numpy(float))
+    z = np.where(cand, np.nan_to_num(z, nan=0.0), -np.inf)
+    order = np.lexsort((np.arange(z.size), -z))[:min(n, int(cand.sum()))]   # ties: input order
+    r = np.hypot(tab["res_sample_after"].to_numpy(float), tab["res_line_after"].to_numpy(float))
+    ids, roles = tab["id"].astype(str).to_numpy(), tab["role"].astype(str).to_numpy()
+    return [(ids[i], roles[i], float(r[i])) for i in order]
+
+
+def _check_rms(tab) -> Optional[Tuple[float, float]]:
+    """Planar rms (px) of the unflagged check points before and after compensation; None without any."""
+    sel = (tab["role"] == "check").to_numpy() & ~tab["outlier"].to_numpy(bool)
+    if not sel.any():
+        return None
+    return tuple(float(np.sqrt(np.mean(tab[f"res_sample_{w}"].to_numpy(float)[sel] ** 2
+                                       + tab[f"res_line_{w}"].to_numpy(float)[sel] ** 2)))
+                 for w in ("before", "after"))
+
+
+def describe_suspects(suspects) -> str:
+    """``g1 (control, 31.2 px), ...`` for a message."""
+    return ", ".join(f"{i} ({role}, {r:.1f} px)" for i, role, r in suspects)
+
+
 def _worse_check_warning(tab) -> List[str]:
     """Warnings when the check points disagree with the compensation: they fit worse after it than before
-    (blunders left out), or most of them are flagged as blunders."""
+    (blunders suspected: the worst points named), or most of them are flagged as blunders."""
     chk = (tab["role"] == "check").to_numpy()
     if not chk.any():
         return []
     outl = tab["outlier"].to_numpy(bool)
-    sel = chk & ~outl
     out: List[str] = []
     if 2 * int((chk & outl).sum()) > int(chk.sum()):
         out.append(f"{int((chk & outl).sum())} of the {int(chk.sum())} check points are flagged as blunders: the "
                    "check points disagree with the compensation; check the GCPs (wrong heights, other image) or the "
                    "model")
-    if sel.any():
-        def rms(when):
-            return float(np.sqrt(np.mean(tab[f"res_sample_{when}"].to_numpy(float)[sel] ** 2
-                                         + tab[f"res_line_{when}"].to_numpy(float)[sel] ** 2)))
-        before, after = rms("before"), rms("after")
-        if after > before:
-            out.append(f"the {int(sel.sum())} check points fit worse after compensation than before (planar rms "
-                       f"{before:.3g} -> {after:.3g} px): check the GCPs (blunders, wrong heights) or choose a "
-                       "simpler model")
+    rms = _check_rms(tab)
+    if rms is not None and rms[1] > rms[0]:
+        out.append(f"the {int((chk & ~outl).sum())} check points fit worse after compensation than before (planar "
+                   f"rms {rms[0]:.3g} -> {rms[1]:.3g} px): blunders are suspected among the GCPs; the worst: "
+                   f"{describe_suspects(suspected_blunders(tab))}; check or remove them, or choose a simpler model")
     return out
 
 
 def _critical_value(threshold: float, dof: int) -> float:
     """Critical normalised residual, :func:`gdal_gf4cal.estimation.critical_value` (METHODS §4, §6)."""
-    from .estimation import critical_value
     return critical_value(threshold, dof)
 
 

@@ -17,6 +17,7 @@ from typing import Any, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
+from .compensation import describe_suspects
 from .errors import DegenerateGeometryError, GCPError
 
 #: Measured points may lie this share of the image size outside it (edge GCPs, sloppy clicks).
@@ -276,7 +277,8 @@ def correction_precision(result, image_size: Tuple[int, int], *, grid: int = 21)
     k = int(np.nanargmax(p)) if np.isfinite(p).any() else 0
     return {"max": float(np.nanmax(p)), "rms": float(np.sqrt(np.nanmean(p ** 2))),
             "max_sample": float(np.nanmax(sd_s)), "max_line": float(np.nanmax(sd_l)),
-            "at_sample": float(ss.ravel()[k]), "at_line": float(ll.ravel()[k]), "grid": int(grid)}
+            "at_sample": float(ss.ravel()[k]), "at_line": float(ll.ravel()[k]), "grid": int(grid),
+            "suspects": list(getattr(result, "suspects", []))}
 
 
 def check_precision(precision: Dict[str, float], model_label: str, *,
@@ -287,6 +289,13 @@ def check_precision(precision: Dict[str, float], model_label: str, *,
         raise GCPError(f"max uncertainty {max_uncertainty_px} px makes no sense: give a positive number of pixels")
     mx, rms = precision["max"], precision["rms"]
     where = f"at sample {precision['at_sample']:.0f}, line {precision['at_line']:.0f}"
+    if not mx <= max_uncertainty_px and precision.get("suspects"):
+        # The check points fit worse after the correction: its sigma (hence the uncertainty) is inflated by
+        # blunders, not by the layout.
+        raise DegenerateGeometryError(
+            f"the {model_label} correction is uncertain by up to {mx:.1f} px and the check points fit worse after it: "
+            f"blunders are suspected among the GCPs, the worst: {describe_suspects(precision['suspects'])}; check or "
+            "remove them, else use a simpler model (or raise --max-uncertainty)")
     if not mx <= max_uncertainty_px:
         raise DegenerateGeometryError(
             f"the GCP layout leaves the {model_label} correction uncertain by up to {mx:.1f} px (1 sigma, rms "

@@ -10,7 +10,9 @@ from __future__ import annotations
 from .result import Estimate
 from .lsq import Block, normal_solve, weighted_lsq
 from .schur import solve_with_points
-from .robust import IRLSSolution, critical_value, high_breakdown_start, irls, radial_huber_weights, robust_lsq
+from .robust import (IRLSSolution, critical_value, high_breakdown_start, irls, min_subset_points, radial_huber_weights,
+                     readmissible, robust_lsq)
 
 __all__ = ["Estimate", "Block", "weighted_lsq", "solve_with_points", "critical_value", "high_breakdown_start",
-           "robust_lsq", "normal_solve", "irls", "IRLSSolution", "radial_huber_weights"]
+           "robust_lsq", "normal_solve", "irls", "IRLSSolution", "radial_huber_weights", "readmissible",
+           "min_subset_points"]

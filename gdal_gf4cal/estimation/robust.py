@@ -15,8 +15,12 @@ whole.
    squares on them, until the set is stable. The same from all points: when that set is larger and its scale not
    significantly larger (F test, 1 %), the start only over-fitted its trimmed half and the larger set is kept.
 3. **Data snooping**: normalised residuals (Baarda's w) of every point, in or out, against
-   :func:`critical_value`; points are left out while they exceed it and re-admitted when they do not, until the
-   set is stable.
+   :func:`critical_value`; points are left out while they exceed it, until the set is stable. A point out of the
+   fit comes back only when it also passes :func:`readmissible` (its residuals jointly consistent with the fit,
+   F test at 1 %): a hysteresis. With little redundancy the Student-t threshold is very wide (17 for 4 degrees of
+   freedom), and without it a 60 px blunder outside a 5-point affine fit (its prediction variance inflated by
+   extrapolation) was let back in, inflated sigma and pulled its fellow blunder in after it (2 in 7 GCPs
+   masked).
 """
 from __future__ import annotations
 
@@ -34,6 +38,8 @@ from .result import Estimate, names_and_blocks
 
 #: Largest number of minimal subsets searched exhaustively; beyond it ``n_subsets`` random ones are drawn.
 MAX_EXHAUSTIVE = 3000
+#: Significance level of the re-admission test (:func:`readmissible`).
+READMIT_LEVEL = 0.01
 
 
 @lru_cache(maxsize=256)
@@ -48,6 +54,55 @@ def critical_value(threshold: float, dof: int) -> float:
         return math.inf
     from scipy import stats
     return float(stats.t.isf(stats.norm.sf(threshold), dof))
+
+
+def readmissible(normalised, dof: int, *, threshold: float = 4.0, sigma: float = 1.0, start_sigma: float = 0.0,
+                 level: Optional[float] = None) -> np.ndarray:
+    """Per point out of a fit, True when its ``k`` normalised residuals (``(n, k)``, each scaled by the fit's
+    ``sigma`` and its own prediction variance) are jointly consistent with the fit: ``q = sum(w^2) / k`` below
+    the ``1 - level`` quantile of ``F(k, dof)`` (the nested F test of adding the point; ``dof`` those of the fit's
+    sigma), or below the snooping ``threshold`` taken with a known sigma (chi-square of the same probability as
+    the per-axis test; the bound with large redundancy). The re-admission side of the snooping hysteresis
+    (module docstring, step 3): with 4 degrees of freedom a point stays out above q = 18 (the Student-t
+    threshold would let it back up to |w| = 17 per axis), with 40 above q = 9 (|w| ~ 4.2 on one axis).
+
+    ``start_sigma`` (the ``lts_scale`` of :func:`high_breakdown_start`) floors the sigma: the plain scale of a
+    trimmed set that was chosen for fitting best is biased low (4 of 6 points), the LTS scale is corrected for
+    the trimming."""
+    w = np.nan_to_num(np.asarray(normalised, dtype=float), nan=0.0)
+    w = w.reshape(w.shape[0], -1)
+    k = w.shape[1]
+    if start_sigma > sigma > 0:
+        w = w * (sigma / start_sigma)
+    if dof <= 0:
+        return np.ones(w.shape[0], bool)
+    level = READMIT_LEVEL if level is None else level
+    bound = max(_f_ppf(1.0 - level, k, int(dof)), _chi2_isf(k * _norm_sf2(threshold), k) / k)
+    return np.sum(w * w, axis=1) / k <= bound
+
+
+@lru_cache(maxsize=64)
+def _norm_sf2(threshold: float) -> float:
+    from scipy import stats
+    return float(2.0 * stats.norm.sf(threshold))
+
+
+@lru_cache(maxsize=64)
+def _chi2_isf(p: float, k: int) -> float:
+    from scipy import stats
+    return float(stats.chi2.isf(min(p, 1.0), k))
+
+
+def min_subset_points(design) -> int:
+    """Points in a minimal subset of ``design`` (n, k, p): ``ceil(p / k)`` when the axes share parameters, and at
+    least the parameters of any axis estimated independently of the others (columns non-zero on that axis
+    only: a block-diagonal affine, 3 + 3 parameters, needs 3 points; a detector polynomial with 4 sample and
+    1 line parameters needs 4, not 3)."""
+    a = np.asarray(design)
+    n, k, p = a.shape
+    on_axis = np.any(a != 0, axis=0)                                   # (k, p)
+    own = on_axis & (on_axis.sum(axis=0) == 1)[None, :]
+    return int(max(math.ceil(p / k), int(own.sum(axis=1).max()) if k > 1 else p))
 
 
 def _subsets(n: int, m: int, n_subsets: int, seed: int) -> np.ndarray:
@@ -153,7 +208,7 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
     design : ndarray (n_points, k, p)
     obs, weights : ndarray (n_points, k)
     min_points : int, optional
-        Points in a minimal subset (default ``ceil(p / k)``).
+        Points in a minimal subset (default :func:`min_subset_points`).
     n_subsets : int
         Random subsets when ``C(n, m)`` exceeds :data:`MAX_EXHAUSTIVE` (seeded with ``seed``).
     max_search : int
@@ -168,13 +223,14 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
     scale : float
         Robust standard deviation of unit weight of the start.
     info : dict
-        ``subsets`` (searched), ``exhaustive`` (bool), ``h``.
+        ``subsets`` (searched), ``exhaustive`` (bool), ``h``, ``lts_scale`` (the trimmed criterion's scale,
+        corrected for the trimming; a floor for :func:`readmissible`).
     """
     a = np.asarray(design, dtype=float)
     n, k, p = a.shape
     y = np.asarray(obs, dtype=float).reshape(n, k)
     w = np.ones((n, k)) if weights is None else np.broadcast_to(np.asarray(weights, float), (n, k))
-    m = int(min_points) if min_points else int(math.ceil(p / k))
+    m = int(min_points) if min_points else min_subset_points(a)
     if n <= m:
         return np.ones(n, bool), math.nan, {"subsets": 0, "exhaustive": True, "h": n}
     h = min(n, max((n + m + 1) // 2, m + 1))
@@ -232,6 +288,7 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
     corr = _lts_consistency(h, n, k)
     dof_h = max(h * k - p, 1)
     s2 = best_crit / max(corr * h, 1e-300) * (h * k) / dof_h
+    info["lts_scale"] = float(math.sqrt(max(s2, 0.0)))
     cut = _chi2_ppf(0.999, k)
     tiny = 1e-18 * max(float(np.median(np.sum(w * y * y, axis=1))), 1e-300)
     fit_set = np.zeros(n, bool)
@@ -298,6 +355,7 @@ def robust_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), froze
     notes: List[str] = []
     used = cand.copy()
     start_out = np.zeros(n, bool)
+    start_sigma = 0.0
     # The start sees only the free parameters (frozen blocks moved to the right-hand side at their values).
     free = np.ones(p, bool)
     if blocks and frozen:
@@ -306,7 +364,7 @@ def robust_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), froze
             if name in sl:
                 free[sl[name]] = False
     n_free = int(free.sum())
-    m = int(min_points) if min_points else int(math.ceil(n_free / k))
+    m = int(min_points) if min_points else min_subset_points(a[:, :, free])
     if int(cand.sum()) * k - n_free >= 2 and int(cand.sum()) > m:
         idx = np.flatnonzero(cand)
         a_s, y_s = a[idx], y[idx]
@@ -314,7 +372,8 @@ def robust_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), froze
             x0 = np.zeros(p) if values is None else np.asarray(values, dtype=float)
             y_s = y_s - a_s[:, :, ~free] @ x0[~free]
             a_s = a_s[:, :, free]
-        inl, _, _ = high_breakdown_start(a_s, y_s, w0[idx], min_points=m, n_subsets=n_subsets, seed=seed)
+        inl, _, start_info = high_breakdown_start(a_s, y_s, w0[idx], min_points=m, n_subsets=n_subsets, seed=seed)
+        start_sigma = start_info.get("lts_scale", 0.0)
         used = np.zeros(n, bool)
         used[idx[inl]] = True
         start_out = cand & ~used
@@ -328,8 +387,10 @@ def robust_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), froze
     it = 0
     for it in range(1, max_iter + 1):
         crit = critical_value(threshold, est.dof)
-        bad = np.nanmax(np.abs(np.nan_to_num(est.normalised, nan=0.0)).reshape(n, k), axis=1) > crit
-        new = cand & ~bad
+        norm = np.nan_to_num(est.normalised, nan=0.0).reshape(n, k)
+        bad = np.max(np.abs(norm), axis=1) > crit
+        new = cand & ~bad & (used | readmissible(norm, est.dof, threshold=threshold, sigma=est.sigma0,
+                                                               start_sigma=start_sigma))
         if int(new.sum()) * k - n_free < 1:
             notes.append("too many points look like blunders for a robust estimate; all candidates kept")
             new = cand.copy()

@@ -39,8 +39,11 @@ def synthetic_dem_array(bounds, cell_deg: float, seed: int, height_range=(3500.0
     that valleys are broad and peaks sharp, as in Tibet.
     """
     x0, y0, x1, y1 = bounds
-    nx = int(np.ceil((x1 - x0) / cell_deg)) + 1
-    ny = int(np.ceil((y1 - y0) / cell_deg)) + 1
+    # Cells to cover the bounds, rounded first: a width of exactly N cells (the caller's cell is often width / N)
+    # came out as N +/- 1 ulp with the BLAS kernel, ceil gave N or N + 1 and an unrelated fractal (another FFT
+    # size): every height of the scene changed with the CPU.
+    nx = int(np.ceil(round((x1 - x0) / cell_deg, 6))) + 1
+    ny = int(np.ceil(round((y1 - y0) / cell_deg, 6))) + 1
     z = fractal_surface((ny, nx), seed, beta) ** 1.3
     lo, hi = height_range
     h = (lo + (hi - lo) * z).astype(np.float32)
