@@ -108,7 +108,7 @@ def test_check_point_blunder_flagged_and_worse_checks_warned(truth, tmp_path, ca
     capsys.readouterr()
     rep = _refine(worse, tmp_path, "worse")
     assert rep["warnings"] and "20 of the 20 check points are flagged" in rep["warnings"][0]
-    assert "warning: 20 of the 20 check points are flagged" in capsys.readouterr().out
+    assert "gf4cal: warning: 20 of the 20 check points are flagged" in capsys.readouterr().err
     # check points only slightly off (not flagged) but worse after than before: the rms warning
     mild = _gcps(truth, 10, 8)
     from gdal_gf4cal.compensation import fit_compensation

@@ -66,7 +66,10 @@ def test_map_ordered_gathers_in_submission_order_and_reports_progress():
     with get_executor("threads:3") as ex:
         out = map_ordered(_square, list(range(12)), ex, progress=lambda f, m: seen.append(f))
     assert out == [x * x for x in range(12)]
-    assert seen[-1] == 1.0 and len(seen) == 12 and seen == sorted(seen)
+    # one report per wait round (tasks finishing together under load share one): counts of finished tasks,
+    # never decreasing, ending at all of them
+    assert seen[-1] == 1.0 and 1 <= len(seen) <= 12 and seen == sorted(seen)
+    assert all(abs(f * 12 - round(f * 12)) < 1e-9 for f in seen)
 
 
 def test_unreachable_scheduler_is_one_line_error():

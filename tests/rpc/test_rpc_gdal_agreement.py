@@ -21,7 +21,7 @@ from gdal_gf4cal.errors import RPCFormatError
 
 DATA = Path(__file__).parents[1] / "data" / "rpc"
 LOCAL_FILES = sorted(p for p in DATA.iterdir() if p.name != "PROVENANCE.txt")
-NO_GDAL_READER = ("json", "geom")  # formats GDAL has no reader for: their model is handed to GDAL as metadata
+NO_GDAL_READER = ("json", "geom", "dimap_v1")  # formats GDAL has no reader for: their model is handed to GDAL as metadata
 TOL_PX = 1e-6
 
 
@@ -38,6 +38,8 @@ def gdal_view(path: Path, folder: Path):
     projection is compared there.
     """
     fmt = rpc_io.rpc_file_format(path)
+    if fmt == "dimap" and b"PHR_Dimap_Document" in path.read_bytes():
+        fmt = "dimap_v1"  # Pleiades DIMAP v1.4: GDAL's DIMAP driver reads no Global_RFM (empty coefficients)
     folder.mkdir(parents=True, exist_ok=True)
     if fmt in ("gdal", "gdal_xml") and not path.name.endswith(".aux.xml"):
         ds = gdal.Open(str(path))
