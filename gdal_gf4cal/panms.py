@@ -271,10 +271,62 @@ def _piecewise_design(s, breaks, width) -> np.ndarray:
     return a
 
 
-def _blocks(m: int):
-    names_pw = [f"{ax}_k{k + 1}_u{j}" for ax in AXES for k in range(m) for j in range(ORDER + 1)]
-    return [Block("linear_datum", ("A1", "A2", "A4", "A5")), Block("linear_time", ("A3", "A6")),
-            Block("piecewise", tuple(names_pw))]
+def _blocks(m: int, keep=None):
+    """The estimation blocks of the design columns (``keep``: the columns estimated, :func:`_term_layout`)."""
+    names = ["A1", "A2", "A4", "A5", "A3", "A6"] + [f"{ax}_k{k + 1}_u{j}" for ax in AXES for k in range(m)
+                                                    for j in range(ORDER + 1)]
+    keep = np.ones(len(names), bool) if keep is None else np.asarray(keep, bool)
+    names = [nm for nm, k in zip(names, keep) if k]
+    groups = (("linear_datum", ("A1", "A2", "A4", "A5")), ("linear_time", ("A3", "A6")))
+    out = [Block(g, tuple(nm for nm in names if nm in members)) for g, members in groups]
+    out.append(Block("piecewise", tuple(nm for nm in names if nm[0] in "sl" and "_k" in nm)))
+    return [b for b in out if b.names]
+
+
+def _piece_orders(keep, m: int) -> List[int]:
+    """Polynomial order estimated per sub-CCD (-1: none) from the kept design columns."""
+    pw = np.asarray(keep[6:6 + m * (ORDER + 1)], bool).reshape(m, ORDER + 1)
+    return [int(np.flatnonzero(r).max()) if r.any() else -1 for r in pw]
+
+
+def _term_layout(sample, line, usable, breaks, width):
+    """Which terms the usable cells support: ``(keep, notes)``, ``keep`` a mask over the design columns (linear
+    A1 A2 A4 A5 A3 A6, then per axis and sub-CCD the ``u^0..u^4`` coefficients), ``notes`` one sentence per
+    term dropped. A polynomial of order ``q`` in a sub-CCD needs usable cells in ``q + 2`` columns (one more than
+    its coefficients, so that its fit is checked); the linear term's ``s`` / ``l`` slopes need two columns / rows;
+    and all the terms together at least 2 observations more than parameters (two per cell)."""
+    m = len(breaks) + 1
+    s, l = np.asarray(sample, float)[usable], np.asarray(line, float)[usable]
+    piece = np.searchsorted(np.asarray(breaks, float), s, side="right")
+    n_cols = [np.unique(np.round(s[piece == k], 3)).size for k in range(m)]
+    orders = [min(ORDER, n - 2) if n >= 2 else (0 if n == 1 else -1) for n in n_cols]
+    notes = []
+    lin = np.ones(6, bool)
+    n_rows, n_all_cols = np.unique(np.round(l, 3)).size, np.unique(np.round(s, 3)).size
+    if n_all_cols < 2:
+        lin[[1, 3]] = False
+        notes.append(f"usable cells in {n_all_cols} column: the linear term's sample slopes (A2, A5) are not "
+                     "estimated")
+    if n_rows < 2:
+        lin[[4, 5]] = False
+        notes.append(f"usable cells in {n_rows} row: the linear term's line slopes (A3, A6) are not estimated")
+    n_obs = 2 * s.size
+
+    def n_par():
+        return int(lin.sum()) + 2 * sum(q + 1 for q in orders)
+    while n_par() + 2 > n_obs and max(orders) >= 0:
+        k = int(np.argmax(orders))
+        orders[k] -= 1
+    for k, (n, q) in enumerate(zip(n_cols, orders)):
+        if q < ORDER:
+            what = "no sub-CCD term" if q < 0 else f"order {q} instead of {ORDER}"
+            notes.append(f"sub-CCD {k + 1} of {m}: usable cells in {n} column(s) ({s.size} cells in all): {what} "
+                         "(the data cannot support more)")
+    pw = np.zeros((m, ORDER + 1), bool)
+    for k, q in enumerate(orders):
+        pw[k, :q + 1] = True
+    keep = np.concatenate([lin, pw.ravel(), pw.ravel()])
+    return keep, notes
 
 
 def _values(model: PanMSModel) -> np.ndarray:
@@ -498,41 +550,46 @@ def estimate(cells, *, ms_size, breaks=None, n_sub_ccds: int = 3, jitter="auto",
         model = _finish(model, c, snaps, est.outlier, line_time_s, progress)
         _check_reuse_fit(model)
         return model
-    piece = np.searchsorted(np.asarray(breaks), c["sample"], side="right")
-    for k in range(m):
-        n_cols = np.unique(np.round(c["sample"][usable & (piece == k)], 3)).size
-        if n_cols < ORDER + 2:
-            raise PanMSError(f"sub-CCD {k + 1} has usable cells in only {n_cols} columns, too few for its quartic "
-                             f"(>= {ORDER + 2}): use smaller cells (--cell), check --breaks, or --reuse MODEL.json")
-    if n_use * 2 < 6 + 2 * m * (ORDER + 1) + 4:
-        raise PanMSError(f"{n_use} usable cells cannot determine the {6 + 10 * m} parameters of the linear + "
-                         f"piecewise model; use smaller cells (--cell) or --reuse MODEL.json")
+    keep, notes = _term_layout(c["sample"], c["line"], usable, breaks, W)
+    model.info["notes"] = notes
+    model.info["piece_orders"] = _piece_orders(keep, m)
+    a = a[:, :, keep]
+    blocks = _blocks(m, keep)
+    x_full = np.zeros(keep.size)
+
+    def put(x):
+        x_full[keep] = x
+        _set_values(model, x_full)
     # Blunders first, on the model that fits (linear + piecewise, robust: high-breakdown start + snooping), so
     # that the sub-CCD structure the linear step cannot model is not mistaken for blunders.
     yy = np.where(np.isfinite(y), y, 0.0)
-    est = _robust_step(a, y, w, usable, blocks, ["linear_datum"], np.zeros(a.shape[2]), " (blunder detection)")
-    outlier = est.outlier
+    if n_use >= a.shape[2] // 2 + 3:
+        est = _robust_step(a, y, w, usable, blocks, ["linear_datum"], np.zeros(a.shape[2]), " (blunder detection)")
+        outlier = est.outlier
+    else:
+        outlier = np.zeros(n_all, bool)
+        notes.append(f"{n_use} usable cells for {a.shape[2] // 2} parameters per axis: too few to test for blunders")
     w_in = np.where((usable & ~outlier)[:, None], w, 0.0)
     # Step 1 (eq. 14): linear on all cells (usable, not blunders).
-    a_lin = a[:, :, :6]
-    est = weighted_lsq(a_lin.reshape(-1, 6), yy.ravel(), w_in.ravel(), blocks=blocks[:2], hint=" (linear term)")
-    x = np.zeros(a.shape[2])
-    x[:6] = est.x
-    _set_values(model, x)
+    n_lin = int(keep[:6].sum())
+    est = weighted_lsq(a[:, :, :n_lin].reshape(-1, n_lin), yy.ravel(), w_in.ravel(), blocks=_blocks(0, keep[:6]),
+                       hint=" (linear term)")
+    put(np.r_[est.x, np.zeros(a.shape[2] - n_lin)])
     snaps.append(_snapshot(model, "linear", ("linear",)))
     report(progress, 0.3, "pan-MS: piecewise term")
     # Step 2 (eq. 15): piecewise on what remains; the linear datum (constant, s) stays frozen (the pieces'
     # constant and linear terms duplicate it), the l terms are refined with it.
-    est = weighted_lsq(a.reshape(-1, a.shape[2]), yy.ravel(), w_in.ravel(), blocks=blocks, frozen=["linear_datum"],
-                       values=_values(model), hint=" (piecewise term)")
-    _set_values(model, est.x)
+    if any(b.name != "linear_datum" for b in blocks):
+        est = weighted_lsq(a.reshape(-1, a.shape[2]), yy.ravel(), w_in.ravel(), blocks=blocks,
+                           frozen=["linear_datum"], values=_values(model)[keep], hint=" (piecewise term)")
+        put(est.x)
     snaps.append(_snapshot(model, "piecewise", ("linear", "piecewise")))
     # Step 3 (eq. 16): jitter on what remains.
     report(progress, 0.6, "pan-MS: jitter term")
     if str(jitter) != "none":
         n_fixed = None if str(jitter) == "auto" else int(jitter)
         inl = usable & ~outlier
-        _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn)
+        _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn, keep)
         _describe_jitter(model, line_time_s, look_time_s, ifov_rad)
         snaps.append(_snapshot(model, "jitter", ("linear", "piecewise", "jitter")))
     return _finish(model, c, snaps, outlier, line_time_s, progress)
@@ -665,7 +722,7 @@ def _jitter_design(model, l, sn):
     return np.concatenate(parts, axis=2) if parts else np.zeros((n, 2, 0))
 
 
-def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
+def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn, keep):
     ps, pl = model.predict(c["sample"], c["line"], terms=("linear", "piecewise"))
     res = np.stack([c["d_sample"] - ps, c["d_line"] - pl], axis=1)
     for k, ax in enumerate(AXES):
@@ -686,7 +743,8 @@ def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
         try:
             est = weighted_lsq(full.reshape(-1, full.shape[2]), yy.ravel(), ww.ravel(), blocks=bl,
                                frozen=["linear_datum"],
-                               values=np.concatenate([_values(model), np.zeros(len(names))]), hint=" (jitter term)")
+                               values=np.concatenate([_values(model)[keep], np.zeros(len(names))]),
+                               hint=" (jitter term)")
         except DegenerateGeometryError:
             # a component the design cannot separate (from the l terms or another one): drop the last one found
             # on the axis with the most components and solve again
@@ -696,7 +754,9 @@ def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
                 return
             continue
         p0 = a.shape[2]
-        _set_values(model, est.x[:p0])
+        x_full = np.zeros(keep.size)
+        x_full[keep] = est.x[:p0]
+        _set_values(model, x_full)
         xj = est.x[p0:]
         i = 0
         for ax in AXES:
@@ -704,7 +764,8 @@ def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
                 comp["sin"], comp["cos"] = float(xj[i]), float(xj[i + 1])
                 i += 2
         ps, pl = model.predict(c["sample"], c["line"], terms=("linear", "piecewise"))
-        res = np.stack([c["d_sample"] - ps, c["d_line"] - pl], axis=1)
+        # cells left out (weight 0) have no nabla (NaN): 0 * NaN would make B, then the whole design, NaN
+        res = np.where(ww > 0, yy - np.stack([ps, pl], axis=1), 0.0)
         for k, ax in enumerate(AXES):
             comps = model.jitter[ax]["components"]
             if not comps:
@@ -714,7 +775,8 @@ def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
             g = sn * j0
             num = np.sum(ww[:, k] * g * (res[:, k] - j0))
             den = np.sum(ww[:, k] * g * g)
-            model.jitter[ax]["b"] = float(num / den) if den > 0 else 0.0
+            b = float(num / den) if den > 0 else 0.0
+            model.jitter[ax]["b"] = b if math.isfinite(b) else 0.0
         done += 1
 
 
