@@ -19,8 +19,9 @@ turns "an image plus an RPC" into the RPC of the image's pixels:
   its origin, lies outside the RPC's image domain (normalised coordinates beyond ±:data:`DOMAIN_LIMIT`) when the RPC
   is not one already moved to the crop.
 
-A geotransform with a CRS is a map georeference, not a crop origin (nothing applied); so is one without CRS whose
-pixel height is negative (a north-up map transform whose CRS was lost).
+A geotransform with a CRS is a map georeference, not a crop origin (nothing applied), except a local (engineering)
+CRS of unnamed units, which some tools write for pixel coordinates; a geotransform without CRS whose pixel height is
+negative is a north-up map transform whose CRS was lost (nothing applied).
 """
 from __future__ import annotations
 
@@ -45,7 +46,8 @@ def _pixel_geotransform(image_path) -> Tuple[Optional[tuple], Optional[Tuple[int
     size = (ds.RasterXSize, ds.RasterYSize)
     files = list(ds.GetFileList() or [])
     gt = ds.GetGeoTransform(can_return_null=True)
-    if gt is None or ds.GetSpatialRef() is not None:
+    srs = ds.GetSpatialRef()
+    if gt is None or (srs is not None and not srs.IsLocal()):      # an engineering CRS is pixel units too
         return None, size, files
     return tuple(float(v) for v in gt), size, files
 

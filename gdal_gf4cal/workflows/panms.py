@@ -11,6 +11,7 @@ from typing import Any, Dict, Optional
 
 import numpy as np
 
+from ..crop import image_rpc
 from ..outputs import OutputSet, check_raster, check_vector
 from ._common import cancel_check, collect_warnings, finish_report
 
@@ -102,7 +103,6 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
     from ..dem import DEM
     from ..errors import Gf4calError
     from ..report import write_report_json
-    from ..rpc import RPCModel
     from ..rpc_io import write_rpb
 
     breaks = _parse_breaks(breaks)
@@ -131,7 +131,7 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         (pw, ph), _ = _size(pan)
         (mw, mh), n_bands = _size(ms)
         ratio = panms.check_sizes((pw, ph), (mw, mh))
-        pan_rpc, ms_rpc = RPCModel.from_file(pan), RPCModel.from_file(ms)
+        (pan_rpc, _), (ms_rpc, _) = image_rpc(pan), image_rpc(ms)
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         overlap = check_overlap(pan_rpc, ms_rpc, (pw, ph), (mw, mh), dem_obj)
         if breaks is not None:

@@ -64,6 +64,11 @@ def test_crop_origin_reads_the_pixel_geotransform(tmp_path, crop):
     assert crop_origin(crop) == ORIGIN
     assert crop_origin(write_crop(tmp_path / "plain.tif", gt=None)) is None
     assert crop_origin(write_crop(tmp_path / "map.tif", gt=(600000.0, 1.0, 0.0, 5e6, 0.0, 1.0), epsg=32631)) is None
+    local = write_crop(tmp_path / "local.tif")           # an engineering CRS (as CNES location grids carry)
+    ds = gdal.Open(str(local), gdal.GA_Update)
+    ds.SetSpatialRef(gdal.Open(str(GRID)).GetSpatialRef())
+    ds = None
+    assert crop_origin(local) == ORIGIN
 
 
 @pytest.mark.parametrize("rpc_path", [GEOM, DIMAP], ids=["geom", "dimap"])
