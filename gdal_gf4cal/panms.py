@@ -37,7 +37,7 @@ from .estimation import Block, normal_solve, robust_lsq, weighted_lsq
 from .progress import report
 from .stats import axis_stats, share_within
 
-__all__ = ["PanMSModel", "estimate", "default_breaks", "pan_edges_in_ms", "merge_breaks", "write_correction", "resample_ms_on_pan",
+__all__ = ["PanMSModel", "estimate", "default_breaks", "detect_breaks", "column_profile", "pan_edges_in_ms", "merge_breaks", "write_correction", "resample_ms_on_pan",
            "approximate_rpc", "GF7_MS_LINE_TIME_S", "GF7_MS_IFOV_RAD", "GF7_LOOK_TIME_S", "PanMSError"]
 
 AXES = ("sample", "line")
@@ -100,6 +100,113 @@ def merge_breaks(*lists, width: float, tol_px: float = 1.0) -> List[float]:
         else:
             out.append([float(v)])
     return [float(np.mean(g)) for g in out]
+
+
+#: False-alarm probability below which a jump in the per-column residual is taken for a sub-CCD edge.
+JUMP_FAP = 1e-3
+#: Order of the smooth part of the per-column residual on each side of the edges found (detect_breaks).
+JUMP_SMOOTH_ORDER = 3
+
+
+def column_profile(sample, line, d_sample, d_line):
+    """The misregistration along the MS line of sensor columns: ``(x, y, n)`` with ``x`` the window columns
+    (sorted), ``y[:, axis]`` the median over the lines of each window's offset minus its row's median (what
+    varies along the line -- attitude, jitter -- removed), ``n`` windows per column."""
+    s, l = np.round(np.asarray(sample, float), 3), np.round(np.asarray(line, float), 3)
+    d = np.stack([np.asarray(d_sample, float), np.asarray(d_line, float)], axis=1)
+    ok = np.isfinite(d).all(axis=1) & np.isfinite(s) & np.isfinite(l)
+    s, l, d = s[ok], l[ok], d[ok]
+    if s.size == 0:
+        return np.zeros(0), np.zeros((0, 2)), np.zeros(0, int)
+    _, ri = np.unique(l, return_inverse=True)
+    ux, ci = np.unique(s, return_inverse=True)
+    from .stats import grouped_trimmed_mean
+    rowm = grouped_trimmed_mean(ri, d, int(ri.max()) + 1).mean
+    m = grouped_trimmed_mean(ci, d - rowm[ri], ux.size)
+    return ux, m.mean, m.n
+
+
+def _ramp(x, b, width):
+    """A jump at ``b`` as matching windows ``width`` wide see it: 0 left of ``b - width/2``, 1 right of
+    ``b + width/2``, linear between (a window straddling the edge measures the mix of both sides)."""
+    return np.clip((np.asarray(x, float)[:, None] - np.asarray(b, float)[None, :]) / float(width) + 0.5, 0.0, 1.0)
+
+
+def _jump_gain(x, y, w, found, cand, width, span):
+    """RSS reduction of both axes from adding a ramp at each candidate in ``cand`` to the smooth model (a
+    polynomial of order JUMP_SMOOTH_ORDER per piece between the edges ``found``, plus their ramps), weights ``w``
+    per column; and the RSS of the smooth model. Vectorised over the candidates (projection on the orthonormal
+    basis of the weighted smooth design)."""
+    from .basis import piecewise_polynomial
+    base = piecewise_polynomial(x, found, JUMP_SMOOTH_ORDER, domain=span)
+    if found:
+        base = np.concatenate([base, _ramp(x, found, width)], axis=1)
+    sw = np.sqrt(w)
+    q, _ = np.linalg.qr(base * sw[:, None])
+    rw = _ramp(x, cand, width) * sw[:, None]
+    mr = rw - q @ (q.T @ rw)
+    den = np.einsum("ij,ij->j", mr, mr)
+    gain = np.zeros(len(cand))
+    rss = 0.0
+    for k in range(2):
+        e = y[:, k] * sw - q @ (q.T @ (y[:, k] * sw))
+        gain = gain + np.where(den > 1e-12, (mr.T @ e) ** 2 / np.maximum(den, 1e-12), 0.0)
+        rss += float(e @ e)
+    return gain, rss, base.shape[1]
+
+
+def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: float, spacing_px: float,
+                  max_breaks: int = 8) -> Tuple[List[float], List[dict]]:
+    """Sub-CCD edges found in the data (METHODS §9): jumps of the per-column residual (:func:`column_profile` of
+    the window matches) that pass a test. Greedy: the strongest ramp (a jump as ``window_px`` windows see it) over
+    the smooth model, placed to 0.25 px, kept while its F statistic's false-alarm probability over the
+    independent places searched is below :data:`JUMP_FAP` (neighbouring columns share pixels: the statistic is
+    deflated by ``window_px / spacing_px``). Returns ``(edges in MS columns, [{edge, jump_sample_px,
+    jump_line_px, fap}])``."""
+    from scipy import stats
+    x, y, n = column_profile(sample, line, d_sample, d_line)
+    keep = n >= 3
+    x, y, n = x[keep], y[keep], n[keep]
+    found: List[float] = []
+    info: List[dict] = []
+    if x.size < 4 * (JUMP_SMOOTH_ORDER + 2):
+        return found, info
+    span = (0.0, float(width))
+    w = n.astype(float)
+    corr = max(1.0, float(window_px) / float(spacing_px))
+    lo, hi = float(x.min()) + window_px / 2.0, float(x.max()) - window_px / 2.0
+    n_indep = max(1.0, (hi - lo) / float(window_px))
+    while len(found) < max_breaks:
+        cand = np.arange(lo, hi, 1.0)
+        cand = cand[np.all(np.abs(cand[:, None] - np.asarray(found + [-1e9])[None, :]) > window_px, axis=1)]
+        if cand.size == 0:
+            break
+        gain, rss, p = _jump_gain(x, y, w, found, cand, window_px, span)
+        b0 = float(cand[int(np.argmax(gain))])
+        fine = np.arange(b0 - 1.0, b0 + 1.0001, 0.25)
+        g2, _, _ = _jump_gain(x, y, w, found, fine, window_px, span)
+        b = float(fine[int(np.argmax(g2))])
+        dof = 2 * x.size / corr - 2 * (p + 1)
+        if dof < 4:
+            break
+        s2 = (rss - float(g2.max())) / dof
+        F = (float(g2.max()) / 2.0) / max(s2, 1e-300) / corr
+        fap = min(1.0, float(stats.f.sf(F, 2, dof)) * n_indep)
+        if fap >= JUMP_FAP:
+            break
+        found = sorted(found + [b])
+        info.append({"edge_ms_px": b, "fap": fap})
+    # the jump of each edge found, from the final model
+    if found:
+        from .basis import piecewise_polynomial
+        base = np.concatenate([piecewise_polynomial(x, found, JUMP_SMOOTH_ORDER, domain=span),
+                               _ramp(x, found, window_px)], axis=1)
+        for k, ax in enumerate(AXES):
+            coef = normal_solve(base, y[:, k], w)[0][-len(found):]
+            for it in info:
+                it[f"jump_{ax}_px"] = float(coef[found.index(it["edge_ms_px"])])
+    info.sort(key=lambda d: d["edge_ms_px"])
+    return found, info
 
 
 @dataclass
@@ -804,27 +911,35 @@ def _tiles(W: int, H: int, tile: int) -> List[Tuple[int, int, int, int]]:
     return [(x0, y0, min(tile, W - x0), min(tile, H - y0)) for y0 in range(0, H, tile) for x0 in range(0, W, tile)]
 
 
-def write_correction(model: PanMSModel, path, *, tile: int = 512, progress=None) -> str:
-    """Write ``correction.tif``: 2 bands float32, delta sample / delta line (MS px) at every MS pixel centre
-    (GDAL convention), on the MS image grid, tile by tile (METHODS §9)."""
+def write_correction(model: PanMSModel, path, *, tile: int = 512, progress=None, rpc=None,
+                     band_models: Optional[Dict[str, PanMSModel]] = None) -> str:
+    """Write ``correction.tif``: float32 bands delta sample / delta line (MS px) at every MS pixel centre (GDAL
+    convention), on the MS image grid as given, tile by tile (METHODS §9): the model's, then a pair per entry of
+    ``band_models`` (``{label: model}``: bands with their own correction). ``rpc``: the MS image's RPC, written in
+    the RPC metadata domain (no geotransform) so that GDAL and QGIS place the grid on the ground."""
     from osgeo import gdal
     from ._gdal import gdal_exceptions
     W, H = model.ms_size
     path = os.fspath(path)
+    pairs = [("", model)] + [(f" {k}", m) for k, m in (band_models or {}).items()]
     with gdal_exceptions():
-        ds = gdal.GetDriverByName("GTiff").Create(path, W, H, 2, gdal.GDT_Float32, [
+        ds = gdal.GetDriverByName("GTiff").Create(path, W, H, 2 * len(pairs), gdal.GDT_Float32, [
             "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "PREDICTOR=3",
-            "BIGTIFF=IF_SAFER"])
-        ds.GetRasterBand(1).SetDescription("delta_sample_ms_px")
-        ds.GetRasterBand(2).SetDescription("delta_line_ms_px")
+            "BIGTIFF=IF_SAFER", "INTERLEAVE=BAND"])
+        for i, (label, _) in enumerate(pairs):
+            ds.GetRasterBand(2 * i + 1).SetDescription(f"delta_sample_ms_px{label}")
+            ds.GetRasterBand(2 * i + 2).SetDescription(f"delta_line_ms_px{label}")
         ds.SetMetadataItem("GF4CAL_PANMS", "delta = MS image point - pan/DEM/MS-RPC prediction (METHODS §9), MS "
                            "pixels, at MS pixel centres, GDAL convention")
+        if rpc is not None:
+            ds.SetMetadata(rpc.to_gdal_metadata(), "RPC")
         tiles = _tiles(W, H, tile)
         for done, (x0, y0, w, h) in enumerate(tiles, start=1):
             s, l = np.meshgrid(x0 + np.arange(w) + 0.5, y0 + np.arange(h) + 0.5)
-            ds_, dl_ = model.predict(s, l)
-            ds.GetRasterBand(1).WriteArray(ds_.astype(np.float32), x0, y0)
-            ds.GetRasterBand(2).WriteArray(dl_.astype(np.float32), x0, y0)
+            for i, (_, m) in enumerate(pairs):
+                ds_, dl_ = m.predict(s, l)
+                ds.GetRasterBand(2 * i + 1).WriteArray(ds_.astype(np.float32), x0, y0)
+                ds.GetRasterBand(2 * i + 2).WriteArray(dl_.astype(np.float32), x0, y0)
             report(progress, done / len(tiles), f"correction.tif tile {done}/{len(tiles)}")
         ds.FlushCache()
         ds = None
@@ -849,14 +964,17 @@ def _predicted_grid(pan_rpc, ms_rpc, dem, ratio, x0, y0, w, h, step):
                  for v in (s2, l2))
 
 
-def resample_ms_on_pan(model: Optional[PanMSModel], pan_path, ms_path, path, *, pan_rpc, ms_rpc, dem, ratio: int,
-                       tile: int = 512, node_step: int = 8, progress=None) -> str:
+def resample_ms_on_pan(model, pan_path, ms_path, path, *, pan_rpc, ms_rpc, dem, ratio: int,
+                       tile: int = 512, node_step: int = 8, progress=None, band_names=None) -> str:
     """Write ``ms_on_pan.tif``: every MS band resampled onto the pan's raw grid at MS resolution (pan size /
     ``ratio``, same extent as the pan) so that ``gdal_pansharpen.py PAN ms_on_pan.tif fused.tif`` fuses without
     halos (METHODS §9). Output pixel ``(x, y)`` covers pan pixels ``[x r, (x+1) r)``: its centre, localised with
     the pan RPC on the DEM and projected with the MS RPC, is ``p''``; the MS shows that ground at ``p' = p'' +
-    delta(p')`` (fixed point, 2 iterations: the field's gradient is ~1e-4 px/px), sampled bicubically. ``model=None`` resamples through the RPCs only
-    (the uncorrected product). Tile by tile, each tile reads only its MS window."""
+    delta(p')`` (fixed point, 2 iterations: the field's gradient is ~1e-4 px/px), sampled bicubically. ``model``:
+    one :class:`PanMSModel` for every band, a list of one per band, or None (through the RPCs only: the
+    uncorrected product). The grid covers the pan's extent (``ceil(size / ratio)``). ``band_names``: per band
+    ``(description, GDAL colour interpretation)`` (default: the MS file's, Alpha never). Tile by tile, each tile
+    reads only its MS window."""
     from osgeo import gdal
     from scipy import ndimage
     from ._gdal import gdal_exceptions
@@ -866,7 +984,8 @@ def resample_ms_on_pan(model: Optional[PanMSModel], pan_path, ms_path, path, *, 
         ms = gdal.Open(os.fspath(ms_path))
         PW, PH = pan.RasterXSize, pan.RasterYSize
         MW, MH, nb = ms.RasterXSize, ms.RasterYSize, ms.RasterCount
-        W, H = PW // ratio, PH // ratio
+        W, H = -(-PW // ratio), -(-PH // ratio)
+        models = list(model) if isinstance(model, (list, tuple)) else [model] * nb
         dt = ms.GetRasterBand(1).DataType
         out = gdal.GetDriverByName("GTiff").Create(path, W, H, nb, dt, [
             "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "INTERLEAVE=BAND",
@@ -876,37 +995,27 @@ def resample_ms_on_pan(model: Optional[PanMSModel], pan_path, ms_path, path, *, 
         for b in range(nb):
             ob = out.GetRasterBand(b + 1)
             ob.SetNoDataValue(fill)
-            ob.SetDescription(ms.GetRasterBand(b + 1).GetDescription())
-            ci = ms.GetRasterBand(b + 1).GetColorInterpretation()
-            if ci:
-                ob.SetColorInterpretation(ci)
+            if band_names is not None:
+                desc, ci = band_names[b]
+            else:
+                desc, ci = ms.GetRasterBand(b + 1).GetDescription(), ms.GetRasterBand(b + 1).GetColorInterpretation()
+                ci = gdal.GCI_Undefined if ci == gdal.GCI_AlphaBand else ci
+            ob.SetDescription(desc)
+            ob.SetColorInterpretation(ci)
         out.SetMetadataItem("GF4CAL_PANMS", f"MS resampled onto the pan raw grid at 1/{ratio} of its size "
-                            f"({'pan-MS registration model applied' if model else 'RPCs only'}; METHODS §9)")
-        _set_ms_on_pan_rpc(out, pan, ratio)
+                            f"({'pan-MS registration model applied' if models[0] else 'RPCs only'}; METHODS §9)")
+        _set_ms_on_pan_rpc(out, pan, ratio, pan_rpc)
         tiles = _tiles(W, H, tile)
         for done, (x0, y0, w, h) in enumerate(tiles, start=1):
             s2, l2 = _predicted_grid(pan_rpc, ms_rpc, dem, ratio, x0, y0, w, h, node_step)
-            sp, lp = s2.copy(), l2.copy()
-            if model is not None:
-                for _ in range(2):
-                    ds_, dl_ = model.predict(sp, lp)
-                    sp, lp = s2 + ds_, l2 + dl_
-            ok = np.isfinite(sp) & np.isfinite(lp)
             arrs = [np.full((h, w), fill, dtype=np.float64) for _ in range(nb)]
-            if ok.any():
-                m = 3
-                wx0 = int(max(0, math.floor(np.nanmin(sp[ok])) - m))
-                wy0 = int(max(0, math.floor(np.nanmin(lp[ok])) - m))
-                wx1 = int(min(MW, math.ceil(np.nanmax(sp[ok])) + m))
-                wy1 = int(min(MH, math.ceil(np.nanmax(lp[ok])) + m))
-                if wx1 > wx0 and wy1 > wy0:
-                    inside = ok & (sp >= 0) & (sp <= MW) & (lp >= 0) & (lp <= MH)
-                    rows, cols = lp[inside] - 0.5 - wy0, sp[inside] - 0.5 - wx0
-                    for b in range(nb):
-                        src = ms.GetRasterBand(b + 1).ReadAsArray(wx0, wy0, wx1 - wx0, wy1 - wy0)
-                        v = ndimage.map_coordinates(src.astype(np.float64), [rows, cols], order=3,
-                                                    mode="nearest", prefilter=True)
-                        arrs[b][inside] = v
+            done_models: dict = {}
+            for b in range(nb):
+                key = id(models[b])
+                if key not in done_models:
+                    done_models[key] = _apply_model(models[b], s2, l2)
+                sp, lp = done_models[key]
+                _sample_band(ms, b, sp, lp, MW, MH, arrs[b])
             for b in range(nb):
                 a = arrs[b]
                 if np.issubdtype(_np_dtype(dt), np.integer):
@@ -925,10 +1034,42 @@ def _np_dtype(gdal_type):
     return np.dtype(gdal_array.GDALTypeCodeToNumericTypeCode(gdal_type))
 
 
-def _set_ms_on_pan_rpc(out, pan, ratio):
-    """Give ms_on_pan the pan's RPC rescaled to its grid (GDAL: x_out = x_pan / r, i.e. RPC convention
-    ``(x + 0.5) / r - 0.5``) and the pan's geotransform scaled by ``r`` when the pan has one."""
-    md = pan.GetMetadata("RPC")
+def _apply_model(model, s2, l2):
+    """``p' = p'' + delta(p')`` by fixed point (2 iterations); ``p''`` itself when ``model`` is None."""
+    sp, lp = s2.copy(), l2.copy()
+    if model is not None:
+        for _ in range(2):
+            ds_, dl_ = model.predict(sp, lp)
+            sp, lp = s2 + ds_, l2 + dl_
+    return sp, lp
+
+
+def _sample_band(ms, b, sp, lp, MW, MH, into, margin: int = 3) -> None:
+    """Bicubic samples of MS band ``b`` (0-based) at ``(sp, lp)`` (GDAL convention) into ``into`` where inside,
+    reading only the window they need."""
+    from scipy import ndimage
+    ok = np.isfinite(sp) & np.isfinite(lp)
+    inside = ok & (sp >= 0) & (sp <= MW) & (lp >= 0) & (lp <= MH)
+    if not inside.any():
+        return
+    wx0 = int(max(0, math.floor(np.min(sp[inside])) - margin))
+    wy0 = int(max(0, math.floor(np.min(lp[inside])) - margin))
+    wx1 = int(min(MW, math.ceil(np.max(sp[inside])) + margin))
+    wy1 = int(min(MH, math.ceil(np.max(lp[inside])) + margin))
+    if wx1 <= wx0 or wy1 <= wy0:
+        return
+    src = ms.GetRasterBand(b + 1).ReadAsArray(wx0, wy0, wx1 - wx0, wy1 - wy0)
+    into[inside] = ndimage.map_coordinates(src.astype(np.float64), [lp[inside] - 0.5 - wy0, sp[inside] - 0.5 - wx0],
+                                           order=3, mode="nearest", prefilter=True)
+
+
+def _set_ms_on_pan_rpc(out, pan, ratio, pan_rpc=None):
+    """Give ms_on_pan the pan's RPC (``pan_rpc``: the RPC of the pan's own pixels, e.g. a crop's shifted product
+    RPC; else the pan file's) rescaled to its grid (GDAL: x_out = x_pan / r, i.e. RPC convention
+    ``(x + 0.5) / r - 0.5``), and the pan's geotransform scaled by ``r`` when the pan has a map georeference
+    (a pixel-unit geotransform without CRS -- a crop's origin in its product -- is not one: QGIS would place the
+    image at pixel coordinates instead of through the RPC)."""
+    md = dict(pan_rpc.to_gdal_metadata()) if hasattr(pan_rpc, "to_gdal_metadata") else pan.GetMetadata("RPC")
     if md:
         md = dict(md)
         for off, scale in (("SAMP_OFF", "SAMP_SCALE"), ("LINE_OFF", "LINE_SCALE")):
@@ -936,7 +1077,8 @@ def _set_ms_on_pan_rpc(out, pan, ratio):
             md[scale] = repr(float(md[scale]) / ratio)
         out.SetMetadata(md, "RPC")
     gt = pan.GetGeoTransform(can_return_null=True)
-    if gt is not None:
+    srs = pan.GetSpatialRef()
+    if gt is not None and srs is not None and not srs.IsLocal():
         out.SetGeoTransform((gt[0], gt[1] * ratio, gt[2] * ratio, gt[3], gt[4] * ratio, gt[5] * ratio))
         out.SetProjection(pan.GetProjection())
 
