@@ -104,6 +104,9 @@ def merge_breaks(*lists, width: float, tol_px: float = 1.0) -> List[float]:
 
 #: False-alarm probability below which a jump in the per-column residual is taken for a sub-CCD edge.
 JUMP_FAP = 1e-3
+#: Width of the transition a jump leaves in the window offsets, as a share of the window: the correlator's taper
+#: weights the window's central half (measured on the GF7 simulator: 16 px for 32 px windows).
+RAMP_SHARE = 0.5
 #: Order of the smooth part of the per-column residual on each side of the edges found (detect_breaks).
 JUMP_SMOOTH_ORDER = 3
 
@@ -172,6 +175,7 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
     if x.size < 4 * (JUMP_SMOOTH_ORDER + 2):
         return found, info
     span = (0.0, float(width))
+    ramp = RAMP_SHARE * float(window_px)
     w = n.astype(float)
     corr = max(1.0, float(window_px) / float(spacing_px))
     lo, hi = float(x.min()) + window_px / 2.0, float(x.max()) - window_px / 2.0
@@ -181,10 +185,10 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
         cand = cand[np.all(np.abs(cand[:, None] - np.asarray(found + [-1e9])[None, :]) > window_px, axis=1)]
         if cand.size == 0:
             break
-        gain, rss, p = _jump_gain(x, y, w, found, cand, window_px, span)
+        gain, rss, p = _jump_gain(x, y, w, found, cand, ramp, span)
         b0 = float(cand[int(np.argmax(gain))])
         fine = np.arange(b0 - 1.0, b0 + 1.0001, 0.25)
-        g2, _, _ = _jump_gain(x, y, w, found, fine, window_px, span)
+        g2, _, _ = _jump_gain(x, y, w, found, fine, ramp, span)
         b = float(fine[int(np.argmax(g2))])
         dof = 2 * x.size / corr - 2 * (p + 1)
         if dof < 4:
@@ -200,7 +204,7 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
     if found:
         from .basis import piecewise_polynomial
         base = np.concatenate([piecewise_polynomial(x, found, JUMP_SMOOTH_ORDER, domain=span),
-                               _ramp(x, found, window_px)], axis=1)
+                               _ramp(x, found, ramp)], axis=1)
         for k, ax in enumerate(AXES):
             coef = normal_solve(base, y[:, k], w)[0][-len(found):]
             for it in info:
