@@ -400,9 +400,11 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         return validate_gcps(table, source=f"GCP layer {source.sourceName()!r}", dem=dem) if changed else table
 
     def push_warnings(self, feedback, rep) -> None:
-        """Send the workflow report's ``warnings`` (list of one-line str) to the Processing log."""
+        """Send the workflow report's ``notes`` and ``warnings`` (lists of one-line str) to the Processing log."""
         if feedback is None:
             return
+        for n in (rep.get("notes", []) if isinstance(rep, dict) else []):
+            feedback.pushInfo(str(n))
         for w in (rep.get("warnings", []) if isinstance(rep, dict) else getattr(rep, "warnings", []) or []):
             feedback.pushWarning(str(w))
 

@@ -63,7 +63,10 @@ def add_gcp_reader_arguments(parser) -> None:
 
 
 def print_warnings(rep, stream=None) -> None:
-    """Print ``rep["warnings"]`` (list of one-line str) as ``gf4cal: warning: ...`` lines on stderr."""
+    """Print ``rep["notes"]`` and ``rep["warnings"]`` (lists of one-line str) as ``gf4cal: note: ...`` and
+    ``gf4cal: warning: ...`` lines on stderr."""
+    for n in (rep or {}).get("notes", []) if isinstance(rep, dict) else []:
+        print(f"gf4cal: note: {n}", file=stream or sys.stderr)
     for w in (rep or {}).get("warnings", []) if isinstance(rep, dict) else getattr(rep, "warnings", []) or []:
         print(f"gf4cal: warning: {w}", file=stream or sys.stderr)
 

@@ -135,8 +135,6 @@ def _print_report(rep) -> None:
         print("applied exactly (offsets/scales)")
     else:
         print(f"applied by refitting the RPC: max error {ap['refit_max_px']:.2e} px, rms {ap['refit_rms_px']:.2e} px")
-    for note in rep.get("notes", []):
-        print(f"note: {note}")
     for warning in rep.get("warnings", []):
         print(f"warning: {warning}")
     for k, v in rep["outputs"].items():

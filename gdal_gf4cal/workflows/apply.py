@@ -8,6 +8,7 @@ from typing import Any, Dict, Sequence
 import numpy as np
 
 from ..errors import GCPError, InputOverwriteError
+from ..crop import image_rpc
 from ..outputs import OutputSet
 from .calibrate import _scene_stem
 from ._common import cancel_check, collect_warnings, finish_report
@@ -26,7 +27,6 @@ def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: boo
     from ..camera import LookAngleModel
     from ..lookangle import recalibrate_rpc
     from ..report import write_report_json
-    from ..rpc import RPCModel
     from ..rpc_io import rpc_file_format, write_rpb, write_rpc_vrt
 
     cur = current if hasattr(current, "tan_angles") else LookAngleModel.from_json(current)
@@ -58,7 +58,7 @@ def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: boo
     with outs, collect_warnings(warns):
         entries = []
         for i, (s, stem, rpb, vrt) in enumerate(plans):
-            rpc = RPCModel.from_file(s)
+            rpc, _ = image_rpc(s)
             new_rpc, fit_report = recalibrate_rpc(rpc, cur, nw, progress=_progress.scaled(
                 progress, i / len(plans), (i + 0.9) / len(plans)))
             write_rpb(new_rpc, outs.tmp(f"rpb:{stem}"), overwrite=True)
@@ -94,7 +94,6 @@ def apply_block_calibration(calibration, scenes: Sequence, out_dir, *, overwrite
     from .. import progress as _progress
     from ..block import calibrated_model, read_calibration
     from ..report import write_report_json
-    from ..rpc import RPCModel
     from ..rpc_fit import fit_rpc_from_model
     from ..rpc_io import rpc_file_format, write_rpb, write_rpc_vrt
     from ._common import _open_image
@@ -120,7 +119,7 @@ def apply_block_calibration(calibration, scenes: Sequence, out_dir, *, overwrite
     with outs, collect_warnings(warns):
         entries = []
         for i, (s, k, is_image) in enumerate(plans):
-            rpc = RPCModel.from_file(s)
+            rpc, _ = image_rpc(s)
             size, _ = _open_image(s)
             model = calibrated_model(cal, k, rpc, size)
             new_rpc, fit = fit_rpc_from_model(model, size=model.size, height_range=tuple(rpc.height_range),

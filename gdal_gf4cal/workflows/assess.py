@@ -6,6 +6,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from ..crop import image_rpc
 from ..outputs import OutputSet, check_vector
 from ..dem import DEM
 from ._common import declare_report_outputs, cancel_check, collect_warnings, finish_report, is_path
@@ -55,7 +56,7 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
     declare_report_outputs(outs, residuals=residuals, plot=plot, report=report)
     warns: list = []
     with outs, collect_warnings(warns):
-        rpc = source if isinstance(source, RPCModel) else RPCModel.from_file(source)
+        rpc = source if isinstance(source, RPCModel) else image_rpc(source)[0]
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         if is_path(gcps):
             table = read_gcps(gcps, dem=dem_obj, columns=gcp_columns, pixel_convention=gcp_pixel_convention,

@@ -15,6 +15,7 @@ from typing import Any, Dict, List, Mapping, Sequence, Union
 import numpy as np
 
 from ..block import BlockError
+from ..crop import image_rpc
 from ..outputs import OutputSet, check_vector
 from ._common import _open_image, cancel_check, collect_warnings, finish_report
 
@@ -128,7 +129,6 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
     from ..block import adjust_block, calibration_dict, corrected_model, prediction_std, seam_offsets
     from ..dem import DEM
     from ..report import plot_seams, write_points_layer, write_report_json, write_residuals_gpkg
-    from ..rpc import RPCModel
     from ..rpc_fit import fit_rpc_from_model
     from ..rpc_io import write_rpb
     from ..stats import accuracy_by_role
@@ -153,7 +153,7 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
     for p, k in zip(paths, keys):
         size, files = _open_image(p)
         inputs += files
-        models[k] = RPCModel.from_file(p)
+        models[k], _ = image_rpc(p)
         sizes[k] = size
     obs_files = [os.fspath(f) for f in (gcps, ties) if f]
     obs_files = list(dict.fromkeys(obs_files))

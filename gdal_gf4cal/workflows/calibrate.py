@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 from typing import Any, Dict
 
+from ..crop import image_rpc
 from ..outputs import OutputSet, check_vector
 from ..dem import DEM
 from ._common import cancel_check, collect_warnings, finish_report, is_path
@@ -53,7 +54,6 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
     from ..gcp import read_gcps
     from ..lookangle import MAX_CONDITION, calibrate_lookangle, compare_lookangle, recalibrate_rpc
     from ..report import footprint_from_rpc, plot_residuals, write_report_json, write_residuals_gpkg
-    from ..rpc import RPCModel
     from ..rpc_io import write_rpb, write_rpc_vrt
 
     if max_condition is not None and not (float(max_condition) >= 1.0):
@@ -72,7 +72,7 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
         outs.declare(key, os.path.join(out, name), check=check_vector() if key == "residuals_gpkg" else None)
     warns: list = []
     with outs, collect_warnings(warns):
-        rpc = RPCModel.from_file(rpc_path)
+        rpc, note = image_rpc(image, rpc_path) if image is not None else image_rpc(rpc_path)
         current = LookAngleModel.from_json(camera_path)
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         if is_path(gcps_path):
@@ -112,6 +112,8 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
                "camera_change_px": compare_lookangle(res.camera, current),
                "recalibrated_rpc": fit_report.to_dict(),
                "outputs": outs.paths}
+        if note:
+            rep["notes"] = [note]
         finish_report(rep, warns)
         write_report_json(rep, outs.tmp("report"))
     finish_report(rep, warns)

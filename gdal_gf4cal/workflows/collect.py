@@ -6,6 +6,7 @@ import os
 from typing import Any, Dict
 
 from ..errors import Gf4calError
+from ..crop import image_rpc
 from ..outputs import OutputSet, check_vector
 from ..dem import DEM
 from ._common import cancel_check, collect_warnings, finish_report
@@ -24,7 +25,6 @@ def collect_gcps_file(image, reference, dem, out, *, rpc=None, geoid=None, keep_
     """
     from ..gcp import write_gcps
     from ..matching import collect_gcps
-    from ..rpc import RPCModel
     out = os.fspath(out)
     if os.path.splitext(out)[1].lower() not in _EXTS:
         raise Gf4calError(f"output {out!r}: use a name ending in .gpkg, .csv or .geojson")
@@ -35,7 +35,7 @@ def collect_gcps_file(image, reference, dem, out, *, rpc=None, geoid=None, keep_
     outs.declare("gcps", out, check=None if out.lower().endswith(".csv") else check_vector())
     warns: list = []
     with outs, collect_warnings(warns):
-        model = rpc if hasattr(rpc, "project") else RPCModel.from_file(os.fspath(rpc or image))
+        model, note = image_rpc(image, rpc)
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         gcps = collect_gcps(os.fspath(image), model, os.fspath(reference), dem_obj, progress=progress, **options)
         w = gcps.attrs["windows"]
@@ -50,4 +50,6 @@ def collect_gcps_file(image, reference, dem, out, *, rpc=None, geoid=None, keep_
     rep = {"command": "collect-gcps", "windows": dict(w), "n_gcps": int(len(table)),
            "n_outliers": int(gcps["outlier"].to_numpy(bool).sum()), "output": out, "outputs": {"gcps": out},
            "gcps": gcps, "table": table}
+    if note:
+        rep["notes"] = [note]
     return finish_report(rep, warns)

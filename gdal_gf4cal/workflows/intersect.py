@@ -10,6 +10,7 @@ from typing import Any, Dict, Optional, Sequence
 import numpy as np
 
 from ..errors import DegenerateGeometryError, GCPError
+from ..crop import image_rpc
 from ..outputs import OutputSet, check_vector
 from ._common import cancel_check, collect_warnings, finish_report
 
@@ -80,7 +81,6 @@ def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional
     """
     import pandas as pd
     from ..intersection import ground_errors_m, intersect, intersection_accuracy
-    from ..rpc import RPCModel
     paths = [os.fspath(p) for p in rpc_paths]
     if len(paths) < 2:
         raise DegenerateGeometryError("forward intersection needs at least 2 RPCs (--rpc A B [C ...])")
@@ -94,7 +94,7 @@ def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional
         outs.declare("report", report)
     warns: list = []
     with outs, collect_warnings(warns):
-        models = [RPCModel.from_file(p) for p in paths]
+        models = [image_rpc(p)[0] for p in paths]
         ids, pts, truth = read_tie_points(points_path, len(models), paths)
         res = intersect(models, pts, sigma_px=sigma_px, progress=progress)
         table = pd.DataFrame({"id": ids, "lon": res.lon, "lat": res.lat, "h": res.h, "n_images": res.n_images,

@@ -146,8 +146,8 @@ def orthorectify(image, *, dem, out, rpc=None, geoid="auto", crs="utm", res_m: O
         Raises :class:`~gdal_gf4cal.geoid.GeoidGridMissing` (nothing written) when a geoid cannot be applied.
     """
     from .. import progress as _progress
+    from ..crop import image_rpc
     from ..geoid import resolve_geoid
-    from ..rpc import RPCModel
 
     image, out, dem = os.fspath(image), os.fspath(out), os.fspath(dem)
     check_ortho_options(resampling, res_m)
@@ -165,7 +165,9 @@ def orthorectify(image, *, dem, out, rpc=None, geoid="auto", crs="utm", res_m: O
     rep: Dict[str, Any] = {"input": image, "rpc": rpc or image, "dem": dem}
     with outs, collect_warnings(warns):
         _progress.report(progress, 0.0, "reading the RPC and the DEM")
-        model = RPCModel.from_file(rpc or image)
+        model, note = image_rpc(image, rpc)
+        if note:
+            rep.setdefault("notes", []).append(note)
         rep.update(warp_ortho(image, image_size, model if rpc is not None else None, dem, grid, outs.tmp("ortho"),
                               crs=crs, res_m=res_m, resampling=resampling, progress=progress))
         rep["outputs"] = outs.paths

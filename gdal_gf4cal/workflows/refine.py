@@ -9,6 +9,7 @@ import os
 from typing import Any, Dict, Optional, Sequence
 
 from ..errors import GCPError, Gf4calError
+from ..crop import image_rpc
 from ..outputs import OutputSet, check_not_a_shadowing_sidecar, check_vector, rpc_stem, same_file
 from ..dem import DEM
 from ._common import declare_report_outputs, _open_image, cancel_check, collect_warnings, finish_report, is_path
@@ -119,7 +120,6 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     from ..compensation import _axis_stats, apply_compensation, fit_compensation
     from ..gcp import read_gcps
     from ..gcp_formats import assign_roles
-    from ..rpc import RPCModel
 
     source = os.fspath(source)
     out = os.fspath(out)
@@ -143,7 +143,7 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     warns: list = []
     with outs, collect_warnings(warns):
         _progress.report(progress, 0.0, "reading the RPC and GCPs")
-        rpc = RPCModel.from_file(source)
+        rpc, _ = image_rpc(source)
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         if is_path(gcps):
             kw = {"layer": gcp_layer} if gcp_layer else {}

@@ -1,0 +1,165 @@
+"""Crops that state their place in the product: the RPC of an image's own pixel grid (METHODS §1).
+
+Stereo and pan-MS test crops (CNES Shareloc, CARS) keep the product's RPC beside a crop whose GeoTIFF carries its
+origin in the product as a *pixel-unit geotransform without CRS*: ``(col0, 1, 0, row0, 0, 1)``. GDAL's meaning of
+that geotransform is "crop pixel (x, y) is product pixel (col0 + x, row0 + y)" (corner convention on both sides, so
+the shift is the same in GDAL's and RPC00B's pixel conventions). :func:`image_rpc` is the one place every command
+turns "an image plus an RPC" into the RPC of the image's pixels:
+
+* the image's own RPC (tags, ``.RPB``/``_RPC.TXT`` sidecars GDAL finds, or any raster of the image's size, such as
+  a VRT over it) is the image's: never shifted;
+* an RPC given apart from the image (an OSSIM ``.geom``, DIMAP ``RPC_*.XML``, ``.RPB`` file, the full product's
+  raster, or an :class:`RPCModel`) beside a pixel-unit geotransform without CRS is the product's: it is shifted by
+  the origin (``RPCModel.with_image_affine``) when the crop then lies inside the RPC's image domain, and a one-line
+  note says so;
+* where that RPC already describes the crop's pixels (the crop lies inside its domain as it is, and the domain starts
+  farther than half the origin before pixel 0, as an RPC shifted once does), nothing is applied and the note says why;
+* refused (:class:`RPCFormatError`, one line): a geotransform without CRS that is rotated or has a pixel size other
+  than 1 (a resampled crop: its relation to the product's pixels is not stated exactly), or a crop that, placed at
+  its origin, lies outside the RPC's image domain (normalised coordinates beyond ±:data:`DOMAIN_LIMIT`) when the RPC
+  is not one already moved to the crop.
+
+A geotransform with a CRS is a map georeference, not a crop origin (nothing applied), except a local (engineering)
+CRS of unnamed units, which some tools write for pixel coordinates; a geotransform without CRS whose pixel height is
+negative is a north-up map transform whose CRS was lost (nothing applied).
+"""
+from __future__ import annotations
+
+import os
+from typing import Optional, Tuple
+
+import numpy as np
+
+from ._gdal import try_open_raster
+from .errors import RPCFormatError
+from .rpc import RPCModel
+
+#: A crop is inside an RPC's image domain when its corners' normalised image coordinates are within this bound.
+DOMAIN_LIMIT = 1.1
+
+
+def _pixel_geotransform(image_path) -> Tuple[Optional[tuple], Optional[Tuple[int, int]], list]:
+    """(geotransform if the image has one without CRS else None, (width, height) or None, the image's files)."""
+    ds = try_open_raster(image_path)
+    if ds is None or ds.RasterCount == 0:
+        return None, None, []
+    size = (ds.RasterXSize, ds.RasterYSize)
+    files = list(ds.GetFileList() or [])
+    gt = ds.GetGeoTransform(can_return_null=True)
+    srs = ds.GetSpatialRef()
+    if gt is None or (srs is not None and not srs.IsLocal()):      # an engineering CRS is pixel units too
+        return None, size, files
+    return tuple(float(v) for v in gt), size, files
+
+
+def _is_unit(gt) -> bool:
+    return gt[1] == 1.0 and gt[5] == 1.0 and gt[2] == 0.0 and gt[4] == 0.0
+
+
+def crop_origin(image_path) -> Optional[Tuple[float, float]]:
+    """``(col0, row0)`` of a crop in its product, from a pixel-unit geotransform without CRS
+    (``(col0, 1, 0, row0, 0, 1)``, origin not (0, 0)); ``None`` for any other image."""
+    gt, _size, _files = _pixel_geotransform(image_path)
+    if gt is None or not _is_unit(gt) or (gt[0] == 0.0 and gt[3] == 0.0):
+        return None
+    return (gt[0], gt[3])
+
+
+def _normalised_extent(rpc: RPCModel, col0: float, row0: float, size: Tuple[int, int]) -> float:
+    """Largest |normalised image coordinate| of the crop's corners placed at (col0, row0) in the RPC's pixels."""
+    W, H = size
+    s = np.array([col0, col0 + W]) - 0.5        # GDAL corner coordinates -> RPC00B convention
+    l = np.array([row0, row0 + H]) - 0.5
+    return float(max(np.max(np.abs((s - rpc.samp_off) / rpc.samp_scale)),
+                     np.max(np.abs((l - rpc.line_off) / rpc.line_scale))))
+
+
+def _domain_start(rpc: RPCModel) -> Tuple[float, float]:
+    """(sample, line) where the RPC's image domain (offset - |scale|) begins, GDAL convention."""
+    return (rpc.samp_off + 0.5 - abs(rpc.samp_scale), rpc.line_off + 0.5 - abs(rpc.line_scale))
+
+
+def _already_shifted(rpc: RPCModel, col0: float, row0: float) -> bool:
+    """True when the RPC's domain starts more than half the origin before pixel 0 on an axis with an origin: an RPC
+    already moved to the crop (a product RPC's domain starts near its pixel 0)."""
+    s0, l0 = _domain_start(rpc)
+    return (col0 > 0 and s0 < -0.5 * col0) or (row0 > 0 and l0 < -0.5 * row0)
+
+
+def _is_own(image_path, rpc_path, image_files, image_size) -> bool:
+    """True when ``rpc_path`` is the image, one of its sidecars, or a raster of the image's size (its RPC is then
+    that raster's, i.e. the image's pixel grid)."""
+    real = os.path.realpath(os.fspath(rpc_path))
+    if real in {os.path.realpath(os.fspath(p)) for p in [image_path, *image_files]}:
+        return True
+    low = real.lower()
+    if low.endswith((".rpb", "_rpc.txt", ".txt", ".json", ".geom", ".xml")):
+        return False
+    ds = try_open_raster(rpc_path)
+    return ds is not None and ds.RasterCount > 0 and (ds.RasterXSize, ds.RasterYSize) == tuple(image_size)
+
+
+def image_rpc(image_path, rpc=None):
+    """The RPC of ``image_path``'s own pixel grid and a one-line note (``None`` when nothing was applied).
+
+    Parameters
+    ----------
+    image_path : path of the image (any GDAL raster)
+    rpc : None (the image's own RPC), the path of an RPC source, or an :class:`RPCModel` (other sensor models are
+        returned as given)
+
+    Returns
+    -------
+    (model, note)
+        ``note`` e.g. ``"left_image.tif is a crop at (5000, 5000) of the product its RPC describes: RPC shifted by
+        the origin"``.
+
+    Raises
+    ------
+    RPCFormatError
+        The RPC cannot be read, or the crop's relation to the RPC is ambiguous (see the module docstring).
+    """
+    image_path = os.fspath(image_path)
+    if rpc is None:
+        return RPCModel.from_file(image_path), None
+    gt, size, files = _pixel_geotransform(image_path)
+    if isinstance(rpc, (str, os.PathLike)):
+        model = RPCModel.from_file(os.fspath(rpc))
+        if size is not None and _is_own(image_path, rpc, files, size):
+            return model, None
+    else:
+        model = rpc
+    if gt is None or not isinstance(model, RPCModel) or size is None:
+        return model, None
+    return _fit_to_crop(model, image_path, gt, size)
+
+
+def _fit_to_crop(model: RPCModel, image_path: str, gt: tuple, size: Tuple[int, int]):
+    name = os.path.basename(image_path)
+    if gt[5] < 0 and gt[2] == 0.0 and gt[4] == 0.0:
+        return model, None                      # a north-up map transform without its CRS: not a crop origin
+    if not _is_unit(gt):
+        raise RPCFormatError(
+            f"{name} has a geotransform without CRS that is not a crop origin in product pixels (pixel size "
+            f"{gt[1]:g} x {gt[5]:g}, rotation {gt[2]:g}, {gt[4]:g}): cannot tell which pixels the RPC describes; give "
+            "the RPC of this image itself, or remove the geotransform (gdal_edit.py -unsetgt)")
+    col0, row0 = gt[0], gt[3]
+    if col0 == 0.0 and row0 == 0.0:
+        return model, None
+    where = f"({col0:g}, {row0:g})"
+    shifted = _normalised_extent(model, col0, row0, size) <= DOMAIN_LIMIT
+    already = _normalised_extent(model, 0.0, 0.0, size) <= DOMAIN_LIMIT and _already_shifted(model, col0, row0)
+    if shifted and not already:
+        return (model.with_image_affine(-col0, -row0),
+                f"{name} is a crop at {where} of the product its RPC describes: RPC shifted by the origin")
+    if already:
+        return model, (f"{name} states a crop origin {where} but its RPC already describes the crop's pixels "
+                       "(its image domain starts before the origin): origin not applied")
+    s0, l0 = _domain_start(model)
+    raise RPCFormatError(
+        f"{name} is a crop at {where} ({size[0]} x {size[1]} px) outside the RPC's image domain (from "
+        f"({s0:.0f}, {l0:.0f}), {2 * abs(model.samp_scale):.0f} x {2 * abs(model.line_scale):.0f} px): the RPC belongs to another product or "
+        "the origin is wrong; give this image's product RPC, or remove the geotransform (gdal_edit.py -unsetgt)")
+
+
+__all__ = ["DOMAIN_LIMIT", "crop_origin", "image_rpc"]

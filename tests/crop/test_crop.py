@@ -1,0 +1,138 @@
+"""Crops that state their origin in the product (issue 19 item 8): the real Ventoux Pleiades crop geometry (500 x 500 px
+at product pixel (5000, 5000), pixel-unit geotransform without CRS) with the product's real RPC, checked against the
+product's physical-model location grid (CNES, independent of the RPC; tests/data/crop_ventoux/PROVENANCE.txt)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from osgeo import gdal, osr
+from scipy.ndimage import map_coordinates
+
+from gdal_gf4cal import RPCModel
+from gdal_gf4cal.crop import crop_origin, image_rpc
+from gdal_gf4cal.dem import DEM
+from gdal_gf4cal.errors import RPCFormatError
+from gdal_gf4cal.workflows import orthorectify
+
+DATA = Path(__file__).parents[1] / "data"
+GRID = DATA / "crop_ventoux" / "GRID_PHR1B_P_201308051042194_SEN_690908101-001.tif"
+GEOM = DATA / "rpc" / "ventoux_left_image.geom"
+DIMAP = DATA / "rpc" / "RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML"
+ORIGIN = (5000.0, 5000.0)
+SIZE = (500, 500)
+
+
+def write_crop(path, gt=(5000.0, 1.0, 0.0, 5000.0, 0.0, 1.0), size=SIZE, epsg=None, rpc=None):
+    """A crop like shareloc's left_image.tif (same size and georeference) whose two bands hold each pixel centre's
+    own crop column and row (GDAL convention)."""
+    W, H = size
+    ds = gdal.GetDriverByName("GTiff").Create(str(path), W, H, 2, gdal.GDT_Float32)
+    if gt is not None:
+        ds.SetGeoTransform(gt)
+    if epsg:
+        srs = osr.SpatialReference()
+        srs.ImportFromEPSG(epsg)
+        ds.SetSpatialRef(srs)
+    cols, rows = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    ds.GetRasterBand(1).WriteArray(cols.astype(np.float32))
+    ds.GetRasterBand(2).WriteArray(rows.astype(np.float32))
+    if rpc is not None:
+        ds.SetMetadata(rpc.to_gdal_metadata(), "RPC")
+    ds = None
+    return path
+
+
+def grid_nodes():
+    """(col, row) product pixels (GDAL convention) and (lon, lat) at the grid's altitudes: arrays (n,), (k, n)."""
+    g = gdal.Open(str(GRID))
+    a = g.ReadAsArray()
+    x0, dx, _, y0, _, dy = g.GetGeoTransform()
+    j, i = np.meshgrid(np.arange(g.RasterXSize), np.arange(g.RasterYSize))
+    alts = np.array([float(g.GetMetadataItem(f"LG_ALTITUDE_B{2 * k}", "GTiff")) for k in range(a.shape[0] // 2)])
+    return ((x0 + dx * j).ravel(), (y0 + dy * i).ravel(), alts,
+            a[0::2].reshape(len(alts), -1), a[1::2].reshape(len(alts), -1))
+
+
+@pytest.fixture()
+def crop(tmp_path):
+    return write_crop(tmp_path / "left_image.tif")
+
+
+def test_crop_origin_reads_the_pixel_geotransform(tmp_path, crop):
+    assert crop_origin(crop) == ORIGIN
+    assert crop_origin(write_crop(tmp_path / "plain.tif", gt=None)) is None
+    assert crop_origin(write_crop(tmp_path / "map.tif", gt=(600000.0, 1.0, 0.0, 5e6, 0.0, 1.0), epsg=32631)) is None
+    local = write_crop(tmp_path / "local.tif")           # an engineering CRS (as CNES location grids carry)
+    ds = gdal.Open(str(local), gdal.GA_Update)
+    ds.SetSpatialRef(gdal.Open(str(GRID)).GetSpatialRef())
+    ds = None
+    assert crop_origin(local) == ORIGIN
+
+
+@pytest.mark.parametrize("rpc_path", [GEOM, DIMAP], ids=["geom", "dimap"])
+def test_product_rpc_shifted_to_the_crop_matches_the_location_grid(crop, rpc_path):
+    rpc, note = image_rpc(crop, rpc_path)
+    assert note == ("left_image.tif is a crop at (5000, 5000) of the product its RPC describes: "
+                    "RPC shifted by the origin")
+    col, row, alts, lon, lat = grid_nodes()
+    for k, h in enumerate(alts):
+        s, l = rpc.project(lon[k], lat[k], np.full(col.size, h))
+        assert np.max(np.abs(s - (col - ORIGIN[0]))) < 2e-3
+        assert np.max(np.abs(l - (row - ORIGIN[1]))) < 2e-3
+
+
+def test_own_rpc_and_already_shifted_rpc_are_not_shifted(tmp_path):
+    product = RPCModel.from_file(GEOM)
+    own = write_crop(tmp_path / "own.tif", rpc=product)          # tags: the crop's by GDAL's definition
+    rpc, note = image_rpc(own)
+    assert note is None and rpc.samp_off == product.samp_off
+    rpc, note = image_rpc(own, own)
+    assert note is None and rpc.samp_off == product.samp_off
+    crop = write_crop(tmp_path / "crop.tif")
+    shifted, _ = image_rpc(crop, GEOM)
+    (tmp_path / "out").mkdir()
+    rpb = shifted.write_rpb(tmp_path / "out" / "crop_refined.RPB")
+    again, note = image_rpc(crop, rpb)                             # an RPC written for the crop: not shifted twice
+    assert again.samp_off == pytest.approx(shifted.samp_off) and "origin not applied" in note
+    again, note = image_rpc(crop, shifted)
+    assert again.samp_off == pytest.approx(shifted.samp_off) and "origin not applied" in note
+
+
+def test_ambiguous_crops_are_refused(tmp_path):
+    with pytest.raises(RPCFormatError, match="pixel size 2 x 2"):
+        image_rpc(write_crop(tmp_path / "half.tif", gt=(5000.0, 2.0, 0.0, 5000.0, 0.0, 2.0)), GEOM)
+    with pytest.raises(RPCFormatError, match="outside the RPC's image domain"):
+        image_rpc(write_crop(tmp_path / "far.tif", gt=(2e6, 1.0, 0.0, 2e6, 0.0, 1.0)), GEOM)
+    map_image = write_crop(tmp_path / "map.tif", gt=(600000.0, 0.5, 0.0, 5e6, 0.0, -0.5), epsg=32631)
+    rpc, note = image_rpc(map_image, GEOM)
+    assert note is None and rpc.samp_off == RPCModel.from_file(GEOM).samp_off
+
+
+def test_ortho_of_the_crop_lands_on_its_product_pixels(tmp_path, crop, srtm_path):
+    """Each grid node inside the crop (product pixels 5000-5500) is found in the ortho where the physical model puts
+    it on the terrain: the ortho of the crop's coordinate bands there reads the node's crop position."""
+    rep = orthorectify(crop, dem=srtm_path, geoid="egm96", rpc=GEOM, out=tmp_path / "ortho.tif", res_m=1.0,
+                       crs="EPSG:32631")
+    assert any("crop at (5000, 5000)" in n for n in rep["notes"])
+    col, row, alts, lon, lat = grid_nodes()
+    m = 2.0                                             # away from the border (bilinear reads of the ortho)
+    inside = ((col > ORIGIN[0] + m) & (col < ORIGIN[0] + SIZE[0] - m) & (row > ORIGIN[1] + m)
+              & (row < ORIGIN[1] + SIZE[1] - m))
+    assert inside.sum() == 4
+    dem = DEM.from_file(srtm_path, geoid="egm96")
+    h = np.full(inside.sum(), 800.0)
+    for _ in range(10):                                 # the node's line of sight meets the terrain
+        x = np.array([np.interp(hh, alts, lon[:, inside][:, n]) for n, hh in enumerate(h)])
+        y = np.array([np.interp(hh, alts, lat[:, inside][:, n]) for n, hh in enumerate(h)])
+        h = dem.sample(x, y)
+    from pyproj import Transformer
+    e, n = Transformer.from_crs("EPSG:4326", "EPSG:32631", always_xy=True).transform(x, y)
+    ds = gdal.Open(str(tmp_path / "ortho.tif"))
+    gt = ds.GetGeoTransform()
+    px, py = (e - gt[0]) / gt[1] - 0.5, (n - gt[3]) / gt[5] - 0.5
+    got_s = map_coordinates(ds.GetRasterBand(1).ReadAsArray(), [py, px], order=1, cval=np.nan)
+    got_l = map_coordinates(ds.GetRasterBand(2).ReadAsArray(), [py, px], order=1, cval=np.nan)
+    assert np.max(np.abs(got_s - (col[inside] - ORIGIN[0]))) < 1.0
+    assert np.max(np.abs(got_l - (row[inside] - ORIGIN[1]))) < 1.0
