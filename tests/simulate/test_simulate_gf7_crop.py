@@ -10,6 +10,7 @@ import pytest
 from osgeo import gdal
 
 from gdal_gf4cal.cli import main
+from gdal_gf4cal.crop import crop_origin, image_rpc
 from gdal_gf4cal.rpc import RPCModel
 from gdal_gf4cal.simulate import SimulationError
 from gdal_gf4cal.simulate.gf7 import (crop_misregistration, crop_sub_ccd_edges, gf7_crop, make_gf7_scene,
@@ -69,6 +70,19 @@ def test_crop_keeps_its_place_with_the_product_rpc(cli_crop, full):
         assert abs(rpc.samp_off - im.size[0] / 2) < 0.01 * im.size[0]
     truth = json.loads((cli_crop / "truth.json").read_text())
     assert truth["crop"]["windows"] == {k: list(v) for k, v in gf7_crop(CROP).windows().items()}
+
+
+def test_crop_read_back_through_the_crop_convention(cli_crop, full):
+    """gdal_gf4cal.crop reads the place back: the origin, and the product RPC shifted to the crop's pixels."""
+    for name, win in gf7_crop(CROP).windows().items():
+        image = cli_crop / name / "scene.tif"
+        assert crop_origin(image) == win[:2]
+        rpc, note = image_rpc(image, cli_crop / name / "product.RPB")
+        assert note is not None and f"crop at ({win[0]}, {win[1]})" in note
+        s, l = np.array([0.5, win[2] - 0.5, 7.5]), np.array([0.5, win[3] - 0.5, 30.5])
+        lon, lat, h = full.image(name).current.localize_dem(s + win[0], l + win[1], full.dem)
+        ps, pl = rpc.project(lon, lat, h)
+        assert np.max(np.abs(ps - s)) < 0.01 and np.max(np.abs(pl - l)) < 0.01
 
 
 def test_crop_truth_from_the_api_and_on_file(cli_crop, full):
