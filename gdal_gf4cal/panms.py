@@ -985,7 +985,6 @@ def resample_ms_on_pan(model, pan_path, ms_path, path, *, pan_rpc, ms_rpc, dem, 
     ``(description, GDAL colour interpretation)`` (default: the MS file's, Alpha never). Tile by tile, each tile
     reads only its MS window."""
     from osgeo import gdal
-    from scipy import ndimage
     from ._gdal import gdal_exceptions
     path = os.fspath(path)
     with gdal_exceptions():
@@ -1117,17 +1116,6 @@ def approximate_rpc(model: PanMSModel, ms_rpc, *, n: int = 41, n_heights: int = 
               "note": "an RPC cannot carry the sub-CCD jumps: use correction.tif / ms_on_pan.tif for the exact "
                       "registration (METHODS §9)"}
     return rpc, errors
-
-
-def check_sizes(pan_size, ms_size) -> int:
-    """The integer pan/MS size ratio, or :class:`PanMSError` when no integer ratio explains both sizes."""
-    (pw, ph), (mw, mh) = pan_size, ms_size
-    for r in range(1, 17):
-        if abs(pw - r * mw) <= r and abs(ph - r * mh) <= r:
-            return r
-    raise PanMSError(f"the pan ({pw} x {ph}) and MS ({mw} x {mh}) sizes are not related by an integer ratio: "
-                     "give the pan and MS images of the same scene and product")
-
 
 
 def edge_misregistration(pan_path, image_path, *, band: int = 1, ratio: int = 4, window: int = 64,

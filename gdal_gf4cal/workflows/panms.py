@@ -82,13 +82,12 @@ def find_rpc(image, rpc=None):
     if rpc is None:
         try:
             return image_rpc(image, None)
-        except Gf4calError as exc:
+        except Gf4calError:
             stem = os.path.splitext(os.fspath(image))[0]
             side = [stem + e for e in (".geom", ".GEOM", ".RPB", "_RPC.TXT", ".XML", ".xml") if os.path.exists(stem + e)]
             if not side:
                 raise
             rpc = side[0]
-            del exc
     model, note = image_rpc(image, rpc)
     if note is None and rpc is not None and not hasattr(rpc, "project"):
         note = f"{os.path.basename(os.fspath(image))}: RPC from {os.path.basename(os.fspath(rpc))}"
@@ -526,7 +525,6 @@ def _every_band(band_cells, ref, model, names, notes):
     significantly; a band that does not resemble the pan keeps the reference correction (what remains of it is
     spectral). Returns ``(report rows, {band: model})``."""
     import copy
-    from ..panms import PanMSModel, step_residuals  # noqa: F401
     from ..stats import axis_stats, share_within
     rows, models = [], {}
     for b in sorted(band_cells) or [ref]:
@@ -536,13 +534,10 @@ def _every_band(band_cells, ref, model, names, notes):
         if b in band_cells:
             c = band_cells[b]
             u = np.asarray(c["usable"], bool)
-            t = c.attrs.get("matches")
-            ncc = None
             row["n_usable"] = int(u.sum())
             if b != ref:
                 bb = _band_to_band(band_cells[ref], c, model)
                 m_ncc = _median_ncc_cells(band_cells, b)
-                ncc = m_ncc
                 row["median_ncc"] = m_ncc
                 if bb is not None:
                     row["to_reference"] = {k: (v.tolist() if hasattr(v, "tolist") else v) for k, v in bb.items()}
@@ -568,7 +563,6 @@ def _every_band(band_cells, ref, model, names, notes):
                                "p_le_0.25": share_within(rs[ok], rl[ok], 0.25)}
             b0s, b0l = np.asarray(c["d_sample"], float)[ok], np.asarray(c["d_line"], float)[ok]
             row["before"] = {"rms_sample_px": axis_stats(b0s)["rms"], "rms_line_px": axis_stats(b0l)["rms"]}
-            del t, ncc
         rows.append(row)
     return rows, models
 
