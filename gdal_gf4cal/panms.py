@@ -112,8 +112,8 @@ JUMP_SMOOTH_ORDER = 3
 
 
 def column_profile(sample, line, d_sample, d_line):
-    """The misregistration along the MS line of sensor columns: ``(x, y, n)`` with ``x`` the window columns
-    (sorted), ``y[:, axis]`` the median over the lines of each window's offset minus its row's median (what
+    """The misregistration along the MS line of sensor columns: ``(x, y, n)`` with ``x`` the window columns at
+    their measured position (sorted), ``y[:, axis]`` the median over the lines of each window's offset minus its row's median (what
     varies along the line -- attitude, jitter -- removed), ``n`` windows per column."""
     s, l = np.round(np.asarray(sample, float), 3), np.round(np.asarray(line, float), 3)
     d = np.stack([np.asarray(d_sample, float), np.asarray(d_line, float)], axis=1)
@@ -126,7 +126,11 @@ def column_profile(sample, line, d_sample, d_line):
     from .stats import grouped_trimmed_mean
     rowm = grouped_trimmed_mean(ri, d, int(ri.max()) + 1).mean
     m = grouped_trimmed_mean(ci, d - rowm[ri], ux.size)
-    return ux, m.mean, m.n
+    # a window shows the MS around its centre moved by its offset (the matcher re-reads it there): place each
+    # column at its windows' mean measured position, not at the predicted one (else a jump lands ~1 px aside)
+    pos = grouped_trimmed_mean(ci, (s + d[:, 0])[:, None], ux.size).mean[:, 0]
+    order = np.argsort(pos, kind="stable")
+    return pos[order], m.mean[order], m.n[order]
 
 
 def _ramp(x, b, width):
@@ -162,7 +166,7 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
                   max_breaks: int = 8) -> Tuple[List[float], List[dict]]:
     """Sub-CCD edges found in the data (METHODS §9): jumps of the per-column residual (:func:`column_profile` of
     the window matches) that pass a test. Greedy: the strongest ramp (a jump as ``window_px`` windows see it) over
-    the smooth model, placed to 0.25 px, kept while its F statistic's false-alarm probability over the
+    the smooth model, placed to 0.25 px then on the nearest pixel boundary, kept while its F statistic's false-alarm probability over the
     independent places searched is below :data:`JUMP_FAP` (neighbouring columns share pixels: the statistic is
     deflated by ``window_px / spacing_px``). Returns ``(edges in MS columns, [{edge, jump_sample_px,
     jump_line_px, fap}])``."""
@@ -198,6 +202,7 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
         fap = min(1.0, float(stats.f.sf(F, 2, dof)) * n_indep)
         if fap >= JUMP_FAP:
             break
+        b = float(round(b))             # an edge between two detectors lies between two pixel columns
         found = sorted(found + [b])
         info.append({"edge_ms_px": b, "fap": fap})
     # the jump of each edge found, from the final model
@@ -980,7 +985,6 @@ def resample_ms_on_pan(model, pan_path, ms_path, path, *, pan_rpc, ms_rpc, dem, 
     ``(description, GDAL colour interpretation)`` (default: the MS file's, Alpha never). Tile by tile, each tile
     reads only its MS window."""
     from osgeo import gdal
-    from scipy import ndimage
     from ._gdal import gdal_exceptions
     path = os.fspath(path)
     with gdal_exceptions():
@@ -1112,17 +1116,6 @@ def approximate_rpc(model: PanMSModel, ms_rpc, *, n: int = 41, n_heights: int = 
               "note": "an RPC cannot carry the sub-CCD jumps: use correction.tif / ms_on_pan.tif for the exact "
                       "registration (METHODS §9)"}
     return rpc, errors
-
-
-def check_sizes(pan_size, ms_size) -> int:
-    """The integer pan/MS size ratio, or :class:`PanMSError` when no integer ratio explains both sizes."""
-    (pw, ph), (mw, mh) = pan_size, ms_size
-    for r in range(1, 17):
-        if abs(pw - r * mw) <= r and abs(ph - r * mh) <= r:
-            return r
-    raise PanMSError(f"the pan ({pw} x {ph}) and MS ({mw} x {mh}) sizes are not related by an integer ratio: "
-                     "give the pan and MS images of the same scene and product")
-
 
 
 def edge_misregistration(pan_path, image_path, *, band: int = 1, ratio: int = 4, window: int = 64,

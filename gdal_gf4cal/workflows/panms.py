@@ -68,6 +68,8 @@ SPECTRAL_NCC = 0.75
 #: false-alarm probability and by more than this many MS px somewhere in the image.
 BAND_FAP = 1e-3
 BAND_MIN_PX = 0.02
+#: Share of the clear, textured windows that must match for the pan and MS to show the same ground.
+MIN_MATCH_SHARE = 0.1
 #: Same acquisition: the pan's and the MS's lines of sight are within this angle (GF7 0.094 deg, Pleiades less).
 MAX_RAY_ANGLE_DEG = 2.0
 
@@ -80,13 +82,12 @@ def find_rpc(image, rpc=None):
     if rpc is None:
         try:
             return image_rpc(image, None)
-        except Gf4calError as exc:
+        except Gf4calError:
             stem = os.path.splitext(os.fspath(image))[0]
             side = [stem + e for e in (".geom", ".GEOM", ".RPB", "_RPC.TXT", ".XML", ".xml") if os.path.exists(stem + e)]
             if not side:
                 raise
             rpc = side[0]
-            del exc
     model, note = image_rpc(image, rpc)
     if note is None and rpc is not None and not hasattr(rpc, "project"):
         note = f"{os.path.basename(os.fspath(image))}: RPC from {os.path.basename(os.fspath(rpc))}"
@@ -168,6 +169,10 @@ def _product_breaks(spec, n_sub_ccds, ms_rpc, ms_size, origin, pan_rpc, dem, pan
     if spec is None:
         spec = ["ms"]
     n = 3 if n_sub_ccds is None else int(n_sub_ccds)
+    if ("ms" in spec or "pan" in spec) and width / n < WINDOW_PX:
+        raise panms.PanMSError(f"{n} sub-CCDs make pieces {width / n:.1f} MS px wide (the product is {width:.0f} px "
+                               f"wide), narrower than one {WINDOW_PX} px matching window: such pieces cannot be "
+                               "measured; give the number of sub-CCDs of the camera (GF7: 3) or their --breaks")
     cols = [float(b) - x0 for b in spec if not isinstance(b, str)]
     if "ms" in spec:
         cols += [b - x0 for b in panms.default_breaks(width, n)]
@@ -235,12 +240,22 @@ def _no_cell_message(matches, n_cells) -> str:
     counted = max(1, w.get("total", 0) - w.get("outside_image", 0) - w.get("nodata", 0))
     textured = counted - w.get("featureless", 0)
     flat = float(np.nanmean(np.asarray(matches["flat"], float))) if len(matches) else 1.0
-    if textured >= 0.5 * counted and flat < 0.5:
-        return (f"no usable cell: {w.get('accepted', 0)} of {textured} textured windows of the MS match the pan at "
-                "the places the RPCs predict (the rest do not correlate): the images do not show the same ground -- "
-                "images of different acquisitions or footprints, or RPCs far off; give the MS taken with this pan")
+    if textured >= 0.5 * counted and flat < 0.5 or _unrelated(matches):
+        return (f"the MS does not show what the pan shows: {w.get('accepted', 0)} of {textured} textured windows "
+                "match the pan at the places the RPCs predict (the rest do not correlate): images of different "
+                "acquisitions or footprints, or RPCs far off; give the MS taken with this pan")
     return (f"no usable cell: all {n_cells} cells are cloud, water or texture-less; register a clearer scene of the "
             "same camera and use --reuse MODEL.json")
+
+
+def _unrelated(matches) -> bool:
+    """True when the MS does not show what the pan shows: fewer than MIN_MATCH_SHARE of the windows with texture
+    and no flat area (cloud, water) match."""
+    st = matches["status"].to_numpy()
+    flat = np.nan_to_num(matches["flat"].to_numpy(float), nan=1.0)
+    clear = (st != 5) & (st != 1) & (st != 2) & (flat < 0.5)
+    acc = (st == 0) & ~matches["outlier"].to_numpy(bool)
+    return bool(clear.sum() >= 20 and acc[clear].mean() < MIN_MATCH_SHARE)
 
 
 def _band_names(ms_path, n_bands):
@@ -436,6 +451,8 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
                           for b in band_matches}
         clock.lap("matching")
         cells = cells.reset_index(drop=True)
+        if band_matches and _unrelated(band_matches[ref]):
+            raise panms.PanMSError(_no_cell_message(band_matches[ref], len(cells)))
         if len(cells) == 0 or not np.asarray(cells["usable"], bool).any():
             mt = band_matches.get(ref) if band_matches else cells.attrs.get("matches")
             raise panms.PanMSError(_no_cell_message(mt, len(cells)) if mt is not None else
@@ -508,7 +525,6 @@ def _every_band(band_cells, ref, model, names, notes):
     significantly; a band that does not resemble the pan keeps the reference correction (what remains of it is
     spectral). Returns ``(report rows, {band: model})``."""
     import copy
-    from ..panms import PanMSModel, step_residuals  # noqa: F401
     from ..stats import axis_stats, share_within
     rows, models = [], {}
     for b in sorted(band_cells) or [ref]:
@@ -518,13 +534,10 @@ def _every_band(band_cells, ref, model, names, notes):
         if b in band_cells:
             c = band_cells[b]
             u = np.asarray(c["usable"], bool)
-            t = c.attrs.get("matches")
-            ncc = None
             row["n_usable"] = int(u.sum())
             if b != ref:
                 bb = _band_to_band(band_cells[ref], c, model)
                 m_ncc = _median_ncc_cells(band_cells, b)
-                ncc = m_ncc
                 row["median_ncc"] = m_ncc
                 if bb is not None:
                     row["to_reference"] = {k: (v.tolist() if hasattr(v, "tolist") else v) for k, v in bb.items()}
@@ -550,7 +563,6 @@ def _every_band(band_cells, ref, model, names, notes):
                                "p_le_0.25": share_within(rs[ok], rl[ok], 0.25)}
             b0s, b0l = np.asarray(c["d_sample"], float)[ok], np.asarray(c["d_line"], float)[ok]
             row["before"] = {"rms_sample_px": axis_stats(b0s)["rms"], "rms_line_px": axis_stats(b0l)["rms"]}
-            del t, ncc
         rows.append(row)
     return rows, models
 
@@ -605,7 +617,8 @@ def _write_cells(cells, model, ms_rpc, dem, path) -> int:
         last = name
     write_residuals_gpkg(t, path, before=("res_sample_before", "res_line_before"),
                          after=(f"res_sample_{last}", f"res_line_{last}"), overwrite=True,
-                         title="Pan-MS registration cells (MS px)")
+                         title="Pan-MS registration cells (MS px)",
+                         points_title="pan-MS cells: misregistration before/after (MS px)")
     return len(t)
 
 

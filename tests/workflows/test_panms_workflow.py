@@ -146,7 +146,13 @@ def test_gdal_pansharpen_on_ms_on_pan_removes_the_halo(registered, inputs, tmp_p
 
 @pytest.mark.parametrize("case, expected", [
     ("no_overlap", "overlap"),
-    ("no_ratio", "integer ratio"),
+    ("swapped", "swapped"),
+    ("same_image", "same image"),
+    ("same_pixel_size", "same pixel size"),
+    ("other_ground", "does not show what the pan shows"),
+    ("breaks_twice", "more than once"),
+    ("sub_ccds_1000", "narrower than one"),
+    ("jitter_negative", "non-negative"),
     ("reuse_other_camera", "reuse"),
     ("sub_ccds_and_breaks", "not both"),
     ("all_cloudy", "no usable cell"),
@@ -159,10 +165,27 @@ def test_bad_input_is_one_line_exit_2_nothing_left(inputs, scene_dir, tmp_path, 
         from gdal_gf4cal.rpc_io import write_rpc_vrt
         other = write_gf7_scene(tmp_path / "other", seed=3, center=(100.0, 40.0), size=(2048, 2048), render=False)
         ms = write_rpc_vrt(ms, other.images["ms"].rpc, tmp_path / "ms_elsewhere.vrt")
-    elif case == "no_ratio":
-        ms2 = tmp_path / "ms_cut.tif"
-        gdal.Translate(str(ms2), str(ms), srcWin=[0, 0, 500, 512])
+    elif case == "swapped":
+        pan, ms = ms, pan
+    elif case == "same_image":
+        ms = pan
+    elif case == "same_pixel_size":                 # a copy of the pan as the MS
+        ms = tmp_path / "pan_copy.tif"
+        gdal.Translate(str(ms), str(pan))
+    elif case == "other_ground":                    # textured, same RPC, other ground: the MS turned upside down
+        ms2 = tmp_path / "ms_other.tif"
+        src = gdal.Open(str(ms))
+        ds = gdal.GetDriverByName("GTiff").CreateCopy(str(ms2), src)
+        for b in range(ds.RasterCount):
+            ds.GetRasterBand(b + 1).WriteArray(src.GetRasterBand(b + 1).ReadAsArray()[::-1, ::-1])
+        ds = None
         ms = ms2
+    elif case == "breaks_twice":
+        extra = ["--breaks", "128,128"]
+    elif case == "sub_ccds_1000":
+        extra = ["--sub-ccds", "1000"]
+    elif case == "jitter_negative":
+        extra = ["--jitter", "-1"]
     elif case == "reuse_other_camera":
         model = panms.PanMSModel(ms_size=(7680, 7680), breaks=panms.default_breaks(7680))
         extra = ["--reuse", model.to_json(tmp_path / "other_camera.json")]
