@@ -180,7 +180,7 @@ def run_size(workdir, size, workers, options=()) -> dict:
     tm = rep["timings_s"]
     mw, mh = rep["sizes"]["ms"]
     gdal.UseExceptions()                      # a script: process-wide GDAL state is ours
-    e = (gdal.Open(os.path.join(out, "correction.tif")).ReadAsArray().astype(float)
+    e = (gdal.Open(os.path.join(out, "correction.tif")).ReadAsArray()[:2].astype(float)      # the reference band's
          - gdal.Open(os.path.join(workdir, "ms", "misregistration_truth.tif")).ReadAsArray())
     return {"pan_size": size, "ms_size": [mw, mh], "ms_pixels": mw * mh, "render_s": round(render_s, 1),
             "wall_s": round(res["wall_s"], 1), "peak_memory_gb": round(res["peak_gb"], 3), "stages_s": tm,
