@@ -168,7 +168,7 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
     the window matches) that pass a test. Greedy: the strongest ramp (a jump as ``window_px`` windows see it) over
     the smooth model, placed to 0.25 px then on the nearest pixel boundary, kept while its F statistic's false-alarm probability over the
     independent places searched is below :data:`JUMP_FAP` (neighbouring columns share pixels: the statistic is
-    deflated by ``window_px / spacing_px``). Returns ``(edges in MS columns, [{edge, jump_sample_px,
+    deflated, and its degrees of freedom counted, by the window's effective width over ``spacing_px``). Returns ``(edges in MS columns, [{edge, jump_sample_px,
     jump_line_px, fap}])``."""
     from scipy import stats
     x, y, n = column_profile(sample, line, d_sample, d_line)
@@ -176,12 +176,12 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
     x, y, n = x[keep], y[keep], n[keep]
     found: List[float] = []
     info: List[dict] = []
+    ramp = RAMP_SHARE * float(window_px)
     if x.size < 4 * (JUMP_SMOOTH_ORDER + 2):
         return found, info
     span = (0.0, float(width))
-    ramp = RAMP_SHARE * float(window_px)
     w = n.astype(float)
-    corr = max(1.0, float(window_px) / float(spacing_px))
+    corr = max(1.0, ramp / float(spacing_px))       # columns per independent one (the window's effective width)
     lo, hi = float(x.min()) + window_px / 2.0, float(x.max()) - window_px / 2.0
     n_indep = max(1.0, (hi - lo) / float(window_px))
     while len(found) < max_breaks:
@@ -194,13 +194,14 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
         fine = np.arange(b0 - 1.0, b0 + 1.0001, 0.25)
         g2, _, _ = _jump_gain(x, y, w, found, fine, ramp, span)
         b = float(fine[int(np.argmax(g2))])
-        dof = 2 * x.size / corr - 2 * (p + 1)
-        if dof < 4:
+        if x.size - p - 1 < 4:
             break
-        s2 = (rss - float(g2.max())) / dof
+        # residual variance per column from every column; its degrees of freedom from the independent ones
+        s2 = (rss - float(g2.max())) / (2.0 * (x.size - p - 1))
+        dof = 2.0 * max(x.size / corr - p - 1, 2.0)
         F = (float(g2.max()) / 2.0) / max(s2, 1e-300) / corr
         fap = min(1.0, float(stats.f.sf(F, 2, dof)) * n_indep)
-        if fap >= JUMP_FAP:
+        if not np.isfinite(fap) or fap >= JUMP_FAP:
             break
         b = float(round(b))             # an edge between two detectors lies between two pixel columns
         found = sorted(found + [b])
