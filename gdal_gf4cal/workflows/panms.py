@@ -191,12 +191,12 @@ def _check_pieces(breaks, spec, ms_width, window_px) -> None:
         if dup:
             raise PanMSError(f"--breaks lists {', '.join(f'{b:g}' for b in dup)} more than once: give each sub-CCD "
                              "edge once")
-    ends = np.r_[0.0, breaks, float(ms_width)]
-    widths = np.diff(ends)
-    if breaks and widths.min() < window_px:
+    # between two edges (a piece cut by the image's side is only partly seen: its terms are dropped if need be)
+    widths = np.diff(np.asarray(breaks, float))
+    if widths.size and widths.min() < window_px:
         k = int(np.argmin(widths))
-        raise PanMSError(f"sub-CCD pieces only {widths.min():.1f} MS px wide (between columns {ends[k]:g} and "
-                         f"{ends[k + 1]:g}), narrower than one {window_px} px matching window: such pieces cannot "
+        raise PanMSError(f"a sub-CCD piece only {widths.min():.1f} MS px wide (between columns {breaks[k]:g} and "
+                         f"{breaks[k + 1]:g}), narrower than one {window_px} px matching window: such pieces cannot "
                          "be measured; check --breaks / --sub-ccds (the sub-CCDs of the product, not of this crop)")
 
 
@@ -392,7 +392,7 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         if abs(geo["scale"] - ratio) > 0.05 * ratio:
             notes.append(f"pan/MS pixel ratio {geo['scale']:.3f} through the RPCs: ms_on_pan.tif at 1/{ratio} of "
                          "the pan")
-        origin = crop_origin(ms) if note_m and "crop" in note_m else None
+        origin = crop_origin(ms)        # the crop's place in the MS product, when the file states it
         user_breaks = spec is not None or n_sub_ccds is not None
         if user_breaks:
             br = _product_breaks(spec, n_sub_ccds, ms_model, (mw, mh), origin, pan_model, dem_obj, (pw, ph))
@@ -482,10 +482,16 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC")
         try:
             approx, approx_err = panms.approximate_rpc(model, ms_model)
-            write_rpb(approx, outs.tmp("ms_rpc"), overwrite=True)
-        except Gf4calError as exc:
-            raise panms.PanMSError(f"the approximate MS RPC could not be fitted ({exc}); the other outputs need "
-                                   "it too: check the MS RPC") from None
+        except Gf4calError:
+            try:            # the sub-CCD jumps and jitter of a small crop can defeat the refit: the linear term
+                approx, approx_err = panms.approximate_rpc(model, ms_model, terms=("linear",))
+                notes.append("ms_approx.RPB carries the linear term only (the RPC refit of the full model is "
+                             f"singular on this image); its error against the full model: rms "
+                             f"{approx_err['rms_px']:.3f} px")
+            except Gf4calError as exc:
+                raise panms.PanMSError(f"the approximate MS RPC could not be fitted ({exc}); the other outputs "
+                                       "need it too: check the MS RPC") from None
+        write_rpb(approx, outs.tmp("ms_rpc"), overwrite=True)
         n_cells = _write_cells(cells, model, ms_model, dem_obj, outs.tmp("cells"))
         outs.set_check("cells", check_vector({"gcps": n_cells}))
         _write_plots(cells, model, outs)
