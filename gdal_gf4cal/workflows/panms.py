@@ -1,7 +1,11 @@
 """``gf4cal register-pan-ms`` / QGIS "Register MS to pan": the file job of METHODS §9 (seed 004, Gaofen-7).
 
-Dense pan-MS cells (``matching.pan_ms_cells``) -> :func:`gdal_gf4cal.panms.estimate` -> every output under one
-:class:`~gdal_gf4cal.outputs.OutputSet` (all or nothing).
+Each image's RPC (:func:`find_rpc`: own, given, or a ``.geom`` beside it; crops shifted by ``crop.image_rpc``) ->
+:func:`pair_geometry` (ratio, overlap, line-of-sight angle from the RPCs) -> dense window matches of every MS band
+against the pan (``matching.match_raw``) -> sub-CCD edges (options, or ``panms.detect_breaks``) -> cells of a size
+from the data (:func:`choose_cell`) -> :func:`gdal_gf4cal.panms.estimate` on the reference band, every other band
+compared with it (:func:`_every_band`) -> every output under one :class:`~gdal_gf4cal.outputs.OutputSet` (all or
+nothing).
 """
 from __future__ import annotations
 
@@ -152,11 +156,6 @@ def pair_geometry(pan_rpc, ms_rpc, pan_size, ms_size, dem, n: int = 9) -> Dict[s
                          f"< {MAX_RAY_ANGLE_DEG:g} deg): they are images of different acquisitions; give the MS taken "
                          "with this pan")
     return {"overlap": share, "scale": scale, "ray_angle_deg": angle, "ms_gsd_m": gsd}
-
-
-def check_overlap(pan_rpc, ms_rpc, pan_size, ms_size, dem, n: int = 7) -> float:
-    """Share of an ``n x n`` MS grid that the pan sees (MS RPC on the DEM -> pan RPC); refuses < 25 %."""
-    return pair_geometry(pan_rpc, ms_rpc, pan_size, ms_size, dem, n)["overlap"]
 
 
 def _product_breaks(spec, n_sub_ccds, ms_rpc, ms_size, origin, pan_rpc, dem, pan_size):
@@ -413,15 +412,21 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         elif reuse_model is not None:     # sparse: one window per cell, <= 200 cells
             from ..matching import pan_ms_cells
             c = int(max(8, math.ceil(math.sqrt(mw * mh / REUSE_MAX_MATCHES))))
+            ref = int(reuse_model.info.get("reference_band", 1))     # the band the reused model was solved on
+            ref = ref if 1 <= ref <= n_bands else 1
             cells = pan_ms_cells(pan, ms, dem_obj, pan_model=pan_model, ms_model=ms_model, cell_px=c, spacing_px=c,
-                                 min_matches=1, workers=workers, progress=_progress.scaled(progress, 0.02, 0.5))
+                                 min_matches=1, workers=workers, progress=_progress.scaled(progress, 0.02, 0.5),
+                                 band=ref)
             n_matches = len(cells.attrs.get("matches", ()))
             breaks_, cell_used = list(reuse_model.breaks), c
         else:
             spacing = _spacing((mw, mh), cell)
             share = 0.48 / n_bands
             for b in range(1, n_bands + 1):
-                band_matches[b] = match_raw(ms, ms_model, pan, pan_model, dem_obj, spacing_px=spacing,
+                # a large image (step at its 16 px cap): the other bands at twice the step (their difference from
+                # the first is smooth), a quarter of the windows
+                step = spacing if b == 1 or spacing < 16 else 2 * spacing
+                band_matches[b] = match_raw(ms, ms_model, pan, pan_model, dem_obj, spacing_px=step,
                                             window_px=WINDOW_PX, search_px=8, band=b, reference_band=1,
                                             workers=workers, margin_px=4,
                                             progress=_progress.scaled(progress, 0.02 + share * (b - 1),
@@ -437,17 +442,18 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
             else:
                 breaks_, jumps = panms.detect_breaks(t["pred_sample"][acc], t["pred_line"][acc], t["d_sample"][acc],
                                                      t["d_line"][acc], width=mw, window_px=WINDOW_PX,
-                                                     spacing_px=spacing)
+                                                     spacing_px=t.attrs["spacing_px"])
                 notes.append(("sub-CCD edges found in the data at MS columns " + ", ".join(
                     f"{j['edge_ms_px']:.1f}" for j in jumps)) if jumps else
                     "no jump in the per-column residual passes the test: one sub-CCD piece (give --breaks or "
                     "--sub-ccds to set the edges)")
             if cell:
                 cell_used = int(cell)
-                cells = _cells(t, (mw, mh), cell_used, spacing, breaks_)
+                cells = _cells(t, (mw, mh), cell_used, t.attrs["spacing_px"], breaks_)
             else:
-                cell_used, cells = choose_cell(t, (mw, mh), spacing, breaks_)
-            band_cells = {b: (cells if b == ref else _cells(band_matches[b], (mw, mh), cell_used, spacing, breaks_))
+                cell_used, cells = choose_cell(t, (mw, mh), t.attrs["spacing_px"], breaks_)
+            band_cells = {b: (cells if b == ref else _cells(band_matches[b], (mw, mh), cell_used,
+                                                             band_matches[b].attrs["spacing_px"], breaks_))
                           for b in band_matches}
         clock.lap("matching")
         cells = cells.reset_index(drop=True)
