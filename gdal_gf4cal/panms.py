@@ -168,7 +168,7 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
     the window matches) that pass a test. Greedy: the strongest ramp (a jump as ``window_px`` windows see it) over
     the smooth model, placed to 0.25 px then on the nearest pixel boundary, kept while its F statistic's false-alarm probability over the
     independent places searched is below :data:`JUMP_FAP` (neighbouring columns share pixels: the statistic is
-    deflated by ``window_px / spacing_px``). Returns ``(edges in MS columns, [{edge, jump_sample_px,
+    deflated, and its degrees of freedom counted, by the window's effective width over ``spacing_px``). Returns ``(edges in MS columns, [{edge, jump_sample_px,
     jump_line_px, fap}])``."""
     from scipy import stats
     x, y, n = column_profile(sample, line, d_sample, d_line)
@@ -176,12 +176,12 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
     x, y, n = x[keep], y[keep], n[keep]
     found: List[float] = []
     info: List[dict] = []
+    ramp = RAMP_SHARE * float(window_px)
     if x.size < 4 * (JUMP_SMOOTH_ORDER + 2):
         return found, info
     span = (0.0, float(width))
-    ramp = RAMP_SHARE * float(window_px)
     w = n.astype(float)
-    corr = max(1.0, float(window_px) / float(spacing_px))
+    corr = max(1.0, ramp / float(spacing_px))       # columns per independent one (the window's effective width)
     lo, hi = float(x.min()) + window_px / 2.0, float(x.max()) - window_px / 2.0
     n_indep = max(1.0, (hi - lo) / float(window_px))
     while len(found) < max_breaks:
@@ -194,13 +194,14 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
         fine = np.arange(b0 - 1.0, b0 + 1.0001, 0.25)
         g2, _, _ = _jump_gain(x, y, w, found, fine, ramp, span)
         b = float(fine[int(np.argmax(g2))])
-        dof = 2 * x.size / corr - 2 * (p + 1)
-        if dof < 4:
+        if x.size - p - 1 < 4:
             break
-        s2 = (rss - float(g2.max())) / dof
+        # residual variance per column from every column; its degrees of freedom from the independent ones
+        s2 = (rss - float(g2.max())) / (2.0 * (x.size - p - 1))
+        dof = 2.0 * max(x.size / corr - p - 1, 2.0)
         F = (float(g2.max()) / 2.0) / max(s2, 1e-300) / corr
         fap = min(1.0, float(stats.f.sf(F, 2, dof)) * n_indep)
-        if fap >= JUMP_FAP:
+        if not np.isfinite(fap) or fap >= JUMP_FAP:
             break
         b = float(round(b))             # an edge between two detectors lies between two pixel columns
         found = sorted(found + [b])
@@ -409,13 +410,23 @@ def _term_layout(sample, line, usable, breaks, width):
     """Which terms the usable cells support: ``(keep, notes)``, ``keep`` a mask over the design columns (linear
     A1 A2 A4 A5 A3 A6, then per axis and sub-CCD the ``u^0..u^4`` coefficients), ``notes`` one sentence per
     term dropped. A polynomial of order ``q`` in a sub-CCD needs usable cells in ``q + 2`` columns (one more than
-    its coefficients, so that its fit is checked); the linear term's ``s`` / ``l`` slopes need two columns / rows;
+    its coefficients, so that its fit is checked) and, beyond a straight line, cells over half the piece; the linear term's ``s`` / ``l`` slopes need two columns / rows;
     and all the terms together at least 2 observations more than parameters (two per cell)."""
     m = len(breaks) + 1
     s, l = np.asarray(sample, float)[usable], np.asarray(line, float)[usable]
     piece = np.searchsorted(np.asarray(breaks, float), s, side="right")
     n_cols = [np.unique(np.round(s[piece == k], 3)).size for k in range(m)]
     orders = [min(ORDER, n - 2) if n >= 2 else (0 if n == 1 else -1) for n in n_cols]
+    # a polynomial is not extrapolated far beyond the columns its cells cover: below half the piece covered,
+    # at most a straight line
+    ends = np.r_[0.0, sorted(float(b) for b in breaks), float(width)]
+    for k in range(m):
+        sk = s[piece == k]
+        if sk.size and orders[k] > 1:
+            step = float(np.min(np.diff(np.unique(sk)))) if np.unique(sk).size > 1 else 0.0
+            cover = (float(sk.max() - sk.min()) + step) / float(ends[k + 1] - ends[k])
+            if cover < 0.5:
+                orders[k] = 1
     notes = []
     lin = np.ones(6, bool)
     n_rows, n_all_cols = np.unique(np.round(l, 3)).size, np.unique(np.round(s, 3)).size
@@ -1091,17 +1102,19 @@ def _set_ms_on_pan_rpc(out, pan, ratio, pan_rpc=None):
         out.SetProjection(pan.GetProjection())
 
 
-def approximate_rpc(model: PanMSModel, ms_rpc, *, n: int = 41, n_heights: int = 7):
+def approximate_rpc(model: PanMSModel, ms_rpc, *, n: int = 41, n_heights: int = 7,
+                    terms: Sequence[str] = ("linear", "piecewise", "jitter")):
     """Refit the MS RPC so that it predicts ``p' = p'' + delta(p')`` (METHODS §9): a smooth approximation of
     the model, which an RPC cannot carry exactly (the sub-CCD jumps). Returns ``(rpc, errors)`` with the refit's
-    RMS and max error (MS px) against the full model on an ``n x n`` grid x ``n_heights`` heights."""
+    RMS and max error (MS px) against the full model on an ``n x n`` grid x ``n_heights`` heights. ``terms``: the
+    model terms the RPC is fitted to (the errors are always against the full model)."""
     from .rpc_fit import fit_rpc
     W, H = model.ms_size
     s, l = np.meshgrid((np.arange(n) + 0.5) * W / n, (np.arange(n) + 0.5) * H / n)
     s, l = s.ravel(), l.ravel()
     h0, h1 = ms_rpc.height_range
     lons, lats, hs, ss, ls = [], [], [], [], []
-    ds_, dl_ = model.predict(s, l)
+    ds_, dl_ = model.predict(s, l, terms=terms)
     for h in np.linspace(h0, h1, n_heights):
         lon, lat = ms_rpc.localize(s - ds_, l - dl_, np.full(s.shape, h))
         lons.append(lon), lats.append(lat), hs.append(np.full(s.shape, h)), ss.append(s), ls.append(l)
@@ -1110,6 +1123,11 @@ def approximate_rpc(model: PanMSModel, ms_rpc, *, n: int = 41, n_heights: int = 
     rpc, fit = fit_rpc(lon[ok], lat[ok], hh[ok], S[ok], L[ok])
     ps, pl = rpc.project(lon[ok], lat[ok], hh[ok])
     es, el = S[ok] - ps, L[ok] - pl
+    if tuple(terms) != ("linear", "piecewise", "jitter"):       # errors against the full model
+        fs, fl = model.predict(s, l)
+        ks, kl = model.predict(s, l, terms=terms)
+        es = es + np.tile(fs - ks, n_heights)[ok]
+        el = el + np.tile(fl - kl, n_heights)[ok]
     r = np.hypot(es, el)
     errors = {"rms_sample_px": float(np.sqrt(np.mean(es ** 2))), "rms_line_px": float(np.sqrt(np.mean(el ** 2))),
               "rms_px": float(np.sqrt(np.mean(r ** 2))), "max_px": float(np.max(r)), "n_points": int(ok.sum()),

@@ -1,7 +1,11 @@
 """``gf4cal register-pan-ms`` / QGIS "Register MS to pan": the file job of METHODS §9 (seed 004, Gaofen-7).
 
-Dense pan-MS cells (``matching.pan_ms_cells``) -> :func:`gdal_gf4cal.panms.estimate` -> every output under one
-:class:`~gdal_gf4cal.outputs.OutputSet` (all or nothing).
+Each image's RPC (:func:`find_rpc`: own, given, or a ``.geom`` beside it; crops shifted by ``crop.image_rpc``) ->
+:func:`pair_geometry` (ratio, overlap, line-of-sight angle from the RPCs) -> dense window matches of every MS band
+against the pan (``matching.match_raw``) -> sub-CCD edges (options, or ``panms.detect_breaks``) -> cells of a size
+from the data (:func:`choose_cell`) -> :func:`gdal_gf4cal.panms.estimate` on the reference band, every other band
+compared with it (:func:`_every_band`) -> every output under one :class:`~gdal_gf4cal.outputs.OutputSet` (all or
+nothing).
 """
 from __future__ import annotations
 
@@ -154,11 +158,6 @@ def pair_geometry(pan_rpc, ms_rpc, pan_size, ms_size, dem, n: int = 9) -> Dict[s
     return {"overlap": share, "scale": scale, "ray_angle_deg": angle, "ms_gsd_m": gsd}
 
 
-def check_overlap(pan_rpc, ms_rpc, pan_size, ms_size, dem, n: int = 7) -> float:
-    """Share of an ``n x n`` MS grid that the pan sees (MS RPC on the DEM -> pan RPC); refuses < 25 %."""
-    return pair_geometry(pan_rpc, ms_rpc, pan_size, ms_size, dem, n)["overlap"]
-
-
 def _product_breaks(spec, n_sub_ccds, ms_rpc, ms_size, origin, pan_rpc, dem, pan_size):
     """``--breaks`` / ``--sub-ccds`` in this image's columns: equal pieces and listed columns are of the full
     product when the crop's place in it is known (``origin``), else of the image as given."""
@@ -191,12 +190,12 @@ def _check_pieces(breaks, spec, ms_width, window_px) -> None:
         if dup:
             raise PanMSError(f"--breaks lists {', '.join(f'{b:g}' for b in dup)} more than once: give each sub-CCD "
                              "edge once")
-    ends = np.r_[0.0, breaks, float(ms_width)]
-    widths = np.diff(ends)
-    if breaks and widths.min() < window_px:
+    # between two edges (a piece cut by the image's side is only partly seen: its terms are dropped if need be)
+    widths = np.diff(np.asarray(breaks, float))
+    if widths.size and widths.min() < window_px:
         k = int(np.argmin(widths))
-        raise PanMSError(f"sub-CCD pieces only {widths.min():.1f} MS px wide (between columns {ends[k]:g} and "
-                         f"{ends[k + 1]:g}), narrower than one {window_px} px matching window: such pieces cannot "
+        raise PanMSError(f"a sub-CCD piece only {widths.min():.1f} MS px wide (between columns {breaks[k]:g} and "
+                         f"{breaks[k + 1]:g}), narrower than one {window_px} px matching window: such pieces cannot "
                          "be measured; check --breaks / --sub-ccds (the sub-CCDs of the product, not of this crop)")
 
 
@@ -392,7 +391,7 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         if abs(geo["scale"] - ratio) > 0.05 * ratio:
             notes.append(f"pan/MS pixel ratio {geo['scale']:.3f} through the RPCs: ms_on_pan.tif at 1/{ratio} of "
                          "the pan")
-        origin = crop_origin(ms) if note_m and "crop" in note_m else None
+        origin = crop_origin(ms)        # the crop's place in the MS product, when the file states it
         user_breaks = spec is not None or n_sub_ccds is not None
         if user_breaks:
             br = _product_breaks(spec, n_sub_ccds, ms_model, (mw, mh), origin, pan_model, dem_obj, (pw, ph))
@@ -413,15 +412,21 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         elif reuse_model is not None:     # sparse: one window per cell, <= 200 cells
             from ..matching import pan_ms_cells
             c = int(max(8, math.ceil(math.sqrt(mw * mh / REUSE_MAX_MATCHES))))
+            ref = int(reuse_model.info.get("reference_band", 1))     # the band the reused model was solved on
+            ref = ref if 1 <= ref <= n_bands else 1
             cells = pan_ms_cells(pan, ms, dem_obj, pan_model=pan_model, ms_model=ms_model, cell_px=c, spacing_px=c,
-                                 min_matches=1, workers=workers, progress=_progress.scaled(progress, 0.02, 0.5))
+                                 min_matches=1, workers=workers, progress=_progress.scaled(progress, 0.02, 0.5),
+                                 band=ref)
             n_matches = len(cells.attrs.get("matches", ()))
             breaks_, cell_used = list(reuse_model.breaks), c
         else:
             spacing = _spacing((mw, mh), cell)
             share = 0.48 / n_bands
             for b in range(1, n_bands + 1):
-                band_matches[b] = match_raw(ms, ms_model, pan, pan_model, dem_obj, spacing_px=spacing,
+                # a large image (step at its 16 px cap): the other bands at twice the step (their difference from
+                # the first is smooth), a quarter of the windows
+                step = spacing if b == 1 or spacing < 16 else 2 * spacing
+                band_matches[b] = match_raw(ms, ms_model, pan, pan_model, dem_obj, spacing_px=step,
                                             window_px=WINDOW_PX, search_px=8, band=b, reference_band=1,
                                             workers=workers, margin_px=4,
                                             progress=_progress.scaled(progress, 0.02 + share * (b - 1),
@@ -437,17 +442,18 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
             else:
                 breaks_, jumps = panms.detect_breaks(t["pred_sample"][acc], t["pred_line"][acc], t["d_sample"][acc],
                                                      t["d_line"][acc], width=mw, window_px=WINDOW_PX,
-                                                     spacing_px=spacing)
+                                                     spacing_px=t.attrs["spacing_px"])
                 notes.append(("sub-CCD edges found in the data at MS columns " + ", ".join(
                     f"{j['edge_ms_px']:.1f}" for j in jumps)) if jumps else
                     "no jump in the per-column residual passes the test: one sub-CCD piece (give --breaks or "
                     "--sub-ccds to set the edges)")
             if cell:
                 cell_used = int(cell)
-                cells = _cells(t, (mw, mh), cell_used, spacing, breaks_)
+                cells = _cells(t, (mw, mh), cell_used, t.attrs["spacing_px"], breaks_)
             else:
-                cell_used, cells = choose_cell(t, (mw, mh), spacing, breaks_)
-            band_cells = {b: (cells if b == ref else _cells(band_matches[b], (mw, mh), cell_used, spacing, breaks_))
+                cell_used, cells = choose_cell(t, (mw, mh), t.attrs["spacing_px"], breaks_)
+            band_cells = {b: (cells if b == ref else _cells(band_matches[b], (mw, mh), cell_used,
+                                                             band_matches[b].attrs["spacing_px"], breaks_))
                           for b in band_matches}
         clock.lap("matching")
         cells = cells.reset_index(drop=True)
@@ -482,10 +488,16 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC")
         try:
             approx, approx_err = panms.approximate_rpc(model, ms_model)
-            write_rpb(approx, outs.tmp("ms_rpc"), overwrite=True)
-        except Gf4calError as exc:
-            raise panms.PanMSError(f"the approximate MS RPC could not be fitted ({exc}); the other outputs need "
-                                   "it too: check the MS RPC") from None
+        except Gf4calError:
+            try:            # the sub-CCD jumps and jitter of a small crop can defeat the refit: the linear term
+                approx, approx_err = panms.approximate_rpc(model, ms_model, terms=("linear",))
+                notes.append("ms_approx.RPB carries the linear term only (the RPC refit of the full model is "
+                             f"singular on this image); its error against the full model: rms "
+                             f"{approx_err['rms_px']:.3f} px")
+            except Gf4calError as exc:
+                raise panms.PanMSError(f"the approximate MS RPC could not be fitted ({exc}); the other outputs "
+                                       "need it too: check the MS RPC") from None
+        write_rpb(approx, outs.tmp("ms_rpc"), overwrite=True)
         n_cells = _write_cells(cells, model, ms_model, dem_obj, outs.tmp("cells"))
         outs.set_check("cells", check_vector({"gcps": n_cells}))
         _write_plots(cells, model, outs)

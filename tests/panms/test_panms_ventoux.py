@@ -103,6 +103,7 @@ def test_the_pair_as_delivered_registers_every_band(registered, pair):
     assert [b["band"] for b in rep["bands"]] == [1, 2, 3, 4]
     assert rep["bands"][3].get("spectral") is True and "spectral" in proc.stderr
     assert rep["geometry"]["ray_angle_deg"] < 0.5
+    assert rep["breaks_ms_px"] == [] and rep["breaks_from"] == "data"     # no sub-CCD edge in a 145 px crop
 
 
 def test_outputs_a_gis_places(registered, pair):
@@ -128,3 +129,22 @@ def test_outputs_a_gis_places(registered, pair):
     ok, (lon, lat, _) = tr.TransformPoint(0, 62.5, 62.5, 0)
     lon2, lat2 = pan_rpc.localize(np.array([250.0]), np.array([250.0]), np.array([500.0]))
     assert ok and abs(lon - lon2[0]) < 1e-6 and abs(lat - lat2[0]) < 1e-6
+
+
+def test_no_cell_size_or_jitter_count_ends_in_a_solver_failure(pair):
+    """``--cell`` 4..128 and ``--jitter`` 0..20 (and 999) on the real pair's matches: every combination solves
+    (terms the cells cannot support are dropped with a note; the jitter design never turns NaN)."""
+    from gdal_gf4cal.matching import match_raw
+    from gdal_gf4cal.workflows.panms import _cells, _spacing
+    pan_rpc, _ = find_rpc(pair / "left_image.tif")
+    ms_rpc, _ = find_rpc(pair / "lowres_color_image.tif")
+    dem = DEM.from_user_input(os.path.join(DATA, "dem", "N44E005.hgt"), geoid="egm96")
+    t = match_raw(str(pair / "lowres_color_image.tif"), ms_rpc, str(pair / "left_image.tif"), pan_rpc, dem,
+                  spacing_px=4, window_px=32, search_px=8, band=1, margin_px=4)
+    for cell in (4, 6, 8, 16, 32, 64, 128):
+        cells = _cells(t, (145, 145), cell, _spacing((145, 145), cell), [])
+        for jitter in ("auto", 0, 1, 3, 20, 999):
+            m = panms.estimate(cells, ms_size=(145, 145), breaks=[], jitter=jitter)
+            last = m.steps[-1]
+            assert np.isfinite(last["rms_sample_px"]) and np.isfinite(last["rms_line_px"]), (cell, jitter)
+            assert last["rms_sample_px"] < 0.1 and last["rms_line_px"] < 0.1, (cell, jitter)

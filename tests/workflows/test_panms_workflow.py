@@ -89,6 +89,28 @@ def test_outputs_and_report(registered):
     assert ds.GetLayerByName("residual_vectors") is not None
 
 
+def test_defaults_from_the_image(inputs, tmp_path, scene_dir):
+    """No option: the cell size from the MS and its texture, the sub-CCD edge found in the data within 2 MS px of
+    the true one (column 256), the field within 0.05 MS px RMS of the truth; ms_on_pan's band colours from the
+    product (blue, green, red, NIR -> Blue, Green, Red, Undefined: never Alpha); correction.tif carries the MS RPC."""
+    pan, ms, dem = inputs
+    out = tmp_path / "o"
+    proc = _cli(pan, ms, "--dem", dem, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["breaks_from"] == "data" and len(rep["breaks_ms_px"]) == 1
+    assert abs(rep["breaks_ms_px"][0] - 256.0) <= 2.0
+    e = gdal.Open(str(out / "correction.tif")).ReadAsArray()[:2] - gdal.Open(
+        str(scene_dir / "ms" / "misregistration_truth.tif")).ReadAsArray()
+    assert np.sqrt(np.mean(e[0] ** 2 + e[1] ** 2)) <= 0.05          # measured 0.023
+    assert gdal.Open(str(out / "correction.tif")).GetMetadata("RPC")
+    ds = gdal.Open(str(out / "ms_on_pan.tif"))
+    got = [(ds.GetRasterBand(b).GetDescription(), ds.GetRasterBand(b).GetColorInterpretation()) for b in (1, 2, 3, 4)]
+    assert got == [("blue", gdal.GCI_BlueBand), ("green", gdal.GCI_GreenBand), ("red", gdal.GCI_RedBand),
+                   ("nir", gdal.GCI_Undefined)]
+    assert [b["band"] for b in rep["bands"]] == [1, 2, 3, 4]
+
+
 def test_cell_rms_at_the_noise_floor(registered):
     """The cell-noise floor is the cells' own error against the true field at their centres (the matcher's sigma
     is reported as ``noise_floor_px`` too, but overlapping windows make it optimistic): the full model's cell
@@ -235,7 +257,8 @@ def test_reuse_mode_through_the_cli(registered, tmp_path):
         ps, pl = panms.PanMSModel.from_json(tmp_path / mode / "model.json").predict(s, l)
         rms_cells[mode] = np.sqrt(np.mean((g["res_sample_before"] - ps) ** 2 + (g["res_line_before"] - pl) ** 2))
     # against the true field (what the registration is for): within 10 %; on the solve run's own dense cells
-    # (which the solve mode was fitted to, so it is favoured) within 15 % (measured: 0.95 and 1.10)
+    # (which the solve mode was fitted to, so it is favoured) within 20 % (measured: 0.95 and 1.15; the cells are
+    # the reference band's, the one most like the pan -- NIR on the simulator -- since every band is matched)
     assert rms_truth["reuse"] <= 1.1 * rms_truth["solve"], rms_truth
-    assert rms_cells["reuse"] <= 1.15 * rms_cells["solve"], rms_cells
+    assert rms_cells["reuse"] <= 1.2 * rms_cells["solve"], rms_cells
     assert rms_truth["reuse"] <= 0.03
