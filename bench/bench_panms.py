@@ -1,20 +1,23 @@
-"""Benchmark of pan-MS registration (issue 13, METHODS §9): a simulated GF7 scene registered end to end by
-``gf4cal register-pan-ms`` (dense matching, model, correction.tif, ms_on_pan.tif, ms_approx.RPB, cells.gpkg,
-plots) in a child process: wall time, peak memory (the child's ``ru_maxrss``), matches/s and cells/s, and the
-stage times from its report. Peer measured in the same run: ``gdalwarp -rpc`` of the same MS image over the DEM
-onto as many pixels as ms_on_pan.tif has (GDAL's own RPC resampler), against our ms_on_pan stage (which also
-applies the correction).
+"""Benchmark of pan-MS registration (issues 13, 20; METHODS §9): simulated GF7 crops registered end to end by
+``gf4cal register-pan-ms`` with its default options (dense matching, model, correction.tif, ms_on_pan.tif,
+ms_approx.RPB, cells.gpkg, plots), each in a fresh child process: wall time, peak memory (``ru_maxrss`` of that
+child), matches/s, stage times from its report, the correction's RMS against the true field; then the scaling:
+a straight-line fit of time against MS pixels over the sizes run, extrapolated to the full product (MS 7680²).
+The largest size also gets a peer: ``gdalwarp -rpc`` of the same MS over the DEM onto as many pixels as
+ms_on_pan.tif has (GDAL's own RPC resampler), against our ms_on_pan stage (which also applies the correction).
 
-Targets (issue 13): full scene (pan 30720², MS 7680²) in <= 10 min with peak memory <= 3 GB, reading windows only.
-The scene is simulated once in --workdir (rendering the full scene takes long: pass ``--size`` for a crop; the
-timings then scale with the MS pixel count).
+Default run (short): pan crops 512, 1024, 2048 px square (MS 128..512) across the first MS sub-CCD edge.
+``--full``: 2048, 8192 and 16384 (MS 4096², the largest crop that renders here in under 10 minutes: rendering
+the whole 30720² product takes 1.5-2 h on 2 cores). ``--sizes`` picks any. Crops are simulated once per size in
+--workdir (the rendering time is reported, not counted in the registration's).
 
 ``--appliers-only``: at full size without rendering (the RPCs, DEM and truth of the full scene; a synthetic
 4-band MS texture and an empty pan of the right size carrying their RPCs): the model from cells synthesised from
 the truth, then correction.tif, ms_on_pan.tif and ms_approx.RPB, in a child process (time, peak memory) -- the
 part of the job that does not depend on the matcher, whose rate (matches/s) the rendered run gives.
 
-Usage: python bench/bench_panms.py [--size 30720] [--workdir DIR] [--workers N] [--cell 64] [--appliers-only]
+Usage: python bench/bench_panms.py [--full | --sizes N ...] [--cell PX] [--true-breaks] [--workdir DIR]
+       [--workers N] [--appliers-only]
 """
 from __future__ import annotations
 
@@ -32,12 +35,6 @@ def _scene_kw(size):
     if size >= 30720:
         return {"seed": 0, "size": None}
     return {"seed": 0, "size": (size, size), "crop_center_ms_px": 2560}
-
-
-def _breaks(size):
-    from gdal_gf4cal.simulate.gf7 import make_gf7_scene
-    edges = make_gf7_scene(**_scene_kw(size)).image("ms").true.camera.edges_in_image()
-    return ["--breaks", ",".join(f"{e:g}" for e in edges)] if edges else ["--sub-ccds", "1"]
 
 
 def build_unrendered(workdir):
@@ -138,68 +135,137 @@ def appliers_only(workdir, workers):
     return 0
 
 
-def build(workdir, size, workers):
+def build(workdir, size, workers) -> float:
+    """Simulate the crop once (pan ``size``², MS (size/4)², across the first MS sub-CCD edge); the time taken."""
     from gdal_gf4cal.simulate.gf7 import write_gf7_scene
     done = os.path.join(workdir, "truth.json")
     if os.path.exists(done) and os.path.exists(os.path.join(workdir, "ms", "misregistration_truth.tif")):
-        return
+        return float("nan")
     t = time.perf_counter()
-    write_gf7_scene(workdir, **_scene_kw(size), workers=workers)
-    print(f"simulated the scene in {time.perf_counter() - t:.0f} s (not part of the benchmark)", flush=True)
+    write_gf7_scene(workdir, **_scene_kw(size), workers=workers, n_gcps=10)
+    return time.perf_counter() - t
+
+
+#: A fresh child per run: ``RUSAGE_CHILDREN`` of this wrapper is the registration's own peak memory.
+MEASURE = r"""
+import json, resource, subprocess, sys, time
+t = time.perf_counter()
+p = subprocess.run([sys.executable, "-m", "gdal_gf4cal.cli", "register-pan-ms", *sys.argv[1:]], capture_output=True,
+                   text=True)
+print(json.dumps({"rc": p.returncode, "stderr": p.stderr[-2000:], "wall_s": time.perf_counter() - t,
+                  "peak_gb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024 ** 2}))
+"""
+
+
+def _true_breaks(workdir) -> list:
+    edges = json.load(open(os.path.join(workdir, "truth.json")))["gf7"]["misregistration_before"][
+        "ms_sub_ccd_edges_px"]
+    return ["--breaks", ",".join(f"{e:g}" for e in edges)] if edges else ["--sub-ccds", "1"]
+
+
+def run_size(workdir, size, workers, options=()) -> dict:
+    """One registration of the crop in a fresh child (its wall time and peak memory), its report and accuracy."""
+    import numpy as np
+    from osgeo import gdal
+    render_s = build(workdir, size, workers)
+    pan, ms, dem = (os.path.join(workdir, p) for p in ("pan/scene.tif", "ms/scene.tif", "dem.tif"))
+    out = os.path.join(workdir, "out")
+    options = [o for opt in options for o in (_true_breaks(workdir) if opt == "TRUE_BREAKS" else [opt])]
+    proc = subprocess.run([sys.executable, "-c", MEASURE, pan, ms, "--dem", dem, "--out", out, "--overwrite",
+                           *options], capture_output=True, text=True)
+    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    if res["rc"] != 0:
+        return {"pan_size": size, "error": res["stderr"].strip().splitlines()[-1:], "render_s": render_s}
+    rep = json.load(open(os.path.join(out, "report.json")))
+    tm = rep["timings_s"]
+    mw, mh = rep["sizes"]["ms"]
+    gdal.UseExceptions()                      # a script: process-wide GDAL state is ours
+    e = (gdal.Open(os.path.join(out, "correction.tif")).ReadAsArray()[:2].astype(float)      # the reference band's
+         - gdal.Open(os.path.join(workdir, "ms", "misregistration_truth.tif")).ReadAsArray())
+    return {"pan_size": size, "ms_size": [mw, mh], "ms_pixels": mw * mh, "render_s": round(render_s, 1),
+            "wall_s": round(res["wall_s"], 1), "peak_memory_gb": round(res["peak_gb"], 3), "stages_s": tm,
+            "matches": rep["n_matches"], "matches_per_s": round(rep["n_matches"] / max(tm["matching"], 1e-9)),
+            "breaks_ms_px": rep["breaks_ms_px"],
+            "correction_vs_truth_rms_px": [round(float(np.sqrt(np.mean(e[k] ** 2))), 4) for k in (0, 1)],
+            "ms_on_pan": rep["sizes"]["ms_on_pan"]}
+
+
+def peer_warp(workdir, ms_on_pan, workers) -> float:
+    from osgeo import gdal
+    w, h = ms_on_pan
+    t = time.perf_counter()
+    gdal.UseExceptions()
+    gdal.Warp(os.path.join(workdir, "peer_warp.tif"), os.path.join(workdir, "ms", "scene.tif"),
+              options=gdal.WarpOptions(rpc=True, transformerOptions=[f"RPC_DEM={workdir}/dem.tif"], width=w, height=h,
+                                       resampleAlg="cubic", multithread=True,
+                                       creationOptions=["TILED=YES", "COMPRESS=DEFLATE"],
+                                       warpOptions=[f"NUM_THREADS={workers}"]))
+    return time.perf_counter() - t
+
+
+def scaling(rows) -> dict:
+    """Straight-line fits of registration and rendering time against MS pixels, extrapolated to MS 7680²."""
+    import numpy as np
+    ok = [r for r in rows if "wall_s" in r]
+    if len(ok) < 2:
+        return {}
+    px = np.array([r["ms_pixels"] for r in ok], float)
+    out = {"sizes": len(ok)}
+    for key in ("wall_s", "render_s"):
+        t = np.array([r[key] for r in ok], float)
+        if not np.all(np.isfinite(t)):
+            continue
+        b, a = np.polyfit(px, t, 1)
+        out[key] = {"s_per_mpx": round(b * 1e6, 2), "intercept_s": round(a, 1),
+                    "full_product_s": round(a + b * 7680 ** 2)}
+    return out
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", type=int, default=30720, help="pan size (default: full GF7, 30720)")
+    ap.add_argument("--sizes", type=int, nargs="+", default=None, help="pan crop sizes (default 512 1024 2048)")
+    ap.add_argument("--full", action="store_true", help="sizes 2048 8192 16384 (the largest renders in < 10 min)")
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--cell", type=int, default=64)
     ap.add_argument("--appliers-only", action="store_true", help="full size, no rendering: the appliers alone")
+    ap.add_argument("--cell", type=int, help="register-pan-ms --cell (default: the command's default)")
+    ap.add_argument("--true-breaks", action="store_true",
+                    help="give the crop's true sub-CCD edges as --breaks (default: the command finds them)")
     a = ap.parse_args(argv)
-    workdir = a.workdir or os.path.join(os.environ.get("TMPDIR", "/tmp"), f"gf4cal_bench_panms_{a.size}" + (
-        "_appliers" if a.appliers_only else ""))
-    os.makedirs(workdir, exist_ok=True)
+    options = (["--cell", str(a.cell)] if a.cell else []) + (["TRUE_BREAKS"] if a.true_breaks else [])
+    root = a.workdir or os.path.join(os.environ.get("TMPDIR", "/tmp"), "gf4cal_bench_panms")
     if a.appliers_only:
+        workdir = root + "_appliers"
+        os.makedirs(workdir, exist_ok=True)
         return appliers_only(workdir, a.workers)
-    build(workdir, a.size, a.workers)
-    pan, ms, dem = (os.path.join(workdir, p) for p in ("pan/scene.tif", "ms/scene.tif", "dem.tif"))
-    out = os.path.join(workdir, "out")
-    t = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "gdal_gf4cal.cli", "register-pan-ms", pan, ms, "--dem", dem,
-                           "--out", out, "--cell", str(a.cell), "--overwrite", *_breaks(a.size)], capture_output=True, text=True)
-    wall = time.perf_counter() - t
-    peak_gb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024 ** 2
-    if proc.returncode != 0:
-        print(proc.stderr)
-        return 1
-    rep = json.load(open(os.path.join(out, "report.json")))
-    tm = rep["timings_s"]
-    mw, mh = rep["sizes"]["ms"]
-    # peer: GDAL's RPC warp of the MS over the DEM onto as many pixels as ms_on_pan.tif
-    from osgeo import gdal
-    gdal.UseExceptions()
-    w, h = rep["sizes"]["ms_on_pan"]
-    t = time.perf_counter()
-    gdal.Warp(os.path.join(workdir, "peer_warp.tif"), ms, options=gdal.WarpOptions(
-        rpc=True, transformerOptions=[f"RPC_DEM={dem}"], width=w, height=h, resampleAlg="cubic",
-        creationOptions=["TILED=YES", "COMPRESS=DEFLATE"], multithread=True,
-        warpOptions=[f"NUM_THREADS={a.workers}"]))
-    peer = time.perf_counter() - t
-    ours_resample = tm["correction_and_ms_on_pan"]
-    last = rep["steps"][-1]
-    print(json.dumps({"ms_size": [mw, mh], "wall_s": round(wall, 1), "peak_memory_gb": round(peak_gb, 2),
-                      "stages_s": tm, "matches": rep["n_matches"], "cells": rep["n_cells"],
-                      "matches_per_s": round(rep["n_matches"] / max(tm["matching"], 1e-9)),
-                      "cells_per_s": round(rep["n_cells"] / max(tm["matching"] + tm["estimate"], 1e-9)),
-                      "after": {"rms_sample_px": last["rms_sample_px"], "rms_line_px": last["rms_line_px"],
-                                "p_le_0.25": last["p_le_0.25"]},
-                      "gdalwarp_rpc_s": round(peer, 1), "ours_correction_and_ms_on_pan_s": ours_resample}, indent=1))
-    full = 7680 * 7680 / (mw * mh)
-    print(f"summary: MS {mw}x{mh}: end to end {wall:.0f} s (x{full:.0f} pixels for the full scene: ~{wall * full:.0f}"
-          f" s if linear; target 600 s), peak {peak_gb:.2f} GB (target 3), {rep['n_matches'] / tm['matching']:.0f}"
-          f" matches/s, ms_on_pan+correction {ours_resample:.1f} s vs gdalwarp -rpc {peer:.1f} s "
-          f"(ratio {ours_resample / max(peer, 1e-9):.2f})")
-    return 0
+    sizes = a.sizes or ([2048, 8192, 16384] if a.full else [512, 1024, 2048])
+    rows = []
+    for size in sorted(sizes):
+        workdir = os.path.join(root, f"pan{size}")
+        os.makedirs(workdir, exist_ok=True)
+        rows.append(run_size(workdir, size, a.workers, options))
+        print(json.dumps(rows[-1]), flush=True)
+    big = rows[-1]
+    if "wall_s" in big:
+        big["gdalwarp_rpc_s"] = round(peer_warp(os.path.join(root, f"pan{big['pan_size']}"), big["ms_on_pan"],
+                                                a.workers), 1)
+    fit = scaling(rows)
+    print(json.dumps({"scaling": fit}, indent=1))
+    for r in rows:
+        if "wall_s" not in r:
+            print(f"pan {r['pan_size']}: register-pan-ms failed: {r['error']}")
+            continue
+        print(f"pan {r['pan_size']}² / MS {r['ms_size'][0]}²: end to end {r['wall_s']:.1f} s, peak "
+              f"{r['peak_memory_gb']:.2f} GB, {r['matches_per_s']} matches/s, correction vs truth RMS "
+              f"{r['correction_vs_truth_rms_px']} px (rendering {r['render_s']} s)")
+    if fit.get("wall_s"):
+        print(f"scaling: {fit['wall_s']['s_per_mpx']} s per MS Mpx -> full product (MS 7680²) ~"
+              f"{fit['wall_s']['full_product_s']} s (target 600 s)" + (
+                  f"; rendering ~{fit['render_s']['full_product_s']} s" if fit.get("render_s") else ""))
+    if "gdalwarp_rpc_s" in big:
+        print(f"peer at pan {big['pan_size']}: ms_on_pan+correction {big['stages_s']['correction_and_ms_on_pan']}"
+              f" s vs gdalwarp -rpc {big['gdalwarp_rpc_s']} s")
+    return 0 if all("wall_s" in r for r in rows) else 1
 
 
 if __name__ == "__main__":

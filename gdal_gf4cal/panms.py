@@ -37,7 +37,7 @@ from .estimation import Block, normal_solve, robust_lsq, weighted_lsq
 from .progress import report
 from .stats import axis_stats, share_within
 
-__all__ = ["PanMSModel", "estimate", "default_breaks", "pan_edges_in_ms", "merge_breaks", "write_correction", "resample_ms_on_pan",
+__all__ = ["PanMSModel", "estimate", "default_breaks", "detect_breaks", "column_profile", "pan_edges_in_ms", "merge_breaks", "write_correction", "resample_ms_on_pan",
            "approximate_rpc", "GF7_MS_LINE_TIME_S", "GF7_MS_IFOV_RAD", "GF7_LOOK_TIME_S", "PanMSError"]
 
 AXES = ("sample", "line")
@@ -100,6 +100,123 @@ def merge_breaks(*lists, width: float, tol_px: float = 1.0) -> List[float]:
         else:
             out.append([float(v)])
     return [float(np.mean(g)) for g in out]
+
+
+#: False-alarm probability below which a jump in the per-column residual is taken for a sub-CCD edge.
+JUMP_FAP = 1e-3
+#: Width of the transition a jump leaves in the window offsets, as a share of the window: the correlator's taper
+#: weights the window's central half (measured on the GF7 simulator: 16 px for 32 px windows).
+RAMP_SHARE = 0.5
+#: Order of the smooth part of the per-column residual on each side of the edges found (detect_breaks).
+JUMP_SMOOTH_ORDER = 3
+
+
+def column_profile(sample, line, d_sample, d_line):
+    """The misregistration along the MS line of sensor columns: ``(x, y, n)`` with ``x`` the window columns at
+    their measured position (sorted), ``y[:, axis]`` the median over the lines of each window's offset minus its row's median (what
+    varies along the line -- attitude, jitter -- removed), ``n`` windows per column."""
+    s, l = np.round(np.asarray(sample, float), 3), np.round(np.asarray(line, float), 3)
+    d = np.stack([np.asarray(d_sample, float), np.asarray(d_line, float)], axis=1)
+    ok = np.isfinite(d).all(axis=1) & np.isfinite(s) & np.isfinite(l)
+    s, l, d = s[ok], l[ok], d[ok]
+    if s.size == 0:
+        return np.zeros(0), np.zeros((0, 2)), np.zeros(0, int)
+    _, ri = np.unique(l, return_inverse=True)
+    ux, ci = np.unique(s, return_inverse=True)
+    from .stats import grouped_trimmed_mean
+    rowm = grouped_trimmed_mean(ri, d, int(ri.max()) + 1).mean
+    m = grouped_trimmed_mean(ci, d - rowm[ri], ux.size)
+    # a window shows the MS around its centre moved by its offset (the matcher re-reads it there): place each
+    # column at its windows' mean measured position, not at the predicted one (else a jump lands ~1 px aside)
+    pos = grouped_trimmed_mean(ci, (s + d[:, 0])[:, None], ux.size).mean[:, 0]
+    order = np.argsort(pos, kind="stable")
+    return pos[order], m.mean[order], m.n[order]
+
+
+def _ramp(x, b, width):
+    """A jump at ``b`` as matching windows ``width`` wide see it: 0 left of ``b - width/2``, 1 right of
+    ``b + width/2``, linear between (a window straddling the edge measures the mix of both sides)."""
+    return np.clip((np.asarray(x, float)[:, None] - np.asarray(b, float)[None, :]) / float(width) + 0.5, 0.0, 1.0)
+
+
+def _jump_gain(x, y, w, found, cand, width, span):
+    """RSS reduction of both axes from adding a ramp at each candidate in ``cand`` to the smooth model (a
+    polynomial of order JUMP_SMOOTH_ORDER per piece between the edges ``found``, plus their ramps), weights ``w``
+    per column; and the RSS of the smooth model. Vectorised over the candidates (projection on the orthonormal
+    basis of the weighted smooth design)."""
+    from .basis import piecewise_polynomial
+    base = piecewise_polynomial(x, found, JUMP_SMOOTH_ORDER, domain=span)
+    if found:
+        base = np.concatenate([base, _ramp(x, found, width)], axis=1)
+    sw = np.sqrt(w)
+    q, _ = np.linalg.qr(base * sw[:, None])
+    rw = _ramp(x, cand, width) * sw[:, None]
+    mr = rw - q @ (q.T @ rw)
+    den = np.einsum("ij,ij->j", mr, mr)
+    gain = np.zeros(len(cand))
+    rss = 0.0
+    for k in range(2):
+        e = y[:, k] * sw - q @ (q.T @ (y[:, k] * sw))
+        gain = gain + np.where(den > 1e-12, (mr.T @ e) ** 2 / np.maximum(den, 1e-12), 0.0)
+        rss += float(e @ e)
+    return gain, rss, base.shape[1]
+
+
+def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: float, spacing_px: float,
+                  max_breaks: int = 8) -> Tuple[List[float], List[dict]]:
+    """Sub-CCD edges found in the data (METHODS §9): jumps of the per-column residual (:func:`column_profile` of
+    the window matches) that pass a test. Greedy: the strongest ramp (a jump as ``window_px`` windows see it) over
+    the smooth model, placed to 0.25 px then on the nearest pixel boundary, kept while its F statistic's false-alarm probability over the
+    independent places searched is below :data:`JUMP_FAP` (neighbouring columns share pixels: the statistic is
+    deflated, and its degrees of freedom counted, by the window's effective width over ``spacing_px``). Returns ``(edges in MS columns, [{edge, jump_sample_px,
+    jump_line_px, fap}])``."""
+    from scipy import stats
+    x, y, n = column_profile(sample, line, d_sample, d_line)
+    keep = n >= 3
+    x, y, n = x[keep], y[keep], n[keep]
+    found: List[float] = []
+    info: List[dict] = []
+    ramp = RAMP_SHARE * float(window_px)
+    if x.size < 4 * (JUMP_SMOOTH_ORDER + 2):
+        return found, info
+    span = (0.0, float(width))
+    w = n.astype(float)
+    corr = max(1.0, ramp / float(spacing_px))       # columns per independent one (the window's effective width)
+    lo, hi = float(x.min()) + window_px / 2.0, float(x.max()) - window_px / 2.0
+    n_indep = max(1.0, (hi - lo) / float(window_px))
+    while len(found) < max_breaks:
+        cand = np.arange(lo, hi, 1.0)
+        cand = cand[np.all(np.abs(cand[:, None] - np.asarray(found + [-1e9])[None, :]) > window_px, axis=1)]
+        if cand.size == 0:
+            break
+        gain, rss, p = _jump_gain(x, y, w, found, cand, ramp, span)
+        b0 = float(cand[int(np.argmax(gain))])
+        fine = np.arange(b0 - 1.0, b0 + 1.0001, 0.25)
+        g2, _, _ = _jump_gain(x, y, w, found, fine, ramp, span)
+        b = float(fine[int(np.argmax(g2))])
+        if x.size - p - 1 < 4:
+            break
+        # residual variance per column from every column; its degrees of freedom from the independent ones
+        s2 = (rss - float(g2.max())) / (2.0 * (x.size - p - 1))
+        dof = 2.0 * max(x.size / corr - p - 1, 2.0)
+        F = (float(g2.max()) / 2.0) / max(s2, 1e-300) / corr
+        fap = min(1.0, float(stats.f.sf(F, 2, dof)) * n_indep)
+        if not np.isfinite(fap) or fap >= JUMP_FAP:
+            break
+        b = float(round(b))             # an edge between two detectors lies between two pixel columns
+        found = sorted(found + [b])
+        info.append({"edge_ms_px": b, "fap": fap})
+    # the jump of each edge found, from the final model
+    if found:
+        from .basis import piecewise_polynomial
+        base = np.concatenate([piecewise_polynomial(x, found, JUMP_SMOOTH_ORDER, domain=span),
+                               _ramp(x, found, ramp)], axis=1)
+        for k, ax in enumerate(AXES):
+            coef = normal_solve(base, y[:, k], w)[0][-len(found):]
+            for it in info:
+                it[f"jump_{ax}_px"] = float(coef[found.index(it["edge_ms_px"])])
+    info.sort(key=lambda d: d["edge_ms_px"])
+    return found, info
 
 
 @dataclass
@@ -271,10 +388,72 @@ def _piecewise_design(s, breaks, width) -> np.ndarray:
     return a
 
 
-def _blocks(m: int):
-    names_pw = [f"{ax}_k{k + 1}_u{j}" for ax in AXES for k in range(m) for j in range(ORDER + 1)]
-    return [Block("linear_datum", ("A1", "A2", "A4", "A5")), Block("linear_time", ("A3", "A6")),
-            Block("piecewise", tuple(names_pw))]
+def _blocks(m: int, keep=None):
+    """The estimation blocks of the design columns (``keep``: the columns estimated, :func:`_term_layout`)."""
+    names = ["A1", "A2", "A4", "A5", "A3", "A6"] + [f"{ax}_k{k + 1}_u{j}" for ax in AXES for k in range(m)
+                                                    for j in range(ORDER + 1)]
+    keep = np.ones(len(names), bool) if keep is None else np.asarray(keep, bool)
+    names = [nm for nm, k in zip(names, keep) if k]
+    groups = (("linear_datum", ("A1", "A2", "A4", "A5")), ("linear_time", ("A3", "A6")))
+    out = [Block(g, tuple(nm for nm in names if nm in members)) for g, members in groups]
+    out.append(Block("piecewise", tuple(nm for nm in names if nm[0] in "sl" and "_k" in nm)))
+    return [b for b in out if b.names]
+
+
+def _piece_orders(keep, m: int) -> List[int]:
+    """Polynomial order estimated per sub-CCD (-1: none) from the kept design columns."""
+    pw = np.asarray(keep[6:6 + m * (ORDER + 1)], bool).reshape(m, ORDER + 1)
+    return [int(np.flatnonzero(r).max()) if r.any() else -1 for r in pw]
+
+
+def _term_layout(sample, line, usable, breaks, width):
+    """Which terms the usable cells support: ``(keep, notes)``, ``keep`` a mask over the design columns (linear
+    A1 A2 A4 A5 A3 A6, then per axis and sub-CCD the ``u^0..u^4`` coefficients), ``notes`` one sentence per
+    term dropped. A polynomial of order ``q`` in a sub-CCD needs usable cells in ``q + 2`` columns (one more than
+    its coefficients, so that its fit is checked) and, beyond a straight line, cells over half the piece; the linear term's ``s`` / ``l`` slopes need two columns / rows;
+    and all the terms together at least 2 observations more than parameters (two per cell)."""
+    m = len(breaks) + 1
+    s, l = np.asarray(sample, float)[usable], np.asarray(line, float)[usable]
+    piece = np.searchsorted(np.asarray(breaks, float), s, side="right")
+    n_cols = [np.unique(np.round(s[piece == k], 3)).size for k in range(m)]
+    orders = [min(ORDER, n - 2) if n >= 2 else (0 if n == 1 else -1) for n in n_cols]
+    # a polynomial is not extrapolated far beyond the columns its cells cover: below half the piece covered,
+    # at most a straight line
+    ends = np.r_[0.0, sorted(float(b) for b in breaks), float(width)]
+    for k in range(m):
+        sk = s[piece == k]
+        if sk.size and orders[k] > 1:
+            step = float(np.min(np.diff(np.unique(sk)))) if np.unique(sk).size > 1 else 0.0
+            cover = (float(sk.max() - sk.min()) + step) / float(ends[k + 1] - ends[k])
+            if cover < 0.5:
+                orders[k] = 1
+    notes = []
+    lin = np.ones(6, bool)
+    n_rows, n_all_cols = np.unique(np.round(l, 3)).size, np.unique(np.round(s, 3)).size
+    if n_all_cols < 2:
+        lin[[1, 3]] = False
+        notes.append(f"usable cells in {n_all_cols} column: the linear term's sample slopes (A2, A5) are not "
+                     "estimated")
+    if n_rows < 2:
+        lin[[4, 5]] = False
+        notes.append(f"usable cells in {n_rows} row: the linear term's line slopes (A3, A6) are not estimated")
+    n_obs = 2 * s.size
+
+    def n_par():
+        return int(lin.sum()) + 2 * sum(q + 1 for q in orders)
+    while n_par() + 2 > n_obs and max(orders) >= 0:
+        k = int(np.argmax(orders))
+        orders[k] -= 1
+    for k, (n, q) in enumerate(zip(n_cols, orders)):
+        if q < ORDER:
+            what = "no sub-CCD term" if q < 0 else f"order {q} instead of {ORDER}"
+            notes.append(f"sub-CCD {k + 1} of {m}: usable cells in {n} column(s) ({s.size} cells in all): {what} "
+                         "(the data cannot support more)")
+    pw = np.zeros((m, ORDER + 1), bool)
+    for k, q in enumerate(orders):
+        pw[k, :q + 1] = True
+    keep = np.concatenate([lin, pw.ravel(), pw.ravel()])
+    return keep, notes
 
 
 def _values(model: PanMSModel) -> np.ndarray:
@@ -498,41 +677,46 @@ def estimate(cells, *, ms_size, breaks=None, n_sub_ccds: int = 3, jitter="auto",
         model = _finish(model, c, snaps, est.outlier, line_time_s, progress)
         _check_reuse_fit(model)
         return model
-    piece = np.searchsorted(np.asarray(breaks), c["sample"], side="right")
-    for k in range(m):
-        n_cols = np.unique(np.round(c["sample"][usable & (piece == k)], 3)).size
-        if n_cols < ORDER + 2:
-            raise PanMSError(f"sub-CCD {k + 1} has usable cells in only {n_cols} columns, too few for its quartic "
-                             f"(>= {ORDER + 2}): use smaller cells (--cell), check --breaks, or --reuse MODEL.json")
-    if n_use * 2 < 6 + 2 * m * (ORDER + 1) + 4:
-        raise PanMSError(f"{n_use} usable cells cannot determine the {6 + 10 * m} parameters of the linear + "
-                         f"piecewise model; use smaller cells (--cell) or --reuse MODEL.json")
+    keep, notes = _term_layout(c["sample"], c["line"], usable, breaks, W)
+    model.info["notes"] = notes
+    model.info["piece_orders"] = _piece_orders(keep, m)
+    a = a[:, :, keep]
+    blocks = _blocks(m, keep)
+    x_full = np.zeros(keep.size)
+
+    def put(x):
+        x_full[keep] = x
+        _set_values(model, x_full)
     # Blunders first, on the model that fits (linear + piecewise, robust: high-breakdown start + snooping), so
     # that the sub-CCD structure the linear step cannot model is not mistaken for blunders.
     yy = np.where(np.isfinite(y), y, 0.0)
-    est = _robust_step(a, y, w, usable, blocks, ["linear_datum"], np.zeros(a.shape[2]), " (blunder detection)")
-    outlier = est.outlier
+    if n_use >= a.shape[2] // 2 + 3:
+        est = _robust_step(a, y, w, usable, blocks, ["linear_datum"], np.zeros(a.shape[2]), " (blunder detection)")
+        outlier = est.outlier
+    else:
+        outlier = np.zeros(n_all, bool)
+        notes.append(f"{n_use} usable cells for {a.shape[2] // 2} parameters per axis: too few to test for blunders")
     w_in = np.where((usable & ~outlier)[:, None], w, 0.0)
     # Step 1 (eq. 14): linear on all cells (usable, not blunders).
-    a_lin = a[:, :, :6]
-    est = weighted_lsq(a_lin.reshape(-1, 6), yy.ravel(), w_in.ravel(), blocks=blocks[:2], hint=" (linear term)")
-    x = np.zeros(a.shape[2])
-    x[:6] = est.x
-    _set_values(model, x)
+    n_lin = int(keep[:6].sum())
+    est = weighted_lsq(a[:, :, :n_lin].reshape(-1, n_lin), yy.ravel(), w_in.ravel(), blocks=_blocks(0, keep[:6]),
+                       hint=" (linear term)")
+    put(np.r_[est.x, np.zeros(a.shape[2] - n_lin)])
     snaps.append(_snapshot(model, "linear", ("linear",)))
     report(progress, 0.3, "pan-MS: piecewise term")
     # Step 2 (eq. 15): piecewise on what remains; the linear datum (constant, s) stays frozen (the pieces'
     # constant and linear terms duplicate it), the l terms are refined with it.
-    est = weighted_lsq(a.reshape(-1, a.shape[2]), yy.ravel(), w_in.ravel(), blocks=blocks, frozen=["linear_datum"],
-                       values=_values(model), hint=" (piecewise term)")
-    _set_values(model, est.x)
+    if any(b.name != "linear_datum" for b in blocks):
+        est = weighted_lsq(a.reshape(-1, a.shape[2]), yy.ravel(), w_in.ravel(), blocks=blocks,
+                           frozen=["linear_datum"], values=_values(model)[keep], hint=" (piecewise term)")
+        put(est.x)
     snaps.append(_snapshot(model, "piecewise", ("linear", "piecewise")))
     # Step 3 (eq. 16): jitter on what remains.
     report(progress, 0.6, "pan-MS: jitter term")
     if str(jitter) != "none":
         n_fixed = None if str(jitter) == "auto" else int(jitter)
         inl = usable & ~outlier
-        _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn)
+        _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn, keep)
         _describe_jitter(model, line_time_s, look_time_s, ifov_rad)
         snaps.append(_snapshot(model, "jitter", ("linear", "piecewise", "jitter")))
     return _finish(model, c, snaps, outlier, line_time_s, progress)
@@ -665,7 +849,7 @@ def _jitter_design(model, l, sn):
     return np.concatenate(parts, axis=2) if parts else np.zeros((n, 2, 0))
 
 
-def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
+def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn, keep):
     ps, pl = model.predict(c["sample"], c["line"], terms=("linear", "piecewise"))
     res = np.stack([c["d_sample"] - ps, c["d_line"] - pl], axis=1)
     for k, ax in enumerate(AXES):
@@ -686,7 +870,8 @@ def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
         try:
             est = weighted_lsq(full.reshape(-1, full.shape[2]), yy.ravel(), ww.ravel(), blocks=bl,
                                frozen=["linear_datum"],
-                               values=np.concatenate([_values(model), np.zeros(len(names))]), hint=" (jitter term)")
+                               values=np.concatenate([_values(model)[keep], np.zeros(len(names))]),
+                               hint=" (jitter term)")
         except DegenerateGeometryError:
             # a component the design cannot separate (from the l terms or another one): drop the last one found
             # on the axis with the most components and solve again
@@ -696,7 +881,9 @@ def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
                 return
             continue
         p0 = a.shape[2]
-        _set_values(model, est.x[:p0])
+        x_full = np.zeros(keep.size)
+        x_full[keep] = est.x[:p0]
+        _set_values(model, x_full)
         xj = est.x[p0:]
         i = 0
         for ax in AXES:
@@ -704,7 +891,8 @@ def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
                 comp["sin"], comp["cos"] = float(xj[i]), float(xj[i + 1])
                 i += 2
         ps, pl = model.predict(c["sample"], c["line"], terms=("linear", "piecewise"))
-        res = np.stack([c["d_sample"] - ps, c["d_line"] - pl], axis=1)
+        # cells left out (weight 0) have no nabla (NaN): 0 * NaN would make B, then the whole design, NaN
+        res = np.where(ww > 0, yy - np.stack([ps, pl], axis=1), 0.0)
         for k, ax in enumerate(AXES):
             comps = model.jitter[ax]["components"]
             if not comps:
@@ -714,7 +902,8 @@ def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn):
             g = sn * j0
             num = np.sum(ww[:, k] * g * (res[:, k] - j0))
             den = np.sum(ww[:, k] * g * g)
-            model.jitter[ax]["b"] = float(num / den) if den > 0 else 0.0
+            b = float(num / den) if den > 0 else 0.0
+            model.jitter[ax]["b"] = b if math.isfinite(b) else 0.0
         done += 1
 
 
@@ -742,27 +931,35 @@ def _tiles(W: int, H: int, tile: int) -> List[Tuple[int, int, int, int]]:
     return [(x0, y0, min(tile, W - x0), min(tile, H - y0)) for y0 in range(0, H, tile) for x0 in range(0, W, tile)]
 
 
-def write_correction(model: PanMSModel, path, *, tile: int = 512, progress=None) -> str:
-    """Write ``correction.tif``: 2 bands float32, delta sample / delta line (MS px) at every MS pixel centre
-    (GDAL convention), on the MS image grid, tile by tile (METHODS §9)."""
+def write_correction(model: PanMSModel, path, *, tile: int = 512, progress=None, rpc=None,
+                     band_models: Optional[Dict[str, PanMSModel]] = None) -> str:
+    """Write ``correction.tif``: float32 bands delta sample / delta line (MS px) at every MS pixel centre (GDAL
+    convention), on the MS image grid as given, tile by tile (METHODS §9): the model's, then a pair per entry of
+    ``band_models`` (``{label: model}``: bands with their own correction). ``rpc``: the MS image's RPC, written in
+    the RPC metadata domain (no geotransform) so that GDAL and QGIS place the grid on the ground."""
     from osgeo import gdal
     from ._gdal import gdal_exceptions
     W, H = model.ms_size
     path = os.fspath(path)
+    pairs = [("", model)] + [(f" {k}", m) for k, m in (band_models or {}).items()]
     with gdal_exceptions():
-        ds = gdal.GetDriverByName("GTiff").Create(path, W, H, 2, gdal.GDT_Float32, [
+        ds = gdal.GetDriverByName("GTiff").Create(path, W, H, 2 * len(pairs), gdal.GDT_Float32, [
             "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "PREDICTOR=3",
-            "BIGTIFF=IF_SAFER"])
-        ds.GetRasterBand(1).SetDescription("delta_sample_ms_px")
-        ds.GetRasterBand(2).SetDescription("delta_line_ms_px")
+            "BIGTIFF=IF_SAFER", "INTERLEAVE=BAND"])
+        for i, (label, _) in enumerate(pairs):
+            ds.GetRasterBand(2 * i + 1).SetDescription(f"delta_sample_ms_px{label}")
+            ds.GetRasterBand(2 * i + 2).SetDescription(f"delta_line_ms_px{label}")
         ds.SetMetadataItem("GF4CAL_PANMS", "delta = MS image point - pan/DEM/MS-RPC prediction (METHODS §9), MS "
                            "pixels, at MS pixel centres, GDAL convention")
+        if rpc is not None:
+            ds.SetMetadata(rpc.to_gdal_metadata(), "RPC")
         tiles = _tiles(W, H, tile)
         for done, (x0, y0, w, h) in enumerate(tiles, start=1):
             s, l = np.meshgrid(x0 + np.arange(w) + 0.5, y0 + np.arange(h) + 0.5)
-            ds_, dl_ = model.predict(s, l)
-            ds.GetRasterBand(1).WriteArray(ds_.astype(np.float32), x0, y0)
-            ds.GetRasterBand(2).WriteArray(dl_.astype(np.float32), x0, y0)
+            for i, (_, m) in enumerate(pairs):
+                ds_, dl_ = m.predict(s, l)
+                ds.GetRasterBand(2 * i + 1).WriteArray(ds_.astype(np.float32), x0, y0)
+                ds.GetRasterBand(2 * i + 2).WriteArray(dl_.astype(np.float32), x0, y0)
             report(progress, done / len(tiles), f"correction.tif tile {done}/{len(tiles)}")
         ds.FlushCache()
         ds = None
@@ -787,16 +984,18 @@ def _predicted_grid(pan_rpc, ms_rpc, dem, ratio, x0, y0, w, h, step):
                  for v in (s2, l2))
 
 
-def resample_ms_on_pan(model: Optional[PanMSModel], pan_path, ms_path, path, *, pan_rpc, ms_rpc, dem, ratio: int,
-                       tile: int = 512, node_step: int = 8, progress=None) -> str:
+def resample_ms_on_pan(model, pan_path, ms_path, path, *, pan_rpc, ms_rpc, dem, ratio: int,
+                       tile: int = 512, node_step: int = 8, progress=None, band_names=None) -> str:
     """Write ``ms_on_pan.tif``: every MS band resampled onto the pan's raw grid at MS resolution (pan size /
     ``ratio``, same extent as the pan) so that ``gdal_pansharpen.py PAN ms_on_pan.tif fused.tif`` fuses without
     halos (METHODS §9). Output pixel ``(x, y)`` covers pan pixels ``[x r, (x+1) r)``: its centre, localised with
     the pan RPC on the DEM and projected with the MS RPC, is ``p''``; the MS shows that ground at ``p' = p'' +
-    delta(p')`` (fixed point, 2 iterations: the field's gradient is ~1e-4 px/px), sampled bicubically. ``model=None`` resamples through the RPCs only
-    (the uncorrected product). Tile by tile, each tile reads only its MS window."""
+    delta(p')`` (fixed point, 2 iterations: the field's gradient is ~1e-4 px/px), sampled bicubically. ``model``:
+    one :class:`PanMSModel` for every band, a list of one per band, or None (through the RPCs only: the
+    uncorrected product). The grid covers the pan's extent (``ceil(size / ratio)``). ``band_names``: per band
+    ``(description, GDAL colour interpretation)`` (default: the MS file's, Alpha never). Tile by tile, each tile
+    reads only its MS window."""
     from osgeo import gdal
-    from scipy import ndimage
     from ._gdal import gdal_exceptions
     path = os.fspath(path)
     with gdal_exceptions():
@@ -804,7 +1003,8 @@ def resample_ms_on_pan(model: Optional[PanMSModel], pan_path, ms_path, path, *, 
         ms = gdal.Open(os.fspath(ms_path))
         PW, PH = pan.RasterXSize, pan.RasterYSize
         MW, MH, nb = ms.RasterXSize, ms.RasterYSize, ms.RasterCount
-        W, H = PW // ratio, PH // ratio
+        W, H = -(-PW // ratio), -(-PH // ratio)
+        models = list(model) if isinstance(model, (list, tuple)) else [model] * nb
         dt = ms.GetRasterBand(1).DataType
         out = gdal.GetDriverByName("GTiff").Create(path, W, H, nb, dt, [
             "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "INTERLEAVE=BAND",
@@ -814,37 +1014,27 @@ def resample_ms_on_pan(model: Optional[PanMSModel], pan_path, ms_path, path, *, 
         for b in range(nb):
             ob = out.GetRasterBand(b + 1)
             ob.SetNoDataValue(fill)
-            ob.SetDescription(ms.GetRasterBand(b + 1).GetDescription())
-            ci = ms.GetRasterBand(b + 1).GetColorInterpretation()
-            if ci:
-                ob.SetColorInterpretation(ci)
+            if band_names is not None:
+                desc, ci = band_names[b]
+            else:
+                desc, ci = ms.GetRasterBand(b + 1).GetDescription(), ms.GetRasterBand(b + 1).GetColorInterpretation()
+                ci = gdal.GCI_Undefined if ci == gdal.GCI_AlphaBand else ci
+            ob.SetDescription(desc)
+            ob.SetColorInterpretation(ci)
         out.SetMetadataItem("GF4CAL_PANMS", f"MS resampled onto the pan raw grid at 1/{ratio} of its size "
-                            f"({'pan-MS registration model applied' if model else 'RPCs only'}; METHODS §9)")
-        _set_ms_on_pan_rpc(out, pan, ratio)
+                            f"({'pan-MS registration model applied' if models[0] else 'RPCs only'}; METHODS §9)")
+        _set_ms_on_pan_rpc(out, pan, ratio, pan_rpc)
         tiles = _tiles(W, H, tile)
         for done, (x0, y0, w, h) in enumerate(tiles, start=1):
             s2, l2 = _predicted_grid(pan_rpc, ms_rpc, dem, ratio, x0, y0, w, h, node_step)
-            sp, lp = s2.copy(), l2.copy()
-            if model is not None:
-                for _ in range(2):
-                    ds_, dl_ = model.predict(sp, lp)
-                    sp, lp = s2 + ds_, l2 + dl_
-            ok = np.isfinite(sp) & np.isfinite(lp)
             arrs = [np.full((h, w), fill, dtype=np.float64) for _ in range(nb)]
-            if ok.any():
-                m = 3
-                wx0 = int(max(0, math.floor(np.nanmin(sp[ok])) - m))
-                wy0 = int(max(0, math.floor(np.nanmin(lp[ok])) - m))
-                wx1 = int(min(MW, math.ceil(np.nanmax(sp[ok])) + m))
-                wy1 = int(min(MH, math.ceil(np.nanmax(lp[ok])) + m))
-                if wx1 > wx0 and wy1 > wy0:
-                    inside = ok & (sp >= 0) & (sp <= MW) & (lp >= 0) & (lp <= MH)
-                    rows, cols = lp[inside] - 0.5 - wy0, sp[inside] - 0.5 - wx0
-                    for b in range(nb):
-                        src = ms.GetRasterBand(b + 1).ReadAsArray(wx0, wy0, wx1 - wx0, wy1 - wy0)
-                        v = ndimage.map_coordinates(src.astype(np.float64), [rows, cols], order=3,
-                                                    mode="nearest", prefilter=True)
-                        arrs[b][inside] = v
+            done_models: dict = {}
+            for b in range(nb):
+                key = id(models[b])
+                if key not in done_models:
+                    done_models[key] = _apply_model(models[b], s2, l2)
+                sp, lp = done_models[key]
+                _sample_band(ms, b, sp, lp, MW, MH, arrs[b])
             for b in range(nb):
                 a = arrs[b]
                 if np.issubdtype(_np_dtype(dt), np.integer):
@@ -863,10 +1053,42 @@ def _np_dtype(gdal_type):
     return np.dtype(gdal_array.GDALTypeCodeToNumericTypeCode(gdal_type))
 
 
-def _set_ms_on_pan_rpc(out, pan, ratio):
-    """Give ms_on_pan the pan's RPC rescaled to its grid (GDAL: x_out = x_pan / r, i.e. RPC convention
-    ``(x + 0.5) / r - 0.5``) and the pan's geotransform scaled by ``r`` when the pan has one."""
-    md = pan.GetMetadata("RPC")
+def _apply_model(model, s2, l2):
+    """``p' = p'' + delta(p')`` by fixed point (2 iterations); ``p''`` itself when ``model`` is None."""
+    sp, lp = s2.copy(), l2.copy()
+    if model is not None:
+        for _ in range(2):
+            ds_, dl_ = model.predict(sp, lp)
+            sp, lp = s2 + ds_, l2 + dl_
+    return sp, lp
+
+
+def _sample_band(ms, b, sp, lp, MW, MH, into, margin: int = 3) -> None:
+    """Bicubic samples of MS band ``b`` (0-based) at ``(sp, lp)`` (GDAL convention) into ``into`` where inside,
+    reading only the window they need."""
+    from scipy import ndimage
+    ok = np.isfinite(sp) & np.isfinite(lp)
+    inside = ok & (sp >= 0) & (sp <= MW) & (lp >= 0) & (lp <= MH)
+    if not inside.any():
+        return
+    wx0 = int(max(0, math.floor(np.min(sp[inside])) - margin))
+    wy0 = int(max(0, math.floor(np.min(lp[inside])) - margin))
+    wx1 = int(min(MW, math.ceil(np.max(sp[inside])) + margin))
+    wy1 = int(min(MH, math.ceil(np.max(lp[inside])) + margin))
+    if wx1 <= wx0 or wy1 <= wy0:
+        return
+    src = ms.GetRasterBand(b + 1).ReadAsArray(wx0, wy0, wx1 - wx0, wy1 - wy0)
+    into[inside] = ndimage.map_coordinates(src.astype(np.float64), [lp[inside] - 0.5 - wy0, sp[inside] - 0.5 - wx0],
+                                           order=3, mode="nearest", prefilter=True)
+
+
+def _set_ms_on_pan_rpc(out, pan, ratio, pan_rpc=None):
+    """Give ms_on_pan the pan's RPC (``pan_rpc``: the RPC of the pan's own pixels, e.g. a crop's shifted product
+    RPC; else the pan file's) rescaled to its grid (GDAL: x_out = x_pan / r, i.e. RPC convention
+    ``(x + 0.5) / r - 0.5``), and the pan's geotransform scaled by ``r`` when the pan has a map georeference
+    (a pixel-unit geotransform without CRS -- a crop's origin in its product -- is not one: QGIS would place the
+    image at pixel coordinates instead of through the RPC)."""
+    md = dict(pan_rpc.to_gdal_metadata()) if hasattr(pan_rpc, "to_gdal_metadata") else pan.GetMetadata("RPC")
     if md:
         md = dict(md)
         for off, scale in (("SAMP_OFF", "SAMP_SCALE"), ("LINE_OFF", "LINE_SCALE")):
@@ -874,22 +1096,25 @@ def _set_ms_on_pan_rpc(out, pan, ratio):
             md[scale] = repr(float(md[scale]) / ratio)
         out.SetMetadata(md, "RPC")
     gt = pan.GetGeoTransform(can_return_null=True)
-    if gt is not None:
+    srs = pan.GetSpatialRef()
+    if gt is not None and srs is not None and not srs.IsLocal():
         out.SetGeoTransform((gt[0], gt[1] * ratio, gt[2] * ratio, gt[3], gt[4] * ratio, gt[5] * ratio))
         out.SetProjection(pan.GetProjection())
 
 
-def approximate_rpc(model: PanMSModel, ms_rpc, *, n: int = 41, n_heights: int = 7):
+def approximate_rpc(model: PanMSModel, ms_rpc, *, n: int = 41, n_heights: int = 7,
+                    terms: Sequence[str] = ("linear", "piecewise", "jitter")):
     """Refit the MS RPC so that it predicts ``p' = p'' + delta(p')`` (METHODS §9): a smooth approximation of
     the model, which an RPC cannot carry exactly (the sub-CCD jumps). Returns ``(rpc, errors)`` with the refit's
-    RMS and max error (MS px) against the full model on an ``n x n`` grid x ``n_heights`` heights."""
+    RMS and max error (MS px) against the full model on an ``n x n`` grid x ``n_heights`` heights. ``terms``: the
+    model terms the RPC is fitted to (the errors are always against the full model)."""
     from .rpc_fit import fit_rpc
     W, H = model.ms_size
     s, l = np.meshgrid((np.arange(n) + 0.5) * W / n, (np.arange(n) + 0.5) * H / n)
     s, l = s.ravel(), l.ravel()
     h0, h1 = ms_rpc.height_range
     lons, lats, hs, ss, ls = [], [], [], [], []
-    ds_, dl_ = model.predict(s, l)
+    ds_, dl_ = model.predict(s, l, terms=terms)
     for h in np.linspace(h0, h1, n_heights):
         lon, lat = ms_rpc.localize(s - ds_, l - dl_, np.full(s.shape, h))
         lons.append(lon), lats.append(lat), hs.append(np.full(s.shape, h)), ss.append(s), ls.append(l)
@@ -898,23 +1123,17 @@ def approximate_rpc(model: PanMSModel, ms_rpc, *, n: int = 41, n_heights: int = 
     rpc, fit = fit_rpc(lon[ok], lat[ok], hh[ok], S[ok], L[ok])
     ps, pl = rpc.project(lon[ok], lat[ok], hh[ok])
     es, el = S[ok] - ps, L[ok] - pl
+    if tuple(terms) != ("linear", "piecewise", "jitter"):       # errors against the full model
+        fs, fl = model.predict(s, l)
+        ks, kl = model.predict(s, l, terms=terms)
+        es = es + np.tile(fs - ks, n_heights)[ok]
+        el = el + np.tile(fl - kl, n_heights)[ok]
     r = np.hypot(es, el)
     errors = {"rms_sample_px": float(np.sqrt(np.mean(es ** 2))), "rms_line_px": float(np.sqrt(np.mean(el ** 2))),
               "rms_px": float(np.sqrt(np.mean(r ** 2))), "max_px": float(np.max(r)), "n_points": int(ok.sum()),
               "note": "an RPC cannot carry the sub-CCD jumps: use correction.tif / ms_on_pan.tif for the exact "
                       "registration (METHODS §9)"}
     return rpc, errors
-
-
-def check_sizes(pan_size, ms_size) -> int:
-    """The integer pan/MS size ratio, or :class:`PanMSError` when no integer ratio explains both sizes."""
-    (pw, ph), (mw, mh) = pan_size, ms_size
-    for r in range(1, 17):
-        if abs(pw - r * mw) <= r and abs(ph - r * mh) <= r:
-            return r
-    raise PanMSError(f"the pan ({pw} x {ph}) and MS ({mw} x {mh}) sizes are not related by an integer ratio: "
-                     "give the pan and MS images of the same scene and product")
-
 
 
 def edge_misregistration(pan_path, image_path, *, band: int = 1, ratio: int = 4, window: int = 64,

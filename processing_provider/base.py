@@ -447,9 +447,10 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
             raise QgsProcessingException(self.tr(f"Choose an output folder ({name})."))
         return os.path.abspath(folder)
 
-    def load_on_completion(self, uri: str, name: str, kind: str = "vector") -> None:
-        """Open ``uri`` as a layer (with its default style) in the project when the algorithm finishes."""
-        self._to_load.append((uri, name, kind))
+    def load_on_completion(self, uri: str, name: str, kind: str = "vector", style: Optional[str] = None) -> None:
+        """Open ``uri`` as a layer (with its default style, or the QML text ``style``) in the project when the
+        algorithm finishes."""
+        self._to_load.append((uri, name, kind) if style is None else (uri, name, kind, style))
 
     def load_gpkg_on_completion(self, path: str, layers=("footprint", "residual_vectors_before",
                                                          "residual_vectors", "gcps")) -> None:
@@ -464,11 +465,16 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
     def postProcessAlgorithm(self, context, feedback):
         # Runs in the main thread after processAlgorithm: layers are created here, not in the worker thread.
         from qgis.core import QgsProcessingContext, QgsRasterLayer, QgsVectorLayer
-        for uri, name, kind in getattr(self, "_to_load", []):
+        for uri, name, kind, *style in getattr(self, "_to_load", []):
             layer = QgsRasterLayer(uri, name, "gdal") if kind == "raster" else QgsVectorLayer(uri, name, "ogr")
             if not layer.isValid():
                 feedback.pushWarning(self.tr(f"Could not open {uri} as a layer"))
                 continue
+            if style:
+                from qgis.PyQt.QtXml import QDomDocument
+                doc = QDomDocument()
+                doc.setContent(style[0])
+                layer.importNamedStyle(doc)
             context.temporaryLayerStore().addMapLayer(layer)
             context.addLayerToLoadOnCompletion(layer.id(), QgsProcessingContext.LayerDetails(
                 name, context.project(), name))

@@ -15,6 +15,11 @@ def add_parser(parser):
                         help="scene centre in degrees (default: the sensor's, e.g. 88 31 in Tibet for gf4)")
     parser.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
                         help="crop the detector array around its centre to W x H pixels (geometry unchanged)")
+    parser.add_argument("--crop", type=int, nargs=4, metavar=("X0", "Y0", "W", "H"),
+                        help="gf7: simulate the full product, write only the W x H crop at column X0, row Y0 (pan "
+                             "pixels of the full product, multiples of 4; the MS crop is the same ground). The "
+                             "crop keeps its place: a pixel-unit geotransform (X0, 1, 0, Y0, 0, 1) without CRS, "
+                             "and product.RPB is the product's RPC")
     parser.add_argument("--n-gcps", type=int, default=200, help="GCPs per image (default 200)")
     parser.add_argument("--gcp-noise", type=float, default=0.6, metavar="PX",
                         help="GCP image measurement noise, pixels per axis (default 0.6)")
@@ -28,7 +33,8 @@ def add_parser(parser):
                         help="with --render: reference image to render from (any GDAL raster, any CRS); "
                              "default: built-in seeded texture")
     parser.add_argument("--clouds", type=float, default=0.0, metavar="F",
-                        help="with --render: fraction of the image covered by clouds (default 0)")
+                        help="with --render: fraction of the image covered by clouds (default 0; gf7: clouds on "
+                             "the ground, seen by pan and MS alike)")
     parser.add_argument("--no-reference-ortho", action="store_true",
                         help="with --render from the built-in texture: do not write reference.tif (the same "
                              "texture as an EPSG:4326 orthophoto, for collect-gcps --reference)")
@@ -52,7 +58,8 @@ def run(args) -> int:
     from . import print_warnings
     from ..progress import TextProgressBar
     from ..workflows import simulate_scene
-    res = simulate_scene(args.sensor, args.out, overwrite=args.overwrite, seed=args.seed, center=args.center, size=args.size,
+    res = simulate_scene(args.sensor, args.out, overwrite=args.overwrite, seed=args.seed, center=args.center,
+                      size=args.size, crop=args.crop,
                       n_gcps=args.n_gcps, gcp_noise_px=args.gcp_noise, outlier_fraction=args.outlier_fraction,
                       dem=args.dem, render=args.render, reference=args.reference, progress=TextProgressBar(),
                       check_fraction=args.check_fraction, paint_clouds=args.clouds, workers=args.workers,
@@ -64,6 +71,9 @@ def run(args) -> int:
         chk = im.fit_report.check
         print(f"  {name or 'scene'}: {len(im.gcps)} GCPs; RPC fit on the check grid: max {chk.max_px:.2e} px, "
               f"RMS {chk.rms_px:.2e} px  ({im.dir})")
+        if res.crop:
+            x0, y0, w, h = res.crop[name]
+            print(f"    crop {w} x {h} px at ({x0}, {y0}) of the product; {im.paths['rpc']} is the product's RPC")
         if "reference" in im.paths:
             print(f"  reference orthophoto of the same ground: {im.paths['reference']}")
     print_warnings(res)

@@ -35,8 +35,8 @@ from .collect import STATUS, _dem_from_spec, _dem_spec, _image_info, plan_tiles,
 from .filters import reject_outliers
 from .resample import RawReference
 
-__all__ = ["match_raw", "match_ties", "pan_ms_cells", "cells_from_matches", "overlap_region", "RAW_COLUMNS",
-           "CELL_COLUMNS"]
+__all__ = ["match_raw", "match_ties", "pan_ms_cells", "cells_from_matches", "cell_edges", "overlap_region",
+           "RAW_COLUMNS", "CELL_COLUMNS"]
 
 #: Columns of :func:`match_raw`'s table, in order.
 RAW_COLUMNS = ("sample", "line", "pred_sample", "pred_line", "ref_sample", "ref_line", "lon", "lat", "h",
@@ -223,6 +223,20 @@ def match_ties(image_a, model_a, image_b, model_b, dem, *, ids: Tuple[str, str] 
     return out
 
 
+def cell_edges(width: int, cell_px: int, breaks: Optional[Sequence[float]] = None) -> np.ndarray:
+    """Column edges of the cell grid over ``width`` image columns: every ``cell_px`` from 0, restarted at each
+    sub-CCD edge of ``breaks`` (so that no cell straddles a jump, METHODS §9); a piece's last cell narrower than
+    half a cell joins the one before it."""
+    ends = [0.0] + sorted(float(b) for b in (breaks or ()) if 0.0 < float(b) < float(width)) + [float(width)]
+    edges = []
+    for a, b in zip(ends[:-1], ends[1:]):
+        e = list(np.arange(a, b, float(cell_px)))
+        if len(e) > 1 and b - e[-1] < 0.5 * cell_px:
+            e.pop()
+        edges.extend(e)
+    return np.asarray(edges + [float(width)], float)
+
+
 def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, min_matches: int = 4,
                        min_accepted_fraction: float = 0.5, trim_k: float = 3.0, independent_fraction: float = 1.0,
                        breaks: Optional[Sequence[float]] = None, window_px: Optional[int] = None):
@@ -230,7 +244,8 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
 
     ``matches``: :func:`match_raw`'s table. Cell ``(col, row)`` covers image pixels ``[col * cell_px, (col + 1) *
     cell_px) x [row * cell_px, ...)`` (the last ones clipped to the image); a window belongs to the cell holding
-    its centre (``pred_sample, pred_line``). Windows ``outside_image`` do not count. Per cell and axis the mean is
+    its centre (``pred_sample, pred_line``); with ``breaks`` the columns restart at each edge (:func:`cell_edges`).
+    Windows ``outside_image`` do not count. Per cell and axis the mean is
     the **MAD-trimmed mean about the median** (:func:`gdal_gf4cal.stats.grouped_trimmed_mean`: accepted, non-outlier
     matches within ``trim_k`` robust standard deviations of the median on both axes), ``sigma_*`` its standard
     error (spread of the kept matches over sqrt(n); a lone match: its own ``sigma``), where overlapping
@@ -248,7 +263,8 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
     cell = int(cell_px)
     if cell < 1:
         raise Gf4calError(f"cell size must be a positive number of pixels (got {cell_px})")
-    ncol, nrow = -(-int(width) // cell), -(-int(height) // cell)
+    xe = cell_edges(width, cell, breaks)
+    ncol, nrow = xe.size - 1, -(-int(height) // cell)
     ncell = ncol * nrow
     if breaks is not None and len(breaks):
         w = float(window_px if window_px is not None else matches.attrs.get("window_px", 0))
@@ -257,7 +273,7 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
         matches = matches[~straddle]
     st = matches["status"].to_numpy()
     ps, pl = matches["pred_sample"].to_numpy(float), matches["pred_line"].to_numpy(float)
-    col = np.clip(np.floor(ps / cell).astype(int), 0, ncol - 1)
+    col = np.clip(np.searchsorted(xe, ps, side="right") - 1, 0, ncol - 1)
     row = np.clip(np.floor(pl / cell).astype(int), 0, nrow - 1)
     cid = row * ncol + col
     counted = st != 5
@@ -283,8 +299,8 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
         clear = np.where(n_flat > 0, 1.0 - sum_flat / np.maximum(n_flat, 1), 0.0)
     cc, rr = np.meshgrid(np.arange(ncol), np.arange(nrow))
     cc, rr = cc.ravel(), rr.ravel()
-    x0, y0 = cc * cell, rr * cell
-    sample = (x0 + np.minimum(x0 + cell, width)) / 2.0
+    y0 = rr * cell
+    sample = (xe[cc] + xe[cc + 1]) / 2.0
     line = (y0 + np.minimum(y0 + cell, height)) / 2.0
     usable = (m.n >= int(min_matches)) & (acc_frac >= float(min_accepted_fraction)) & (clear >= 0.5)
     df = pd.DataFrame({"cell_id": np.arange(ncell), "col": cc, "row": rr, "sample": sample, "line": line,

@@ -406,7 +406,7 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
                          after: Optional[Tuple[str, str]] = STANDARD_AFTER,
                          crs: Any = "EPSG:4326", pixel_size=None, overwrite: bool = True,
                          title: str = "GCP residuals", cancelled: Optional[Callable[[], bool]] = None,
-                         layer_prefix: str = "", append: bool = False) -> Path:
+                         layer_prefix: str = "", append: bool = False, points_title: Optional[str] = None) -> Path:
     """Write GCPs and their residuals as a styled GeoPackage that QGIS draws at once.
 
     Layers (the styles are the layers' defaults in ``layer_styles``, QML and SLD):
@@ -455,6 +455,9 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
     cancelled : callable, optional
         Asked between layers and every 20,000 rows; when it returns True the write stops with
         :class:`~gdal_gf4cal.errors.CancelledError` and the temporary file is removed (nothing is written).
+    points_title : str, optional
+        The points layer's title (its ``IDENTIFIER``, the name QGIS gives the layer) when the points are not GCPs,
+        e.g. pan-MS cells; the table keeps its name ``gcps``.
     layer_prefix : str
         Prefix of every layer name and title (``<prefix>gcps``, ...): several images' layers in one GeoPackage.
     append : bool
@@ -615,7 +618,8 @@ def write_residuals_gpkg(gcps, path: PathLike, *, footprint=None, exaggeration: 
             raise Gf4calError(f"cannot write the GeoPackage {path}; check the folder is writable")
         gname = layer_prefix + "gcps"
         gl = _create_layer(ds, gname, srs, ogr.wkbPoint, fields,
-                           f"{title}: ground control / check points with residuals (measured - predicted, px)")
+                           f"{title}: ground control / check points with residuals (measured - predicted, px)",
+                           None, points_title)
         bulk.append((gname, fields, lambda sid: (*_point_records(x, y, sid), columns)))
         qml, sld = _points_style()
         styles.append((gname, gl.GetGeometryColumn(), qml, _sld(gname, sld), "GCPs by role; outliers as red crosses"))

@@ -174,3 +174,19 @@ def _sld(layer: str, rules: str) -> str:
             'http://schemas.opengis.net/sld/1.1.0/StyledLayerDescriptor.xsd">'
             f"<NamedLayer><se:Name>{escape(layer)}</se:Name><UserStyle><se:Name>{escape(layer)}</se:Name>"
             f"<se:FeatureTypeStyle>{rules}</se:FeatureTypeStyle></UserStyle></NamedLayer></StyledLayerDescriptor>\n")
+
+
+def diverging_raster_qml(band: int, limit: float, *, low: str = "#2166ac", mid: str = "#f7f7f7",
+                         high: str = "#b2182b") -> str:
+    """QML of a single-band pseudocolour style of ``band``: a diverging ramp blue - white - red from ``-limit`` to
+    ``+limit`` (a signed correction component: zero white, the sign by hue)."""
+    lim = float(limit) if np.isfinite(limit) and limit > 0 else 1.0
+    items = "".join(f'<item alpha="255" value="{v:.6g}" label="{v:.3g}" color="{c}"/>'
+                    for v, c in ((-lim, low), (0.0, mid), (lim, high)))
+    shader = (f'<colorrampshader colorRampType="INTERPOLATED" classificationMode="1" clip="0" '
+              f'minimumValue="{-lim:.6g}" maximumValue="{lim:.6g}">{items}</colorrampshader>')
+    return ("<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n"
+            '<qgis version="3.22.0" styleCategories="Symbology"><pipe>'
+            f'<rasterrenderer type="singlebandpseudocolor" band="{int(band)}" opacity="1" alphaBand="-1" '
+            f'classificationMin="{-lim:.6g}" classificationMax="{lim:.6g}"><rastershader>{shader}</rastershader>'
+            "</rasterrenderer></pipe></qgis>\n")

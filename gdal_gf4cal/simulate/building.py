@@ -86,6 +86,13 @@ class SensorSpec:
     #: ``write_observations(scene, out_dir, gcps, observation_options, written) -> truth record``: writes the
     #: sensor's long observation table (GCPs + tie points) beside the images (jl1), or None.
     write_observations: Optional[Callable] = None
+    #: ``write_images(scene, results, *, render, reference, windows, workers, tile, progress, written) -> truth
+    #: record``: writes the images itself, in place of the one-band render or placeholder of
+    #: :func:`.scene.write_scene` (gf7: pan + 4-band MS, cover mask, true pan-MS field), or None.
+    write_images: Optional[Callable] = None
+    #: ``crop_windows(crop) -> {image name: (x0, y0, w, h)}``: the windows of each image's product that a crop
+    #: ``(x0, y0, w, h)`` of the first image covers (``write_scene(crop=...)``; checked there), or None (no crops).
+    crop_windows: Optional[Callable] = None
 
 
 def _crop(full: Tuple[int, int], size: Optional[Tuple[int, int]]):
@@ -137,8 +144,9 @@ def _align_orbit(center, h, altitude, incl, camera, install, s_ref):
             abs(d_lon) * np.cos(np.radians(center[1])) > 1e-3:
         reach = 180.0 - incl if incl > 90.0 else incl
         raise SimulationError(f"the simulated orbit (inclination {incl:g} deg) cannot see the centre "
-                              f"({center[0]:g}, {center[1]:g}): its ground track reaches |lat| ~ {reach:.1f}; "
-                              f"choose a centre with |lat| <= {np.floor(reach) - 2:g}")
+                              f"({center[0]:g}, {center[1]:g}): beyond the orbit's reach, its ground track covers "
+                              f"latitudes -{reach:.1f} to {reach:.1f} deg; choose a centre with |lat| <= "
+                              f"{np.floor(reach) - 2:g}")
     return orbit
 
 

@@ -34,7 +34,7 @@ import contextvars
 import json
 import os
 from contextlib import closing, contextmanager
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Optional
 
 import numpy as np
@@ -274,11 +274,13 @@ def _cross_track_gap_m(orbit, yaw, cams, center, h):
     return float(np.dot(g[1][0] - g[0][0], across)), g[1][2] - g[0][2]
 
 
-def build_gf7(rng, center, size, h_mid):
-    """GF7 builder for :func:`gdal_gf4cal.simulate.make_scene` (METHODS §9, §10); options from
-    :func:`gf7_options` (default :class:`GF7Options`)."""
+def build_gf7(rng, center, size, h_mid, **options):
+    """GF7 builder for :func:`gdal_gf4cal.simulate.make_scene` (METHODS §9, §10); options: the keywords of
+    :class:`GF7Options` (``make_scene(..., options={...})``) over those of :func:`gf7_options` (default
+    :class:`GF7Options`)."""
     from .building import SimImage, _align_orbit, _linear_camera, _pushbroom, _scale_size
     opt = _OPTIONS.get() or GF7Options()
+    opt = replace(opt, **options) if options else opt
     _check_options(opt)
     alt = ALTITUDE_M + rng.uniform(-1500.0, 1500.0)           # orbit differs a little between scenes
     incl = INCLINATION_DEG
@@ -474,17 +476,19 @@ def true_misregistration(scene, sample, line, *, pan_model=None, ms_model=None, 
     return s - np.asarray(s2), l - np.asarray(l2)
 
 
-def misregistration_nodes(scene, step: float = 16.0):
+def misregistration_nodes(scene, step: float = 16.0, window=None):
     """Per MS sub-CCD: node columns and rows (MS pixel centres, a regular grid incl. the piece's first and last
     pixel centres) and ``delta`` on them from :func:`true_misregistration` (that piece's smooth extension).
+    ``window = (x0, y0, w, h)``: only the MS pixels of that window (image pixels; default the whole image).
 
-    Returns a list of ``(k, a, b, cols, rows, d_sample, d_line)``, ``[a, b)`` the piece's image columns."""
+    Returns a list of ``(k, a, b, cols, rows, d_sample, d_line)``, ``[a, b)`` the piece's image columns (within
+    the window), everything in image pixels."""
     ms = scene.image("ms")
-    W, H = ms.size
-    rows = np.linspace(0.5, H - 0.5, max(4, int(np.ceil((H - 1) / step)) + 1))
+    x0, y0, W, H = window if window is not None else (0, 0) + tuple(ms.size)
+    rows = y0 + np.linspace(0.5, H - 0.5, max(4, int(np.ceil((H - 1) / step)) + 1))
     out = []
     for k, (a, b) in enumerate(ms.true.camera.piece_ranges()):
-        a, b = int(round(a)), int(round(b))
+        a, b = max(int(round(a)), x0), min(int(round(b)), x0 + W)
         if b <= a:
             continue
         cols = np.linspace(a + 0.5, b - 0.5, max(4, int(np.ceil((b - a - 1) / step)) + 1))
@@ -502,7 +506,7 @@ def _spline(cols, rows, values):
 
 
 @with_gdal_exceptions
-def write_misregistration_truth(scene, path, *, step: float = 8.0, tile: int = 512) -> str:
+def write_misregistration_truth(scene, path, *, step: float = 8.0, tile: int = 512, window=None) -> str:
     """Write the TRUE misregistration field on the MS image grid: 2-band float32 GeoTIFF (band 1 delta sample,
     band 2 delta line, MS pixels, at every MS pixel centre, GDAL convention) -- what a ``correction.tif`` is
     checked against (METHODS §9). Per sub-CCD, bicubic from :func:`misregistration_nodes` (exact at the nodes;
@@ -510,13 +514,16 @@ def write_misregistration_truth(scene, path, *, step: float = 8.0, tile: int = 5
     track -- is interpolated: max ~0.004 px, RMS ~0.001 px at ``step`` 8, 0.001 / 0.0003 px at 4; the jumps
     stay sharp at the MS sub-CCD edges). The pan's own jump, which lands within ~1 MS px of the MS edge (the
     misregistration there), is put at the MS edge: within that pixel the grid may differ from
-    :func:`true_misregistration` by the pan jump (~0.1 px). Written tile by tile, atomically."""
+    :func:`true_misregistration` by the pan jump (~0.1 px). Written tile by tile, atomically.
+    ``window = (x0, y0, w, h)`` (MS image pixels): the field of that crop only, on its grid, with the crop's
+    origin as a pixel-unit geotransform (:func:`.scene.set_crop_origin`)."""
     from osgeo import gdal
     from ..atomic import atomic_output
+    from .scene import set_crop_origin
     ms = scene.image("ms")
-    W, H = ms.size
-    nodes = misregistration_nodes(scene, step)
-    splines = [(a, b, _spline(c, r, ds), _spline(c, r, dl)) for _, a, b, c, r, ds, dl in nodes]
+    wx, wy, W, H = window if window is not None else (0, 0) + tuple(ms.size)
+    nodes = misregistration_nodes(scene, step, window)
+    splines = [(a - wx, b - wx, _spline(c, r, ds), _spline(c, r, dl)) for _, a, b, c, r, ds, dl in nodes]
     path = os.fspath(path)
     with atomic_output(path) as tmp:
         ds_ = gdal.GetDriverByName("GTiff").Create(tmp, W, H, 2, gdal.GDT_Float32, [
@@ -526,9 +533,10 @@ def write_misregistration_truth(scene, path, *, step: float = 8.0, tile: int = 5
             ds_.GetRasterBand(band).SetDescription(desc)
         ds_.SetMetadataItem("GF4CAL_TRUTH", "true pan-MS misregistration delta = MS image point - pan/DEM/MS-RPC "
                             "prediction (METHODS §9), MS pixels, at MS pixel centres, GDAL convention")
+        set_crop_origin(ds_, window)
         for y0 in range(0, H, tile):
             h = min(tile, H - y0)
-            yy = y0 + np.arange(h) + 0.5
+            yy = wy + y0 + np.arange(h) + 0.5
             for x0 in range(0, W, tile):
                 w = min(tile, W - x0)
                 out_s = np.full((h, w), np.nan, dtype=np.float32)
@@ -537,7 +545,7 @@ def write_misregistration_truth(scene, path, *, step: float = 8.0, tile: int = 5
                     lo, hi = max(a, x0), min(b, x0 + w)
                     if hi <= lo:
                         continue
-                    xx = np.arange(lo, hi) + 0.5
+                    xx = wx + np.arange(lo, hi) + 0.5
                     out_s[:, lo - x0:hi - x0] = sp_s(yy, xx)
                     out_l[:, lo - x0:hi - x0] = sp_l(yy, xx)
                 ds_.GetRasterBand(1).WriteArray(out_s, x0, y0)
@@ -546,17 +554,19 @@ def write_misregistration_truth(scene, path, *, step: float = 8.0, tile: int = 5
     return path
 
 
-def misregistration_stats(scene, n: int = 64) -> dict:
+def misregistration_stats(scene, n: int = 64, window=None) -> dict:
     """RMS about zero per axis, max and P(<= 0.25 px) of the true field on an ``n x n`` MS grid (METHODS §9's
-    "before" numbers), and the MS sub-CCD edges inside the image."""
-    W, H = scene.image("ms").size
-    s, l = np.meshgrid((np.arange(n) + 0.5) * W / n, (np.arange(n) + 0.5) * H / n)
+    "before" numbers), and the MS sub-CCD edges inside the image; ``window = (x0, y0, w, h)``: of that crop
+    (MS image pixels), edges in the crop's pixels."""
+    x0, y0, W, H = window if window is not None else (0, 0) + tuple(scene.image("ms").size)
+    s, l = np.meshgrid(x0 + (np.arange(n) + 0.5) * W / n, y0 + (np.arange(n) + 0.5) * H / n)
     ds, dl = true_misregistration(scene, s, l)
     ok = np.isfinite(ds) & np.isfinite(dl)
     ds, dl = ds[ok], dl[ok]
     return {"rms_sample_px": float(np.sqrt(np.mean(ds ** 2))), "rms_line_px": float(np.sqrt(np.mean(dl ** 2))),
             "max_px": float(np.max(np.hypot(ds, dl))), "p_le_0.25": float(np.mean(np.hypot(ds, dl) <= 0.25)),
-            "ms_sub_ccd_edges_px": scene.image("ms").true.camera.edges_in_image(), "grid": n}
+            "ms_sub_ccd_edges_px": [e - x0 for e in scene.image("ms").true.camera.edges_in_image()
+                                    if 0 < e - x0 < W], "grid": n}
 
 
 # ------------------------------------------------------------------------------------------------ rendering
@@ -586,26 +596,37 @@ def ground_reflectance(scene, lon, lat, *, edge_m: float, reference=None):
     return out
 
 
+def band_color(name: str) -> int:
+    """GDAL colour interpretation of an MS band name (blue, green, red -> Blue, Green, Red; NIR -> Undefined,
+    never Alpha)."""
+    from osgeo import gdal
+    return {"blue": gdal.GCI_BlueBand, "green": gdal.GCI_GreenBand, "red": gdal.GCI_RedBand}.get(
+        name, gdal.GCI_Undefined)
+
+
 def _to_byte(r):
     return np.clip(np.round(20.0 + 220.0 * r), 1, 255).astype(np.uint8)
 
 
 @with_gdal_exceptions
 def render_gf7_image(scene, name: str, path, *, reference=None, mask_path=None, tile: int = 512,
-                     workers: int = 2, progress=None) -> str:
+                     workers: int = 2, window=None, progress=None) -> str:
     """Render the ``pan`` (1 band) or ``ms`` (4 bands: blue, green, red, NIR) image of a GF7 scene through its
     TRUE model into a tiled Byte GeoTIFF (METHODS §9, §10), from the built-in texture or ``reference`` (any GDAL
     raster, any CRS). Each sub-CCD is localised with its own smooth camera (the jumps stay sharp, no smoothing
     across an edge), so matching pan to MS through the RPCs sees exactly :func:`true_misregistration`.
-    ``mask_path`` receives the cover class of every pixel (0 clear, 1 cloud, 2 water). Tiled, ``workers``
-    threads, memory of a few tiles; atomic."""
+    ``mask_path`` receives the cover class of every pixel (0 clear, 1 cloud, 2 water). ``window = (x0, y0, w,
+    h)`` (image pixels): render only that crop (nothing outside it is computed), written with its origin as a
+    pixel-unit geotransform (:func:`.scene.set_crop_origin`). Tiled, ``workers`` threads, memory of a few tiles;
+    atomic."""
     from osgeo import gdal
     from ..atomic import atomic_output
     from ..progress import report
     from .render import _bounded_map, _DemGrid, _Reference, ground_of_pixels, model_bounds
+    from .scene import set_crop_origin
     im = scene.image(name)
     model = im.true
-    W, H = model.size
+    wx, wy, W, H = window if window is not None else (0, 0) + tuple(model.size)
     demgrid = _DemGrid(scene.dem, model_bounds(model))
     ref = _Reference(reference, im.gsd_m) if reference is not None else None
     pieces = [(int(round(a)), int(round(b)), model.with_camera(model.camera.piece_camera(k)))
@@ -615,9 +636,9 @@ def render_gf7_image(scene, name: str, path, *, reference=None, mask_path=None, 
     def do_tile(x0, y0, w, h):
         lon, lat = np.empty((h, w)), np.empty((h, w))
         for a, b, m in pieces:
-            lo, hi = max(a, x0), min(b, x0 + w)
+            lo, hi = max(a - wx, x0), min(b - wx, x0 + w)
             if hi > lo:
-                lo_, la_, _ = ground_of_pixels(m, demgrid, lo, y0, hi - lo, h)
+                lo_, la_, _ = ground_of_pixels(m, demgrid, wx + lo, wy + y0, hi - lo, h)
                 lon[:, lo - x0:hi - x0], lat[:, lo - x0:hi - x0] = lo_, la_
         r = ground_reflectance(scene, lon, lat, edge_m=im.gsd_m, reference=ref)
         arr = _to_byte(r) if nb > 1 else _to_byte(r.mean(axis=0))[None]
@@ -626,7 +647,7 @@ def render_gf7_image(scene, name: str, path, *, reference=None, mask_path=None, 
 
     opts = ["TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"]
     if nb > 1:
-        opts.append("INTERLEAVE=BAND")
+        opts += ["PHOTOMETRIC=MINISBLACK", "ALPHA=NO", "INTERLEAVE=BAND"]
     tiles = [(x, y, min(tile, W - x), min(tile, H - y)) for y in range(0, H, tile) for x in range(0, W, tile)]
     path = os.fspath(path)
     with atomic_output(path) as tmp, _maybe_atomic(mask_path) as tmpm:
@@ -634,10 +655,14 @@ def render_gf7_image(scene, name: str, path, *, reference=None, mask_path=None, 
         for k in range(nb):
             ds.GetRasterBand(k + 1).SetNoDataValue(0)
             ds.GetRasterBand(k + 1).SetDescription(MS_BANDS[k] if nb > 1 else "pan")
+            if nb > 1:
+                ds.GetRasterBand(k + 1).SetColorInterpretation(band_color(MS_BANDS[k]))
         mds = None
         if tmpm is not None:
-            mds = gdal.GetDriverByName("GTiff").Create(tmpm, W, H, 1, gdal.GDT_Byte, opts[:-1] if nb > 1 else opts)
+            mds = gdal.GetDriverByName("GTiff").Create(tmpm, W, H, 1, gdal.GDT_Byte, opts[:5])
             mds.SetMetadataItem("GF4CAL_COVER", "0 clear, 1 cloud, 2 water")
+            set_crop_origin(mds, window)
+        set_crop_origin(ds, window)
         with closing(_bounded_map(do_tile, tiles, workers)) as results:
             for done, (x0, y0, arr, mask) in enumerate(results, start=1):
                 for k in range(nb):
@@ -662,54 +687,136 @@ def _maybe_atomic(path):
         yield tmp
 
 
+# --------------------------------------------------------------------------------------------------- crops
+@dataclass(frozen=True)
+class GF7Crop:
+    """A crop of the full GF7 product that keeps its place: pan pixels ``[x0, x0 + width) x [y0, y0 + height)``
+    of the full pan array, and the same ground in the MS, ``window("ms") = (x0, y0, width, height) / 4`` (one
+    focal plane: MS detector = 4 pan detectors, MS line = 4 pan lines). All four multiples of :data:`RATIO`."""
+
+    x0: int
+    y0: int
+    width: int
+    height: int
+
+    def window(self, name: str) -> tuple:
+        """``(x0, y0, w, h)`` of the crop in image ``name``'s (``pan`` or ``ms``) product pixels."""
+        r = 1 if name == "pan" else RATIO
+        return (self.x0 // r, self.y0 // r, self.width // r, self.height // r)
+
+    def windows(self) -> dict:
+        return {"pan": self.window("pan"), "ms": self.window("ms")}
+
+
+def gf7_crop(crop) -> GF7Crop:
+    """A :class:`GF7Crop` from ``(x0, y0, width, height)`` in pan pixels of the full product (``--crop``), checked:
+    multiples of 4, at least 64 x 64, inside the 30720 x 30720 pan array."""
+    from .building import SimulationError
+    if isinstance(crop, GF7Crop):
+        return crop
+    vals = [int(v) for v in crop]
+    if len(vals) != 4:
+        raise SimulationError(f"--crop needs X0 Y0 W H (4 numbers, pan pixels of the full product), got {crop}")
+    x0, y0, w, h = vals
+    if any(v % RATIO for v in vals):
+        raise SimulationError(f"--crop {x0} {y0} {w} {h}: give multiples of {RATIO} (one MS pixel = {RATIO} pan "
+                              "pixels), so that the MS crop covers the same ground")
+    if w < 16 * RATIO or h < 16 * RATIO:
+        raise SimulationError(f"--crop {x0} {y0} {w} {h} is too small; use at least {16 * RATIO} x {16 * RATIO} pan "
+                              "pixels (16 x 16 MS pixels)")
+    if x0 < 0 or y0 < 0 or x0 + w > PAN_FULL[0] or y0 + h > PAN_FULL[1]:
+        raise SimulationError(f"--crop {x0} {y0} {w} {h} leaves the {PAN_FULL[0]} x {PAN_FULL[1]} pan product; "
+                              "choose a crop inside it")
+    return GF7Crop(x0, y0, w, h)
+
+
+def _full_scene(scene):
+    from .building import SimulationError
+    if tuple(scene.image("ms").size) != MS_FULL:
+        raise SimulationError("crop truth needs the full-product scene (make_gf7_scene without size)")
+    return scene
+
+
+def crop_misregistration(scene, crop, sample, line):
+    """The TRUE pan-MS field (:func:`true_misregistration`, MS pixels) at points ``(sample, line)`` of a crop's
+    MS grid (crop MS pixels, GDAL convention), ``scene`` the full product (``make_gf7_scene`` without size)."""
+    x0, y0, _, _ = gf7_crop(crop).window("ms")
+    _full_scene(scene)
+    return true_misregistration(scene, np.asarray(sample, dtype=float) + x0, np.asarray(line, dtype=float) + y0)
+
+
+def crop_sub_ccd_edges(scene, crop) -> list:
+    """The TRUE MS sub-CCD edges strictly inside a crop, in the crop's MS pixels (columns)."""
+    x0, _, w, _ = gf7_crop(crop).window("ms")
+    return [e - x0 for e in _full_scene(scene).image("ms").true.camera.edges_in_image() if 0 < e - x0 < w]
+
+
+def _write_gf7_images(scene, results, *, render, reference, windows, workers, tile, progress, written) -> dict:
+    """:attr:`SensorSpec.write_images` of gf7: ``pan/scene.tif`` (1 band) and ``ms/scene.tif`` (4 bands) rendered
+    by :func:`render_gf7_image` (or placeholders), ``ms/cover_mask.tif``, ``ms/misregistration_truth.tif``
+    (:func:`write_misregistration_truth`); each on the crop's ``windows`` when given. Returns the ``"gf7"``
+    record of truth.json."""
+    from ..progress import report, scaled
+    from .scene import write_placeholder_tif
+    files = {}
+    for name, (f0, f1) in (("pan", (0.0, 0.6)), ("ms", (0.6, 0.8))):
+        paths = results[name].paths
+        win = windows[name] if windows else None
+        mask = os.path.join(results[name].dir, "cover_mask.tif") if name == "ms" and render else None
+        if render:
+            render_gf7_image(scene, name, paths["image"], reference=reference, mask_path=mask, tile=tile,
+                             workers=workers, window=win, progress=scaled(progress, f0, f1))
+        else:
+            size = win[2:] if win else scene.image(name).size
+            write_placeholder_tif(paths["image"], size, bands=len(MS_BANDS) if name == "ms" else 1,
+                                  origin=win[:2] if win else None)
+        written.append(paths["image"])
+        files[f"{name}_image"] = f"{name}/scene.tif"
+        if mask:
+            written.append(mask)
+            paths["cover_mask"] = mask
+            files["ms_cover_mask"] = "ms/cover_mask.tif"
+    report(progress, 0.8, "true misregistration field")
+    truth_tif = os.path.join(results["ms"].dir, "misregistration_truth.tif")
+    write_misregistration_truth(scene, truth_tif, step=8.0, tile=tile, window=windows["ms"] if windows else None)
+    written.append(truth_tif)
+    results["ms"].paths["misregistration_truth"] = truth_tif
+    files["misregistration_truth"] = "ms/misregistration_truth.tif"
+    opt = scene.image("ms").errors["options"]
+    return {"options": opt, "misregistration_before": misregistration_stats(
+        scene, window=windows["ms"] if windows else None), "files": files, "rendered": bool(render),
+        "bands": list(MS_BANDS),
+        "definition": "delta = MS image point - (pan true point -> pan RPC/current on the DEM -> MS RPC/current), "
+                      "MS pixels (METHODS §9)"}
+
+
 def write_gf7_scene(out_dir, *, seed: int = 0, camera_seed: int = 4, look_time_s: float = 0.117,
                     jitter: bool = True, yaw_steering: bool = True, clouds: float = 0.0, water: float = 0.0,
-                    center=None, size=None, crop_center_ms_px: Optional[float] = None, dem=None,
-                    render: bool = True, reference=None, n_gcps: int = 50, truth_step: float = 8.0,
-                    workers: int = 2, tile: int = 512, progress=None):
-    """Write a GF7 pan + MS scene (METHODS §9, §10): everything :func:`~gdal_gf4cal.simulate.write_scene` writes
-    (``pan/`` and ``ms/`` with ``scene.RPB`` fitted from the current models, GCPs, cameras, ``dem.tif``,
-    ``truth.json``) and, with ``render``, ``pan/scene.tif`` (1 band) and ``ms/scene.tif`` (4 bands) rendered by
-    :func:`render_gf7_image`, ``ms/cover_mask.tif`` (0 clear, 1 cloud, 2 water); always
-    ``ms/misregistration_truth.tif`` (:func:`write_misregistration_truth`). ``truth.json`` gets a ``"gf7"``
-    entry: the options, :func:`misregistration_stats` and the file names. Options as :func:`make_gf7_scene`.
-    Returns the :class:`~gdal_gf4cal.simulate.SceneResult`."""
-    from ..progress import report, scaled
-    from .cameras import write_json_atomic
+                    center=None, size=None, crop=None, crop_center_ms_px: Optional[float] = None, dem=None,
+                    render: bool = True, reference=None, n_gcps: int = 50, workers: int = 2, tile: int = 512,
+                    progress=None):
+    """Write a GF7 pan + MS scene (METHODS §9, §10): :func:`~gdal_gf4cal.simulate.write_scene` ``("gf7", ...)``
+    (the same path as ``gf4cal simulate --sensor gf7``): ``pan/`` and ``ms/`` with the RPCs fitted from the
+    current models, GCPs, cameras, ``dem.tif``, ``truth.json``; with ``render``, ``pan/scene.tif`` (1 band) and
+    ``ms/scene.tif`` (4 bands: blue, green, red, NIR) rendered by :func:`render_gf7_image`,
+    ``ms/cover_mask.tif`` (0 clear, 1 cloud, 2 water); always ``ms/misregistration_truth.tif``
+    (:func:`write_misregistration_truth`). ``truth.json`` gets a ``"gf7"`` entry: the options,
+    :func:`misregistration_stats` and the file names.
+
+    ``crop = (x0, y0, w, h)`` in pan pixels of the full product (:func:`gf7_crop`): the full product is simulated
+    and only the crop written, keeping its place (see :func:`~gdal_gf4cal.simulate.write_scene`); the truth of
+    the crop from :func:`crop_misregistration` / :func:`crop_sub_ccd_edges`. Other options as
+    :func:`make_gf7_scene`. Returns the :class:`~gdal_gf4cal.simulate.SceneResult`."""
     from .scene import write_scene
-    out_dir = os.fspath(out_dir)
-    with gf7_options(look_time_s=look_time_s, jitter=jitter, camera_seed=camera_seed, yaw_steering=yaw_steering,
-                     clouds=clouds, water=water, crop_center_ms_px=crop_center_ms_px) as opt:
-        res = write_scene("gf7", out_dir, seed=seed, center=center, size=size, n_gcps=n_gcps, dem=dem,
-                          render=False, progress=scaled(progress, 0.0, 0.3), workers=workers, tile=tile)
-    scene = res.scene
-    files = {}
-    if render:
-        for name, (f0, f1) in (("pan", (0.3, 0.75)), ("ms", (0.75, 0.9))):
-            d = os.path.join(out_dir, name)
-            mask = os.path.join(d, "cover_mask.tif") if name == "ms" else None
-            render_gf7_image(scene, name, os.path.join(d, "scene.tif"), reference=reference, mask_path=mask,
-                             tile=tile, workers=workers, progress=scaled(progress, f0, f1))
-            files[f"{name}_image"] = f"{name}/scene.tif"
-            if mask:
-                files["ms_cover_mask"] = "ms/cover_mask.tif"
-                res.images["ms"].paths["cover_mask"] = mask
-    report(progress, 0.9, "true misregistration field")
-    truth_tif = os.path.join(out_dir, "ms", "misregistration_truth.tif")
-    write_misregistration_truth(scene, truth_tif, step=truth_step, tile=tile)
-    res.images["ms"].paths["misregistration_truth"] = truth_tif
-    files["misregistration_truth"] = "ms/misregistration_truth.tif"
-    with open(res.truth_path) as fh:
-        truth = json.load(fh)
-    truth["gf7"] = {"options": asdict(opt), "misregistration_before": misregistration_stats(scene),
-                    "files": files, "rendered": bool(render),
-                    "definition": "delta = MS image point - (pan true point -> pan RPC/current on the DEM -> MS "
-                                  "RPC/current), MS pixels (METHODS §9)"}
-    write_json_atomic(res.truth_path, truth)
-    report(progress, 1.0, "gf7 scene written")
-    return res
+    options = dict(look_time_s=look_time_s, jitter=jitter, camera_seed=camera_seed, yaw_steering=yaw_steering,
+                   clouds=clouds, water=water, crop_center_ms_px=crop_center_ms_px)
+    return write_scene("gf7", os.fspath(out_dir), seed=seed, center=center, size=size, crop=crop, n_gcps=n_gcps,
+                       dem=dem, render=render, reference=reference, workers=workers, tile=tile, options=options,
+                       progress=progress)
 
 
 SENSORS["gf7"] = SensorSpec(
     "gf7", "Gaofen-7 backward camera, pan 0.65 m + MS 2.6 m (4 bands) 0.117 s apart, three quartic sub-CCDs, "
-    "differential jitter", (113.3, 23.1), (0.0, 1200.0), build_gf7, ("pan", "ms"))
+    "differential jitter", (113.3, 23.1), (0.0, 1200.0), build_gf7, ("pan", "ms"),
+    options=tuple(f.name for f in fields(GF7Options)), write_images=_write_gf7_images,
+    crop_windows=lambda crop: gf7_crop(crop).windows())

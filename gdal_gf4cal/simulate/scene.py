@@ -47,6 +47,8 @@ class SceneResult:
     truth_path: str
     dem_path: str
     elapsed_s: float = 0.0
+    #: ``write_scene(crop=...)``: ``{image name: (x0, y0, w, h)}``, each image's window of its product (else None)
+    crop: Optional[Dict] = None
 
 
 def _draw_ground_points(image: SimImage, dem, n: int, rng):
@@ -133,17 +135,29 @@ def check_grid(image: SimImage, dem, n: int = 41):
     return df[np.isfinite(df.to_numpy()).all(axis=1)].reset_index(drop=True)
 
 
+def set_crop_origin(ds, window) -> None:
+    """Give a GDAL dataset the crop convention of CNES products (``gdal_gf4cal.crop``): its origin in the product
+    ``window[:2] = (col0, row0)`` as a pixel-unit geotransform ``(col0, 1, 0, row0, 0, 1)`` without CRS (crop pixel
+    (x, y) is product pixel (col0 + x, row0 + y)). ``window`` None: nothing (a full product)."""
+    if window is not None:
+        ds.SetGeoTransform((float(window[0]), 1.0, 0.0, float(window[1]), 0.0, 1.0))
+
+
 @with_gdal_exceptions
-def write_placeholder_tif(path: str, size, dtype: str = "Byte") -> str:
-    """A sparse tiled GeoTIFF of the image size: unwritten blocks cost nothing (10240^2 in a few kB)."""
+def write_placeholder_tif(path: str, size, dtype: str = "Byte", *, bands: int = 1, origin=None) -> str:
+    """A sparse tiled GeoTIFF of the image size: unwritten blocks cost nothing (10240^2 in a few kB);
+    ``origin = (col0, row0)``: a crop of a product (:func:`set_crop_origin`)."""
     from osgeo import gdal
     with atomic_output(path) as tmp:
-        ds = gdal.GetDriverByName("GTiff").Create(tmp, int(size[0]), int(size[1]), 1,
+        ds = gdal.GetDriverByName("GTiff").Create(tmp, int(size[0]), int(size[1]), int(bands),
                                                   gdal.GetDataTypeByName(dtype),
                                                   ["TILED=YES", "BLOCKXSIZE=512", "BLOCKYSIZE=512", "SPARSE_OK=TRUE",
-                                                   "COMPRESS=DEFLATE"])
-        ds.GetRasterBand(1).SetNoDataValue(0)
+                                                   "COMPRESS=DEFLATE"] + (["PHOTOMETRIC=MINISBLACK", "ALPHA=NO"]
+                                                                          if bands > 1 else []))
+        for k in range(int(bands)):
+            ds.GetRasterBand(k + 1).SetNoDataValue(0)
         ds.SetMetadataItem("GF4CAL_PLACEHOLDER", "YES: pixels not rendered (gf4cal simulate --render renders them)")
+        set_crop_origin(ds, origin)
         ds = None
     return path
 
@@ -159,7 +173,7 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
                 reference=None, progress=None, *, check_fraction: float = 0.3, paint_clouds: float = 0.0,
                 workers: int = 2, tile: int = 512, check_grid_n: int = 41,
                 reference_ortho: bool = True, options: Optional[Dict] = None,
-                observation_options: Optional[Dict] = None) -> SceneResult:
+                observation_options: Optional[Dict] = None, crop=None) -> SceneResult:
     """Simulate a scene and write every file (METHODS §10). See DESIGN.md "Simulator API" for the layout.
 
     Parameters
@@ -170,7 +184,14 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
     n_gcps, gcp_noise_px, outlier_fraction, check_fraction : see :func:`simulate_gcps`.
     render : render ``scene.tif`` through the TRUE model (from ``reference``, any GDAL raster in any CRS, or the
         built-in seeded texture); otherwise a sparse placeholder of the right size.
-    paint_clouds : fraction (0..1) of the image covered by bright clouds when rendering (``cloud_mask.tif`` too).
+    paint_clouds : fraction (0..1) of the image covered by bright clouds when rendering (``cloud_mask.tif`` too);
+        for sensors with a ``clouds`` option (gf7: clouds on the ground, seen alike by pan and MS) that option.
+    crop : ``(x0, y0, w, h)`` in pixels of the first image's full product (gf7: pan pixels; sensors with
+        :attr:`SensorSpec.crop_windows`): the full product is simulated, only the crop's window of each image is
+        written (rendered alone), keeping its place: the image carries its origin in the product as a pixel-unit
+        geotransform without CRS (:func:`set_crop_origin`, the convention of CNES crops), and the RPC written,
+        ``product.RPB`` (not a sidecar GDAL attaches to the crop), is the product's, as are the GCPs and the check
+        grid (product pixels). Exclusive with ``size``.
     reference_ortho : when rendering from the built-in texture, also write ``reference.tif`` next to each
         ``scene.tif``: the same texture as an EPSG:4326 orthophoto (:func:`.render.write_reference_ortho`, pixel =
         the image's nominal GSD, covering its footprint plus a margin), i.e. what ``gf4cal collect-gcps
@@ -186,6 +207,13 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
     from ..rpc_fit import fit_rpc_from_model
     t0 = time.perf_counter()
     out_dir = os.fspath(out_dir)
+    spec = SENSORS.get(sensor_name)
+    windows = _crop_windows(spec, sensor_name, crop, size)
+    if spec is not None and paint_clouds > 0 and "clouds" in spec.options:
+        options = dict(options or {}, clouds=paint_clouds)
+        paint_clouds = 0.0
+        if not render:
+            raise SimulationError("--clouds only makes sense with --render")
     if reference is not None and not render:
         raise SimulationError("--reference only makes sense with --render")
     if not (0.0 <= paint_clouds < 1.0):
@@ -211,22 +239,26 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
                              check_fraction=check_fraction)
         results = {}
         n_im = len(scene.images)
+        write_images = SENSORS[scene.sensor].write_images
         truth = dict(scene.truth)
         truth["gcps"] = {"n_gcps": n_gcps, "gcp_noise_px": gcp_noise_px, "outlier_fraction": outlier_fraction,
                          "check_fraction": check_fraction, "outlier_range_px": [5.0, 30.0],
                          "measured": "truth (true model) + N(0, gcp_noise_px) per axis + outlier offset"}
         truth["files"] = {}
         for k, im in enumerate(scene.images):
-            p = scaled(progress, 0.1 + 0.9 * k / n_im, 0.1 + 0.9 * (k + 1) / n_im)
+            span = 0.2 if write_images is not None else 0.9         # the sensor's images: 0.3 .. 0.98
+            p = scaled(progress, 0.1 + span * k / n_im, 0.1 + span * (k + 1) / n_im)
             d = os.path.join(out_dir, im.name) if im.name else out_dir
             os.makedirs(d, exist_ok=True)
             report(p, 0.0, f"{im.name or sensor_name}: fitting the RPC")
             rpc, rep = fit_rpc_from_model(im.current)
             paths = {k_: os.path.join(d, f) for k_, f in (
-                ("image", "scene.tif"), ("rpc", "scene.RPB"), ("gcps_csv", "gcps.csv"), ("gcps_gpkg", "gcps.gpkg"),
-                ("check_grid", "check_grid.csv"), ("camera_current", "camera_current.json"),
-                ("camera_true", "camera_true.json"))}
-            if render:
+                ("image", "scene.tif"), ("rpc", "product.RPB" if windows else "scene.RPB"), ("gcps_csv", "gcps.csv"),
+                ("gcps_gpkg", "gcps.gpkg"), ("check_grid", "check_grid.csv"),
+                ("camera_current", "camera_current.json"), ("camera_true", "camera_true.json"))}
+            if write_images is not None:
+                pass                                   # the sensor writes its images below
+            elif render:
                 from .render import render_image
                 cloud_path = os.path.join(d, "cloud_mask.tif") if paint_clouds > 0 else None
                 render_image(im.true, scene.dem, paths["image"], reference=reference, seed=seed, gsd_m=im.gsd_m,
@@ -248,7 +280,8 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
                                           im.gsd_m / 111320.0, seed=seed, scale_m=3.0 * im.gsd_m, workers=workers)
             else:
                 write_placeholder_tif(paths["image"], im.size)
-            written.append(paths["image"])
+            if write_images is None:
+                written.append(paths["image"])
             rpc.write_rpb(paths["rpc"], overwrite=True)
             written.append(paths["rpc"])
             report(p, 0.92, f"{im.name or sensor_name}: GCPs and check grid")
@@ -272,6 +305,15 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
             truth["images"][key]["n_gcps"] = int(len(g))
             truth["files"][key] = {k_: os.path.relpath(v, out_dir) for k_, v in paths.items()}
         truth["files"]["dem"] = "dem.tif"
+        if write_images is not None:
+            truth[scene.sensor] = write_images(scene, results, render=render, reference=reference, windows=windows,
+                                               workers=workers, tile=tile, progress=scaled(progress, 0.3, 0.98),
+                                               written=written)
+        if windows:
+            truth["crop"] = {"windows": {k: list(v) for k, v in windows.items()},
+                             "convention": "image pixel (x, y) = product pixel (x0 + x, y0 + y); the images carry "
+                                           "(x0, y0) as a pixel-unit geotransform without CRS; product.RPB, the "
+                                           "GCPs and the check grid are in product pixels"}
         write_observations = SENSORS[scene.sensor].write_observations
         if write_observations is not None:
             truth["observations"] = write_observations(scene, out_dir, gcps, observation_options, written)
@@ -283,7 +325,7 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
         truth_path = os.path.join(out_dir, "truth.json")
         write_json_atomic(truth_path, truth)
         report(progress, 1.0, "scene written")
-        return SceneResult(scene, out_dir, results, truth_path, dem_path, time.perf_counter() - t0)
+        return SceneResult(scene, out_dir, results, truth_path, dem_path, time.perf_counter() - t0, windows)
     except (CancelledError, Gf4calError, OSError, ValueError, KeyboardInterrupt):
         for path in written:
             if os.path.exists(path):
@@ -292,8 +334,23 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
 
 
 #: Files write_scene may write per image folder (see DESIGN.md "Simulator API").
-_IMAGE_FILES = ("scene.tif", "scene.RPB", "gcps.csv", "gcps.gpkg", "check_grid.csv", "camera_current.json",
-                "camera_true.json", "reference.tif", "cloud_mask.tif")
+_IMAGE_FILES = ("scene.tif", "scene.RPB", "product.RPB", "gcps.csv", "gcps.gpkg", "check_grid.csv",
+                "camera_current.json", "camera_true.json", "reference.tif", "cloud_mask.tif", "cover_mask.tif",
+                "misregistration_truth.tif")
+
+
+def _crop_windows(spec, sensor_name: str, crop, size):
+    """``{image name: window}`` of ``write_scene(crop=...)`` (None without a crop); refuses what cannot be."""
+    if crop is None:
+        return None
+    if size is not None:
+        raise SimulationError("give --size (a crop around the centre) or --crop (a crop at its place in the "
+                              "product), not both")
+    if spec is None or spec.crop_windows is None:
+        with_crop = sorted(k for k, v in SENSORS.items() if v.crop_windows is not None)
+        raise SimulationError(f"--crop is not available for {sensor_name}; it is for {', '.join(with_crop)} "
+                              "(use --size for a crop around the centre)")
+    return spec.crop_windows(crop)
 
 
 def _refuse_inputs_among_outputs(sensor_name: str, out_dir: str, inputs) -> None:

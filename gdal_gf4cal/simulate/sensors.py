@@ -276,7 +276,7 @@ def make_scene(sensor: str, *, seed: int = 0, center=None, size=None, dem=None, 
         raise SimulationError(f"unknown sensor {sensor!r}; choose one of {', '.join(SENSORS)}")
     spec = SENSORS[sensor]
     center = tuple(float(v) for v in (center if center is not None else spec.default_center))
-    if len(center) != 2 or not (-180 <= center[0] <= 360 and -85 <= center[1] <= 85):
+    if len(center) != 2 or not (-180 <= center[0] <= 360 and -90 <= center[1] <= 90):
         raise SimulationError(f"centre {center} is not a valid (lon, lat) in degrees")
     if size is not None:
         size = (int(size[0]), int(size[1]))

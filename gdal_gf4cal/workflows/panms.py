@@ -1,7 +1,11 @@
 """``gf4cal register-pan-ms`` / QGIS "Register MS to pan": the file job of METHODS §9 (seed 004, Gaofen-7).
 
-Dense pan-MS cells (``matching.pan_ms_cells``) -> :func:`gdal_gf4cal.panms.estimate` -> every output under one
-:class:`~gdal_gf4cal.outputs.OutputSet` (all or nothing).
+Each image's RPC (:func:`find_rpc`: own, given, or a ``.geom`` beside it; crops shifted by ``crop.image_rpc``) ->
+:func:`pair_geometry` (ratio, overlap, line-of-sight angle from the RPCs) -> dense window matches of every MS band
+against the pan (``matching.match_raw``) -> sub-CCD edges (options, or ``panms.detect_breaks``) -> cells of a size
+from the data (:func:`choose_cell`) -> :func:`gdal_gf4cal.panms.estimate` on the reference band, every other band
+compared with it (:func:`_every_band`) -> every output under one :class:`~gdal_gf4cal.outputs.OutputSet` (all or
+nothing).
 """
 from __future__ import annotations
 
@@ -12,6 +16,7 @@ from typing import Any, Dict, Optional
 import numpy as np
 
 from ..crop import image_rpc
+from ..geodesy import metres_per_degree
 from ..outputs import OutputSet, check_raster, check_vector
 from ._common import cancel_check, collect_warnings, finish_report
 
@@ -28,23 +33,6 @@ def _size(path):
     from .._gdal import open_raster
     ds = open_raster(os.fspath(path), what="image")
     return (ds.RasterXSize, ds.RasterYSize), ds.RasterCount
-
-
-def check_overlap(pan_rpc, ms_rpc, pan_size, ms_size, dem, n: int = 7) -> float:
-    """Share of an ``n x n`` MS grid that the pan sees (MS RPC on the DEM -> pan RPC); refuses < 25 %."""
-    from ..panms import PanMSError
-    W, H = ms_size
-    s, l = np.meshgrid((np.arange(n) + 0.5) * W / n, (np.arange(n) + 0.5) * H / n)
-    with np.errstate(all="ignore"):
-        lon, lat, h = ms_rpc.localize_dem(s.ravel(), l.ravel(), dem)
-        ps, pl = pan_rpc.project(lon, lat, h)
-    ps, pl = np.asarray(ps), np.asarray(pl)
-    inside = np.isfinite(ps) & np.isfinite(pl) & (ps >= 0) & (ps <= pan_size[0]) & (pl >= 0) & (pl <= pan_size[1])
-    share = float(np.mean(inside))
-    if share < 0.25:
-        raise PanMSError(f"the pan and MS images hardly overlap ({100 * share:.0f} % of the MS seen by the pan "
-                         "through their RPCs): give the pan and MS images of the same scene")
-    return share
 
 
 def _parse_breaks(breaks) -> Optional[list]:
@@ -68,47 +56,308 @@ def _parse_breaks(breaks) -> Optional[list]:
     return out
 
 
-def _resolve_breaks(spec, *, n_sub_ccds, pan_rpc, ms_rpc, dem, pan_size, ms_size) -> list:
-    """MS columns of the sub-CCD edges from a parsed ``--breaks`` (numbers, ``ms``, ``pan``)."""
+#: Matching windows (MS px) and the cell sizes tried when ``cell`` is not given, largest first.
+WINDOW_PX = 32
+AUTO_CELLS = (64, 48, 32, 24, 16, 12, 8, 6, 4)
+#: A cell size is enough when every sub-CCD piece has usable cells in this many columns (a quartic and its check)
+#: and the image in this many rows.
+MIN_CELL_COLUMNS = 8
+MIN_CELL_ROWS = 6
+#: Windows matched per band at most (the spacing grows with the MS size up to 16 px).
+TARGET_WINDOWS = 20000
+#: A band whose matches correlate with the pan below this (median NCC) does not resemble the pan: what remains of
+#: it is spectral, not geometric.
+SPECTRAL_NCC = 0.75
+#: Band-to-band: a band's own linear correction is applied when it differs from the reference band's with this
+#: false-alarm probability and by more than this many MS px somewhere in the image.
+BAND_FAP = 1e-3
+BAND_MIN_PX = 0.02
+#: Share of the clear, textured windows that must match for the pan and MS to show the same ground.
+MIN_MATCH_SHARE = 0.1
+#: Same acquisition: the pan's and the MS's lines of sight are within this angle (GF7 0.094 deg, Pleiades less).
+MAX_RAY_ANGLE_DEG = 2.0
+
+
+def find_rpc(image, rpc=None):
+    """The RPC of ``image``'s own pixels and a note: ``rpc`` when given, else the image's own RPC, else an OSSIM
+    ``.geom`` / ``.RPB`` / ``_RPC.TXT`` / ``.XML`` named like the image beside it (Shareloc's crops); a crop that
+    states its origin in the product gets the product's RPC shifted (:func:`gdal_gf4cal.crop.image_rpc`)."""
+    from ..errors import Gf4calError
+    if rpc is None:
+        try:
+            return image_rpc(image, None)
+        except Gf4calError:
+            stem = os.path.splitext(os.fspath(image))[0]
+            side = [stem + e for e in (".geom", ".GEOM", ".RPB", "_RPC.TXT", ".XML", ".xml") if os.path.exists(stem + e)]
+            if not side:
+                raise
+            rpc = side[0]
+    model, note = image_rpc(image, rpc)
+    if note is None and rpc is not None and not hasattr(rpc, "project"):
+        note = f"{os.path.basename(os.fspath(image))}: RPC from {os.path.basename(os.fspath(rpc))}"
+    return model, note
+
+
+def pair_geometry(pan_rpc, ms_rpc, pan_size, ms_size, dem, n: int = 9) -> Dict[str, float]:
+    """How the pan and MS relate through their RPCs and the DEM: ``overlap`` (share of an ``n x n`` MS grid the
+    pan sees), ``scale`` (pan px per MS px, the square root of the MS-to-pan Jacobian's determinant, median over
+    the overlap) and ``ray_angle_deg`` (angle between the pan's and the MS's lines of sight: moving 500 m down the
+    pan's ray moves the MS point by the parallax; < 0.5 deg for one acquisition). Refuses images that hardly
+    overlap or see the ground from other directions (other acquisitions)."""
+    from ..panms import PanMSError
+    W, H = ms_size
+    s, l = np.meshgrid((np.arange(n) + 0.5) * W / n, (np.arange(n) + 0.5) * H / n)
+    s, l = s.ravel(), l.ravel()
+    with np.errstate(all="ignore"):
+        lon, lat, h = ms_rpc.localize_dem(s, l, dem)
+        ps, pl = (np.asarray(v, float) for v in pan_rpc.project(lon, lat, h))
+        inside = np.isfinite(ps) & np.isfinite(pl) & (ps >= 0) & (ps <= pan_size[0]) & (pl >= 0) & (pl <= pan_size[1])
+        share = float(np.mean(inside))
+        if share == 0.0 or not inside.any():
+            ok = np.isfinite(ps) & np.isfinite(pl)
+        else:
+            ok = inside
+        if not ok.any():
+            raise PanMSError("the pan and MS images do not overlap through their RPCs and the DEM: give the pan and "
+                             "MS images of the same scene")
+        d = 0.5
+        lo1, la1, h1 = ms_rpc.localize_dem(s[ok] + d, l[ok], dem)
+        lo2, la2, h2 = ms_rpc.localize_dem(s[ok], l[ok] + d, dem)
+        s1, l1 = pan_rpc.project(lo1, la1, h1)
+        s2, l2 = pan_rpc.project(lo2, la2, h2)
+        det = np.abs((np.asarray(s1) - ps[ok]) * (np.asarray(l2) - pl[ok])
+                     - (np.asarray(s2) - ps[ok]) * (np.asarray(l1) - pl[ok])) / (d * d)
+        scale = float(np.sqrt(np.nanmedian(det)))
+        # parallax: two points on the pan's ray, 500 m apart in height, seen by the MS
+        k = int(np.flatnonzero(ok)[np.argmin(np.abs(np.flatnonzero(ok) - s.size // 2))])
+        dh = 500.0
+        hs = np.array([h[k], h[k] + dh])
+        glon, glat = pan_rpc.localize(np.full(2, ps[k]), np.full(2, pl[k]), hs)
+        ms_s, ms_l = ms_rpc.project(glon, glat, hs)
+        par_px = float(np.hypot(np.diff(ms_s), np.diff(ms_l))[0])
+        # MS pixel size on the ground (m)
+        glon2, glat2 = ms_rpc.localize(np.array([s[k], s[k] + 1.0]), np.array([l[k], l[k]]), np.full(2, h[k]))
+        mx, my = metres_per_degree(glat2[0])
+        gsd = float(np.hypot((glon2[1] - glon2[0]) * mx, (glat2[1] - glat2[0]) * my))
+    angle = float(np.degrees(np.arctan2(par_px * gsd, dh)))
+    if not np.isfinite(scale) or scale <= 0:
+        raise PanMSError("cannot relate the pan's and the MS's pixels through their RPCs and the DEM: check the RPCs")
+    if share < 0.25:
+        raise PanMSError(f"the pan and MS images hardly overlap ({100 * share:.0f} % of the MS seen by the pan "
+                         "through their RPCs): give the pan and MS images of the same scene")
+    if scale < 1.0 / 1.5:
+        raise PanMSError(f"the first image has pixels {1 / scale:.2f} times coarser than the second's (through their "
+                         "RPCs): the inputs are swapped; give the pan (the finer image) first, then the MS")
+    if scale < 1.5:
+        raise PanMSError(f"the two images have the same pixel size through their RPCs (ratio {scale:.2f}): give a "
+                         "pan and the MS image of the same acquisition, the pan first")
+    if np.isfinite(angle) and angle > MAX_RAY_ANGLE_DEG:
+        raise PanMSError(f"the pan and MS see the ground from directions {angle:.1f} deg apart (one acquisition: "
+                         f"< {MAX_RAY_ANGLE_DEG:g} deg): they are images of different acquisitions; give the MS taken "
+                         "with this pan")
+    return {"overlap": share, "scale": scale, "ray_angle_deg": angle, "ms_gsd_m": gsd}
+
+
+def _product_breaks(spec, n_sub_ccds, ms_rpc, ms_size, origin, pan_rpc, dem, pan_size):
+    """``--breaks`` / ``--sub-ccds`` in this image's columns: equal pieces and listed columns are of the full
+    product when the crop's place in it is known (``origin``), else of the image as given."""
     from .. import panms
-    n = 3 if n_sub_ccds is None else n_sub_ccds
-    cols = [b for b in spec if not isinstance(b, str)]
+    x0 = origin[0] if origin else 0.0
+    width = float(ms_rpc.image_size[0]) + x0 if origin else float(ms_size[0])
+    width = max(width, float(ms_size[0]))
+    if spec is None:
+        spec = ["ms"]
+    n = 3 if n_sub_ccds is None else int(n_sub_ccds)
+    if ("ms" in spec or "pan" in spec) and width / n < WINDOW_PX:
+        raise panms.PanMSError(f"{n} sub-CCDs make pieces {width / n:.1f} MS px wide (the product is {width:.0f} px "
+                               f"wide), narrower than one {WINDOW_PX} px matching window: such pieces cannot be "
+                               "measured; give the number of sub-CCDs of the camera (GF7: 3) or their --breaks")
+    cols = [float(b) - x0 for b in spec if not isinstance(b, str)]
     if "ms" in spec:
-        cols += panms.default_breaks(ms_size[0], n)
+        cols += [b - x0 for b in panms.default_breaks(width, n)]
     if "pan" in spec:
         cols += panms.pan_edges_in_ms(pan_rpc, ms_rpc, dem, pan_size, n)
-    if all(isinstance(b, str) for b in spec) or "ms" in spec or "pan" in spec:
-        return panms.merge_breaks(cols, width=ms_size[0])
-    return [float(b) for b in cols]
+    return panms.merge_breaks(cols, width=ms_size[0], tol_px=1e-6 if not ({"ms", "pan"} & set(
+        b for b in spec if isinstance(b, str))) else 1.0)
+
+
+def _check_pieces(breaks, spec, ms_width, window_px) -> None:
+    """Refuse sub-CCD pieces narrower than one matching window (they cannot be measured)."""
+    from ..panms import PanMSError
+    if spec is not None:
+        nums = [float(b) for b in spec if not isinstance(b, str)]
+        dup = sorted({b for b in nums if nums.count(b) > 1})
+        if dup:
+            raise PanMSError(f"--breaks lists {', '.join(f'{b:g}' for b in dup)} more than once: give each sub-CCD "
+                             "edge once")
+    # between two edges (a piece cut by the image's side is only partly seen: its terms are dropped if need be)
+    widths = np.diff(np.asarray(breaks, float))
+    if widths.size and widths.min() < window_px:
+        k = int(np.argmin(widths))
+        raise PanMSError(f"a sub-CCD piece only {widths.min():.1f} MS px wide (between columns {breaks[k]:g} and "
+                         f"{breaks[k + 1]:g}), narrower than one {window_px} px matching window: such pieces cannot "
+                         "be measured; check --breaks / --sub-ccds (the sub-CCDs of the product, not of this crop)")
+
+
+def _spacing(ms_size, cell=None) -> int:
+    """Matching grid step (MS px): ~TARGET_WINDOWS windows per band, 4..16 px, at most the cell size."""
+    sp = int(np.clip(round(math.sqrt(ms_size[0] * ms_size[1] / TARGET_WINDOWS)), 4, 16))
+    return max(1, min(sp, int(cell))) if cell else sp
+
+
+def _cells(matches, ms_size, cell, spacing, breaks):
+    from ..matching import cells_from_matches
+    cells = cells_from_matches(matches, ms_size[0], ms_size[1], cell_px=int(cell),
+                               min_matches=int(np.clip((cell / spacing) ** 2, 1, 4)),
+                               independent_fraction=min(1.0, (float(spacing) / WINDOW_PX) ** 2), breaks=breaks)
+    cells.attrs.update(matches=matches, windows=matches.attrs.get("windows"), cell_px=int(cell))
+    return cells
+
+
+def choose_cell(matches, ms_size, spacing, breaks):
+    """The largest of :data:`AUTO_CELLS` (>= the matching step) whose usable cells fill every sub-CCD piece in
+    >= MIN_CELL_COLUMNS columns and the image in >= MIN_CELL_ROWS rows; else the one with the most columns in its
+    poorest piece. Returns ``(cell, cells)``."""
+    best = None
+    for cell in [c for c in AUTO_CELLS if c >= spacing] or [spacing]:
+        cells = _cells(matches, ms_size, cell, spacing, breaks)
+        u = np.asarray(cells["usable"], bool)
+        s = np.asarray(cells["sample"], float)[u]
+        piece = np.searchsorted(np.asarray(breaks, float), s, side="right")
+        cols = min(np.unique(s[piece == k]).size for k in range(len(breaks) + 1))
+        rows = np.unique(np.asarray(cells["line"], float)[u]).size
+        if cols >= MIN_CELL_COLUMNS and rows >= MIN_CELL_ROWS:
+            return cell, cells
+        if best is None or (cols, rows) > best[0]:
+            best = ((cols, rows), cell, cells)
+    return best[1], best[2]
+
+
+def _no_cell_message(matches, n_cells) -> str:
+    """Why no cell is usable: clouds/water/texture-less, or images that do not show the same ground."""
+    w = matches.attrs.get("windows", {})
+    counted = max(1, w.get("total", 0) - w.get("outside_image", 0) - w.get("nodata", 0))
+    textured = counted - w.get("featureless", 0)
+    flat = float(np.nanmean(np.asarray(matches["flat"], float))) if len(matches) else 1.0
+    if textured >= 0.5 * counted and flat < 0.5 or _unrelated(matches):
+        return (f"the MS does not show what the pan shows: {w.get('accepted', 0)} of {textured} textured windows "
+                "match the pan at the places the RPCs predict (the rest do not correlate): images of different "
+                "acquisitions or footprints, or RPCs far off; give the MS taken with this pan")
+    return (f"no usable cell: all {n_cells} cells are cloud, water or texture-less; register a clearer scene of the "
+            "same camera and use --reuse MODEL.json")
+
+
+def _unrelated(matches) -> bool:
+    """True when the MS does not show what the pan shows: fewer than MIN_MATCH_SHARE of the windows with texture
+    and no flat area (cloud, water) match."""
+    st = matches["status"].to_numpy()
+    flat = np.nan_to_num(matches["flat"].to_numpy(float), nan=1.0)
+    clear = (st != 5) & (st != 1) & (st != 2) & (flat < 0.5)
+    acc = (st == 0) & ~matches["outlier"].to_numpy(bool)
+    return bool(clear.sum() >= 20 and acc[clear].mean() < MIN_MATCH_SHARE)
+
+
+def _band_names(ms_path, n_bands):
+    """Per band ``(name, GDAL colour interpretation)`` from the product: band descriptions naming a colour, else
+    the file's colour interpretation (Alpha never: an MS band is a measurement, e.g. NIR -> Undefined)."""
+    from osgeo import gdal
+    from .._gdal import open_raster
+    ds = open_raster(os.fspath(ms_path), what="MS image")
+    words = {"red": gdal.GCI_RedBand, "green": gdal.GCI_GreenBand, "blue": gdal.GCI_BlueBand}
+    out = []
+    for b in range(1, n_bands + 1):
+        band = ds.GetRasterBand(b)
+        desc = (band.GetDescription() or "").strip()
+        ci = band.GetColorInterpretation()
+        low = desc.lower()
+        hit = [v for k, v in words.items() if k in low.split() or low == k or low.startswith(k)]
+        if "nir" in low or "infrared" in low:
+            ci = gdal.GCI_Undefined
+        elif hit:
+            ci = hit[0]
+        elif ci in (gdal.GCI_AlphaBand, gdal.GCI_GrayIndex, gdal.GCI_PaletteIndex) and n_bands > 1:
+            ci = gdal.GCI_Undefined
+        if not desc:
+            desc = gdal.GetColorInterpretationName(ci).lower() if ci not in (gdal.GCI_Undefined,) else f"band {b}"
+        out.append((desc, ci))
+    return out
+
+
+def _band_to_band(ref_cells, cells, model):
+    """The band's misregistration minus the reference band's, per cell usable in both: its linear fit (6
+    parameters, as the model's linear term), whether it is significant (chi-square of the fit at BAND_FAP and
+    > BAND_MIN_PX somewhere), the mean offset per axis."""
+    from scipy import stats
+    from ..estimation import weighted_lsq
+    from ..panms import _LIN_ORDER, _linear_design
+    u = np.asarray(ref_cells["usable"], bool) & np.asarray(cells["usable"], bool)
+    d = np.stack([np.asarray(cells["d_sample"], float) - np.asarray(ref_cells["d_sample"], float),
+                  np.asarray(cells["d_line"], float) - np.asarray(ref_cells["d_line"], float)], axis=1)[u]
+    if u.sum() < 4:
+        return None
+    sig2 = np.stack([np.asarray(cells[f"sigma_{a}"], float) ** 2 + np.asarray(ref_cells[f"sigma_{a}"], float) ** 2
+                     for a in ("sample", "line")], axis=1)[u]
+    med = np.nanmedian(sig2) if np.isfinite(sig2).any() else 1e-4
+    w = 1.0 / np.where(np.isfinite(sig2) & (sig2 > 0), np.maximum(sig2, 0.25 * med), med)
+    sn, ln = model._norm(np.asarray(cells["sample"], float)[u], np.asarray(cells["line"], float)[u])
+    a = _linear_design(sn, ln)
+    est = weighted_lsq(a.reshape(-1, 6), d.ravel(), w.ravel(), hint=" (band-to-band)")
+    lin = np.zeros(6)
+    lin[_LIN_ORDER] = est.x
+    cov = est.cov
+    try:
+        chi2 = float(est.x @ np.linalg.solve(cov, est.x))
+    except np.linalg.LinAlgError:
+        chi2 = 0.0
+    fap = float(stats.chi2.sf(chi2, 6))
+    corners = np.abs(np.array([[lin[0] + lin[1] * x + lin[2] * y, lin[3] + lin[4] * x + lin[5] * y]
+                               for x in (-1, 1) for y in (-1, 1)]))
+    return {"linear": lin, "fap": fap, "max_px": float(corners.max()),
+            "mean_sample_px": float(np.mean(d[:, 0])), "mean_line_px": float(np.mean(d[:, 1])),
+            "n_cells": int(u.sum()), "significant": bool(fap < BAND_FAP and corners.max() > BAND_MIN_PX)}
 
 
 def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] = None, breaks=None,
-                    cell: int = 64, jitter="auto", reuse=None, overwrite: bool = False, cells=None,
-                    workers: Optional[int] = None, progress=None) -> Dict[str, Any]:
+                    cell: Optional[int] = None, jitter="auto", reuse=None, overwrite: bool = False, cells=None,
+                    workers: Optional[int] = None, progress=None, pan_rpc=None, ms_rpc=None) -> Dict[str, Any]:
     """Register an MS image to its pan (METHODS §9) and write, in ``out``: ``correction.tif`` (delta sample /
-    delta line at every MS pixel centre), ``ms_on_pan.tif`` (the MS resampled onto the pan's raw grid at MS
-    resolution, for ``gdal_pansharpen.py PAN ms_on_pan.tif fused.tif``), ``model.json`` (loadable with
-    ``reuse``), ``ms_approx.RPB`` (refitted MS RPC, a smooth approximation; its error in the report),
-    ``report.json`` (per step RMS per axis, P(<= 0.25 px), spectrum peaks; jitter components), ``cells.gpkg``
-    (cells with residuals before/after each step, styled arrows) and the plots (``residual_maps.png``,
-    ``residual_along_line.png``, ``spectrum.png``).
+    delta line at every MS pixel centre, on the MS grid as given, with the MS RPC: GDAL and QGIS place it; a pair
+    more per band whose own correction differs), ``ms_on_pan.tif`` (every MS band resampled onto the pan's raw
+    grid at MS resolution over the pan's extent, for ``gdal_pansharpen.py PAN ms_on_pan.tif fused.tif``, band
+    colours from the product), ``model.json`` (loadable with ``reuse``), ``ms_approx.RPB`` (refitted MS RPC, a
+    smooth approximation; its error in the report), ``report.json`` (per step RMS per axis, P(<= 0.25 px),
+    spectrum peaks, jitter; per band its residual field and its registration to the reference band), ``cells.gpkg``
+    (cells with residuals before/after each step, styled arrows) and the plots.
 
-    ``n_sub_ccds`` / ``breaks`` (MS columns, a list or "S1,S2", and/or the words ``ms`` / ``pan``: the MS band's
-    equal sub-CCD edges / the pan's mapped into the MS): the sub-CCD edges (default ``ms``, 3 equal pieces);
-    ``cell``: cell size (MS px); ``jitter``: ``auto`` | ``none`` | N; ``reuse``: a ``model.json`` of another
-    scene of the same camera: only the linear term is solved, from <= 200 sparse matches. ``cells``: a cell
-    table already measured (skips the matching). Returns the report dict.
+    Inputs as they come: any pan and MS of one acquisition that overlap, cropped or not (``pan_rpc`` / ``ms_rpc``,
+    or each image's own RPC, or a ``.geom`` named like it beside it; a crop stating its origin in the product gets
+    the product's RPC shifted). The pixel ratio and the relative position come from the RPCs, not the sizes.
+
+    ``n_sub_ccds`` / ``breaks`` (MS columns, a list or "S1,S2", and/or the words ``ms`` / ``pan``): the sub-CCD
+    edges, counted on the full product when the crop's place in it is known; neither: edges found in the data
+    (jumps of the per-column residual that pass a test), else one piece. ``cell``: cell size (MS px, >= 4;
+    default from the MS size and texture: enough usable cells per piece for every term); ``jitter``: ``auto`` |
+    ``none`` | N; ``reuse``: a ``model.json`` of another scene of the same camera: only the linear term is solved,
+    from <= 200 sparse matches. ``cells``: a cell table already measured (skips the matching; one band). Returns
+    the report dict.
     """
     from .. import panms, progress as _progress
+    from ..crop import crop_origin
     from ..dem import DEM
     from ..errors import Gf4calError
+    from ..matching import match_raw
     from ..report import write_report_json
     from ..rpc_io import write_rpb
 
-    breaks = _parse_breaks(breaks)
-    if n_sub_ccds is not None and breaks is not None and not ({"ms", "pan"} & set(b for b in breaks
-                                                                                 if isinstance(b, str))):
+    if os.path.realpath(os.fspath(pan)) == os.path.realpath(os.fspath(ms)):
+        raise panms.PanMSError("the same image was given as pan and as MS: give the pan first, then the MS image "
+                               "of the same acquisition")
+    spec = _parse_breaks(breaks)
+    if n_sub_ccds is not None and spec is not None and not ({"ms", "pan"} & set(b for b in spec
+                                                                               if isinstance(b, str))):
         raise panms.PanMSError("give either --sub-ccds or --breaks with MS columns, not both")
+    if n_sub_ccds is not None and int(n_sub_ccds) < 1:
+        raise panms.PanMSError(f"--sub-ccds must be at least 1 (got {n_sub_ccds})")
     if str(jitter) not in ("auto", "none"):
         try:
             jitter = int(jitter)
@@ -116,89 +365,223 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
             raise panms.PanMSError(f"--jitter {jitter!r}: give auto, none or a number of components") from None
         if jitter < 0:
             raise panms.PanMSError("--jitter must be auto, none or a non-negative number")
-    if int(cell) < 8:
-        raise panms.PanMSError(f"--cell {cell}: cells must be at least 8 MS px")
+    if cell is not None and int(cell) < 4:
+        raise panms.PanMSError(f"--cell {cell}: cells must be at least 4 MS px")
     out = os.fspath(out)
     outs = OutputSet([pan, ms, dem if isinstance(dem, (str, os.PathLike)) else None, geoid,
-                      reuse if isinstance(reuse, (str, os.PathLike)) else None],
+                      reuse if isinstance(reuse, (str, os.PathLike)) else None,
+                      pan_rpc if isinstance(pan_rpc, (str, os.PathLike)) else None,
+                      ms_rpc if isinstance(ms_rpc, (str, os.PathLike)) else None],
                      overwrite=overwrite, cancelled=cancel_check(progress))
     for key, name in OUTPUT_NAMES.items():
         check = {"correction": check_raster(2), "ms_on_pan": check_raster(), "cells": check_vector()}.get(key)
         outs.declare(key, os.path.join(out, name), check=check)
     warns: list = []
+    notes: list = []
     clock = _Clock()
     with outs, collect_warnings(warns):
         (pw, ph), _ = _size(pan)
         (mw, mh), n_bands = _size(ms)
-        ratio = panms.check_sizes((pw, ph), (mw, mh))
-        (pan_rpc, _), (ms_rpc, _) = image_rpc(pan), image_rpc(ms)
+        pan_model, note_p = find_rpc(pan, pan_rpc)
+        ms_model, note_m = find_rpc(ms, ms_rpc)
+        notes += [n for n in (note_p, note_m) if n]
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
-        overlap = check_overlap(pan_rpc, ms_rpc, (pw, ph), (mw, mh), dem_obj)
-        if breaks is not None:
-            breaks = _resolve_breaks(breaks, n_sub_ccds=n_sub_ccds, pan_rpc=pan_rpc, ms_rpc=ms_rpc, dem=dem_obj,
-                                     pan_size=(pw, ph), ms_size=(mw, mh))
+        geo = pair_geometry(pan_model, ms_model, (pw, ph), (mw, mh), dem_obj)
+        ratio = int(round(geo["scale"]))
+        if abs(geo["scale"] - ratio) > 0.05 * ratio:
+            notes.append(f"pan/MS pixel ratio {geo['scale']:.3f} through the RPCs: ms_on_pan.tif at 1/{ratio} of "
+                         "the pan")
+        origin = crop_origin(ms)        # the crop's place in the MS product, when the file states it
+        user_breaks = spec is not None or n_sub_ccds is not None
+        if user_breaks:
+            br = _product_breaks(spec, n_sub_ccds, ms_model, (mw, mh), origin, pan_model, dem_obj, (pw, ph))
+            _check_pieces(br, spec, mw, WINDOW_PX)
         reuse_model = None
         if reuse is not None:
             reuse_model = reuse if isinstance(reuse, panms.PanMSModel) else panms.PanMSModel.from_json(reuse)
-            reuse_model.compatible_with((mw, mh), breaks if breaks is not None else (
-                panms.default_breaks(mw, n_sub_ccds) if n_sub_ccds is not None else None))
-        elif breaks is None:
-            breaks = panms.default_breaks(mw, 3 if n_sub_ccds is None else n_sub_ccds)
+            reuse_model.compatible_with((mw, mh), br if user_breaks else None)
         _progress.report(progress, 0.02, "pan-MS: matching")
-        if cells is None:
+        band_cells: Dict[int, Any] = {}
+        band_matches: Dict[int, Any] = {}
+        ref = 1
+        n_matches = 0
+        if cells is not None:
+            cells = cells.reset_index(drop=True)
+            breaks_ = br if user_breaks else []
+            cell_used = int(cell) if cell else None
+        elif reuse_model is not None:     # sparse: one window per cell, <= 200 cells
             from ..matching import pan_ms_cells
-            # >= 16 matching windows per cell (16 px apart for the default 64 px cells)
-            kw: Dict[str, Any] = {"cell_px": int(cell), "spacing_px": int(max(4, min(16, int(cell) // 4))),
-                                  "progress": _progress.scaled(progress, 0.02, 0.5)}
-            if workers is not None:
-                kw["workers"] = workers
-            if reuse_model is not None:         # sparse: one window per cell, <= 200 cells
-                c = int(max(8, math.ceil(math.sqrt(mw * mh / REUSE_MAX_MATCHES))))
-                kw.update(cell_px=c, spacing_px=c, min_matches=1)
-            cells = pan_ms_cells(pan, ms, dem_obj, pan_model=pan_rpc, ms_model=ms_rpc, **kw)
-        n_matches = len(cells.attrs.get("matches", ())) if hasattr(cells, "attrs") else 0
+            c = int(max(8, math.ceil(math.sqrt(mw * mh / REUSE_MAX_MATCHES))))
+            ref = int(reuse_model.info.get("reference_band", 1))     # the band the reused model was solved on
+            ref = ref if 1 <= ref <= n_bands else 1
+            cells = pan_ms_cells(pan, ms, dem_obj, pan_model=pan_model, ms_model=ms_model, cell_px=c, spacing_px=c,
+                                 min_matches=1, workers=workers, progress=_progress.scaled(progress, 0.02, 0.5),
+                                 band=ref)
+            n_matches = len(cells.attrs.get("matches", ()))
+            breaks_, cell_used = list(reuse_model.breaks), c
+        else:
+            spacing = _spacing((mw, mh), cell)
+            share = 0.48 / n_bands
+            for b in range(1, n_bands + 1):
+                # a large image (step at its 16 px cap): the other bands at twice the step (their difference from
+                # the first is smooth), a quarter of the windows
+                step = spacing if b == 1 or spacing < 16 else 2 * spacing
+                band_matches[b] = match_raw(ms, ms_model, pan, pan_model, dem_obj, spacing_px=step,
+                                            window_px=WINDOW_PX, search_px=8, band=b, reference_band=1,
+                                            workers=workers, margin_px=4,
+                                            progress=_progress.scaled(progress, 0.02 + share * (b - 1),
+                                                                      0.02 + share * b))
+            # the reference band: the one whose matches correlate best with the pan
+            nccs = {b: _median_ncc(t) for b, t in band_matches.items()}
+            ref = max(nccs, key=lambda b: (nccs[b], -b))
+            t = band_matches[ref]
+            n_matches = len(t)
+            acc = (t["status"].to_numpy() == 0) & ~t["outlier"].to_numpy(bool)
+            if user_breaks:
+                breaks_ = br
+            else:
+                breaks_, jumps = panms.detect_breaks(t["pred_sample"][acc], t["pred_line"][acc], t["d_sample"][acc],
+                                                     t["d_line"][acc], width=mw, window_px=WINDOW_PX,
+                                                     spacing_px=t.attrs["spacing_px"])
+                notes.append(("sub-CCD edges found in the data at MS columns " + ", ".join(
+                    f"{j['edge_ms_px']:.1f}" for j in jumps)) if jumps else
+                    "no jump in the per-column residual passes the test: one sub-CCD piece (give --breaks or "
+                    "--sub-ccds to set the edges)")
+            if cell:
+                cell_used = int(cell)
+                cells = _cells(t, (mw, mh), cell_used, t.attrs["spacing_px"], breaks_)
+            else:
+                cell_used, cells = choose_cell(t, (mw, mh), t.attrs["spacing_px"], breaks_)
+            band_cells = {b: (cells if b == ref else _cells(band_matches[b], (mw, mh), cell_used,
+                                                             band_matches[b].attrs["spacing_px"], breaks_))
+                          for b in band_matches}
         clock.lap("matching")
         cells = cells.reset_index(drop=True)
+        if band_matches and _unrelated(band_matches[ref]):
+            raise panms.PanMSError(_no_cell_message(band_matches[ref], len(cells)))
         if len(cells) == 0 or not np.asarray(cells["usable"], bool).any():
-            raise panms.PanMSError(f"no usable cell: all {len(cells)} cells are cloud, water or texture-less; "
+            mt = band_matches.get(ref) if band_matches else cells.attrs.get("matches")
+            raise panms.PanMSError(_no_cell_message(mt, len(cells)) if mt is not None else
+                                   f"no usable cell: all {len(cells)} cells are cloud, water or texture-less; "
                                    "register a clearer scene of the same camera and use --reuse MODEL.json")
-        model = panms.estimate(cells, ms_size=(mw, mh), breaks=breaks, jitter=jitter, reuse=reuse_model,
+        model = panms.estimate(cells, ms_size=(mw, mh), breaks=breaks_, jitter=jitter, reuse=reuse_model,
                                progress=_progress.scaled(progress, 0.5, 0.6))
+        notes += list(model.info.get("notes", []))
         model.info["source"] = {"pan": os.fspath(pan), "ms": os.fspath(ms)}
         model.info["ratio"] = ratio
+        model.info["reference_band"] = ref
+        bands, band_models = _every_band(band_cells, ref, model, _band_names(ms, n_bands), notes)
         clock.lap("estimate")
         _progress.report(progress, 0.6, "pan-MS: writing correction.tif")
         model.to_json(outs.tmp("model"))
-        panms.write_correction(model, outs.tmp("correction"), progress=_progress.scaled(progress, 0.6, 0.65))
-        panms.resample_ms_on_pan(model, pan, ms, outs.tmp("ms_on_pan"), pan_rpc=pan_rpc, ms_rpc=ms_rpc, dem=dem_obj,
-                                 ratio=ratio, progress=_progress.scaled(progress, 0.65, 0.9))
+        own = {b: m for b, m in band_models.items() if m is not model}
+        panms.write_correction(model, outs.tmp("correction"), progress=_progress.scaled(progress, 0.6, 0.65),
+                               rpc=ms_model, band_models={f"band {b} ({bands[b - 1]['name']})": m
+                                                          for b, m in own.items()})
+        outs.set_check("correction", check_raster(2 + 2 * len(own)))
+        panms.resample_ms_on_pan([band_models.get(b, model) for b in range(1, n_bands + 1)], pan, ms,
+                                 outs.tmp("ms_on_pan"), pan_rpc=pan_model, ms_rpc=ms_model, dem=dem_obj, ratio=ratio,
+                                 progress=_progress.scaled(progress, 0.65, 0.9),
+                                 band_names=_band_names(ms, n_bands))
         outs.set_check("ms_on_pan", check_raster(n_bands))
         clock.lap("correction_and_ms_on_pan")
         _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC")
         try:
-            approx, approx_err = panms.approximate_rpc(model, ms_rpc)
-            write_rpb(approx, outs.tmp("ms_rpc"), overwrite=True)
-        except Gf4calError as exc:
-            raise panms.PanMSError(f"the approximate MS RPC could not be fitted ({exc}); the other outputs need "
-                                   "it too: check the MS RPC") from None
-        n_cells = _write_cells(cells, model, ms_rpc, dem_obj, outs.tmp("cells"))
+            approx, approx_err = panms.approximate_rpc(model, ms_model)
+        except Gf4calError:
+            try:            # the sub-CCD jumps and jitter of a small crop can defeat the refit: the linear term
+                approx, approx_err = panms.approximate_rpc(model, ms_model, terms=("linear",))
+                notes.append("ms_approx.RPB carries the linear term only (the RPC refit of the full model is "
+                             f"singular on this image); its error against the full model: rms "
+                             f"{approx_err['rms_px']:.3f} px")
+            except Gf4calError as exc:
+                raise panms.PanMSError(f"the approximate MS RPC could not be fitted ({exc}); the other outputs "
+                                       "need it too: check the MS RPC") from None
+        write_rpb(approx, outs.tmp("ms_rpc"), overwrite=True)
+        n_cells = _write_cells(cells, model, ms_model, dem_obj, outs.tmp("cells"))
         outs.set_check("cells", check_vector({"gcps": n_cells}))
         _write_plots(cells, model, outs)
         clock.lap("rpc_cells_plots")
         rep = {"command": "register-pan-ms",
                "inputs": {"pan": os.fspath(pan), "ms": os.fspath(ms), "dem": _as_text(dem), "geoid": _as_text(geoid),
-                          "reuse": _as_text(reuse) if not isinstance(reuse, panms.PanMSModel) else "model"},
-               "sizes": {"pan": [pw, ph], "ms": [mw, mh], "ratio": ratio, "ms_on_pan": [pw // ratio, ph // ratio]},
-               "overlap_share": overlap, "mode": model.mode, "breaks_ms_px": list(model.breaks),
-               "n_cells": int(len(cells)), "n_matches": int(n_matches), "timings_s": clock.laps, "n_usable": int(np.asarray(cells["usable"], bool).sum()),
+                          "reuse": _as_text(reuse) if not isinstance(reuse, panms.PanMSModel) else "model",
+                          "pan_rpc": _as_text(pan_rpc) if not hasattr(pan_rpc, "project") else "model",
+                          "ms_rpc": _as_text(ms_rpc) if not hasattr(ms_rpc, "project") else "model"},
+               "sizes": {"pan": [pw, ph], "ms": [mw, mh], "ratio": ratio,
+                         "ms_on_pan": [-(-pw // ratio), -(-ph // ratio)]},
+               "geometry": geo, "overlap_share": geo["overlap"], "mode": model.mode,
+               "breaks_ms_px": list(model.breaks), "breaks_from": ("options" if user_breaks else "reuse model"
+                                                                    if reuse_model is not None else "data"),
+               "cell_px": cell_used, "n_cells": int(len(cells)), "n_matches": int(n_matches),
+               "timings_s": clock.laps, "n_usable": int(np.asarray(cells["usable"], bool).sum()),
                "n_outliers": model.info.get("n_outliers", 0), "noise_floor_px": model.info.get("noise_floor_px"),
+               "piece_orders": model.info.get("piece_orders"),
                "steps": model.steps, "jitter": model.jitter, "linear": model.to_dict()["linear"],
-               "ms_approx_rpc": approx_err, "outputs": outs.paths}
+               "reference_band": ref, "bands": bands,
+               "ms_approx_rpc": approx_err, "outputs": outs.paths, "notes": notes}
         finish_report(rep, warns)
         write_report_json(rep, outs.tmp("report"))
     finish_report(rep, warns)
     _progress.report(progress, 1.0, "done")
     return rep
+
+
+def _median_ncc(t) -> float:
+    acc = t["status"].to_numpy() == 0
+    return float(np.median(t["ncc"].to_numpy(float)[acc])) if acc.any() else -1.0
+
+
+def _every_band(band_cells, ref, model, names, notes):
+    """Every MS band against the pan: its residual field under the model it gets, its registration to the reference
+    band, and its own correction (the reference model plus the linear difference) where that differs
+    significantly; a band that does not resemble the pan keeps the reference correction (what remains of it is
+    spectral). Returns ``(report rows, {band: model})``."""
+    import copy
+    from ..stats import axis_stats, share_within
+    rows, models = [], {}
+    for b in sorted(band_cells) or [ref]:
+        name = names[b - 1][0] if b - 1 < len(names) else f"band {b}"
+        row: Dict[str, Any] = {"band": b, "name": name, "reference": b == ref}
+        models[b] = model
+        if b in band_cells:
+            c = band_cells[b]
+            u = np.asarray(c["usable"], bool)
+            row["n_usable"] = int(u.sum())
+            if b != ref:
+                bb = _band_to_band(band_cells[ref], c, model)
+                m_ncc = _median_ncc_cells(band_cells, b)
+                row["median_ncc"] = m_ncc
+                if bb is not None:
+                    row["to_reference"] = {k: (v.tolist() if hasattr(v, "tolist") else v) for k, v in bb.items()}
+                    spectral = m_ncc is not None and m_ncc < SPECTRAL_NCC
+                    row["spectral"] = bool(spectral)
+                    if spectral:
+                        notes.append(f"band {b} ({name}) does not resemble the pan (median correlation {m_ncc:.2f}): "
+                                     f"what remains of it ({bb['max_px']:.2f} px against band {ref}) is spectral, not "
+                                     "geometric; it gets the reference band's correction")
+                    elif bb["significant"]:
+                        mb = copy.deepcopy(model)
+                        mb.linear = model.linear + np.asarray(bb["linear"])
+                        models[b] = mb
+                        row["own_correction"] = True
+                        notes.append(f"band {b} ({name}) is registered to band {ref} within {bb['max_px']:.3f} MS px "
+                                     "only: it gets its own correction")
+            else:
+                row["median_ncc"] = _median_ncc_cells(band_cells, b)
+            ps, pl = models[b].predict(np.asarray(c["sample"], float), np.asarray(c["line"], float))
+            rs, rl = np.asarray(c["d_sample"], float) - ps, np.asarray(c["d_line"], float) - pl
+            ok = u & np.isfinite(rs) & np.isfinite(rl)
+            row["residual"] = {"rms_sample_px": axis_stats(rs[ok])["rms"], "rms_line_px": axis_stats(rl[ok])["rms"],
+                               "p_le_0.25": share_within(rs[ok], rl[ok], 0.25)}
+            b0s, b0l = np.asarray(c["d_sample"], float)[ok], np.asarray(c["d_line"], float)[ok]
+            row["before"] = {"rms_sample_px": axis_stats(b0s)["rms"], "rms_line_px": axis_stats(b0l)["rms"]}
+        rows.append(row)
+    return rows, models
+
+
+def _median_ncc_cells(band_cells, b):
+    t = band_cells[b].attrs.get("matches")
+    return None if t is None else _median_ncc(t)
 
 
 class _Clock:
@@ -246,7 +629,8 @@ def _write_cells(cells, model, ms_rpc, dem, path) -> int:
         last = name
     write_residuals_gpkg(t, path, before=("res_sample_before", "res_line_before"),
                          after=(f"res_sample_{last}", f"res_line_{last}"), overwrite=True,
-                         title="Pan-MS registration cells (MS px)")
+                         title="Pan-MS registration cells (MS px)",
+                         points_title="pan-MS cells: misregistration before/after (MS px)")
     return len(t)
 
 

@@ -34,6 +34,8 @@ class SimulateScene(Gf4calAlgorithm):
     SEED = "SEED"
     WIDTH = "WIDTH"
     HEIGHT = "HEIGHT"
+    CROP_X0 = "CROP_X0"
+    CROP_Y0 = "CROP_Y0"
     N_GCPS = "N_GCPS"
     GCP_NOISE = "GCP_NOISE"
     OUTLIER_FRACTION = "OUTLIER_FRACTION"
@@ -51,6 +53,14 @@ class SimulateScene(Gf4calAlgorithm):
                   "Crop the detector array around its centre to this width (geometry unchanged); 0 keeps it all.")
         self._add(Num(self.HEIGHT, self.tr("Crop height (px, 0 = full array)"), Num.Integer, 0, minValue=0),
                   "Crop height in pixels; 0 keeps the full array.")
+        self._add(Num(self.CROP_X0, self.tr("Crop origin column in the product (-1 = centred)"), Num.Integer, -1,
+                      minValue=-1),
+                  "GF7: with a crop width and height, simulate the full product and write only the crop at this "
+                  "column and row of the pan product (multiples of 4); the crop keeps its place (pixel-unit "
+                  "geotransform without CRS, the product's RPC in product.RPB). -1: the crop is centred.")
+        self._add(Num(self.CROP_Y0, self.tr("Crop origin row in the product (-1 = centred)"), Num.Integer, -1,
+                      minValue=-1),
+                  "Row of the crop's first pixel in the product (with the origin column).")
         self._add(Num(self.N_GCPS, self.tr("Number of GCPs per image"), Num.Integer, 200, minValue=0),
                   "GCPs drawn at random true image positions on the DEM.")
         self._add(Num(self.GCP_NOISE, self.tr("GCP measurement noise (px per axis)"), Num.Double, 0.6, minValue=0.0),
@@ -82,9 +92,14 @@ class SimulateScene(Gf4calAlgorithm):
         h = self.parameterAsInt(parameters, self.HEIGHT, context)
         if (w == 0) != (h == 0):
             raise self.error("Give both crop width and height, or neither (0 = full array).")
+        x0 = self.parameterAsInt(parameters, self.CROP_X0, context)
+        y0 = self.parameterAsInt(parameters, self.CROP_Y0, context)
+        if (x0 < 0) != (y0 < 0) or (x0 >= 0 and not w):
+            raise self.error("Give the crop origin's column and row together, with the crop width and height.")
+        crop = (x0, y0, w, h) if x0 >= 0 else None
         folder = self.output_folder(parameters, self.OUTPUT_FOLDER, context)
         res = simulate_scene(sensor, folder, overwrite=True, seed=self.parameterAsInt(parameters, self.SEED, context),
-                          size=(w, h) if w else None, n_gcps=self.parameterAsInt(parameters, self.N_GCPS, context),
+                          size=(w, h) if w and crop is None else None, crop=crop, n_gcps=self.parameterAsInt(parameters, self.N_GCPS, context),
                           gcp_noise_px=self.parameterAsDouble(parameters, self.GCP_NOISE, context),
                           outlier_fraction=self.parameterAsDouble(parameters, self.OUTLIER_FRACTION, context),
                           check_fraction=self.parameterAsDouble(parameters, self.CHECK_FRACTION, context),

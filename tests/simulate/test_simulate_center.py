@@ -39,3 +39,16 @@ def test_high_latitude_center_lands_where_asked(sensor):
         lon, lat = im.true.localize(w / 2.0, h / 2.0, float(np.mean(scene.dem.height_range())))
         # Within a few km of the centre (stereo views and crops are offset a little from it), same hemisphere.
         assert abs(lat - 79.0) < 0.2 and abs(lon - 10.0) < 0.2 / np.cos(np.radians(79.0))
+
+
+@pytest.mark.parametrize("sensor", ["gf7", "zy3"])
+def test_cli_center_beyond_the_orbit_names_its_reach(sensor, tmp_path, capsys):
+    # Issue 19: a latitude beyond the ground track (but a valid latitude) was "not a valid (lon, lat)".
+    out = tmp_path / "sim"
+    rc = main(["simulate", "--sensor", sensor, "--out", str(out), "--center", "10", "87", "--size", "64", "64"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and not out.exists() and len(err) == 1
+    assert "beyond the orbit's reach" in err[0] and "-82.6 to 82.6" in err[0] and "not a valid" not in err[0]
+    rc = main(["simulate", "--sensor", sensor, "--out", str(out), "--center", "10", "91", "--size", "64", "64"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "not a valid (lon, lat)" in err[0]

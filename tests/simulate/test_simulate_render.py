@@ -67,8 +67,8 @@ def test_render_cancel_leaves_nothing(gf4_crop, tmp_path):
 
 def test_write_scene_render_pushbroom(tmp_path):
     res = write_scene("gf7", tmp_path / "gf7", seed=2, size=(256, 256), n_gcps=20, render=True, tile=128)
-    for name in ("pan", "ms"):
+    for name, bands in (("pan", ()), ("ms", (4,))):           # gf7: pan 1 band, MS 4 bands (issue 20)
         arr = _read(tmp_path / "gf7" / name / "scene.tif")
         W, H = res.scene.image(name).size
-        assert arr.shape == (H, W)
+        assert arr.shape == bands + (H, W)
         assert arr.min() >= 1 and arr.std() > 10

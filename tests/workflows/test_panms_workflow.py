@@ -89,6 +89,28 @@ def test_outputs_and_report(registered):
     assert ds.GetLayerByName("residual_vectors") is not None
 
 
+def test_defaults_from_the_image(inputs, tmp_path, scene_dir):
+    """No option: the cell size from the MS and its texture, the sub-CCD edge found in the data within 2 MS px of
+    the true one (column 256), the field within 0.05 MS px RMS of the truth; ms_on_pan's band colours from the
+    product (blue, green, red, NIR -> Blue, Green, Red, Undefined: never Alpha); correction.tif carries the MS RPC."""
+    pan, ms, dem = inputs
+    out = tmp_path / "o"
+    proc = _cli(pan, ms, "--dem", dem, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["breaks_from"] == "data" and len(rep["breaks_ms_px"]) == 1
+    assert abs(rep["breaks_ms_px"][0] - 256.0) <= 2.0
+    e = gdal.Open(str(out / "correction.tif")).ReadAsArray()[:2] - gdal.Open(
+        str(scene_dir / "ms" / "misregistration_truth.tif")).ReadAsArray()
+    assert np.sqrt(np.mean(e[0] ** 2 + e[1] ** 2)) <= 0.05          # measured 0.023
+    assert gdal.Open(str(out / "correction.tif")).GetMetadata("RPC")
+    ds = gdal.Open(str(out / "ms_on_pan.tif"))
+    got = [(ds.GetRasterBand(b).GetDescription(), ds.GetRasterBand(b).GetColorInterpretation()) for b in (1, 2, 3, 4)]
+    assert got == [("blue", gdal.GCI_BlueBand), ("green", gdal.GCI_GreenBand), ("red", gdal.GCI_RedBand),
+                   ("nir", gdal.GCI_Undefined)]
+    assert [b["band"] for b in rep["bands"]] == [1, 2, 3, 4]
+
+
 def test_cell_rms_at_the_noise_floor(registered):
     """The cell-noise floor is the cells' own error against the true field at their centres (the matcher's sigma
     is reported as ``noise_floor_px`` too, but overlapping windows make it optimistic): the full model's cell
@@ -146,7 +168,13 @@ def test_gdal_pansharpen_on_ms_on_pan_removes_the_halo(registered, inputs, tmp_p
 
 @pytest.mark.parametrize("case, expected", [
     ("no_overlap", "overlap"),
-    ("no_ratio", "integer ratio"),
+    ("swapped", "swapped"),
+    ("same_image", "same image"),
+    ("same_pixel_size", "same pixel size"),
+    ("other_ground", "does not show what the pan shows"),
+    ("breaks_twice", "more than once"),
+    ("sub_ccds_1000", "narrower than one"),
+    ("jitter_negative", "non-negative"),
     ("reuse_other_camera", "reuse"),
     ("sub_ccds_and_breaks", "not both"),
     ("all_cloudy", "no usable cell"),
@@ -159,10 +187,27 @@ def test_bad_input_is_one_line_exit_2_nothing_left(inputs, scene_dir, tmp_path, 
         from gdal_gf4cal.rpc_io import write_rpc_vrt
         other = write_gf7_scene(tmp_path / "other", seed=3, center=(100.0, 40.0), size=(2048, 2048), render=False)
         ms = write_rpc_vrt(ms, other.images["ms"].rpc, tmp_path / "ms_elsewhere.vrt")
-    elif case == "no_ratio":
-        ms2 = tmp_path / "ms_cut.tif"
-        gdal.Translate(str(ms2), str(ms), srcWin=[0, 0, 500, 512])
+    elif case == "swapped":
+        pan, ms = ms, pan
+    elif case == "same_image":
+        ms = pan
+    elif case == "same_pixel_size":                 # a copy of the pan as the MS
+        ms = tmp_path / "pan_copy.tif"
+        gdal.Translate(str(ms), str(pan))
+    elif case == "other_ground":                    # textured, same RPC, other ground: the MS turned upside down
+        ms2 = tmp_path / "ms_other.tif"
+        src = gdal.Open(str(ms))
+        ds = gdal.GetDriverByName("GTiff").CreateCopy(str(ms2), src)
+        for b in range(ds.RasterCount):
+            ds.GetRasterBand(b + 1).WriteArray(src.GetRasterBand(b + 1).ReadAsArray()[::-1, ::-1])
+        ds = None
         ms = ms2
+    elif case == "breaks_twice":
+        extra = ["--breaks", "128,128"]
+    elif case == "sub_ccds_1000":
+        extra = ["--sub-ccds", "1000"]
+    elif case == "jitter_negative":
+        extra = ["--jitter", "-1"]
     elif case == "reuse_other_camera":
         model = panms.PanMSModel(ms_size=(7680, 7680), breaks=panms.default_breaks(7680))
         extra = ["--reuse", model.to_json(tmp_path / "other_camera.json")]
@@ -212,7 +257,8 @@ def test_reuse_mode_through_the_cli(registered, tmp_path):
         ps, pl = panms.PanMSModel.from_json(tmp_path / mode / "model.json").predict(s, l)
         rms_cells[mode] = np.sqrt(np.mean((g["res_sample_before"] - ps) ** 2 + (g["res_line_before"] - pl) ** 2))
     # against the true field (what the registration is for): within 10 %; on the solve run's own dense cells
-    # (which the solve mode was fitted to, so it is favoured) within 15 % (measured: 0.95 and 1.10)
+    # (which the solve mode was fitted to, so it is favoured) within 20 % (measured: 0.95 and 1.15; the cells are
+    # the reference band's, the one most like the pan -- NIR on the simulator -- since every band is matched)
     assert rms_truth["reuse"] <= 1.1 * rms_truth["solve"], rms_truth
-    assert rms_cells["reuse"] <= 1.15 * rms_cells["solve"], rms_cells
+    assert rms_cells["reuse"] <= 1.2 * rms_cells["solve"], rms_cells
     assert rms_truth["reuse"] <= 0.03
