@@ -34,10 +34,11 @@ import numpy as np
 from .basis import piecewise_polynomial, trigonometric
 from .errors import DegenerateGeometryError, Gf4calError
 from .estimation import Block, normal_solve, robust_lsq, weighted_lsq
+from .matching import reject_outliers
 from .progress import report
-from .stats import axis_stats, share_within
+from .stats import axis_stats, grouped_trimmed_mean, share_within
 
-__all__ = ["PanMSModel", "estimate", "default_breaks", "detect_breaks", "column_profile", "pan_edges_in_ms", "merge_breaks", "write_correction", "resample_ms_on_pan",
+__all__ = ["PanMSModel", "estimate", "default_breaks", "screen_matches", "detect_breaks", "column_profile", "pan_edges_in_ms", "merge_breaks", "write_correction", "resample_ms_on_pan",
            "approximate_rpc", "GF7_MS_LINE_TIME_S", "GF7_MS_IFOV_RAD", "GF7_LOOK_TIME_S", "PanMSError"]
 
 AXES = ("sample", "line")
@@ -111,6 +112,45 @@ RAMP_SHARE = 0.5
 JUMP_SMOOTH_ORDER = 3
 
 
+#: Local consistency screen of the window matches (screen_matches): windows of one column in blocks of this many
+#: rows, a window off its block's median by more than SCREEN_K robust standard deviations (floored) is a blunder.
+SCREEN_ROWS = 16
+SCREEN_K = 4.0
+SCREEN_FLOOR_PX = 0.05
+#: ... and a window farther than this from the scene's affine consensus (RANSAC) is a gross mismatch.
+SCREEN_GROSS_PX = 3.0
+
+
+def screen_matches(sample, line, d_sample, d_line, *, spacing_px: float, seed: int = 0) -> np.ndarray:
+    """Blunders among the window matches (bool per window), found without a model of the field (METHODS §9): a
+    window farther than :data:`SCREEN_GROSS_PX` from the affine consensus of all (RANSAC, no MAD stage), or off
+    the median of the windows of its own column and nearby rows (blocks of :data:`SCREEN_ROWS` rows) by more than
+    :data:`SCREEN_K` robust standard deviations (1.4826 MAD, at least :data:`SCREEN_FLOOR_PX`) on either axis.
+    A sub-CCD jump runs along whole columns, so a screen within a column never flags one side of it (a global
+    low-order model with a MAD cut rejects every column of the smaller side: the jump is then not found). NaN
+    offsets are blunders."""
+    s, l = np.asarray(sample, float), np.asarray(line, float)
+    d = np.stack([np.asarray(d_sample, float), np.asarray(d_line, float)], axis=1)
+    ok = np.isfinite(d).all(axis=1) & np.isfinite(s) & np.isfinite(l)
+    out = ~ok
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return out
+    if idx.size >= 8:
+        gross = reject_outliers(s[idx], l[idx], d[idx, 0], d[idx, 1], model="affine", threshold_px=SCREEN_GROSS_PX,
+                                mad_k=np.inf, seed=seed).outlier
+        out[idx[gross]] = True
+        idx = idx[~gross]
+    _, col = np.unique(np.round(s[idx], 3), return_inverse=True)
+    blk = np.floor((l[idx] - l[idx].min()) / (SCREEN_ROWS * float(spacing_px))).astype(np.int64)
+    _, g = np.unique(col.astype(np.int64) * (int(blk.max()) + 1) + blk, return_inverse=True)
+    n_g = int(g.max()) + 1
+    dev = np.abs(d[idx] - grouped_trimmed_mean(g, d[idx], n_g).median[g])
+    sig = np.maximum(1.4826 * grouped_trimmed_mean(g, dev, n_g).median, SCREEN_FLOOR_PX)
+    out[idx[np.any(dev > SCREEN_K * sig[g], axis=1)]] = True
+    return out
+
+
 def column_profile(sample, line, d_sample, d_line):
     """The misregistration along the MS line of sensor columns: ``(x, y, n)`` with ``x`` the window columns at
     their measured position (sorted), ``y[:, axis]`` the median over the lines of each window's offset minus its row's median (what
@@ -123,7 +163,6 @@ def column_profile(sample, line, d_sample, d_line):
         return np.zeros(0), np.zeros((0, 2)), np.zeros(0, int)
     _, ri = np.unique(l, return_inverse=True)
     ux, ci = np.unique(s, return_inverse=True)
-    from .stats import grouped_trimmed_mean
     rowm = grouped_trimmed_mean(ri, d, int(ri.max()) + 1).mean
     m = grouped_trimmed_mean(ci, d - rowm[ri], ux.size)
     # a window shows the MS around its centre moved by its offset (the matcher re-reads it there): place each
@@ -162,6 +201,36 @@ def _jump_gain(x, y, w, found, cand, width, span):
     return gain, rss, base.shape[1]
 
 
+def _smooth_residual(x, y, w, edges, width, span):
+    """Residual (columns, 2) of the per-column profile ``y`` after the smooth model with ramps at ``edges``."""
+    from .basis import piecewise_polynomial
+    base = piecewise_polynomial(x, edges, JUMP_SMOOTH_ORDER, domain=span)
+    if edges:
+        base = np.concatenate([base, _ramp(x, edges, width)], axis=1)
+    return np.stack([y[:, k] - base @ normal_solve(base, y[:, k], w)[0] for k in range(2)], axis=1)
+
+
+def _correlation_length(e, *, max_lag: int) -> float:
+    """Columns per independent one in a residual profile ``e`` (columns, axes): the integrated autocorrelation
+    ``1 + 2 sum_j rho_j`` over lags up to the first non-positive ``rho_j`` (or ``max_lag``), the larger over the
+    axes. Neighbouring columns share the matching windows' pixels and the texture's bias: the profile is smoother
+    than its per-column scatter says, and a jump test that counts every column as independent finds jumps in it."""
+    out = 1.0
+    for k in range(e.shape[1]):
+        v = e[:, k] - np.mean(e[:, k])
+        var = float(v @ v)
+        if var <= 0.0:
+            continue
+        tau = 1.0
+        for j in range(1, min(int(max_lag), v.size // 4) + 1):
+            rho = float(v[:-j] @ v[j:]) / var
+            if rho <= 0.0:
+                break
+            tau += 2.0 * rho
+        out = max(out, tau)
+    return out
+
+
 def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: float, spacing_px: float,
                   max_breaks: int = 8) -> Tuple[List[float], List[dict]]:
     """Sub-CCD edges found in the data (METHODS §9): jumps of the per-column residual (:func:`column_profile` of
@@ -181,7 +250,7 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
         return found, info
     span = (0.0, float(width))
     w = n.astype(float)
-    corr = max(1.0, ramp / float(spacing_px))       # columns per independent one (the window's effective width)
+    corr0 = max(1.0, ramp / float(spacing_px))      # columns per independent one (the window's effective width)
     lo, hi = float(x.min()) + window_px / 2.0, float(x.max()) - window_px / 2.0
     n_indep = max(1.0, (hi - lo) / float(window_px))
     while len(found) < max_breaks:
@@ -196,7 +265,10 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
         b = float(fine[int(np.argmax(g2))])
         if x.size - p - 1 < 4:
             break
-        # residual variance per column from every column; its degrees of freedom from the independent ones
+        # residual variance per column from every column; its degrees of freedom from the independent ones, as
+        # many as the residual's correlation length (at least the window's effective width) leaves
+        e = _smooth_residual(x, y, w, sorted(found + [b]), ramp, span)
+        corr = max(corr0, _correlation_length(e, max_lag=int(round(4.0 * window_px / float(spacing_px)))))
         s2 = (rss - float(g2.max())) / (2.0 * (x.size - p - 1))
         dof = 2.0 * max(x.size / corr - p - 1, 2.0)
         F = (float(g2.max()) / 2.0) / max(s2, 1e-300) / corr

@@ -247,6 +247,19 @@ def _no_cell_message(matches, n_cells) -> str:
             "same camera and use --reuse MODEL.json")
 
 
+def _screen(matches) -> None:
+    """Flag the blunders among the accepted window matches in place (``outlier``; :func:`panms.screen_matches`:
+    within each column, so that the smaller side of a sub-CCD jump is kept for the edge test)."""
+    from .. import panms
+    acc = matches["status"].to_numpy() == 0
+    out = np.zeros(len(matches), bool)
+    out[acc] = panms.screen_matches(matches["pred_sample"].to_numpy(float)[acc],
+                                    matches["pred_line"].to_numpy(float)[acc], matches["d_sample"].to_numpy(float)[acc],
+                                    matches["d_line"].to_numpy(float)[acc], spacing_px=matches.attrs["spacing_px"])
+    matches["outlier"] = out
+    matches.attrs["windows"]["outliers"] = int(out.sum())
+
+
 def _unrelated(matches) -> bool:
     """True when the MS does not show what the pan shows: fewer than MIN_MATCH_SHARE of the windows with texture
     and no flat area (cloud, water) match."""
@@ -428,9 +441,10 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
                 step = spacing if b == 1 or spacing < 16 else 2 * spacing
                 band_matches[b] = match_raw(ms, ms_model, pan, pan_model, dem_obj, spacing_px=step,
                                             window_px=WINDOW_PX, search_px=8, band=b, reference_band=1,
-                                            workers=workers, margin_px=4,
+                                            workers=workers, margin_px=4, outlier_model=None,
                                             progress=_progress.scaled(progress, 0.02 + share * (b - 1),
                                                                       0.02 + share * b))
+                _screen(band_matches[b])
             # the reference band: the one whose matches correlate best with the pan
             nccs = {b: _median_ncc(t) for b, t in band_matches.items()}
             ref = max(nccs, key=lambda b: (nccs[b], -b))
