@@ -267,9 +267,9 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
             break
         # residual variance per column from every column; its degrees of freedom from the independent ones, as
         # many as the residual's correlation length (at least the window's effective width) leaves
+        s2 = (rss - float(g2.max())) / (2.0 * (x.size - p - 1))
         e = _smooth_residual(x, y, w, sorted(found + [b]), ramp, span)
         corr = max(corr0, _correlation_length(e, max_lag=int(round(4.0 * window_px / float(spacing_px)))))
-        s2 = (rss - float(g2.max())) / (2.0 * (x.size - p - 1))
         dof = 2.0 * max(x.size / corr - p - 1, 2.0)
         F = (float(g2.max()) / 2.0) / max(s2, 1e-300) / corr
         fap = min(1.0, float(stats.f.sf(F, 2, dof)) * n_indep)

@@ -52,3 +52,47 @@ def test_breaks_words_and_errors():
     with pytest.raises(panms.PanMSError, match="ms, pan"):
         _parse_breaks("2560,left")
     assert panms.merge_breaks([0.0, 10.0, 10.4, 99.0, 100.0], width=100.0) == [10.2, 99.0]
+
+
+def _window_matches(seed: int = 4, n_blunders: int = 20):
+    """Window matches of a 2816 x 128 MS crop across two sub-CCD edges (the GF7 ``across_both`` crop's layout:
+    32 px windows every 4 px, edges at columns 128 and 2688 with its jumps): a smooth field, each window's own
+    noise (0.03 px), a texture bias shared by neighbouring columns (0.01 px, correlated over ~10 columns, as the
+    matcher's column profile shows on the rendered crop) and ``n_blunders`` gross mismatches (+1.5 px)."""
+    from scipy import ndimage
+    rng = np.random.default_rng(seed)
+    cols, rows = np.arange(20.0, 2797.0, 4.0), np.arange(20.0, 109.0, 4.0)
+    S, L = (v.ravel() for v in np.meshgrid(cols, rows))
+    u = S / 1408.0 - 1.0
+    edges, jumps = np.array([128.0, 2688.0]), np.array([[0.49, 0.70], [-0.157, 0.049]])
+    step = np.clip((S[:, None] - edges[None, :]) / 16.0 + 0.5, 0.0, 1.0) @ jumps          # a window mixes both sides
+    bias = ndimage.gaussian_filter1d(rng.normal(size=(cols.size, 2)), 4.0, axis=0)
+    bias *= 0.01 / bias.std()
+    d = np.stack([-0.87 + 0.2 * u - 0.1 * u ** 3, -0.43 - 0.3 * u + 0.05 * u ** 4], axis=1) + step
+    d += bias[np.searchsorted(cols, S)] + rng.normal(scale=0.03, size=d.shape)
+    bad = rng.choice(S.size, n_blunders, replace=False)
+    d[bad] += 1.5
+    return S, L, d, bad
+
+
+def test_window_screen_keeps_the_smaller_side_of_a_jump_and_flags_blunders():
+    """A global low-order model with a MAD cut (the matcher's default screen) rejects every window left of the
+    jump at column 128 (a 128 px piece); the screen within each column keeps them and flags the blunders."""
+    from gdal_gf4cal.matching import reject_outliers
+    S, L, d, bad = _window_matches()
+    left = S < 112.0
+    assert reject_outliers(S, L, d[:, 0], d[:, 1]).outlier[left].mean() > 0.9            # what went wrong before
+    out = panms.screen_matches(S, L, d[:, 0], d[:, 1], spacing_px=4)
+    assert out[bad].all()
+    assert not out[left & ~np.isin(np.arange(S.size), bad)].any()
+    assert out.sum() <= bad.size + 0.01 * S.size
+
+
+def test_detect_breaks_finds_both_edges_and_no_jump_in_correlated_noise():
+    """Both edges within 2 px, and no spurious edge in the texture bias (0.01 px, correlated over neighbouring
+    columns: counting only the window's width as one independent column finds a 'jump' at column 951 in it)."""
+    S, L, d, bad = _window_matches()
+    ok = ~panms.screen_matches(S, L, d[:, 0], d[:, 1], spacing_px=4)
+    found, info = panms.detect_breaks(S[ok], L[ok], d[ok, 0], d[ok, 1], width=2816, window_px=32, spacing_px=4)
+    assert len(found) == 2 and np.allclose(found, [128.0, 2688.0], atol=2.0), found
+    assert abs(info[0]["jump_line_px"] - 0.70) < 0.3 and abs(info[1]["jump_sample_px"] + 0.157) < 0.05, info
