@@ -165,3 +165,28 @@ def test_intersect_of_the_stereo_crops_with_their_products_rpcs(tmp_path):
     import json
     notes = json.loads((tmp_path / "rep.json").read_text())["notes"]
     assert any("right_image.tif is a crop at (4915, 5162)" in n for n in notes)
+
+
+def test_rpc_file_named_like_the_image_beside_it_is_the_products(tmp_path):
+    """Shareloc's layout: left_image.tif (origin (5000, 5000), no RPC) + left_image.geom (the product's RPC) in one
+    folder: image_rpc(image) takes the .geom, shifts it by the origin and says so; the shifted RPC matches the
+    physical grid. Without a sidecar, the image's own error stands."""
+    import shutil
+    crop = write_crop(tmp_path / "left_image.tif")
+    with pytest.raises(RPCFormatError, match="no RPC"):
+        image_rpc(crop)
+    shutil.copy(GEOM, tmp_path / "left_image.geom")
+    rpc, note = image_rpc(crop)
+    assert note == ("left_image.tif is a crop at (5000, 5000) of the product its RPC describes: RPC shifted by the "
+                    "origin (RPC from left_image.geom beside it)")
+    col, row, alts, lon, lat = grid_nodes()
+    s, l = rpc.project(lon[1], lat[1], np.full(col.size, alts[1]))
+    assert np.max(np.abs(s - (col - ORIGIN[0]))) < 2e-3 and np.max(np.abs(l - (row - ORIGIN[1]))) < 2e-3
+    plain = write_crop(tmp_path / "plain.tif", gt=None)                  # no origin: the sidecar as it is
+    shutil.copy(DIMAP, tmp_path / "plain.XML")
+    rpc, note = image_rpc(plain)
+    assert note == "plain.tif: RPC from plain.XML beside it" and rpc.samp_off == RPCModel.from_file(DIMAP).samp_off
+    own = write_crop(tmp_path / "own.tif", rpc=RPCModel.from_file(GEOM).with_image_affine(-1.0, 0.0))
+    shutil.copy(GEOM, tmp_path / "own.geom")                              # the image's own RPC wins
+    rpc, note = image_rpc(own)
+    assert note is None and rpc.samp_off == pytest.approx(RPCModel.from_file(GEOM).samp_off - 1.0)
