@@ -146,6 +146,7 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
     OUTPUT_PLOT = "OUTPUT_PLOT"
     OUTPUT_REPORT = "OUTPUT_REPORT"
     CHECK_PLAUSIBILITY = "CHECK_PLAUSIBILITY"
+    RPC = "RPC"
 
     def __init__(self):
         super().__init__()
@@ -197,6 +198,22 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         if rpc_file:
             text += " From Python or qgis_process a standalone RPC file (.RPB, _RPC.TXT) may be given instead."
         self._add(QgsProcessingParameterRasterLayer(self.INPUT, self.tr(description)), text)
+
+    def add_rpc_parameter(self):
+        """RPC (optional file): the RPC of an image that carries none (CLI ``--rpc``; a crop and its product's RPC:
+        the crop's origin is applied, :func:`gdal_gf4cal.crop.image_rpc`)."""
+        return self._add(QgsProcessingParameterFile(self.RPC, self.tr("RPC file (if not in the image)"), optional=True,
+                                                    behavior=QgsProcessingParameterFile.File),
+                         "The RPC file of an image that carries none (.geom, RPC_*.XML, .RPB, _RPC.TXT). For a crop "
+                         "that states its origin in the product (a pixel geotransform without CRS) give the "
+                         "product's RPC: the origin is applied and the log says so. Empty: the image's own RPC, "
+                         "else an RPC file named like the image beside it.")
+
+    def rpc_file(self, parameters, context) -> Optional[str]:
+        """The RPC parameter's path, or None (also for an algorithm without it)."""
+        if self.parameterDefinition(self.RPC) is None:
+            return None
+        return self.parameterAsFile(parameters, self.RPC, context) or None
 
     def add_input_rpc(self, description="Image or RPC file"):
         self._add(QgsProcessingParameterFile(self.INPUT, self.tr(description),

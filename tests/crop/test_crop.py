@@ -16,43 +16,7 @@ from gdal_gf4cal.dem import DEM
 from gdal_gf4cal.errors import RPCFormatError
 from gdal_gf4cal.workflows import orthorectify
 
-DATA = Path(__file__).parents[1] / "data"
-GRID = DATA / "crop_ventoux" / "GRID_PHR1B_P_201308051042194_SEN_690908101-001.tif"
-GEOM = DATA / "rpc" / "ventoux_left_image.geom"
-DIMAP = DATA / "rpc" / "RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML"
-ORIGIN = (5000.0, 5000.0)
-SIZE = (500, 500)
-
-
-def write_crop(path, gt=(5000.0, 1.0, 0.0, 5000.0, 0.0, 1.0), size=SIZE, epsg=None, rpc=None):
-    """A crop like shareloc's left_image.tif (same size and georeference) whose two bands hold each pixel centre's
-    own crop column and row (GDAL convention)."""
-    W, H = size
-    ds = gdal.GetDriverByName("GTiff").Create(str(path), W, H, 2, gdal.GDT_Float32)
-    if gt is not None:
-        ds.SetGeoTransform(gt)
-    if epsg:
-        srs = osr.SpatialReference()
-        srs.ImportFromEPSG(epsg)
-        ds.SetSpatialRef(srs)
-    cols, rows = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-    ds.GetRasterBand(1).WriteArray(cols.astype(np.float32))
-    ds.GetRasterBand(2).WriteArray(rows.astype(np.float32))
-    if rpc is not None:
-        ds.SetMetadata(rpc.to_gdal_metadata(), "RPC")
-    ds = None
-    return path
-
-
-def grid_nodes():
-    """(col, row) product pixels (GDAL convention) and (lon, lat) at the grid's altitudes: arrays (n,), (k, n)."""
-    g = gdal.Open(str(GRID))
-    a = g.ReadAsArray()
-    x0, dx, _, y0, _, dy = g.GetGeoTransform()
-    j, i = np.meshgrid(np.arange(g.RasterXSize), np.arange(g.RasterYSize))
-    alts = np.array([float(g.GetMetadataItem(f"LG_ALTITUDE_B{2 * k}", "GTiff")) for k in range(a.shape[0] // 2)])
-    return ((x0 + dx * j).ravel(), (y0 + dy * i).ravel(), alts,
-            a[0::2].reshape(len(alts), -1), a[1::2].reshape(len(alts), -1))
+from ventouxcrop import DATA, DIMAP, GEOM, GRID, ORIGIN, SIZE, grid_nodes, write_crop
 
 
 @pytest.fixture()

@@ -1,0 +1,41 @@
+"""Every command pairs a crop with its product's RPC (issue 19 item 8): the real Ventoux crop geometry (500 x 500 px at
+product pixel (5000, 5000), no RPC of its own) with the product's .geom, through the CLI, checked against the
+product's physical location grid (tests/data/crop_ventoux/PROVENANCE.txt)."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from gdal_gf4cal import RPCModel
+from gdal_gf4cal.cli import main
+from ventouxcrop import BIAS, GEOM, NOTE, grid_gcps, max_error_px, write_crop
+
+
+@pytest.fixture()
+def crop(tmp_path):
+    path = write_crop(tmp_path / "left_image.tif")
+    grid_gcps().to_csv(tmp_path / "gcps.csv", index=False)
+    return path
+
+
+@pytest.mark.parametrize("paired", ["--rpc", "beside"])
+def test_refine_a_crop_with_its_products_rpc(tmp_path, crop, paired, capsys):
+    """gf4cal refine left_image.tif --rpc left_image.geom (or the .geom beside the crop): the refined RPC is the
+    crop's, and with the bias removed it lands on the grid's nodes (a product RPC unshifted would be 7000 px off)."""
+    args = ["refine", str(crop), "--gcps", str(tmp_path / "gcps.csv"), "--model", "translation",
+            "--out", str(tmp_path / "out" / "refined.RPB"), "--report", str(tmp_path / "rep.json")]
+    if paired == "--rpc":
+        args += ["--rpc", str(GEOM)]
+    else:
+        shutil.copy(GEOM, tmp_path / "left_image.geom")
+    (tmp_path / "out").mkdir()
+    assert main(args) == 0
+    assert f"note: {NOTE}" in capsys.readouterr().err
+    assert max_error_px(RPCModel.from_file(tmp_path / "out" / "refined.RPB")) < 0.01
+    rep = json.loads((tmp_path / "rep.json").read_text())
+    assert any(n.startswith(NOTE) for n in rep["notes"])
+    assert rep["control"]["before"]["sample"]["rms"] == pytest.approx(BIAS[0], abs=0.01)

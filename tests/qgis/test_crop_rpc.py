@@ -1,0 +1,34 @@
+"""Issue 19 item 8 in headless QGIS: a crop that states its origin in the product (the real Ventoux crop geometry,
+tests/ventouxcrop.py) paired with its product's RPC through the optional "RPC file (if not in the image)" parameter;
+the refined RPC lands on the product's physical location grid, the log says the origin was applied."""
+import pytest
+
+from gdal_gf4cal import RPCModel
+from ventouxcrop import GEOM, NOTE, grid_gcps, max_error_px, write_crop
+
+
+@pytest.fixture()
+def crop(tmp_path):
+    grid_gcps().to_csv(tmp_path / "gcps.csv", index=False)
+    return str(write_crop(tmp_path / "left_image.tif")), f"file://{tmp_path / 'gcps.csv'}?xField=lon&yField=lat&crs=EPSG:4326"
+
+
+def test_refinerpc_of_a_crop_with_its_products_rpc(run_alg, crop, tmp_path):
+    image, gcps = crop
+    from qgis.core import QgsVectorLayer
+    layer = QgsVectorLayer(gcps, "gcps", "delimitedtext")
+    assert layer.isValid() and layer.featureCount() == 50
+    res, fb = run_alg("gf4cal:refinerpc", {"INPUT": image, "RPC": str(GEOM), "GCPS": layer, "MODEL": 0,
+                                           "OUTPUT_RPC": str(tmp_path / "refined.RPB"),
+                                           "OUTPUT_GPKG": str(tmp_path / "residuals.gpkg")})
+    assert max_error_px(RPCModel.from_file(res["OUTPUT_RPC"])) < 0.01
+    assert 3.5 < res["CONTROL_RMS_BEFORE"] < 3.7 and res["CONTROL_RMS_AFTER"] < 0.01
+    assert any(NOTE in m for _, m in fb.log), fb.text()
+
+
+def test_rpc_parameter_is_optional_where_an_image_is_the_source(qgis_app):
+    from qgis.core import QgsApplication
+    reg = QgsApplication.processingRegistry()
+    for alg in ("refinerpc",):
+        p = reg.algorithmById(f"gf4cal:{alg}").parameterDefinition("RPC")
+        assert p is not None and p.flags() & p.FlagOptional, alg
