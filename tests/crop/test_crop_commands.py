@@ -39,3 +39,25 @@ def test_refine_a_crop_with_its_products_rpc(tmp_path, crop, paired, capsys):
     rep = json.loads((tmp_path / "rep.json").read_text())
     assert any(n.startswith(NOTE) for n in rep["notes"])
     assert rep["control"]["before"]["sample"]["rms"] == pytest.approx(BIAS[0], abs=0.01)
+
+
+@pytest.mark.parametrize("paired", ["--rpc", "beside"])
+def test_info_prints_the_crops_footprint(tmp_path, crop, paired, capsys):
+    """gf4cal info left_image.tif --rpc left_image.geom: the footprint of the crop's 500 x 500 px (its corners where
+    the product's RPC puts product pixels (5000, 5000) .. (5500, 5500)), not of the product."""
+    product = RPCModel.from_file(GEOM)
+    args = ["info", str(crop), "--json"]
+    if paired == "--rpc":
+        args += ["--rpc", str(GEOM)]
+    else:
+        shutil.copy(GEOM, tmp_path / "left_image.geom")
+    assert main(args) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["size"] == [500, 500] and info["size_from_image"] and info["format"] == "geom"
+    assert info["notes"][0].startswith(NOTE)
+    lon, lat, h = np.array(info["corners"]).T
+    ps, pl = product.project(lon, lat, h)
+    assert np.max(np.abs(ps - [5000, 5500, 5500, 5000])) < 1e-3 and np.max(np.abs(pl - [5000, 5000, 5500, 5500])) < 1e-3
+    assert main(args[:2] + args[3:]) == 0
+    text = capsys.readouterr().out
+    assert "500 x 500 px" in text and f"note: {NOTE}" in text and "left_image.geom" in text

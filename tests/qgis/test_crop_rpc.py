@@ -26,9 +26,18 @@ def test_refinerpc_of_a_crop_with_its_products_rpc(run_alg, crop, tmp_path):
     assert any(NOTE in m for _, m in fb.log), fb.text()
 
 
+def test_rpcinfo_of_a_crop_with_its_products_rpc(run_alg, crop, tmp_path):
+    image, _ = crop
+    res, fb = run_alg("gf4cal:rpcinfo", {"INPUT": image, "RPC": str(GEOM), "OUTPUT_FOOTPRINT": "memory:"})
+    product = RPCModel.from_file(GEOM)
+    s, l = product.project(res["CENTER_LON"], res["CENTER_LAT"], product.height_off)
+    assert res["WIDTH"] == 500 and abs(s - 5250) < 1 and abs(l - 5250) < 1
+    assert any(NOTE in m for _, m in fb.log), fb.text()
+
+
 def test_rpc_parameter_is_optional_where_an_image_is_the_source(qgis_app):
     from qgis.core import QgsApplication
     reg = QgsApplication.processingRegistry()
-    for alg in ("refinerpc",):
+    for alg in ("refinerpc", "rpcinfo"):
         p = reg.algorithmById(f"gf4cal:{alg}").parameterDefinition("RPC")
         assert p is not None and p.flags() & p.FlagOptional, alg
