@@ -61,3 +61,13 @@ def test_info_prints_the_crops_footprint(tmp_path, crop, paired, capsys):
     assert main(args[:2] + args[3:]) == 0
     text = capsys.readouterr().out
     assert "500 x 500 px" in text and f"note: {NOTE}" in text and "left_image.geom" in text
+
+
+def test_assess_a_crop_with_its_products_rpc(tmp_path, crop):
+    """assess_accuracy(crop, gcps, rpc=geom): residuals are the GCPs' bias to 1e-3 px, the origin noted."""
+    from gdal_gf4cal.workflows import assess_accuracy
+    rep = assess_accuracy(crop, tmp_path / "gcps.csv", rpc=GEOM, image_size=(500, 500))
+    assert rep["notes"][0].startswith(NOTE) and rep["n"] == 50
+    assert rep["all"]["sample"]["mean"] == pytest.approx(BIAS[0], abs=1e-3)
+    assert rep["all"]["line"]["mean"] == pytest.approx(BIAS[1], abs=1e-3)
+    assert rep["all"]["sample"]["std"] < 1e-3

@@ -26,6 +26,16 @@ def test_refinerpc_of_a_crop_with_its_products_rpc(run_alg, crop, tmp_path):
     assert any(NOTE in m for _, m in fb.log), fb.text()
 
 
+def test_assessaccuracy_of_a_crop_with_its_products_rpc(run_alg, crop, tmp_path):
+    """The residuals are the GCPs' bias (3, -2) px to 1e-3 px (unshifted, the product's RPC is 7000 px off)."""
+    image, gcps = crop
+    from qgis.core import QgsVectorLayer
+    layer = QgsVectorLayer(gcps, "gcps", "delimitedtext")
+    res, fb = run_alg("gf4cal:assessaccuracy", {"INPUT": image, "RPC": str(GEOM), "GCPS": layer})
+    assert res["N"] == 50 and abs(res["MEAN_SAMPLE"] - 3.0) < 1e-3 and abs(res["MEAN_LINE"] + 2.0) < 1e-3
+    assert res["RMS_SAMPLE"] - 3.0 < 1e-3 and any(NOTE in m for _, m in fb.log), fb.text()
+
+
 def test_rpcinfo_of_a_crop_with_its_products_rpc(run_alg, crop, tmp_path):
     image, _ = crop
     res, fb = run_alg("gf4cal:rpcinfo", {"INPUT": image, "RPC": str(GEOM), "OUTPUT_FOOTPRINT": "memory:"})
@@ -38,6 +48,6 @@ def test_rpcinfo_of_a_crop_with_its_products_rpc(run_alg, crop, tmp_path):
 def test_rpc_parameter_is_optional_where_an_image_is_the_source(qgis_app):
     from qgis.core import QgsApplication
     reg = QgsApplication.processingRegistry()
-    for alg in ("refinerpc", "rpcinfo"):
+    for alg in ("refinerpc", "rpcinfo", "assessaccuracy"):
         p = reg.algorithmById(f"gf4cal:{alg}").parameterDefinition("RPC")
         assert p is not None and p.flags() & p.FlagOptional, alg
