@@ -44,7 +44,7 @@ def qgis_words(message: str) -> str:
                             f"({GEOID_GRID_WORDS}) or choose 'DEM heights are: Ellipsoidal heights'")
             .replace("geoid=<grid path>", GEOID_GRID_WORDS)
             .replace("(--columns)", "(GCP_COLUMNS)").replace("(--gcp-pixel-convention)", "(GCP_PIXEL_CONVENTION)")
-            .replace("(--bands-of)", "(BANDS_OF)")
+            .replace("(--bands-of)", "(BANDS_OF)").replace("(--rpc)", "(RPCS)")
             .replace("(--no-plausibility-check)", f"({PLAUSIBILITY_WORDS})").replace("(--geoid)", "(GEOID)"))
 TRACKER = "https://github.com/gdal-gf4cal/gdal_gf4cal/issues"
 

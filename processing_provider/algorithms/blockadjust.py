@@ -54,6 +54,7 @@ class BlockAdjust(Gf4calAlgorithm):
     MATCH_TIES = "MATCH_TIES"
     REFERENCE_ORTHO = "REFERENCE_ORTHO"
     BANDS_OF = "BANDS_OF"
+    RPCS = "RPCS"
     SOLVER = "SOLVER"
     REFERENCE_CCD = "REFERENCE_CCD"
     OUTPUT_FOLDER = "OUTPUT_FOLDER"
@@ -86,6 +87,12 @@ class BlockAdjust(Gf4calAlgorithm):
                   "Which image is another band of which CCD: items IMAGE=REFIMAGE (the band image and the "
                   "reference-band image of its CCD), separated by commas, semicolons or new lines, e.g. ccd1_green=ccd1_blue. "
                   "These bands are calibrated relatively (interior only, reference exterior fixed).")
+        self._add(QgsProcessingParameterString(self.RPCS, self.tr("RPC files (if not in the images): IMAGE=RPC, ..."),
+                                               optional=True, multiLine=True),
+                  "For images that carry no RPC: items IMAGE=RPC (the image's file or folder name and its RPC file), "
+                  "separated by commas, semicolons or new lines. For a crop that states its origin in the product "
+                  "(a pixel geotransform without CRS) give the product's RPC: the origin is applied and the log "
+                  "says so. Images not named: their own RPC, else an RPC file named like the image beside it.")
         self._add(QgsProcessingParameterEnum(self.SOLVER, self.tr("Solver"), SOLVER_LABELS, defaultValue=0),
                   "How the group is solved (METHODS §8).")
         p = self._add(QgsProcessingParameterString(self.REFERENCE_CCD, self.tr("Reference CCD image (datum)"),
@@ -128,7 +135,8 @@ class BlockAdjust(Gf4calAlgorithm):
             bands_of=split_bands_of(self.parameterAsString(parameters, self.BANDS_OF, context)),
             solver=SOLVERS[self.parameterAsEnum(parameters, self.SOLVER, context)],
             reference_ccd=self.parameterAsString(parameters, self.REFERENCE_CCD, context) or None,
-            check_plausibility=self.check_plausibility(parameters, context))
+            check_plausibility=self.check_plausibility(parameters, context),
+            rpcs=split_bands_of(self.parameterAsString(parameters, self.RPCS, context)))
         self.push_warnings(feedback, rep)
         for st in rep["stages"]:
             feedback.pushInfo(f"{st['stage']} stage ({st['solver']}): {st['iterations']} iterations, "

@@ -51,3 +51,9 @@ def test_rpc_parameter_is_optional_where_an_image_is_the_source(qgis_app):
     for alg in ("refinerpc", "rpcinfo", "assessaccuracy"):
         p = reg.algorithmById(f"gf4cal:{alg}").parameterDefinition("RPC")
         assert p is not None and p.flags() & p.FlagOptional, alg
+
+
+def test_blockadjust_has_rpc_pairs(qgis_app):
+    from qgis.core import QgsApplication
+    p = QgsApplication.processingRegistry().algorithmById("gf4cal:blockadjust").parameterDefinition("RPCS")
+    assert p is not None and p.flags() & p.FlagOptional and "IMAGE=RPC" in p.description()
