@@ -29,7 +29,7 @@ negative is a north-up map transform whose CRS was lost (nothing applied).
 from __future__ import annotations
 
 import os
-from typing import Optional, Tuple
+from typing import List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -125,6 +125,26 @@ def image_and_rpc(entry) -> Tuple[str, Optional[str]]:
     return entry, None
 
 
+def paired_rpc_files(images: Sequence, pairs, what: str = "--rpc") -> List[Optional[str]]:
+    """For each of ``images``, the RPC file ``pairs`` gives it (``["IMAGE=RPC", ...]`` or ``{image: rpc}``; IMAGE
+    the image's path or file name), else ``None``. A pair that is not IMAGE=RPC or names no image given is refused
+    (:class:`RPCFormatError` naming ``what``)."""
+    items = pairs.items() if isinstance(pairs, Mapping) else [image_and_rpc(e) for e in (pairs or ())]
+    paths = [os.fspath(p) for p in images]
+    out: List[Optional[str]] = [None] * len(paths)
+    for image, rpc in items:
+        if not image or not rpc:
+            raise RPCFormatError(f"{what} {image}: give IMAGE=RPC, the image and its RPC file (e.g. left.tif=left.geom)")
+        image = os.fspath(image)
+        hits = [i for i, p in enumerate(paths) if os.path.abspath(p) == os.path.abspath(image)] or \
+            [i for i, p in enumerate(paths) if os.path.basename(p) == os.path.basename(image)]
+        if len(hits) != 1:
+            raise RPCFormatError(f"{what} {image}={rpc}: {'no' if not hits else 'more than one'} image given is "
+                                 f"{image}; name the image as you gave it")
+        out[hits[0]] = os.fspath(rpc)
+    return out
+
+
 def _own_or_beside(image_path: str):
     """The image's own RPC (note None), else the RPC file beside it (:func:`sidecar_rpc`) through
     :func:`image_rpc`, its note naming the file; the image's own error when there is neither."""
@@ -202,4 +222,5 @@ def _fit_to_crop(model: RPCModel, image_path: str, gt: tuple, size: Tuple[int, i
         "the origin is wrong; give this image's product RPC, or remove the geotransform (gdal_edit.py -unsetgt)")
 
 
-__all__ = ["DOMAIN_LIMIT", "SIDECAR_SUFFIXES", "crop_origin", "image_and_rpc", "image_rpc", "sidecar_rpc"]
+__all__ = ["DOMAIN_LIMIT", "SIDECAR_SUFFIXES", "crop_origin", "image_and_rpc", "image_rpc", "paired_rpc_files",
+           "sidecar_rpc"]

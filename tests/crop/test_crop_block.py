@@ -52,6 +52,20 @@ def test_block_adjust_of_crops_with_their_products_rpcs(tmp_path_factory, tmp_pa
         ok = np.isfinite(lon)                  # (the refitted RPC's inverse misses an odd point)
         s, l = b.project(lon[ok], lat[ok], a.height_off)
         assert ok.sum() >= 30 and np.max(np.hypot(s - S[ok], l - L[ok])) < 1e-6, name
+    # apply-calibration --calibration to the crops, paired as block-adjust was: the same RPCs as to the images
+    assert main(["apply-calibration", *own[:len(B.NAMES)], "--calibration", str(tmp_path / "own" / "calibration.json"),
+                 "--out", str(tmp_path / "own_applied")]) == 0
+    assert main(["apply-calibration", *args[:len(B.NAMES)], "--rpc", *pairs, "--calibration",
+                 str(tmp_path / "crop" / "calibration.json"), "--out", str(tmp_path / "crop_applied")]) == 0
+    notes = json.loads((tmp_path / "crop_applied" / "report.json").read_text())["notes"]
+    assert len(notes) == len(B.NAMES)
+    for name in B.NAMES:
+        a = RPCModel.from_file(tmp_path / "own_applied" / f"{name}.RPB")
+        b = RPCModel.from_file(tmp_path / "crop_applied" / f"{name}.RPB")
+        lon, lat = a.localize(S, L, np.full(S.shape, a.height_off))
+        ok = np.isfinite(lon)
+        s, l = b.project(lon[ok], lat[ok], a.height_off)
+        assert ok.sum() >= 30 and np.max(np.hypot(s - S[ok], l - L[ok])) < 1e-6, name
 
 
 def test_rpc_pairs_that_are_not_pairs_are_refused(tmp_path_factory, tmp_path, capsys):

@@ -71,3 +71,34 @@ def test_assess_a_crop_with_its_products_rpc(tmp_path, crop):
     assert rep["all"]["sample"]["mean"] == pytest.approx(BIAS[0], abs=1e-3)
     assert rep["all"]["line"]["mean"] == pytest.approx(BIAS[1], abs=1e-3)
     assert rep["all"]["sample"]["std"] < 1e-3
+
+
+def test_apply_calibration_to_a_crop_recalibrates_its_products_rpc(tmp_path):
+    """apply-calibration crop.tif --rpc crop.tif=product.RPB (GF4-type frame, tests/gf4frame.py): the product's RPC
+    (the camera's pixels) is recalibrated, then moved to the crop: the crop's RPB is the product's recalibrated RPC
+    shifted by the origin, and lands where the true camera puts the crop's pixels."""
+    from gf4frame import HEIGHTS, frame_model, make_cameras
+    from gdal_gf4cal.rpc_fit import fit_rpc_from_model
+    cur, true = make_cameras()
+    product, _ = fit_rpc_from_model(frame_model(cur), height_range=HEIGHTS)
+    product.write_rpb(tmp_path / "product.RPB")
+    cur.to_json(tmp_path / "current.json")
+    true.to_json(tmp_path / "true.json")
+    origin = (4000.0, 6000.0)
+    crop = write_crop(tmp_path / "crop.tif", gt=(origin[0], 1.0, 0.0, origin[1], 0.0, 1.0))
+    cams = ["--current", str(tmp_path / "current.json"), "--new", str(tmp_path / "true.json")]
+    assert main(["apply-calibration", str(tmp_path / "product.RPB"), *cams, "--out", str(tmp_path / "full")]) == 0
+    assert main(["apply-calibration", str(crop), "--rpc", f"{crop}={tmp_path / 'product.RPB'}", *cams,
+                 "--out", str(tmp_path / "crop")]) == 0
+    rep = json.loads((tmp_path / "crop" / "report.json").read_text())
+    assert rep["notes"] == ["crop.tif is a crop at (4000, 6000) of the product its RPC describes: RPC shifted by "
+                            "the origin"]
+    full, cropped = (RPCModel.from_file(tmp_path / d / f"{n}.RPB") for d, n in (("full", "product"), ("crop", "crop")))
+    S, L = (a.ravel() for a in np.meshgrid(origin[0] + np.linspace(0, 500, 6), origin[1] + np.linspace(0, 500, 6)))
+    h = np.full(S.size, float(np.mean(HEIGHTS)))
+    lon, lat = full.localize(S, L, h)
+    s, l = cropped.project(lon, lat, h)
+    assert np.max(np.hypot(s - (S - origin[0]), l - (L - origin[1]))) < 1e-6
+    ts, tl = frame_model(true).project(lon, lat, h)               # the true camera: the RPC fit's error only
+    assert np.max(np.hypot(s - (ts - origin[0]), l - (tl - origin[1]))) < 0.05
+    assert (tmp_path / "crop" / "crop.vrt").is_file()
