@@ -41,6 +41,9 @@ from .rpc import RPCModel
 #: itself reads ``<stem>.RPB`` / ``<stem>_RPC.TXT`` as the image's own RPC for the formats it knows them for.
 SIDECAR_SUFFIXES = (".geom", ".GEOM", ".RPB", ".rpb", "_RPC.TXT", "_rpc.txt", ".XML", ".xml")
 
+#: The end of :func:`image_rpc`'s note when it moved a product's RPC to the crop.
+SHIFTED = "RPC shifted by the origin"
+
 #: A crop is inside an RPC's image domain when its corners' normalised image coordinates are within this bound.
 DOMAIN_LIMIT = 1.1
 
@@ -194,6 +197,17 @@ def image_rpc(image_path, rpc=None):
     return _fit_to_crop(model, image_path, gt, size)
 
 
+def product_rpc(image_path, rpc=None):
+    """``(model, origin, note)``: the RPC :func:`image_rpc` finds for ``image_path`` in the *product's* pixels (a
+    camera's or detector's own grid) and the image's origin there, ``(0.0, 0.0)`` when it is not a crop whose
+    product's RPC was moved to it. ``model.with_image_affine(-origin[0], -origin[1])`` is the image's RPC."""
+    model, note = image_rpc(image_path, rpc)
+    origin = crop_origin(image_path) if note and SHIFTED in note else None
+    if origin is None:
+        return model, (0.0, 0.0), note
+    return model.with_image_affine(*origin), origin, note
+
+
 def _fit_to_crop(model: RPCModel, image_path: str, gt: tuple, size: Tuple[int, int]):
     name = os.path.basename(image_path)
     if gt[5] < 0 and gt[2] == 0.0 and gt[4] == 0.0:
@@ -211,7 +225,7 @@ def _fit_to_crop(model: RPCModel, image_path: str, gt: tuple, size: Tuple[int, i
     already = _normalised_extent(model, 0.0, 0.0, size) <= DOMAIN_LIMIT and _already_shifted(model, col0, row0)
     if shifted and not already:
         return (model.with_image_affine(-col0, -row0),
-                f"{name} is a crop at {where} of the product its RPC describes: RPC shifted by the origin")
+                f"{name} is a crop at {where} of the product its RPC describes: {SHIFTED}")
     if already:
         return model, (f"{name} states a crop origin {where} but its RPC already describes the crop's pixels "
                        "(its image domain starts before the origin): origin not applied")
@@ -222,5 +236,5 @@ def _fit_to_crop(model: RPCModel, image_path: str, gt: tuple, size: Tuple[int, i
         "the origin is wrong; give this image's product RPC, or remove the geotransform (gdal_edit.py -unsetgt)")
 
 
-__all__ = ["DOMAIN_LIMIT", "SIDECAR_SUFFIXES", "crop_origin", "image_and_rpc", "image_rpc", "paired_rpc_files",
+__all__ = ["DOMAIN_LIMIT", "SIDECAR_SUFFIXES", "crop_origin", "SHIFTED", "image_and_rpc", "image_rpc", "paired_rpc_files", "product_rpc",
            "sidecar_rpc"]

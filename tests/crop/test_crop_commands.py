@@ -102,3 +102,39 @@ def test_apply_calibration_to_a_crop_recalibrates_its_products_rpc(tmp_path):
     ts, tl = frame_model(true).project(lon, lat, h)               # the true camera: the RPC fit's error only
     assert np.max(np.hypot(s - (ts - origin[0]), l - (tl - origin[1]))) < 0.05
     assert (tmp_path / "crop" / "crop.vrt").is_file()
+
+
+def test_calibrate_lookangle_on_a_crop_works_in_the_cameras_pixels(tmp_path):
+    """calibrate-lookangle --rpc product.RPB --image crop.tif (GF4-type frame, tests/gf4frame.py), GCPs measured in
+    the crop's pixels: the camera is calibrated in the product's pixels (the camera's), the same camera as from the
+    product with the same GCPs there; the crop's RPB is the product's recalibrated RPC moved to the crop."""
+    from gcpsim import gcps_from_truth
+    from gf4frame import HEIGHTS, W, frame_model, make_cameras
+    from gdal_gf4cal.camera import LookAngleModel
+    from gdal_gf4cal.rpc_fit import fit_rpc_from_model
+    cur, true = make_cameras()
+    product, _ = fit_rpc_from_model(frame_model(cur), height_range=HEIGHTS)
+    product.write_rpb(tmp_path / "product.RPB")
+    cur.to_json(tmp_path / "current.json")
+    gcps, _ = gcps_from_truth(frame_model(true), 60, size=(W, W), heights=HEIGHTS, sigma_px=0.3, seed=4)
+    gcps = gcps.drop(columns=["truth_sample", "truth_line"])
+    origin = (4000.0, 6000.0)
+    gcps.to_csv(tmp_path / "product_gcps.csv", index=False)
+    gcps.assign(sample=gcps["sample"] - origin[0], line=gcps["line"] - origin[1]).to_csv(tmp_path / "crop_gcps.csv",
+                                                                                         index=False)
+    crop = write_crop(tmp_path / "crop.tif", gt=(origin[0], 1.0, 0.0, origin[1], 0.0, 1.0), size=(2000, 2000))
+    common = ["calibrate-lookangle", "--rpc", str(tmp_path / "product.RPB"), "--camera", str(tmp_path / "current.json")]
+    assert main(common + ["--gcps", str(tmp_path / "product_gcps.csv"), "--out", str(tmp_path / "full")]) == 0
+    assert main(common + ["--gcps", str(tmp_path / "crop_gcps.csv"), "--image", str(crop),
+                          "--out", str(tmp_path / "crop")]) == 0
+    rep = json.loads((tmp_path / "crop" / "report.json").read_text())
+    assert rep["notes"] == ["crop.tif is a crop at (4000, 6000) of the product its RPC describes: RPC shifted by "
+                            "the origin"]
+    a, b = (LookAngleModel.from_json(tmp_path / d / "camera_new.json") for d in ("full", "crop"))
+    S, L = (x.ravel() for x in np.meshgrid(np.linspace(0, W, 5), np.linspace(0, W, 5)))
+    assert np.max(np.abs(np.subtract(a.tan_angles(S, L), b.tan_angles(S, L)))) < 1e-12
+    full, cropped = RPCModel.from_file(tmp_path / "full" / "product.RPB"), RPCModel.from_file(tmp_path / "crop" / "crop.RPB")
+    h = np.full(S.size, float(np.mean(HEIGHTS)))
+    lon, lat = full.localize(S, L, h)
+    s, l = cropped.project(lon, lat, h)
+    assert np.max(np.hypot(s - (S - origin[0]), l - (L - origin[1]))) < 1e-6
