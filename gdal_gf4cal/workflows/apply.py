@@ -8,7 +8,7 @@ from typing import Any, Dict, Sequence
 import numpy as np
 
 from ..errors import GCPError, InputOverwriteError
-from ..crop import image_rpc, paired_rpc_files
+from ..crop import image_rpc, paired_rpc_files, product_rpc
 from ..outputs import OutputSet
 from .calibrate import _scene_stem
 from ._common import _open_image, cancel_check, collect_warnings, finish_report
@@ -24,12 +24,11 @@ def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: boo
     and all files are renamed into place together (none on failure or cancel).
 
     ``rpcs`` (``["IMAGE=RPC", ...]``, CLI ``--rpc``): the RPC file of a scene that carries none. A crop that states
-    its origin in the product with the product's RPC: the product's RPC (the camera's pixels) is recalibrated, then
-    shifted to the crop (:func:`gdal_gf4cal.crop.image_rpc`; the report's ``notes`` say so).
+    its origin in the product with the product's RPC (paired, or beside it): the product's RPC (the camera's pixels)
+    is recalibrated, then shifted to the crop (:func:`gdal_gf4cal.crop.product_rpc`; the report's ``notes`` say so).
     """
     from .. import progress as _progress
     from ..camera import LookAngleModel
-    from ..rpc import RPCModel
     from ..lookangle import recalibrate_rpc
     from ..report import write_report_json
     from ..rpc_io import rpc_file_format, write_rpb, write_rpc_vrt
@@ -64,10 +63,10 @@ def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: boo
     with outs, collect_warnings(warns):
         entries, notes = [], []
         for i, ((s, stem, rpb, vrt), pr) in enumerate(zip(plans, rpc_files)):
-            rpc, _ = (RPCModel.from_file(pr), None) if pr else image_rpc(s)     # the camera's pixels
+            rpc, origin, note = product_rpc(s, pr)           # in the product's pixels: the camera's
             new_rpc, fit_report = recalibrate_rpc(rpc, cur, nw, progress=_progress.scaled(
                 progress, i / len(plans), (i + 0.9) / len(plans)))
-            written, note = image_rpc(s, new_rpc) if pr else (new_rpc, None)
+            written = new_rpc.with_image_affine(-origin[0], -origin[1]) if origin != (0.0, 0.0) else new_rpc
             notes += [note] if note else []
             write_rpb(written, outs.tmp(f"rpb:{stem}"), overwrite=True)
             if vrt:
