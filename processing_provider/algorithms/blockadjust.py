@@ -2,7 +2,6 @@
 registered (METHODS §8, seed 003; the same inputs as ``gf4cal block-adjust``)."""
 from __future__ import annotations
 
-import re
 
 from qgis.core import (
     QgsProcessing,
@@ -19,7 +18,7 @@ from qgis.core import (
     QgsProcessingParameterString,
 )
 
-from ..base import Gf4calAlgorithm
+from ..base import Gf4calAlgorithm, split_items
 
 #: SOLVER enum index -> engine solver name (stable: the indices are part of the algorithm's interface).
 SOLVERS = ["simultaneous", "alternating"]
@@ -29,9 +28,7 @@ SOLVER_LABELS = ["Simultaneous (one sparse Gauss-Newton solve; recommended)",
 OBS_FILTER = "Observation tables (*.csv *.gpkg *.CSV *.GPKG);;All files (*.*)"
 
 
-def split_bands_of(text: str):
-    """``"a=b, c=d"`` (commas, semicolons, spaces or new lines between items) -> ``["a=b", "c=d"]``."""
-    return [t for t in re.split(r"[\s,;]+", text or "") if t]
+split_bands_of = split_items
 
 
 class BlockAdjust(Gf4calAlgorithm):
@@ -54,7 +51,6 @@ class BlockAdjust(Gf4calAlgorithm):
     MATCH_TIES = "MATCH_TIES"
     REFERENCE_ORTHO = "REFERENCE_ORTHO"
     BANDS_OF = "BANDS_OF"
-    RPCS = "RPCS"
     SOLVER = "SOLVER"
     REFERENCE_CCD = "REFERENCE_CCD"
     OUTPUT_FOLDER = "OUTPUT_FOLDER"
@@ -87,12 +83,7 @@ class BlockAdjust(Gf4calAlgorithm):
                   "Which image is another band of which CCD: items IMAGE=REFIMAGE (the band image and the "
                   "reference-band image of its CCD), separated by commas, semicolons or new lines, e.g. ccd1_green=ccd1_blue. "
                   "These bands are calibrated relatively (interior only, reference exterior fixed).")
-        self._add(QgsProcessingParameterString(self.RPCS, self.tr("RPC files (if not in the images): IMAGE=RPC, ..."),
-                                               optional=True, multiLine=True),
-                  "For images that carry no RPC: items IMAGE=RPC (the image's file or folder name and its RPC file), "
-                  "separated by commas, semicolons or new lines. For a crop that states its origin in the product "
-                  "(a pixel geotransform without CRS) give the product's RPC: the origin is applied and the log "
-                  "says so. Images not named: their own RPC, else an RPC file named like the image beside it.")
+        self.add_rpc_pairs_parameter()
         self._add(QgsProcessingParameterEnum(self.SOLVER, self.tr("Solver"), SOLVER_LABELS, defaultValue=0),
                   "How the group is solved (METHODS §8).")
         p = self._add(QgsProcessingParameterString(self.REFERENCE_CCD, self.tr("Reference CCD image (datum)"),
@@ -136,7 +127,7 @@ class BlockAdjust(Gf4calAlgorithm):
             solver=SOLVERS[self.parameterAsEnum(parameters, self.SOLVER, context)],
             reference_ccd=self.parameterAsString(parameters, self.REFERENCE_CCD, context) or None,
             check_plausibility=self.check_plausibility(parameters, context),
-            rpcs=split_bands_of(self.parameterAsString(parameters, self.RPCS, context)))
+            rpcs=self.rpc_pairs(parameters, context))
         self.push_warnings(feedback, rep)
         for st in rep["stages"]:
             feedback.pushInfo(f"{st['stage']} stage ({st['solver']}): {st['iterations']} iterations, "

@@ -53,7 +53,33 @@ def test_rpc_parameter_is_optional_where_an_image_is_the_source(qgis_app):
         assert p is not None and p.flags() & p.FlagOptional, alg
 
 
-def test_blockadjust_has_rpc_pairs(qgis_app):
+def test_many_image_algorithms_have_rpc_pairs(qgis_app):
     from qgis.core import QgsApplication
-    p = QgsApplication.processingRegistry().algorithmById("gf4cal:blockadjust").parameterDefinition("RPCS")
-    assert p is not None and p.flags() & p.FlagOptional and "IMAGE=RPC" in p.description()
+    for alg in ("blockadjust", "applycalibration"):
+        p = QgsApplication.processingRegistry().algorithmById(f"gf4cal:{alg}").parameterDefinition("RPCS")
+        assert p is not None and p.flags() & p.FlagOptional and "IMAGE=RPC" in p.description(), alg
+
+
+def test_applycalibration_of_a_crop_with_its_products_rpc(run_alg, tmp_path):
+    """The GF4-type frame (tests/gf4frame.py): the crop's RPB is the product's recalibrated RPC moved to the crop."""
+    import numpy as np
+    from gf4frame import HEIGHTS, frame_model, make_cameras
+    from gdal_gf4cal.rpc_fit import fit_rpc_from_model
+    cur, true = make_cameras()
+    product, _ = fit_rpc_from_model(frame_model(cur), height_range=HEIGHTS)
+    product.write_rpb(tmp_path / "product.RPB")
+    cur.to_json(tmp_path / "current.json")
+    true.to_json(tmp_path / "true.json")
+    crop = write_crop(tmp_path / "crop.tif", gt=(4000.0, 1.0, 0.0, 6000.0, 0.0, 1.0))
+    res, fb = run_alg("gf4cal:applycalibration", {"INPUT": [str(crop)], "RPCS": f"crop.tif={tmp_path / 'product.RPB'}",
+                                                  "CURRENT_CAMERA": str(tmp_path / "current.json"),
+                                                  "NEW_CAMERA": str(tmp_path / "true.json"),
+                                                  "OUTPUT_FOLDER": str(tmp_path / "out")})
+    assert any("crop.tif is a crop at (4000, 6000)" in m for _, m in fb.log), fb.text()
+    got = RPCModel.from_file(tmp_path / "out" / "crop.RPB")
+    S, L = np.meshgrid(4000.0 + np.linspace(0, 500, 5), 6000.0 + np.linspace(0, 500, 5))
+    h = np.full(S.size, float(np.mean(HEIGHTS)))
+    lon, lat = product.localize(S.ravel(), L.ravel(), h)
+    ts, tl = frame_model(true).project(lon, lat, h)
+    s, l = got.project(lon, lat, h)
+    assert np.max(np.hypot(s - (ts - 4000.0), l - (tl - 6000.0))) < 0.05
