@@ -138,3 +138,17 @@ def test_calibrate_lookangle_on_a_crop_works_in_the_cameras_pixels(tmp_path):
     lon, lat = full.localize(S, L, h)
     s, l = cropped.project(lon, lat, h)
     assert np.max(np.hypot(s - (S - origin[0]), l - (L - origin[1]))) < 1e-6
+
+
+def test_ortho_of_a_crop_with_its_products_rpc_beside_it(tmp_path, crop, srtm_path, capsys):
+    """gf4cal ortho left_image.tif with left_image.geom beside it: the same ortho as with --rpc left_image.geom (the
+    crop's pixels at product pixels 5000-5500; tests/crop/test_crop.py checks that ortho against the grid)."""
+    common = ["--dem", str(srtm_path), "--geoid", "egm96", "--res", "2", "--crs", "EPSG:32631"]
+    assert main(["ortho", str(crop), "--rpc", str(GEOM), *common, "--out", str(tmp_path / "paired.tif")]) == 0
+    shutil.copy(GEOM, tmp_path / "left_image.geom")
+    assert main(["ortho", str(crop), *common, "--out", str(tmp_path / "beside.tif")]) == 0
+    assert f"note: {NOTE}: RPC shifted by the origin (RPC from left_image.geom beside it)" in capsys.readouterr().err
+    from osgeo import gdal
+    a, b = gdal.Open(str(tmp_path / "paired.tif")), gdal.Open(str(tmp_path / "beside.tif"))
+    assert a.GetGeoTransform() == b.GetGeoTransform() and (a.RasterXSize, a.RasterYSize) == (b.RasterXSize, b.RasterYSize)
+    assert np.array_equal(a.ReadAsArray(), b.ReadAsArray())
