@@ -48,7 +48,7 @@ def test_rpcinfo_of_a_crop_with_its_products_rpc(run_alg, crop, tmp_path):
 def test_rpc_parameter_is_optional_where_an_image_is_the_source(qgis_app):
     from qgis.core import QgsApplication
     reg = QgsApplication.processingRegistry()
-    for alg in ("refinerpc", "rpcinfo", "assessaccuracy", "calibratelookangle"):
+    for alg in ("refinerpc", "rpcinfo", "assessaccuracy", "calibratelookangle", "collectgcps"):
         p = reg.algorithmById(f"gf4cal:{alg}").parameterDefinition("RPC")
         assert p is not None and p.flags() & p.FlagOptional, alg
 
