@@ -32,7 +32,7 @@ def format_info(info: dict) -> str:
     lines = [f"RPC of {info['source']} ({info['format']}" + (f" {info['rpc_file']})" if info.get("rpc_file") else ")"),
              f"  image size        {info['size'][0]} x {info['size'][1]} px" + ("" if info["size_from_image"]
                                                                               else " (from the RPC scales)"),
-             f"  centre            lon {rpc['LONG_OFF']:.6f}  lat {rpc['LAT_OFF']:.6f}  h {rpc['HEIGHT_OFF']:.1f} m",
+             f"  RPC centre        lon {rpc['LONG_OFF']:.6f}  lat {rpc['LAT_OFF']:.6f}  h {rpc['HEIGHT_OFF']:.1f} m",
              f"  height range      {info['height_range_m'][0]:.1f} .. {info['height_range_m'][1]:.1f} m "
              "(HEIGHT_OFF ± HEIGHT_SCALE)",
              f"  footprint on      {info['footprint_height']}"]
