@@ -137,13 +137,14 @@ def paired_rpc_files(images: Sequence, pairs, what: str = "--rpc") -> List[Optio
     out: List[Optional[str]] = [None] * len(paths)
     for image, rpc in items:
         if not image or not rpc:
-            raise RPCFormatError(f"{what} {image}: give IMAGE=RPC, the image and its RPC file (e.g. left.tif=left.geom)")
+            raise RPCFormatError(f"{what} {image}: give IMAGE=RPC, the image and its RPC file (e.g. "
+                                 "left.tif=left.geom)")
         image = os.fspath(image)
         hits = [i for i, p in enumerate(paths) if os.path.abspath(p) == os.path.abspath(image)] or \
             [i for i, p in enumerate(paths) if os.path.basename(p) == os.path.basename(image)]
         if len(hits) != 1:
-            raise RPCFormatError(f"{what} {image}={rpc}: {'no' if not hits else 'more than one'} image given is "
-                                 f"{image}; name the image as you gave it")
+            why = "is not among the images given" if not hits else "names more than one of the images given"
+            raise RPCFormatError(f"{what} {image}={rpc}: {image} {why}; name the image as you gave it")
         out[hits[0]] = os.fspath(rpc)
     return out
 
@@ -168,8 +169,8 @@ def image_rpc(image_path, rpc=None):
     Parameters
     ----------
     image_path : path of the image (any GDAL raster)
-    rpc : None (the image's own RPC, else the RPC file named like it beside it), the path of an RPC source, or an :class:`RPCModel` (other sensor models are
-        returned as given)
+    rpc : None (the image's own RPC, else the RPC file named like it beside it), the path of an RPC source, or an
+        :class:`RPCModel` (other sensor models are returned as given)
 
     Returns
     -------
@@ -236,5 +237,5 @@ def _fit_to_crop(model: RPCModel, image_path: str, gt: tuple, size: Tuple[int, i
         "the origin is wrong; give this image's product RPC, or remove the geotransform (gdal_edit.py -unsetgt)")
 
 
-__all__ = ["DOMAIN_LIMIT", "SIDECAR_SUFFIXES", "crop_origin", "SHIFTED", "image_and_rpc", "image_rpc", "paired_rpc_files", "product_rpc",
-           "sidecar_rpc"]
+__all__ = ["DOMAIN_LIMIT", "SHIFTED", "SIDECAR_SUFFIXES", "crop_origin", "image_and_rpc", "image_rpc",
+           "paired_rpc_files", "product_rpc", "sidecar_rpc"]

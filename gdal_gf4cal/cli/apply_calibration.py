@@ -34,7 +34,8 @@ def run(args) -> int:
         raise GCPError("give --current and --new (camera files) or --calibration (block calibration)")
     if args.batch or args.dask:
         if args.rpc:
-            raise GCPError("--rpc pairs scenes of one run with their RPCs; in a batch each scene must carry its own RPC")
+            raise GCPError("--rpc pairs the scenes of one run with their RPCs; in a batch each scene must carry its "
+                           "own RPC")
         from .batch_options import run_batch_command
         from ..batch import apply_calibration_batch
         return run_batch_command(args, lambda ex, pr: apply_calibration_batch(

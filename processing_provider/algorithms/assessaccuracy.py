@@ -55,7 +55,8 @@ class AssessAccuracy(Gf4calAlgorithm):
         if size is None:
             from gdal_gf4cal.rpc import RPCModel
             size = RPCModel.from_file(rpc or source).image_size
-        rep = assess_accuracy(source, gcps, rpc=rpc, residuals=out_gpkg, plot=out_plot, report=out_report, image_size=size,
+        rep = assess_accuracy(source, gcps, rpc=rpc, residuals=out_gpkg, plot=out_plot, report=out_report,
+                              image_size=size,
                               overwrite=True, progress=progress,
                               check_plausibility=self.check_plausibility(parameters, context))
         self.push_warnings(feedback, rep)

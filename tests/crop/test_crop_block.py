@@ -18,7 +18,8 @@ ORIGIN = (3000.0, 12000.0)
 
 def as_crops(d, root):
     """Each image of ``d`` rewritten under ``root`` (same folder names: the observations' image names) as a crop at
-    ORIGIN without RPC, and its RPC moved to the product's pixels in ``root/<name>/product.RPB``; the IMAGE=RPC pairs."""
+    ORIGIN without RPC, and its RPC moved to the product's pixels in ``root/<name>/product.RPB``; the IMAGE=RPC
+    pairs."""
     pairs = []
     for name in B.NAMES:
         src = gdal.Open(B.image_path(d, name))
@@ -42,7 +43,8 @@ def test_block_adjust_of_crops_with_their_products_rpcs(tmp_path_factory, tmp_pa
     assert main(["block-adjust", *own, "--out", str(tmp_path / "own")]) == 0
     assert main(["block-adjust", *args, "--rpc", *pairs, "--out", str(tmp_path / "crop")]) == 0
     notes = json.loads((tmp_path / "crop" / "report.json").read_text())["notes"]
-    assert len(notes) == len(B.NAMES) and all(n.startswith(f"{k}: scene.tif is a crop at (3000, 12000)") for n, k in zip(notes, B.NAMES))
+    assert len(notes) == len(B.NAMES)
+    assert all(n.startswith(f"{k}: scene.tif is a crop at (3000, 12000)") for n, k in zip(notes, B.NAMES))
     W, H = B.SIZE
     S, L = (a.ravel() for a in np.meshgrid(np.linspace(1, W - 1, 7), np.linspace(1, H - 1, 5)))
     for name in B.NAMES:                   # the recalibrated RPCs, written for the crops' pixels, are the same

@@ -133,7 +133,8 @@ def test_calibrate_lookangle_on_a_crop_works_in_the_cameras_pixels(tmp_path):
     a, b = (LookAngleModel.from_json(tmp_path / d / "camera_new.json") for d in ("full", "crop"))
     S, L = (x.ravel() for x in np.meshgrid(np.linspace(0, W, 5), np.linspace(0, W, 5)))
     assert np.max(np.abs(np.subtract(a.tan_angles(S, L), b.tan_angles(S, L)))) < 1e-12
-    full, cropped = RPCModel.from_file(tmp_path / "full" / "product.RPB"), RPCModel.from_file(tmp_path / "crop" / "crop.RPB")
+    full = RPCModel.from_file(tmp_path / "full" / "product.RPB")
+    cropped = RPCModel.from_file(tmp_path / "crop" / "crop.RPB")
     h = np.full(S.size, float(np.mean(HEIGHTS)))
     lon, lat = full.localize(S, L, h)
     s, l = cropped.project(lon, lat, h)
@@ -150,5 +151,6 @@ def test_ortho_of_a_crop_with_its_products_rpc_beside_it(tmp_path, crop, srtm_pa
     assert f"note: {NOTE}: RPC shifted by the origin (RPC from left_image.geom beside it)" in capsys.readouterr().err
     from osgeo import gdal
     a, b = gdal.Open(str(tmp_path / "paired.tif")), gdal.Open(str(tmp_path / "beside.tif"))
-    assert a.GetGeoTransform() == b.GetGeoTransform() and (a.RasterXSize, a.RasterYSize) == (b.RasterXSize, b.RasterYSize)
+    assert a.GetGeoTransform() == b.GetGeoTransform()
+    assert (a.RasterXSize, a.RasterYSize) == (b.RasterXSize, b.RasterYSize)
     assert np.array_equal(a.ReadAsArray(), b.ReadAsArray())

@@ -10,7 +10,8 @@ from ventouxcrop import GEOM, NOTE, grid_gcps, max_error_px, write_crop
 @pytest.fixture()
 def crop(tmp_path):
     grid_gcps().to_csv(tmp_path / "gcps.csv", index=False)
-    return str(write_crop(tmp_path / "left_image.tif")), f"file://{tmp_path / 'gcps.csv'}?xField=lon&yField=lat&crs=EPSG:4326"
+    uri = f"file://{tmp_path / 'gcps.csv'}?xField=lon&yField=lat&crs=EPSG:4326"
+    return str(write_crop(tmp_path / "left_image.tif")), uri
 
 
 def test_refinerpc_of_a_crop_with_its_products_rpc(run_alg, crop, tmp_path):
