@@ -154,3 +154,21 @@ def test_ortho_of_a_crop_with_its_products_rpc_beside_it(tmp_path, crop, srtm_pa
     assert a.GetGeoTransform() == b.GetGeoTransform()
     assert (a.RasterXSize, a.RasterYSize) == (b.RasterXSize, b.RasterYSize)
     assert np.array_equal(a.ReadAsArray(), b.ReadAsArray())
+
+
+@pytest.mark.parametrize("pair, words", [("other.tif=product.RPB", "other.tif is not among the images given"),
+                                         ("crop.tif=", "give IMAGE=RPC")])
+def test_rpc_pairs_naming_no_image_are_refused(tmp_path, pair, words, capsys):
+    """apply-calibration --rpc with a pair that names no image given (or no RPC): one line, exit 2, nothing written."""
+    from gf4frame import HEIGHTS, frame_model, make_cameras
+    from gdal_gf4cal.rpc_fit import fit_rpc_from_model
+    cur, _ = make_cameras()
+    fit_rpc_from_model(frame_model(cur), height_range=HEIGHTS)[0].write_rpb(tmp_path / "product.RPB")
+    cur.to_json(tmp_path / "cam.json")
+    crop = write_crop(tmp_path / "crop.tif", gt=(4000.0, 1.0, 0.0, 6000.0, 0.0, 1.0))
+    pair = pair.replace("product.RPB", str(tmp_path / "product.RPB"))
+    assert main(["apply-calibration", str(crop), "--rpc", pair, "--current", str(tmp_path / "cam.json"), "--new",
+                 str(tmp_path / "cam.json"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
+    assert not (tmp_path / "out").exists()
