@@ -8,6 +8,9 @@ turns "an image plus an RPC" into the RPC of the image's pixels:
 
 * the image's own RPC (tags, ``.RPB``/``_RPC.TXT`` sidecars GDAL finds, or any raster of the image's size, such as
   a VRT over it) is the image's: never shifted;
+* an image without an RPC of its own takes the RPC file named like it beside it (:data:`SIDECAR_SUFFIXES`, e.g.
+  Shareloc's ``left_image.tif`` + ``left_image.geom``; :func:`sidecar_rpc`) as an RPC given apart from it, and the
+  note names that file;
 * an RPC given apart from the image (an OSSIM ``.geom``, DIMAP ``RPC_*.XML``, ``.RPB`` file, the full product's
   raster, or an :class:`RPCModel`) beside a pixel-unit geotransform without CRS is the product's: it is shifted by
   the origin (``RPCModel.with_image_affine``) when the crop then lies inside the RPC's image domain, and a one-line
@@ -26,13 +29,20 @@ negative is a north-up map transform whose CRS was lost (nothing applied).
 from __future__ import annotations
 
 import os
-from typing import Optional, Tuple
+from typing import List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
 from ._gdal import try_open_raster
 from .errors import RPCFormatError
 from .rpc import RPCModel
+
+#: Names (``<stem><suffix>``) of an RPC file beside an image that has none of its own, in the order tried; GDAL
+#: itself reads ``<stem>.RPB`` / ``<stem>_RPC.TXT`` as the image's own RPC for the formats it knows them for.
+SIDECAR_SUFFIXES = (".geom", ".GEOM", ".RPB", ".rpb", "_RPC.TXT", "_rpc.txt", ".XML", ".xml")
+
+#: The end of :func:`image_rpc`'s note when it moved a product's RPC to the crop.
+SHIFTED = "RPC shifted by the origin"
 
 #: A crop is inside an RPC's image domain when its corners' normalised image coordinates are within this bound.
 DOMAIN_LIMIT = 1.1
@@ -99,14 +109,68 @@ def _is_own(image_path, rpc_path, image_files, image_size) -> bool:
     return ds is not None and ds.RasterCount > 0 and (ds.RasterXSize, ds.RasterYSize) == tuple(image_size)
 
 
+def sidecar_rpc(image_path) -> Optional[str]:
+    """The first existing ``<stem><suffix>`` beside ``image_path`` for :data:`SIDECAR_SUFFIXES`, else ``None``."""
+    stem = os.path.splitext(os.fspath(image_path))[0]
+    for suffix in SIDECAR_SUFFIXES:
+        if os.path.isfile(stem + suffix) and os.path.realpath(stem + suffix) != os.path.realpath(image_path):
+            return stem + suffix
+    return None
+
+
+def image_and_rpc(entry) -> Tuple[str, Optional[str]]:
+    """``IMAGE=RPC`` (an image whose RPC is a separate file, e.g. a crop and its product's ``.geom``) -> the two
+    paths; any other entry (an image with its RPC, or an RPC file) -> ``(entry, None)``."""
+    entry = os.fspath(entry)
+    if "=" in entry and not os.path.exists(entry):
+        image, rpc = entry.split("=", 1)
+        return image, rpc
+    return entry, None
+
+
+def paired_rpc_files(images: Sequence, pairs, what: str = "--rpc") -> List[Optional[str]]:
+    """For each of ``images``, the RPC file ``pairs`` gives it (``["IMAGE=RPC", ...]`` or ``{image: rpc}``; IMAGE
+    the image's path or file name), else ``None``. A pair that is not IMAGE=RPC or names no image given is refused
+    (:class:`RPCFormatError` naming ``what``)."""
+    items = pairs.items() if isinstance(pairs, Mapping) else [image_and_rpc(e) for e in (pairs or ())]
+    paths = [os.fspath(p) for p in images]
+    out: List[Optional[str]] = [None] * len(paths)
+    for image, rpc in items:
+        if not image or not rpc:
+            raise RPCFormatError(f"{what} {image}: give IMAGE=RPC, the image and its RPC file (e.g. "
+                                 "left.tif=left.geom)")
+        image = os.fspath(image)
+        hits = [i for i, p in enumerate(paths) if os.path.abspath(p) == os.path.abspath(image)] or \
+            [i for i, p in enumerate(paths) if os.path.basename(p) == os.path.basename(image)]
+        if len(hits) != 1:
+            why = "is not among the images given" if not hits else "names more than one of the images given"
+            raise RPCFormatError(f"{what} {image}={rpc}: {image} {why}; name the image as you gave it")
+        out[hits[0]] = os.fspath(rpc)
+    return out
+
+
+def _own_or_beside(image_path: str):
+    """The image's own RPC (note None), else the RPC file beside it (:func:`sidecar_rpc`) through
+    :func:`image_rpc`, its note naming the file; the image's own error when there is neither."""
+    try:
+        return RPCModel.from_file(image_path), None
+    except RPCFormatError:
+        side = sidecar_rpc(image_path) if try_open_raster(image_path) is not None else None
+        if side is None:
+            raise
+    model, note = image_rpc(image_path, side)
+    where = f"RPC from {os.path.basename(side)} beside it"
+    return model, (f"{note} ({where})" if note else f"{os.path.basename(image_path)}: {where}")
+
+
 def image_rpc(image_path, rpc=None):
     """The RPC of ``image_path``'s own pixel grid and a one-line note (``None`` when nothing was applied).
 
     Parameters
     ----------
     image_path : path of the image (any GDAL raster)
-    rpc : None (the image's own RPC), the path of an RPC source, or an :class:`RPCModel` (other sensor models are
-        returned as given)
+    rpc : None (the image's own RPC, else the RPC file named like it beside it), the path of an RPC source, or an
+        :class:`RPCModel` (other sensor models are returned as given)
 
     Returns
     -------
@@ -121,7 +185,7 @@ def image_rpc(image_path, rpc=None):
     """
     image_path = os.fspath(image_path)
     if rpc is None:
-        return RPCModel.from_file(image_path), None
+        return _own_or_beside(image_path)
     gt, size, files = _pixel_geotransform(image_path)
     if isinstance(rpc, (str, os.PathLike)):
         model = RPCModel.from_file(os.fspath(rpc))
@@ -132,6 +196,17 @@ def image_rpc(image_path, rpc=None):
     if gt is None or not isinstance(model, RPCModel) or size is None:
         return model, None
     return _fit_to_crop(model, image_path, gt, size)
+
+
+def product_rpc(image_path, rpc=None):
+    """``(model, origin, note)``: the RPC :func:`image_rpc` finds for ``image_path`` in the *product's* pixels (a
+    camera's or detector's own grid) and the image's origin there, ``(0.0, 0.0)`` when it is not a crop whose
+    product's RPC was moved to it. ``model.with_image_affine(-origin[0], -origin[1])`` is the image's RPC."""
+    model, note = image_rpc(image_path, rpc)
+    origin = crop_origin(image_path) if note and SHIFTED in note else None
+    if origin is None:
+        return model, (0.0, 0.0), note
+    return model.with_image_affine(*origin), origin, note
 
 
 def _fit_to_crop(model: RPCModel, image_path: str, gt: tuple, size: Tuple[int, int]):
@@ -151,7 +226,7 @@ def _fit_to_crop(model: RPCModel, image_path: str, gt: tuple, size: Tuple[int, i
     already = _normalised_extent(model, 0.0, 0.0, size) <= DOMAIN_LIMIT and _already_shifted(model, col0, row0)
     if shifted and not already:
         return (model.with_image_affine(-col0, -row0),
-                f"{name} is a crop at {where} of the product its RPC describes: RPC shifted by the origin")
+                f"{name} is a crop at {where} of the product its RPC describes: {SHIFTED}")
     if already:
         return model, (f"{name} states a crop origin {where} but its RPC already describes the crop's pixels "
                        "(its image domain starts before the origin): origin not applied")
@@ -162,4 +237,5 @@ def _fit_to_crop(model: RPCModel, image_path: str, gt: tuple, size: Tuple[int, i
         "the origin is wrong; give this image's product RPC, or remove the geotransform (gdal_edit.py -unsetgt)")
 
 
-__all__ = ["DOMAIN_LIMIT", "crop_origin", "image_rpc"]
+__all__ = ["DOMAIN_LIMIT", "SHIFTED", "SIDECAR_SUFFIXES", "crop_origin", "image_and_rpc", "image_rpc",
+           "paired_rpc_files", "product_rpc", "sidecar_rpc"]

@@ -9,8 +9,9 @@ from typing import Optional
 
 import numpy as np
 
+from .crop import image_rpc, sidecar_rpc
 from .dem import DEM
-from .errors import DEMError
+from .errors import DEMError, RPCFormatError
 from .rpc import RPCModel
 
 
@@ -64,7 +65,7 @@ def _uncovered(rpc: RPCModel, W: int, H: int) -> str:
     return f"samples {s0:.0f}..{s1:.0f}, lines {l0:.0f}..{l1:.0f}"
 
 
-def describe_rpc(source, dem=None, geoid=None, rpc: Optional[RPCModel] = None) -> dict:
+def describe_rpc(source, dem=None, geoid=None, rpc=None) -> dict:
     """Describe the RPC of ``source`` (image or RPC file).
 
     Parameters
@@ -72,19 +73,32 @@ def describe_rpc(source, dem=None, geoid=None, rpc: Optional[RPCModel] = None) -
     source : path of an image with an RPC or of a standalone RPC file.
     dem : optional DEM (path or :class:`DEM`); the footprint corners are localised on it, else at HEIGHT_OFF.
     geoid : the DEM's vertical datum when it is a path (``"egm96"``, ...).
+    rpc : an :class:`RPCModel` (``source``'s RPC as it is), or the path of the RPC file of an image that carries none
+        (a crop and its product's ``.geom``: the crop's origin is applied, :func:`gdal_gf4cal.crop.image_rpc`);
+        default the image's own RPC, else the RPC file named like it beside it.
 
     Returns
     -------
     dict with ``source``, ``format``, ``size`` (w, h), ``corners`` [(lon, lat, h)] clockwise from upper-left
     (GDAL pixel corners), ``footprint_wkt``, ``gsd_m`` {sample, line}, ``height_range_m``, ``rpc`` (offsets/scales),
-    ``warnings`` (one-line strings: an image the RPC's image domain does not cover, corners that do not localise).
+    ``warnings`` (one-line strings: an image the RPC's image domain does not cover, corners that do not localise),
+    ``notes`` (the RPC file paired with the image, the crop origin applied).
     The size is the image's when there is one (``source`` itself, or the image next to a .RPB/_RPC.TXT sidecar),
     else guessed from the RPC's offsets and scales.
     """
     from .rpc_io import rpc_file_format
-    rpc = rpc or RPCModel.from_file(source)
-    fmt = rpc_file_format(source)
-    image = _image_of(source, fmt)
+    note = None
+    if isinstance(rpc, RPCModel):
+        rpc_file = None
+    else:
+        rpc_file = os.fspath(rpc) if rpc is not None else None
+        rpc, note = image_rpc(source, rpc_file)
+    try:
+        fmt = rpc_file_format(rpc_file or source)
+    except RPCFormatError:                      # an image without an RPC: the file beside it image_rpc took
+        rpc_file = sidecar_rpc(source)
+        fmt = rpc_file_format(rpc_file)
+    image = os.fspath(source) if rpc_file else _image_of(source, fmt)
     size = image_size_of(image) if image is not None else None
     size_from_image = size is not None
     warnings = []
@@ -139,6 +153,10 @@ def describe_rpc(source, dem=None, geoid=None, rpc: Optional[RPCModel] = None) -
         "err_rand": rpc.err_rand,
     }
     info["warnings"] = warnings
+    if rpc_file:
+        info["rpc_file"] = rpc_file
+    if note:
+        info["notes"] = [note]
     if dem is not None:
         info["dem_height_range_m"] = [float(np.min(h)), float(np.max(h))]
     return info

@@ -4,6 +4,7 @@ where engine errors become ``QgsProcessingException`` (with no partial outputs l
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import traceback
 import warnings
@@ -44,8 +45,15 @@ def qgis_words(message: str) -> str:
                             f"({GEOID_GRID_WORDS}) or choose 'DEM heights are: Ellipsoidal heights'")
             .replace("geoid=<grid path>", GEOID_GRID_WORDS)
             .replace("(--columns)", "(GCP_COLUMNS)").replace("(--gcp-pixel-convention)", "(GCP_PIXEL_CONVENTION)")
-            .replace("(--bands-of)", "(BANDS_OF)")
+            .replace("(--bands-of)", "(BANDS_OF)").replace("(--rpc)", "(RPCS)")
             .replace("(--no-plausibility-check)", f"({PLAUSIBILITY_WORDS})").replace("(--geoid)", "(GEOID)"))
+
+
+def split_items(text: str) -> List[str]:
+    """``"a=b, c=d"`` (commas, semicolons, spaces or new lines between items) -> ``["a=b", "c=d"]``."""
+    return [t for t in re.split(r"[\s,;]+", text or "") if t]
+
+
 TRACKER = "https://github.com/gdal-gf4cal/gdal_gf4cal/issues"
 
 
@@ -146,6 +154,8 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
     OUTPUT_PLOT = "OUTPUT_PLOT"
     OUTPUT_REPORT = "OUTPUT_REPORT"
     CHECK_PLAUSIBILITY = "CHECK_PLAUSIBILITY"
+    RPC = "RPC"
+    RPCS = "RPCS"
 
     def __init__(self):
         super().__init__()
@@ -197,6 +207,37 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         if rpc_file:
             text += " From Python or qgis_process a standalone RPC file (.RPB, _RPC.TXT) may be given instead."
         self._add(QgsProcessingParameterRasterLayer(self.INPUT, self.tr(description)), text)
+
+    def add_rpc_parameter(self):
+        """RPC (optional file): the RPC of an image that carries none (CLI ``--rpc``; a crop and its product's RPC:
+        the crop's origin is applied, :func:`gdal_gf4cal.crop.image_rpc`)."""
+        return self._add(QgsProcessingParameterFile(self.RPC, self.tr("RPC file (if not in the image)"), optional=True,
+                                                    behavior=QgsProcessingParameterFile.File),
+                         "The RPC file of an image that carries none (.geom, RPC_*.XML, .RPB, _RPC.TXT). For a crop "
+                         "that states its origin in the product (a pixel geotransform without CRS) give the "
+                         "product's RPC: the origin is applied and the log says so. Empty: the image's own RPC, "
+                         "else an RPC file named like the image beside it.")
+
+    def add_rpc_pairs_parameter(self):
+        """RPCS (optional text): ``IMAGE=RPC`` items of a many-image algorithm (CLI ``--rpc IMAGE=RPC ...``)."""
+        return self._add(QgsProcessingParameterString(self.RPCS, self.tr("RPC files (if not in the images): "
+                                                                         "IMAGE=RPC, ..."), optional=True,
+                                                      multiLine=True),
+                         "For images that carry no RPC: items IMAGE=RPC (the image's file name or path and its RPC "
+                         "file), separated by commas, semicolons or new lines. For a crop that states its origin in "
+                         "the product (a pixel geotransform without CRS) give the product's RPC: the origin is "
+                         "applied and the log says so. Images not named: their own RPC, else an RPC file named "
+                         "like the image beside it.")
+
+    def rpc_pairs(self, parameters, context) -> List[str]:
+        """The RPCS parameter's ``IMAGE=RPC`` items (:func:`split_items`)."""
+        return split_items(self.parameterAsString(parameters, self.RPCS, context))
+
+    def rpc_file(self, parameters, context) -> Optional[str]:
+        """The RPC parameter's path, or None (also for an algorithm without it)."""
+        if self.parameterDefinition(self.RPC) is None:
+            return None
+        return self.parameterAsFile(parameters, self.RPC, context) or None
 
     def add_input_rpc(self, description="Image or RPC file"):
         self._add(QgsProcessingParameterFile(self.INPUT, self.tr(description),

@@ -74,6 +74,20 @@ def add_plausibility_argument(parser, what: str = "GCPs") -> None:
                         "outside the image but inside its RPC's domain are used anyway, with a warning")
 
 
+def add_rpc_argument(parser) -> None:
+    """``--rpc RPC`` of a one-image command: the RPC file of an image that carries none
+    (:func:`gdal_gf4cal.crop.image_rpc`)."""
+    parser.add_argument("--rpc", help="read the RPC from this file instead of the image (a crop and its product's "
+                        ".geom / RPC_*.XML: the crop's origin is applied)")
+
+
+def add_rpc_pairs_argument(parser) -> None:
+    """``--rpc IMAGE=RPC ...`` of a many-image command (:func:`gdal_gf4cal.crop.image_and_rpc`)."""
+    parser.add_argument("--rpc", nargs="+", default=[], metavar="IMAGE=RPC",
+                        help="IMAGE=RPC for an image whose RPC is a separate file (a crop and its product's .geom: "
+                        "the crop's origin is applied)")
+
+
 def print_warnings(rep, stream=None) -> None:
     """Print ``rep["notes"]`` and ``rep["warnings"]`` (lists of one-line str) as ``gf4cal: note: ...`` and
     ``gf4cal: warning: ...`` lines on stderr."""

@@ -14,6 +14,8 @@ def add_parser(parser):
     parser.add_argument("--new", metavar="NEW.json", help="the recalibrated camera")
     parser.add_argument("--calibration", metavar="CAL.json", help="instead of --current/--new: a block calibration "
                         "(calibration.json of block-adjust); SCENEs are the group's images, named as calibrated")
+    from . import add_rpc_pairs_argument
+    add_rpc_pairs_argument(parser)
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs (never an input)")
     from .batch_options import add_batch_options
@@ -31,6 +33,9 @@ def run(args) -> int:
     if not (args.current and args.new):
         raise GCPError("give --current and --new (camera files) or --calibration (block calibration)")
     if args.batch or args.dask:
+        if args.rpc:
+            raise GCPError("--rpc pairs the scenes of one run with their RPCs; in a batch each scene must carry its "
+                           "own RPC")
         from .batch_options import run_batch_command
         from ..batch import apply_calibration_batch
         return run_batch_command(args, lambda ex, pr: apply_calibration_batch(
@@ -38,7 +43,7 @@ def run(args) -> int:
     from ..workflows import apply_calibration
     from ..progress import TextProgressBar
     rep = apply_calibration(args.current, args.new, args.scenes, args.out, overwrite=args.overwrite,
-                            progress=TextProgressBar())
+                            progress=TextProgressBar(), rpcs=args.rpc)
     for e in rep["scenes"]:
         fit = e["fit"]["check"] or e["fit"]["fit"]
         print(f"{e['scene']}: image moved by mean {e['image_shift_px']['mean']:.2f} px, max "
@@ -54,7 +59,7 @@ def _run_block(args) -> int:
     from ..workflows import apply_block_calibration
     from ..progress import TextProgressBar
     rep = apply_block_calibration(args.calibration, args.scenes, args.out, overwrite=args.overwrite,
-                                  progress=TextProgressBar())
+                                  progress=TextProgressBar(), rpcs=args.rpc)
     for e in rep["scenes"]:
         fit = e["fit"]["check"] or e["fit"]["fit"]
         print(f"{e['scene']} ({e['image']}): image moved by mean {e['image_shift_px']['mean']:.2f} px, max "

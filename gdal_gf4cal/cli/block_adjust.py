@@ -26,6 +26,8 @@ def add_parser(parser):
     parser.add_argument("--bands-of", nargs="+", action="extend", metavar="IMAGE=REFIMAGE",
                         help="IMAGE is another band of the CCD whose reference-band image is REFIMAGE (relative "
                              "calibration: interior only, reference exterior fixed)")
+    from . import add_rpc_pairs_argument
+    add_rpc_pairs_argument(parser)
     parser.add_argument("--solver", choices=("simultaneous", "alternating"), default="simultaneous",
                         help="one sparse Gauss-Newton solve (default) or the paper's alternation of exterior and "
                              "interior (compared with the simultaneous solve in report.json)")
@@ -41,7 +43,7 @@ def run(args) -> int:
     rep = block_adjust(args.images, dem=args.dem, geoid=args.geoid, gcps=args.gcps, ties=args.ties,
                        match_ties=args.match_ties, reference_ortho=args.reference_ortho, bands_of=args.bands_of,
                        solver=args.solver, out=args.out, overwrite=args.overwrite, progress=TextProgressBar(),
-                       check_plausibility=not args.no_plausibility_check)
+                       check_plausibility=not args.no_plausibility_check, rpcs=args.rpc)
     for st in rep["stages"]:
         print(f"{st['stage']} stage ({st['solver']}): {st['iterations']} iterations, "
               f"{'converged' if st['converged'] else 'NOT converged'}, {st['n_tie_points']} tie points, "

@@ -9,6 +9,8 @@ HELP = "Describe the RPC of an image or sidecar: offsets, footprint, approximate
 
 def add_parser(parser):
     parser.add_argument("source", metavar="IMAGE_OR_RPC", help="image with an RPC, or a standalone RPC file")
+    from . import add_rpc_argument
+    add_rpc_argument(parser)
     parser.add_argument("--dem", help="DEM to localise the footprint corners on (default: at HEIGHT_OFF)")
     parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
                         "(default: what the DEM's CRS declares, else ellipsoidal; 'none' never converts)")
@@ -17,7 +19,7 @@ def add_parser(parser):
 
 def run(args) -> int:
     from ..describe import describe_rpc
-    info = describe_rpc(args.source, dem=args.dem, geoid=args.geoid)
+    info = describe_rpc(args.source, dem=args.dem, geoid=args.geoid, rpc=args.rpc)
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
@@ -27,10 +29,10 @@ def run(args) -> int:
 
 def format_info(info: dict) -> str:
     rpc = info["rpc"]
-    lines = [f"RPC of {info['source']} ({info['format']})",
+    lines = [f"RPC of {info['source']} ({info['format']}" + (f" {info['rpc_file']})" if info.get("rpc_file") else ")"),
              f"  image size        {info['size'][0]} x {info['size'][1]} px" + ("" if info["size_from_image"]
                                                                               else " (from the RPC scales)"),
-             f"  centre            lon {rpc['LONG_OFF']:.6f}  lat {rpc['LAT_OFF']:.6f}  h {rpc['HEIGHT_OFF']:.1f} m",
+             f"  RPC centre        lon {rpc['LONG_OFF']:.6f}  lat {rpc['LAT_OFF']:.6f}  h {rpc['HEIGHT_OFF']:.1f} m",
              f"  height range      {info['height_range_m'][0]:.1f} .. {info['height_range_m'][1]:.1f} m "
              "(HEIGHT_OFF ± HEIGHT_SCALE)",
              f"  footprint on      {info['footprint_height']}"]
@@ -43,6 +45,8 @@ def format_info(info: dict) -> str:
         lines.append(f"  DEM heights       {lo:.1f} .. {hi:.1f} m over the footprint")
     if info.get("err_bias") is not None:
         lines.append(f"  ERR_BIAS/ERR_RAND {info['err_bias']} / {info['err_rand']} m")
+    for note in info.get("notes", ()):
+        lines.append(f"  note: {note}")
     for warning in info.get("warnings", ()):
         lines.append(f"  warning: {warning}")
     return "\n".join(lines)

@@ -10,6 +10,8 @@ def add_parser(parser):
     from ..compensation import MODEL_NAMES
     parser.add_argument("source", nargs="+", metavar="IMAGE_OR_RPC", help="image with an RPC, or a standalone RPC "
                         "file (several with --batch)")
+    from . import add_rpc_argument
+    add_rpc_argument(parser)
     parser.add_argument("--gcps", required=True,
                         help="GCPs: CSV (id,lon,lat,h,sample,line[,role][,sigma]), GeoPackage/GeoJSON point layer "
                              "(any CRS, sample/line fields), QGIS .points, or a raster with embedded GCPs")
@@ -67,6 +69,9 @@ def run(args) -> int:
     from ..progress import TextProgressBar
     from ..workflows import refine_rpc
     if args.batch or args.dask:
+        if args.rpc:
+            from ..errors import Gf4calError
+            raise Gf4calError("--rpc names one scene's RPC; in a batch each scene must carry its own RPC")
         from .batch_options import run_batch_command
         from ..batch import refine_batch
         return run_batch_command(args, lambda ex, pr: refine_batch(
@@ -89,7 +94,7 @@ def run(args) -> int:
                      residuals=args.residuals, plot=args.plot, overwrite=args.overwrite,
                      progress=TextProgressBar(), ortho=args.ortho, ortho_options=ortho_options,
                      check_plausibility=not args.no_plausibility_check, max_uncertainty_px=args.max_uncertainty,
-                     gcp_columns=args.columns, gcp_pixel_convention=args.gcp_pixel_convention)
+                     gcp_columns=args.columns, gcp_pixel_convention=args.gcp_pixel_convention, rpc=args.rpc)
     _print_report(rep)
     if "ortho" in rep:
         print_ortho(rep["ortho"])

@@ -15,7 +15,7 @@ from ._common import declare_report_outputs, cancel_check, collect_warnings, fin
 def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[str] = None,
                     gcp_columns: Optional[str] = None, gcp_pixel_convention: Optional[str] = None, residuals=None,
                     plot=None, report=None, image_size: Optional[Tuple[int, int]] = None, overwrite: bool = False,
-                    progress=None, check_plausibility: bool = True) -> dict:
+                    progress=None, check_plausibility: bool = True, rpc=None) -> dict:
     """Accuracy of an RPC against GCPs (METHODS §6): residuals, per-axis and planar statistics, CE90, internal
     accuracy, per role; optionally written as a styled GeoPackage, a plot and ``report.json`` (all or none).
 
@@ -26,6 +26,10 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
     ----------
     source : path or RPCModel
         Image with an RPC, RPC file, or a model.
+    rpc : path, optional
+        The RPC file of an image that carries none (a crop and its product's ``.geom``: the crop's origin is applied,
+        :func:`gdal_gf4cal.crop.image_rpc`; ``notes`` say so); default the image's own RPC, else the RPC file named
+        like it beside it.
     gcps : GCP table (DESIGN.md schema; :func:`gdal_gf4cal.gcp.validate_gcps` is applied) or a GCP file path
         (``gcp_layer``: its layer; ``gcp_columns``, ``gcp_pixel_convention``: see :func:`~gdal_gf4cal.gcp.read_gcps`).
     dem : DEM, path or height, optional
@@ -51,12 +55,13 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
     from ..rpc import RPCModel
 
     src_name = None if isinstance(source, RPCModel) else os.fspath(source)
-    outs = OutputSet([src_name, gcps if is_path(gcps) else None, dem if is_path(dem) else None],
+    outs = OutputSet([src_name, gcps if is_path(gcps) else None, dem if is_path(dem) else None,
+                      rpc if is_path(rpc) else None],
                      overwrite=overwrite, cancelled=cancel_check(progress))
     declare_report_outputs(outs, residuals=residuals, plot=plot, report=report)
     warns: list = []
     with outs, collect_warnings(warns):
-        rpc = source if isinstance(source, RPCModel) else image_rpc(source)[0]
+        rpc, note = (source, None) if isinstance(source, RPCModel) else image_rpc(source, rpc)
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         if is_path(gcps):
             table = read_gcps(gcps, dem=dem_obj, columns=gcp_columns, pixel_convention=gcp_pixel_convention,
@@ -78,6 +83,8 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
                                        table["res_line"].to_numpy())
         table["res_east_m"], table["res_north_m"] = east, north
         out: dict = {"source": src_name, "n": int(len(table)), "residuals": "measured - RPC(ground), px"}
+        if note:
+            out["notes"] = [note]
         roles = {"all": np.ones(len(table), bool)}
         for role in ("control", "check"):
             m = (table["role"] == role).to_numpy()

@@ -15,7 +15,7 @@ from typing import Any, Dict, List, Mapping, Sequence, Union
 import numpy as np
 
 from ..block import BlockError
-from ..crop import image_rpc
+from ..crop import image_and_rpc, image_rpc
 from ..outputs import OutputSet, check_vector
 from ._common import _open_image, cancel_check, collect_warnings, finish_report
 
@@ -52,6 +52,26 @@ def _resolve(name: str, paths: Sequence[str], keys: Sequence[str], what: str) ->
 
 #: How messages name the bands-of option; the QGIS provider words ``(--bands-of)`` as ``(BANDS_OF)``.
 BANDS_OF = "bands of (--bands-of)"
+
+
+#: How messages name the RPC pairs option (QGIS: ``(RPCS)``).
+RPC_PAIRS = "RPC pairs (--rpc)"
+
+
+def parse_rpc_pairs(items: Union[None, Mapping[str, str], Sequence[str]]) -> Dict[str, str]:
+    """``["IMAGE=RPC", ...]`` (CLI/QGIS) or a mapping -> ``{image: RPC file}``."""
+    if not items:
+        return {}
+    if isinstance(items, Mapping):
+        return {str(a): os.fspath(b) for a, b in items.items()}
+    pairs = {}
+    for entry in items:
+        image, rpc = image_and_rpc(entry)
+        if rpc is None or not image or not rpc:
+            raise BlockError(f"{RPC_PAIRS}: {entry!r} is not IMAGE=RPC; give each image whose RPC is a separate "
+                             "file with that file, e.g. left.tif=left.geom")
+        pairs[image] = rpc
+    return pairs
 
 
 def parse_bands_of(items: Union[None, Mapping[str, str], Sequence[str]]) -> Dict[str, str]:
@@ -104,13 +124,17 @@ def _read_obs(paths: Sequence[str], keys: Sequence[str], files: Sequence, dem, g
 
 def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None, match_ties: bool = False,
                  reference_ortho=None, bands_of=None, solver: str = "simultaneous", reference_ccd=None,
-                 overwrite: bool = False, progress=None, check_plausibility: bool = True) -> Dict[str, Any]:
+                 overwrite: bool = False, progress=None, check_plausibility: bool = True,
+                 rpcs=None) -> Dict[str, Any]:
     """Block calibration of one group (METHODS §8) from files; see the module docstring for names and outputs.
 
     Parameters
     ----------
     images : image paths (RPC embedded or as a sidecar). The reference-band CCD images come **in their order
         across track** (adjacent ones must overlap); the other bands' images anywhere, each named in ``bands_of``.
+    rpcs : ``["IMAGE=RPC", ...]`` (CLI ``--rpc``) or ``{image: rpc file}``: the RPC file of an image that carries
+        none (a crop and its product's ``.geom``: the crop's origin is applied, :func:`gdal_gf4cal.crop.image_rpc`;
+        the report's ``notes`` say so); other images: their own RPC, else the RPC file named like them beside them.
     dem : DEM path or number (tie-point heights); ``geoid``: its vertical datum (``auto``/``none``/``egm96``/...).
     gcps, ties : observation files (CSV/GeoPackage, long format: ``point_id, image, sample, line`` [``lon, lat, h``,
         ``role``, ``sigma``]); a single file may hold both (rows are de-duplicated).
@@ -151,12 +175,14 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
             for a, b in parse_bands_of(bands_of).items()}
     order = [k for k in keys if k not in bmap]
     ref_ccd = _resolve(reference_ccd, paths, keys, "--reference-ccd") if reference_ccd else None
-    sizes, inputs = {}, []
-    models = {}
+    rpc_of = {_resolve(a, paths, keys, RPC_PAIRS): b for a, b in parse_rpc_pairs(rpcs).items()}
+    sizes, inputs = {}, list(rpc_of.values())
+    models, crop_notes = {}, []
     for p, k in zip(paths, keys):
         size, files = _open_image(p)
         inputs += files
-        models[k], _ = image_rpc(p)
+        models[k], note = image_rpc(p, rpc_of.get(k))
+        crop_notes += [f"{k}: {note}"] if note else []
         sizes[k] = size
     obs_files = [os.fspath(f) for f in (gcps, ties) if f]
     obs_files = list(dict.fromkeys(obs_files))
@@ -236,6 +262,8 @@ def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None
                                            "converged": [s["converged"] for s in est.comparison["stages"]]},
                 "max_prediction_difference_px": _max_difference(est.table, est.comparison["table"])}
         rep["warnings"] = list(est.warnings)
+        if crop_notes:
+            rep["notes"] = crop_notes
         write_calibration(calibration_dict(est), outs.tmp("calibration"))
         # residual GeoPackage: per image its GCPs (and tie rays), then the seams layer
         gp = outs.tmp("residuals")

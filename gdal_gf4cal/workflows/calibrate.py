@@ -7,7 +7,7 @@ from __future__ import annotations
 import os
 from typing import Any, Dict
 
-from ..crop import image_rpc
+from ..crop import product_rpc
 from ..outputs import OutputSet, check_vector
 from ..dem import DEM
 from ._common import cancel_check, collect_warnings, finish_report, is_path
@@ -47,7 +47,10 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
     GCPs that cannot belong to the image are refused first (:func:`~gdal_gf4cal.plausibility.check_gcps_against`
     over the camera's size; ``check_plausibility=False`` for experts). ``gcp_columns`` / ``gcp_pixel_convention``:
     column map of a header-less CSV and the convention of the file's image coordinates
-    (:func:`~gdal_gf4cal.gcp.read_gcps`).
+    (:func:`~gdal_gf4cal.gcp.read_gcps`). ``image`` a crop that states its origin in the product and ``rpc_path``
+    the product's RPC: the camera's pixels are the product's, so the GCPs (measured in the crop) are moved to the
+    product's pixels (as are the residuals written), and the recalibrated RPC is moved back to the crop
+    (:func:`gdal_gf4cal.crop.product_rpc`; the report's ``notes`` say so).
     """
     from .. import progress as _progress
     from ..camera import LookAngleModel
@@ -72,7 +75,8 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
         outs.declare(key, os.path.join(out, name), check=check_vector() if key == "residuals_gpkg" else None)
     warns: list = []
     with outs, collect_warnings(warns):
-        rpc, note = image_rpc(image, rpc_path) if image is not None else image_rpc(rpc_path)
+        # the camera's pixels are the product's: a crop's GCPs are moved there, its new RPC moved back
+        rpc, origin, note = product_rpc(image, rpc_path) if image is not None else product_rpc(rpc_path)
         current = LookAngleModel.from_json(camera_path)
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         if is_path(gcps_path):
@@ -81,6 +85,8 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
         else:                                         # a GCP table already read (QGIS: the layer's reader)
             from ..gcp import validate_gcps
             gcps = validate_gcps(gcps_path, dem=dem_obj)
+        if origin != (0.0, 0.0):
+            gcps = gcps.assign(sample=gcps["sample"] + origin[0], line=gcps["line"] + origin[1])
         if check_plausibility:
             from ..plausibility import check_gcps_against
             with collect_warnings(warns):         # now: the report written below lists them
@@ -89,6 +95,8 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
                                   max_condition=MAX_CONDITION if max_condition is None else max_condition,
                                   progress=_progress.scaled(progress, 0.0, 0.4))
         new_rpc, fit_report = recalibrate_rpc(rpc, current, res.camera, progress=_progress.scaled(progress, 0.4, 0.85))
+        if origin != (0.0, 0.0):
+            new_rpc = new_rpc.with_image_affine(-origin[0], -origin[1])
         _progress.report(progress, 0.85, "writing outputs")
         res.camera.to_json(outs.tmp("camera"))
         write_rpb(new_rpc, outs.tmp("rpb"), overwrite=True)

@@ -10,7 +10,7 @@ from typing import Any, Dict, Optional, Sequence
 import numpy as np
 
 from ..errors import DegenerateGeometryError, GCPError
-from ..crop import image_rpc
+from ..crop import image_and_rpc, image_rpc
 from ..outputs import OutputSet, check_vector
 from ._common import cancel_check, collect_warnings, finish_report
 
@@ -71,15 +71,6 @@ def read_tie_points(path, n_images: int, names: Sequence[str] = ()):
     return list(df["id"].astype(str)), pts, truth
 
 
-def _image_and_rpc(entry: str):
-    """``IMAGE=RPC`` (an image whose RPC is a separate file, e.g. a crop and its product's ``.geom``) -> the two
-    paths; any other entry (an image with its RPC, or an RPC file) -> (entry, None)."""
-    if "=" in entry and not os.path.exists(entry):
-        image, rpc = entry.split("=", 1)
-        return image, rpc
-    return entry, None
-
-
 def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional[str] = None, sigma_px: float = 1.0,
                     report: Optional[str] = None, overwrite: bool = False, progress=None) -> Dict[str, Any]:
     """``gf4cal intersect``: read RPCs and tie points, intersect (METHODS §7), write points and a report.
@@ -100,7 +91,7 @@ def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional
     out = os.fspath(out) if out else None
     if out and not out.lower().endswith((".csv", ".gpkg", ".geojson")):
         raise GCPError(f"output {out!r}: use a name ending in .csv, .gpkg or .geojson")
-    pairs = [_image_and_rpc(p) for p in paths]
+    pairs = [image_and_rpc(p) for p in paths]
     inputs = [p for pair in pairs for p in pair if p] + [os.fspath(points_path)]
     outs = OutputSet(inputs, overwrite=overwrite, cancelled=cancel_check(progress))
     if out:

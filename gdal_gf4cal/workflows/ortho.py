@@ -289,7 +289,8 @@ def orthorectify(image, *, dem, out, rpc=None, geoid="auto", crs="utm", res_m: O
         model, note = image_rpc(image, rpc)
         if note:
             rep.setdefault("notes", []).append(note)
-        rep.update(warp_ortho(image, image_size, model if rpc is not None else None, dem, grid, outs.tmp("ortho"),
+        own = rpc is None and note is None                  # the image's own RPC: GDAL reads it itself
+        rep.update(warp_ortho(image, image_size, None if own else model, dem, grid, outs.tmp("ortho"),
                               crs=crs, res_m=res_m, resampling=resampling, force=force, progress=progress))
         rep["outputs"] = outs.paths
     finish_report(rep, warns)

@@ -1,6 +1,6 @@
 """``gf4cal register-pan-ms`` / QGIS "Register MS to pan": the file job of METHODS §9 (seed 004, Gaofen-7).
 
-Each image's RPC (:func:`find_rpc`: own, given, or a ``.geom`` beside it; crops shifted by ``crop.image_rpc``) ->
+Each image's RPC (:func:`gdal_gf4cal.crop.image_rpc`: own, given, or a ``.geom`` beside it; crops shifted) ->
 :func:`pair_geometry` (ratio, overlap, line-of-sight angle from the RPCs) -> dense window matches of every MS band
 against the pan (``matching.match_raw``) -> sub-CCD edges (options, or ``panms.detect_breaks``) -> cells of a size
 from the data (:func:`choose_cell`) -> :func:`gdal_gf4cal.panms.estimate` on the reference band, every other band
@@ -76,26 +76,6 @@ BAND_MIN_PX = 0.02
 MIN_MATCH_SHARE = 0.1
 #: Same acquisition: the pan's and the MS's lines of sight are within this angle (GF7 0.094 deg, Pleiades less).
 MAX_RAY_ANGLE_DEG = 2.0
-
-
-def find_rpc(image, rpc=None):
-    """The RPC of ``image``'s own pixels and a note: ``rpc`` when given, else the image's own RPC, else an OSSIM
-    ``.geom`` / ``.RPB`` / ``_RPC.TXT`` / ``.XML`` named like the image beside it (Shareloc's crops); a crop that
-    states its origin in the product gets the product's RPC shifted (:func:`gdal_gf4cal.crop.image_rpc`)."""
-    from ..errors import Gf4calError
-    if rpc is None:
-        try:
-            return image_rpc(image, None)
-        except Gf4calError:
-            stem = os.path.splitext(os.fspath(image))[0]
-            side = [stem + e for e in (".geom", ".GEOM", ".RPB", "_RPC.TXT", ".XML", ".xml") if os.path.exists(stem + e)]
-            if not side:
-                raise
-            rpc = side[0]
-    model, note = image_rpc(image, rpc)
-    if note is None and rpc is not None and not hasattr(rpc, "project"):
-        note = f"{os.path.basename(os.fspath(image))}: RPC from {os.path.basename(os.fspath(rpc))}"
-    return model, note
 
 
 def pair_geometry(pan_rpc, ms_rpc, pan_size, ms_size, dem, n: int = 9) -> Dict[str, float]:
@@ -270,17 +250,41 @@ def _unrelated(matches) -> bool:
     return bool(clear.sum() >= 20 and acc[clear].mean() < MIN_MATCH_SHARE)
 
 
-def _band_names(ms_path, n_bands):
+#: Pleiades and SPOT 6/7 spectral band ids (DIMAP ``BAND_ID``, OSSIM ``support_data.band_name_list``).
+PRODUCT_BAND_IDS = {"B0": "blue", "B1": "green", "B2": "red", "B3": "nir"}
+
+
+def _product_band_names(ms_path, rpc_path=None):
+    """The product's band names in file order from its OSSIM ``.geom`` (``support_data.band_name_list``, e.g.
+    ``"B2 B1 B0 B3"`` -> red, green, blue, nir), the one given or the one beside the image; ``[]`` when unknown."""
+    from ..crop import sidecar_rpc
+    geom = rpc_path if isinstance(rpc_path, (str, os.PathLike)) else sidecar_rpc(ms_path)
+    if geom is None or not os.fspath(geom).lower().endswith(".geom"):
+        return []
+    with open(geom, encoding="utf-8", errors="replace") as f:
+        for line in f:
+            key, _, value = line.partition(":")
+            if key.strip() == "support_data.band_name_list":
+                ids = value.replace('"', " ").split()
+                return [PRODUCT_BAND_IDS.get(i.upper(), "") for i in ids]
+    return []
+
+
+def _band_names(ms_path, n_bands, rpc_path=None):
     """Per band ``(name, GDAL colour interpretation)`` from the product: band descriptions naming a colour, else
-    the file's colour interpretation (Alpha never: an MS band is a measurement, e.g. NIR -> Undefined)."""
+    the product's band list (:func:`_product_band_names`), else the file's colour interpretation (Alpha never: an
+    MS band is a measurement, e.g. NIR -> Undefined)."""
     from osgeo import gdal
     from .._gdal import open_raster
     ds = open_raster(os.fspath(ms_path), what="MS image")
     words = {"red": gdal.GCI_RedBand, "green": gdal.GCI_GreenBand, "blue": gdal.GCI_BlueBand}
+    product = _product_band_names(ms_path, rpc_path)
     out = []
     for b in range(1, n_bands + 1):
         band = ds.GetRasterBand(b)
         desc = (band.GetDescription() or "").strip()
+        if not desc and len(product) == n_bands:
+            desc = product[b - 1]
         ci = band.GetColorInterpretation()
         low = desc.lower()
         hit = [v for k, v in words.items() if k in low.split() or low == k or low.startswith(k)]
@@ -395,8 +399,8 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
     with outs, collect_warnings(warns):
         (pw, ph), _ = _size(pan)
         (mw, mh), n_bands = _size(ms)
-        pan_model, note_p = find_rpc(pan, pan_rpc)
-        ms_model, note_m = find_rpc(ms, ms_rpc)
+        pan_model, note_p = image_rpc(pan, pan_rpc)
+        ms_model, note_m = image_rpc(ms, ms_rpc)
         notes += [n for n in (note_p, note_m) if n]
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         geo = pair_geometry(pan_model, ms_model, (pw, ph), (mw, mh), dem_obj)
@@ -484,7 +488,7 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         model.info["source"] = {"pan": os.fspath(pan), "ms": os.fspath(ms)}
         model.info["ratio"] = ratio
         model.info["reference_band"] = ref
-        bands, band_models = _every_band(band_cells, ref, model, _band_names(ms, n_bands), notes)
+        bands, band_models = _every_band(band_cells, ref, model, _band_names(ms, n_bands, ms_rpc), notes)
         clock.lap("estimate")
         _progress.report(progress, 0.6, "pan-MS: writing correction.tif")
         model.to_json(outs.tmp("model"))
@@ -496,7 +500,7 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         panms.resample_ms_on_pan([band_models.get(b, model) for b in range(1, n_bands + 1)], pan, ms,
                                  outs.tmp("ms_on_pan"), pan_rpc=pan_model, ms_rpc=ms_model, dem=dem_obj, ratio=ratio,
                                  progress=_progress.scaled(progress, 0.65, 0.9),
-                                 band_names=_band_names(ms, n_bands))
+                                 band_names=_band_names(ms, n_bands, ms_rpc))
         outs.set_check("ms_on_pan", check_raster(n_bands))
         clock.lap("correction_and_ms_on_pan")
         _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC")

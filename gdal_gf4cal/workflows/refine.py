@@ -82,12 +82,15 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
                overwrite: bool = False, progress=None, ortho=None,
                ortho_options: Optional[Dict[str, Any]] = None, check_plausibility: bool = True,
                max_uncertainty_px: Optional[float] = None, gcp_columns: Optional[str] = None,
-               gcp_pixel_convention: Optional[str] = None) -> Dict[str, Any]:
+               gcp_pixel_convention: Optional[str] = None, rpc=None) -> Dict[str, Any]:
     """Refine the RPC of an image or sidecar with GCPs and write it (METHODS §4, §6); ``gf4cal refine``.
 
     Parameters
     ----------
     source : image with an RPC (tags, .RPB, _RPC.TXT, NITF, ...) or a standalone RPC file
+    rpc : the RPC file of an image that carries none (a crop and its product's ``.geom`` / DIMAP ``RPC_*.XML``: the
+        crop's origin is applied, :func:`gdal_gf4cal.crop.image_rpc`; report ``notes``); default the image's own
+        RPC, else the RPC file named like it beside it
     gcps : path of a GCP file (CSV, GeoPackage/GeoJSON in any CRS, QGIS .points, raster with GCPs) or a table;
         ``gcp_layer`` names the layer of a multi-layer vector file; ``gcp_columns`` is the column map of a
         header-less CSV (``"id,sample,line,lon,lat,h"``) and ``gcp_pixel_convention`` (``"center"``/``"corner"``)
@@ -127,7 +130,7 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     kind = output_kind(out)
     check_refine_options(max_uncertainty_px=max_uncertainty_px, gcp_columns=gcp_columns)
     image_size, inputs = _open_image(source)
-    inputs += [os.fspath(x) for x in (gcps, dem) if is_path(x)]
+    inputs += [os.fspath(x) for x in (gcps, dem, rpc) if is_path(x)]
     if kind == "vrt" and image_size is None:
         raise GCPError(f"{source} is not an image: write the refined RPC as .RPB or _RPC.TXT, or give the image "
                        "to get a .vrt")
@@ -144,7 +147,7 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     warns: list = []
     with outs, collect_warnings(warns):
         _progress.report(progress, 0.0, "reading the RPC and GCPs")
-        rpc, _ = image_rpc(source)
+        rpc, crop_note = image_rpc(source, rpc)
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         if is_path(gcps):
             kw = {"layer": gcp_layer} if gcp_layer else {}
@@ -175,6 +178,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
                                      progress=_progress.scaled(progress, 0.2, 0.9))
         rep: Dict[str, Any] = {"input": source, "gcps": os.fspath(gcps) if is_path(gcps) else None, "output": out}
         rep.update(result.to_dict(rpc))
+        if crop_note:
+            rep["notes"] = [crop_note] + list(rep.get("notes", []))
         rep["apply"] = applied.to_dict()
         rep["precision_px"] = precision
         if selection is not None:

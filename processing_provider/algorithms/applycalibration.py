@@ -32,6 +32,7 @@ class ApplyCalibration(Gf4calAlgorithm):
         self._add(QgsProcessingParameterMultipleLayers(self.INPUT, self.tr("Scenes (images or RPC files)"),
                                                        QgsProcessing.TypeFile),
                   "Images with an RPC or RPC files of scenes made with the current camera.")
+        self.add_rpc_pairs_parameter()
         self._add(QgsProcessingParameterFile(self.CURRENT_CAMERA, self.tr("Current camera file (JSON)"),
                                              extension="json"),
                   "The camera the scenes' RPCs were made with.")
@@ -53,7 +54,8 @@ class ApplyCalibration(Gf4calAlgorithm):
         current = self.parameterAsFile(parameters, self.CURRENT_CAMERA, context)
         new = self.parameterAsFile(parameters, self.NEW_CAMERA, context)
         folder = self.output_folder(parameters, self.OUTPUT_FOLDER, context)
-        rep = apply_calibration(current, new, scenes, folder, overwrite=True, progress=progress)
+        rep = apply_calibration(current, new, scenes, folder, overwrite=True, progress=progress,
+                                rpcs=self.rpc_pairs(parameters, context))
         self.push_warnings(feedback, rep)
         rpcs, shift, fit_err = [], 0.0, 0.0
         for e in rep["scenes"]:

@@ -24,6 +24,7 @@ class AssessAccuracy(Gf4calAlgorithm):
 
     def initAlgorithm(self, config=None):
         self.add_input_rpc()
+        self.add_rpc_parameter()
         self.add_gcp_parameters()
         self.add_dem_parameters()
         self.add_plausibility_parameter()
@@ -50,10 +51,12 @@ class AssessAccuracy(Gf4calAlgorithm):
         out_plot = self.output_file(parameters, self.OUTPUT_PLOT, context)
         out_report = self.output_file(parameters, self.OUTPUT_REPORT, context)
         size = image_size_of(source)
+        rpc = self.rpc_file(parameters, context)
         if size is None:
             from gdal_gf4cal.rpc import RPCModel
-            size = RPCModel.from_file(source).image_size
-        rep = assess_accuracy(source, gcps, residuals=out_gpkg, plot=out_plot, report=out_report, image_size=size,
+            size = RPCModel.from_file(rpc or source).image_size
+        rep = assess_accuracy(source, gcps, rpc=rpc, residuals=out_gpkg, plot=out_plot, report=out_report,
+                              image_size=size,
                               overwrite=True, progress=progress,
                               check_plausibility=self.check_plausibility(parameters, context))
         self.push_warnings(feedback, rep)

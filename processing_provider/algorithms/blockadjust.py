@@ -2,7 +2,6 @@
 registered (METHODS §8, seed 003; the same inputs as ``gf4cal block-adjust``)."""
 from __future__ import annotations
 
-import re
 
 from qgis.core import (
     QgsProcessing,
@@ -19,7 +18,7 @@ from qgis.core import (
     QgsProcessingParameterString,
 )
 
-from ..base import Gf4calAlgorithm
+from ..base import Gf4calAlgorithm, split_items
 
 #: SOLVER enum index -> engine solver name (stable: the indices are part of the algorithm's interface).
 SOLVERS = ["simultaneous", "alternating"]
@@ -29,9 +28,7 @@ SOLVER_LABELS = ["Simultaneous (one sparse Gauss-Newton solve; recommended)",
 OBS_FILTER = "Observation tables (*.csv *.gpkg *.CSV *.GPKG);;All files (*.*)"
 
 
-def split_bands_of(text: str):
-    """``"a=b, c=d"`` (commas, semicolons, spaces or new lines between items) -> ``["a=b", "c=d"]``."""
-    return [t for t in re.split(r"[\s,;]+", text or "") if t]
+split_bands_of = split_items
 
 
 class BlockAdjust(Gf4calAlgorithm):
@@ -86,6 +83,7 @@ class BlockAdjust(Gf4calAlgorithm):
                   "Which image is another band of which CCD: items IMAGE=REFIMAGE (the band image and the "
                   "reference-band image of its CCD), separated by commas, semicolons or new lines, e.g. ccd1_green=ccd1_blue. "
                   "These bands are calibrated relatively (interior only, reference exterior fixed).")
+        self.add_rpc_pairs_parameter()
         self._add(QgsProcessingParameterEnum(self.SOLVER, self.tr("Solver"), SOLVER_LABELS, defaultValue=0),
                   "How the group is solved (METHODS §8).")
         p = self._add(QgsProcessingParameterString(self.REFERENCE_CCD, self.tr("Reference CCD image (datum)"),
@@ -128,7 +126,8 @@ class BlockAdjust(Gf4calAlgorithm):
             bands_of=split_bands_of(self.parameterAsString(parameters, self.BANDS_OF, context)),
             solver=SOLVERS[self.parameterAsEnum(parameters, self.SOLVER, context)],
             reference_ccd=self.parameterAsString(parameters, self.REFERENCE_CCD, context) or None,
-            check_plausibility=self.check_plausibility(parameters, context))
+            check_plausibility=self.check_plausibility(parameters, context),
+            rpcs=self.rpc_pairs(parameters, context))
         self.push_warnings(feedback, rep)
         for st in rep["stages"]:
             feedback.pushInfo(f"{st['stage']} stage ({st['solver']}): {st['iterations']} iterations, "

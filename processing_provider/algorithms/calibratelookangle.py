@@ -35,6 +35,7 @@ class CalibrateLookAngle(Gf4calAlgorithm):
 
     def initAlgorithm(self, config=None):
         self.add_input_image("Scene image (with the RPC made with the camera)")
+        self.add_rpc_parameter()
         self.add_gcp_parameters()
         self._add(QgsProcessingParameterFile(self.CAMERA, self.tr("Current camera file (JSON)"),
                                              behavior=QgsProcessingParameterFile.File, extension="json"),
@@ -74,7 +75,10 @@ class CalibrateLookAngle(Gf4calAlgorithm):
         gcps = self.read_gcps(parameters, context, feedback, dem=dem)  # heights filled from the DEM here
         folder = self.output_folder(parameters, self.OUTPUT_FOLDER, context)
         image = source if image_size_of(source) is not None else None
-        rep = calibrate_lookangle_files(source, gcps, camera, folder, image=image, robust=self.parameterAsBool(
+        rpc = self.rpc_file(parameters, context)
+        if rpc and image is None:
+            raise self.error("An RPC file (RPC) pairs with an image: give the scene's image as INPUT.")
+        rep = calibrate_lookangle_files(rpc or source, gcps, camera, folder, image=image, robust=self.parameterAsBool(
             parameters, self.ROBUST, context), overwrite=True, progress=progress,
             check_plausibility=self.check_plausibility(parameters, context))
         self.push_warnings(feedback, rep)

@@ -68,6 +68,7 @@ class CollectGcps(Gf4calAlgorithm):
     def initAlgorithm(self, config=None):
         Num = QgsProcessingParameterNumber
         self.add_input_image("Raw image (with RPC)", rpc_file=False)
+        self.add_rpc_parameter()
         self._add(QgsProcessingParameterRasterLayer(self.REFERENCE, self.tr("Reference orthophoto")),
                   "Georeferenced reference image (any GDAL raster, any CRS); overviews are used when it is finer.")
         self.add_dem_parameters(optional=False)
@@ -101,7 +102,8 @@ class CollectGcps(Gf4calAlgorithm):
         # Threads, not processes: inside QGIS a process pool would start QGIS executables.
         with ThreadPoolExecutor(max_workers=self.parameterAsInt(parameters, self.THREADS, context)) as pool:
             rep = collect_gcps_file(image, ref_layer.source(), dem, out, keep_outliers=keep, overwrite=True,
-                                executor=pool, progress=progress, **matching_options(self, parameters, context))
+                                    rpc=self.rpc_file(parameters, context),
+                                    executor=pool, progress=progress, **matching_options(self, parameters, context))
         self.push_warnings(feedback, rep)
         gcps, table, w = rep["gcps"], rep["table"], rep["windows"]
         inliers = ~gcps["outlier"].to_numpy(bool)

@@ -47,8 +47,11 @@ class Orthorectify(Gf4calAlgorithm):
         self._add(QgsProcessingParameterRasterLayer(self.INPUT, self.tr("Image")),
                   "The image to orthorectify (its own RPC is used unless a refined RPC is given).")
         self._add(QgsProcessingParameterFile(self.RPC, self.tr("Refined RPC (optional)"), optional=True,
-                                             fileFilter="RPC (*.vrt *.VRT *.RPB *.rpb *_RPC.TXT *_rpc.txt)"),
-                  "An RPC replacing the image's own: the .vrt, .RPB or _RPC.TXT written by 'Refine RPC with GCPs'.")
+                                             fileFilter="RPC (*.vrt *.VRT *.RPB *.rpb *_RPC.TXT *_rpc.txt *.geom "
+                                                        "*.XML *.xml)"),
+                  "An RPC replacing the image's own: the .vrt, .RPB or _RPC.TXT written by 'Refine RPC with GCPs'; or "
+                  "the product's RPC (.geom, RPC_*.XML) of a crop that states its origin in the product (a pixel "
+                  "geotransform without CRS): the origin is applied and the log says so.")
         self._add(QgsProcessingParameterRasterLayer(self.DEM, self.tr("DEM")),
                   "Height model covering the scene (any GDAL raster, any CRS).")
         self._add(QgsProcessingParameterEnum(self.GEOID, self.tr("DEM heights are"), GEOID_LABELS, defaultValue=0),

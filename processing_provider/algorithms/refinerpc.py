@@ -43,6 +43,7 @@ class RefineRpc(Gf4calAlgorithm):
 
     def initAlgorithm(self, config=None):
         self.add_input_image()
+        self.add_rpc_parameter()
         self.add_gcp_parameters()
         self._add(QgsProcessingParameterEnum(self.MODEL, self.tr("Compensation model"), MODEL_LABELS,
                                              defaultValue=5),
@@ -117,7 +118,8 @@ class RefineRpc(Gf4calAlgorithm):
                          residuals=out_gpkg, plot=out_plot, report=out_report, overwrite=True, progress=progress,
                          ortho=out_ortho,
                          max_uncertainty_px=self.parameterAsDouble(parameters, self.MAX_UNCERTAINTY, context),
-                         check_plausibility=self.check_plausibility(parameters, context))
+                         check_plausibility=self.check_plausibility(parameters, context),
+                         rpc=self.rpc_file(parameters, context))
         self.push_warnings(feedback, rep)
         if "model_selection" in rep:
             feedback.pushInfo(f"automatic model choice: {rep['model_selection']['reason']}")

@@ -36,6 +36,7 @@ class RpcInfo(Gf4calAlgorithm):
 
     def initAlgorithm(self, config=None):
         self.add_input_rpc()
+        self.add_rpc_parameter()
         self.add_dem_parameters()
         self._add(QgsProcessingParameterFeatureSink(self.OUTPUT_FOOTPRINT, self.tr("Footprint"),
                                                     QgsProcessing.TypeVectorPolygon, optional=True,
@@ -56,7 +57,8 @@ class RpcInfo(Gf4calAlgorithm):
         path = self.input_path(parameters, context)
         dem = self.read_dem(parameters, context)
         progress(0.1, "reading the RPC")
-        info = describe_rpc(path, dem=dem)
+        info = describe_rpc(path, dem=dem, rpc=self.rpc_file(parameters, context))
+        self.push_warnings(feedback, info)
         footprint = wkt.loads(info["footprint_wkt"])
         centre = footprint.centroid
         (w, h), (hmin, hmax) = info["size"], info["height_range_m"]

@@ -16,43 +16,7 @@ from gdal_gf4cal.dem import DEM
 from gdal_gf4cal.errors import RPCFormatError
 from gdal_gf4cal.workflows import orthorectify
 
-DATA = Path(__file__).parents[1] / "data"
-GRID = DATA / "crop_ventoux" / "GRID_PHR1B_P_201308051042194_SEN_690908101-001.tif"
-GEOM = DATA / "rpc" / "ventoux_left_image.geom"
-DIMAP = DATA / "rpc" / "RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML"
-ORIGIN = (5000.0, 5000.0)
-SIZE = (500, 500)
-
-
-def write_crop(path, gt=(5000.0, 1.0, 0.0, 5000.0, 0.0, 1.0), size=SIZE, epsg=None, rpc=None):
-    """A crop like shareloc's left_image.tif (same size and georeference) whose two bands hold each pixel centre's
-    own crop column and row (GDAL convention)."""
-    W, H = size
-    ds = gdal.GetDriverByName("GTiff").Create(str(path), W, H, 2, gdal.GDT_Float32)
-    if gt is not None:
-        ds.SetGeoTransform(gt)
-    if epsg:
-        srs = osr.SpatialReference()
-        srs.ImportFromEPSG(epsg)
-        ds.SetSpatialRef(srs)
-    cols, rows = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-    ds.GetRasterBand(1).WriteArray(cols.astype(np.float32))
-    ds.GetRasterBand(2).WriteArray(rows.astype(np.float32))
-    if rpc is not None:
-        ds.SetMetadata(rpc.to_gdal_metadata(), "RPC")
-    ds = None
-    return path
-
-
-def grid_nodes():
-    """(col, row) product pixels (GDAL convention) and (lon, lat) at the grid's altitudes: arrays (n,), (k, n)."""
-    g = gdal.Open(str(GRID))
-    a = g.ReadAsArray()
-    x0, dx, _, y0, _, dy = g.GetGeoTransform()
-    j, i = np.meshgrid(np.arange(g.RasterXSize), np.arange(g.RasterYSize))
-    alts = np.array([float(g.GetMetadataItem(f"LG_ALTITUDE_B{2 * k}", "GTiff")) for k in range(a.shape[0] // 2)])
-    return ((x0 + dx * j).ravel(), (y0 + dy * i).ravel(), alts,
-            a[0::2].reshape(len(alts), -1), a[1::2].reshape(len(alts), -1))
+from ventouxcrop import DATA, DIMAP, GEOM, GRID, ORIGIN, SIZE, grid_nodes, write_crop
 
 
 @pytest.fixture()
@@ -165,3 +129,28 @@ def test_intersect_of_the_stereo_crops_with_their_products_rpcs(tmp_path):
     import json
     notes = json.loads((tmp_path / "rep.json").read_text())["notes"]
     assert any("right_image.tif is a crop at (4915, 5162)" in n for n in notes)
+
+
+def test_rpc_file_named_like_the_image_beside_it_is_the_products(tmp_path):
+    """Shareloc's layout: left_image.tif (origin (5000, 5000), no RPC) + left_image.geom (the product's RPC) in one
+    folder: image_rpc(image) takes the .geom, shifts it by the origin and says so; the shifted RPC matches the
+    physical grid. Without a sidecar, the image's own error stands."""
+    import shutil
+    crop = write_crop(tmp_path / "left_image.tif")
+    with pytest.raises(RPCFormatError, match="no RPC"):
+        image_rpc(crop)
+    shutil.copy(GEOM, tmp_path / "left_image.geom")
+    rpc, note = image_rpc(crop)
+    assert note == ("left_image.tif is a crop at (5000, 5000) of the product its RPC describes: RPC shifted by the "
+                    "origin (RPC from left_image.geom beside it)")
+    col, row, alts, lon, lat = grid_nodes()
+    s, l = rpc.project(lon[1], lat[1], np.full(col.size, alts[1]))
+    assert np.max(np.abs(s - (col - ORIGIN[0]))) < 2e-3 and np.max(np.abs(l - (row - ORIGIN[1]))) < 2e-3
+    plain = write_crop(tmp_path / "plain.tif", gt=None)                  # no origin: the sidecar as it is
+    shutil.copy(DIMAP, tmp_path / "plain.XML")
+    rpc, note = image_rpc(plain)
+    assert note == "plain.tif: RPC from plain.XML beside it" and rpc.samp_off == RPCModel.from_file(DIMAP).samp_off
+    own = write_crop(tmp_path / "own.tif", rpc=RPCModel.from_file(GEOM).with_image_affine(-1.0, 0.0))
+    shutil.copy(GEOM, tmp_path / "own.geom")                              # the image's own RPC wins
+    rpc, note = image_rpc(own)
+    assert note is None and rpc.samp_off == pytest.approx(RPCModel.from_file(GEOM).samp_off - 1.0)

@@ -17,7 +17,7 @@ from osgeo import gdal
 
 from gdal_gf4cal import panms
 from gdal_gf4cal.dem import DEM
-from gdal_gf4cal.workflows.panms import find_rpc
+from gdal_gf4cal.crop import image_rpc
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "data")
 
@@ -86,8 +86,8 @@ def test_the_pair_as_delivered_registers_every_band(registered, pair):
     out, rep, proc = registered
     after = _planar_rms_per_band(pair / "left_image.tif", out / "ms_on_pan.tif")
     before_path = pair / "ms_on_pan_rpc_only.tif"
-    pan_rpc, _ = find_rpc(pair / "left_image.tif")
-    ms_rpc, _ = find_rpc(pair / "lowres_color_image.tif")
+    pan_rpc, _ = image_rpc(pair / "left_image.tif")
+    ms_rpc, _ = image_rpc(pair / "lowres_color_image.tif")
     dem = DEM.from_user_input(os.path.join(DATA, "dem", "N44E005.hgt"), geoid="egm96")
     panms.resample_ms_on_pan(None, pair / "left_image.tif", pair / "lowres_color_image.tif", before_path,
                              pan_rpc=pan_rpc, ms_rpc=ms_rpc, dem=dem, ratio=4)
@@ -110,21 +110,22 @@ def test_outputs_a_gis_places(registered, pair):
     out, rep, _ = registered
     ds = gdal.Open(str(out / "ms_on_pan.tif"))
     assert ds.RasterCount == 4
-    for b in range(1, 5):
-        band = ds.GetRasterBand(b)
-        assert band.GetColorInterpretation() != gdal.GCI_AlphaBand and band.GetDescription()
+    # band colours from the product: the .geom's band list "B2 B1 B0 B3" (Pleiades B0 blue ... B3 NIR)
+    assert [(ds.GetRasterBand(b).GetDescription(), ds.GetRasterBand(b).GetColorInterpretation())
+            for b in range(1, 5)] == [("red", gdal.GCI_RedBand), ("green", gdal.GCI_GreenBand),
+                                      ("blue", gdal.GCI_BlueBand), ("nir", gdal.GCI_Undefined)]
     assert ds.GetGeoTransform(can_return_null=True) is None and ds.GetMetadata("RPC")
     # correction.tif carries the MS crop's RPC: GDAL places its centre where the MS RPC (shifted to the crop) does
     c = gdal.Open(str(out / "correction.tif"))
     assert c.GetMetadata("RPC") and c.GetGeoTransform(can_return_null=True) is None
-    ms_rpc, _ = find_rpc(pair / "lowres_color_image.tif")
+    ms_rpc, _ = image_rpc(pair / "lowres_color_image.tif")
     tr = gdal.Transformer(c, None, ["METHOD=RPC", "RPC_HEIGHT=500"])
     ok, (lon, lat, _) = tr.TransformPoint(0, 72.5, 72.5, 0)
     lon2, lat2 = ms_rpc.localize(np.array([72.5]), np.array([72.5]), np.array([500.0]))
     assert ok and abs(lon - lon2[0]) < 1e-6 and abs(lat - lat2[0]) < 1e-6
     assert 5.1 < lon < 5.3 and 44.1 < lat < 44.3                 # Mont Ventoux
     # ms_on_pan's RPC is the pan crop's at a quarter of its size: the same ground at the same place
-    pan_rpc, _ = find_rpc(pair / "left_image.tif")
+    pan_rpc, _ = image_rpc(pair / "left_image.tif")
     tr = gdal.Transformer(ds, None, ["METHOD=RPC", "RPC_HEIGHT=500"])
     ok, (lon, lat, _) = tr.TransformPoint(0, 62.5, 62.5, 0)
     lon2, lat2 = pan_rpc.localize(np.array([250.0]), np.array([250.0]), np.array([500.0]))
@@ -136,8 +137,8 @@ def test_no_cell_size_or_jitter_count_ends_in_a_solver_failure(pair):
     (terms the cells cannot support are dropped with a note; the jitter design never turns NaN)."""
     from gdal_gf4cal.matching import match_raw
     from gdal_gf4cal.workflows.panms import _cells, _spacing
-    pan_rpc, _ = find_rpc(pair / "left_image.tif")
-    ms_rpc, _ = find_rpc(pair / "lowres_color_image.tif")
+    pan_rpc, _ = image_rpc(pair / "left_image.tif")
+    ms_rpc, _ = image_rpc(pair / "lowres_color_image.tif")
     dem = DEM.from_user_input(os.path.join(DATA, "dem", "N44E005.hgt"), geoid="egm96")
     t = match_raw(str(pair / "lowres_color_image.tif"), ms_rpc, str(pair / "left_image.tif"), pan_rpc, dem,
                   spacing_px=4, window_px=32, search_px=8, band=1, margin_px=4)
