@@ -334,6 +334,98 @@ def _band_to_band(ref_cells, cells, model):
             "n_cells": int(u.sum()), "significant": bool(fap < BAND_FAP and corners.max() > BAND_MIN_PX)}
 
 
+def _check_options(pan, ms, breaks, n_sub_ccds, jitter, cell):
+    """The options checked before anything is read: ``(breaks spec, jitter)``; :class:`PanMSError` naming the
+    option."""
+    from .. import panms
+    if os.path.realpath(os.fspath(pan)) == os.path.realpath(os.fspath(ms)):
+        raise panms.PanMSError("the same image was given as pan and as MS: give the pan first, then the MS image "
+                               "of the same acquisition")
+    spec = _parse_breaks(breaks)
+    if n_sub_ccds is not None and spec is not None and not ({"ms", "pan"} & set(b for b in spec
+                                                                               if isinstance(b, str))):
+        raise panms.PanMSError("give either --sub-ccds or --breaks with MS columns, not both")
+    if n_sub_ccds is not None and int(n_sub_ccds) < 1:
+        raise panms.PanMSError(f"--sub-ccds must be at least 1 (got {n_sub_ccds})")
+    if str(jitter) not in ("auto", "none"):
+        try:
+            jitter = int(jitter)
+        except ValueError:
+            raise panms.PanMSError(f"--jitter {jitter!r}: give auto, none or a number of components") from None
+        if jitter < 0:
+            raise panms.PanMSError("--jitter must be auto, none or a non-negative number")
+    if cell is not None and int(cell) < 4:
+        raise panms.PanMSError(f"--cell {cell}: cells must be at least 4 MS px")
+    return spec, jitter
+
+
+def _match_every_band(pan, ms, pan_model, ms_model, dem_obj, ms_size, n_bands, cell, user_breaks, notes,
+                      workers, progress):
+    """Dense window matches of every MS band against the pan, the reference band (the best correlated), the
+    sub-CCD edges (``user_breaks``, else from the data, with a note) and the cells of every band:
+    ``(band_matches, ref, n_matches, breaks, cell_px, cells of ref, {band: cells})``."""
+    from .. import panms, progress as _progress
+    from ..matching import match_raw
+    mw, mh = ms_size
+    band_matches: Dict[int, Any] = {}
+    spacing = _spacing((mw, mh), cell)
+    share = 0.48 / n_bands
+    for b in range(1, n_bands + 1):
+        # a large image (step at its 16 px cap): the other bands at twice the step (their difference from
+        # the first is smooth), a quarter of the windows
+        step = spacing if b == 1 or spacing < 16 else 2 * spacing
+        band_matches[b] = match_raw(ms, ms_model, pan, pan_model, dem_obj, spacing_px=step,
+                                    window_px=WINDOW_PX, search_px=8, band=b, reference_band=1,
+                                    workers=workers, margin_px=4, outlier_model=None,
+                                    progress=_progress.scaled(progress, 0.02 + share * (b - 1),
+                                                              0.02 + share * b))
+        _screen(band_matches[b])
+    # the reference band: the one whose matches correlate best with the pan
+    nccs = {b: _median_ncc(t) for b, t in band_matches.items()}
+    ref = max(nccs, key=lambda b: (nccs[b], -b))
+    t = band_matches[ref]
+    n_matches = len(t)
+    acc = (t["status"].to_numpy() == 0) & ~t["outlier"].to_numpy(bool)
+    if user_breaks is not None:
+        breaks_ = user_breaks
+    else:
+        breaks_, jumps = panms.detect_breaks(t["pred_sample"][acc], t["pred_line"][acc], t["d_sample"][acc],
+                                             t["d_line"][acc], width=mw, window_px=WINDOW_PX,
+                                             spacing_px=t.attrs["spacing_px"])
+        notes.append(("sub-CCD edges found in the data at MS columns " + ", ".join(
+            f"{j['edge_ms_px']:.1f}" for j in jumps)) if jumps else
+            "no jump in the per-column residual passes the test: one sub-CCD piece (give --breaks or "
+            "--sub-ccds to set the edges)")
+    if cell:
+        cell_used = int(cell)
+        cells = _cells(t, (mw, mh), cell_used, t.attrs["spacing_px"], breaks_)
+    else:
+        cell_used, cells = choose_cell(t, (mw, mh), t.attrs["spacing_px"], breaks_)
+    band_cells = {b: (cells if b == ref else _cells(band_matches[b], (mw, mh), cell_used,
+                                                     band_matches[b].attrs["spacing_px"], breaks_))
+                  for b in band_matches}
+    return band_matches, ref, n_matches, breaks_, cell_used, cells, band_cells
+
+
+def _approximate_ms_rpc(model, ms_model, notes):
+    """``panms.approximate_rpc`` of the full model, else of its linear term with a note (the sub-CCD jumps and
+    jitter of a small crop can defeat the refit); :class:`PanMSError` when neither fits."""
+    from .. import panms
+    from ..errors import Gf4calError
+    try:
+        approx, approx_err = panms.approximate_rpc(model, ms_model)
+    except Gf4calError:
+        try:            # the sub-CCD jumps and jitter of a small crop can defeat the refit: the linear term
+            approx, approx_err = panms.approximate_rpc(model, ms_model, terms=("linear",))
+            notes.append("ms_approx.RPB carries the linear term only (the RPC refit of the full model is "
+                         f"singular on this image); its error against the full model: rms "
+                         f"{approx_err['rms_px']:.3f} px")
+        except Gf4calError as exc:
+            raise panms.PanMSError(f"the approximate MS RPC could not be fitted ({exc}); the other outputs "
+                                   "need it too: check the MS RPC") from None
+    return approx, approx_err
+
+
 def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] = None, breaks=None,
                     cell: Optional[int] = None, jitter="auto", reuse=None, overwrite: bool = False, cells=None,
                     workers: Optional[int] = None, progress=None, pan_rpc=None, ms_rpc=None) -> Dict[str, Any]:
@@ -361,29 +453,10 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
     from .. import panms, progress as _progress
     from ..crop import crop_origin
     from ..dem import DEM
-    from ..errors import Gf4calError
-    from ..matching import match_raw
     from ..report import write_report_json
     from ..rpc_io import write_rpb
 
-    if os.path.realpath(os.fspath(pan)) == os.path.realpath(os.fspath(ms)):
-        raise panms.PanMSError("the same image was given as pan and as MS: give the pan first, then the MS image "
-                               "of the same acquisition")
-    spec = _parse_breaks(breaks)
-    if n_sub_ccds is not None and spec is not None and not ({"ms", "pan"} & set(b for b in spec
-                                                                               if isinstance(b, str))):
-        raise panms.PanMSError("give either --sub-ccds or --breaks with MS columns, not both")
-    if n_sub_ccds is not None and int(n_sub_ccds) < 1:
-        raise panms.PanMSError(f"--sub-ccds must be at least 1 (got {n_sub_ccds})")
-    if str(jitter) not in ("auto", "none"):
-        try:
-            jitter = int(jitter)
-        except ValueError:
-            raise panms.PanMSError(f"--jitter {jitter!r}: give auto, none or a number of components") from None
-        if jitter < 0:
-            raise panms.PanMSError("--jitter must be auto, none or a non-negative number")
-    if cell is not None and int(cell) < 4:
-        raise panms.PanMSError(f"--cell {cell}: cells must be at least 4 MS px")
+    spec, jitter = _check_options(pan, ms, breaks, n_sub_ccds, jitter, cell)
     out = os.fspath(out)
     outs = OutputSet([pan, ms, dem if isinstance(dem, (str, os.PathLike)) else None, geoid,
                       reuse if isinstance(reuse, (str, os.PathLike)) else None,
@@ -437,42 +510,9 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
             n_matches = len(cells.attrs.get("matches", ()))
             breaks_, cell_used = list(reuse_model.breaks), c
         else:
-            spacing = _spacing((mw, mh), cell)
-            share = 0.48 / n_bands
-            for b in range(1, n_bands + 1):
-                # a large image (step at its 16 px cap): the other bands at twice the step (their difference from
-                # the first is smooth), a quarter of the windows
-                step = spacing if b == 1 or spacing < 16 else 2 * spacing
-                band_matches[b] = match_raw(ms, ms_model, pan, pan_model, dem_obj, spacing_px=step,
-                                            window_px=WINDOW_PX, search_px=8, band=b, reference_band=1,
-                                            workers=workers, margin_px=4, outlier_model=None,
-                                            progress=_progress.scaled(progress, 0.02 + share * (b - 1),
-                                                                      0.02 + share * b))
-                _screen(band_matches[b])
-            # the reference band: the one whose matches correlate best with the pan
-            nccs = {b: _median_ncc(t) for b, t in band_matches.items()}
-            ref = max(nccs, key=lambda b: (nccs[b], -b))
-            t = band_matches[ref]
-            n_matches = len(t)
-            acc = (t["status"].to_numpy() == 0) & ~t["outlier"].to_numpy(bool)
-            if user_breaks:
-                breaks_ = br
-            else:
-                breaks_, jumps = panms.detect_breaks(t["pred_sample"][acc], t["pred_line"][acc], t["d_sample"][acc],
-                                                     t["d_line"][acc], width=mw, window_px=WINDOW_PX,
-                                                     spacing_px=t.attrs["spacing_px"])
-                notes.append(("sub-CCD edges found in the data at MS columns " + ", ".join(
-                    f"{j['edge_ms_px']:.1f}" for j in jumps)) if jumps else
-                    "no jump in the per-column residual passes the test: one sub-CCD piece (give --breaks or "
-                    "--sub-ccds to set the edges)")
-            if cell:
-                cell_used = int(cell)
-                cells = _cells(t, (mw, mh), cell_used, t.attrs["spacing_px"], breaks_)
-            else:
-                cell_used, cells = choose_cell(t, (mw, mh), t.attrs["spacing_px"], breaks_)
-            band_cells = {b: (cells if b == ref else _cells(band_matches[b], (mw, mh), cell_used,
-                                                             band_matches[b].attrs["spacing_px"], breaks_))
-                          for b in band_matches}
+            band_matches, ref, n_matches, breaks_, cell_used, cells, band_cells = _match_every_band(
+                pan, ms, pan_model, ms_model, dem_obj, (mw, mh), n_bands, cell, br if user_breaks else None,
+                notes, workers, progress)
         clock.lap("matching")
         cells = cells.reset_index(drop=True)
         if band_matches and _unrelated(band_matches[ref]):
@@ -504,17 +544,7 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         outs.set_check("ms_on_pan", check_raster(n_bands))
         clock.lap("correction_and_ms_on_pan")
         _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC")
-        try:
-            approx, approx_err = panms.approximate_rpc(model, ms_model)
-        except Gf4calError:
-            try:            # the sub-CCD jumps and jitter of a small crop can defeat the refit: the linear term
-                approx, approx_err = panms.approximate_rpc(model, ms_model, terms=("linear",))
-                notes.append("ms_approx.RPB carries the linear term only (the RPC refit of the full model is "
-                             f"singular on this image); its error against the full model: rms "
-                             f"{approx_err['rms_px']:.3f} px")
-            except Gf4calError as exc:
-                raise panms.PanMSError(f"the approximate MS RPC could not be fitted ({exc}); the other outputs "
-                                       "need it too: check the MS RPC") from None
+        approx, approx_err = _approximate_ms_rpc(model, ms_model, notes)
         write_rpb(approx, outs.tmp("ms_rpc"), overwrite=True)
         n_cells = _write_cells(cells, model, ms_model, dem_obj, outs.tmp("cells"))
         outs.set_check("cells", check_vector({"gcps": n_cells}))
