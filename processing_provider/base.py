@@ -493,6 +493,12 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         algorithm finishes."""
         self._to_load.append((uri, name, kind) if style is None else (uri, name, kind, style))
 
+    def name_output_layer(self, context, destination: str, image: str) -> None:
+        """Name the raster output Processing loads ``<image stem> ortho`` (not the parameter's label)."""
+        if destination and context.willLoadLayerOnCompletion(destination):
+            stem = os.path.splitext(os.path.basename(image.split("|")[0]))[0]
+            context.layerToLoadOnCompletionDetails(destination).name = f"{stem} ortho"
+
     def load_gpkg_on_completion(self, path: str, layers=("footprint", "residual_vectors_before",
                                                          "residual_vectors", "gcps")) -> None:
         """Load the residual GeoPackage's layers (those present), bottom to top, with their stored styles, named

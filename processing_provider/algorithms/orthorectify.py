@@ -107,6 +107,7 @@ class Orthorectify(Gf4calAlgorithm):
                 raise
             raise self.error(str(exc).replace("pass --force", "tick 'Write past the size limit' (FORCE)")) from None
         self.push_warnings(feedback, rep)
+        self.name_output_layer(context, out, image.source())
         g = rep.get("geoid")
         feedback.pushInfo(f"orthoimage {rep['size_px'][0]} x {rep['size_px'][1]} px of {rep['res_m']:.3f} in "
                           f"{rep['crs']}; " + (f"DEM heights above {g['name']} made ellipsoidal" if g else

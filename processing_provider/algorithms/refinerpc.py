@@ -149,6 +149,7 @@ class RefineRpc(Gf4calAlgorithm):
             feedback.pushInfo(f"RPC refitted on the corrected model: max error {rep['apply']['refit_max_px']:.2e} px")
         if out_ortho:
             outputs[self.OUTPUT_ORTHO] = out_ortho          # Processing loads it: the ortho, not the VRT
+            self.name_output_layer(context, out_ortho, source)
         elif out_rpc.lower().endswith(".vrt"):
             self.load_on_completion(out_rpc, "Refined RPC (VRT)", "raster")
         self.load_gpkg_on_completion(out_gpkg)
