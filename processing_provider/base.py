@@ -28,9 +28,11 @@ from qgis.PyQt.QtCore import QCoreApplication
 
 from gdal_gf4cal.errors import CancelledError, Gf4calError
 
+#: The GEOID choice of every algorithm (one vocabulary: same order, labels and default, index 0), and the engine's
+#: ``geoid=`` word of each (the CLI's ``--geoid auto|egm96|egm2008|none|PATH``, same order).
 GEOID_OPTIONS = ["As the DEM's CRS declares (ellipsoidal when it declares none)", "Heights above EGM96",
                  "Heights above EGM2008", "Ellipsoidal heights (no conversion, whatever the CRS declares)"]
-_GEOIDS = [None, "egm96", "egm2008", False]
+GEOID_VALUES = ["auto", "egm96", "egm2008", "none"]
 PIXEL_CONVENTIONS = [None, "corner", "center"]
 PIXEL_CONVENTION_LABELS = ["The file format's own (centre for orthority GeoJSON and ASP .gcp, else corner)",
                            "Pixel corners at integers (GDAL: first pixel centre at 0.5)",
@@ -313,15 +315,31 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
     def add_dem_parameters(self, optional=True):
         self._add(QgsProcessingParameterRasterLayer(self.DEM, self.tr("DEM"), optional=optional),
                   "Height model (any GDAL raster, any CRS) for GCP heights and line-of-sight intersections.")
+        self.add_geoid_parameters()
+
+    def add_geoid_parameters(self):
+        """GEOID (what the DEM's heights are above, :data:`GEOID_OPTIONS`) and GEOID_GRID (a grid file), advanced:
+        the same two parameters in every algorithm with a DEM."""
         p = QgsProcessingParameterEnum(self.GEOID, self.tr("DEM heights are"), GEOID_OPTIONS, defaultValue=0,
                                        optional=True)
         p.setFlags(p.flags() | p.FlagAdvanced)
-        self._add(p, "Vertical reference of the DEM: heights above a geoid are converted to ellipsoidal heights "
-                     "with PROJ's geoid grid; 'Ellipsoidal heights' uses them as they are.")
+        self._add(p, "What the DEM's heights are above. 'As the DEM's CRS declares' converts heights above EGM96 or "
+                     "EGM2008 to ellipsoidal heights (with PROJ's geoid grid) when the CRS says so and uses them as "
+                     "they are otherwise; 'Ellipsoidal heights' never converts.")
         p = QgsProcessingParameterFile(self.GEOID_GRID, self.tr("Geoid grid file (optional)"), optional=True,
-                                       behavior=QgsProcessingParameterFile.File)
+                                       behavior=QgsProcessingParameterFile.File,
+                                       fileFilter="Geoid grids (*.tif *.gtx);;All files (*)")
         p.setFlags(p.flags() | p.FlagAdvanced)
         self._add(p, "A geoid grid (.tif/.gtx) to use instead of PROJ's: the DEM's heights are above this geoid.")
+
+    def geoid_choice(self, parameters, context):
+        """The engine's ``geoid=`` from GEOID and GEOID_GRID: the grid path when given, else a word of
+        :data:`GEOID_VALUES` (``"auto"`` for an algorithm without GEOID)."""
+        geoid = GEOID_VALUES[self.parameterAsEnum(parameters, self.GEOID, context)] \
+            if self.parameterDefinition(self.GEOID) is not None else "auto"
+        if self.parameterDefinition(self.GEOID_GRID) is not None:
+            geoid = self.parameterAsFile(parameters, self.GEOID_GRID, context) or geoid
+        return geoid
 
     def add_plot_output(self, help_text: str):
         self._add(QgsProcessingParameterFileDestination(self.OUTPUT_PLOT, self.tr("Residual plot"),
@@ -358,14 +376,11 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
 
     def dem_source(self, parameters, context):
         """``(path, geoid)`` of the DEM parameter for a workflow taking a DEM path and a geoid choice, or
-        ``(None, None)``: the geoid as the engine's ``geoid=`` (None, 'egm96', 'egm2008', False or a grid path)."""
+        ``(None, None)``: the geoid as the engine's ``geoid=`` (:meth:`geoid_choice`)."""
         layer = self.parameterAsRasterLayer(parameters, self.DEM, context)
         if layer is None:
             return None, None
-        geoid = _GEOIDS[self.parameterAsEnum(parameters, self.GEOID, context)] \
-            if self.parameterDefinition(self.GEOID) is not None else None
-        if self.parameterDefinition(self.GEOID_GRID) is not None:
-            geoid = self.parameterAsFile(parameters, self.GEOID_GRID, context) or geoid
+        geoid = self.geoid_choice(parameters, context)
         return layer.source(), geoid
 
     def read_dem(self, parameters, context):

@@ -46,7 +46,7 @@ class RefineRpc(Gf4calAlgorithm):
         self.add_rpc_parameter()
         self.add_gcp_parameters()
         self._add(QgsProcessingParameterEnum(self.MODEL, self.tr("Compensation model"), MODEL_LABELS,
-                                             defaultValue=5),
+                                             defaultValue=MODELS.index("auto")),
                   "Image-space correction estimated from the control points (METHODS §4.1, §4.3). Automatic "
                   "compares translation, shift-drift, affine and poly2 by leave-one-out error and keeps the "
                   "simplest unless more parameters are significantly better; the log and report say why.")

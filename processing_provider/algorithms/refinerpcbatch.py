@@ -29,8 +29,10 @@ class RefineRpcBatch(BatchAlgorithm):
         self._add(QgsProcessingParameterFile(self.GCP_FOLDER, self.tr("GCP folder"),
                                              behavior=QgsProcessingParameterFile.Folder),
                   "Folder holding one GCP table <scene>.gpkg per scene (fields sample, line, h, id, role).")
-        self._add(QgsProcessingParameterEnum(self.MODEL, self.tr("Correction model"), MODEL_LABELS, defaultValue=2),
-                  "Image-space correction estimated per scene.")
+        self._add(QgsProcessingParameterEnum(self.MODEL, self.tr("Compensation model"), MODEL_LABELS,
+                                             defaultValue=MODELS.index("auto")),
+                  "Image-space correction estimated per scene, as in 'Refine RPC with GCPs' (same models, same "
+                  "default: Automatic, the simplest model the leave-one-out error supports).")
         self._add(QgsProcessingParameterEnum(self.FORMAT, self.tr("Refined RPC format"), OUT_EXTS, defaultValue=0),
                   "RPB, _RPC.TXT or a VRT over the untouched image carrying the refined RPC.")
         self.add_plausibility_parameter()
