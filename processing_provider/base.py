@@ -58,6 +58,27 @@ def split_items(text: str) -> List[str]:
 
 TRACKER = "https://github.com/gdal-gf4cal/gdal_gf4cal/issues"
 
+#: The papers the help texts cite (an algorithm lists its keys in ``REFERENCES``; its help ends with them).
+PAPERS = {
+    "grodecki": "Grodecki J., Dial G. (2003). Block adjustment of high-resolution satellite images described by "
+                "rational polynomials. Photogrammetric Engineering & Remote Sensing 69(1), 59-68.",
+    "fraser": "Fraser C.S., Hanley H.B. (2005). Bias-compensated RPCs for sensor orientation of high-resolution "
+              "satellite imagery. Photogrammetric Engineering & Remote Sensing 71(8), 909-915.",
+    "tao": "Tao C.V., Hu Y. (2001). A comprehensive study of the rational function model for photogrammetric "
+           "processing. Photogrammetric Engineering & Remote Sensing 67(12), 1347-1357.",
+    "huang": "Huang Q., Zhao H., Yang J. (2014). Geometric positioning and error analysis of HJ-1 wide-coverage CCD "
+             "images (detector-position polynomial). Geomatics and Information Science of Wuhan University 39(12), "
+             "1425-1429.",
+    "pi": "Pi Y., Wang M., Wang S., Zhao H., Zhao L. (2023). On-orbit geometric calibration of the Gaofen-4 "
+          "visible area-array camera based on the rational polynomial model. Acta Optica Sinica.",
+    "wu": "Wu H., Bai Y., Wang L., Zhang L., Wang D., Ba Q., Jia Y., Zhong X. On-orbit geometric calibration of the "
+          "Jilin1-KF01A wide-field camera: look angles per CCD, inter-CCD consistency, band-to-band registration "
+          "(Chang Guang Satellite Technology).",
+    "zhang": "Zhang Y., Wang M., Wan Y., Zhou B., Feng J., Cao B., Yao Y. (2023). A pan-multispectral registration "
+             "error compensation model for Gaofen-7 image fusion. Geomatics and Information Science of Wuhan "
+             "University 48(7).",
+}
+
 
 def one_line(exc: BaseException) -> str:
     """The first line of an exception's message (the engine's messages say what to do in one line)."""
@@ -135,6 +156,7 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
     GROUP = "RPC calibration"
     GROUP_ID = "calibration"
     HELP = ""
+    REFERENCES: tuple = ()       # keys of PAPERS cited by HELP
 
     # Parameter names shared by the algorithms (same name = same meaning).
     INPUT = "INPUT"
@@ -189,6 +211,8 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
             lines.append("")
             lines.append(self.tr("Parameters:"))
             lines += [f"- {p.description()} ({p.name()}): {p.help()}" for p in params]
+        if self.REFERENCES:
+            lines += ["", self.tr("References:")] + [f"- {PAPERS[k]}" for k in self.REFERENCES]
         return "\n".join(lines)
 
     def helpUrl(self) -> str:

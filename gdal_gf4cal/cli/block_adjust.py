@@ -4,8 +4,9 @@ from __future__ import annotations
 from .ortho import add_geoid_argument
 
 NAME = "block-adjust"
-HELP = ("Block calibration of one multi-CCD group (METHODS §8): recalibrated RPCs per CCD image and band (seams "
-        "removed, bands registered), calibration.json, report.json, residuals.gpkg and seams.png in --out.")
+HELP = ("Block calibration of one multi-CCD group (Wu et al., Jilin1-KF01A): recalibrated RPCs per CCD image "
+        "and band (seams removed, bands registered), calibration.json, report.json, residuals.gpkg and seams.png "
+        "in --out.")
 
 
 def add_parser(parser):

@@ -1,4 +1,4 @@
-"""``gf4cal ortho``: orthorectify an image with its (refined) RPC over a DEM made ellipsoidal (METHODS §2, §4.2)."""
+"""``gf4cal ortho``: orthorectify an image with its (refined) RPC over a DEM made ellipsoidal."""
 from __future__ import annotations
 
 NAME = "ortho"

@@ -6,8 +6,9 @@ import sys
 from .ortho import add_geoid_argument
 
 NAME = "register-pan-ms"
-HELP = ("Register a multispectral image to its panchromatic image (sub-CCD jumps, attitude, jitter; METHODS §9): "
-        "write correction.tif, ms_on_pan.tif (for gdal_pansharpen.py), model.json, ms_approx.RPB, report.json, "
+HELP = ("Register a multispectral image to its panchromatic image (sub-CCD jumps, attitude, jitter; Zhang et "
+        "al. 2023): write correction.tif, ms_on_pan.tif (for gdal_pansharpen.py), model.json, ms_approx.RPB, "
+        "report.json, "
         "cells.gpkg and plots.")
 
 

@@ -1,4 +1,4 @@
-"""``gf4cal:orthorectify`` - an orthoimage from an image, its (refined) RPC and a DEM made ellipsoidal (METHODS §2)."""
+"""``gf4cal:orthorectify`` - an orthoimage from an image, its (refined) RPC and a DEM made ellipsoidal."""
 from __future__ import annotations
 
 from qgis.core import (

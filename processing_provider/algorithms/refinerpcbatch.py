@@ -1,4 +1,4 @@
-"""``gf4cal:refinerpcbatch`` - refine the RPCs of many scenes, each with its own GCP table (METHODS §4, issue 14)."""
+"""``gf4cal:refinerpcbatch`` - refine the RPCs of many scenes, each with its own GCP table (issue 14)."""
 from __future__ import annotations
 
 from qgis.core import QgsProcessing, QgsProcessingParameterEnum, QgsProcessingParameterFile
@@ -18,6 +18,7 @@ class RefineRpcBatch(BatchAlgorithm):
             "<scene>.gpkg from the GCP folder (what 'Collect GCPs ... (many scenes)' writes): <scene>.RPB (or "
             "_RPC.TXT, or a VRT over the untouched image) and <scene>.report.json per scene, the accuracy before "
             "and after in the summary." + BATCH_HELP)
+    REFERENCES = ("grodecki", "fraser", "huang", "tao")
 
     GCP_FOLDER = "GCP_FOLDER"
     MODEL = "MODEL"
