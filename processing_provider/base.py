@@ -93,10 +93,12 @@ def planar_rms(stats) -> float:
     return float((stats["sample"]["rms"] ** 2 + stats["line"]["rms"] ** 2) ** 0.5)
 
 
-def _layer_file(layer) -> str:
+#: GCP files whose format maps its own fields (no field choice): ASP .gcp and QGIS Georeferencer .points.
+SELF_DESCRIBED_GCP_EXTS = (".gcp", ".points")
+
+
+def layer_file_path(layer) -> str:
     """The file a vector layer reads (OGR ``path|layername=...`` or a delimited-text ``file:///path?...`` URI)."""
-    if layer is None:
-        raise QgsProcessingException("A column map (GCP_COLUMNS) needs a GCP layer read from a file.")
     from qgis.core import QgsProviderRegistry
     parts = QgsProviderRegistry.instance().decodeUri(layer.providerType(), layer.source())
     path = parts.get("path") if parts else None
@@ -107,6 +109,14 @@ def _layer_file(layer) -> str:
             path = QUrl(src).toLocalFile()
         else:
             path = src.split("|")[0]
+    return path
+
+
+def _layer_file(layer) -> str:
+    """The file of the GCP layer read with a column map (GCP_COLUMNS); refused when it is not read from a file."""
+    if layer is None:
+        raise QgsProcessingException("A column map (GCP_COLUMNS) needs a GCP layer read from a file.")
+    path = layer_file_path(layer)
     if not os.path.isfile(path):
         raise QgsProcessingException(f"A column map (GCP_COLUMNS) needs a GCP layer read from a file, not {path!r}.")
     return path
@@ -277,8 +287,10 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
                                                       [QgsProcessing.TypeVectorPoint, QgsProcessing.TypeVector],
                                                       optional=True),
                   "Point layer: the geometry is the ground position (any CRS); fields give the image position. "
-                  "Or a header-less CSV/text file read with a column map (GCP_COLUMNS). Or leave it empty and give "
-                  "a raster with embedded GCPs (GCP_RASTER).")
+                  "An orthority GCP GeoJSON ('ji' property), an ASP .gcp or a QGIS Georeferencer .points file is "
+                  "read as the command line reads it (its fields mapped by the format; the field choices below are "
+                  "not used). Or a header-less CSV/text file read with a column map (GCP_COLUMNS). Or leave it empty "
+                  "and give a raster with embedded GCPs (GCP_RASTER).")
         fields = [
             (self.SAMPLE_FIELD, "Image column (sample) field", "sample", False,
              "Field holding the image column of each GCP, in pixels, GDAL convention (first pixel centre 0.5)."),
@@ -416,15 +428,14 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         return DEM.from_file(path, geoid=geoid)
 
     def read_gcps(self, parameters, context, feedback, dem=None):
-        """The GCP layer as an engine GCP table (DESIGN.md schema, EPSG:4326), read by the engine's own reader.
+        """The GCPs as an engine GCP table (DESIGN.md schema, EPSG:4326), read by the engine's own readers.
 
-        QGIS hands over the layer's file and layer name (exporting it to a temporary GeoPackage only when the
-        source is not a file OGR reads, e.g. a memory layer or a selection); :func:`gdal_gf4cal.gcp_formats.
-        read_gcp_layer` reads it (geometry = ground position in any CRS, reprojected to WGS84). Chosen fields
-        name the sample, line, height, id, role and sigma columns; a chosen field the layer lacks is an error.
+        A raster with embedded GCPs (GCP_RASTER); a file whose format names its own fields (orthority GCP GeoJSON,
+        ASP ``.gcp``, QGIS ``.points``: :meth:`self_described_gcp_file`) or a header-less file with a column map
+        (GCP_COLUMNS) read as the CLI reads it (:func:`gdal_gf4cal.gcp.read_gcps`, with the input image); else the
+        point layer with the chosen fields (:meth:`read_gcp_fields`).
         """
-        from gdal_gf4cal.gcp import validate_gcps
-        from gdal_gf4cal.gcp_formats import read_gcp_layer
+        from gdal_gf4cal.gcp import read_gcps
 
         convention = PIXEL_CONVENTIONS[self.parameterAsEnum(parameters, self.GCP_PIXEL_CONVENTION, context)] \
             if self.parameterDefinition(self.GCP_PIXEL_CONVENTION) is not None else None
@@ -435,44 +446,66 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
             if has_layer:
                 raise QgsProcessingException(self.tr(
                     "Give either the GCP layer (GCPS) or a raster with embedded GCPs (GCP_RASTER), not both."))
-            from gdal_gf4cal.gcp import read_gcps
             return read_gcps(raster.source(), dem=dem, pixel_convention=convention)
         if not has_layer:
             raise QgsProcessingException(self.tr(
                 "Choose the GCP layer (GCPS), or a raster with embedded GCPs (GCP_RASTER)."))
-        source = self.parameterAsSource(parameters, self.GCPS, context)
-        if source is None:
-            raise QgsProcessingException(self.invalidSourceError(parameters, self.GCPS))
+        own = self.self_described_gcp_file(parameters, context)
+        if own is not None:
+            return read_gcps(own, dem=dem, pixel_convention=convention, image=self._gcp_image(parameters, context))
         columns = self.parameterAsString(parameters, self.GCP_COLUMNS, context) \
             if self.parameterDefinition(self.GCP_COLUMNS) is not None else ""
         if columns.strip():    # a header-less file: the engine reads it with the map (the fields are not used)
-            from gdal_gf4cal.gcp import read_gcps
             return read_gcps(_layer_file(self.parameterAsVectorLayer(parameters, self.GCPS, context)), dem=dem,
                              columns=columns, pixel_convention=convention)
+        return self.read_gcp_fields(parameters, context, feedback, dem, convention)
+
+    def self_described_gcp_file(self, parameters, context) -> Optional[str]:
+        """The GCP file when its format maps its own fields, as the CLI reads it: ASP ``.gcp``, QGIS ``.points``, or
+        orthority's GCP GeoJSON (a ``ji`` property holding [column, row]); else None (a layer read by its fields)."""
+        value = parameters.get(self.GCPS)
+        if isinstance(value, str):
+            path = value.split("|")[0]
+            if path.startswith("file:"):
+                from qgis.PyQt.QtCore import QUrl
+                path = QUrl(path).toLocalFile()
+        else:
+            layer = self.parameterAsVectorLayer(parameters, self.GCPS, context)
+            path = layer_file_path(layer) if layer is not None else None
+        if not path or not os.path.isfile(path):
+            return None
+        ext = os.path.splitext(path)[1].lower()
+        if ext in SELF_DESCRIBED_GCP_EXTS:
+            return path
+        if ext in (".geojson", ".json"):
+            from qgis.core import QgsVectorLayer
+            if "ji" in QgsVectorLayer(path, "gcps", "ogr").fields().names():
+                return path
+        return None
+
+    def _gcp_image(self, parameters, context) -> Optional[str]:
+        """The input image the GCPs belong to (selects its rows of a multi-image GCP file), or None."""
+        if not isinstance(self.parameterDefinition(self.INPUT), QgsProcessingParameterRasterLayer):
+            return None
+        layer = self.parameterAsRasterLayer(parameters, self.INPUT, context)
+        return layer.source() if layer is not None else None
+
+    def read_gcp_fields(self, parameters, context, feedback, dem, convention):
+        """The GCP point layer read with its chosen fields (SAMPLE_FIELD, ...) by
+        :func:`gdal_gf4cal.gcp_formats.read_gcp_layer` (geometry = ground position in any CRS, reprojected to
+        WGS84); QGIS hands over the layer's file, exporting it to a temporary GeoPackage only when OGR cannot read
+        its source (a memory layer, a selection)."""
+        from gdal_gf4cal.gcp import validate_gcps
+        from gdal_gf4cal.gcp_formats import read_gcp_layer
+
+        source = self.parameterAsSource(parameters, self.GCPS, context)
+        if source is None:
+            raise QgsProcessingException(self.invalidSourceError(parameters, self.GCPS))
         if QgsWkbTypes.geometryType(source.wkbType()) != QgsWkbTypes.PointGeometry:
             raise QgsProcessingException(self.tr(
                 "The GCP layer must be a point layer (ground positions), or a header-less CSV/text file read with "
                 "a column map (GCP_COLUMNS)."))
-        names = source.fields().names()
-        chosen = {}
-        for param, key, required in ((self.SAMPLE_FIELD, "sample", True), (self.LINE_FIELD, "line", True),
-                                     (self.HEIGHT_FIELD, "h", False), (self.ID_FIELD, "id", False),
-                                     (self.ROLE_FIELD, "role", False), (self.SIGMA_FIELD, "sigma", False)):
-            if self.parameterDefinition(param) is None:
-                continue
-            field = self.parameterAsString(parameters, param, context)
-            if not field:
-                if required:
-                    raise QgsProcessingException(self.tr(f"Choose the GCP layer's {key} field ({param})."))
-                continue
-            if field not in names:
-                explicit = param in parameters and parameters[param] not in (None, "")
-                if required or explicit:
-                    raise QgsProcessingException(self.tr(
-                        f"The GCP layer has no field '{field}' ({param}); its fields are: {', '.join(names)}. "
-                        f"Choose the field holding the {key} values."))
-                continue  # an optional field left at its default name that the layer does not have
-            chosen[key] = field
+        chosen = self._chosen_fields(parameters, context, source.fields().names())
         if source.featureCount() == 0:
             raise QgsProcessingException(self.tr("The GCP layer has no features."))
         if "h" not in chosen and dem is None:
@@ -500,6 +533,30 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
                 table[key] = values.to_numpy()
                 changed = True
         return validate_gcps(table, source=f"GCP layer {source.sourceName()!r}", dem=dem) if changed else table
+
+    def _chosen_fields(self, parameters, context, names) -> Dict[str, str]:
+        """``{engine column: layer field}`` of the field parameters; a required or explicitly chosen field the layer
+        lacks is an error naming the layer's fields."""
+        chosen = {}
+        for param, key, required in ((self.SAMPLE_FIELD, "sample", True), (self.LINE_FIELD, "line", True),
+                                     (self.HEIGHT_FIELD, "h", False), (self.ID_FIELD, "id", False),
+                                     (self.ROLE_FIELD, "role", False), (self.SIGMA_FIELD, "sigma", False)):
+            if self.parameterDefinition(param) is None:
+                continue
+            field = self.parameterAsString(parameters, param, context)
+            if not field:
+                if required:
+                    raise QgsProcessingException(self.tr(f"Choose the GCP layer's {key} field ({param})."))
+                continue
+            if field not in names:
+                explicit = param in parameters and parameters[param] not in (None, "")
+                if required or explicit:
+                    raise QgsProcessingException(self.tr(
+                        f"The GCP layer has no field '{field}' ({param}); its fields are: {', '.join(names)}. "
+                        f"Choose the field holding the {key} values."))
+                continue  # an optional field left at its default name that the layer does not have
+            chosen[key] = field
+        return chosen
 
     def push_warnings(self, feedback, rep) -> None:
         """Send the workflow report's ``notes`` and ``warnings`` (lists of one-line str) to the Processing log."""
@@ -580,6 +637,14 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         self._created, self._created_dirs = [], []
 
     # ---- running -------------------------------------------------------------------------------------------
+    def checkParameterValues(self, parameters, context):
+        # An ASP .gcp or a QGIS .points file is no layer QGIS opens: the engine reads it (read_gcps).
+        value = parameters.get(self.GCPS) if self.parameterDefinition(self.GCPS) is not None else None
+        if isinstance(value, str) and os.path.isfile(value) and \
+                os.path.splitext(value)[1].lower() in SELF_DESCRIBED_GCP_EXTS:
+            parameters = {k: v for k, v in parameters.items() if k != self.GCPS}
+        return super().checkParameterValues(parameters, context)
+
     def run_algorithm(self, parameters: Dict[str, Any], context, feedback,
                       progress: FeedbackProgress) -> Dict[str, Any]:
         raise NotImplementedError
