@@ -102,6 +102,19 @@ def footprint_lonlat(rpc, image_size: Tuple[int, int], h_range_m: Tuple[float, f
     return (float(w - dx), float(so - dy), float(e + dx), float(n + dy))
 
 
+def scene_footprint(rpc, image_size, dem=None):
+    """The scene footprint polygon (lon/lat) of the residual GeoPackages: the image border localised on ``dem``
+    (its lines of sight intersected with the DEM, as the ortho is warped: within a pixel of the ortho's valid
+    area), border points beyond the DEM at the RPC's HEIGHT_OFF; without a DEM at HEIGHT_OFF. None when the border
+    does not localise."""
+    from ..report import footprint_from_rpc
+    h0 = float(rpc.height_off)
+    try:
+        return footprint_from_rpc(rpc, image_size, h=h0 if dem is None else dem.with_nodata(h0))
+    except Gf4calError:
+        return None
+
+
 def write_ellipsoidal_dem(dem_path: str, grid: str, bounds_lonlat, out_path: str) -> str:
     """Write the part of ``dem_path`` covering ``bounds_lonlat`` as ellipsoidal heights (METHODS §2).
 
