@@ -1,13 +1,14 @@
-"""``gf4cal ortho`` / QGIS "Orthorectify": an orthoimage from an image, its (refined) RPC and a DEM (METHODS §2, §4.2).
+"""``gf4cal ortho`` / QGIS "Orthorectify": an orthoimage from an image, its (refined) RPC and a DEM.
 
 GDAL does the warping (``gdal.Warp`` with the RPC transformer and ``RPC_DEM``, multithreaded, into a warped VRT with
 an alpha band, written by ``gdal.Translate`` as a tiled, compressed GeoTIFF with a no-data value, the alpha as an
-internal mask and internal overviews: no black collar, fast to pan). This module makes sure the DEM GDAL samples holds ELLIPSOIDAL heights: when the DEM's heights are above a
-geoid (declared by its compound CRS, ``geoid="auto"``, or named with ``geoid=``) it writes a temporary ellipsoidal
-GeoTIFF over the image footprint (the DEM's own grid, ``h = H + N`` at each pixel centre through PROJ's grid of that
-geoid) and warps with it; GDAL's own vertical handling is switched off (``RPC_DEM_APPLY_VDATUM_SHIFT=FALSE``), so a
-declared datum whose grid is missing is refused (:class:`~gdal_gf4cal.geoid.GeoidGridMissing`, naming the grid)
-instead of silently ignored. The result equals ``gdalwarp -rpc -to RPC_DEM=<ellipsoidal DEM>`` with the same grid.
+internal mask and internal overviews: no black collar, fast to pan). This module makes sure the DEM GDAL samples
+holds ELLIPSOIDAL heights: when the DEM's heights are above a geoid (declared by its compound CRS, ``geoid="auto"``,
+or named with ``geoid=``) it writes a temporary ellipsoidal GeoTIFF over the image footprint (the DEM's own grid,
+``h = H + N`` at each pixel centre through PROJ's grid of that geoid) and warps with it; GDAL's own vertical
+handling is switched off (``RPC_DEM_APPLY_VDATUM_SHIFT=FALSE``), so a declared datum whose grid is missing is
+refused (:class:`~gdal_gf4cal.geoid.GeoidGridMissing`, naming the grid) instead of silently ignored. The result
+equals ``gdalwarp -rpc -to RPC_DEM=<ellipsoidal DEM>`` with the same grid.
 """
 from __future__ import annotations
 
@@ -320,8 +321,8 @@ def orthorectify(image, *, dem, out, rpc=None, geoid="auto", crs="utm", res_m: O
     -------
     dict
         ``input``, ``rpc``, ``dem``, ``geoid`` (``{"name", "grid"}``, absent when heights are used as they are),
-        ``crs``, ``res_m``, ``size_px``, ``nodata``, ``overviews`` (number of levels), ``resampling``, ``outputs``, ``warnings``, ``notes`` (e.g. the crop origin
-        applied, :func:`gdal_gf4cal.crop.image_rpc`).
+        ``crs``, ``res_m``, ``size_px``, ``nodata``, ``overviews`` (number of levels), ``resampling``, ``outputs``,
+        ``warnings``, ``notes`` (e.g. the crop origin applied, :func:`gdal_gf4cal.crop.image_rpc`).
         Raises :class:`~gdal_gf4cal.geoid.GeoidGridMissing` (nothing written) when a geoid cannot be applied; a
         :class:`Gf4calError` (nothing written) for an output CRS that cannot hold the scene, a resolution coarser than
         the footprint or beyond the size limit, a full disk, or an ortho without a valid pixel.
