@@ -33,7 +33,9 @@ def add_parser(parser):
     parser.add_argument("--rpc", help="RPC to use instead of the image's: refined .vrt, .RPB, _RPC.TXT")
     parser.add_argument("--dem", required=True, help="DEM covering the scene (any GDAL raster, any CRS)")
     add_geoid_argument(parser)
-    parser.add_argument("--out", required=True, metavar="ORTHO.tif", help="output GeoTIFF (tiled, compressed)")
+    parser.add_argument("--out", required=True, metavar="ORTHO.tif",
+                        help="output GeoTIFF (tiled, compressed, no-data and an internal mask of the valid area, "
+                             "overviews)")
     add_ortho_arguments(parser)
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
 

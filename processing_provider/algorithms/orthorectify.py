@@ -28,7 +28,8 @@ class Orthorectify(Gf4calAlgorithm):
             "the DEM over the scene is made with PROJ's geoid grid (us_nga_egm96_15.tif, us_nga_egm08_25.tif, or "
             "the legacy egm96_15.gtx / egm08_25.gtx, searched in PROJ's data folders), or the grid file you give. "
             "If the grid is missing the run stops and names it; nothing is written. Output: a tiled, compressed "
-            "GeoTIFF in the chosen CRS (default the UTM zone of the scene), loaded in the project.")
+            "GeoTIFF in the chosen CRS (default the UTM zone of the scene) with a no-data value, an internal mask of "
+            "the valid area (no black collar) and internal overviews, loaded in the project as '<image> ortho'.")
 
     RPC = "RPC"
     CRS = "CRS"
@@ -63,7 +64,8 @@ class Orthorectify(Gf4calAlgorithm):
                       "without it such a pixel size is refused before anything is written.")
         p.setFlags(p.flags() | p.FlagAdvanced)
         self._add(QgsProcessingParameterRasterDestination(self.OUTPUT, self.tr("Orthoimage")),
-                  "The orthoimage (GeoTIFF, tiled, deflate-compressed). Never an input.")
+                  "The orthoimage (GeoTIFF, tiled, deflate-compressed, no-data + internal mask, overviews). Never an "
+                  "input.")
         self.addOutput(QgsProcessingOutputNumber("RESOLUTION_OUT", self.tr("Pixel size of the orthoimage")))
 
     def run_algorithm(self, parameters, context, feedback, progress):
