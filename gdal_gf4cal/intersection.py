@@ -18,6 +18,7 @@ from .errors import DegenerateGeometryError, GCPError
 from .geodesy import metres_per_degree
 from .estimation import Estimate, solve_with_points, unit_weight_sigma
 from .progress import report as _report
+from .stats import axis_stats, ce90, le90, planar_stats
 from .stats import model_jacobian as _jacobian
 
 __all__ = ["IntersectionResult", "intersect", "ground_errors_m", "intersection_accuracy"]
@@ -137,39 +138,16 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
     wgt = np.where(obs, 1.0 / sig ** 2, 0.0)
     if h0 is None:
         h0 = float(np.mean(models[0].height_range))     # the RPC's HEIGHT_OFF; any SensorModel has height_range
-    # Start: localise in the first image observing each point at h0.
-    lon = np.full(n_pts, np.nan)
-    lat = np.full(n_pts, np.nan)
-    h = np.full(n_pts, float(h0))
-    for k in range(n_img):
-        todo = np.isnan(lon) & obs[k]
-        if todo.any():
-            lo, la = models[k].localize(pts[k, todo, 0], pts[k, todo, 1], h[todo])
-            lon[todo], lat[todo] = lo, la
+    lon, lat, h = _start(models, pts, obs, float(h0))
     active = (n_obs >= 2) & np.isfinite(lon) & np.isfinite(lat)
     converged = np.zeros(n_pts, bool)
-
-    def linearise(idx):
-        """Residuals (n, 2 n_img), weights and d(sample, line)/d(east, north, up) (n, 2 n_img, 3) in px/m."""
-        mx, my = _radii(lat[idx], h[idx])
-        to_m = np.stack([mx, my, np.ones_like(mx)], -1)
-        res_k = np.zeros((idx.size, n_img, 2))
-        jac_k = np.zeros((idx.size, n_img, 2, 3))
-        for k in range(n_img):
-            s, l = models[k].project(lon[idx], lat[idx], h[idx])
-            r = np.stack([pts[k, idx, 0] - s, pts[k, idx, 1] - l], axis=-1)
-            jac = _jacobian(models[k], lon[idx], lat[idx], h[idx]) / to_m[:, None, :]
-            res_k[:, k] = np.where(obs[k, idx, None], r, np.nan)
-            jac_k[:, k] = np.where(obs[k, idx, None, None], jac, 0.0)
-        w = np.repeat(wgt[:, idx].T, 2, axis=1)
-        return res_k.reshape(idx.size, 2 * n_img), w, jac_k.reshape(idx.size, 2 * n_img, 3), mx, my
 
     for it in range(max_iter):
         _report(progress, it / max_iter, "intersecting")
         idx = np.flatnonzero(active & ~converged)
         if idx.size == 0:
             break
-        r, w, jac, mx, my = linearise(idx)
+        r, w, jac, mx, my = _linearise(models, pts, obs, wgt, (lon, lat, h), idx)
         # The ground point of each tie point is a point block: solved (eliminated) per point (estimation.schur).
         sol = solve_with_points(jac, r, w, det_min=1e-30, covariance=False)
         step = sol.dx_points
@@ -188,7 +166,7 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
     cov = np.full((n_pts, 3, 3), np.nan)
     redundancy = np.zeros((n_img, n_pts, 2))
     if idx.size:
-        r, w, jac, _, _ = linearise(idx)
+        r, w, jac, _, _ = _linearise(models, pts, obs, wgt, (lon, lat, h), idx)
         res[:, idx] = r.reshape(idx.size, n_img, 2).transpose(1, 0, 2)
         cov[idx] = solve_with_points(jac, r, w, det_min=-1.0).cov_points
         q = np.einsum("nri,nij,nrj->nr", jac, cov[idx], jac)
@@ -204,6 +182,39 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
                               weights=np.repeat(wgt[..., None], 2, axis=2))
 
 
+def _start(models, pts, obs, h0: float):
+    """Start: each point localised in the first image observing it, at height ``h0``."""
+    n_img, n_pts = pts.shape[:2]
+    lon = np.full(n_pts, np.nan)
+    lat = np.full(n_pts, np.nan)
+    h = np.full(n_pts, h0)
+    for k in range(n_img):
+        todo = np.isnan(lon) & obs[k]
+        if todo.any():
+            lo, la = models[k].localize(pts[k, todo, 0], pts[k, todo, 1], h[todo])
+            lon[todo], lat[todo] = lo, la
+    return lon, lat, h
+
+
+def _linearise(models, pts, obs, wgt, llh, idx):
+    """Residuals (n, 2 n_img), weights and d(sample, line)/d(east, north, up) (n, 2 n_img, 3) in px/m of the
+    points ``idx`` at ``llh = (lon, lat, h)``, and the metres per degree ``mx, my``."""
+    lon, lat, h = (a[idx] for a in llh)
+    n_img = len(models)
+    mx, my = _radii(lat, h)
+    to_m = np.stack([mx, my, np.ones_like(mx)], -1)
+    res_k = np.zeros((idx.size, n_img, 2))
+    jac_k = np.zeros((idx.size, n_img, 2, 3))
+    for k in range(n_img):
+        s, l = models[k].project(lon, lat, h)
+        r = np.stack([pts[k, idx, 0] - s, pts[k, idx, 1] - l], axis=-1)
+        jac = _jacobian(models[k], lon, lat, h) / to_m[:, None, :]
+        res_k[:, k] = np.where(obs[k, idx, None], r, np.nan)
+        jac_k[:, k] = np.where(obs[k, idx, None, None], jac, 0.0)
+    w = np.repeat(wgt[:, idx].T, 2, axis=1)
+    return res_k.reshape(idx.size, 2 * n_img), w, jac_k.reshape(idx.size, 2 * n_img, 3), mx, my
+
+
 def intersection_accuracy(result: IntersectionResult, lon_true, lat_true, h_true) -> Dict[str, Any]:
     """Planar and height errors (m) of intersected points against known ground truth (METHODS §6, §7).
 
@@ -215,7 +226,6 @@ def intersection_accuracy(result: IntersectionResult, lon_true, lat_true, h_true
     e, n, u = e[ok], n[ok], u[ok]
     if not ok.any():
         return {"n": 0, "planar_rms_m": None, "height_rms_m": None, "ce90_m": None, "le90_m": None}
-    from .stats import axis_stats, ce90, le90, planar_stats
 
     def ax(x):
         return {k: v for k, v in axis_stats(x).items() if k in ("mean", "rms", "max")}

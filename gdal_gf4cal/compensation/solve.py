@@ -8,9 +8,10 @@ sigma pooled over both axes.
 from __future__ import annotations
 
 import math
-from typing import Any, List, Optional, Sequence, Tuple
+from typing import Any, Optional, Sequence, Tuple
 
 import numpy as np
+import pandas as pd
 
 from ..errors import DegenerateGeometryError, GCPError
 from ..estimation import Estimate, Snooping, robust_fit, weighted_lsq
@@ -33,7 +34,6 @@ def _frame_from_rpc(rpc) -> Tuple[float, float, float, float]:
 
 
 def _table(gcps):
-    import pandas as pd
     if isinstance(gcps, pd.DataFrame):
         tab = gcps.copy()
     elif isinstance(gcps, dict):
@@ -185,24 +185,12 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
     tab = _table(gcps)
     _fill_heights(tab, dem)
     fr = tuple(float(x) for x in (frame if frame is not None else _frame_from_rpc(rpc)))
-    ts, tl = model.terms
-    s_pred, l_pred = _predict(rpc, tab)
-    u, v = (s_pred - fr[0]) / fr[1], (l_pred - fr[2]) / fr[3]
-    a_s, a_l = _monomials(ts, u, v), _monomials(tl, u, v)
-    y_s = tab["sample"].to_numpy(float) - s_pred              # residuals before = what the correction explains
-    y_l = tab["line"].to_numpy(float) - l_pred
-    ctrl = (tab["role"] == "control").to_numpy()
-    n_ctrl = int(ctrl.sum())
-    if n_ctrl < model.min_gcps:
-        raise GCPError(f"model {model.label!r} needs at least {model.min_gcps} control GCP(s), got {n_ctrl}; add "
-                       f"control points or choose a simpler model (translation needs 1)")
-    cond = _check_rank([a_s[ctrl], a_l[ctrl]], model, n_ctrl, (ts, tl))
-    w0 = 1.0 / tab["sigma"].to_numpy(float) ** 2
-    problem = CompensationProblem(a_s, a_l, y_s, y_l, w0, model.min_gcps)
+    pred = _predict(rpc, tab)
+    problem, ctrl, cond = _problem(tab, model, fr, pred)
     snoop = Snooping(outlier_threshold, too_many=_TOO_MANY)
     used, start_out, iterations, notes = _robust_set(problem, ctrl, robust, snoop, max_iter)
     try:
-        _check_rank([a_s[used], a_l[used]], model, int(used.sum()), (ts, tl))
+        _check_rank([problem.a_s[used], problem.a_l[used]], model, int(used.sum()), model.terms)
     except DegenerateGeometryError:
         used = ctrl.copy()
         notes.append("rejecting blunders would leave the model undetermined; all control points kept")
@@ -216,18 +204,35 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
         if crit > 1.05 * outlier_threshold:
             notes.append(f"few redundant observations: blunder threshold raised from {outlier_threshold:g} to "
                          f"{crit:.3g} (Student-t, {min(dof)} degrees of freedom)")
-    elif not robust:
-        outlier[:] = False
-    _fill_table(tab, (s_pred, l_pred), (y_s, y_l), (a_s @ cs, a_l @ cl), (norm_s, norm_l))
+    _fill_table(tab, pred, (problem.y_s, problem.y_l), (problem.a_s @ cs, problem.a_l @ cl), (norm_s, norm_l))
     tab["outlier"] = outlier
     tab["outlier_level"] = np.where(outlier, np.where(start_out, "start", "snooping"), "")
     tab["used"] = used
     if leave_one_out:
-        _leave_one_out(tab, (a_s, a_l), (ns, nl), w0, used)
+        _leave_one_out(tab, (problem.a_s, problem.a_l), (ns, nl), problem.w0, used)
     return CompensationResult(model=model, frame=fr, coef_sample=cs, coef_line=cl,
                               cov_sample=sig_s ** 2 * ns, cov_line=sig_l ** 2 * nl, sigma0_px=(sig_s, sig_l),
                               gcps=tab, redundancy=red, iterations=iterations, condition_number=cond, notes=notes,
                               warnings=check_point_warnings(tab))
+
+
+def _problem(tab, model: CompensationModel, fr, pred):
+    """``(CompensationProblem, control mask, condition number)`` of the GCP table: designs in the normalised
+    predicted coordinates, observations ``measured - RPC``; GCPError / DegenerateGeometryError when the control
+    points cannot determine ``model``."""
+    u, v = (pred[0] - fr[0]) / fr[1], (pred[1] - fr[2]) / fr[3]
+    ts, tl = model.terms
+    a_s, a_l = _monomials(ts, u, v), _monomials(tl, u, v)
+    ctrl = (tab["role"] == "control").to_numpy()
+    n_ctrl = int(ctrl.sum())
+    if n_ctrl < model.min_gcps:
+        raise GCPError(f"model {model.label!r} needs at least {model.min_gcps} control GCP(s), got {n_ctrl}; add "
+                       f"control points or choose a simpler model (translation needs 1)")
+    cond = _check_rank([a_s[ctrl], a_l[ctrl]], model, n_ctrl, (ts, tl))
+    # residuals before = what the correction explains
+    y_s, y_l = tab["sample"].to_numpy(float) - pred[0], tab["line"].to_numpy(float) - pred[1]
+    w0 = 1.0 / tab["sigma"].to_numpy(float) ** 2
+    return CompensationProblem(a_s, a_l, y_s, y_l, w0, model.min_gcps), ctrl, cond
 
 
 def _robust_set(problem: CompensationProblem, ctrl, robust: bool, snoop: Snooping, max_iter: int):
