@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, Optional, Sequence
 
 import numpy as np
-from scipy import stats
 
 from .compensation import fit_compensation
 from .errors import GCPError
@@ -64,6 +63,7 @@ def select_model(rpc, gcps, *, candidates: Sequence[str] = AUTO_CANDIDATES, dem=
     -------
     ModelSelection
     """
+    from scipy import stats          # ~1 s to import: only when first needed (CLI, QGIS start-up)
     results, table = _fit_candidates(rpc, gcps, candidates, dict(fit_options, dem=dem, robust=robust,
                                                                   outlier_threshold=outlier_threshold))
     n_ctrl = _score(results, table)

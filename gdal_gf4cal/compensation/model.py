@@ -25,7 +25,6 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-import pandas as pd
 
 from ..basis import detector_terms, monomial_derivatives, monomials, term_name
 from ..errors import GCPError
@@ -208,6 +207,7 @@ class CompensationResult:
 
         Useful to apply a correction estimated elsewhere, or to simulate a biased RPC from a true one.
         """
+        import pandas as pd          # ~1 s to import: only when first needed (CLI, QGIS start-up)
         if not isinstance(model, CompensationModel):
             model = CompensationModel.from_name(model)
         ts, tl = model.terms

@@ -11,7 +11,6 @@ import math
 from typing import Any, Optional, Sequence, Tuple
 
 import numpy as np
-import pandas as pd
 
 from ..errors import DegenerateGeometryError, GCPError
 from ..estimation import Estimate, Snooping, robust_fit, weighted_lsq
@@ -34,6 +33,7 @@ def _frame_from_rpc(rpc) -> Tuple[float, float, float, float]:
 
 
 def _table(gcps):
+    import pandas as pd              # ~1 s to import: only when first needed (CLI, QGIS start-up)
     if isinstance(gcps, pd.DataFrame):
         tab = gcps.copy()
     elif isinstance(gcps, dict):

@@ -29,7 +29,6 @@ from functools import lru_cache
 from typing import Any, List, Optional, Sequence
 
 import numpy as np
-from scipy import stats
 
 from ..errors import DegenerateGeometryError, GCPError
 from .lsq import Block, normal_solve, sigma0_and_cov, weighted_lsq
@@ -245,6 +244,7 @@ class RadialHuber(_IRLSNorm):
 
 @lru_cache(maxsize=16)
 def _chi_median(k: int) -> float:
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     return float(math.sqrt(stats.chi2.ppf(0.5, k)))
 
 

@@ -30,7 +30,6 @@ from itertools import combinations
 from typing import Optional, Tuple
 
 import numpy as np
-from scipy import stats
 
 from ..errors import DegenerateGeometryError
 
@@ -48,6 +47,7 @@ def critical_value(threshold: float, dof: int) -> float:
     normalised with an *estimated* sigma, so with few redundant observations they follow Student's t: the
     threshold becomes the t quantile of the same two-sided probability.
     """
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     if dof <= 0:
         return math.inf
     return float(stats.t.isf(stats.norm.sf(threshold), dof))
@@ -80,11 +80,13 @@ def readmissible(normalised, dof: int, *, threshold: float = 4.0, sigma: float =
 
 @lru_cache(maxsize=64)
 def _norm_sf2(threshold: float) -> float:
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     return float(2.0 * stats.norm.sf(threshold))
 
 
 @lru_cache(maxsize=64)
 def _chi2_isf(p: float, k: int) -> float:
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     return float(stats.chi2.isf(min(p, 1.0), k))
 
 
@@ -148,17 +150,20 @@ def _batched_fit(a: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray, 
 
 @lru_cache(maxsize=256)
 def _lts_consistency(h: int, n: int, k: int) -> float:
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     alpha = h / n
     return float(k * stats.chi2.cdf(stats.chi2.ppf(alpha, k), k + 2) / alpha) if alpha < 1 else float(k)
 
 
 @lru_cache(maxsize=64)
 def _chi2_ppf(p: float, k: int) -> float:
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     return float(stats.chi2.ppf(p, k))
 
 
 @lru_cache(maxsize=1024)
 def _f_ppf(p: float, d1: int, d2: int) -> float:
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     return float(stats.f.ppf(p, d1, d2))
 
 
