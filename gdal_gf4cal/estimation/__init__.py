@@ -18,5 +18,5 @@ from .driver import (ESTIMATE_LEVELS, Huber, IRLSSolution, LinearProblem, Radial
 
 __all__ = ["Estimate", "Block", "weighted_lsq", "solve_with_points", "critical_value", "high_breakdown_start",
            "robust_lsq", "normal_solve", "irls", "IRLSSolution", "radial_huber_weights", "readmissible",
-           "min_subset_points", "sigma0_and_cov", "unit_weight_sigma", "robust_fit", "LinearProblem", "Snooping", "RadialHuber", "Huber",
-           "Tukey", "RobustState", "ESTIMATE_LEVELS"]
+           "min_subset_points", "sigma0_and_cov", "unit_weight_sigma", "robust_fit", "LinearProblem", "Snooping",
+           "RadialHuber", "Huber", "Tukey", "RobustState", "ESTIMATE_LEVELS"]

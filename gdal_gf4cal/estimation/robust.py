@@ -1,4 +1,5 @@
-"""One robust estimator (METHODS §4, §6): a high-breakdown start, then data snooping with Student-t thresholds.
+"""The robust estimator's parts (METHODS §4, §6): a high-breakdown start, then data snooping with Student-t thresholds
+(the loop itself is the one robust driver, :func:`~gdal_gf4cal.estimation.robust_fit` in ``driver.py``).
 
 Observations come per *point* (a GCP gives a sample and a line observation; a tie point one pair per image):
 ``design`` has shape ``(n_points, k, p)``, ``obs`` and ``weights`` ``(n_points, k)``. A point is in or out as a
