@@ -1,6 +1,6 @@
 """GCP file formats (ours and other tools'), and role assignment (METHODS §4, §6).
 
-Everything returns the project's one GCP schema (DESIGN.md): a GeoDataFrame in EPSG:4326 with ``id, lon, lat, h,
+Everything returns the project's one GCP schema (DESIGN.md): a DataFrame (WGS84 degrees) with ``id, lon, lat, h,
 sample, line, role, sigma`` (image coordinates in GDAL's convention, centre of the first pixel at 0.5).
 
 * QGIS Georeferencer ``.points`` files (``mapX,mapY,sourceX,sourceY,enable,...``, optional ``#CRS: WKT`` line):
@@ -584,7 +584,7 @@ def write_asp_gcp(gcps, path, *, image: Optional[str] = None, overwrite: bool = 
         t = t[t["kind"] == "gcp"]
     else:
         g = validate_gcps(gcps, need_height=True, source="GCPs for ASP")
-        t = pd.DataFrame(g.drop(columns="geometry")).rename(columns={"id": "point_id"})
+        t = pd.DataFrame(g).rename(columns={"id": "point_id"})
         t["image_id"] = _image_name(image, gcps, "an ASP .gcp file")
     pids = list(dict.fromkeys(t["point_id"].astype(str)))
     numeric = all(re.fullmatch(r"\d+", p) for p in pids)

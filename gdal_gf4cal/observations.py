@@ -36,14 +36,17 @@ from __future__ import annotations
 import os
 from typing import Iterable, Mapping, Optional, Sequence
 
+import geopandas as gpd
 import numpy as np
+import pandas as pd
 
 from .atomic import atomic_output
 from .errors import GCPError, InputOverwriteError
 
 __all__ = ["OBS_SCHEMA", "KINDS", "OUTLIER_LEVELS", "SCHEMA", "REQUIRED", "ROLES",
            "validate_observations", "read_observations", "write_observations", "gcp_view", "from_gcps",
-           "from_gcp_views", "image_ids", "select_images", "flag_outliers", "make_gcps", "validate_gcps", "fill_heights"]
+           "from_gcp_views", "image_ids", "select_images", "flag_outliers", "make_gcps", "validate_gcps", "fill_heights",
+           "to_geodataframe"]
 
 # ----------------------------------------------------------------------------------------------------------------
 # the one-image view: the GCP table schema (DESIGN.md "GCP table schema")
@@ -54,8 +57,7 @@ ROLES = ("control", "check")
 
 
 def make_gcps(lon, lat, h, sample, line, *, ids: Optional[Sequence] = None, role="control", sigma=1.0, **extra):
-    """Build a GCP GeoDataFrame from arrays (extra keyword arrays become columns)."""
-    import pandas as pd
+    """Build a GCP table (a DataFrame in the GCP schema) from arrays (extra keyword arrays become columns)."""
     lon = np.asarray(lon, dtype=float).ravel()
     n = lon.size
     data = {
@@ -71,74 +73,20 @@ def make_gcps(lon, lat, h, sample, line, *, ids: Optional[Sequence] = None, role
     }
     for key, value in extra.items():
         data[key] = np.broadcast_to(np.asarray(value), (n,)).copy() if np.ndim(value) == 0 else np.asarray(value)
-    df = pd.DataFrame(data)
-    return _to_geodataframe(df)
+    return pd.DataFrame(data)
 
 
-def _point_array(lon: np.ndarray, lat: np.ndarray):
-    """The ground points as a GeoPandas geometry array (EPSG:4326). With shapely >= 2 vectorised; with shapely 1.8
-    (Debian 12) one ``Point`` per GCP stored element by element, because ``points_from_xy`` there probes every
-    point's deprecated array interface (three times slower: 1e6 GCPs took ~18 s of CPU)."""
-    import geopandas as gpd
-    import shapely
-    if int(shapely.__version__.split(".")[0]) >= 2:
-        return gpd.points_from_xy(lon, lat, crs="EPSG:4326")
-    import gc
-    from geopandas.array import GeometryArray
-    arr = np.empty(len(lon), dtype=object)
-    collecting = gc.isenabled()
-    gc.disable()        # 1e6 new objects, none in a cycle: the collector's passes over them cost ~25 %
-    try:
-        for i, p in enumerate(_points_18(lon, lat)):
-            arr[i] = p
-    finally:
-        if collecting:
-            gc.enable()
-    return GeometryArray(arr, crs="EPSG:4326")
-
-
-def _points_18(lon, lat, from_buffer: bool = True):
-    """Shapely 1.8 ``Point(x, y)`` objects made with GEOS directly and the three attributes its constructor
-    sets, without its per-call argument inspection and attribute-deprecation checks: each coordinate sequence
-    copied from the (x, y) buffer (GEOS >= 3.10: two GEOS calls a point) or else set value by value (the four
-    calls ``Point(x, y)`` makes). 2x faster; the geometries are the same (tested)."""
-    import ctypes
-    from shapely.geometry import Point
-    from shapely.geos import lgeos
-    new, put = Point.__new__, object.__setattr__
-    lib, handle = getattr(lgeos, "_lgeos", None), getattr(lgeos, "geos_handle", None)
-    from_buffer = getattr(lib, "GEOSCoordSeq_copyFromBuffer_r", None) if handle and from_buffer else None
-    if from_buffer is not None:
-        from_buffer.restype = ctypes.c_void_p
-        from_buffer.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint, ctypes.c_int, ctypes.c_int]
-        make = lib.GEOSGeom_createPoint_r
-        make.restype, make.argtypes = ctypes.c_void_p, [ctypes.c_void_p, ctypes.c_void_p]
-        xy = np.ascontiguousarray(np.column_stack([np.asarray(lon, float), np.asarray(lat, float)]))
-        base = xy.ctypes.data
-        for addr in range(base, base + 16 * len(xy), 16):
-            p = new(Point)
-            put(p, "__geom__", make(handle, from_buffer(handle, addr, 1, 0, 0)))
-            put(p, "_is_empty", False)
-            put(p, "_ndim", 2)
-            yield p
-        del xy
-        return
-    create, set_x = lgeos.GEOSCoordSeq_create, lgeos.GEOSCoordSeq_setX
-    set_y, make = lgeos.GEOSCoordSeq_setY, lgeos.GEOSGeom_createPoint
-    for x, y in zip(np.asarray(lon, float).tolist(), np.asarray(lat, float).tolist()):
-        cs = create(1, 2)
-        set_x(cs, 0, x)
-        set_y(cs, 0, y)
-        p = new(Point)
-        put(p, "__geom__", make(cs))
-        put(p, "_is_empty", False)
-        put(p, "_ndim", 2)
-        yield p
-
-
-def _to_geodataframe(df):
-    import geopandas as gpd
-    geometry = _point_array(df["lon"].to_numpy(float), df["lat"].to_numpy(float))
+def to_geodataframe(table):
+    """The table as a :class:`geopandas.GeoDataFrame` in EPSG:4326 with a point geometry from ``lon, lat`` (none
+    where they are not finite: tie points not yet estimated), for export. GCP and observation tables are plain
+    DataFrames: the geometry is built here only (public ``geopandas.points_from_xy``), so that a 1e6-point job
+    does not pay for 1e6 shapely objects it never uses."""
+    df = pd.DataFrame(table).drop(columns="geometry", errors="ignore")
+    lon, lat = df["lon"].to_numpy(float), df["lat"].to_numpy(float)
+    geometry = gpd.points_from_xy(lon, lat, crs="EPSG:4326")
+    missing = ~(np.isfinite(lon) & np.isfinite(lat))
+    if missing.any():
+        geometry[missing] = None
     return gpd.GeoDataFrame(df, geometry=geometry, crs="EPSG:4326")
 
 
@@ -174,7 +122,6 @@ def fill_heights(gcps, dem, *, source: str = "GCPs"):
 def _clean_roles(role):
     """The role column filled (``control``), as text, stripped and lower-cased: on its distinct values when they
     are all text (one GCP table of 1e6 rows has one or two roles), else value by value."""
-    import pandas as pd
     codes, uniques = pd.factorize(role, use_na_sentinel=True)
     if all(type(u) is str for u in uniques):
         clean = np.array([u.strip().lower() for u in uniques] + ["control"], dtype=object)
@@ -186,9 +133,8 @@ def validate_gcps(gdf, *, source: str = "GCPs", dem=None, need_height: bool = Tr
     """Check and complete a GCP table: required columns, finite numbers, ids, roles, sigma, heights.
 
     A missing or NaN height is taken from ``dem`` (a :class:`gdal_gf4cal.dem.DEM`, geoid-aware) when given,
-    else it is an error. Returns a new GeoDataFrame following the schema.
+    else it is an error. Returns a new DataFrame following the schema (:func:`to_geodataframe` for a geometry).
     """
-    import pandas as pd
     df = pd.DataFrame(gdf).copy()
     df.columns = [str(c).strip() for c in df.columns]
     lower = {c.lower(): c for c in df.columns}
@@ -241,7 +187,7 @@ def validate_gcps(gdf, *, source: str = "GCPs", dem=None, need_height: bool = Tr
     if "geometry" in df.columns:
         df = df.drop(columns="geometry")
     ordered = list(SCHEMA) + [c for c in df.columns if c not in SCHEMA]
-    return _to_geodataframe(df[ordered].reset_index(drop=True))
+    return df[ordered].reset_index(drop=True)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -278,7 +224,6 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
         non-positive sigma, duplicate ``(point_id, image_id)``, a tie point seen by only one image, a GCP whose
         ground coordinates differ between its rows, a GCP without lon/lat.
     """
-    import pandas as pd
     df = pd.DataFrame(table).copy()
     if "geometry" in df.columns:
         df = df.drop(columns="geometry")
@@ -380,7 +325,6 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
 
 
 def _as_bool(col, name, source):
-    import pandas as pd
     if col.dtype == bool:
         return col
     text = col.astype(str).str.strip().str.lower()
@@ -416,7 +360,7 @@ def _resolve_image(table, image_id, source="observations") -> str:
 
 
 def gcp_view(table, image_id: Optional[str] = None, *, kinds: Iterable[str] = ("gcp",)):
-    """The GCP table (one-image view) of ``image_id``: a GeoDataFrame in the GCP schema, extra columns kept.
+    """The GCP table (one-image view) of ``image_id``: a DataFrame in the GCP schema, extra columns kept.
 
     ``image_id`` may be the id itself or a path/file name whose stem matches one id; it may be omitted when the
     table holds one image. Only rows of ``kinds`` are returned (tie points have no ground coordinates until they
@@ -432,7 +376,7 @@ def gcp_view(table, image_id: Optional[str] = None, *, kinds: Iterable[str] = ("
     df = rows.drop(columns=[c for c in ("image_id", "kind", "geometry") if c in rows.columns])
     df = df.rename(columns={"point_id": "id"})
     ordered = list(SCHEMA) + [c for c in df.columns if c not in SCHEMA]
-    return _to_geodataframe(df[ordered].reset_index(drop=True))
+    return df[ordered].reset_index(drop=True)
 
 
 def from_gcps(gdf, image_id: str, *, kind: str = "gcp"):
@@ -441,11 +385,10 @@ def from_gcps(gdf, image_id: str, *, kind: str = "gcp"):
     ``image_id`` is the image's id (its file name, as in the ``OBS`` files). The GCP table is validated first
     (:func:`validate_gcps`, heights may be NaN).
     """
-    import pandas as pd
     if kind not in KINDS:
         raise GCPError(f"kind must be 'gcp' or 'tie', not {kind!r}")
     g = validate_gcps(gdf, need_height=False)
-    df = pd.DataFrame(g.drop(columns="geometry")).rename(columns={"id": "point_id"})
+    df = pd.DataFrame(g).rename(columns={"id": "point_id"})
     df.insert(1, "image_id", str(image_id))
     df.insert(2, "kind", kind)
     ordered = list(OBS_SCHEMA) + [c for c in df.columns if c not in OBS_SCHEMA]
@@ -457,7 +400,6 @@ def from_gcp_views(views: Mapping[str, object], *, validate: bool = True):
 
     GCP ids shared between images become the same ``point_id`` (one ground point, several observations).
     """
-    import pandas as pd
     if not views:
         raise GCPError("no GCP tables to combine")
     table = pd.concat([from_gcps(g, image_id) for image_id, g in views.items()], ignore_index=True)
@@ -500,7 +442,6 @@ def read_observations(path, *, images: Optional[Iterable[str]] = None, dem=None,
         points left with a single observation are dropped. Every image named must have observations.
     dem, need_height : see :func:`validate_observations`.
     """
-    import pandas as pd
     path = os.fspath(path)
     if not os.path.exists(path):
         raise GCPError(f"observation file not found: {path}")
@@ -511,7 +452,6 @@ def read_observations(path, *, images: Optional[Iterable[str]] = None, dem=None,
             df = pd.read_csv(path, skipinitialspace=True, comment="#", dtype=text,   # ids keep leading zeros
                              float_precision="round_trip")                 # floats read back identical
         elif ext in (".gpkg",):
-            import geopandas as gpd
             df = gpd.read_file(path, layer=layer) if layer else gpd.read_file(path)
             df = pd.DataFrame(df.drop(columns="geometry", errors="ignore"))
         else:
@@ -554,9 +494,5 @@ def write_observations(table, path, *, overwrite: bool = False, layer: str = "ob
         if ext == ".csv":
             table.to_csv(tmp, index=False)
         else:
-            import geopandas as gpd
-            lon, lat = table["lon"].to_numpy(float), table["lat"].to_numpy(float)
-            geom = gpd.points_from_xy(lon, lat)
-            geom[~(np.isfinite(lon) & np.isfinite(lat))] = None       # tie points not yet estimated
-            gpd.GeoDataFrame(table, geometry=geom, crs="EPSG:4326").to_file(tmp, layer=layer, driver="GPKG")
+            to_geodataframe(table).to_file(tmp, layer=layer, driver="GPKG")
     return path
