@@ -40,7 +40,7 @@ from .errors import Gf4calError, InputOverwriteError
 
 __all__ = ["OutputSet", "atomic_output", "fix_mode", "same_file", "rpc_stem", "check_not_a_shadowing_sidecar",
            "count_features", "check_raster", "check_vector", "check_raster_size", "remove_stale_temporaries",
-           "process_tempdir", "raster_has_data", "MAX_RASTER_PIXELS"]
+           "process_tempdir", "raster_has_data", "MAX_RASTER_PIXELS", "check_output_path"]
 
 # Set by the CLI's SIGTERM/SIGINT handler: a run that has been told to stop never commits its outputs, even when the
 # KeyboardInterrupt was swallowed on the way (e.g. raised inside a GDAL callback that ignores Python exceptions).
@@ -322,6 +322,28 @@ def _remove(path: str) -> None:
             pass
 
 
+def _check_not_an_input(path: str, inputs: Sequence[str]) -> None:
+    for i in inputs:
+        if same_file(path, i):
+            raise InputOverwriteError(f"output {path!r} is an input; choose a new output path")
+    check_not_a_shadowing_sidecar(path, inputs)
+
+
+def check_output_path(path, *, overwrite: bool = False, inputs: Iterable = (), directory: bool = False) -> str:
+    """The one write rule for an output path (:meth:`OutputSet.declare` and every library writer use it): not one
+    of ``inputs`` (also through links and shadowing sidecars), not an existing file unless ``overwrite``, not a
+    folder unless ``directory``. Raises :class:`~gdal_gf4cal.errors.InputOverwriteError` (one line: the path and
+    what to do); returns the path as text."""
+    path = os.fspath(path)
+    _check_not_an_input(path, [os.fspath(i) for i in inputs if isinstance(i, (str, os.PathLike)) and os.fspath(i)])
+    if os.path.lexists(path) and not overwrite:
+        raise InputOverwriteError(f"output {path!r} exists; remove it, choose a new path or pass --overwrite "
+                                  "(overwrite=True)")
+    if os.path.isdir(path) and not directory:
+        raise InputOverwriteError(f"output {path!r} is a folder; give a file name")
+    return path
+
+
 class _Output:
     __slots__ = ("key", "path", "tmp", "check", "is_dir")
 
@@ -370,10 +392,7 @@ class OutputSet:
                 self._check_against_inputs(o.path, [os.fspath(path)])
 
     def _check_against_inputs(self, path: str, inputs: Sequence[str]) -> None:
-        for i in inputs:
-            if same_file(path, i):
-                raise InputOverwriteError(f"output {path!r} is an input; choose a new output path")
-        check_not_a_shadowing_sidecar(path, inputs)
+        _check_not_an_input(path, inputs)
 
     def declare(self, key: str, path, *, check: Optional[Callable[[str], None]] = None,
                 directory: bool = False) -> str:
@@ -396,12 +415,7 @@ class OutputSet:
                         os.path.abspath(other.path)).lower():
                 raise InputOverwriteError(f"outputs {other.key} and {key} are the same file {path!r}; give each "
                                           "output its own path")
-        self._check_against_inputs(path, self.inputs)
-        if os.path.lexists(path) and not self.overwrite:
-            raise InputOverwriteError(f"output {path!r} exists; remove it, choose a new path or pass --overwrite "
-                                      "(overwrite=True)")
-        if os.path.isdir(path) and not directory:
-            raise InputOverwriteError(f"output {path!r} is a folder; give a file name")
+        check_output_path(path, overwrite=self.overwrite, inputs=self.inputs, directory=directory)
         if path.startswith("/vsi"):
             tmp = path
         else:
