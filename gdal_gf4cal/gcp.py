@@ -21,7 +21,8 @@ from typing import Optional
 import numpy as np
 
 from .atomic import atomic_output
-from .errors import GCPError, InputOverwriteError
+from .errors import GCPError
+from .outputs import check_output_path
 # The schema lives with the observation table (this table is its one-image view); re-exported here.
 from .observations import REQUIRED, ROLES, SCHEMA, fill_heights, make_gcps, to_geodataframe, validate_gcps
 from . import gcp_formats
@@ -62,7 +63,7 @@ def read_gcps(path, *, dem=None, layer: Optional[str] = None, need_height: bool 
         raise GCPError(f"cannot read GCPs from {path}: {str(exc).splitlines()[0]}") from None
 
 
-def write_gcps(gdf, path, *, layer: str = "gcps", overwrite: bool = True, format: Optional[str] = None,
+def write_gcps(gdf, path, *, layer: str = "gcps", overwrite: bool = False, format: Optional[str] = None,
                image: Optional[str] = None) -> str:
     """Write a GCP table, atomically, as ``.csv``, ``.gpkg``, ``.geojson``, QGIS ``.points`` or ASP ``.gcp``.
 
@@ -72,9 +73,7 @@ def write_gcps(gdf, path, *, layer: str = "gcps", overwrite: bool = True, format
     orthority). Raises :class:`~gdal_gf4cal.errors.InputOverwriteError` if ``path`` exists and ``overwrite`` is
     false.
     """
-    path = os.fspath(path)
-    if not overwrite and os.path.exists(path):
-        raise InputOverwriteError(f"{path} exists; choose another output or allow overwriting")
+    path = check_output_path(path, overwrite=overwrite)
     ext = os.path.splitext(path)[1].lower()
     fmt = (format or {".csv": "csv", ".gpkg": "gpkg", ".geojson": "geojson", ".json": "geojson",
                       ".points": "points", ".gcp": "asp"}.get(ext, "")).lower()

@@ -39,7 +39,9 @@ from typing import Iterator, Optional, Tuple
 import numpy as np
 
 from ._gdal import with_gdal_exceptions
-from .errors import GCPError, InputOverwriteError
+from .atomic import atomic_output
+from .errors import GCPError
+from .outputs import check_output_path
 from .observations import fill_heights, gcp_view, validate_gcps, validate_observations
 
 __all__ = ["read_gcps_any", "read_points_file", "read_raster_gcps", "read_gcp_layer", "read_gcp_csv",
@@ -515,10 +517,7 @@ def _image_name(image, gcps, what):
 
 
 def _write_text(path, text, overwrite):
-    from .atomic import atomic_output
-    path = os.fspath(path)
-    if not overwrite and os.path.exists(path):
-        raise InputOverwriteError(f"{path} exists; choose another output or allow overwriting (--overwrite)")
+    path = check_output_path(path, overwrite=overwrite)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with atomic_output(path) as tmp:
         with open(tmp, "w", encoding="utf-8") as f:

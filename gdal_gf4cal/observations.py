@@ -41,7 +41,8 @@ import numpy as np
 import pandas as pd
 
 from .atomic import atomic_output
-from .errors import GCPError, InputOverwriteError
+from .errors import GCPError
+from .outputs import check_output_path
 
 __all__ = ["OBS_SCHEMA", "KINDS", "OUTLIER_LEVELS", "SCHEMA", "REQUIRED", "ROLES",
            "validate_observations", "read_observations", "write_observations", "gcp_view", "from_gcps",
@@ -486,8 +487,7 @@ def write_observations(table, path, *, overwrite: bool = False, layer: str = "ob
     ext = os.path.splitext(path)[1].lower()
     if ext not in (".csv", ".gpkg"):
         raise GCPError(f"cannot write observations as {ext!r}; use .csv or .gpkg")
-    if not overwrite and os.path.exists(path):
-        raise InputOverwriteError(f"{path} exists; choose another output or allow overwriting (--overwrite)")
+    check_output_path(path, overwrite=overwrite)
     table = validate_observations(table, need_height=False)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with atomic_output(path) as tmp:
