@@ -59,7 +59,7 @@ class DEM:
         elif isinstance(geoid, str) and geoid.strip().lower() == "auto":
             geoid = None           # what the DEM's CRS declares
         self._geoid_name = geoid
-        self._geoid = _geoid_transformer(geoid) if geoid not in (None, False) else None
+        self._geoid = geoid_transformer(geoid) if geoid not in (None, False) else None
         self._tile = int(tile_size)
         self._cache: "OrderedDict[Tuple[int, int], np.ndarray]" = OrderedDict()
         self._cache_tiles = int(cache_tiles)
@@ -102,7 +102,7 @@ class DEM:
                 log.info("DEM %s: its CRS declares %s heights; converting them to ellipsoidal heights", path,
                          declared.upper())
                 self._geoid_name = declared
-                self._geoid = _geoid_transformer(declared, source=str(path))
+                self._geoid = geoid_transformer(declared, source=str(path))
         self._to_dem = None
         geographic_wgs84 = srs.IsGeographic() and srs.GetAuthorityCode("GEOGCS") == "4326"
         if not geographic_wgs84:
@@ -756,7 +756,7 @@ def _bilinear_flat(flat, W, H, px, py, z, gx=None, gy=None):
     return z
 
 
-def _geoid_transformer(geoid, source=None):
+def geoid_transformer(geoid, source=None):
     """A pyproj transformer adding the geoid undulation N: h_ellipsoidal = H_geoid + N (lon, lat in degrees).
 
     The grid is found by :func:`gdal_gf4cal.geoid.grid_path` (PROJ's current and legacy grid names).

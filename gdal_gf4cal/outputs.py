@@ -40,7 +40,8 @@ from .errors import Gf4calError, InputOverwriteError
 
 __all__ = ["OutputSet", "atomic_output", "fix_mode", "same_file", "rpc_stem", "check_not_a_shadowing_sidecar",
            "count_features", "check_raster", "check_vector", "check_raster_size", "remove_stale_temporaries",
-           "process_tempdir", "raster_has_data", "MAX_RASTER_PIXELS", "check_output_path"]
+           "process_tempdir", "raster_has_data", "MAX_RASTER_PIXELS", "check_output_path",
+           "scene_stem"]
 
 # Set by the CLI's SIGTERM/SIGINT handler: a run that has been told to stop never commits its outputs, even when the
 # KeyboardInterrupt was swallowed on the way (e.g. raised inside a GDAL callback that ignores Python exceptions).
@@ -108,6 +109,19 @@ def rpc_stem(path) -> str:
         if low.endswith(suffix):
             return low[:-len(suffix)]
     return os.path.splitext(low)[0]
+
+
+def scene_stem(path) -> str:
+    """A scene's name for its outputs: ``scene.tif`` / ``scene.RPB`` / ``scene_RPC.TXT`` -> ``scene``.
+
+    Only the last extension goes: product names carry dots (``GF4_PMS_E88.5_N32.5_...``) and two scenes must not
+    collapse to one output name.
+    """
+    name = os.path.basename(os.fspath(path))
+    stem = os.path.splitext(name)[0] if not name.startswith(".") else name
+    if stem.upper().endswith("_RPC"):
+        stem = stem[:-4]
+    return stem or "scene"
 
 
 def check_not_a_shadowing_sidecar(out_path, sources: Sequence) -> None:

@@ -7,6 +7,7 @@ from contextlib import contextmanager
 from typing import Any, Dict, Iterator, List, Optional, Tuple
 
 from .._gdal import try_open_raster
+from ..progress import cancel_check  # noqa: F401  (re-exported: every workflow takes it from here)
 
 
 def is_path(x) -> bool:
@@ -50,16 +51,6 @@ def finish_report(rep: Dict[str, Any], warns: List[str]) -> Dict[str, Any]:
             out.append(w)
     rep["warnings"] = out
     return rep
-
-
-def cancel_check(progress):
-    """A callable for :class:`~gdal_gf4cal.outputs.OutputSet` ``cancelled=``: asks ``progress`` (QGIS feedback
-    adapters expose ``is_cancelled()`` / ``isCanceled()``)."""
-    for name in ("is_cancelled", "isCanceled"):
-        f = getattr(progress, name, None)
-        if callable(f):
-            return f
-    return None
 
 
 def declare_report_outputs(outs, *, residuals=None, plot=None, report=None) -> None:
