@@ -20,12 +20,13 @@ from typing import Optional
 
 import numpy as np
 
+from . import gcp_formats
 from .atomic import atomic_output
 from .errors import GCPError
-from .outputs import check_output_path
+
 # The schema lives with the observation table (this table is its one-image view); re-exported here.
 from .observations import REQUIRED, ROLES, SCHEMA, fill_heights, make_gcps, to_geodataframe, validate_gcps
-from . import gcp_formats
+from .outputs import check_output_path
 
 __all__ = ["REQUIRED", "SCHEMA", "ROLES", "make_gcps", "validate_gcps", "fill_heights", "read_gcps", "write_gcps",
            "split_roles", "to_geodataframe"]

@@ -36,7 +36,10 @@ import uuid
 from contextlib import contextmanager
 from typing import Callable, Dict, Iterable, Iterator, List, Optional, Sequence
 
-from .errors import Gf4calError, InputOverwriteError
+import numpy as np
+
+from ._gdal import gdal_exceptions, open_raster, open_vector
+from .errors import CancelledError, Gf4calError, InputOverwriteError
 
 __all__ = ["OutputSet", "atomic_output", "fix_mode", "same_file", "rpc_stem", "check_not_a_shadowing_sidecar",
            "count_features", "check_raster", "check_vector", "check_raster_size", "remove_stale_temporaries",
@@ -155,7 +158,6 @@ def check_not_a_shadowing_sidecar(out_path, sources: Sequence) -> None:
 # ------------------------------------------------------------------------------------------------ checks
 def count_features(path) -> Dict[str, int]:
     """``{layer name: feature count}`` of a vector file, re-opened with OGR (a :class:`Gf4calError` if it cannot)."""
-    from ._gdal import open_vector
     ds = open_vector(path, what="written vector file")
     counts = {}
     for i in range(ds.GetLayerCount()):
@@ -182,7 +184,6 @@ def check_raster(bands: Optional[int] = None, *, require_data: bool = False,
     ``require_data`` it must hold a valid pixel (:func:`raster_has_data`), else the run fails naming
     ``empty_reason``."""
     def check(path: str) -> None:
-        from ._gdal import open_raster
         ds = open_raster(path, what="written raster")
         n = ds.RasterCount
         empty = require_data and not raster_has_data(ds)
@@ -205,8 +206,6 @@ def raster_has_data(ds, sample: int = 1024) -> bool:
     alpha, a value is not 0 (GDAL's warper fills with 0). GDAL's approximate min/max (a sample of blocks) answers
     for most rasters; only a raster that looks empty there is read decimated to at most ``sample`` x ``sample``
     (nearest neighbour) per band."""
-    import numpy as np
-    from ._gdal import gdal_exceptions
     for i in range(1, ds.RasterCount + 1):
         band = ds.GetRasterBand(i)
         try:
@@ -328,7 +327,6 @@ def _remove(path: str) -> None:
     for p in [path] + [path + c for c in _COMPANIONS]:
         try:
             if os.path.isdir(p) and not os.path.islink(p):
-                import shutil
                 shutil.rmtree(p, ignore_errors=True)
             elif os.path.lexists(p):
                 os.unlink(p)
@@ -548,7 +546,6 @@ class OutputSet:
 
     def commit(self) -> Dict[str, str]:
         """Check every written temporary, then rename them all into place (restoring replaced files on failure)."""
-        from .errors import CancelledError
         todo = [o for o in self._outputs.values() if not o.path.startswith("/vsi")]
         for o in todo:
             if not os.path.lexists(o.tmp):
@@ -601,7 +598,6 @@ class OutputSet:
                     _remove(os.path.join(path, name))
             elif before is None and os.path.isdir(path) and os.path.realpath(path) in {
                     os.path.realpath(d) for d in self._created_dirs}:
-                import shutil
                 shutil.rmtree(path, ignore_errors=True)
         self._folders = [] if self.committed else self._folders
         for d in reversed(self._created_dirs):

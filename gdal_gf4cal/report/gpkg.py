@@ -44,8 +44,20 @@ from shapely.geometry.base import BaseGeometry
 from .._gdal import open_vector, with_quiet_errors
 from ..errors import CancelledError, GCPError, Gf4calError
 from ..outputs import check_output_path
-from ._common import (STANDARD_AFTER, STANDARD_BEFORE, PathLike, _as_bool_array, _cleanup, _column, _lonlat, _nice,
-                      _pixel_size, _residual_pair, _temp_path, _transformer)
+from ._common import (
+    STANDARD_AFTER,
+    STANDARD_BEFORE,
+    PathLike,
+    _as_bool_array,
+    _cleanup,
+    _column,
+    _lonlat,
+    _nice,
+    _pixel_size,
+    _residual_pair,
+    _temp_path,
+    _transformer,
+)
 from .gpkg_bulk import CHUNK_ROWS, bulk_write, column_chunk, line_records, point_records, srs_ids, wkb_records
 from .styles import _class_breaks, _footprint_style, _points_style, _sld, _vector_style
 

@@ -44,8 +44,7 @@ from __future__ import annotations
 
 from .canonical import COEFF_KEYS, OPTIONAL_KEYS, REQUIRED_KEYS, SCALAR_KEYS, normalize_rpc_metadata
 from .readers import RPCMetadata, read_rpc_metadata, rpc_file_format
-from .writers import (format_rpb, format_rpc_txt, rpb_path_for, rpc_txt_path_for, write_rpb, write_rpc_txt,
-                      write_rpc_vrt)
+from .writers import format_rpb, format_rpc_txt, rpb_path_for, rpc_txt_path_for, write_rpb, write_rpc_txt, write_rpc_vrt
 
 __all__ = [
     "COEFF_KEYS", "OPTIONAL_KEYS", "REQUIRED_KEYS", "SCALAR_KEYS", "RPCMetadata",

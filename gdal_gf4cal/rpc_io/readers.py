@@ -10,11 +10,18 @@ import xml.etree.ElementTree as ET
 from typing import Any, Dict, List, Tuple
 
 from ..errors import Gf4calError, RPCFormatError
-from .canonical import (OPTIONAL_KEYS, REQUIRED_KEYS, PathLike, _gdal_open, _is_vsi, _missing, _read_bytes,
-                        normalize_rpc_metadata)
+from .canonical import (
+    OPTIONAL_KEYS,
+    REQUIRED_KEYS,
+    PathLike,
+    _gdal_open,
+    _is_vsi,
+    _missing,
+    _read_bytes,
+    normalize_rpc_metadata,
+)
 from .text_formats import _ALOS_RE, _parse_alos, _parse_geom, _parse_rpb, _parse_rpc_txt
 from .xml_formats import _first_named, _iter_named, _local, _parse_dimap, _parse_gdal_xml, _parse_isd
-
 
 # --- JSON --------------------------------------------------------------------------------------------------------
 _RPCM_MAP = (

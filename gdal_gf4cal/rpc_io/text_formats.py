@@ -8,7 +8,6 @@ from typing import Dict, List
 from ..errors import RPCFormatError
 from .canonical import _N_COEFF, COEFF_KEYS, OPTIONAL_KEYS, SCALAR_KEYS, _missing
 
-
 # --- .RPB (CPLKeywordParser-like) ---------------------------------------------------------------------------
 _RPB_MAP = (
     ("ERR_BIAS", "errbias"), ("ERR_RAND", "errrand"),

@@ -18,6 +18,7 @@ from ..outputs import check_output_path
 from .canonical import COEFF_KEYS, SCALAR_KEYS, PathLike, _gdal_open, _is_vsi, normalize_rpc_metadata
 from .text_formats import _RPB_MAP, _RPB_NAME
 
+
 # ----------------------------------------------------------------------------------------------------------------
 def rpb_path_for(image_path: PathLike) -> Path:
     """The ``.RPB`` sidecar name GDAL looks for next to ``image_path`` (``scene.tif`` -> ``scene.RPB``)."""

@@ -7,6 +7,7 @@ from contextlib import contextmanager
 from typing import Any, Dict, Iterator, List, Optional, Tuple
 
 from .._gdal import try_open_raster
+from ..outputs import check_vector
 from ..progress import cancel_check  # noqa: F401  (re-exported: every workflow takes it from here)
 
 
@@ -56,7 +57,6 @@ def finish_report(rep: Dict[str, Any], warns: List[str]) -> Dict[str, Any]:
 def declare_report_outputs(outs, *, residuals=None, plot=None, report=None) -> None:
     """Declare the optional outputs every estimating job shares: the residual GeoPackage (checked as a vector
     file), the residual plot and ``report.json`` (:class:`~gdal_gf4cal.outputs.OutputSet`)."""
-    from ..outputs import check_vector
     if residuals:
         outs.declare("residuals", residuals, check=check_vector())
     if plot:
