@@ -225,6 +225,22 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
         non-positive sigma, duplicate ``(point_id, image_id)``, a tie point seen by only one image, a GCP whose
         ground coordinates differ between its rows, a GCP without lon/lat.
     """
+    df = _renamed_observation_columns(table, source)
+    if len(df) == 0:
+        raise GCPError(f"{source}: no observations")
+    _check_ids_and_numbers(df, source)
+    gcp = _checked_kinds(df, source)
+    _check_points(df, gcp, source)
+    if gcp.any():
+        _check_gcp_ground(df, gcp, dem, need_height, source)
+    _check_roles_sigma_flags(df, source)
+    ordered = list(OBS_SCHEMA) + [c for c in df.columns if c not in OBS_SCHEMA]
+    return df[ordered].reset_index(drop=True)
+
+
+def _renamed_observation_columns(table, source):
+    """A copy of the table without geometry, its column names stripped and brought to the schema's (any case,
+    aliases such as ``image``, ``id``, ``col``/``row``), the required columns checked."""
     df = pd.DataFrame(table).copy()
     if "geometry" in df.columns:
         df = df.drop(columns="geometry")
@@ -239,8 +255,11 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
     if missing:
         raise GCPError(f"{source}: missing column(s) {', '.join(missing)}; expected "
                        "point_id,image,sample,line[,lon,lat,h][,role][,sigma]")
-    if len(df) == 0:
-        raise GCPError(f"{source}: no observations")
+    return df
+
+
+def _check_ids_and_numbers(df, source) -> None:
+    """Ids as stripped text, never empty; coordinates numeric (in place), image positions finite."""
     for c in ("point_id", "image_id"):
         bad = df[c].isna() | (df[c].astype(str).str.strip() == "")
         if bad.any():
@@ -257,6 +276,11 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
                 raise GCPError(f"{source}: column {c} has a missing, non-numeric or infinite value "
                                f"(row {int(np.flatnonzero(bad)[0]) + 1})")
         df[c] = values
+
+
+def _checked_kinds(df, source) -> np.ndarray:
+    """The ``kind`` column filled (in place; blank or absent: ``gcp`` where lon/lat are given, else ``tie``) and
+    checked; returns the GCP rows' mask."""
     has_ground = np.isfinite(df["lon"].to_numpy()) & np.isfinite(df["lat"].to_numpy())
     inferred = np.where(has_ground, "gcp", "tie")
     if "kind" not in df.columns:
@@ -273,6 +297,11 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
                        "coordinates or make it a tie point")
     if ((df["lat"].abs() > 90) | (df["lon"].abs() > 360)).any():
         raise GCPError(f"{source}: lon/lat out of range; ground coordinates must be WGS84 degrees")
+    return gcp
+
+
+def _check_points(df, gcp, source) -> None:
+    """One observation per point and image, one kind per point, tie points seen by two images or more."""
     dup = df.duplicated(["point_id", "image_id"])
     if dup.any():
         r = df[dup].iloc[0]
@@ -287,24 +316,30 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
     if lone_tie.any():
         raise GCPError(f"{source}: tie point {df['point_id'].iloc[int(np.flatnonzero(lone_tie)[0])]!r} is seen by "
                        "only one image; a tie point needs two or more (drop it or give its lon/lat to make it a GCP)")
-    if gcp.any():
-        g = df[gcp]
-        grouped = g.groupby("point_id", sort=False)[["lon", "lat", "h"]]
-        spread = (grouped.max() - grouped.min()).fillna(0.0)       # NaN heights are filled below, not compared
-        incons = (spread.to_numpy() > 0).any(axis=1)
-        if incons.any():
-            raise GCPError(f"{source}: GCP {spread.index[incons][0]!r} has different lon/lat/h on its rows; "
-                           "one ground point has one set of coordinates")
-        h = df["h"].to_numpy()
-        if (gcp & ~np.isfinite(h)).any():
-            if dem is not None:
-                filled = fill_heights(df[gcp], dem, source=source)
-                h = h.copy()
-                h[gcp] = filled["h"].to_numpy(float)
-                df["h"] = h
-            elif need_height:
-                n = int(df.loc[gcp & ~np.isfinite(h), "point_id"].nunique())
-                raise GCPError(f"{source}: {n} GCP(s) without height; give h or a DEM (--dem) to take heights from")
+
+
+def _check_gcp_ground(df, gcp, dem, need_height, source) -> None:
+    """One set of ground coordinates per GCP; missing heights from the DEM (in place) or an error."""
+    grouped = df[gcp].groupby("point_id", sort=False)[["lon", "lat", "h"]]
+    spread = (grouped.max() - grouped.min()).fillna(0.0)       # NaN heights are filled below, not compared
+    incons = (spread.to_numpy() > 0).any(axis=1)
+    if incons.any():
+        raise GCPError(f"{source}: GCP {spread.index[incons][0]!r} has different lon/lat/h on its rows; "
+                       "one ground point has one set of coordinates")
+    h = df["h"].to_numpy()
+    if (gcp & ~np.isfinite(h)).any():
+        if dem is not None:
+            filled = fill_heights(df[gcp], dem, source=source)
+            h = h.copy()
+            h[gcp] = filled["h"].to_numpy(float)
+            df["h"] = h
+        elif need_height:
+            n = int(df.loc[gcp & ~np.isfinite(h), "point_id"].nunique())
+            raise GCPError(f"{source}: {n} GCP(s) without height; give h or a DEM (--dem) to take heights from")
+
+
+def _check_roles_sigma_flags(df, source) -> None:
+    """Roles (filled ``control``), positive sigmas (filled 1 px) and the outlier flags as booleans, in place."""
     if "role" not in df.columns:
         df["role"] = "control"
     df["role"] = df["role"].fillna("control").astype(str).str.strip().str.lower().replace("", "control")
@@ -321,8 +356,6 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
         df[c] = _as_bool(df[c], c, source)
     if "outlier_level" in df.columns:
         df["outlier_level"] = df["outlier_level"].fillna("").astype(str)
-    ordered = list(OBS_SCHEMA) + [c for c in df.columns if c not in OBS_SCHEMA]
-    return df[ordered].reset_index(drop=True)
 
 
 def _as_bool(col, name, source):

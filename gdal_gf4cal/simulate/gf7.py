@@ -31,7 +31,6 @@ the default camera (``camera_seed=4``, seed 004 of the project).
 from __future__ import annotations
 
 import contextvars
-import json
 import os
 from contextlib import closing, contextmanager
 from dataclasses import asdict, dataclass, fields, replace
