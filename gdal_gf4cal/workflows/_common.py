@@ -6,9 +6,9 @@ import warnings
 from contextlib import contextmanager
 from typing import Any, Dict, Iterator, List, Optional, Tuple
 
-from .._gdal import try_open_raster
 from ..outputs import check_vector
 from ..progress import cancel_check  # noqa: F401  (re-exported: every workflow takes it from here)
+from ..scene import Scene, open_input  # noqa: F401  (Scene: the opened input the workflows pass around)
 
 
 def is_path(x) -> bool:
@@ -18,15 +18,10 @@ def is_path(x) -> bool:
 
 def _open_image(path) -> Tuple[Optional[Tuple[int, int]], List[str]]:
     """``((width, height), files)`` if GDAL opens ``path`` as a raster with pixels (``files``: the image and its
-    sidecars, all inputs), else ``(None, [path])`` (a standalone RPC file)."""
-    path = os.fspath(path)
-    low = path.lower()
-    if low.endswith((".rpb", "_rpc.txt", ".txt", ".json", ".geom")):
-        return None, [path]
-    ds = try_open_raster(path)
-    if ds is None or ds.RasterCount == 0 or ds.RasterXSize <= 1:
-        return None, [path]
-    return (ds.RasterXSize, ds.RasterYSize), [path] + list(ds.GetFileList() or [])
+    sidecars, all inputs), else ``(None, [path])`` (a standalone RPC file): :class:`~gdal_gf4cal.scene.Scene`'s
+    rules (:func:`~gdal_gf4cal.scene.open_input`)."""
+    _, size, files = open_input(path)
+    return size, files
 
 
 @contextmanager

@@ -110,7 +110,7 @@ def test_functions_of_at_most_80_lines_but_for_10_named_exceptions():
 
 
 #: Modules whose imports are all at module top (issue 21; an optional dependency may still be imported where used).
-TOP_IMPORTS = ["observations.py", "gcp.py", "gcp_formats.py", "outputs.py", "atomic.py", "crop.py",
+TOP_IMPORTS = ["observations.py", "gcp.py", "gcp_formats.py", "outputs.py", "atomic.py", "crop.py", "scene.py",
                "dem.py", "_gdal.py", "rpc.py", "geoid.py", "errors.py", "report/gpkg.py", "report/gpkg_bulk.py",
                "report/json.py", "report/_common.py", "workflows/_common.py", "rpc_io/__init__.py",
                "rpc_io/canonical.py", "rpc_io/text_formats.py", "rpc_io/xml_formats.py", "rpc_io/readers.py",
