@@ -323,7 +323,7 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
                                   f"{scene.sensor}")
         truth["elapsed_s"] = time.perf_counter() - t0
         truth_path = os.path.join(out_dir, "truth.json")
-        write_json_atomic(truth_path, truth)
+        write_json_atomic(truth_path, truth, overwrite=True)
         report(progress, 1.0, "scene written")
         return SceneResult(scene, out_dir, results, truth_path, dem_path, time.perf_counter() - t0, windows)
     except (CancelledError, Gf4calError, OSError, ValueError, KeyboardInterrupt):
