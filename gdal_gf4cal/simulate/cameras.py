@@ -7,7 +7,6 @@ several sub-CCD cubics along the sample axis (GF7's three sub-CCDs per band, MET
 from __future__ import annotations
 
 import json
-import os
 from math import comb
 from typing import List, Sequence, Tuple
 
