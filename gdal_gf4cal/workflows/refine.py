@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 from typing import Any, Dict, Optional, Sequence
 
-from ..errors import GCPError, Gf4calError
+from ..errors import GCPError
 from ..outputs import OutputSet, check_not_a_shadowing_sidecar, check_vector, rpc_stem, same_file
 from ..dem import DEM
 from ._common import Scene, cancel_check, collect_warnings, declare_report_outputs, finish_report, is_path
