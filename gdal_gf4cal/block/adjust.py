@@ -3,18 +3,22 @@ the :class:`~gdal_gf4cal.block.BlockEstimate` (:func:`adjust_block`)."""
 from __future__ import annotations
 
 import math
-from typing import Any, Dict, List, Mapping, Optional, Sequence
+from dataclasses import dataclass
+from typing import Any, List, Mapping, Optional, Sequence
 
 import numpy as np
 
 from .. import progress as _progress
 from ..errors import DegenerateGeometryError
+from ..estimation import sigma0_and_cov
+from ..estimation.result import names_and_blocks
 from ..observations import flag_outliers, validate_observations
 from .coverage import unsupported_terms
 from .estimate import BlockEstimate
 from .layout import BlockError, BlockLayout, derive_layout, layout_from_calibration
 from .model import DATUM_TERMS, EXTERIOR_NAMES, INTERIOR_NAMES, parameter_blocks
 from .stage import Stage, redundancy, run_stage, stage_rows
+
 
 def _check_control(tab, layout: BlockLayout, min_gcps: int = 4):
     ctrl = tab[(tab["kind"] == "gcp") & (tab["role"] == "control")]
@@ -101,129 +105,175 @@ def adjust_block(observations, models: Mapping[str, Any], dem, *, layout: Option
 
 
 
-def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter, reject_k, progress,
-            start: Optional[Mapping[str, Any]] = None) -> BlockEstimate:
-    blocks, index = parameter_blocks(layout)
-    names = [n for b in blocks for n in b.names]
-    sl: Dict[str, slice] = {}
-    pos = 0
-    for b in blocks:
-        sl[b.name] = slice(pos, pos + b.size)
-        pos += b.size
-    p = len(names)
-    x = np.zeros(p)
-    datum = np.zeros(p, bool)
-    datum[sl[f"datum:{layout.reference_ccd}"]] = True
-    unsupported, coverage_warnings = unsupported_terms(tab, layout, index, p, interiors=start is None)
+@dataclass
+class _Rows:
+    """Per observation row of the table, what the stages found: predictions before (original RPCs) and after,
+    weights used, rejection flags, tie-point ground and redundancy (a stage keeps the earlier stage's values for the
+    rows it does not re-estimate: the reference GCPs)."""
+
+    pred_before: np.ndarray
+    pred_after: np.ndarray
+    weights: np.ndarray
+    outlier: np.ndarray
+    ground: np.ndarray
+    redundancy: np.ndarray
+
+    @classmethod
+    def empty(cls, tab) -> "_Rows":
+        n = len(tab)
+        return cls(np.full((n, 2), np.nan), np.full((n, 2), np.nan), np.zeros((n, 2)), np.zeros(n, bool),
+                   tab[["lon", "lat", "h"]].to_numpy(float).copy(), np.ones(n))
+
+
+@dataclass
+class _StageSpec:
+    label: str
+    images: List[str]
+    band_stage: bool
+    free: np.ndarray                                         # parameters the stage may estimate
+
+
+def _stage_specs(layout: BlockLayout, sl: Mapping[str, slice], x, index, start) -> List[_StageSpec]:
+    """The stages (module docstring): reference band (exterior + its interiors), then the other bands'
+    interiors; with a calibration ``start`` (another scene), its exterior alone, ``x`` set to the calibration."""
+    p = x.size
     ext = np.zeros(p, bool)
     ext[sl["exterior"]] = True
-    ref_imgs = list(layout.order)
-    band_imgs = layout.band_images
-    is_ref_int = np.zeros(p, bool)
-    for im in ref_imgs:
-        is_ref_int[sl[f"interior:{im}"]] = True
-    is_band_int = np.zeros(p, bool)
-    for im in band_imgs:
-        is_band_int[sl[f"interior:{im}"]] = True
-    control = (tab["kind"] == "gcp").to_numpy() & (tab["role"] == "control").to_numpy()
-    used_gcp_ref = control
-    stages_out: List[Dict[str, Any]] = []
-    n = len(tab)
-    pred_after = np.full((n, 2), np.nan)
-    pred_before = np.full((n, 2), np.nan)
-    weights = np.zeros((n, 2))
-    outl = np.zeros(n, bool)
-    ground = tab[["lon", "lat", "h"]].to_numpy(float).copy()
-    red_all = np.ones(n)
-    specs = [("reference", ref_imgs, False, ext | is_ref_int)]
-    if band_imgs:
-        specs.append(("bands", band_imgs, True, is_band_int))
+    ref_imgs, band_imgs = list(layout.order), layout.band_images
+
+    def interiors(images):
+        m = np.zeros(p, bool)
+        for im in images:
+            m[sl[f"interior:{im}"]] = True
+        return m
+
     if start is not None:                                   # another scene: its exterior only, interiors calibrated
         for im in layout.images:
-            idx = index[im]
-            x[idx[5:]] = [float(start["images"][im]["interior"][n]) for n in INTERIOR_NAMES]
+            x[index[im][5:]] = [float(start["images"][im]["interior"][n]) for n in INTERIOR_NAMES]
         x[sl["exterior"]] = [float(start["exterior"][n]) for n in EXTERIOR_NAMES]
-        specs = [("exterior", ref_imgs + band_imgs, False, ext)]
-        used_gcp_ref = control
-    final_stage = []
-    for si, (label, imgs, band_stage, free_all) in enumerate(specs):
-        rows = stage_rows(tab, imgs, band_stage, ref_imgs + band_imgs)
-        stage = Stage(tab, rows, models, layout, index, dem, used_gcp_ref)
-        free_all = free_all & ~datum & ~unsupported
-        if solver == "alternating" and not band_stage:
-            free_sets = [free_all & ext, free_all & ~ext]
-        else:
-            free_sets = [free_all]
-        prog = _progress.scaled(progress, si / len(specs), (si + 0.9) / len(specs)) if progress else None
-        # before: the original RPCs, tie points from their rays' mean
-        x0 = x.copy()
-        plon0, plat0 = stage.initial_points(x0)
-        pb, _, _, _ = stage.evaluate(x0, plon0, plat0, with_jacobian=False)
-        x, plon, plat, info = run_stage(stage, x, np.array(free_sets), robust=robust, tol=tol, max_iter=max_iter,
-                                         reject_k=reject_k, progress=prog)
-        pa, _, _, g = stage.evaluate(x, plon, plat, with_jacobian=False)
-        # a stage's rows: the earlier stage's values stay for rows it does not re-estimate (reference GCPs)
-        mine = tab["image_id"].iloc[rows].isin(imgs).to_numpy() | np.isnan(pred_after[rows, 0])
-        r = rows[mine]
-        pred_before[r] = pb[mine]
-        pred_after[r] = pa[mine]
-        fw = stage.base_w * info["factor"]
-        weights[r] = fw[mine, None]
-        outl[r] = info["rejected"][mine]
-        ground[rows[stage.is_tie]] = g[stage.is_tie]
-        red_all[r] = redundancy(stage, np.repeat(fw[:, None], 2, axis=1))[mine]
-        dof_obs = int(2 * np.count_nonzero(fw > 0))
-        n_pts = int(stage.point_ids.size)
-        stages_out.append({"stage": label, "images": list(imgs), "solver": solver if not band_stage else
-                           "simultaneous", "iterations": int(info["iterations"]), "converged": bool(info["converged"]),
-                           "history_px": [float(h) for h in info["history"]], "n_free_parameters": int(free_all.sum()),
-                           "reduced_system_size": int(free_all.sum()), "n_tie_points": n_pts,
-                           "n_observations": dof_obs, "n_rejected": int(np.count_nonzero(info["rejected"]))})
-        final_stage.append((stage, x.copy(), plon, plat, fw, free_all, dof_obs, n_pts))
-    # a-posteriori covariance from the last solve of each stage
+        return [_StageSpec("exterior", ref_imgs + band_imgs, False, ext)]
+    specs = [_StageSpec("reference", ref_imgs, False, ext | interiors(ref_imgs))]
+    if band_imgs:
+        specs.append(_StageSpec("bands", band_imgs, True, interiors(band_imgs)))
+    return specs
+
+
+def _solve_stage(tab, models, dem, layout, index, spec: _StageSpec, x, rows_out: _Rows, *, solver, robust, tol,
+                 max_iter, reject_k, progress):
+    """One stage: its rows solved (:func:`~gdal_gf4cal.block.stage.run_stage`), ``rows_out`` filled; returns
+    (x, the stage's report entry, what the covariance needs)."""
+    control = (tab["kind"] == "gcp").to_numpy() & (tab["role"] == "control").to_numpy()
+    rows = stage_rows(tab, spec.images, spec.band_stage, list(layout.images))
+    stage = Stage(tab, rows, models, layout, index, dem, control)
+    ext = np.zeros(x.size, bool)
+    ext[:len(EXTERIOR_NAMES)] = True
+    alternate = solver == "alternating" and not spec.band_stage
+    free_sets = [spec.free & ext, spec.free & ~ext] if alternate else [spec.free]
+    # before: the original RPCs, tie points from their rays' mean
+    pb, _, _, _ = stage.evaluate(x, *stage.initial_points(x), with_jacobian=False)
+    x, plon, plat, info = run_stage(stage, x, np.array(free_sets), robust=robust, tol=tol, max_iter=max_iter,
+                                    reject_k=reject_k, progress=progress, label=f"{spec.label} stage")
+    pa, _, _, g = stage.evaluate(x, plon, plat, with_jacobian=False)
+    mine = tab["image_id"].iloc[rows].isin(spec.images).to_numpy() | np.isnan(rows_out.pred_after[rows, 0])
+    r = rows[mine]
+    rows_out.pred_before[r] = pb[mine]
+    rows_out.pred_after[r] = pa[mine]
+    fw = stage.base_w * info["factor"]
+    rows_out.weights[r] = fw[mine, None]
+    rows_out.outlier[r] = info["rejected"][mine]
+    rows_out.ground[rows[stage.is_tie]] = g[stage.is_tie]
+    rows_out.redundancy[r] = redundancy(stage, np.repeat(fw[:, None], 2, axis=1))[mine]
+    n_obs, n_pts, n_free = int(2 * np.count_nonzero(fw > 0)), int(stage.point_ids.size), int(spec.free.sum())
+    entry = {"stage": spec.label, "images": list(spec.images), "solver": "simultaneous" if spec.band_stage else
+             solver, "iterations": int(info["iterations"]), "converged": bool(info["converged"]),
+             "history_px": [float(h) for h in info["history"]], "history_meaning": HISTORY_MEANING,
+             "n_free_parameters": n_free, "reduced_system_size": n_free, "n_tie_points": n_pts,
+             "n_observations": n_obs, "n_rejected": int(np.count_nonzero(info["rejected"]))}
+    return x, entry, (stage, x.copy(), plon, plat, fw, spec.free, n_obs - 2 * n_pts - n_free)
+
+
+#: What a stage's ``history_px`` holds (report.json, the iteration trace).
+HISTORY_MEANING = ("per Gauss-Newton iteration, the largest change of a corrected position (px); the weights "
+                   "change between phases (a-priori, robust down-weighting, rejection), so a phase's first "
+                   "iteration moves again")
+
+
+def _covariance(solved, rows: _Rows, tab, p: int):
+    """A-posteriori covariance from the last solve of each stage (:func:`~gdal_gf4cal.estimation.sigma0_and_cov`
+    on its reduced normal matrix; one sigma0 over all stages) and the propagation of the earlier stages' errors
+    left for :meth:`BlockEstimate.complete_covariance`. Returns (sigma0, dof, cov, pending)."""
+    v_all = tab[["sample", "line"]].to_numpy(float) - rows.pred_after
+    vtpv = float(np.nansum(rows.weights * v_all ** 2))
+    dof = sum(d for *_, d in solved)
     cov = np.zeros((p, p))
-    v_all = tab[["sample", "line"]].to_numpy(float) - pred_after
-    wsum = float(np.nansum(weights * v_all ** 2))
-    dof = sum(d - 2 * npt - int(f.sum()) for _, _, _, _, _, f, d, npt in final_stage)
-    sigma0 = math.sqrt(wsum / dof) if dof > 0 else 1.0
+    sigma0 = 1.0
     earlier = np.zeros(p, bool)                             # parameters of the stages before (frozen now)
     pending: List[Any] = []
-    for stage, xs, plon, plat, fw, free_all, _, _ in final_stage:
+    for stage, xs, plon, plat, fw, free_all, _ in solved:
         pred, _, jp, _ = stage.evaluate(xs, plon, plat)
         w = np.repeat(fw[:, None], 2, axis=1)
         try:
             _, _, sol = stage.solve(xs, free_all, stage.meas - pred, w, jp, covariance=True)
             fi = np.flatnonzero(free_all)
-            cov[np.ix_(fi, fi)] = sigma0 ** 2 * sol.cov_global
+            s0, cov[np.ix_(fi, fi)] = sigma0_and_cov(sol.normal_global, vtpv, dof)
+            sigma0 = s0 if math.isfinite(s0) else 1.0
             if earlier.any():                          # on demand (one reduced solve per frozen parameter)
                 pending.append((stage, xs, free_all, earlier.copy(), w, jp))
         except DegenerateGeometryError:
             pass
         earlier |= free_all
+    return sigma0, dof, cov, pending
+
+
+def _adjust(tab, models, dem, layout: BlockLayout, solver, robust, tol, max_iter, reject_k, progress,
+            start: Optional[Mapping[str, Any]] = None) -> BlockEstimate:
+    blocks, index = parameter_blocks(layout)
+    names, sl = names_and_blocks(blocks, 0)
+    x = np.zeros(len(names))
+    specs = _stage_specs(layout, sl, x, index, start)
+    unsupported, coverage_warnings = unsupported_terms(tab, layout, index, x.size, interiors=start is None)
+    datum = np.zeros(x.size, bool)
+    datum[sl[f"datum:{layout.reference_ccd}"]] = True
+    rows = _Rows.empty(tab)
+    stages_out, solved = [], []
+    for si, spec in enumerate(specs):
+        spec.free = spec.free & ~datum & ~unsupported
+        prog = _progress.scaled(progress, si / len(specs), (si + 0.9) / len(specs))
+        x, entry, done = _solve_stage(tab, models, dem, layout, index, spec, x, rows, solver=solver, robust=robust,
+                                      tol=tol, max_iter=max_iter, reject_k=reject_k, progress=prog)
+        stages_out.append(entry)
+        solved.append(done)
+    sigma0, dof, cov, pending = _covariance(solved, rows, tab, x.size)
+    return _estimate(tab, layout, names, sl, x, cov, sigma0, dof, rows, stages_out, pending, coverage_warnings)
+
+
+def _estimate(tab, layout, names, sl, x, cov, sigma0, dof, rows: _Rows, stages_out, pending, warnings
+              ) -> BlockEstimate:
+    """The :class:`BlockEstimate` with its table (predictions, residuals, outlier flags, tie ground)."""
     table = tab.copy()
-    table[["lon", "lat", "h"]] = ground
-    for tag, pr in (("before", pred_before), ("after", pred_after)):
+    table[["lon", "lat", "h"]] = rows.ground
+    for tag, pr in (("before", rows.pred_before), ("after", rows.pred_after)):
         table[f"pred_sample_{tag}"] = pr[:, 0]
         table[f"pred_line_{tag}"] = pr[:, 1]
         table[f"res_sample_{tag}"] = table["sample"].to_numpy(float) - pr[:, 0]
         table[f"res_line_{tag}"] = table["line"].to_numpy(float) - pr[:, 1]
+    outl = rows.outlier
     table = flag_outliers(table, outl, "robust")
+    v_all = tab[["sample", "line"]].to_numpy(float) - rows.pred_after
     sig = table["sigma"].to_numpy(float)
     with np.errstate(invalid="ignore", divide="ignore"):
-        normalised = (v_all / (sigma0 * sig[:, None] * np.sqrt(red_all)[:, None])).ravel()
-    frozen = (f"datum:{layout.reference_ccd}",)
-    est = BlockEstimate(names=names, x=x, cov=cov, sigma0=sigma0, dof=int(dof), redundancy=np.repeat(red_all, 2),
-                        residuals=v_all.ravel(), normalised=normalised, weights=weights.ravel(), blocks=sl,
-                        frozen=frozen, outlier=outl, outlier_level=np.where(outl, "robust", ""),
+        normalised = (v_all / (sigma0 * sig[:, None] * np.sqrt(rows.redundancy)[:, None])).ravel()
+    est = BlockEstimate(names=names, x=x, cov=cov, sigma0=sigma0, dof=int(dof),
+                        redundancy=np.repeat(rows.redundancy, 2), residuals=v_all.ravel(), normalised=normalised,
+                        weights=rows.weights.ravel(), blocks=sl, frozen=(f"datum:{layout.reference_ccd}",),
+                        outlier=outl, outlier_level=np.where(outl, "robust", ""),
                         iterations=int(sum(s["iterations"] for s in stages_out)), table=table, layout=layout,
                         stages=stages_out, cov_pending=pending)
     est.notes.append(f"datum: {', '.join(DATUM_TERMS)} of {layout.reference_ccd} fixed at 0 (they duplicate e0, e1, "
                      "kappa)")
-    est.warnings.extend(coverage_warnings)
+    est.warnings.extend(warnings)
     for s in stages_out:
         if not s["converged"]:
             est.warnings.append(f"{s['stage']} stage ({s['solver']}) did not converge in {s['iterations']} "
                                 "iterations; its results are the last iterate")
     return est
-
-

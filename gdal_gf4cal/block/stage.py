@@ -8,7 +8,7 @@ from typing import List, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from ..estimation import radial_huber_weights, solve_with_points
+from ..estimation import Estimate, RadialHuber, robust_fit, solve_with_points
 from ..geodesy import metres_per_degree
 from .layout import BlockError
 from .model import local_design
@@ -150,71 +150,123 @@ def redundancy(stage: Stage, w) -> np.ndarray:
     return red
 
 
-def _robust(stage: Stage, v, w_used, n_params, reject: bool, reject_k: float):
-    red = redundancy(stage, w_used)
-    sig = stage.sigma * np.sqrt(red)
-    fw, out, scale, z = radial_huber_weights(v, sig, n_params, reject_k=reject_k)
-    if not reject:
-        out = np.zeros_like(out)
-    factor = np.where(out, 0.0, fw)
-    return factor, out, z
+class StageNorm(RadialHuber):
+    """The driver's radial Huber weights for a block stage (METHODS §8, robust weights) with the stage's schedule:
+    phase 0 a-priori weights, 1 down-weighting, 2 rejection too (``z > reject_k``), each phase until the fit moves
+    less than ``tol`` over a cycle of the free sets, or, in phases 0 and 1, moves less than ``100 tol`` after 4
+    cycles (a blunder's tie point may cycle over a DEM kink until it is rejected: the driver's own two-phase rule,
+    ``tol`` with a stable set, then never reaches the rejection); converged when the rejected set is stable too.
+    A ray's a-priori sigma: its measurement sigma times the square root of its redundancy (:func:`redundancy`).
+    ``robust=False``: phase 2 with weights 1, nothing rejected (Gauss-Newton to convergence)."""
+
+    def __init__(self, reject_k: float, n_sets: int, robust: bool = True):
+        super().__init__(huber_c=2.5 if robust else np.inf, reject_k=reject_k if robust else np.inf,
+                         sigma=lambda problem, est: problem.ray_sigma())
+        self.n_sets, self.phase = n_sets, 0 if robust else 2
+        self.small = self.in_phase = 0
+        self.started = self.converged = False
+
+    def _count(self, change: float, tol: float) -> None:
+        """Count one Gauss-Newton step; phases 0 and 1 end when settled (class docstring)."""
+        self.small = self.small + 1 if change < tol else 0
+        self.in_phase += 1
+        if self.phase < 2 and (self.small >= self.n_sets or (self.in_phase >= 4 * self.n_sets
+                                                             and change < 100 * tol)):
+            self.phase += 1
+            self.small = self.in_phase = 0
+
+    def step(self, problem, est, st):
+        if not self.started:                                # the driver's first solve counts too
+            self.started = True
+            self._count(problem.history[-1], st.tol)
+        problem.phase = self.phase
+        if self.phase == 0:
+            return st.weights.copy()
+        st.phase = self.phase
+        return super().step(problem, est, st)
+
+    def settled(self, problem, old, new, st) -> bool:
+        pending, phase = st.info.pop("pending", None), self.phase
+        self._count(problem.change(old, new), st.tol)
+        if phase == 2:
+            st.outlier = pending                            # the rejected set of this solve
+            if self.small >= self.n_sets:                   # converged when the fit rejects the same rows
+                res = np.asarray(new.residuals, float).reshape(problem.n_points, 2)
+                self.converged = np.array_equal(self.weights(res, problem, new)[1], st.outlier)
+                self.small = self.small if self.converged else 0
+        return self.converged
+
+
+class StageProblem:
+    """One stage as a problem of the robust driver (:func:`~gdal_gf4cal.estimation.robust_fit`): a point is an
+    observation row (``k = 2``: sample, line); ``fit(factors)`` is one Gauss-Newton step at the current parameters
+    with the a-priori weights times the factors, over the next set of ``free_sets`` (one set: simultaneous;
+    exterior then interior: alternating), tie points eliminated by Schur (:meth:`Stage.solve`); the Estimate's
+    residuals are at the new parameters. ``change``: the largest move of a corrected position through the global
+    parameters and the 99th percentile of the tie points' moves (a blunder's point may cycle over a DEM kink until
+    it is rejected), of the last step."""
+
+    k = 2
+
+    def __init__(self, stage: Stage, x, free_sets, progress=None, max_iter: int = 60, label: str = "stage"):
+        self.stage, self.x, self.free_sets = stage, np.array(x, float), np.asarray(free_sets)
+        self.n_points = len(stage.rows)
+        self.n_params = int(np.any(self.free_sets, axis=0).sum())
+        self.plon, self.plat = stage.initial_points(self.x)
+        self.pred, _, self.jp, _ = stage.evaluate(self.x, self.plon, self.plat)
+        self.used_w = np.repeat(stage.base_w[:, None], 2, axis=1)
+        self.history: List[float] = []
+        self.phase, self.progress, self.max_iter, self.label = 0, progress, max_iter, label
+
+    def ray_sigma(self) -> np.ndarray:
+        return self.stage.sigma * np.sqrt(redundancy(self.stage, self.used_w))
+
+    def fit(self, factors) -> Estimate:
+        st = self.stage
+        free = self.free_sets[len(self.history) % len(self.free_sets)]
+        w = st.base_w[:, None] * np.asarray(factors, float)[:, None] * np.ones((1, 2))
+        dx, dp, _ = st.solve(self.x, free, st.meas - self.pred, w, self.jp)
+        self.x = self.x + dx
+        mx, my = metres_per_degree(self.plat, 0.0)
+        self.plon = self.plon + dp[:, 0] / mx
+        self.plat = self.plat + dp[:, 1] / my
+        move = np.abs(np.einsum("nkc,nc->nk", st.design, dx[st.cols]))
+        change = float(np.max(move[st.base_w > 0])) if (st.base_w > 0).any() else 0.0
+        if st.tie_rows.size:
+            pm = np.abs(np.einsum("nkq,nq->nk", self.jp, dp[st.point_of])).max(axis=1)
+            change = max(change, float(np.percentile(pm, 99)))
+        self.history.append(change)
+        self.used_w = w
+        self.pred, _, self.jp, _ = st.evaluate(self.x, self.plon, self.plat)
+        if self.progress is not None:
+            it = len(self.history)
+            self.progress(min(it / self.max_iter, 0.99), f"{self.label}, iteration {it} "
+                          f"({ITERATION_PHASES[self.phase]}): largest change of a corrected position {change:.3g} px")
+        v = (st.meas - self.pred).ravel()
+        return Estimate(names=[], x=self.x, cov=np.zeros((0, 0)), sigma0=float("nan"), dof=0,
+                        redundancy=np.full(v.size, np.nan), residuals=v, normalised=np.full(v.size, np.nan),
+                        weights=w.ravel())
+
+    def change(self, old: Estimate, new: Estimate) -> float:
+        return self.history[-1]
+
+
+#: What the iterations of a stage do, by the driver's phase (named in the iteration trace): the first solve with
+#: the a-priori weights, then down-weighting (radial Huber), then rejection too.
+ITERATION_PHASES = {0: "a-priori weights", 1: "robust down-weighting", 2: "robust rejection"}
 
 
 def run_stage(stage: Stage, x, free_sets, *, robust: bool, tol: float, max_iter: int, reject_k: float,
-               progress=None):
-    """Gauss-Newton (+ robust reweighting) cycling through ``free_sets`` (one set: simultaneous; exterior then
-    interior: alternating). Returns (x, plon, plat, info)."""
-    plon, plat = stage.initial_points(x)
-    npar = int(np.any(free_sets, axis=0).sum())
-    factor = np.ones(len(stage.rows))
-    rejected = np.zeros(len(stage.rows), bool)
-    phase = 0 if robust else 2            # 0: a-priori weights, 1: down-weighting, 2: rejection
-    history: List[float] = []
-    small_in_row = in_phase = 0
-    converged = False
-    it = 0
-    for it in range(1, max_iter + 1):
-        free = free_sets[(it - 1) % len(free_sets)]
-        pred, _, jp, _ = stage.evaluate(x, plon, plat)
-        v = stage.meas - pred
-        w = stage.base_w[:, None] * factor[:, None] * np.ones((1, 2))
-        dx, dp, _ = stage.solve(x, free, v, w, jp)
-        x = x + dx
-        mx, my = metres_per_degree(plat, 0.0)
-        plon = plon + dp[:, 0] / mx
-        plat = plat + dp[:, 1] / my
-        # change: the largest move of a corrected position through the global parameters, and the 99th percentile
-        # of the tie points' moves (a blunder's point may cycle over a DEM kink until it is rejected)
-        move = np.abs(np.einsum("nkc,nc->nk", stage.design, dx[stage.cols]))
-        change = float(np.max(move[stage.base_w > 0])) if (stage.base_w > 0).any() else 0.0
-        if stage.tie_rows.size:
-            pm = np.abs(np.einsum("nkq,nq->nk", jp, dp[stage.point_of])).max(axis=1)
-            change = max(change, float(np.percentile(pm, 99)))
-        history.append(change)
-        if progress is not None:
-            progress(min(it / max_iter, 0.99), f"iteration {it}: largest change {change:.3g} px")
-        small_in_row = small_in_row + 1 if change < tol else 0
-        in_phase += 1
-        if small_in_row >= len(free_sets) or (phase < 2 and in_phase >= 4 * len(free_sets) and change < 100 * tol):
-            if phase == 2:
-                pred, _, _, _ = stage.evaluate(x, plon, plat, with_jacobian=False)
-                v = stage.meas - pred
-                f2, out, _ = _robust(stage, v, w, npar, True, reject_k) if robust else (factor, rejected, None)
-                if np.array_equal(out, rejected):
-                    converged = True
-                    break
-                factor, rejected = f2, out
-                small_in_row = 0
-                continue
-            phase += 1
-            small_in_row = in_phase = 0
-        if phase >= 1 and robust:
-            pred, _, _, _ = stage.evaluate(x, plon, plat, with_jacobian=False)
-            v = stage.meas - pred
-            factor, rejected, _ = _robust(stage, v, w, npar, phase == 2, reject_k)
-    return x, plon, plat, {"iterations": it, "converged": converged, "history": history, "factor": factor,
-                           "rejected": rejected}
-
+              progress=None, label: str = "stage"):
+    """Gauss-Newton with robust reweighting (the driver's radial Huber, :class:`StageNorm`) of one stage:
+    (x, plon, plat, info) with ``info``: iterations (Gauss-Newton solves), converged, history (change per
+    iteration, px), factor (robust factor per row, 0: out), rejected (per row)."""
+    problem = StageProblem(stage, x, free_sets, progress, max_iter, label)
+    norm = StageNorm(reject_k, len(free_sets), robust)
+    est = robust_fit(problem, norm=norm, start=None, max_iter=max_iter - 1, tol=tol)
+    return problem.x, problem.plon, problem.plat, {
+        "iterations": len(problem.history), "converged": norm.converged, "history": problem.history,
+        "factor": est.point_weights, "rejected": est.outlier}
 
 
 def stage_rows(tab, images: Sequence[str], band_stage: bool, all_images: Sequence[str]):
