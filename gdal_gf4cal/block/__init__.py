@@ -45,7 +45,8 @@ from .adjust import adjust_block
 from .calibration import CALIBRATION_MODEL, calibrated_model, calibration_dict, read_calibration, write_calibration
 from .coverage import MAX_EXTRAPOLATION_VARIANCE, supported_degree
 from .estimate import BlockEstimate, corrected_model, prediction_std
-from .layout import BlockError, BlockLayout, ImageLayout, derive_layout, layout_from_calibration
+from .layout import (MAX_VIEW_ANGLE_DEG, BlockError, BlockLayout, ImageLayout, SeparateViewsError, check_one_pass,
+                     derive_layout, layout_from_calibration, pair_bands, view_angle)
 from .model import (DATUM_TERMS, EXTERIOR_NAMES, INTERIOR_NAMES, BlockCorrectedRPC, ImageCorrection, local_design,
                     parameter_blocks)
 from .seams import seam_offsets
@@ -54,4 +55,5 @@ __all__ = ["EXTERIOR_NAMES", "DATUM_TERMS", "ImageLayout", "BlockLayout", "Block
            "derive_layout", "adjust_block", "corrected_model", "seam_offsets", "calibration_dict",
            "write_calibration", "read_calibration", "calibrated_model", "prediction_std", "layout_from_calibration",
            "BlockError", "supported_degree", "INTERIOR_NAMES", "CALIBRATION_MODEL",
-           "MAX_EXTRAPOLATION_VARIANCE", "ImageCorrection", "local_design", "parameter_blocks"]
+           "MAX_EXTRAPOLATION_VARIANCE", "ImageCorrection", "local_design", "parameter_blocks", "SeparateViewsError",
+           "MAX_VIEW_ANGLE_DEG", "check_one_pass", "pair_bands", "view_angle"]

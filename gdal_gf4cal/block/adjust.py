@@ -15,7 +15,7 @@ from ..estimation.result import names_and_blocks
 from ..observations import flag_outliers, validate_observations
 from .coverage import unsupported_terms
 from .estimate import BlockEstimate
-from .layout import BlockError, BlockLayout, derive_layout, layout_from_calibration
+from .layout import BlockError, BlockLayout, derive_layout, layout_from_calibration, pair_bands
 from .model import DATUM_TERMS, EXTERIOR_NAMES, INTERIOR_NAMES, parameter_blocks
 from .stage import Stage, redundancy, run_stage, stage_rows
 
@@ -45,7 +45,8 @@ def adjust_block(observations, models: Mapping[str, Any], dem, *, layout: Option
     dem : :class:`~gdal_gf4cal.dem.DEM` (ellipsoidal): tie-point heights.
     layout : a :class:`BlockLayout`; default :func:`derive_layout` (``order``, ``bands_of``, ``reference_ccd``).
     order : the reference-band CCD images across track (default: the images without ``bands_of`` entry, in the
-        order of ``models``).
+        order of ``models``; without ``bands_of`` either, the pairing is derived from the RPCs:
+        :func:`~gdal_gf4cal.block.pair_bands`).
     solver : ``"simultaneous"`` (one sparse Gauss-Newton on everything) or ``"alternating"`` (exterior, then
         interior, repeated; METHODS §8's paper scheme).
     robust : robust reweighting and blunder rejection (module docstring).
@@ -81,7 +82,9 @@ def adjust_block(observations, models: Mapping[str, Any], dem, *, layout: Option
         layout = layout_from_calibration(calibration, models)
     if layout is None:
         bands_of = dict(bands_of or {})
-        if order is None:
+        if order is None and not bands_of:
+            order, bands_of = pair_bands(models, list(models))
+        elif order is None:
             order = [m for m in models if m not in bands_of]
         layout = derive_layout(models, order, bands_of=bands_of, reference_ccd=reference_ccd)
     gcp = (tab["kind"] == "gcp").to_numpy()

@@ -16,6 +16,21 @@ class BlockError(GCPError):
     """A block that cannot be adjusted as given (layout, overlaps, images, control): the message says what to do."""
 
 
+class SeparateViewsError(BlockError):
+    """Images that are separate views (stereo, tri-stereo, several dates), not CCDs or bands of one camera's pass:
+    bundle adjustment (``gf4cal bundle-adjust``) is the method for them (issue 22)."""
+
+
+#: Largest angle (degrees) between the lines of sight of two images at a ground point they share for them to be
+#: CCDs or bands of one camera's pass: such images see a point from nearly the same place (staggered CCD rows and
+#: band offsets on the focal plane: 0.03-0.49 deg in the simulated Jilin-1 group), separate views from another
+#: place or attitude (19.6 deg for the Pleiades Ventoux stereo pair; a base-to-height ratio of 0.1 is 5.7 deg).
+MAX_VIEW_ANGLE_DEG = 2.0
+#: Two images whose footprints cover at least this share of each other are bands of one CCD (:func:`pair_bands`);
+#: adjacent CCDs overlap a few percent.
+SAME_CCD_OVERLAP = 0.5
+
+
 @dataclass
 class ImageLayout:
     """Where one image sits in the group (METHODS §8): see the module docstring for ``ratio``, ``x0_px``, ``y_px``."""
@@ -134,6 +149,7 @@ def derive_layout(models: Mapping[str, Any], order: Sequence[str], *, bands_of: 
     ref = reference_ccd if reference_ccd is not None else order[(len(order) - 1) // 2]
     if ref not in order:
         raise BlockError(f"reference CCD {ref!r} is not one of the reference-band CCD images ({', '.join(order)})")
+    check_one_pass(models, sizes, list(zip(order[:-1], order[1:])) + [(r, b) for b, r in bands_of.items()], h)
     # groups mixed: an image that overlaps none of the others
     if len(order) > 1:
         for a in order:
@@ -167,6 +183,62 @@ def derive_layout(models: Mapping[str, Any], order: Sequence[str], *, bands_of: 
         layout[band] = ImageLayout(band, r, layout[r].ccd, sizes[band],
                                    pixel_ground_size(models[band], sizes[band], h) / gsd_ref, x)
     return BlockLayout(layout, order, ref, sizes[ref][1] / 2.0)
+
+
+def view_angle(a, size_a, b, size_b, h: float) -> float:
+    """Angle (degrees) between the lines of sight of models ``a`` and ``b`` at the ground point of ``b``'s centre
+    (at height ``h``): from each model's ground displacement of that point's pixel per metre of height."""
+    lon, lat = b.localize(size_b[0] / 2.0, size_b[1] / 2.0, h)
+    sa, la = a.project(lon, lat, h)
+
+    def slope(m, s, l):
+        lon0, lat0 = m.localize(s, l, h)
+        lon1, lat1 = m.localize(s, l, h + 100.0)
+        mx, my = metres_per_degree(float(lat0), h)
+        return np.array([(float(lon1) - float(lon0)) * float(mx), (float(lat1) - float(lat0)) * float(my)]) / 100.0
+
+    d = slope(a, float(sa), float(la)) - slope(b, size_b[0] / 2.0, size_b[1] / 2.0)
+    return float(np.degrees(np.arctan(np.hypot(d[0], d[1]))))
+
+
+def check_one_pass(models: Mapping[str, Any], sizes: Mapping[str, Tuple[int, int]], pairs, h: float) -> None:
+    """Refuse images that are separate views (:class:`SeparateViewsError`): pairs (adjacent CCDs, a band and its
+    reference image) that share ground at some height of ``b``'s RPC range (at ``h``, its lowest or highest: views
+    far apart overlap only at the true height) and whose lines of sight differ by more than
+    :data:`MAX_VIEW_ANGLE_DEG`."""
+    for a, b in pairs:
+        heights = (h,) + tuple(float(v) for v in models[b].height_range)
+        if all(overlap_fraction(models[a], sizes[a], models[b], sizes[b], hh) == 0.0 for hh in heights):
+            continue
+        ang = view_angle(models[a], sizes[a], models[b], sizes[b], h)
+        if ang > MAX_VIEW_ANGLE_DEG:
+            raise SeparateViewsError(
+                f"{a} and {b} see the ground from directions {ang:.1f} deg apart: they are separate views (stereo "
+                "or different passes), not CCDs or bands of one camera; adjust them with bundle adjustment "
+                "(gf4cal bundle-adjust, QGIS gf4cal:bundleadjust)")
+
+
+def pair_bands(models: Mapping[str, Any], images: Sequence[str], *,
+               sizes: Optional[Mapping[str, Tuple[int, int]]] = None, h: Optional[float] = None
+               ) -> Tuple[List[str], Dict[str, str]]:
+    """The default band-to-CCD pairing from the RPCs: ``(order, bands_of)``. An image whose footprint and an
+    earlier-given image's cover at least :data:`SAME_CCD_OVERLAP` of each other is another band of that CCD, whose
+    reference-band image is the first given of them; the others are the reference-band CCD images, in the order
+    given (across track)."""
+    sizes = {k: _model_size(models[k], (sizes or {}).get(k)) for k in images}
+    h = _mid_height(models[images[0]]) if h is None else float(h)
+    order: List[str] = []
+    bands: Dict[str, str] = {}
+    for im in images:
+        ref = next((r for r in order
+                    if min(overlap_fraction(models[r], sizes[r], models[im], sizes[im], h),
+                           overlap_fraction(models[im], sizes[im], models[r], sizes[r], h)) >= SAME_CCD_OVERLAP),
+                   None)
+        if ref is None:
+            order.append(im)
+        else:
+            bands[im] = ref
+    return order, bands
 
 
 
