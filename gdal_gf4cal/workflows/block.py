@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, List, Mapping, Sequence, Union
 
 import numpy as np
-import pandas as pd
 
 from .. import progress as _progress
 from ..block import (BlockError, adjust_block, calibration_dict, corrected_model, derive_layout, pair_bands,
@@ -129,6 +128,7 @@ def _read_obs(paths: Sequence[str], keys: Sequence[str], files: Sequence, dem, g
         tables.append(t)
     if not tables:
         return None
+    import pandas as pd          # where used: at module top it slows every CLI start-up
     tab = pd.concat(tables, ignore_index=True)
     return tab.drop_duplicates(["point_id", "image_id"]).reset_index(drop=True)
 
@@ -243,6 +243,7 @@ def _more_observations(grp: _Group, tab, reference_ortho, match_ties: bool, step
         extra.append(_match_ties(grp.paths, grp.keys, grp.layout, grp.models, grp.dem, steps("match")))
     if not extra:
         return tab
+    import pandas as pd          # where used: at module top it slows every CLI start-up
     tab = pd.concat(([tab] if tab is not None else []) + extra, ignore_index=True)
     return tab.drop_duplicates(["point_id", "image_id"]).reset_index(drop=True)
 
@@ -512,6 +513,7 @@ def _collect_from_ortho(paths, keys, order, models, reference, dem, progress):
         tabs.append(from_gcps(g[["id", "lon", "lat", "h", "sample", "line", "role", "sigma"]], k))
         if progress:
             progress((i + 1) / len(order), f"GCPs of {k} from the reference ortho")
+    import pandas as pd          # where used: at module top it slows every CLI start-up
     return pd.concat(tabs, ignore_index=True)
 
 
@@ -544,4 +546,5 @@ def _match_ties(paths, keys, layout, models, dem, progress):
     if not tabs:
         raise BlockError("raw-to-raw matching found no tie points; check the images overlap and have texture, or "
                          "give --ties")
+    import pandas as pd          # where used: at module top it slows every CLI start-up
     return pd.concat(tabs, ignore_index=True)
