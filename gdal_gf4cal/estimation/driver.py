@@ -244,7 +244,7 @@ class RadialHuber(_IRLSNorm):
 
 @lru_cache(maxsize=16)
 def _chi_median(k: int) -> float:
-    from scipy import stats
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     return float(math.sqrt(stats.chi2.ppf(0.5, k)))
 
 

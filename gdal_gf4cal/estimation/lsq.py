@@ -147,8 +147,16 @@ def sigma0_and_cov(normal, vtpv: float, dof: int, *, apriori: bool = False) -> T
     n_mat = np.asarray(normal, dtype=float)
     d = np.sqrt(np.diag(n_mat))
     n_inv = np.linalg.inv(n_mat / d[:, None] / d[None, :]) / d[:, None] / d[None, :]
-    sigma0 = math.sqrt(float(vtpv) / dof) if dof > 0 else float("nan")
+    sigma0 = float(unit_weight_sigma(float(vtpv), dof))
     return sigma0, (n_inv if apriori or dof <= 0 else sigma0 ** 2 * n_inv)
+
+
+def unit_weight_sigma(vtpv, dof):
+    """A-posteriori standard deviation of unit weight ``sqrt(v^T W v / dof)``, NaN without redundancy; vectorised
+    (e.g. one per intersected point)."""
+    vtpv, dof = np.asarray(vtpv, dtype=float), np.asarray(dof)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(dof > 0, np.sqrt(vtpv / np.maximum(dof, 1)), np.nan)
 
 
 def normal_solve(design, obs, weights, hint: str = "") -> Tuple[np.ndarray, np.ndarray]:

@@ -1,4 +1,5 @@
-"""One robust estimator (METHODS §4, §6): a high-breakdown start, then data snooping with Student-t thresholds.
+"""The robust estimator's parts (METHODS §4, §6): a high-breakdown start, then data snooping with Student-t thresholds
+(the loop itself is the one robust driver, :func:`~gdal_gf4cal.estimation.robust_fit` in ``driver.py``).
 
 Observations come per *point* (a GCP gives a sample and a line observation; a tie point one pair per image):
 ``design`` has shape ``(n_points, k, p)``, ``obs`` and ``weights`` ``(n_points, k)``. A point is in or out as a
@@ -47,9 +48,9 @@ def critical_value(threshold: float, dof: int) -> float:
     normalised with an *estimated* sigma, so with few redundant observations they follow Student's t: the
     threshold becomes the t quantile of the same two-sided probability.
     """
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     if dof <= 0:
         return math.inf
-    from scipy import stats
     return float(stats.t.isf(stats.norm.sf(threshold), dof))
 
 
@@ -80,13 +81,13 @@ def readmissible(normalised, dof: int, *, threshold: float = 4.0, sigma: float =
 
 @lru_cache(maxsize=64)
 def _norm_sf2(threshold: float) -> float:
-    from scipy import stats
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     return float(2.0 * stats.norm.sf(threshold))
 
 
 @lru_cache(maxsize=64)
 def _chi2_isf(p: float, k: int) -> float:
-    from scipy import stats
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     return float(stats.chi2.isf(min(p, 1.0), k))
 
 
@@ -150,20 +151,20 @@ def _batched_fit(a: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray, 
 
 @lru_cache(maxsize=256)
 def _lts_consistency(h: int, n: int, k: int) -> float:
-    from scipy import stats
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     alpha = h / n
     return float(k * stats.chi2.cdf(stats.chi2.ppf(alpha, k), k + 2) / alpha) if alpha < 1 else float(k)
 
 
 @lru_cache(maxsize=64)
 def _chi2_ppf(p: float, k: int) -> float:
-    from scipy import stats
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     return float(stats.chi2.ppf(p, k))
 
 
 @lru_cache(maxsize=1024)
 def _f_ppf(p: float, d1: int, d2: int) -> float:
-    from scipy import stats
+    from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
     return float(stats.f.ppf(p, d1, d2))
 
 
@@ -199,6 +200,10 @@ def _point_sq(a, y, w, x):
 def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int] = None, n_subsets: int = 300,
                          seed: int = 0, chunk: int = 512, max_search: int = 120) -> Tuple[np.ndarray, float, dict]:
     """High-breakdown start (least trimmed squares from minimal subsets), see the module docstring.
+
+    (Long by design: one algorithm in four tightly coupled steps, subset search, concentration on all points, the
+    LTS scale and the reweighting with its all-points comparison, sharing a dozen arrays; split, each part would
+    take most of them as arguments.)
 
     Parameters
     ----------
