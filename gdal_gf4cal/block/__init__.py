@@ -29,9 +29,10 @@ CCDs must overlap (checked on their RPCs).
 ``"alternating"`` (the paper's scheme): exterior with interiors fixed, then interiors with the exterior fixed
 (frozen columns), repeated until stable. **Band-to-band**: the reference band (all images not in ``bands_of``) is
 adjusted absolutely (GCPs + ties); then the other bands' interiors alone, with the reference exterior and interiors
-frozen, from their tie points and their own control GCPs if any. **Robust weights**: the core's radial
-Huber weights (:func:`~gdal_gf4cal.estimation.radial_huber_weights`) on residuals normalised by their redundancy;
-first down-weighting only, then rejection (``z > 5``), until the rejected set is stable.
+frozen, from their tie points and their own control GCPs if any. **Robust weights**: each stage runs on the
+core's one robust driver (:func:`~gdal_gf4cal.estimation.robust_fit`, one Gauss-Newton step per fit) with its radial
+Huber weights on residuals normalised by their redundancy: a-priori weights, then down-weighting only, then
+rejection (``z > 5``), until the rejected set is stable (:class:`~gdal_gf4cal.block.stage.StageNorm`).
 
 Package layout: :mod:`.layout` (the group's layout from the RPCs), :mod:`.model` (parameters, the correction of one
 image, the corrected sensor model), :mod:`.coverage` (terms the observations support), :mod:`.stage` (one stage's
