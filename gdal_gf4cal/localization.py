@@ -30,6 +30,7 @@ import numpy as np
 
 from ._rpc_poly import _EXPONENTS, monomials
 from .dem import DEM
+from .threads import split_points
 
 log = logging.getLogger(__name__)
 
@@ -99,11 +100,19 @@ def localize_dem(model, sample, line, dem, *, pixel_convention: str = "gdal", to
     sample, line = np.broadcast_arrays(np.asarray(sample, dtype=float), np.asarray(line, dtype=float))
     shape = sample.shape
     s, l = sample.ravel(), line.ravel()
-    if fast_path:
-        lon, lat, hgt, iters = _localize_dem_flat(model, s, l, dem, pixel_convention, tol_m, max_iter, scan_steps)
-    else:
-        lon, lat, hgt, iters = _localize_dem_generic(model, s, l, dem, pixel_convention, tol_m, max_iter, scan_steps)
-    _fallback_height(model, s, l, dem, pixel_convention, lon, lat, hgt)
+    iterations = []
+
+    def block(sb, lb):
+        solve = _localize_dem_flat if fast_path else _localize_dem_generic
+        lo, la, hb, it = solve(model, sb, lb, dem, pixel_convention, tol_m, max_iter, scan_steps)
+        _fallback_height(model, sb, lb, dem, pixel_convention, lo, la, hb)
+        iterations.append(it)
+        return lo, la, hb
+
+    # Blocks of points over the thread pool: each block is a whole intersection (its own start height, marches
+    # and fallbacks), so the result depends on the blocks (fixed by the number of points), never on the threads.
+    lon, lat, hgt = split_points(block, s, l)
+    iters = max(iterations)
     _warn_implausible_heights(model, dem, hgt)
     out = (_shape_out(lon, shape), _shape_out(lat, shape), _shape_out(hgt, shape))
     if not full_output:
