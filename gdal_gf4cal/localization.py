@@ -30,7 +30,7 @@ import numpy as np
 
 from ._rpc_poly import _EXPONENTS, monomials
 from .dem import DEM
-from .threads import split_points
+from .threads import matmul, split_points
 
 log = logging.getLogger(__name__)
 
@@ -410,7 +410,7 @@ class _LineOfSight:
             P[0, k], P[1, k] = dem.to_pixel(lon, lat)
             if k == 1:
                 lon_c, lat_c = lon, lat
-        C = np.concatenate([_VINV @ P[0], _VINV @ P[1]])
+        C = np.concatenate([matmul(_VINV, P[0]), matmul(_VINV, P[1])])
         ok = np.isfinite(lon_c) & np.isfinite(lat_c)
         n_geoid = np.zeros(np.size(h_mid))
         if np.any(ok):
@@ -784,7 +784,7 @@ def _dem_start_height(rpc, x, y, dem) -> float:
     step = max(1, x.size // 512)
     xs, ys = x[::step], y[::step]
     A = rpc._approximate_inverse
-    L, P = A @ monomials(xs, ys, np.full(xs.size, (mid - rpc.height_off) / rpc.height_scale))
+    L, P = matmul(A, monomials(xs, ys, np.full(xs.size, (mid - rpc.height_off) / rpc.height_scale)))
     z = _dem_height_nan(dem, L * rpc.long_scale + rpc.long_off, P * rpc.lat_scale + rpc.lat_off)
     z = z[np.isfinite(z)]
     return 0.5 * (float(z.min()) + float(z.max())) if z.size else mid
@@ -798,9 +798,9 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
     hs = rpc.height_scale
     Hm = (h0 - rpc.height_off) / hs
     # 1. Ray: cubic in t = H - Hm from the approximate inverse, value and slope corrected by one exact Newton step.
-    R = basis @ _xy_monomials(x, y)                       # rows L0..L3, P0..P3
+    R = matmul(basis, _xy_monomials(x, y))                # rows L0..L3, P0..P3
     L0, P0 = R[0], R[4]
-    V = rpc._coeffs_with_derivatives @ monomials(L0, P0, np.full(m, Hm))
+    V = matmul(rpc._coeffs_with_derivatives, monomials(L0, P0, np.full(m, Hm)))
     xe, ye = V[0] / V[1], V[2] / V[3]
     xL, xP, xH = (V[4] - xe * V[5]) / V[1], (V[8] - xe * V[9]) / V[1], (V[12] - xe * V[13]) / V[1]
     yL, yP, yH = (V[6] - ye * V[7]) / V[3], (V[10] - ye * V[11]) / V[3], (V[14] - ye * V[15]) / V[3]

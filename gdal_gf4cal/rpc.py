@@ -26,7 +26,7 @@ from ._rpc_poly import (_CHUNK, _EXPONENTS, DERIVATIVE_MATRICES, TERMS, monomial
                         monomials)
 from .errors import RPCFormatError
 from .sensor import GDAL_PIXEL_OFFSET, LocalizationStats, SensorModelMixin, pixel_shift  # noqa: F401
-from .threads import split_points
+from .threads import matmul, split_points
 
 log = logging.getLogger(__name__)
 
@@ -224,7 +224,7 @@ class RPCModel(SensorModelMixin):
         C = self._coeffs
         for i in range(0, n, _CHUNK):
             sl = slice(i, i + _CHUNK)
-            v = C @ monomials(L[sl], P[sl], H[sl])
+            v = matmul(C, monomials(L[sl], P[sl], H[sl]))
             np.divide(v[0], v[1], out=x[sl])
             np.divide(v[2], v[3], out=y[sl])
         return x, y
@@ -265,7 +265,7 @@ class RPCModel(SensorModelMixin):
         V = np.empty((Cx.shape[0], n))
         for i in range(0, n, _CHUNK):
             sl = slice(i, i + _CHUNK)
-            V[:, sl] = Cx @ monomials(L[sl], P[sl], H[sl])
+            V[:, sl] = matmul(Cx, monomials(L[sl], P[sl], H[sl]))
         v, vL, vP = V[0:4], V[4:8], V[8:12]
         x = v[0] / v[1]
         y = v[2] / v[3]
@@ -363,7 +363,7 @@ class RPCModel(SensorModelMixin):
         for i in range(0, n, _CHUNK):
             sl = slice(i, i + _CHUNK)
             xs, ys, hs = x[sl], y[sl], H[sl]
-            L[sl], P[sl] = A @ monomials(xs, ys, hs)
+            L[sl], P[sl] = matmul(A, monomials(xs, ys, hs))
             # Chunk-wise bounds first: the common case (every point inside) costs six reductions.
             if (xs.min(initial=x_lo) >= x_lo and xs.max(initial=x_hi) <= x_hi and ys.min(initial=y_lo) >= y_lo
                     and ys.max(initial=y_hi) <= y_hi and np.abs(hs).max(initial=0.0) <= 1.5):

@@ -26,7 +26,7 @@ import numpy as np
 from .errors import Gf4calError
 
 __all__ = ["ENV", "BLOCK", "ThreadSettingError", "machine_cores", "num_threads", "limit", "block_slices",
-           "map_blocks", "split_points"]
+           "map_blocks", "split_points", "matmul", "BLAS_SERIAL_SIZE"]
 
 #: The environment variable of the thread setting.
 ENV = "GF4CAL_NUM_THREADS"
@@ -143,6 +143,30 @@ def split_points(fn: Callable[..., tuple], *arrays, block: Optional[int] = None)
         return fn(*arrays)
     parts = map_blocks(lambda s: fn(*(a[s] for a in arrays)), n, block)
     return tuple(np.concatenate([np.asarray(p[k]).ravel() for p in parts]) for k in range(len(parts[0])))
+
+
+#: Largest product m x n x k that OpenBLAS computes on the calling thread (its GEMM_MULTITHREAD_THRESHOLD x
+#: SMP_THRESHOLD_MIN): above it OpenBLAS splits the product over its own threads with other kernels, whose rounding
+#: differs, and which fight the pool's threads for the cores.
+BLAS_SERIAL_SIZE = 4 * 65536
+
+
+def matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` (2-D, ``a`` small) in column slices of ``b`` that BLAS computes on the calling thread: the same
+    numbers on any number of cores and with any BLAS thread setting, and no BLAS threads competing with the pool's
+    (the point kernels' polynomial evaluations)."""
+    rows, k = a.shape
+    n = b.shape[1]
+    step = max(2, BLAS_SERIAL_SIZE // max(rows * k, 1))
+    if n <= step:
+        return a @ b
+    out = np.empty((rows, n), dtype=np.result_type(a, b))
+    for i in range(0, n, step):
+        j = min(i + step, n)
+        if j - i == 1:                  # never a one-column product (BLAS takes another kernel for a vector)
+            i -= 1
+        np.matmul(a, b[:, i:j], out=out[:, i:j])
+    return out
 
 
 def _run_serially(fn, slices):

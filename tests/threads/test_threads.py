@@ -255,3 +255,28 @@ def test_dask_workers_keep_one_thread_each():
     from gdal_gf4cal.executors import get_executor
     with get_executor("local:1") as ex:
         assert ex.submit(_worker_threads, 0).result() == 1
+
+
+def test_ortho_ellipsoidal_dem_bit_identical(srtm_path, tmp_path, monkeypatch):
+    """The ortho's own per-pixel step (DEM heights above EGM96 -> ellipsoidal, h = H + N) in blocks over the pool."""
+    from osgeo import gdal
+    from gdal_gf4cal.geoid import resolve_geoid
+    from gdal_gf4cal.workflows.ortho import write_ellipsoidal_dem
+    grid = resolve_geoid("egm96")
+    bounds = (5.05, 44.05, 5.45, 44.45)                  # ~ 480 x 480 SRTM pixels: four blocks
+    out = []
+    for k in THREADS:
+        monkeypatch.setenv(threads.ENV, k)
+        path = write_ellipsoidal_dem(str(srtm_path), grid, bounds, str(tmp_path / f"ell{k}.tif"))
+        out.append(gdal.Open(path).ReadAsArray())
+    assert out[0].size > 3 * threads.BLOCK
+    assert np.array_equal(out[0], out[1]) and np.array_equal(out[0], out[2])
+    src = gdal.Open(str(srtm_path))
+    ds = gdal.Open(str(tmp_path / "ell1.tif"))
+    x0 = int(round((ds.GetGeoTransform()[0] - src.GetGeoTransform()[0]) / src.GetGeoTransform()[1]))
+    y0 = int(round((ds.GetGeoTransform()[3] - src.GetGeoTransform()[3]) / src.GetGeoTransform()[5]))
+    H = src.GetRasterBand(1).ReadAsArray(x0, y0, ds.RasterXSize, ds.RasterYSize).astype(float)
+    valid = out[0] != -9999.0                           # SRTM voids stay no-data
+    assert valid.mean() > 0.99
+    undulation = out[0][valid] - H[valid]
+    assert 49.0 < undulation.min() and undulation.max() < 53.0      # EGM96 over Mont Ventoux: N ~ 50-52 m
