@@ -25,7 +25,8 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 
 from .errors import CancelledError, Gf4calError
 from .executors import map_ordered
-from .progress import report
+from .outputs import scene_stem  # noqa: F401  (batch.scene_stem: the name of a scene's outputs)
+from .progress import cancel_check, report
 
 SUMMARY_CSV = "batch_summary.csv"
 SUMMARY_JSON = "batch_summary.json"
@@ -70,12 +71,6 @@ def expand_scenes(items: Sequence) -> List[str]:
             add(it)
     seen = set()
     return [s for s in out if not (s in seen or seen.add(s))]
-
-
-def scene_stem(path: str) -> str:
-    """The scene's name for its outputs: the file name without the extension (dotted product names kept)."""
-    from .workflows.calibrate import _scene_stem
-    return _scene_stem(path)
 
 
 @dataclass(frozen=True)
@@ -280,7 +275,6 @@ def run_batch(fn: Callable[..., Dict[str, Any]], scenes: Sequence, out_dir, outp
     report(progress, 0.0, f"{len(todo)} of {len(plans)} scenes to run")
     t0 = time.perf_counter()
     from .executors import SerialExecutor, dask_client
-    from .workflows._common import cancel_check
     tracker = _Tracker(cancel_check(progress))
     client = dask_client(executor)
     topic = f"gf4cal-batch-{os.getpid()}-{id(tracker)}"
@@ -356,7 +350,6 @@ def apply_calibration_scene(scene: str, outputs: Dict[str, str], *, current, new
     from .rpc_io import write_rpb, write_rpc_vrt
     cur = current if hasattr(current, "tan_angles") else LookAngleModel.from_json(current)
     nw = new if hasattr(new, "tan_angles") else LookAngleModel.from_json(new)
-    from .workflows._common import cancel_check
     outs = OutputSet([scene] + [c for c in (current, new) if isinstance(c, (str, os.PathLike))],
                      overwrite=overwrite, cancelled=cancel_check(progress))
     for role, p in outputs.items():

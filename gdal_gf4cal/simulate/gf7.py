@@ -31,7 +31,6 @@ the default camera (``camera_seed=4``, seed 004 of the project).
 from __future__ import annotations
 
 import contextvars
-import json
 import os
 from contextlib import closing, contextmanager
 from dataclasses import asdict, dataclass, fields, replace
@@ -225,9 +224,9 @@ class SubCCDCamera:
                    d["coef_x_px"], d["coef_y_px"], d["lin_x_px"], d["lin_y_px"], d["offset_px"], d.get("piece"),
                    d.get("name", ""), d.get("notes", ""))
 
-    def to_json(self, path) -> str:
+    def to_json(self, path, overwrite: bool = False) -> str:
         from .cameras import write_json_atomic
-        return write_json_atomic(path, self.to_dict())
+        return write_json_atomic(path, self.to_dict(), overwrite=overwrite)
 
 
 # -------------------------------------------------------------------------------------------------- builder

@@ -9,8 +9,7 @@ import numpy as np
 
 from ..errors import GCPError, InputOverwriteError
 from ..crop import image_rpc, paired_rpc_files, product_rpc
-from ..outputs import OutputSet
-from .calibrate import _scene_stem
+from ..outputs import OutputSet, scene_stem
 from ._common import _open_image, cancel_check, collect_warnings, finish_report
 
 
@@ -42,7 +41,7 @@ def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: boo
     if not scenes:
         raise GCPError("no scene given; name the scenes (images or RPC files) to recalibrate")
     out = os.fspath(out_dir)
-    stems = [_scene_stem(s) for s in scenes]
+    stems = [scene_stem(s) for s in scenes]
     if len(set(stems)) != len(stems):
         raise InputOverwriteError("two scenes have the same name; recalibrate them into different folders")
     rpc_files = paired_rpc_files(scenes, rpcs)

@@ -24,8 +24,8 @@ __all__ = ["block_adjust", "check_observations", "image_keys", "parse_bands_of"]
 
 def image_keys(paths: Sequence) -> List[str]:
     """Keys of images (module docstring): file stems when unique, else folder names; unique or an error."""
-    from .calibrate import _scene_stem
-    stems = [_scene_stem(p) for p in paths]
+    from ..outputs import scene_stem
+    stems = [scene_stem(p) for p in paths]
     if len(set(s.casefold() for s in stems)) == len(stems):
         return stems
     folders = [os.path.basename(os.path.dirname(os.path.abspath(os.fspath(p)))) for p in paths]
@@ -37,11 +37,11 @@ def image_keys(paths: Sequence) -> List[str]:
 
 def _resolve(name: str, paths: Sequence[str], keys: Sequence[str], what: str) -> str:
     """The key of the image ``name`` (a key, file name, path or stem)."""
-    from .calibrate import _scene_stem
+    from ..outputs import scene_stem
     name = str(name).strip()
     low = name.casefold()
     for p, k in zip(paths, keys):
-        if low in (k.casefold(), os.path.basename(p).casefold(), _scene_stem(p).casefold()) and \
+        if low in (k.casefold(), os.path.basename(p).casefold(), scene_stem(p).casefold()) and \
                 sum(low in (kk.casefold(), os.path.basename(pp).casefold()) for pp, kk in zip(paths, keys)) <= 1:
             return k
         if os.path.abspath(name) == os.path.abspath(p):

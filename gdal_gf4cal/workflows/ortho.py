@@ -126,7 +126,7 @@ def write_ellipsoidal_dem(dem_path: str, grid: str, bounds_lonlat, out_path: str
     """
     from osgeo import gdal
     import pyproj
-    from ..dem import _geoid_transformer
+    from ..dem import geoid_transformer
     from .._gdal import open_raster
     src = open_raster(dem_path, what="DEM", error=DEMError)
     gt = src.GetGeoTransform()
@@ -158,7 +158,7 @@ def write_ellipsoidal_dem(dem_path: str, grid: str, bounds_lonlat, out_path: str
     cols = gt[0] + gt[1] * (x0 + np.arange(x1 - x0) + 0.5)
     rows = gt[3] + gt[5] * (y0 + np.arange(y1 - y0) + 0.5)
     X, Y = np.meshgrid(cols, rows)
-    geoid = _geoid_transformer(grid)
+    geoid = geoid_transformer(grid)
 
     def ellipsoidal(x, y, z):
         """h = H + N at DEM pixel centres (x, y), -9999 where H is no-data (one block of pixels)."""

@@ -9,10 +9,9 @@ import os
 from typing import Any, Dict, Optional, Sequence
 
 from ..errors import GCPError
-from ..crop import image_rpc
 from ..outputs import OutputSet, check_not_a_shadowing_sidecar, check_vector, rpc_stem, same_file
 from ..dem import DEM
-from ._common import declare_report_outputs, _open_image, cancel_check, collect_warnings, finish_report, is_path
+from ._common import Scene, cancel_check, collect_warnings, declare_report_outputs, finish_report, is_path
 
 # Old private names, kept for callers and tests that used them from compensation.py.
 _same_file = same_file
@@ -129,7 +128,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     out = os.fspath(out)
     kind = output_kind(out)
     check_refine_options(max_uncertainty_px=max_uncertainty_px, gcp_columns=gcp_columns)
-    image_size, inputs = _open_image(source)
+    scene = Scene.open(source)
+    image_size, inputs = scene.size, list(scene.files)
     inputs += [os.fspath(x) for x in (gcps, dem, rpc) if is_path(x)]
     if kind == "vrt" and image_size is None:
         raise GCPError(f"{source} is not an image: write the refined RPC as .RPB or _RPC.TXT, or give the image "
@@ -147,7 +147,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     warns: list = []
     with outs, collect_warnings(warns):
         _progress.report(progress, 0.0, "reading the RPC and GCPs")
-        rpc, crop_note = image_rpc(source, rpc)
+        scene = scene.with_rpc(rpc)
+        rpc, crop_note = scene.rpc, scene.note
         dem_obj = DEM.from_user_input(dem, geoid=geoid)
         if is_path(gcps):
             kw = {"layer": gcp_layer} if gcp_layer else {}
