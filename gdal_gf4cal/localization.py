@@ -19,6 +19,9 @@ RPC fast path (models with ``rational_polynomial = True``, i.e. :class:`~gdal_gf
 model of the line of sight, Newton steps for the height on it with DEM samples and slopes only (rays crossing
 once) or the march on it (the others), then an exact polish (see :func:`_rpc_localize_dem_fast`); the points it
 does not settle take the generic path.
+
+More than :data:`gdal_gf4cal.threads.BLOCK` points are intersected in fixed blocks over the thread pool
+(``GF4CAL_NUM_THREADS``), each block a whole intersection: results are bit-identical whatever the thread count.
 """
 from __future__ import annotations
 
