@@ -13,6 +13,7 @@ from __future__ import annotations
 import copy
 import logging
 import os
+import threading
 from collections import OrderedDict
 from typing import Optional, Tuple, Union
 
@@ -67,6 +68,10 @@ class DEM:
         self._tile = int(tile_size)
         self._cache: "OrderedDict[Tuple[int, int], np.ndarray]" = OrderedDict()
         self._cache_tiles = int(cache_tiles)
+        # Every read of the raster and every cache update holds this lock: a GDAL dataset must not be used by two
+        # threads at once (the point kernels sample one DEM from the thread pool, gdal_gf4cal.threads). Shared by
+        # the copies of with_nodata, which share the dataset and the caches.
+        self._lock = threading.RLock()
         if isinstance(nodata, str) and nodata not in ("error", "nan"):
             raise ValueError("nodata must be 'error', 'nan' or a height in metres")
         if path is None:
@@ -230,6 +235,13 @@ class DEM:
                                    "data over the scene")
                 self._height_range = (float(np.nanmin(self._whole)), float(np.nanmax(self._whole)))
             return self._height_range
+        with self._lock:
+            if self._height_range is None:
+                self._height_range = self._approximate_height_range()
+        return self._height_range
+
+    def _approximate_height_range(self) -> Tuple[float, float]:
+        """GDAL's (approximate, else exact) min and max of a large raster, band scale/offset applied."""
         for approx in (True, False):       # approximate statistics may sample only voids: then scan it all
             try:
                 lo_hi = self._band.ComputeRasterMinMax(approx)
@@ -377,6 +389,14 @@ class DEM:
         """Windowed maxima (flat) of the heights, or of the cell slopes, radius rounded up to a power of two."""
         r = 1 << max(0, int(np.ceil(np.log2(max(radius_px, 1)))))
         key = (r, slope)
+        table = self._local_max.get(key)
+        if table is not None:
+            return table
+        with self._lock:                   # computed once, also when several threads ask at once
+            return self._local_max_table_locked(r, key, slope)
+
+    def _local_max_table_locked(self, r: int, key, slope: bool) -> np.ndarray:
+        """:meth:`_local_max_table` with the lock held."""
         if self._local_max.get(key) is None:
             if self._whole is None:
                 self._load_whole()
@@ -600,12 +620,15 @@ class DEM:
     @with_gdal_exceptions
     def _load_whole(self) -> None:
         """Read the whole raster once (no-data as NaN, band scale/offset applied) for :meth:`_sample_whole`."""
-        block = self._band.ReadAsArray().astype(float)
-        if self._nodata_value is not None:
-            block[block == self._nodata_value] = np.nan
-        if self._scale != 1.0 or self._offset != 0.0:
-            block = block * self._scale + self._offset
-        self._whole = block
+        with self._lock:
+            if self._whole is not None:        # read by another thread meanwhile
+                return
+            block = self._band.ReadAsArray().astype(float)
+            if self._nodata_value is not None:
+                block[block == self._nodata_value] = np.nan
+            if self._scale != 1.0 or self._offset != 0.0:
+                block = block * self._scale + self._offset
+            self._whole = block
 
     def _sample_whole(self, px, py, gradient: bool = False):
         """Bilinear sampling of a small DEM held in memory, at pixel coordinates (pixel centres at integers).
@@ -647,23 +670,24 @@ class DEM:
     def _read_tile(self, tile_x: int, tile_y: int) -> np.ndarray:
         """Read tile (tile_x, tile_y) with a one-pixel overlap to the right and below (LRU cached)."""
         key = (tile_x, tile_y)
-        block = self._cache.get(key)
-        if block is not None:
-            self._cache.move_to_end(key)
+        with self._lock:
+            block = self._cache.get(key)
+            if block is not None:
+                self._cache.move_to_end(key)
+                return block
+            T = self._tile
+            xoff, yoff = tile_x * T, tile_y * T
+            xsize = min(T + 1, self.width - xoff)
+            ysize = min(T + 1, self.height_px - yoff)
+            block = self._band.ReadAsArray(xoff, yoff, xsize, ysize).astype(float)
+            if self._nodata_value is not None:
+                block[block == self._nodata_value] = np.nan
+            if self._scale != 1.0 or self._offset != 0.0:
+                block = block * self._scale + self._offset
+            self._cache[key] = block
+            if len(self._cache) > self._cache_tiles:
+                self._cache.popitem(last=False)
             return block
-        T = self._tile
-        xoff, yoff = tile_x * T, tile_y * T
-        xsize = min(T + 1, self.width - xoff)
-        ysize = min(T + 1, self.height_px - yoff)
-        block = self._band.ReadAsArray(xoff, yoff, xsize, ysize).astype(float)
-        if self._nodata_value is not None:
-            block[block == self._nodata_value] = np.nan
-        if self._scale != 1.0 or self._offset != 0.0:
-            block = block * self._scale + self._offset
-        self._cache[key] = block
-        if len(self._cache) > self._cache_tiles:
-            self._cache.popitem(last=False)
-        return block
 
     def __repr__(self) -> str:
         if self.is_constant:

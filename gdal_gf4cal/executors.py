@@ -32,9 +32,10 @@ CONNECT_TIMEOUT_S = 5.0
 #: 128 KB (the windows, spectra and stacks of matching) is then a fresh mmap, paid in page faults, and matching ran
 #: ~1.5x slower in a worker than in a thread (4x the minor faults, bench/bench_scale.py). Explicit thresholds at
 #: glibc's own adaptive maxima keep tile-sized arrays on the heap; memory stays bounded by the tile. For workers
-#: you start yourself, set the same in ``distributed.nanny.pre-spawn-environ`` (README).
+#: you start yourself, set the same in ``distributed.nanny.pre-spawn-environ`` (README). One thread per worker for
+#: BLAS and for the point kernels (``GF4CAL_NUM_THREADS``, :mod:`gdal_gf4cal.threads`): the cluster parallelises.
 WORKER_ENV = {"MALLOC_MMAP_THRESHOLD_": 32 * 2 ** 20, "MALLOC_TRIM_THRESHOLD_": 64 * 2 ** 20,
-              "OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1}
+              "OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1, "GF4CAL_NUM_THREADS": 1}
 
 
 class ExecutorError(Gf4calError, ConnectionError):

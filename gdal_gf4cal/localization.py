@@ -19,6 +19,9 @@ RPC fast path (models with ``rational_polynomial = True``, i.e. :class:`~gdal_gf
 model of the line of sight, Newton steps for the height on it with DEM samples and slopes only (rays crossing
 once) or the march on it (the others), then an exact polish (see :func:`_rpc_localize_dem_fast`); the points it
 does not settle take the generic path.
+
+More than :data:`gdal_gf4cal.threads.BLOCK` points are intersected in fixed blocks over the thread pool
+(``GF4CAL_NUM_THREADS``), each block a whole intersection: results are bit-identical whatever the thread count.
 """
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ import numpy as np
 
 from ._rpc_poly import _EXPONENTS, monomials
 from .dem import DEM
+from .threads import matmul, split_points
 
 log = logging.getLogger(__name__)
 
@@ -99,11 +103,19 @@ def localize_dem(model, sample, line, dem, *, pixel_convention: str = "gdal", to
     sample, line = np.broadcast_arrays(np.asarray(sample, dtype=float), np.asarray(line, dtype=float))
     shape = sample.shape
     s, l = sample.ravel(), line.ravel()
-    if fast_path:
-        lon, lat, hgt, iters = _localize_dem_flat(model, s, l, dem, pixel_convention, tol_m, max_iter, scan_steps)
-    else:
-        lon, lat, hgt, iters = _localize_dem_generic(model, s, l, dem, pixel_convention, tol_m, max_iter, scan_steps)
-    _fallback_height(model, s, l, dem, pixel_convention, lon, lat, hgt)
+    iterations = []
+
+    def block(sb, lb):
+        solve = _localize_dem_flat if fast_path else _localize_dem_generic
+        lo, la, hb, it = solve(model, sb, lb, dem, pixel_convention, tol_m, max_iter, scan_steps)
+        _fallback_height(model, sb, lb, dem, pixel_convention, lo, la, hb)
+        iterations.append(it)
+        return lo, la, hb
+
+    # Blocks of points over the thread pool: each block is a whole intersection (its own start height, marches
+    # and fallbacks), so the result depends on the blocks (fixed by the number of points), never on the threads.
+    lon, lat, hgt = split_points(block, s, l)
+    iters = max(iterations)
     _warn_implausible_heights(model, dem, hgt)
     out = (_shape_out(lon, shape), _shape_out(lat, shape), _shape_out(hgt, shape))
     if not full_output:
@@ -401,7 +413,7 @@ class _LineOfSight:
             P[0, k], P[1, k] = dem.to_pixel(lon, lat)
             if k == 1:
                 lon_c, lat_c = lon, lat
-        C = np.concatenate([_VINV @ P[0], _VINV @ P[1]])
+        C = np.concatenate([matmul(_VINV, P[0]), matmul(_VINV, P[1])])
         ok = np.isfinite(lon_c) & np.isfinite(lat_c)
         n_geoid = np.zeros(np.size(h_mid))
         if np.any(ok):
@@ -775,7 +787,7 @@ def _dem_start_height(rpc, x, y, dem) -> float:
     step = max(1, x.size // 512)
     xs, ys = x[::step], y[::step]
     A = rpc._approximate_inverse
-    L, P = A @ monomials(xs, ys, np.full(xs.size, (mid - rpc.height_off) / rpc.height_scale))
+    L, P = matmul(A, monomials(xs, ys, np.full(xs.size, (mid - rpc.height_off) / rpc.height_scale)))
     z = _dem_height_nan(dem, L * rpc.long_scale + rpc.long_off, P * rpc.lat_scale + rpc.lat_off)
     z = z[np.isfinite(z)]
     return 0.5 * (float(z.min()) + float(z.max())) if z.size else mid
@@ -789,9 +801,9 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
     hs = rpc.height_scale
     Hm = (h0 - rpc.height_off) / hs
     # 1. Ray: cubic in t = H - Hm from the approximate inverse, value and slope corrected by one exact Newton step.
-    R = basis @ _xy_monomials(x, y)                       # rows L0..L3, P0..P3
+    R = matmul(basis, _xy_monomials(x, y))                # rows L0..L3, P0..P3
     L0, P0 = R[0], R[4]
-    V = rpc._coeffs_with_derivatives @ monomials(L0, P0, np.full(m, Hm))
+    V = matmul(rpc._coeffs_with_derivatives, monomials(L0, P0, np.full(m, Hm)))
     xe, ye = V[0] / V[1], V[2] / V[3]
     xL, xP, xH = (V[4] - xe * V[5]) / V[1], (V[8] - xe * V[9]) / V[1], (V[12] - xe * V[13]) / V[1]
     yL, yP, yH = (V[6] - ye * V[7]) / V[3], (V[10] - ye * V[11]) / V[3], (V[14] - ye * V[15]) / V[3]

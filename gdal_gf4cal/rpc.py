@@ -26,6 +26,7 @@ from ._rpc_poly import _CHUNK, _EXPONENTS, DERIVATIVE_MATRICES, TERMS, monomial_
 from .errors import RPCFormatError
 from .rpc_io import read_rpc_metadata, write_rpb, write_rpc_txt
 from .sensor import GDAL_PIXEL_OFFSET, LocalizationStats, SensorModelMixin, pixel_shift  # noqa: F401
+from .threads import matmul, split_points
 
 log = logging.getLogger(__name__)
 
@@ -220,7 +221,7 @@ class RPCModel(SensorModelMixin):
         C = self._coeffs
         for i in range(0, n, _CHUNK):
             sl = slice(i, i + _CHUNK)
-            v = C @ monomials(L[sl], P[sl], H[sl])
+            v = matmul(C, monomials(L[sl], P[sl], H[sl]))
             np.divide(v[0], v[1], out=x[sl])
             np.divide(v[2], v[3], out=y[sl])
         return x, y
@@ -235,12 +236,15 @@ class RPCModel(SensorModelMixin):
         """
         lon, lat, h = np.broadcast_arrays(_as_float_array(lon), _as_float_array(lat), _as_float_array(h))
         shape = lon.shape
-        L, P, H = (a.ravel() for a in self._normalise_ground(lon, lat, h))
-        x, y = self._project_normalised(L, P, H)
         shift = self._pixel_shift(pixel_convention)
-        sample = x * self.samp_scale + (self.samp_off + shift)
-        line = y * self.line_scale + (self.line_off + shift)
+        sample, line = split_points(lambda *g: self._project_flat(*g, shift), lon.ravel(), lat.ravel(), h.ravel())
         return _shape_out(sample, shape), _shape_out(line, shape)
+
+    def _project_flat(self, lon, lat, h, shift: float):
+        """:meth:`project` of flat arrays (one block of :func:`~gdal_gf4cal.threads.split_points`)."""
+        L, P, H = self._normalise_ground(lon, lat, h)
+        x, y = self._project_normalised(L, P, H)
+        return x * self.samp_scale + (self.samp_off + shift), y * self.line_scale + (self.line_off + shift)
 
     @cached_property
     def _coeffs_with_derivatives(self) -> np.ndarray:
@@ -258,7 +262,7 @@ class RPCModel(SensorModelMixin):
         V = np.empty((Cx.shape[0], n))
         for i in range(0, n, _CHUNK):
             sl = slice(i, i + _CHUNK)
-            V[:, sl] = Cx @ monomials(L[sl], P[sl], H[sl])
+            V[:, sl] = matmul(Cx, monomials(L[sl], P[sl], H[sl]))
         v, vL, vP = V[0:4], V[4:8], V[8:12]
         x = v[0] / v[1]
         y = v[2] / v[3]
@@ -356,7 +360,7 @@ class RPCModel(SensorModelMixin):
         for i in range(0, n, _CHUNK):
             sl = slice(i, i + _CHUNK)
             xs, ys, hs = x[sl], y[sl], H[sl]
-            L[sl], P[sl] = A @ monomials(xs, ys, hs)
+            L[sl], P[sl] = matmul(A, monomials(xs, ys, hs))
             # Chunk-wise bounds first: the common case (every point inside) costs six reductions.
             if (xs.min(initial=x_lo) >= x_lo and xs.max(initial=x_hi) <= x_hi and ys.min(initial=y_lo) >= y_lo
                     and ys.max(initial=y_hi) <= y_hi and np.abs(hs).max(initial=0.0) <= 1.5):
@@ -445,14 +449,22 @@ class RPCModel(SensorModelMixin):
         sample, line, h = np.broadcast_arrays(_as_float_array(sample), _as_float_array(line), _as_float_array(h))
         shape = sample.shape
         shift = self._pixel_shift(pixel_convention)
-        x = (sample.ravel() - shift - self.samp_off) / self.samp_scale
-        y = (line.ravel() - shift - self.line_off) / self.line_scale
-        H = (h.ravel() - self.height_off) / self.height_scale
-        L, P, ok, iters = self._localize_normalised(x, y, H, tol_px, max_iter)
-        lon = L * self.long_scale + self.long_off
-        lat = P * self.lat_scale + self.lat_off
-        lon[~ok] = np.nan
-        lat[~ok] = np.nan
+        iterations = []
+
+        def block(s, l, hh):
+            x = (s - shift - self.samp_off) / self.samp_scale
+            y = (l - shift - self.line_off) / self.line_scale
+            H = (hh - self.height_off) / self.height_scale
+            L, P, ok, iters = self._localize_normalised(x, y, H, tol_px, max_iter)
+            iterations.append(iters)
+            lon = L * self.long_scale + self.long_off
+            lat = P * self.lat_scale + self.lat_off
+            lon[~ok] = np.nan
+            lat[~ok] = np.nan
+            return lon, lat, ok
+
+        lon, lat, ok = split_points(block, sample.ravel(), line.ravel(), h.ravel())
+        iters = max(iterations)
         n_failed = int(np.count_nonzero(~ok))
         if n_failed:
             log.info("RPC localisation: %d of %d points did not converge (NaN)", n_failed, ok.size)

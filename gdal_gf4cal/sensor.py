@@ -8,6 +8,8 @@ intersection, the simulator) takes any of them. :class:`SensorModelMixin` implem
 - scalars in, Python floats out; arrays broadcast and keep their shape;
 - the pixel convention (``"gdal"``: centre of the first pixel at 0.5, the default; ``"rpc"``: at 0);
 - ``localize_dem`` through the localisation layer (:func:`gdal_gf4cal.localization.localize_dem`);
+- inputs of more than :data:`gdal_gf4cal.threads.BLOCK` points split into blocks over the thread pool
+  (:func:`gdal_gf4cal.threads.split_points`: bit-identical results whatever ``GF4CAL_NUM_THREADS``);
 - ``full_output=True`` on ``localize`` and ``localize_dem`` returns one :class:`LocalizationStats`;
 - a numeric ``project_jacobian`` (central differences) for models without an analytic one.
 
@@ -23,6 +25,7 @@ from typing import Any, Protocol, Tuple, runtime_checkable
 import numpy as np
 
 from .localization import LocalizationStats, localize_dem as _localize_dem
+from .threads import split_points
 
 __all__ = ["SensorModel", "SensorModelMixin", "LocalizationStats", "GDAL_PIXEL_OFFSET", "pixel_shift",
            "as_float_arrays", "shape_out"]
@@ -98,7 +101,7 @@ class SensorModelMixin:
         """Ground to image (METHODS §1): ``(lon, lat, h) -> (sample, line)``; NaN where there is no solution."""
         shift = pixel_shift(pixel_convention) - GDAL_PIXEL_OFFSET
         (lon, lat, h), shape = as_float_arrays(lon, lat, h)
-        s, l = self._project_gdal(lon, lat, h)
+        s, l = split_points(self._project_gdal, lon, lat, h)
         s = np.asarray(s, dtype=float).ravel()
         l = np.asarray(l, dtype=float).ravel()
         if shift:
@@ -134,7 +137,7 @@ class SensorModelMixin:
         (s, l, hh), shape = as_float_arrays(sample, line, h)
         if shift:
             s, l = s - shift, l - shift
-        lon, lat = self._localize_gdal(s, l, hh)
+        lon, lat = split_points(self._localize_gdal, s, l, hh)
         lon = np.asarray(lon, dtype=float).ravel()
         lat = np.asarray(lat, dtype=float).ravel()
         out = (shape_out(lon, shape), shape_out(lat, shape))

@@ -11,6 +11,7 @@ import warnings
 from typing import Any, Dict, List, Optional
 
 from qgis.core import (
+    QgsApplication,
     QgsProcessing,
     QgsProcessingAlgorithm,
     QgsProcessingParameterBoolean,
@@ -26,6 +27,7 @@ from qgis.core import (
 )
 from qgis.PyQt.QtCore import QCoreApplication
 
+from gdal_gf4cal import threads
 from gdal_gf4cal.errors import CancelledError, Gf4calError
 
 #: The GEOID choice of every algorithm (one vocabulary: same order, labels and default, index 0), and the engine's
@@ -78,6 +80,15 @@ PAPERS = {
              "error compensation model for Gaofen-7 image fusion. Geomatics and Information Science of Wuhan "
              "University 48(7).",
 }
+
+
+def qgis_threads(context) -> Optional[int]:
+    """QGIS's own thread setting for the engine's point kernels: the Processing context's maximum threads (QGIS
+    >= 3.28), else QGIS's "max cores" (QgsApplication.maxThreads); None when QGIS says "all" (-1)."""
+    n = context.maximumThreads() if context is not None and hasattr(context, "maximumThreads") else -1
+    if n is None or n < 1:
+        n = QgsApplication.maxThreads()
+    return n if n >= 1 else None
 
 
 def one_line(exc: BaseException) -> str:
@@ -656,7 +667,7 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         try:
             # Engine warnings (e.g. a poorly conditioned GCP layout) go to the Processing log, not to stderr;
             # also when the run fails, where they often explain why.
-            with warnings.catch_warnings(record=True) as caught:
+            with warnings.catch_warnings(record=True) as caught, threads.limit(qgis_threads(context)):
                 warnings.simplefilter("always")
                 warnings.filterwarnings("ignore", category=DeprecationWarning)
                 result = self.run_algorithm(parameters, context, feedback, progress)

@@ -1,11 +1,12 @@
 """``gf4cal ortho`` / QGIS "Orthorectify": an orthoimage from an image, its (refined) RPC and a DEM.
 
-GDAL does the warping (``gdal.Warp`` with the RPC transformer and ``RPC_DEM``, multithreaded, into a warped VRT with
-an alpha band, written by ``gdal.Translate`` as a tiled, compressed GeoTIFF with a no-data value, the alpha as an
-internal mask and internal overviews: no black collar, fast to pan). This module makes sure the DEM GDAL samples
-holds ELLIPSOIDAL heights: when the DEM's heights are above a geoid (declared by its compound CRS, ``geoid="auto"``,
-or named with ``geoid=``) it writes a temporary ellipsoidal GeoTIFF over the image footprint (the DEM's own grid,
-``h = H + N`` at each pixel centre through PROJ's grid of that geoid) and warps with it; GDAL's own vertical
+GDAL does the warping (``gdal.Warp`` with the RPC transformer and ``RPC_DEM``, on ``GF4CAL_NUM_THREADS`` threads,
+into a warped VRT with an alpha band, written by ``gdal.Translate`` as a tiled, compressed GeoTIFF with a no-data
+value, the alpha as an internal mask and internal overviews: no black collar, fast to pan). This module makes sure
+the DEM GDAL samples holds ELLIPSOIDAL heights: when the DEM's heights are above a geoid (declared by its compound
+CRS, ``geoid="auto"``, or named with ``geoid=``) it writes a temporary ellipsoidal GeoTIFF over the image footprint
+(the DEM's own grid, ``h = H + N`` at each pixel centre through PROJ's grid of that geoid, blocks of pixels over the
+thread pool of :mod:`gdal_gf4cal.threads`) and warps with it; GDAL's own vertical
 handling is switched off (``RPC_DEM_APPLY_VDATUM_SHIFT=FALSE``), so a declared datum whose grid is missing is
 refused (:class:`~gdal_gf4cal.geoid.GeoidGridMissing`, naming the grid) instead of silently ignored. The result
 equals ``gdalwarp -rpc -to RPC_DEM=<ellipsoidal DEM>`` with the same grid.
@@ -19,6 +20,7 @@ import numpy as np
 
 from ..errors import CancelledError, DEMError, Gf4calError
 from ..outputs import OutputSet, check_raster
+from ..threads import num_threads, split_points
 from ._common import _open_image, cancel_check, collect_warnings, finish_report
 
 #: Resampling names accepted by :func:`orthorectify` (GDAL's ``-r`` names).
@@ -156,14 +158,21 @@ def write_ellipsoidal_dem(dem_path: str, grid: str, bounds_lonlat, out_path: str
     cols = gt[0] + gt[1] * (x0 + np.arange(x1 - x0) + 0.5)
     rows = gt[3] + gt[5] * (y0 + np.arange(y1 - y0) + 0.5)
     X, Y = np.meshgrid(cols, rows)
-    plon, plat = to_dem.transform(X.ravel(), Y.ravel(), direction="INVERSE")
+    geoid = geoid_transformer(grid)
+
+    def ellipsoidal(x, y, z):
+        """h = H + N at DEM pixel centres (x, y), -9999 where H is no-data (one block of pixels)."""
+        plon, plat = to_dem.transform(x, y, direction="INVERSE")
+        ok = np.isfinite(z)
+        out = np.full(z.size, -9999.0)
+        if np.any(ok):
+            out[ok] = geoid.transform(np.asarray(plon)[ok], np.asarray(plat)[ok], z[ok])[2]
+        return (out,)
+
+    (h,) = split_points(ellipsoidal, X.ravel(), Y.ravel(), H.ravel())      # blocks over the thread pool
     ok = np.isfinite(H.ravel())
-    h = np.full(H.size, -9999.0)
-    if np.any(ok):
-        _, _, h_ell = geoid_transformer(grid).transform(np.asarray(plon)[ok], np.asarray(plat)[ok], H.ravel()[ok])
-        h[ok] = h_ell
-        if not np.all(np.isfinite(h[ok])):
-            raise DEMError(f"the geoid grid {grid} does not cover the DEM around the image; use a global grid")
+    if not np.all(np.isfinite(h[ok])):
+        raise DEMError(f"the geoid grid {grid} does not cover the DEM around the image; use a global grid")
     ds = gdal.GetDriverByName("GTiff").Create(out_path, x1 - x0, y1 - y0, 1, gdal.GDT_Float32,
                                               ["TILED=YES", "COMPRESS=DEFLATE"])
     ds.SetGeoTransform((gt[0] + x0 * gt[1], gt[1], 0.0, gt[3] + y0 * gt[5], 0.0, gt[5]))
@@ -420,10 +429,11 @@ def warp_ortho(image: str, image_size, model, dem: str, grid: Optional[str], out
                 return 0
             return 1
 
-        opts = dict(format="VRT", dstSRS=dst_srs, rpc=True, resampleAlg=resampling, multithread=True, dstAlpha=True,
-                    transformerOptions=[f"RPC_DEM={dem_used}", "RPC_DEMINTERPOLATION=bilinear",
-                                        "RPC_DEM_APPLY_VDATUM_SHIFT=FALSE"],
-                    warpOptions=["NUM_THREADS=ALL_CPUS"])
+        n_threads = num_threads()               # GF4CAL_NUM_THREADS (QGIS's setting in QGIS, 1 in a Dask worker)
+        opts = dict(format="VRT", dstSRS=dst_srs, rpc=True, resampleAlg=resampling, multithread=n_threads > 1,
+                    dstAlpha=True, transformerOptions=[f"RPC_DEM={dem_used}", "RPC_DEMINTERPOLATION=bilinear",
+                                                       "RPC_DEM_APPLY_VDATUM_SHIFT=FALSE"],
+                    warpOptions=[f"NUM_THREADS={n_threads}"])
         if res_m is not None:
             opts.update(xRes=float(res_m), yRes=float(res_m), targetAlignedPixels=True)
         try:

@@ -1,0 +1,196 @@
+"""The one thread setting of the point kernels (issue 23): ``GF4CAL_NUM_THREADS`` and the pool they share.
+
+``GF4CAL_NUM_THREADS`` (default: the cores this process may run on; ``1``: no pool) is read here and nowhere else
+(:func:`num_threads`). The point kernels (:meth:`RPCModel.project <gdal_gf4cal.rpc.RPCModel.project>`,
+``localize``, :func:`~gdal_gf4cal.localization.localize_dem` and the sensor-model mixin paths) split an input of
+more than :data:`BLOCK` points into fixed blocks (:func:`block_slices`) and run them over one shared
+:class:`~concurrent.futures.ThreadPoolExecutor` (:func:`map_blocks`; NumPy, GDAL and PROJ release the GIL).
+
+Results are bit-identical whatever the thread count: the blocks depend on the number of points only, never on the
+threads, each block is computed exactly as the serial path computes it (no reduction spans blocks, and a kernel
+called inside a block never splits again), and the serial path (``1``) walks the same blocks in order.
+
+The QGIS algorithms run under QGIS's own thread setting (:func:`limit`, per calling thread); Dask workers get
+``GF4CAL_NUM_THREADS=1`` (:data:`gdal_gf4cal.executors.WORKER_ENV`): one thread each, the executor parallelises.
+"""
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from typing import Callable, Iterator, List, Optional, TypeVar
+
+import numpy as np
+
+from .errors import Gf4calError
+
+__all__ = ["ENV", "BLOCK", "ThreadSettingError", "machine_cores", "num_threads", "limit", "block_slices",
+           "map_blocks", "split_points", "matmul", "BLAS_SERIAL_SIZE"]
+
+#: The environment variable of the thread setting.
+ENV = "GF4CAL_NUM_THREADS"
+
+#: Points per block of a split kernel: larger inputs are split (below it a pool does not pay). A multiple of the
+#: kernels' own cache chunks (16384 and 8192 points), so a block evaluates exactly the chunks the serial path does.
+BLOCK = 65536
+
+T = TypeVar("T")
+
+_local = threading.local()          # .limit (an override for this thread), .in_block (inside a block: serial)
+_pool_lock = threading.Lock()
+_pool: Optional[ThreadPoolExecutor] = None
+_pool_size = 0
+
+
+class ThreadSettingError(Gf4calError, ValueError):
+    """``GF4CAL_NUM_THREADS`` is not a whole number >= 1."""
+
+
+def machine_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the system tells it, else all cores)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def num_threads() -> int:
+    """Threads the point kernels may use now: 1 inside a block (never nested), else the :func:`limit` of this
+    thread, else ``GF4CAL_NUM_THREADS``, else :func:`machine_cores`."""
+    if getattr(_local, "in_block", False):
+        return 1
+    override = getattr(_local, "limit", None)
+    if override is not None:
+        return override
+    text = os.environ.get(ENV, "").strip()
+    if not text:
+        return machine_cores()
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise ThreadSettingError(f"{ENV}={text!r} is not a number of threads; set a whole number >= 1 (1: no "
+                                 "threads) or unset it (all cores)")
+    return value
+
+
+@contextmanager
+def limit(n: Optional[int]) -> Iterator[None]:
+    """Within the ``with`` block, the calling thread's kernels use ``n`` threads (``None`` or < 1: unchanged, i.e.
+    ``GF4CAL_NUM_THREADS`` or all cores). How a host application (QGIS) passes its own setting."""
+    previous = getattr(_local, "limit", None)
+    if n is not None and int(n) >= 1:
+        _local.limit = int(n)
+    try:
+        yield
+    finally:
+        _local.limit = previous
+
+
+def block_slices(n: int, block: Optional[int] = None) -> List[slice]:
+    """The fixed blocks of ``n`` points: ``[0, block), [block, 2 block), ...`` (one slice for ``n <= block``;
+    ``block`` defaults to :data:`BLOCK`)."""
+    block = BLOCK if block is None else int(block)
+    if n <= block:
+        return [slice(0, n)]
+    return [slice(i, min(i + block, n)) for i in range(0, n, block)]
+
+
+def map_blocks(fn: Callable[[slice], T], n: int, block: Optional[int] = None) -> List[T]:
+    """``[fn(s) for s in block_slices(n, block)]``, the blocks run over the shared pool by up to
+    :func:`num_threads` threads (the caller is one of them). Inside ``fn`` the kernels run serially. The first
+    failing block's exception (in block order among those run) is raised once every running block has ended."""
+    slices = block_slices(n, block)
+    threads = min(num_threads(), len(slices))
+    if threads <= 1:
+        if len(slices) == 1:
+            return [fn(slices[0])]
+        return _run_serially(fn, slices)
+    results: List[Optional[T]] = [None] * len(slices)
+    errors: dict = {}
+    counter = iter(range(len(slices)))
+    counter_lock = threading.Lock()
+
+    def work() -> None:
+        while not errors:
+            with counter_lock:
+                i = next(counter, None)
+            if i is None:
+                return
+            try:
+                results[i] = _in_block(fn, slices[i])
+            except BaseException as exc:        # re-raised in the caller, in block order
+                errors[i] = exc
+
+    futures = _submit(work, threads - 1)
+    work()
+    for f in futures:
+        if not f.cancel():
+            f.result()
+    if errors:
+        raise errors[min(errors)]
+    return results  # type: ignore[return-value]
+
+
+def split_points(fn: Callable[..., tuple], *arrays, block: Optional[int] = None) -> tuple:
+    """``fn(*arrays)`` for flat arrays of the same ``n`` points, ``fn`` returning a tuple of flat per-point arrays:
+    up to ``block`` points one call (the serial path as it always was), above it one call per block
+    (:func:`map_blocks`) and each item concatenated in block order."""
+    n = arrays[0].size
+    if n <= (BLOCK if block is None else block):
+        return fn(*arrays)
+    parts = map_blocks(lambda s: fn(*(a[s] for a in arrays)), n, block)
+    return tuple(np.concatenate([np.asarray(p[k]).ravel() for p in parts]) for k in range(len(parts[0])))
+
+
+#: Largest product m x n x k that OpenBLAS computes on the calling thread (its GEMM_MULTITHREAD_THRESHOLD x
+#: SMP_THRESHOLD_MIN): above it OpenBLAS splits the product over its own threads with other kernels, whose rounding
+#: differs, and which fight the pool's threads for the cores.
+BLAS_SERIAL_SIZE = 4 * 65536
+
+
+def matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` (2-D, ``a`` small) in column slices of ``b`` that BLAS computes on the calling thread: the same
+    numbers on any number of cores and with any BLAS thread setting, and no BLAS threads competing with the pool's
+    (the point kernels' polynomial evaluations)."""
+    rows, k = a.shape
+    n = b.shape[1]
+    step = max(2, BLAS_SERIAL_SIZE // max(rows * k, 1))
+    if n <= step:
+        return a @ b
+    out = np.empty((rows, n), dtype=np.result_type(a, b))
+    for i in range(0, n, step):
+        j = min(i + step, n)
+        if j - i == 1:                  # never a one-column product (BLAS takes another kernel for a vector)
+            i -= 1
+        np.matmul(a, b[:, i:j], out=out[:, i:j])
+    return out
+
+
+def _run_serially(fn, slices):
+    return [_in_block(fn, s) for s in slices]
+
+
+def _in_block(fn, s):
+    """``fn(s)`` with the kernels it calls kept serial (no nested split over the pool)."""
+    previous = getattr(_local, "in_block", False)
+    _local.in_block = True
+    try:
+        return fn(s)
+    finally:
+        _local.in_block = previous
+
+
+def _submit(work: Callable[[], None], count: int) -> list:
+    """``count`` runs of ``work`` submitted to the process's pool, grown to ``count`` threads at least (under the
+    lock: a pool replaced by a larger one is shut down only once nobody can submit to it)."""
+    global _pool, _pool_size
+    with _pool_lock:
+        if _pool is None or _pool_size < count:
+            if _pool is not None:
+                _pool.shutdown(wait=False)      # its running blocks finish; its threads then exit
+            _pool = ThreadPoolExecutor(max_workers=count, thread_name_prefix="gf4cal")
+            _pool_size = count
+        return [_pool.submit(work) for _ in range(count)]

@@ -1,0 +1,282 @@
+"""GF4CAL_NUM_THREADS (issue 23): the point kernels give bit-identical results with 1, 2 and 3 threads.
+
+2e5 points (four blocks of :data:`gdal_gf4cal.threads.BLOCK`) on the real Pleiades Ventoux RPC, with NaN inputs and
+points that have no solution, on the real SRTM tile and on a 0.5 m urban DSM with holes; the sensor-model mixin paths
+on every model kind of the engine; and the thread pool itself (limits, nesting, errors), and a tiled DEM sampled from
+several threads at once.
+"""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from gdal_gf4cal import DEM, RPCModel, threads
+from gdal_gf4cal.errors import Gf4calError
+from gdal_gf4cal.localization import localize_dem
+from gdal_gf4cal.simulate.dsm import urban_dsm
+
+N = 200_000
+THREADS = ("1", "2", "3")
+
+
+def _per_thread_count(monkeypatch, fn):
+    """``fn()`` under GF4CAL_NUM_THREADS = 1, 2, 3: the three results (tuples of arrays)."""
+    out = []
+    for k in THREADS:
+        monkeypatch.setenv(threads.ENV, k)
+        assert threads.num_threads() == int(k)
+        out.append(tuple(np.asarray(a) for a in fn()))
+    return out
+
+
+def _assert_bit_identical(results):
+    first = results[0]
+    for other in results[1:]:
+        for a, b in zip(first, other):
+            assert a.shape == b.shape
+            assert np.array_equal(a, b, equal_nan=True), "results differ between thread counts"
+
+
+@pytest.fixture(scope="module")
+def ventoux(ventoux_rpc_path):
+    return RPCModel.from_file(ventoux_rpc_path)
+
+
+def _image_points(rpc, n, seed):
+    """Points over the image and 20 % beyond it, with NaN coordinates sprinkled in."""
+    w, h = rpc.image_size
+    rng = np.random.default_rng(seed)
+    s = rng.uniform(-0.2 * w, 1.2 * w, n)
+    l = rng.uniform(-0.2 * h, 1.2 * h, n)
+    s[rng.choice(n, 300, replace=False)] = np.nan
+    l[rng.choice(n, 300, replace=False)] = np.nan
+    return s, l
+
+
+def test_rpc_project_and_localize_bit_identical(ventoux, monkeypatch):
+    s, l = _image_points(ventoux, N, seed=1)
+    rng = np.random.default_rng(2)
+    h = rng.uniform(*ventoux.height_range, N)
+    h[:50] = 1e7                                             # far outside the RPC's cube: no solution (NaN)
+    res = _per_thread_count(monkeypatch, lambda: ventoux.localize(s, l, h, full_output=True)[:2])
+    _assert_bit_identical(res)
+    lon, lat = res[0]
+    assert np.isnan(lon[:50]).all() and np.isnan(lon[np.isnan(s)]).all()
+    assert np.isfinite(lon).mean() > 0.9
+    ok = np.isfinite(lon)
+    proj = _per_thread_count(monkeypatch, lambda: ventoux.project(lon.reshape(400, 500), lat.reshape(400, 500),
+                                                                  h.reshape(400, 500), pixel_convention="rpc"))
+    _assert_bit_identical(proj)
+    ps, pl = (a.ravel() + 0.5 for a in proj[0])
+    assert proj[0][0].shape == (400, 500)
+    assert np.max(np.hypot(ps[ok] - s[ok], pl[ok] - l[ok])) < 1e-6     # the round trip, whatever the blocks
+
+
+def test_localize_dem_bit_identical_on_srtm(ventoux, srtm_path, monkeypatch):
+    dem = DEM.from_file(srtm_path, geoid="egm96", nodata="nan")
+    s, l = _image_points(ventoux, N, seed=4)
+    res = _per_thread_count(monkeypatch, lambda: ventoux.localize_dem(s, l, dem))
+    _assert_bit_identical(res)
+    lon, lat, h = res[0]
+    assert np.isfinite(h).mean() > 0.6 and np.isnan(h[np.isnan(s)]).all()
+    ok = np.isfinite(h)
+    assert np.max(np.abs(dem.sample(lon[ok], lat[ok]) - h[ok])) <= 1e-4
+
+
+@pytest.fixture(scope="module")
+def dsm(srtm_path, tmp_path_factory):
+    """The 0.5 m urban DSM with holes of tests/localization/test_localize_dsm.py (seed 0)."""
+    path = tmp_path_factory.mktemp("dsm") / "dsm.tif"
+    urban_dsm(path, DEM.from_file(srtm_path, geoid="egm96"), (5.2872, 44.1357), seed=0)
+    return DEM.from_file(path, nodata="nan")
+
+
+def _dsm_points(rpc, dsm, n, seed):
+    """Image points over the DSM's footprint and 20 px beyond it (those rays miss it: NaN)."""
+    b = dsm.bounds_lonlat()
+    lo, hi = dsm.height_range()
+    cs, cl = rpc.project(np.array([b[0], b[2], b[0], b[2]]), np.array([b[1], b[1], b[3], b[3]]),
+                         np.full(4, 0.5 * (lo + hi)))
+    rng = np.random.default_rng(seed)
+    return rng.uniform(cs.min() - 20, cs.max() + 20, n), rng.uniform(cl.min() - 20, cl.max() + 20, n)
+
+
+def test_localize_dem_bit_identical_on_a_dsm_with_holes(ventoux, dsm, monkeypatch):
+    s, l = _dsm_points(ventoux, dsm, N, seed=5)
+    res = _per_thread_count(monkeypatch, lambda: localize_dem(ventoux, s, l, dsm))
+    _assert_bit_identical(res)
+    assert 0.5 < np.isfinite(res[0][2]).mean() < 0.99
+
+
+def test_generic_dsm_intersection_bit_identical(ventoux, dsm, monkeypatch):
+    """The generic path (any model: march, Illinois, bridged holes) in smaller blocks (fixed by the number of points
+    whatever the block size; a smaller one keeps the test short)."""
+    monkeypatch.setattr(threads, "BLOCK", 4096)
+    s, l = _dsm_points(ventoux, dsm, 3 * 4096 + 77, seed=8)
+    res = _per_thread_count(monkeypatch, lambda: localize_dem(ventoux, s, l, dsm, fast_path=False))
+    _assert_bit_identical(res)
+    assert 0.5 < np.isfinite(res[0][2]).mean() < 0.99
+
+
+def test_sensor_model_mixin_paths_bit_identical(sensor_model, monkeypatch):
+    """project, localize and localize_dem of every model kind, in blocks of 4096 points (a smaller block keeps the
+    simulator's models quick; the blocks are fixed by the number of points whatever the block size)."""
+    name, model, dem, (w, h) = sensor_model
+    monkeypatch.setattr(threads, "BLOCK", 4096)
+    n = 3 * 4096 + 123                                   # four blocks
+    rng = np.random.default_rng(6)
+    s, l = rng.uniform(0, w, n), rng.uniform(0, h, n)
+    s[:7] = np.nan
+    hh = rng.uniform(*model.height_range, n)
+    loc = _per_thread_count(monkeypatch, lambda: model.localize(s, l, hh))
+    _assert_bit_identical(loc)
+    lon, lat = loc[0]
+    assert np.isnan(lon[:7]).all() and np.isfinite(lon[7:]).all()
+    _assert_bit_identical(_per_thread_count(monkeypatch, lambda: model.project(lon, lat, hh)))
+    k = np.r_[0:40, n - 40:n]                            # DEM intersections: a few points of two blocks
+    sd, ld = np.full(n, np.nan), np.full(n, np.nan)
+    sd[k], ld[k] = s[k], l[k]
+    res = _per_thread_count(monkeypatch, lambda: model.localize_dem(sd, ld, dem))
+    _assert_bit_identical(res)
+    assert np.isfinite(res[0][2][k[7:]]).all()
+
+
+def test_num_threads_setting(monkeypatch):
+    monkeypatch.delenv(threads.ENV, raising=False)
+    assert threads.num_threads() == threads.machine_cores() >= 1
+    monkeypatch.setenv(threads.ENV, " 3 ")
+    assert threads.num_threads() == 3
+    with threads.limit(2):
+        assert threads.num_threads() == 2
+        with threads.limit(None):                      # None: unchanged
+            assert threads.num_threads() == 2
+    assert threads.num_threads() == 3
+    for bad in ("0", "-2", "two", "1.5"):
+        monkeypatch.setenv(threads.ENV, bad)
+        with pytest.raises(threads.ThreadSettingError, match="GF4CAL_NUM_THREADS"):
+            threads.num_threads()
+
+
+def test_a_bad_setting_is_refused_in_one_line(monkeypatch, ventoux):
+    """A kernel that would split refuses a bad GF4CAL_NUM_THREADS with a Gf4calError (one line; exit 2 at the CLI);
+    one that would not split never reads it."""
+    monkeypatch.setenv(threads.ENV, "many")
+    n = threads.BLOCK + 1
+    with pytest.raises(Gf4calError) as err:
+        ventoux.localize(np.zeros(n), np.zeros(n), 0.0)
+    assert "\n" not in str(err.value) and "'many'" in str(err.value)
+    assert np.isfinite(ventoux.localize(100.0, 100.0, 0.0)[0])
+
+
+def test_blocks_are_fixed_and_nested_kernels_stay_serial(monkeypatch):
+    assert threads.block_slices(10) == [slice(0, 10)]
+    assert threads.block_slices(2 * threads.BLOCK + 1)[-1] == slice(2 * threads.BLOCK, 2 * threads.BLOCK + 1)
+    monkeypatch.setenv(threads.ENV, "3")
+    seen = []
+
+    def fn(sl):
+        seen.append((sl.start, threads.num_threads(), threading.current_thread().name))
+        return sl.stop - sl.start
+
+    assert threads.map_blocks(fn, 10 * 1000, block=1000) == [1000] * 10
+    assert sorted(s for s, _, _ in seen) == list(range(0, 10000, 1000))
+    assert all(k == 1 for _, k, _ in seen)              # inside a block: serial, never a nested split
+    assert threads.num_threads() == 3                   # the caller's setting is back
+
+
+def test_the_first_failing_block_is_raised(monkeypatch):
+    monkeypatch.setenv(threads.ENV, "2")
+
+    def fn(sl):
+        if sl.start >= 3000:
+            raise ValueError(f"block at {sl.start}")
+        return sl.start
+
+    with pytest.raises(ValueError, match="block at 3000$"):
+        threads.map_blocks(fn, 8000, block=1000)
+    monkeypatch.setenv(threads.ENV, "1")
+    with pytest.raises(ValueError, match="block at 3000$"):
+        threads.map_blocks(fn, 8000, block=1000)
+
+
+def test_a_tiled_dem_sampled_from_threads_at_once(tmp_path):
+    """A DEM too large to hold in memory is read tile by tile through one GDAL dataset (GDAL releases the GIL while it
+    reads and decompresses): several threads sampling it at once, tiles evicted from a small cache all along, get
+    what one thread gets."""
+    from osgeo import gdal, osr
+    n = 4100                                             # > 16 Mpx: windowed reads
+    x = np.linspace(0.0, 60.0, n)
+    Z = (500.0 + 200.0 * np.sin(x)[None, :] * np.cos(x)[:, None]).astype(np.uint16)
+    ds = gdal.GetDriverByName("GTiff").Create(str(tmp_path / "big.tif"), n, n, 1, gdal.GDT_UInt16,
+                                              ["TILED=YES", "BLOCKXSIZE=128", "BLOCKYSIZE=128", "COMPRESS=DEFLATE"])
+    ds.SetGeoTransform((5.0, 1e-4, 0.0, 44.5, 0.0, -1e-4))
+    srs = osr.SpatialReference()
+    srs.ImportFromEPSG(4326)
+    ds.SetProjection(srs.ExportToWkt())
+    ds.GetRasterBand(1).WriteArray(Z)
+    ds = None
+    dem = DEM(path=str(tmp_path / "big.tif"), nodata="nan", tile_size=192, cache_tiles=2)
+    assert not dem.height_range_is_exact
+    rng = np.random.default_rng(7)
+    lon = rng.uniform(5.0, 5.41, (8, 20000))
+    lat = rng.uniform(44.09, 44.5, (8, 20000))
+    want = [dem.sample(lon[i], lat[i]) for i in range(8)]
+    got = [[] for _ in range(8)]
+
+    def run(i):
+        for _ in range(2):
+            got[i].append(dem.sample(lon[i], lat[i]))
+
+    workers = [threading.Thread(target=run, args=(i,)) for i in range(8)]
+    cache = gdal.GetCacheMax()
+    gdal.SetCacheMax(1 << 20)                            # GDAL's own block cache small too: every read decompresses
+    try:
+        for t in workers:
+            t.start()
+        for t in workers:
+            t.join()
+    finally:
+        gdal.SetCacheMax(cache)
+    for i in range(8):
+        assert len(got[i]) == 2
+        for g in got[i]:
+            assert np.array_equal(g, want[i], equal_nan=True)
+    assert np.isfinite(want[0]).all()
+
+
+def _worker_threads(_):
+    return threads.num_threads()
+
+
+def test_dask_workers_keep_one_thread_each():
+    """The workers of a local Dask cluster run the point kernels on one thread (the cluster parallelises)."""
+    from gdal_gf4cal.executors import get_executor
+    with get_executor("local:1") as ex:
+        assert ex.submit(_worker_threads, 0).result() == 1
+
+
+def test_ortho_ellipsoidal_dem_bit_identical(srtm_path, tmp_path, monkeypatch):
+    """The ortho's own per-pixel step (DEM heights above EGM96 -> ellipsoidal, h = H + N) in blocks over the pool."""
+    from osgeo import gdal
+    from gdal_gf4cal.geoid import resolve_geoid
+    from gdal_gf4cal.workflows.ortho import write_ellipsoidal_dem
+    grid = resolve_geoid("egm96")
+    bounds = (5.05, 44.05, 5.45, 44.45)                  # ~ 480 x 480 SRTM pixels: four blocks
+    out = []
+    for k in THREADS:
+        monkeypatch.setenv(threads.ENV, k)
+        path = write_ellipsoidal_dem(str(srtm_path), grid, bounds, str(tmp_path / f"ell{k}.tif"))
+        out.append(gdal.Open(path).ReadAsArray())
+    assert out[0].size > 3 * threads.BLOCK
+    assert np.array_equal(out[0], out[1]) and np.array_equal(out[0], out[2])
+    src = gdal.Open(str(srtm_path))
+    ds = gdal.Open(str(tmp_path / "ell1.tif"))
+    x0 = int(round((ds.GetGeoTransform()[0] - src.GetGeoTransform()[0]) / src.GetGeoTransform()[1]))
+    y0 = int(round((ds.GetGeoTransform()[3] - src.GetGeoTransform()[3]) / src.GetGeoTransform()[5]))
+    H = src.GetRasterBand(1).ReadAsArray(x0, y0, ds.RasterXSize, ds.RasterYSize).astype(float)
+    valid = out[0] != -9999.0                           # SRTM voids stay no-data
+    assert valid.mean() > 0.99
+    undulation = out[0][valid] - H[valid]
+    assert 49.0 < undulation.min() and undulation.max() < 53.0      # EGM96 over Mont Ventoux: N ~ 50-52 m
