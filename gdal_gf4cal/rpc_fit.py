@@ -367,6 +367,49 @@ def fit_rpc(lon, lat, h, sample, line, *, check=None, regularization="auto", max
         raise ValueError(f"pixel_convention must be 'gdal' or 'rpc', not {pixel_convention!r}")
     shift = GDAL_PIXEL_OFFSET if pixel_convention == "gdal" else 0.0
     check_pts = _check_points(check)
+    _check_fit_points(lon, lat, h, sample, line)
+    ladder = _regularization_ladder(regularization)
+    (samp_off, samp_scale, rs), (line_off, line_scale, rl) = _image_normalisation(sample - shift, line - shift)
+    ground, M, notes = _ground_monomials(lon, lat, h)
+    guard = _domain_monomials(ground["single_height"])
+    (sn, sd, s_it, s_lam), (ln, ld, l_it, l_lam) = (
+        _fit_axis_on_ladder(M, r, ladder, max_iter, guard, scale, axis, progress, 0.05 + 0.45 * k)
+        for k, (axis, r, scale) in enumerate((("sample", rs, samp_scale), ("line", rl, line_scale))))
+    rpc = RPCModel(line_off=line_off, samp_off=samp_off, lat_off=ground["lat_off"], long_off=ground["long_off"],
+                   height_off=ground["height_off"], line_scale=line_scale, samp_scale=samp_scale,
+                   lat_scale=ground["lat_scale"], long_scale=ground["long_scale"],
+                   height_scale=ground["height_scale"], line_num=ln, line_den=ld, samp_num=sn, samp_den=sd)
+    report(progress, 0.95, "checking the fitted RPC")
+    fit_err = _errors(rpc, (lon, lat, h, sample, line), pixel_convention)
+    check_err = None if check_pts is None else _errors(rpc, check_pts, pixel_convention)
+    report(progress, 1.0, "RPC fitted")
+    rep = FitReport(fit=fit_err, check=check_err, n_points=n, iterations=(s_it, l_it),
+                    regularization=(s_lam, l_lam), elapsed_s=time.perf_counter() - t0, notes=tuple(notes))
+    return rpc, rep
+
+
+def _errors(rpc: RPCModel, pts, pixel_convention: str = "gdal") -> FitErrors:
+    """Image errors of ``rpc`` at ``pts = (lon, lat, h, sample, line)``."""
+    lon, lat, h, sample, line = pts
+    ps, pl = rpc.project(lon, lat, h, pixel_convention=pixel_convention)
+    return FitErrors.from_residuals(sample - ps, line - pl)
+
+
+def _image_normalisation(raw_s: np.ndarray, raw_l: np.ndarray):
+    """``(offset, scale, normalised values)`` of the sample and of the line (raw RPC00B convention)."""
+    samp_off, samp_scale = _offset_scale(raw_s)
+    line_off, line_scale = _offset_scale(raw_l)
+    if samp_scale == 0.0 or line_scale == 0.0:
+        raise DegenerateGeometryError("fit_rpc: every point has the same "
+                                      f"{'sample' if samp_scale == 0.0 else 'line'}; spread the points over the "
+                                      "image")
+    return ((samp_off, samp_scale, (raw_s - samp_off) / samp_scale),
+            (line_off, line_scale, (raw_l - line_off) / line_scale))
+
+
+def _check_fit_points(lon, lat, h, sample, line) -> None:
+    """Refuse non-finite correspondences and fewer than :data:`N_UNKNOWNS` of them."""
+    n = lon.size
     finite = np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h) & np.isfinite(sample) & np.isfinite(line)
     if not np.all(finite):
         raise DegenerateGeometryError(f"fit_rpc: {int(np.count_nonzero(~finite))} of {n} correspondences are not "
@@ -375,28 +418,29 @@ def fit_rpc(lon, lat, h, sample, line, *, check=None, regularization="auto", max
         raise DegenerateGeometryError(f"fit_rpc: {n} correspondences cannot determine the {N_UNKNOWNS} unknowns "
                                       f"per image axis; give at least {N_UNKNOWNS} (a grid of >= 20x20 x 6 heights "
                                       "is the norm)")
+
+
+def _regularization_ladder(regularization) -> Tuple[float, ...]:
+    """The relative Tikhonov parameters to try, smallest first: the auto ladder or the one value given."""
     if isinstance(regularization, str):
         if regularization != "auto":
             raise ValueError(f"regularization must be 'auto' or a number >= 0, not {regularization!r}")
-        ladder = AUTO_REGULARIZATION
-    else:
-        lam = float(regularization)
-        if not (lam >= 0.0 and math.isfinite(lam)):
-            raise ValueError(f"regularization must be 'auto' or a number >= 0, not {regularization!r}")
-        ladder = (lam,)
+        return AUTO_REGULARIZATION
+    lam = float(regularization)
+    if not (lam >= 0.0 and math.isfinite(lam)):
+        raise ValueError(f"regularization must be 'auto' or a number >= 0, not {regularization!r}")
+    return (lam,)
 
-    raw_s = sample - shift
-    raw_l = line - shift
+
+def _ground_monomials(lon: np.ndarray, lat: np.ndarray, h: np.ndarray):
+    """Ground offsets/scales (dict, with ``single_height``), the (n, 20) normalised monomials and notes.
+
+    Refuses a constant longitude or latitude and points on a line (the cross terms are then undetermined).
+    """
     long_off, long_scale = _lon_offset_scale(lon)
     lat_off, lat_scale = _offset_scale(lat)
     height_off, height_scale = _offset_scale(h)
-    samp_off, samp_scale = _offset_scale(raw_s)
-    line_off, line_scale = _offset_scale(raw_l)
     notes = []
-    if samp_scale == 0.0 or line_scale == 0.0:
-        raise DegenerateGeometryError("fit_rpc: every point has the same "
-                                      f"{'sample' if samp_scale == 0.0 else 'line'}; spread the points over the "
-                                      "image")
     if long_scale == 0.0 or lat_scale == 0.0:
         raise DegenerateGeometryError("fit_rpc: every point has the same "
                                       f"{'longitude' if long_scale == 0.0 else 'latitude'}; spread the points "
@@ -413,43 +457,25 @@ def fit_rpc(lon, lat, h, sample, line, *, check=None, regularization="auto", max
     if not sv[-1] > 1e-6 * sv[0]:
         raise DegenerateGeometryError("fit_rpc: the ground points lie on a line; spread them over the scene "
                                       "(a grid over the whole image)")
-    M = np.ascontiguousarray(monomials(L, P, H).T)
-    guard = _domain_monomials(single_height)
-    rs = (raw_s - samp_off) / samp_scale
-    rl = (raw_l - line_off) / line_scale
+    ground = {"long_off": long_off, "long_scale": long_scale, "lat_off": lat_off, "lat_scale": lat_scale,
+              "height_off": height_off, "height_scale": height_scale, "single_height": single_height}
+    return ground, np.ascontiguousarray(monomials(L, P, H).T), notes
 
-    results = []
-    for k, (axis, r, scale) in enumerate((("sample", rs, samp_scale), ("line", rl, line_scale))):
-        report(progress, 0.05 + 0.45 * k, f"fitting the {axis} polynomials")
-        for lam in ladder:
-            try:
-                num, den, solves = _fit_axis(M, r, lam, max_iter, guard, _ABS_TOL_PX / scale)
-                break
-            except _IllPosed:
-                continue
-        else:
-            what = ("a larger regularization or 'auto'" if len(ladder) == 1 else
-                    "more points spread over the image and >= 6 height layers")
-            raise DegenerateGeometryError(f"fit_rpc: the {axis} RPC is undetermined by these points (singular system "
-                                          f"or a denominator near zero); use {what}")
-        results.append((num, den, solves, lam))
-    (sn, sd, s_it, s_lam), (ln, ld, l_it, l_lam) = results
-    rpc = RPCModel(line_off=line_off, samp_off=samp_off, lat_off=lat_off, long_off=long_off,
-                   height_off=height_off, line_scale=line_scale, samp_scale=samp_scale, lat_scale=lat_scale,
-                   long_scale=long_scale, height_scale=height_scale,
-                   line_num=ln, line_den=ld, samp_num=sn, samp_den=sd)
-    report(progress, 0.95, "checking the fitted RPC")
-    ps, pl = rpc.project(lon, lat, h, pixel_convention=pixel_convention)
-    fit_err = FitErrors.from_residuals(sample - ps, line - pl)
-    check_err = None
-    if check_pts is not None:
-        clon, clat, ch, cs, cl = check_pts
-        ps, pl = rpc.project(clon, clat, ch, pixel_convention=pixel_convention)
-        check_err = FitErrors.from_residuals(cs - ps, cl - pl)
-    report(progress, 1.0, "RPC fitted")
-    rep = FitReport(fit=fit_err, check=check_err, n_points=n, iterations=(s_it, l_it),
-                    regularization=(s_lam, l_lam), elapsed_s=time.perf_counter() - t0, notes=tuple(notes))
-    return rpc, rep
+
+def _fit_axis_on_ladder(M: np.ndarray, r: np.ndarray, ladder: Sequence[float], max_iter: int, guard: np.ndarray,
+                        scale: float, axis: str, progress: Optional[ProgressCallback], fraction: float):
+    """:func:`_fit_axis` with the smallest lambda of the ladder that works; returns (num, den, solves, lambda)."""
+    report(progress, fraction, f"fitting the {axis} polynomials")
+    for lam in ladder:
+        try:
+            num, den, solves = _fit_axis(M, r, lam, max_iter, guard, _ABS_TOL_PX / scale)
+            return num, den, solves, lam
+        except _IllPosed:
+            continue
+    what = ("a larger regularization or 'auto'" if len(ladder) == 1 else
+            "more points spread over the image and >= 6 height layers")
+    raise DegenerateGeometryError(f"fit_rpc: the {axis} RPC is undetermined by these points (singular system "
+                                  f"or a denominator near zero); use {what}")
 
 
 # ---------------------------------------------------------------------------------------------- from a model
@@ -459,6 +485,16 @@ def _grid_axis(start: float, length: float, n: int, margin: float) -> np.ndarray
 
 def _midpoints(v: np.ndarray) -> np.ndarray:
     return 0.5 * (v[1:] + v[:-1]) if v.size > 1 else v.copy()
+
+
+def _localize_grid(model, xs: np.ndarray, ys: np.ndarray, heights: np.ndarray,
+                   progress: Optional[ProgressCallback], what: str, notes: list):
+    """Localise the grid ``xs x ys`` at every height: (lon, lat, h, sample, line); a note for dropped points."""
+    S, Lg = np.meshgrid(xs, ys)
+    pts, n_bad, n_all = _localize_layers(model, S, Lg, heights, progress, what)
+    if n_bad:
+        notes.append(f"{n_bad} of {n_all} {what} grid points could not be localised by the model and were dropped")
+    return pts
 
 
 def _localize_layers(model, S: np.ndarray, Lg: np.ndarray, heights: np.ndarray,
@@ -525,6 +561,57 @@ def fit_rpc_from_model(model, *, size: Optional[Sequence[float]] = None, window:
         Grid or layers below the METHODS §3 minimum, an empty window, or too few points localised.
     """
     t0 = time.perf_counter()
+    x0, y0, width, height = _image_window(model, size, window)
+    gx, gy = _grid_nodes(grid, margin, height_margin)
+    layers = _height_layers(model, height_range, n_layers, height_margin)
+    check_layers = _midpoints(layers)
+
+    xs = _grid_axis(x0, width, gx, margin)
+    ys = _grid_axis(y0, height, gy, margin)
+    notes = []
+    fit_pts = _localize_grid(model, xs, ys, layers, scaled(progress, 0.0, 0.45), "fit", notes)
+    check_pts = _localize_grid(model, _midpoints(xs), _midpoints(ys), check_layers, scaled(progress, 0.45, 0.8),
+                               "check", notes)
+    rpc, rep = fit_rpc(*fit_pts, check=check_pts, regularization=regularization,
+                       max_iter=max_iter, progress=scaled(progress, 0.8, 0.97))
+    # Vendors' image normalisation: the window centre and half size (the fit used the data's extent, which
+    # includes the margin). An exact re-expression of the same rational functions, not a refit.
+    rpc = _renormalise_image(rpc, x0 + 0.5 * width - GDAL_PIXEL_OFFSET, 0.5 * width,
+                             y0 + 0.5 * height - GDAL_PIXEL_OFFSET, 0.5 * height)
+    roundtrip = _model_roundtrip_max_px(model, check_pts)
+    # Errors are recomputed with the final (renormalised) RPC: the report describes exactly what is returned.
+    fit_err = _errors(rpc, fit_pts)
+    check_err = _errors(rpc, check_pts)
+    report(progress, 1.0, "RPC fitted")
+    rep = FitReport(fit=fit_err, check=check_err, n_points=rep.n_points, iterations=rep.iterations,
+                    regularization=rep.regularization, elapsed_s=time.perf_counter() - t0,
+                    model_roundtrip_max_px=roundtrip, notes=tuple(notes) + rep.notes)
+    return rpc, rep
+
+
+def _grid_nodes(grid, margin: float, height_margin: float) -> Tuple[int, int]:
+    """The fit grid's (samples, lines), at least 20 each (METHODS §3); the margins must be >= 0."""
+    gx, gy = (int(v) for v in grid)
+    if gx < 20 or gy < 20:
+        raise DegenerateGeometryError(f"fit_rpc_from_model: grid {gx}x{gy} is too coarse; use at least 20x20 "
+                                      "(METHODS §3)")
+    if not (margin >= 0.0 and height_margin >= 0.0):
+        raise ValueError(f"fit_rpc_from_model: margin and height_margin must be >= 0, not {margin!r}, "
+                         f"{height_margin!r}")
+    return gx, gy
+
+
+def _model_roundtrip_max_px(model, check_pts) -> Optional[float]:
+    """Largest ``project(localize(x)) - x`` of the model on the check grid (None if it cannot project)."""
+    clon, clat, ch, cs, cl = check_pts
+    if not (callable(getattr(model, "project", None)) and clon.size):
+        return None
+    ps, pl = model.project(clon, clat, ch)
+    return float(np.nanmax(np.hypot(np.asarray(ps, dtype=float) - cs, np.asarray(pl, dtype=float) - cl)))
+
+
+def _image_window(model, size, window) -> Tuple[float, float, float, float]:
+    """The fitted image window (x_off, y_off, width, height) from ``size``, ``window`` or ``model.size``."""
     if window is not None and size is not None:
         raise ValueError("fit_rpc_from_model: give size or window, not both")
     if window is None:
@@ -537,6 +624,11 @@ def fit_rpc_from_model(model, *, size: Optional[Sequence[float]] = None, window:
     x0, y0, width, height = (float(v) for v in window)
     if not (width > 0 and height > 0 and all(map(math.isfinite, (x0, y0, width, height)))):
         raise DegenerateGeometryError(f"fit_rpc_from_model: empty or invalid image window {tuple(window)}")
+    return x0, y0, width, height
+
+
+def _height_layers(model, height_range, n_layers: int, height_margin: float) -> np.ndarray:
+    """The fit heights: ``n_layers`` over ``height_range`` (or ``model.height_range``) widened by the margin."""
     if height_range is None:
         height_range = getattr(model, "height_range", None)
         if height_range is None:
@@ -545,55 +637,12 @@ def fit_rpc_from_model(model, *, size: Optional[Sequence[float]] = None, window:
     if not (math.isfinite(hmin) and math.isfinite(hmax) and hmin <= hmax):
         raise ValueError(f"fit_rpc_from_model: height_range must be finite (h_min, h_max) with h_min <= h_max, "
                          f"not {tuple(height_range)}")
-    gx, gy = (int(v) for v in grid)
-    if gx < 20 or gy < 20:
-        raise DegenerateGeometryError(f"fit_rpc_from_model: grid {gx}x{gy} is too coarse; use at least 20x20 "
-                                      "(METHODS §3)")
-    if not (margin >= 0.0 and height_margin >= 0.0):
-        raise ValueError(f"fit_rpc_from_model: margin and height_margin must be >= 0, not {margin!r}, "
-                         f"{height_margin!r}")
     if hmax > hmin:
         if int(n_layers) < 6:
             raise DegenerateGeometryError(f"fit_rpc_from_model: {n_layers} height layers are too few; use at least "
                                           "6 (METHODS §3)")
-        layers = _grid_axis(hmin, hmax - hmin, int(n_layers), height_margin)
-    else:
-        layers = np.array([hmin])
-    check_layers = _midpoints(layers)
-
-    xs = _grid_axis(x0, width, gx, margin)
-    ys = _grid_axis(y0, height, gy, margin)
-    S, Lg = np.meshgrid(xs, ys)
-    (lon, lat, h, s, l), n_bad, n_all = _localize_layers(model, S, Lg, layers, scaled(progress, 0.0, 0.45), "fit")
-    notes = []
-    if n_bad:
-        notes.append(f"{n_bad} of {n_all} fit grid points could not be localised by the model and were dropped")
-    Sc, Lc = np.meshgrid(_midpoints(xs), _midpoints(ys))
-    (clon, clat, ch, cs, cl), n_bad_c, n_all_c = _localize_layers(model, Sc, Lc, check_layers,
-                                                                  scaled(progress, 0.45, 0.8), "check")
-    if n_bad_c:
-        notes.append(f"{n_bad_c} of {n_all_c} check grid points could not be localised by the model and were "
-                     "dropped")
-    rpc, rep = fit_rpc(lon, lat, h, s, l, check=(clon, clat, ch, cs, cl), regularization=regularization,
-                       max_iter=max_iter, progress=scaled(progress, 0.8, 0.97))
-    # Vendors' image normalisation: the window centre and half size (the fit used the data's extent, which
-    # includes the margin). An exact re-expression of the same rational functions, not a refit.
-    rpc = _renormalise_image(rpc, x0 + 0.5 * width - GDAL_PIXEL_OFFSET, 0.5 * width,
-                             y0 + 0.5 * height - GDAL_PIXEL_OFFSET, 0.5 * height)
-    roundtrip = None
-    if callable(getattr(model, "project", None)) and clon.size:
-        ps, pl = model.project(clon, clat, ch)
-        roundtrip = float(np.nanmax(np.hypot(np.asarray(ps, dtype=float) - cs, np.asarray(pl, dtype=float) - cl)))
-    # Errors are recomputed with the final (renormalised) RPC: the report describes exactly what is returned.
-    ps, pl = rpc.project(lon, lat, h)
-    fit_err = FitErrors.from_residuals(s - ps, l - pl)
-    ps, pl = rpc.project(clon, clat, ch)
-    check_err = FitErrors.from_residuals(cs - ps, cl - pl)
-    report(progress, 1.0, "RPC fitted")
-    rep = FitReport(fit=fit_err, check=check_err, n_points=rep.n_points, iterations=rep.iterations,
-                    regularization=rep.regularization, elapsed_s=time.perf_counter() - t0,
-                    model_roundtrip_max_px=roundtrip, notes=tuple(notes) + rep.notes)
-    return rpc, rep
+        return _grid_axis(hmin, hmax - hmin, int(n_layers), height_margin)
+    return np.array([hmin])
 
 
 def _renormalise_image(rpc: RPCModel, samp_off: float, samp_scale: float, line_off: float,
