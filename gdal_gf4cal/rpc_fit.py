@@ -152,7 +152,50 @@ class FitReport:
 
 
 # ---------------------------------------------------------------------------------------------- linear algebra
-def _solve_regularised(G: np.ndarray, g: np.ndarray, A: np.ndarray, b: np.ndarray, lam: float,
+#: Points per chunk when the normal equations are accumulated (keeps the (40, chunk) block in cache).
+_CHUNK = 8192
+
+
+class _AxisDesign:
+    """The design of one image axis, ``A = [u * m, v * m[1:]]`` (n, 39) with per-point ``u``, ``v`` and the
+    (20, n) monomials ``Mt`` (term-major), never formed whole: its normal equations are accumulated over chunks
+    of points (each chunk's block ``[A_c | b_c]^T`` in cache, one symmetric product); ``A d`` and ``A^T q`` are
+    two products with ``Mt``."""
+
+    def __init__(self, Mt: np.ndarray, u: np.ndarray, v: np.ndarray):
+        self.Mt, self.u, self.v = Mt, u, v
+
+    def normal(self, b: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """``(A^T A, A^T b)``."""
+        Mt, u, v = self.Mt, self.u, self.v
+        n = Mt.shape[1]
+        block = np.empty((N_UNKNOWNS + 1, min(n, _CHUNK)))
+        Gb = np.zeros((N_UNKNOWNS + 1, N_UNKNOWNS + 1))
+        for s in range(0, n, _CHUNK):
+            e = min(n, s + _CHUNK)
+            B = block[:, :e - s]
+            np.multiply(Mt[:, s:e], u[s:e], out=B[:20])
+            np.multiply(Mt[1:, s:e], v[s:e], out=B[20:N_UNKNOWNS])
+            B[N_UNKNOWNS] = b[s:e]
+            Gb += B @ B.T
+        return Gb[:N_UNKNOWNS, :N_UNKNOWNS], Gb[:N_UNKNOWNS, N_UNKNOWNS].copy()
+
+    def dot(self, d: np.ndarray) -> np.ndarray:
+        """``A d``."""
+        t = np.stack([d[:20], np.concatenate([[0.0], d[20:]])]) @ self.Mt
+        return self.u * t[0] + self.v * t[1]
+
+    def tdot(self, q: np.ndarray) -> np.ndarray:
+        """``A^T q``."""
+        t = self.Mt @ np.stack([self.u * q, self.v * q], axis=1)
+        return np.concatenate([t[:, 0], t[1:, 1]])
+
+    def dense(self) -> np.ndarray:
+        """``A`` itself (n, 39), for the unregularised QR solve only."""
+        return np.hstack([(self.Mt * self.u).T, (self.Mt[1:] * self.v).T])
+
+
+def _solve_regularised(G: np.ndarray, g: np.ndarray, A: _AxisDesign, b: np.ndarray, lam: float,
                        x0: Optional[np.ndarray] = None) -> np.ndarray:
     """Solve ``min ||A d - b||^2 + lam * sum_j G_jj (x0 + d)_j^2`` for the step ``d`` (``G = A^T A``, ``g = A^T b``).
 
@@ -170,7 +213,7 @@ def _solve_regularised(G: np.ndarray, g: np.ndarray, A: np.ndarray, b: np.ndarra
     c = np.sqrt(diag[active])
     xs0 = np.zeros(c.size) if x0 is None else x0[active] * c
     if lam == 0.0:
-        As = A[:, active] / c
+        As = A.dense()[:, active] / c
         Rb = sla.qr(np.column_stack([As, b]), mode="r", check_finite=False)[0]
         k = c.size
         ds = sla.solve_triangular(Rb[:k, :k], Rb[:k, k], check_finite=False)
@@ -184,8 +227,8 @@ def _solve_regularised(G: np.ndarray, g: np.ndarray, A: np.ndarray, b: np.ndarra
         raise _IllPosed() from None
     ds = sla.cho_solve(cf, g[active] / c - lam * xs0, check_finite=False)
     # Iterative refinement: the residual of the *regularised* normal equations, formed from A itself.
-    Aa = A[:, active] if not np.all(active) else A
-    res = (Aa.T @ (b - Aa @ (ds / c))) / c - lam * (xs0 + ds)
+    d[active] = ds / c
+    res = A.tdot(b - A.dot(d))[active] / c - lam * (xs0 + ds)
     ds = ds + sla.cho_solve(cf, res, check_finite=False)
     if not np.all(np.isfinite(ds)):
         raise _IllPosed()
@@ -206,48 +249,60 @@ def _domain_monomials(single_height: bool) -> np.ndarray:
     return m
 
 
-def _fit_axis(M: np.ndarray, r: np.ndarray, lam: float, max_iter: int, guard_M: np.ndarray, abs_tol: float):
-    """Fit one image axis ``r ~ (a.m) / (1 + b.m[1:])``; returns (num(20), den(20), n_solves).
+def _fit_axis(Mt: np.ndarray, r: np.ndarray, lam: float, max_iter: int, guard_M: np.ndarray, abs_tol: float,
+              first: Tuple[np.ndarray, np.ndarray]):
+    """Fit one image axis ``r ~ (a.m) / (1 + b.m[1:])`` (``Mt`` the (20, n) monomials); returns (num(20),
+    den(20), n_solves). ``first``: the normal equations of the first, unweighted, step (the same for every
+    lambda of the ladder, :func:`_first_normals`).
 
     Raises ``_IllPosed`` if lambda is too small for this system (the caller moves up the ladder).
     """
-    n = M.shape[0]
-    M1 = M[:, 1:]
-    A = np.empty((n, N_UNKNOWNS))
-    w = np.ones(n)
+    w = np.ones(r.size)
     x = np.zeros(N_UNKNOWNS)
     prev = math.inf
     solves = 0
     # Tao & Hu: linearised equations weighted by 1/D of the previous iterate (D = 1 at the start).
     for _ in range(max(1, max_iter)):
-        np.multiply(M, w[:, None], out=A[:, :20])
-        np.multiply(M1, (-r * w)[:, None], out=A[:, 20:])
-        bw = r * w
-        x = _solve_regularised(A.T @ A, A.T @ bw, A, bw, lam)
+        A, bw = _AxisDesign(Mt, w, -r * w), r * w
+        x = _solve_regularised(*(first if solves == 0 else A.normal(bw)), A, bw, lam)
         solves += 1
-        D = 1.0 + M1 @ x[20:]
+        N, D = _num_den(Mt, x)
         if not np.all(np.isfinite(D)) or np.min(np.abs(D)) < 1e-12:
             raise _IllPosed()
         w = 1.0 / D
-        e = r - (M @ x[:20]) * w
+        e = r - N * w
         rms = float(np.sqrt(np.mean(e * e)))
         if abs(prev - rms) <= _REL_TOL * rms + abs_tol:
             break
         prev = rms
-    # Gauss-Newton on the true residual r - N/D; the Tikhonov term stays on x itself (not on the step).
+    x, gn_solves = _gauss_newton(Mt, r, lam, x, w, e, rms, abs_tol)
+    num = x[:20].copy()
+    den = np.concatenate([[1.0], x[20:]])
+    # Denominator guard over the fit points and the normalised domain: a near-zero denominator anywhere in
+    # the validity cube makes the RPC explode there, whatever the fit residuals say.
+    Dmin = min(float(np.min(den @ Mt)), float(np.min(guard_M @ den)))
+    if not Dmin > _MIN_DENOMINATOR:
+        raise _IllPosed()
+    return num, den, solves + gn_solves
+
+
+def _gauss_newton(Mt: np.ndarray, r: np.ndarray, lam: float, x: np.ndarray, w: np.ndarray, e: np.ndarray,
+                  rms: float, abs_tol: float):
+    """Gauss-Newton on the true residual ``r - N/D`` from the reweighting's ``x`` (``w = 1/D``, ``e`` its
+    residual); the Tikhonov term stays on x itself (not on the step). Returns (x, solves)."""
+    solves = 0
     for _ in range(_GN_STEPS):
         if rms <= abs_tol:
             break
         p = r - e  # current prediction N/D
-        np.multiply(M, w[:, None], out=A[:, :20])
-        np.multiply(M1, (-p * w)[:, None], out=A[:, 20:])
-        dx = _solve_regularised(A.T @ A, A.T @ e, A, e, lam, x0=x)
+        A = _AxisDesign(Mt, w, -p * w)
+        dx = _solve_regularised(*A.normal(e), A, e, lam, x0=x)
         solves += 1
         xn = x + dx
-        Dn = 1.0 + M1 @ xn[20:]
+        Nn, Dn = _num_den(Mt, xn)
         if not np.all(np.isfinite(Dn)) or np.min(np.abs(Dn)) < 1e-12:
             break
-        en = r - (M @ xn[:20]) / Dn
+        en = r - Nn / Dn
         rms_n = float(np.sqrt(np.mean(en * en)))
         if not rms_n < rms * (1.0 + 1e-12):
             break
@@ -255,14 +310,18 @@ def _fit_axis(M: np.ndarray, r: np.ndarray, lam: float, max_iter: int, guard_M: 
         x, w, e, rms = xn, 1.0 / Dn, en, rms_n
         if improved <= _REL_TOL * rms + abs_tol:
             break
-    num = x[:20].copy()
-    den = np.concatenate([[1.0], x[20:]])
-    # Denominator guard over the fit points and the normalised domain: a near-zero denominator anywhere in
-    # the validity cube makes the RPC explode there, whatever the fit residuals say.
-    Dmin = min(float(np.min(M @ den)), float(np.min(guard_M @ den)))
-    if not Dmin > _MIN_DENOMINATOR:
-        raise _IllPosed()
-    return num, den, solves
+    return x, solves
+
+
+def _num_den(Mt: np.ndarray, x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Numerator ``a.m`` and denominator ``1 + b.m[1:]`` of the unknowns ``x = (a, b)`` at every point."""
+    t = np.stack([x[:20], np.concatenate([[1.0], x[20:]])]) @ Mt
+    return t[0], t[1]
+
+
+def _first_normals(Mt: np.ndarray, r: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Normal equations of the first reweighting step (``w = 1``): computed once per axis for the whole ladder."""
+    return _AxisDesign(Mt, np.ones(r.size), -r).normal(r)
 
 
 # ---------------------------------------------------------------------------------------------- normalisation
@@ -433,7 +492,7 @@ def _regularization_ladder(regularization) -> Tuple[float, ...]:
 
 
 def _ground_monomials(lon: np.ndarray, lat: np.ndarray, h: np.ndarray):
-    """Ground offsets/scales (dict, with ``single_height``), the (n, 20) normalised monomials and notes.
+    """Ground offsets/scales (dict, with ``single_height``), the (20, n) normalised monomials and notes.
 
     Refuses a constant longitude or latitude and points on a line (the cross terms are then undetermined).
     """
@@ -459,16 +518,17 @@ def _ground_monomials(lon: np.ndarray, lat: np.ndarray, h: np.ndarray):
                                       "(a grid over the whole image)")
     ground = {"long_off": long_off, "long_scale": long_scale, "lat_off": lat_off, "lat_scale": lat_scale,
               "height_off": height_off, "height_scale": height_scale, "single_height": single_height}
-    return ground, np.ascontiguousarray(monomials(L, P, H).T), notes
+    return ground, monomials(L, P, H), notes
 
 
 def _fit_axis_on_ladder(M: np.ndarray, r: np.ndarray, ladder: Sequence[float], max_iter: int, guard: np.ndarray,
                         scale: float, axis: str, progress: Optional[ProgressCallback], fraction: float):
     """:func:`_fit_axis` with the smallest lambda of the ladder that works; returns (num, den, solves, lambda)."""
     report(progress, fraction, f"fitting the {axis} polynomials")
+    first = _first_normals(M, r)
     for lam in ladder:
         try:
-            num, den, solves = _fit_axis(M, r, lam, max_iter, guard, _ABS_TOL_PX / scale)
+            num, den, solves = _fit_axis(M, r, lam, max_iter, guard, _ABS_TOL_PX / scale, first)
             return num, den, solves, lam
         except _IllPosed:
             continue
