@@ -89,7 +89,8 @@ def main() -> None:
         child()
         return
     old = a.old or pre_core_commit()
-    print(f"old tree: {old[:10]} (before the estimation core); new tree: {ROOT}; load average "
+    what = "the commit given" if a.old else "before the estimation core"
+    print(f"old tree: {old[:10]} ({what}); new tree: {ROOT}; load average "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (a shared machine: read the ratios, not the times)")
     with tempfile.TemporaryDirectory() as tmp:
         procs = {"old": start(extract(old, tmp)), "new": start(ROOT)}
