@@ -16,10 +16,13 @@ import numpy as np
 
 from .errors import DegenerateGeometryError, GCPError
 from .geodesy import metres_per_degree
-from .estimation import solve_with_points
+from .estimation import Estimate, solve_with_points, unit_weight_sigma
 from .progress import report as _report
+from .stats import axis_stats, ce90, le90, planar_stats
+from .stats import model_jacobian as _jacobian
 
 __all__ = ["IntersectionResult", "intersect", "ground_errors_m", "intersection_accuracy"]
+
 
 def _radii(lat_deg, h):
     """Metres per degree of longitude and of latitude (:func:`gdal_gf4cal.geodesy.metres_per_degree`)."""
@@ -32,13 +35,6 @@ def ground_errors_m(lon, lat, h, lon_ref, lat_ref, h_ref):
     mx, my = _radii(lat_ref, h_ref)
     dlon = (lon - lon_ref + 180.0) % 360.0 - 180.0
     return dlon * mx, (lat - lat_ref) * my, h - h_ref
-
-
-def _jacobian(model, lon, lat, h):
-    if hasattr(model, "project_jacobian"):
-        return np.asarray(model.project_jacobian(lon, lat, h), dtype=float)
-    from .compensation import _jacobian as numeric
-    return numeric(model, lon, lat, h)
 
 
 @dataclass
@@ -85,7 +81,6 @@ class IntersectionResult:
         it); ``sigma0`` and ``dof = 2 n_images - 3`` as in :attr:`sigma0`, normalised residuals
         ``v / (sigma0 sqrt(r / w))``.
         """
-        from .estimation import Estimate
         res = self.residuals[:, i].reshape(-1)
         w = (np.zeros_like(res) if self.weights is None else self.weights[:, i].reshape(-1))
         red = np.zeros_like(res) if self.redundancy is None else self.redundancy[:, i].reshape(-1)
@@ -143,39 +138,16 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
     wgt = np.where(obs, 1.0 / sig ** 2, 0.0)
     if h0 is None:
         h0 = float(np.mean(models[0].height_range))     # the RPC's HEIGHT_OFF; any SensorModel has height_range
-    # Start: localise in the first image observing each point at h0.
-    lon = np.full(n_pts, np.nan)
-    lat = np.full(n_pts, np.nan)
-    h = np.full(n_pts, float(h0))
-    for k in range(n_img):
-        todo = np.isnan(lon) & obs[k]
-        if todo.any():
-            lo, la = models[k].localize(pts[k, todo, 0], pts[k, todo, 1], h[todo])
-            lon[todo], lat[todo] = lo, la
+    lon, lat, h = _start(models, pts, obs, float(h0))
     active = (n_obs >= 2) & np.isfinite(lon) & np.isfinite(lat)
     converged = np.zeros(n_pts, bool)
-
-    def linearise(idx):
-        """Residuals (n, 2 n_img), weights and d(sample, line)/d(east, north, up) (n, 2 n_img, 3) in px/m."""
-        mx, my = _radii(lat[idx], h[idx])
-        to_m = np.stack([mx, my, np.ones_like(mx)], -1)
-        res_k = np.zeros((idx.size, n_img, 2))
-        jac_k = np.zeros((idx.size, n_img, 2, 3))
-        for k in range(n_img):
-            s, l = models[k].project(lon[idx], lat[idx], h[idx])
-            r = np.stack([pts[k, idx, 0] - s, pts[k, idx, 1] - l], axis=-1)
-            jac = _jacobian(models[k], lon[idx], lat[idx], h[idx]) / to_m[:, None, :]
-            res_k[:, k] = np.where(obs[k, idx, None], r, np.nan)
-            jac_k[:, k] = np.where(obs[k, idx, None, None], jac, 0.0)
-        w = np.repeat(wgt[:, idx].T, 2, axis=1)
-        return res_k.reshape(idx.size, 2 * n_img), w, jac_k.reshape(idx.size, 2 * n_img, 3), mx, my
 
     for it in range(max_iter):
         _report(progress, it / max_iter, "intersecting")
         idx = np.flatnonzero(active & ~converged)
         if idx.size == 0:
             break
-        r, w, jac, mx, my = linearise(idx)
+        r, w, jac, mx, my = _linearise(models, pts, obs, wgt, (lon, lat, h), idx)
         # The ground point of each tie point is a point block: solved (eliminated) per point (estimation.schur).
         sol = solve_with_points(jac, r, w, det_min=1e-30, covariance=False)
         step = sol.dx_points
@@ -194,15 +166,13 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
     cov = np.full((n_pts, 3, 3), np.nan)
     redundancy = np.zeros((n_img, n_pts, 2))
     if idx.size:
-        r, w, jac, _, _ = linearise(idx)
+        r, w, jac, _, _ = _linearise(models, pts, obs, wgt, (lon, lat, h), idx)
         res[:, idx] = r.reshape(idx.size, n_img, 2).transpose(1, 0, 2)
         cov[idx] = solve_with_points(jac, r, w, det_min=-1.0).cov_points
         q = np.einsum("nri,nij,nrj->nr", jac, cov[idx], jac)
         redundancy[:, idx] = np.where(w > 0, 1.0 - w * q, 0.0).reshape(idx.size, n_img, 2).transpose(1, 0, 2)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        wr2 = np.nansum(wgt[..., None] * np.nan_to_num(res) ** 2, axis=(0, 2))
-        red = 2 * n_obs - 3
-        sigma0 = np.where((red > 0) & fin, np.sqrt(wr2 / np.maximum(red, 1)), np.nan)
+    wr2 = np.nansum(wgt[..., None] * np.nan_to_num(res) ** 2, axis=(0, 2))
+    sigma0 = np.where(fin, unit_weight_sigma(wr2, 2 * n_obs - 3), np.nan)      # redundancy 2 n_images - 3
     lon = np.where(fin, lon, np.nan)
     lat = np.where(fin, lat, np.nan)
     h = np.where(fin, h, np.nan)
@@ -210,6 +180,39 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
     return IntersectionResult(lon=lon, lat=lat, h=h, residuals=res, n_images=n_obs.astype(int),
                               cov_enu_m2=cov, sigma0=sigma0, converged=fin, redundancy=redundancy,
                               weights=np.repeat(wgt[..., None], 2, axis=2))
+
+
+def _start(models, pts, obs, h0: float):
+    """Start: each point localised in the first image observing it, at height ``h0``."""
+    n_img, n_pts = pts.shape[:2]
+    lon = np.full(n_pts, np.nan)
+    lat = np.full(n_pts, np.nan)
+    h = np.full(n_pts, h0)
+    for k in range(n_img):
+        todo = np.isnan(lon) & obs[k]
+        if todo.any():
+            lo, la = models[k].localize(pts[k, todo, 0], pts[k, todo, 1], h[todo])
+            lon[todo], lat[todo] = lo, la
+    return lon, lat, h
+
+
+def _linearise(models, pts, obs, wgt, llh, idx):
+    """Residuals (n, 2 n_img), weights and d(sample, line)/d(east, north, up) (n, 2 n_img, 3) in px/m of the
+    points ``idx`` at ``llh = (lon, lat, h)``, and the metres per degree ``mx, my``."""
+    lon, lat, h = (a[idx] for a in llh)
+    n_img = len(models)
+    mx, my = _radii(lat, h)
+    to_m = np.stack([mx, my, np.ones_like(mx)], -1)
+    res_k = np.zeros((idx.size, n_img, 2))
+    jac_k = np.zeros((idx.size, n_img, 2, 3))
+    for k in range(n_img):
+        s, l = models[k].project(lon, lat, h)
+        r = np.stack([pts[k, idx, 0] - s, pts[k, idx, 1] - l], axis=-1)
+        jac = _jacobian(models[k], lon, lat, h) / to_m[:, None, :]
+        res_k[:, k] = np.where(obs[k, idx, None], r, np.nan)
+        jac_k[:, k] = np.where(obs[k, idx, None, None], jac, 0.0)
+    w = np.repeat(wgt[:, idx].T, 2, axis=1)
+    return res_k.reshape(idx.size, 2 * n_img), w, jac_k.reshape(idx.size, 2 * n_img, 3), mx, my
 
 
 def intersection_accuracy(result: IntersectionResult, lon_true, lat_true, h_true) -> Dict[str, Any]:
@@ -223,7 +226,6 @@ def intersection_accuracy(result: IntersectionResult, lon_true, lat_true, h_true
     e, n, u = e[ok], n[ok], u[ok]
     if not ok.any():
         return {"n": 0, "planar_rms_m": None, "height_rms_m": None, "ce90_m": None, "le90_m": None}
-    from .stats import axis_stats, ce90, le90, planar_stats
 
     def ax(x):
         return {k: v for k, v in axis_stats(x).items() if k in ("mean", "rms", "max")}

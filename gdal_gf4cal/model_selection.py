@@ -16,6 +16,7 @@ from typing import Any, Dict, Optional, Sequence
 
 import numpy as np
 
+from .compensation import fit_compensation
 from .errors import GCPError
 
 #: Candidates of ``--model auto``, in order of increasing number of parameters (nested).
@@ -62,51 +63,10 @@ def select_model(rpc, gcps, *, candidates: Sequence[str] = AUTO_CANDIDATES, dem=
     -------
     ModelSelection
     """
-    from scipy import stats
-    from .compensation import fit_compensation
-    results: Dict[str, Any] = {}
-    table: Dict[str, Dict[str, Any]] = {}
-    for name in candidates:
-        try:
-            res = fit_compensation(rpc, gcps, name, dem=dem, robust=robust, outlier_threshold=outlier_threshold,
-                                   leave_one_out=True, **fit_options)
-        except GCPError as exc:       # too few GCPs for this model, or a degenerate layout
-            table[name] = {"scored": False, "why_not": str(exc).splitlines()[0]}
-            continue
-        except ArithmeticError as exc:
-            table[name] = {"scored": False, "why_not": str(exc).splitlines()[0]}
-            continue
-        except ValueError as exc:
-            table[name] = {"scored": False, "why_not": str(exc).splitlines()[0]}
-            continue
-        results[name] = res
-    if not results:
-        raise GCPError("no compensation model can be fitted to these GCPs; add control points (translation needs 1)")
-    first = next(iter(results.values())).gcps
-    control = (first["role"] == "control").to_numpy()
-    inlier = control.copy()
-    for res in results.values():
-        inlier &= ~res.gcps["outlier"].to_numpy(bool)
-    n_ctrl = int(inlier.sum())
-    check = (first["role"] == "check").to_numpy()
-    for name, res in results.items():
-        tab = res.gcps
-        k = int(res.model.n_params) // 2 if res.model.n_params > 1 else 1      # parameters per axis
-        row: Dict[str, Any] = {"n_params": int(res.model.n_params), "n_control": n_ctrl}
-        if n_ctrl < k + 2:
-            row.update(scored=False, why_not=f"needs at least {k + 2} control points, has {n_ctrl}")
-            table[name] = row
-            continue
-        ss = tab["res_sample_after"].to_numpy(float)[inlier]
-        sl = tab["res_line_after"].to_numpy(float)[inlier]
-        row.update(scored=True, params_per_axis=k,
-                   loo_rms_px=_radial_rms(tab["res_sample_loo"].to_numpy(float)[inlier],
-                                          tab["res_line_loo"].to_numpy(float)[inlier]),
-                   control_rms_px=_radial_rms(ss, sl), ssr_px2=float(np.sum(ss ** 2 + sl ** 2)))
-        if np.any(check):
-            row["check_rms_px"] = _radial_rms(tab["res_sample_after"].to_numpy(float)[check],
-                                              tab["res_line_after"].to_numpy(float)[check])
-        table[name] = row
+    from scipy import stats          # ~1 s to import: only when first needed (CLI, QGIS start-up)
+    results, table = _fit_candidates(rpc, gcps, candidates, dict(fit_options, dem=dem, robust=robust,
+                                                                  outlier_threshold=outlier_threshold))
+    n_ctrl = _score(results, table)
     scored = [n for n in candidates if table.get(n, {}).get("scored")]
     if not scored:
         simplest = next(iter(results))
@@ -135,6 +95,51 @@ def select_model(rpc, gcps, *, candidates: Sequence[str] = AUTO_CANDIDATES, dem=
                       f"with p < {alpha:g} that would justify more parameters")
     table = {n: table[n] for n in candidates if n in table}
     return ModelSelection(chosen, reason, table, results, _rule(min_improvement, alpha))
+
+
+def _fit_candidates(rpc, gcps, candidates, options):
+    """``(results, table)``: each candidate fitted with leave-one-out residuals; those that cannot be fitted (too
+    few GCPs, a degenerate layout) get a ``why_not`` row."""
+    results: Dict[str, Any] = {}
+    table: Dict[str, Dict[str, Any]] = {}
+    for name in candidates:
+        try:
+            results[name] = fit_compensation(rpc, gcps, name, leave_one_out=True, **options)
+        except (GCPError, ArithmeticError, ValueError) as exc:
+            table[name] = {"scored": False, "why_not": str(exc).splitlines()[0]}
+    if not results:
+        raise GCPError("no compensation model can be fitted to these GCPs; add control points (translation needs 1)")
+    return results, table
+
+
+def _score(results, table) -> int:
+    """Each fitted candidate's row of ``table`` on the control points no candidate flags (the same for all);
+    returns their number."""
+    first = next(iter(results.values())).gcps
+    inlier = (first["role"] == "control").to_numpy()
+    for res in results.values():
+        inlier &= ~res.gcps["outlier"].to_numpy(bool)
+    n_ctrl = int(inlier.sum())
+    check = (first["role"] == "check").to_numpy()
+    for name, res in results.items():
+        tab = res.gcps
+        k = int(res.model.n_params) // 2 if res.model.n_params > 1 else 1      # parameters per axis
+        row: Dict[str, Any] = {"n_params": int(res.model.n_params), "n_control": n_ctrl}
+        if n_ctrl < k + 2:
+            row.update(scored=False, why_not=f"needs at least {k + 2} control points, has {n_ctrl}")
+            table[name] = row
+            continue
+        ss = tab["res_sample_after"].to_numpy(float)[inlier]
+        sl = tab["res_line_after"].to_numpy(float)[inlier]
+        row.update(scored=True, params_per_axis=k,
+                   loo_rms_px=_radial_rms(tab["res_sample_loo"].to_numpy(float)[inlier],
+                                          tab["res_line_loo"].to_numpy(float)[inlier]),
+                   control_rms_px=_radial_rms(ss, sl), ssr_px2=float(np.sum(ss ** 2 + sl ** 2)))
+        if np.any(check):
+            row["check_rms_px"] = _radial_rms(tab["res_sample_after"].to_numpy(float)[check],
+                                              tab["res_line_after"].to_numpy(float)[check])
+        table[name] = row
+    return n_ctrl
 
 
 def _rule(min_improvement: float, alpha: float) -> str:

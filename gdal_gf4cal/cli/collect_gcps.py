@@ -8,6 +8,7 @@ from ..progress import TextProgressBar
 from ..workflows import collect_gcps_file
 from . import print_warnings
 from .batch_options import add_batch_options, run_batch_command
+from .ortho import add_geoid_argument
 
 NAME = "collect-gcps"
 HELP = ("Collect GCPs automatically: sub-pixel matching of the raw image (with its RPC) against a reference "
@@ -20,8 +21,7 @@ def add_parser(parser):
     parser.add_argument("--reference", required=True, metavar="ORTHO",
                         help="reference orthophoto: any GDAL raster with a CRS (overviews are used when finer)")
     parser.add_argument("--dem", required=True, help="DEM (any GDAL raster, any CRS) or a constant height in metres")
-    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
-                        "(default: what the DEM's CRS declares, else ellipsoidal; 'none' never converts)")
+    add_geoid_argument(parser)
     parser.add_argument("--rpc", help="read the RPC from this file instead of the image")
     parser.add_argument("--out", required=True, help="output GCP table: .gpkg, .csv or .geojson")
     parser.add_argument("--spacing", type=int, default=256, metavar="PX", help="grid step in pixels (default 256)")

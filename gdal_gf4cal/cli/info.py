@@ -5,6 +5,7 @@ import json
 
 from ..describe import describe_rpc
 from . import add_rpc_argument
+from .ortho import add_geoid_argument
 
 NAME = "info"
 HELP = "Describe the RPC of an image or sidecar: offsets, footprint, approximate GSD, height range."
@@ -14,8 +15,7 @@ def add_parser(parser):
     parser.add_argument("source", metavar="IMAGE_OR_RPC", help="image with an RPC, or a standalone RPC file")
     add_rpc_argument(parser)
     parser.add_argument("--dem", help="DEM to localise the footprint corners on (default: at HEIGHT_OFF)")
-    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
-                        "(default: what the DEM's CRS declares, else ellipsoidal; 'none' never converts)")
+    add_geoid_argument(parser)
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
 
 

@@ -8,7 +8,7 @@ from ..progress import TextProgressBar
 from ..workflows import refine_rpc
 from . import add_gcp_reader_arguments, add_plausibility_argument, add_rpc_argument, print_warnings
 from .batch_options import add_batch_options, run_batch_command
-from .ortho import add_ortho_arguments, cli_geoid_errors, print_ortho
+from .ortho import add_geoid_argument, add_ortho_arguments, cli_geoid_errors, print_ortho
 
 NAME = "refine"
 HELP = ("Refine an image's RPC with GCPs (translation, shift-drift, affine, poly2 or detector-poly) and write "
@@ -32,8 +32,7 @@ def add_parser(parser):
     parser.add_argument("--ccd-axis", choices=("sample", "line"), default="sample",
                         help="detector-poly: image axis along the CCD line (default sample)")
     parser.add_argument("--dem", help="DEM for GCPs without height")
-    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
-                        "(default: what the DEM's CRS declares, else ellipsoidal; 'none' never converts)")
+    add_geoid_argument(parser)
     parser.add_argument("--gcp-crs", help="CRS of the GCPs' map coordinates when the file does not say")
     add_gcp_reader_arguments(parser)
     parser.add_argument("--check-fraction", type=float,

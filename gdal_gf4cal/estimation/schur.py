@@ -14,8 +14,12 @@ when ``p`` is large), then ``dx_p,i = N_pp,i^-1 (b_p,i - N_pg,i dx_g)``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
 from ..errors import DegenerateGeometryError
 
@@ -38,6 +42,9 @@ class PointSolution:
     ok: np.ndarray
     dx_global: np.ndarray
     cov_global: np.ndarray
+    #: The reduced normal matrix ``S`` of the global parameters (unit weight) when the covariance was asked: for
+    #: :func:`~gdal_gf4cal.estimation.sigma0_and_cov`.
+    normal_global: Optional[np.ndarray] = None
 
 
 def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_min: float = 1e-30,
@@ -70,26 +77,12 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
     r = np.nan_to_num(np.asarray(residuals, dtype=float))
     w = np.asarray(weights, dtype=float)
     n, _, q = jp.shape
-    jw = (jp * w[:, :, None]).transpose(0, 2, 1)                              # (n, q, r): matmul, not 3-way einsum
-    npp = np.matmul(jw, jp)
-    bp = np.matmul(jw, r[:, :, None])[:, :, 0]
-    inv = np.full((n, q, q), np.nan)
-    if q == 2:                                                                # closed form (many 2x2 blocks)
-        det = npp[:, 0, 0] * npp[:, 1, 1] - npp[:, 0, 1] * npp[:, 1, 0]
-        ok = np.abs(det) > det_min
-        d = np.where(ok, det, 1.0)
-        inv[ok] = (np.stack([npp[:, 1, 1], -npp[:, 0, 1], -npp[:, 1, 0], npp[:, 0, 0]], axis=1)
-                   / d[:, None]).reshape(n, 2, 2)[ok]
-    else:
-        ok = np.abs(np.linalg.det(npp)) > det_min
-        if ok.any():
-            inv[ok] = np.linalg.inv(npp[ok])
+    npp, bp, inv, ok = _point_normals(jp, r, w, det_min)
     if jac_global is None:
         dxp = np.full((n, q), np.nan)
         if ok.any():
             dxp[ok] = np.linalg.solve(npp[ok], bp[ok][..., None])[..., 0]
         return PointSolution(dxp, inv if covariance else np.empty((0, q, q)), ok, np.zeros(0), np.zeros((0, 0)))
-    import scipy.sparse as sp
     if sp.issparse(jac_global):
         return _solve_sparse(jp, r, w, npp, bp, ok, inv, sp.csr_matrix(jac_global), extra, covariance)
     if extra is not None:
@@ -103,8 +96,6 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
     t = np.einsum("nij,njk->nik", inv_ok, npg)                                # N_pp^-1 N_pg
     b_red = bg - np.einsum("nqi,nq->i", npg, np.einsum("nij,nj->ni", inv_ok, bp[ok]))
     if p > SPARSE_ABOVE:
-        import scipy.sparse as sp
-        import scipy.sparse.linalg as spla
         m = ok.sum()
         rows = np.repeat(np.arange(m * q), p).reshape(m, q, p)
         cols = np.broadcast_to(np.arange(p), (m, q, p))
@@ -134,15 +125,33 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
     if covariance:
         cov_p = inv.copy()
         cov_p[ok] = inv_ok + np.einsum("nqi,ij,nrj->nqr", t, cov_g, t)
-    return PointSolution(dxp, cov_p, ok, dxg, cov_g)
+    return PointSolution(dxp, cov_p, ok, dxg, cov_g, s_dense if covariance else None)
+
+
+def _point_normals(jp, r, w, det_min: float):
+    """Per point ``N_pp`` (n, q, q), ``b_p`` (n, q), ``N_pp^-1`` (NaN where singular) and ``ok`` (regular)."""
+    n, _, q = jp.shape
+    jw = (jp * w[:, :, None]).transpose(0, 2, 1)                              # (n, q, r): matmul, not 3-way einsum
+    npp = np.matmul(jw, jp)
+    bp = np.matmul(jw, r[:, :, None])[:, :, 0]
+    inv = np.full((n, q, q), np.nan)
+    if q == 2:                                                                # closed form (many 2x2 blocks)
+        det = npp[:, 0, 0] * npp[:, 1, 1] - npp[:, 0, 1] * npp[:, 1, 0]
+        ok = np.abs(det) > det_min
+        d = np.where(ok, det, 1.0)
+        inv[ok] = (np.stack([npp[:, 1, 1], -npp[:, 0, 1], -npp[:, 1, 0], npp[:, 0, 0]], axis=1)
+                   / d[:, None]).reshape(n, 2, 2)[ok]
+    else:
+        ok = np.abs(np.linalg.det(npp)) > det_min
+        if ok.any():
+            inv[ok] = np.linalg.inv(npp[ok])
+    return npp, bp, inv, ok
 
 
 def _solve_sparse(jp, r, w, npp, bp, ok, inv, jg, extra, covariance: bool) -> PointSolution:
     """Sparse assembly of the reduced system (``jac_global`` a sparse ``(N * r, p)`` matrix), see
     :func:`solve_with_points`. The reduced matrix is ``p x p`` whatever the number of points; it is solved after
     equilibration by its diagonal (dense below :data:`SPARSE_ABOVE` globals, ``scipy.sparse`` above)."""
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
     n, k, q = jp.shape
     p = jg.shape[1]
     if jg.shape[0] != n * k:
@@ -183,7 +192,6 @@ def _solve_sparse(jp, r, w, npp, bp, ok, inv, jg, extra, covariance: bool) -> Po
                                           "add observations") from None
         s_dense = s_eq.toarray() if covariance else None
     else:
-        from scipy.linalg import LinAlgError, cho_factor, cho_solve
         s_dense = s_eq.toarray()
         try:                                         # Cholesky: the equilibrated S is SPD when determined
             fac = cho_factor(s_dense, check_finite=False)
@@ -212,4 +220,4 @@ def _solve_sparse(jp, r, w, npp, bp, ok, inv, jg, extra, covariance: bool) -> Po
         if tt is not None:
             t_ok = tt[ok]
             cov_p[ok] = inv[ok] + np.matmul(t_ok @ cov_g, t_ok.transpose(0, 2, 1))
-    return PointSolution(dxp, cov_p, ok, dxg, cov_g)
+    return PointSolution(dxp, cov_p, ok, dxg, cov_g, s_mat.toarray() if covariance else None)

@@ -72,7 +72,6 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    from matplotlib.patches import Rectangle
     import pandas as pd
 
     path = Path(path)
@@ -94,15 +93,36 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
         draw[:] = False
         draw[np.random.default_rng(0).choice(n_all, _MAX_ARROWS, replace=False)] = True
         title = f"{title}; {_MAX_ARROWS:,} of {n_all:,} GCPs drawn"
-    # Axes: the whole image AND every GCP (points outside the image are drawn too, never clipped away).
+    xlim, ylim = _residual_limits(s, l, image_size)
+    factor, ref = _common_exaggeration(panels, s, l, outlier,
+                                       max(abs(xlim[1] - xlim[0]), abs(ylim[1] - ylim[0])))
+    fig = Figure(figsize=(5.2 * len(panels), 6.2), dpi=dpi)
+    FigureCanvasAgg(fig)
+    fig.suptitle(f"{title} (arrows exaggerated {factor:.3g}x in every panel)")
+    points = dict(s=s, l=l, role=role, outlier=outlier, draw=draw, ids=ids if n_all <= _MAX_LABELS else None)
+    with matplotlib.rc_context({"font.size": 9}):
+        for k, (label, (rs, rl)) in enumerate(panels):
+            ax = fig.add_subplot(1, len(panels), k + 1)
+            _residual_panel(ax, label, rs, rl, points, image_size, xlim, ylim, factor, ref)
+        fig.tight_layout()
+    return _save(fig, path)
+
+
+def _residual_limits(s, l, image_size):
+    """(xlim, ylim) of the residual panels: the whole image AND every GCP (points outside the image are drawn too,
+    never clipped away), line axis pointing down."""
     xs = [s[np.isfinite(s)]] + ([np.array([0.0, float(image_size[0])])] if image_size is not None else [])
     ys = [l[np.isfinite(l)]] + ([np.array([0.0, float(image_size[1])])] if image_size is not None else [])
     xa, ya = np.concatenate(xs), np.concatenate(ys)
     pad = 0.06 * max(float(np.ptp(xa)) if xa.size else 1.0, float(np.ptp(ya)) if ya.size else 1.0, 1.0)
     xlim = (float(xa.min()) - pad, float(xa.max()) + pad) if xa.size else (0.0, 1.0)
     ylim = (float(ya.max()) + pad, float(ya.min()) - pad) if ya.size else (1.0, 0.0)
-    span = max(abs(xlim[1] - xlim[0]), abs(ylim[1] - ylim[0]))
-    # ONE exaggeration for every panel, from the longest regular residual of any panel: the gain shows.
+    return xlim, ylim
+
+
+def _common_exaggeration(panels, s, l, outlier, span):
+    """ONE exaggeration for every panel (data units per px of residual), from the longest regular residual of any
+    panel, so the gain shows; and the scale arrow's length (px)."""
     finite_all = np.isfinite(s) & np.isfinite(l)
     longest = 0.0
     for _, (rs, rl) in panels:
@@ -110,59 +130,52 @@ def plot_residuals(gcps, path: PathLike, *, before: Optional[Tuple[str, str]] = 
         ok = finite_all & np.isfinite(mag) & (~outlier if (finite_all & np.isfinite(mag) & ~outlier).any() else True)
         if ok.any():
             longest = max(longest, float(np.max(mag[ok])))
-    factor = 0.08 * span / longest if longest > 0 else 1.0     # data units per px of residual
-    ref = _nice_scale(longest) if longest > 0 else 1.0
+    factor = 0.08 * span / longest if longest > 0 else 1.0
+    return factor, (_nice_scale(longest) if longest > 0 else 1.0)
 
-    fig = Figure(figsize=(5.2 * len(panels), 6.2), dpi=dpi)
-    FigureCanvasAgg(fig)
-    fig.suptitle(f"{title} (arrows exaggerated {factor:.3g}x in every panel)")
-    with matplotlib.rc_context({"font.size": 9}):
-        for k, (label, (rs, rl)) in enumerate(panels):
-            ax = fig.add_subplot(1, len(panels), k + 1)
-            mag = np.hypot(rs, rl)
-            finite = np.isfinite(mag) & np.isfinite(s) & np.isfinite(l)
-            for r, colour in (("control", _ROLE_COLOURS["control"]), ("check", _ROLE_COLOURS["check"])):
-                m = finite & (role == r) & draw
-                if m.any():
-                    # y axis is inverted (line down): +res_line draws downwards, like the image.
-                    ax.quiver(s[m], l[m], rs[m], rl[m], color=colour, angles="xy", scale_units="xy",
-                              scale=1.0 / factor, width=0.004, label=f"{r} ({int(m.sum())})")
-            m = finite & ~np.isin(role, ["control", "check"]) & draw
-            if m.any():
-                ax.quiver(s[m], l[m], rs[m], rl[m], color="#888888", angles="xy", scale_units="xy",
-                          scale=1.0 / factor, width=0.004, label=f"other ({int(m.sum())})")
-            if (outlier & finite).any():
-                ax.scatter(s[outlier & finite], l[outlier & finite], s=60, facecolors="none",
-                           edgecolors=_OUTLIER_COLOUR, linewidths=1.2,
-                           label=f"outlier ({int((outlier & finite).sum())})")
-            for i in np.flatnonzero(np.isfinite(s) & np.isfinite(l)) if n_all <= _MAX_LABELS else ():
-                ax.annotate(ids[i], (s[i], l[i]), xytext=(3, 3), textcoords="offset points", fontsize=6,
-                            color="#333333")
-            if image_size is not None:
-                ax.add_patch(Rectangle((0, 0), float(image_size[0]), float(image_size[1]), fill=False,
-                                       edgecolor="#aaaaaa", linewidth=0.8, linestyle="--", label="image"))
-            # Scale arrow in the lower-left corner.
-            x0 = xlim[0] + 0.05 * (xlim[1] - xlim[0])
-            y0 = ylim[0] - 0.05 * (ylim[0] - ylim[1])
-            ax.quiver([x0], [y0], [ref], [0.0], color="black", angles="xy", scale_units="xy", scale=1.0 / factor,
-                      width=0.006)
-            ax.annotate(f"{ref:g} px", (x0, y0), xytext=(0, 6), textcoords="offset points", fontsize=8)
-            lines = []
-            for r in ("control", "check"):          # control and check never mixed in one number
-                use = finite & ~outlier & (role == r)
-                if use.any():
-                    lines.append(f"{r} (n={int(use.sum())}): RMS sample {np.sqrt(np.mean(rs[use] ** 2)):.3g} px, "
-                                 f"line {np.sqrt(np.mean(rl[use] ** 2)):.3g} px")
-            ax.set_title(f"{label}\n" + "\n".join(lines), fontsize=8)
-            ax.set_xlim(*xlim)
-            ax.set_ylim(*ylim)
-            ax.set_aspect("equal")
-            ax.set_xlabel("sample (px)")
-            ax.set_ylabel("line (px)")
-            # Legend below the axes: never over an arrow.
-            ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3, fontsize=7, frameon=False)
-        fig.tight_layout()
-    return _save(fig, path)
+
+def _residual_panel(ax, label, rs, rl, points, image_size, xlim, ylim, factor, ref) -> None:
+    """One panel of :func:`plot_residuals`: arrows by role, outliers circled, ids, the image frame, a scale arrow,
+    the control and check RMS in the title, the legend below the axes."""
+    from matplotlib.patches import Rectangle
+    s, l, role, outlier, draw = (points[k] for k in ("s", "l", "role", "outlier", "draw"))
+    mag = np.hypot(rs, rl)
+    finite = np.isfinite(mag) & np.isfinite(s) & np.isfinite(l)
+    quiver = dict(angles="xy", scale_units="xy", scale=1.0 / factor, width=0.004)
+    for r, colour in (("control", _ROLE_COLOURS["control"]), ("check", _ROLE_COLOURS["check"])):
+        m = finite & (role == r) & draw
+        if m.any():    # y axis is inverted (line down): +res_line draws downwards, like the image
+            ax.quiver(s[m], l[m], rs[m], rl[m], color=colour, label=f"{r} ({int(m.sum())})", **quiver)
+    m = finite & ~np.isin(role, ["control", "check"]) & draw
+    if m.any():
+        ax.quiver(s[m], l[m], rs[m], rl[m], color="#888888", label=f"other ({int(m.sum())})", **quiver)
+    if (outlier & finite).any():
+        ax.scatter(s[outlier & finite], l[outlier & finite], s=60, facecolors="none", edgecolors=_OUTLIER_COLOUR,
+                   linewidths=1.2, label=f"outlier ({int((outlier & finite).sum())})")
+    for i in np.flatnonzero(np.isfinite(s) & np.isfinite(l)) if points["ids"] is not None else ():
+        ax.annotate(points["ids"][i], (s[i], l[i]), xytext=(3, 3), textcoords="offset points", fontsize=6,
+                    color="#333333")
+    if image_size is not None:
+        ax.add_patch(Rectangle((0, 0), float(image_size[0]), float(image_size[1]), fill=False,
+                               edgecolor="#aaaaaa", linewidth=0.8, linestyle="--", label="image"))
+    x0 = xlim[0] + 0.05 * (xlim[1] - xlim[0])          # scale arrow in the lower-left corner
+    y0 = ylim[0] - 0.05 * (ylim[0] - ylim[1])
+    ax.quiver([x0], [y0], [ref], [0.0], color="black", angles="xy", scale_units="xy", scale=1.0 / factor,
+              width=0.006)
+    ax.annotate(f"{ref:g} px", (x0, y0), xytext=(0, 6), textcoords="offset points", fontsize=8)
+    lines = []
+    for r in ("control", "check"):          # control and check never mixed in one number
+        use = finite & ~outlier & (role == r)
+        if use.any():
+            lines.append(f"{r} (n={int(use.sum())}): RMS sample {np.sqrt(np.mean(rs[use] ** 2)):.3g} px, "
+                         f"line {np.sqrt(np.mean(rl[use] ** 2)):.3g} px")
+    ax.set_title(f"{label}\n" + "\n".join(lines), fontsize=8)
+    ax.set_xlim(*xlim)
+    ax.set_ylim(*ylim)
+    ax.set_aspect("equal")
+    ax.set_xlabel("sample (px)")
+    ax.set_ylabel("line (px)")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3, fontsize=7, frameon=False)  # never over an arrow
 
 
 def plot_seams(seams, path: PathLike, *, residual_rms=None, title: str = "Seams between adjacent CCDs",
@@ -171,46 +184,71 @@ def plot_seams(seams, path: PathLike, *, residual_rms=None, title: str = "Seams 
 
     ``seams``: the list of :func:`gdal_gf4cal.block.seam_offsets` (each with ``pair`` and ``points``: ``line_b``,
     ``ds_before``, ``dl_before``, ``ds_after``, ``dl_after``, px). Left panels: sample and line offset of each
-    overlap's tie points against their line (before faded, after solid). ``residual_rms``: ``{image: (before,
-    after)}`` planar RMS px, drawn as bars on the right.
+    overlap's tie points against their line (before faded, after solid), one colour per pair, the legend below
+    the panels (never over the data). ``residual_rms``: ``{image: (before, after)}`` planar RMS px, drawn as bars
+    on the right.
     """
+    return _save(seams_figure(seams, residual_rms=residual_rms, title=title, dpi=dpi), path)
+
+
+def pair_colours(n: int) -> list:
+    """``n`` distinct colours (hex): matplotlib's tab10 / tab20 up to 20, else evenly spaced hues of a perceptual
+    cyclic map; never a repeated colour."""
+    from matplotlib import colormaps
+    from matplotlib.colors import to_hex
+    if n <= 10:
+        return [to_hex(c) for c in colormaps["tab10"].colors[:n]]
+    if n <= 20:
+        return [to_hex(c) for c in colormaps["tab20"].colors[:n]]
+    cmap = colormaps["twilight_shifted"] if n > 60 else colormaps["hsv"]
+    return [to_hex(cmap(k / n)) for k in range(n)]
+
+
+def seams_figure(seams, *, residual_rms=None, title: str = "Seams between adjacent CCDs", dpi: int = 110):
+    """The figure of :func:`plot_seams` (a matplotlib ``Figure``, not saved)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     ncol = 3 if residual_rms else 2
-    fig = Figure(figsize=(5.0 * ncol, 4.6), dpi=dpi)
+    drawn = [s for s in seams if s.get("points")]
+    legend_rows = -(-len(drawn) // 4) if drawn else 0
+    fig = Figure(figsize=(5.0 * ncol, 4.6 + 0.22 * legend_rows), dpi=dpi)
     FigureCanvasAgg(fig)
     axes = [fig.add_subplot(1, ncol, i + 1) for i in range(ncol)]
-    colours = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f"]
-    for k, entry in enumerate(s for s in seams if s.get("points")):
+    handles = []
+    for entry, c in zip(drawn, pair_colours(len(drawn))):
         p = entry["points"]
-        c = colours[k % len(colours)]
-        label = f"{entry['pair'][0]} | {entry['pair'][1]}"
         for ax, key in zip(axes[:2], ("ds", "dl")):
             ax.plot(p["line_b"], p[f"{key}_before"], ".", color=c, alpha=0.25, ms=3)
-            ax.plot(p["line_b"], p[f"{key}_after"], "o", color=c, ms=3, label=label + " (after)")
+            h, = ax.plot(p["line_b"], p[f"{key}_after"], "o", color=c, ms=3,
+                         label=f"{entry['pair'][0]} | {entry['pair'][1]}")
+        handles.append(h)
     for ax, name in zip(axes[:2], ("sample", "line")):
         ax.axhline(0.0, color="k", lw=0.6)
         ax.set_xlabel("line (right image of the pair)")
         ax.set_ylabel(f"{name} offset, px (faded: before)")
         ax.set_title(f"{name} seam offset")
-    if seams:
-        axes[0].legend(fontsize=7, loc="best")
     if residual_rms:
-        names = list(residual_rms)
-        before = [residual_rms[n][0] for n in names]
-        after = [residual_rms[n][1] for n in names]
-        xs = np.arange(len(names))
-        axes[2].bar(xs - 0.2, before, 0.4, color="#bbbbbb", label="before")
-        axes[2].bar(xs + 0.2, after, 0.4, color="#1f4fd1", label="after")
-        axes[2].set_xticks(xs)
-        axes[2].set_xticklabels(names, rotation=90, fontsize=7)
-        axes[2].set_yscale("log")
-        axes[2].set_ylabel("planar RMS residual, px")
-        axes[2].set_title("residuals per CCD and band")
-        axes[2].legend(fontsize=7)
+        _residual_bars(axes[2], residual_rms)
     fig.suptitle(title)
-    fig.tight_layout()
-    return _save(fig, path)
+    bottom = 0.0
+    if handles:          # below the panels, outside every axes: one entry (and colour) per pair
+        bottom = min(0.45, (0.22 * legend_rows + 0.15) / fig.get_figheight())
+        fig.legend(handles=handles, loc="lower center", ncol=min(4, len(handles)), fontsize=7, frameon=False,
+                   title="overlap (left | right image): after; faded: before", title_fontsize=7)
+    fig.tight_layout(rect=(0.0, bottom, 1.0, 1.0))
+    return fig
+
+
+def _residual_bars(ax, residual_rms) -> None:
+    names = list(residual_rms)
+    xs = np.arange(len(names))
+    ax.bar(xs - 0.2, [residual_rms[n][0] for n in names], 0.4, color="#bbbbbb", label="before")
+    ax.bar(xs + 0.2, [residual_rms[n][1] for n in names], 0.4, color="#1f4fd1", label="after")
+    ax.set_xticks(xs)
+    ax.set_xticklabels(names, rotation=90, fontsize=7)
+    ax.set_yscale("log")
+    ax.set_ylabel("planar RMS residual, px (grey: before, blue: after)")
+    ax.set_title("residuals per CCD and band")
 
 
 # ----------------------------------------------------------------------------------------------------------------

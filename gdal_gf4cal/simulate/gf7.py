@@ -33,7 +33,6 @@ from __future__ import annotations
 from contextlib import closing, contextmanager
 import contextvars
 from dataclasses import asdict, dataclass, fields, replace
-import json
 import os
 from typing import Optional
 
@@ -233,8 +232,8 @@ class SubCCDCamera:
                    d["coef_x_px"], d["coef_y_px"], d["lin_x_px"], d["lin_y_px"], d["offset_px"], d.get("piece"),
                    d.get("name", ""), d.get("notes", ""))
 
-    def to_json(self, path) -> str:
-        return write_json_atomic(path, self.to_dict())
+    def to_json(self, path, overwrite: bool = False) -> str:
+        return write_json_atomic(path, self.to_dict(), overwrite=overwrite)
 
 
 # -------------------------------------------------------------------------------------------------- builder

@@ -240,7 +240,7 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
         _add_crop_and_observations(truth, scene, windows, out_dir, gcps, observation_options, written)
         truth["elapsed_s"] = time.perf_counter() - t0
         truth_path = os.path.join(out_dir, "truth.json")
-        write_json_atomic(truth_path, truth)
+        write_json_atomic(truth_path, truth, overwrite=True)
         report(progress, 1.0, "scene written")
         return SceneResult(scene, out_dir, results, truth_path, dem_path, time.perf_counter() - t0, windows)
     except (CancelledError, Gf4calError, OSError, ValueError, KeyboardInterrupt):
@@ -322,14 +322,14 @@ def _write_image(scene: SimScene, im: SimImage, d: str, g, windows, render_optio
     with warnings.catch_warnings():
         # geopandas warns when writing an empty table (a tiny crop may contain no GCP); that is fine.
         warnings.simplefilter("ignore", UserWarning)
-        write_gcps(g, paths["gcps_csv"])
-        write_gcps(g, paths["gcps_gpkg"])
+        write_gcps(g, paths["gcps_csv"], overwrite=True)
+        write_gcps(g, paths["gcps_gpkg"], overwrite=True)
     written += [paths["gcps_csv"], paths["gcps_gpkg"]]
     grid = check_grid(im, scene.dem, check_grid_n)
     _write_csv(grid, paths["check_grid"])
     written.append(paths["check_grid"])
     for key_, cam in (("camera_current", im.current.camera), ("camera_true", im.true.camera)):
-        cam.to_json(paths[key_])
+        cam.to_json(paths[key_], overwrite=True)
     written += [paths["camera_current"], paths["camera_true"]]
     return ImageResult(im.name, d, rpc, rep, g, grid, paths)
 

@@ -13,13 +13,12 @@ from ..camera import LookAngleModel
 from ..crop import image_rpc, paired_rpc_files, product_rpc
 from ..errors import GCPError, InputOverwriteError
 from ..lookangle import recalibrate_rpc
-from ..outputs import OutputSet
+from ..outputs import OutputSet, scene_stem
 from ..report import write_report_json
 from ..rpc_fit import fit_rpc_from_model
 from ..rpc_io import rpc_file_format, write_rpb, write_rpc_vrt
 from ._common import _open_image, cancel_check, collect_warnings, finish_report
 from .block import image_keys
-from .calibrate import _scene_stem
 
 
 def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: bool = False,
@@ -45,7 +44,7 @@ def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: boo
     if not scenes:
         raise GCPError("no scene given; name the scenes (images or RPC files) to recalibrate")
     out = os.fspath(out_dir)
-    stems = [_scene_stem(s) for s in scenes]
+    stems = [scene_stem(s) for s in scenes]
     if len(set(stems)) != len(stems):
         raise InputOverwriteError("two scenes have the same name; recalibrate them into different folders")
     rpc_files = paired_rpc_files(scenes, rpcs)

@@ -14,9 +14,10 @@ from ..gcp import read_gcps, validate_gcps
 from ..outputs import OutputSet, check_vector
 from ..plausibility import check_gcps_against
 from ..progress import report as _report
-from ..report import footprint_from_rpc, plot_residuals, write_report_json, write_residuals_gpkg
+from ..report import plot_residuals, write_report_json, write_residuals_gpkg
 from ..rpc import RPCModel
 from ._common import declare_report_outputs, cancel_check, collect_warnings, finish_report, is_path
+from .ortho import scene_footprint
 
 
 def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[str] = None,
@@ -81,7 +82,7 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
         if residuals:
             footprint = None
             if image_size is not None:
-                footprint = footprint_from_rpc(rpc, image_size, h=float(rpc.height_off))
+                footprint = scene_footprint(rpc, image_size, dem_obj)         # on the DEM when given
             write_residuals_gpkg(table, outs.tmp("residuals"), footprint=footprint, before=("res_sample", "res_line"),
                                  after=None, title="RPC accuracy", cancelled=outs.cancelled)
             outs.set_check("residuals", check_vector({"gcps": len(table)}))

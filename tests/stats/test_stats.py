@@ -63,6 +63,42 @@ def test_accuracy_by_role_is_the_one_report_shape():
     assert rep["control"]["after"]["line"]["max"] == 0.0
 
 
+class _Grid:
+    """A sensor of 10,000 px per degree on both axes at the equator (line down = south): 1 px = 11.132 m."""
+
+    height_range = (0.0, 100.0)
+
+    def project(self, lon, lat, h):
+        return np.asarray(lon, float) * 1e4, -np.asarray(lat, float) * 1e4
+
+
+class _GridWithJacobian(_Grid):
+    def project_jacobian(self, lon, lat, h):
+        jac = np.zeros(np.shape(lon) + (2, 3))
+        jac[..., 0, 0], jac[..., 1, 1] = 1e4, -1e4
+        return jac
+
+
+@pytest.mark.parametrize("model", [_Grid(), _GridWithJacobian()])
+def test_accuracy_by_role_takes_residuals_to_the_ground_through_the_model(model):
+    """The one accuracy_by_role (compensation re-exports it): ``rpc=`` gives ce90_m through the model's ground
+    Jacobian (analytic or central differences). At the equator 1e-4 deg of longitude is 11.132 m (WGS84 a)."""
+    import pandas as pd
+    from gdal_gf4cal import compensation
+    from gdal_gf4cal.stats import accuracy_by_role
+    assert compensation.accuracy_by_role is accuracy_by_role
+    n = 10
+    tab = pd.DataFrame({"role": ["check"] * n, "outlier": [False] * n, "lon": np.linspace(0, 1e-3, n),
+                        "lat": np.zeros(n), "h": np.zeros(n), "res_sample_before": np.full(n, 3.0),
+                        "res_line_before": np.full(n, -4.0), "res_sample_after": np.full(n, 1.0),
+                        "res_line_after": np.zeros(n)})
+    rep = accuracy_by_role(tab, model, roles=("check",))["check"]
+    m_per_px = 2 * np.pi * 6378137.0 / 360.0 * 1e-4
+    assert rep["after"]["ce90_m"] == pytest.approx(m_per_px, rel=1e-6)
+    north_m_per_px = 6378137.0 * (1 - 0.00669437999014) * np.pi / 180.0 * 1e-4  # meridian radius a (1 - e^2)
+    assert rep["before"]["ce90_m"] == pytest.approx(np.hypot(3 * m_per_px, 4 * north_m_per_px), rel=1e-6)
+
+
 def test_one_geodesy_helper_gives_the_wgs84_radii():
     """Issue 10: one set of ellipsoid radii (gdal_gf4cal.geodesy), used by compensation and intersection."""
     from gdal_gf4cal import geodesy
