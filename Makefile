@@ -17,12 +17,13 @@ export PROJ_DATA := /usr/share/proj
 export PYTHONWARNINGS :=
 DEMO_OUT ?= demo_out
 
-.PHONY: help system venv install demo test test-fast test-engine test-qgis plugin bench fuzz clean
+.PHONY: help system venv install demo test test-fast test-engine test-qgis lint plugin bench fuzz clean
 
 help:
 	@echo "make demo   - install what is missing, then run the GF4 look-angle calibration demo"
 	@echo "make test   - install what is missing, then run every test (QGIS ones included)"
-	@echo "make test-fast - the inner loop: engine tests not marked slow (no QGIS)"
+	@echo "make test-fast - the inner loop: lint (ruff), then engine tests not marked slow (no QGIS)"
+	@echo "make lint   - ruff (pinned, installed into .venv) with the rules of pyproject.toml"
 	@echo "make plugin - build dist/gdal_gf4cal_plugin.zip and build/plugin/gdal_gf4cal_plugin/"
 	@echo "make bench  - run the benchmarks under bench/"
 	@echo "make fuzz   - fuzz the RPC readers for long (FUZZ_CASES=200000 FUZZ_SEED=... to change)"
@@ -58,7 +59,19 @@ demo: install
 test: install
 	$(PY) -m pytest -q -p no:cacheprovider tests
 
-test-fast: install
+# ruff, pinned, installed into the venv only (a wheel without dependencies: nothing of Debian's is replaced; the
+# numpy constraint is passed anyway). One stamp per version, so changing RUFF_VERSION reinstalls it.
+RUFF_VERSION := 0.6.9
+RUFF_STAMP   := $(VENV)/.ruff-$(RUFF_VERSION)
+
+$(RUFF_STAMP): | $(STAMP)
+	$(PY) -m pip install -q --no-deps "ruff==$(RUFF_VERSION)" -c $(VENV)/constraints.txt
+	@touch $(RUFF_STAMP)
+
+lint: install $(RUFF_STAMP)
+	$(VENV)/bin/ruff check --no-cache gdal_gf4cal processing_provider tests bench tools
+
+test-fast: install lint
 	$(PY) -m pytest -q -p no:cacheprovider tests --ignore=tests/qgis -m "not slow"
 
 test-engine: install

@@ -18,6 +18,8 @@ import threading
 from contextlib import contextmanager
 from typing import Iterator, Optional, Type
 
+from osgeo import gdal, ogr, osr
+
 from .errors import Gf4calError
 
 _LOCK = threading.Lock()
@@ -26,7 +28,6 @@ _SAVED: tuple = ()
 
 
 def _modules():
-    from osgeo import gdal, ogr, osr
     return gdal, ogr, osr
 
 
@@ -60,7 +61,6 @@ def gdal_exceptions() -> Iterator[None]:
 
     Usable as a decorator too (:func:`with_gdal_exceptions`). Nested and concurrent scopes are safe.
     """
-    from osgeo import gdal
     _enter()
     gdal.PushErrorHandler("CPLQuietErrorHandler")    # per thread; popped in the same thread below
     try:
@@ -82,7 +82,6 @@ def with_gdal_exceptions(func):
 @contextmanager
 def quiet() -> Iterator[None]:
     """Silence GDAL's error handler (nothing printed on stderr) inside the block; errors still raise."""
-    from osgeo import gdal
     gdal.PushErrorHandler("CPLQuietErrorHandler")
     try:
         yield
@@ -111,7 +110,6 @@ def open_raster(path, *, what: str = "raster", error: Type[Gf4calError] = Gf4cal
     """Open ``path`` with GDAL (exceptions scoped to the call) or raise ``error`` with one line that says what.
 
     Returns the ``gdal.Dataset`` (never ``None``)."""
-    from osgeo import gdal
     path = os.fspath(path)
     flags = gdal.OF_RASTER | (gdal.OF_UPDATE if update else 0)
     with gdal_exceptions():
@@ -130,7 +128,6 @@ def open_raster(path, *, what: str = "raster", error: Type[Gf4calError] = Gf4cal
 
 def try_open_raster(path) -> Optional[object]:
     """Open ``path`` quietly as a raster; ``None`` when GDAL cannot (no message, no exception)."""
-    from osgeo import gdal
     with gdal_exceptions():
         try:
             with quiet():
@@ -141,7 +138,6 @@ def try_open_raster(path) -> Optional[object]:
 
 def open_vector(path, *, what: str = "vector file", error: Type[Gf4calError] = Gf4calError, update: bool = False):
     """Open ``path`` with OGR (exceptions scoped to the call) or raise ``error`` with one line; the dataset."""
-    from osgeo import gdal
     path = os.fspath(path)
     flags = gdal.OF_VECTOR | (gdal.OF_UPDATE if update else 0)
     with gdal_exceptions():

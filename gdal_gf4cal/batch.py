@@ -32,11 +32,11 @@ from .errors import CancelledError, GCPError, Gf4calError
 from .executors import SerialExecutor, dask_client, map_ordered
 from .lookangle import recalibrate_rpc
 from .outputs import OutputSet, atomic_output
-from .progress import report
+from .outputs import scene_stem  # noqa: F401  (batch.scene_stem: the name of a scene's outputs)
+from .progress import cancel_check, report
 from .report.json import report_text     # strict JSON: no NaN, absent values left out (as report.json)
 from .rpc import RPCModel
 from .rpc_io import rpc_file_format, write_rpb, write_rpc_vrt
-from .workflows._common import cancel_check
 from .workflows.collect import collect_gcps_file
 from .workflows.refine import check_refine_options, refine_rpc
 
@@ -83,12 +83,6 @@ def expand_scenes(items: Sequence) -> List[str]:
             add(it)
     seen = set()
     return [s for s in out if not (s in seen or seen.add(s))]
-
-
-def scene_stem(path: str) -> str:
-    """The scene's name for its outputs: the file name without the extension (dotted product names kept)."""
-    from .workflows.calibrate import _scene_stem
-    return _scene_stem(path)
 
 
 @dataclass(frozen=True)

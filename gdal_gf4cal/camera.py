@@ -27,8 +27,9 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 
 from .atomic import atomic_output
+from .outputs import check_output_path
 from .basis import lookangle_cubic, lookangle_cubic_derivatives
-from .errors import Gf4calError, InputOverwriteError
+from .errors import Gf4calError
 
 MODEL_NAME = "lookangle-cubic"
 N_TERMS = 10
@@ -270,14 +271,12 @@ class LookAngleModel:
         except (TypeError, ValueError) as exc:
             raise CameraFormatError(f"{source}: {exc}") from None
 
-    def to_json(self, path, overwrite: bool = True) -> str:
+    def to_json(self, path, overwrite: bool = False) -> str:
         """Write the camera file atomically (temporary file in the same folder, then ``os.replace``).
 
         Raises :class:`~gdal_gf4cal.errors.InputOverwriteError` if ``path`` exists and ``overwrite`` is false.
         """
-        path = os.fspath(path)
-        if not overwrite and os.path.exists(path):
-            raise InputOverwriteError(f"{path} exists; choose another output")
+        path = check_output_path(path, overwrite=overwrite)
         with atomic_output(path) as tmp, open(tmp, "w") as fh:
             json.dump(self.to_dict(), fh, indent=2)
             fh.write("\n")

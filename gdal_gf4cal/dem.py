@@ -10,16 +10,20 @@ EPSG:4326+5773, as GDAL's RPC transformer does by default); ``geoid=False`` uses
 """
 from __future__ import annotations
 
+import copy
 import logging
 import os
 from collections import OrderedDict
 from typing import Optional, Tuple, Union
 
 import numpy as np
+import pyproj
+from osgeo import gdal, osr
+from scipy.ndimage import map_coordinates, maximum_filter
 
+from ._gdal import with_gdal_exceptions
 from .errors import DEMError
 from .estimation import normal_solve
-from ._gdal import with_gdal_exceptions
 from .geoid import declared_geoid, grid_path, proj_search_dirs
 
 log = logging.getLogger(__name__)
@@ -59,7 +63,7 @@ class DEM:
         elif isinstance(geoid, str) and geoid.strip().lower() == "auto":
             geoid = None           # what the DEM's CRS declares
         self._geoid_name = geoid
-        self._geoid = _geoid_transformer(geoid) if geoid not in (None, False) else None
+        self._geoid = geoid_transformer(geoid) if geoid not in (None, False) else None
         self._tile = int(tile_size)
         self._cache: "OrderedDict[Tuple[int, int], np.ndarray]" = OrderedDict()
         self._cache_tiles = int(cache_tiles)
@@ -67,7 +71,6 @@ class DEM:
             raise ValueError("nodata must be 'error', 'nan' or a height in metres")
         if path is None:
             return
-        from osgeo import gdal, osr
         try:
             self._ds = gdal.Open(str(path))
         except RuntimeError as exc:
@@ -102,11 +105,10 @@ class DEM:
                 log.info("DEM %s: its CRS declares %s heights; converting them to ellipsoidal heights", path,
                          declared.upper())
                 self._geoid_name = declared
-                self._geoid = _geoid_transformer(declared, source=str(path))
+                self._geoid = geoid_transformer(declared, source=str(path))
         self._to_dem = None
         geographic_wgs84 = srs.IsGeographic() and srs.GetAuthorityCode("GEOGCS") == "4326"
         if not geographic_wgs84:
-            import pyproj
             self._to_dem = pyproj.Transformer.from_crs("EPSG:4326", pyproj.CRS.from_wkt(wkt), always_xy=True)
         # Geographic DEMs: longitudes are compared modulo 360 (see :meth:`_wrap_lon`), so a DEM in the 0..360
         # convention or one crossing the antimeridian serves points given in -180..180, and the reverse.
@@ -181,7 +183,6 @@ class DEM:
             raise ValueError("nodata must be 'error', 'nan' or a height in metres")
         if nodata == self.nodata_policy and type(nodata) is type(self.nodata_policy):
             return self
-        import copy
         other = copy.copy(self)
         other.nodata_policy = nodata
         return other
@@ -377,7 +378,6 @@ class DEM:
         r = 1 << max(0, int(np.ceil(np.log2(max(radius_px, 1)))))
         key = (r, slope)
         if self._local_max.get(key) is None:
-            from scipy.ndimage import maximum_filter
             if self._whole is None:
                 self._load_whole()
             z = self._whole
@@ -623,7 +623,6 @@ class DEM:
         py = np.asarray(py, dtype=float).ravel()
         n = px.size
         if W < 2 or H < 2:        # degenerate one-row/column raster: scipy handles the edge modes
-            from scipy.ndimage import map_coordinates
             coords = np.vstack([np.nan_to_num(py, nan=-1e9), np.nan_to_num(px, nan=-1e9)])
             out = map_coordinates(self._whole, coords, order=1, mode="nearest", prefilter=False)
             with np.errstate(invalid="ignore"):
@@ -703,7 +702,6 @@ def _bilinear(block: np.ndarray, lx, ly, fx, fy) -> np.ndarray:
     SciPy's compiled ``map_coordinates`` (order 1) does the gather and weighting in one pass; a NaN neighbour
     (no-data) with a non-zero weight gives NaN, as it should.
     """
-    from scipy.ndimage import map_coordinates
     coords = np.empty((2, lx.size))
     np.add(ly, fy, out=coords[0])
     np.add(lx, fx, out=coords[1])
@@ -756,12 +754,11 @@ def _bilinear_flat(flat, W, H, px, py, z, gx=None, gy=None):
     return z
 
 
-def _geoid_transformer(geoid, source=None):
+def geoid_transformer(geoid, source=None):
     """A pyproj transformer adding the geoid undulation N: h_ellipsoidal = H_geoid + N (lon, lat in degrees).
 
     The grid is found by :func:`gdal_gf4cal.geoid.grid_path` (PROJ's current and legacy grid names).
     """
-    import pyproj
     grid = grid_path(geoid, source=source)
     try:
         # vgridshift computes Z + multiplier * N in the forward direction; PROJ wants radians for the grid lookup.

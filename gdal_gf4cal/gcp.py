@@ -1,6 +1,7 @@
 """Ground control point tables: one schema for the whole project (DESIGN.md "GCP table schema").
 
-A GCP table is a :class:`geopandas.GeoDataFrame` in EPSG:4326 whose geometry is the ground point, with columns
+A GCP table is a :class:`pandas.DataFrame` (no geometry: :func:`to_geodataframe` adds the EPSG:4326 ground point
+for export), with columns
 
 ``id`` (str), ``lon``, ``lat`` (degrees WGS84), ``h`` (ellipsoidal metres), ``sample``, ``line`` (pixels, GDAL
 convention: centre of the first pixel at 0.5), ``role`` (``"control"`` or ``"check"``), ``sigma`` (px, a priori
@@ -19,14 +20,16 @@ from typing import Optional
 
 import numpy as np
 
-from .atomic import atomic_output
-from .errors import GCPError, InputOverwriteError
-# The schema lives with the observation table (this table is its one-image view); re-exported here.
-from .observations import REQUIRED, ROLES, SCHEMA, _to_geodataframe, fill_heights, make_gcps, validate_gcps
 from . import gcp_formats
+from .atomic import atomic_output
+from .errors import GCPError
+
+# The schema lives with the observation table (this table is its one-image view); re-exported here.
+from .observations import REQUIRED, ROLES, SCHEMA, fill_heights, make_gcps, to_geodataframe, validate_gcps
+from .outputs import check_output_path
 
 __all__ = ["REQUIRED", "SCHEMA", "ROLES", "make_gcps", "validate_gcps", "fill_heights", "read_gcps", "write_gcps",
-           "split_roles"]
+           "split_roles", "to_geodataframe"]
 
 
 def read_gcps(path, *, dem=None, layer: Optional[str] = None, need_height: bool = True,
@@ -61,7 +64,7 @@ def read_gcps(path, *, dem=None, layer: Optional[str] = None, need_height: bool 
         raise GCPError(f"cannot read GCPs from {path}: {str(exc).splitlines()[0]}") from None
 
 
-def write_gcps(gdf, path, *, layer: str = "gcps", overwrite: bool = True, format: Optional[str] = None,
+def write_gcps(gdf, path, *, layer: str = "gcps", overwrite: bool = False, format: Optional[str] = None,
                image: Optional[str] = None) -> str:
     """Write a GCP table, atomically, as ``.csv``, ``.gpkg``, ``.geojson``, QGIS ``.points`` or ASP ``.gcp``.
 
@@ -71,9 +74,7 @@ def write_gcps(gdf, path, *, layer: str = "gcps", overwrite: bool = True, format
     orthority). Raises :class:`~gdal_gf4cal.errors.InputOverwriteError` if ``path`` exists and ``overwrite`` is
     false.
     """
-    path = os.fspath(path)
-    if not overwrite and os.path.exists(path):
-        raise InputOverwriteError(f"{path} exists; choose another output or allow overwriting")
+    path = check_output_path(path, overwrite=overwrite)
     ext = os.path.splitext(path)[1].lower()
     fmt = (format or {".csv": "csv", ".gpkg": "gpkg", ".geojson": "geojson", ".json": "geojson",
                       ".points": "points", ".gcp": "asp"}.get(ext, "")).lower()
@@ -91,9 +92,9 @@ def write_gcps(gdf, path, *, layer: str = "gcps", overwrite: bool = True, format
             df = gdf.drop(columns="geometry") if "geometry" in gdf.columns else gdf
             df.to_csv(tmp, index=False)   # shortest repr: floats read back identical
         elif fmt == "gpkg":
-            _to_geodataframe(gdf.drop(columns="geometry", errors="ignore")).to_file(tmp, layer=layer, driver="GPKG")
+            to_geodataframe(gdf).to_file(tmp, layer=layer, driver="GPKG")
         else:
-            _to_geodataframe(gdf.drop(columns="geometry", errors="ignore")).to_file(tmp, driver="GeoJSON")
+            to_geodataframe(gdf).to_file(tmp, driver="GeoJSON")
     return path
 
 

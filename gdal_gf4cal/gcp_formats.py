@@ -1,6 +1,6 @@
 """GCP file formats (ours and other tools'), and role assignment (METHODS §4, §6).
 
-Everything returns the project's one GCP schema (DESIGN.md): a GeoDataFrame in EPSG:4326 with ``id, lon, lat, h,
+Everything returns the project's one GCP schema (DESIGN.md): a DataFrame (WGS84 degrees) with ``id, lon, lat, h,
 sample, line, role, sigma`` (image coordinates in GDAL's convention, centre of the first pixel at 0.5).
 
 * QGIS Georeferencer ``.points`` files (``mapX,mapY,sourceX,sourceY,enable,...``, optional ``#CRS: WKT`` line):
@@ -32,15 +32,31 @@ Role assignment: :func:`assign_roles` (``--check-fraction``, seeded, spread over
 """
 from __future__ import annotations
 
+import json
 import os
 import re
+from io import StringIO
 from typing import Iterator, Optional, Tuple
 
+import geopandas as gpd
 import numpy as np
+import pandas as pd
+import pyproj
+from osgeo import gdal
 
 from ._gdal import with_gdal_exceptions
-from .errors import GCPError, InputOverwriteError
-from .observations import fill_heights, gcp_view, validate_gcps, validate_observations
+from .atomic import atomic_output
+from .errors import GCPError
+from .observations import (
+    _resolve_image,
+    fill_heights,
+    gcp_view,
+    image_ids,
+    read_observations,
+    validate_gcps,
+    validate_observations,
+)
+from .outputs import check_output_path
 
 __all__ = ["read_gcps_any", "read_points_file", "read_raster_gcps", "read_gcp_layer", "read_gcp_csv",
            "read_orthority_geojson", "read_asp_gcp", "read_otb_points", "write_points_file",
@@ -56,7 +72,6 @@ _LAYER_EXT = (".gpkg", ".geojson", ".json", ".shp", ".fgb", ".kml", ".gml", ".sq
 
 
 def _crs(value):
-    import pyproj
     try:
         return pyproj.CRS.from_user_input(value)
     except Exception as exc:  # pyproj raises CRSError and others
@@ -65,7 +80,6 @@ def _crs(value):
 
 def _to_lonlat(x, y, crs):
     """Map coordinates in ``crs`` -> (lon, lat) WGS84 degrees (always x=east, y=north order)."""
-    import pyproj
     crs = _crs(crs)
     if crs.is_geographic and crs.equals(pyproj.CRS.from_epsg(4326), ignore_axis_order=True):
         return np.asarray(x, float), np.asarray(y, float)
@@ -113,7 +127,6 @@ def read_points_file(path, *, dem=None, crs=None, image: Optional[str] = None, d
     disabled : ``"drop"`` (default) or ``"check"``: what to do with rows whose ``enable`` is 0.
     pixel_convention : of ``sourceX, sourceY`` (default ``"corner"``, QGIS's); see :func:`pixel_offset`.
     """
-    import pandas as pd
     path = os.fspath(path)
     if not os.path.exists(path):
         raise GCPError(f"GCP file not found: {path}")
@@ -133,7 +146,6 @@ def read_points_file(path, *, dem=None, crs=None, image: Optional[str] = None, d
         body.append(s)
     if not body or not body[0].lower().startswith("mapx"):
         raise GCPError(f"{path}: not a QGIS .points file (expected a 'mapX,mapY,sourceX,sourceY,...' header)")
-    from io import StringIO
     df = pd.read_csv(StringIO("\n".join(body)))
     df.columns = [c.strip().lower() for c in df.columns]
     src_x = "sourcex" if "sourcex" in df.columns else "pixelx"
@@ -171,7 +183,6 @@ def _source_to_pixel(sx, sy, image):
     """QGIS layer coordinates -> GDAL pixel coordinates (via the image's geotransform if it has one)."""
     if image is None:
         return sx, -sy
-    from osgeo import gdal
     try:
         ds = gdal.Open(str(image))
     except RuntimeError as exc:
@@ -198,8 +209,6 @@ def read_raster_gcps(path, *, dem=None, crs=None, pixel_convention: Optional[str
     ``GCPZ`` is used as the ellipsoidal height unless every GCP has Z = 0 (GDAL's "no height"), in which case the
     heights come from ``dem``.
     """
-    import pandas as pd
-    from osgeo import gdal
     path = os.fspath(path)
     try:
         ds = gdal.Open(path)
@@ -250,8 +259,6 @@ def read_gcp_layer(path, *, layer: Optional[str] = None, dem=None, sample_field:
     height: ``height_field`` or a field named ``h/height/z/elevation``, else the geometry's Z, else the DEM.
     ``pixel_convention`` of the image fields: default ``"corner"`` (GDAL's), see :func:`pixel_offset`.
     """
-    import geopandas as gpd
-    import pandas as pd
     path = os.fspath(path)
     try:
         gdf = gpd.read_file(path, layer=layer) if layer else gpd.read_file(path)
@@ -352,7 +359,6 @@ def parse_columns(columns) -> list:
 
 def _to_float(col):
     """Text -> float with Python's exact parser; anything non-numeric becomes NaN (reported by validation)."""
-    import pandas as pd
     try:
         return pd.Series(np.asarray(col, dtype=str).astype(float), index=col.index)
     except ValueError:
@@ -366,7 +372,6 @@ def read_gcp_csv(path, *, columns=None, dem=None, crs=None, pixel_convention: Op
     ``;`` or blanks; a header line, if any, is skipped). ``x, y`` columns are ground coordinates in ``crs``.
     ``pixel_convention`` of the file's sample/line: default ``"corner"`` (GDAL's), see :func:`pixel_offset`.
     """
-    import pandas as pd
     path = os.fspath(path)
     off = pixel_offset(pixel_convention, "corner")
     if columns is None:
@@ -417,7 +422,6 @@ def read_otb_points(path, *, dem=None, pixel_convention: Optional[str] = None, n
     an image without georeferencing its origin at the centre of the first pixel, (0.5, 0.5), so the default
     ``pixel_convention`` is ``"corner"`` (GDAL's); give ``"center"`` for files written with centres at integers.
     """
-    import pandas as pd
     path = os.fspath(path)
     rows = [ln.split() for ln in _data_lines(path)]
     if not rows:
@@ -441,7 +445,6 @@ def read_otb_points(path, *, dem=None, pixel_convention: Optional[str] = None, n
 # orthority GCP GeoJSON
 # ----------------------------------------------------------------------------------------------------------------
 def _is_orthority(path) -> bool:
-    import json
     try:
         with open(path, encoding="utf-8") as f:
             doc = json.load(f)
@@ -459,9 +462,7 @@ def read_orthority_geojson(path, *, pixel_convention: Optional[str] = None):
     pixel (default ``pixel_convention="center"``: GDAL's = ji + 0.5), ``filename`` = the image's file name
     (becomes ``image_id``), optional ``id`` and ``info``. Other properties become columns.
     """
-    import json
 
-    import pandas as pd
     path = os.fspath(path)
     try:
         with open(path, encoding="utf-8") as f:
@@ -491,7 +492,6 @@ def read_orthority_geojson(path, *, pixel_convention: Optional[str] = None):
 def write_orthority_geojson(gcps, path, *, image: Optional[str] = None, overwrite: bool = False) -> str:
     """Write a GCP table as orthority's GCP GeoJSON (``ji`` = GDAL sample/line - 0.5, ``filename`` = ``image``'s
     file name; ``role``, ``sigma`` and ``info`` as extra properties). Heights are required (3-D points)."""
-    import json
     g = validate_gcps(gcps, need_height=True, source="GCPs for orthority")
     name = _image_name(image, gcps, "orthority GeoJSON")
     feats = [{"type": "Feature",
@@ -515,10 +515,7 @@ def _image_name(image, gcps, what):
 
 
 def _write_text(path, text, overwrite):
-    from .atomic import atomic_output
-    path = os.fspath(path)
-    if not overwrite and os.path.exists(path):
-        raise InputOverwriteError(f"{path} exists; choose another output or allow overwriting (--overwrite)")
+    path = check_output_path(path, overwrite=overwrite)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with atomic_output(path) as tmp:
         with open(tmp, "w", encoding="utf-8") as f:
@@ -540,7 +537,6 @@ def read_asp_gcp(path, *, pixel_convention: Optional[str] = None):
     (m) become ``sigma_lat_m, sigma_lon_m, sigma_h_m`` and the image sigmas ``sigma`` (the mean of the two). ASP
     puts pixel centres at integers: default ``pixel_convention="center"`` (GDAL's = col/row + 0.5).
     """
-    import pandas as pd
     path = os.fspath(path)
     if not os.path.exists(path):
         raise GCPError(f"GCP file not found: {path}")
@@ -578,13 +574,12 @@ def write_asp_gcp(gcps, path, *, image: Optional[str] = None, overwrite: bool = 
     ASP wants integer ids: other ids are written as 1..n and recorded in ``# gdal_gf4cal id`` comments, which
     :func:`read_asp_gcp` reads back. Ground sigmas come from ``sigma_lat_m, sigma_lon_m, sigma_h_m`` (else 1 m).
     """
-    import pandas as pd
     if "point_id" in gcps.columns:
         t = validate_observations(gcps, need_height=True, source="observations for ASP")
         t = t[t["kind"] == "gcp"]
     else:
         g = validate_gcps(gcps, need_height=True, source="GCPs for ASP")
-        t = pd.DataFrame(g.drop(columns="geometry")).rename(columns={"id": "point_id"})
+        t = pd.DataFrame(g).rename(columns={"id": "point_id"})
         t["image_id"] = _image_name(image, gcps, "an ASP .gcp file")
     pids = list(dict.fromkeys(t["point_id"].astype(str)))
     numeric = all(re.fullmatch(r"\d+", p) for p in pids)
@@ -617,7 +612,6 @@ def write_points_file(gcps, path, *, overwrite: bool = False) -> str:
     disabled (``enable = 0``: read them back with ``disabled="check"``). The format has no height: reading it
     back takes heights from a DEM.
     """
-    import pyproj
     g = validate_gcps(gcps, need_height=False, source="GCPs for .points")
     wkt = pyproj.CRS.from_epsg(4326).to_wkt()
     rows = [f"{x!r},{y!r},{s!r},{-ln!r},{1 if r == 'control' else 0},0,0,0"
@@ -670,7 +664,6 @@ def read_gcps_any(path, dem=None, *, layer: Optional[str] = None, crs=None, imag
                            "e.g. id,sample,line,lon,lat,h")
         header = {t.lower() for t in first}
         if "point_id" in header and header & {"image", "image_id"}:
-            from .observations import read_observations
             table = read_observations(path, need_height=False)
             if pixel_offset(pixel_convention, "corner"):
                 table = table.assign(sample=table["sample"] + 0.5, line=table["line"] + 0.5)
@@ -693,7 +686,6 @@ def _view(table, image, path, dem, need_height):
     A file of one image is that image's, whatever ``image`` is called (a VRT or a renamed copy of the scene);
     in a file of several, ``image`` picks by name.
     """
-    from .observations import _resolve_image, image_ids
     ids = image_ids(table)
     image_id = ids[0] if len(ids) == 1 else _resolve_image(table, image, path)
     return _finish(gcp_view(table, image_id), path, dem, need_height)

@@ -13,6 +13,9 @@ from __future__ import annotations
 import os
 from typing import List, Optional, Sequence, Tuple
 
+import pyproj
+from osgeo import gdal
+
 from .errors import DEMError
 
 #: PROJ grid names of each geoid, current name first (PROJ >= 7 / proj-data), then the legacy names.
@@ -52,7 +55,6 @@ class GeoidGridMissing(DEMError):
 def proj_search_dirs() -> List[str]:
     """PROJ's data directories, in PROJ's order: ``PROJ_DATA`` (or ``PROJ_LIB``), pyproj's data dir, the user's
     PROJ dir, ``/usr/share/proj`` (existing folders, each once)."""
-    import pyproj
     dirs: List[str] = []
     for env in ("PROJ_DATA", "PROJ_LIB"):
         dirs += [d for d in os.environ.get(env, "").split(os.pathsep) if d]
@@ -101,7 +103,6 @@ def declared_geoid(path: str) -> Optional[str]:
     GDAL's GeoTIFF reader reports the vertical part of a CRS only with ``GTIFF_REPORT_COMPD_CS=YES``. A vertical
     datum we cannot convert is an error: using those heights as ellipsoidal would be silently wrong.
     """
-    from osgeo import gdal
     gdal.SetThreadLocalConfigOption("GTIFF_REPORT_COMPD_CS", "YES")
     try:
         ds = gdal.Open(path)

@@ -36,14 +36,18 @@ from __future__ import annotations
 import os
 from typing import Iterable, Mapping, Optional, Sequence
 
+import geopandas as gpd
 import numpy as np
+import pandas as pd
 
 from .atomic import atomic_output
-from .errors import GCPError, InputOverwriteError
+from .errors import GCPError
+from .outputs import check_output_path
 
 __all__ = ["OBS_SCHEMA", "KINDS", "OUTLIER_LEVELS", "SCHEMA", "REQUIRED", "ROLES",
            "validate_observations", "read_observations", "write_observations", "gcp_view", "from_gcps",
-           "from_gcp_views", "image_ids", "select_images", "flag_outliers", "make_gcps", "validate_gcps", "fill_heights"]
+           "from_gcp_views", "image_ids", "select_images", "flag_outliers", "make_gcps", "validate_gcps", "fill_heights",
+           "to_geodataframe"]
 
 # ----------------------------------------------------------------------------------------------------------------
 # the one-image view: the GCP table schema (DESIGN.md "GCP table schema")
@@ -54,8 +58,7 @@ ROLES = ("control", "check")
 
 
 def make_gcps(lon, lat, h, sample, line, *, ids: Optional[Sequence] = None, role="control", sigma=1.0, **extra):
-    """Build a GCP GeoDataFrame from arrays (extra keyword arrays become columns)."""
-    import pandas as pd
+    """Build a GCP table (a DataFrame in the GCP schema) from arrays (extra keyword arrays become columns)."""
     lon = np.asarray(lon, dtype=float).ravel()
     n = lon.size
     data = {
@@ -71,74 +74,20 @@ def make_gcps(lon, lat, h, sample, line, *, ids: Optional[Sequence] = None, role
     }
     for key, value in extra.items():
         data[key] = np.broadcast_to(np.asarray(value), (n,)).copy() if np.ndim(value) == 0 else np.asarray(value)
-    df = pd.DataFrame(data)
-    return _to_geodataframe(df)
+    return pd.DataFrame(data)
 
 
-def _point_array(lon: np.ndarray, lat: np.ndarray):
-    """The ground points as a GeoPandas geometry array (EPSG:4326). With shapely >= 2 vectorised; with shapely 1.8
-    (Debian 12) one ``Point`` per GCP stored element by element, because ``points_from_xy`` there probes every
-    point's deprecated array interface (three times slower: 1e6 GCPs took ~18 s of CPU)."""
-    import geopandas as gpd
-    import shapely
-    if int(shapely.__version__.split(".")[0]) >= 2:
-        return gpd.points_from_xy(lon, lat, crs="EPSG:4326")
-    import gc
-    from geopandas.array import GeometryArray
-    arr = np.empty(len(lon), dtype=object)
-    collecting = gc.isenabled()
-    gc.disable()        # 1e6 new objects, none in a cycle: the collector's passes over them cost ~25 %
-    try:
-        for i, p in enumerate(_points_18(lon, lat)):
-            arr[i] = p
-    finally:
-        if collecting:
-            gc.enable()
-    return GeometryArray(arr, crs="EPSG:4326")
-
-
-def _points_18(lon, lat, from_buffer: bool = True):
-    """Shapely 1.8 ``Point(x, y)`` objects made with GEOS directly and the three attributes its constructor
-    sets, without its per-call argument inspection and attribute-deprecation checks: each coordinate sequence
-    copied from the (x, y) buffer (GEOS >= 3.10: two GEOS calls a point) or else set value by value (the four
-    calls ``Point(x, y)`` makes). 2x faster; the geometries are the same (tested)."""
-    import ctypes
-    from shapely.geometry import Point
-    from shapely.geos import lgeos
-    new, put = Point.__new__, object.__setattr__
-    lib, handle = getattr(lgeos, "_lgeos", None), getattr(lgeos, "geos_handle", None)
-    from_buffer = getattr(lib, "GEOSCoordSeq_copyFromBuffer_r", None) if handle and from_buffer else None
-    if from_buffer is not None:
-        from_buffer.restype = ctypes.c_void_p
-        from_buffer.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint, ctypes.c_int, ctypes.c_int]
-        make = lib.GEOSGeom_createPoint_r
-        make.restype, make.argtypes = ctypes.c_void_p, [ctypes.c_void_p, ctypes.c_void_p]
-        xy = np.ascontiguousarray(np.column_stack([np.asarray(lon, float), np.asarray(lat, float)]))
-        base = xy.ctypes.data
-        for addr in range(base, base + 16 * len(xy), 16):
-            p = new(Point)
-            put(p, "__geom__", make(handle, from_buffer(handle, addr, 1, 0, 0)))
-            put(p, "_is_empty", False)
-            put(p, "_ndim", 2)
-            yield p
-        del xy
-        return
-    create, set_x = lgeos.GEOSCoordSeq_create, lgeos.GEOSCoordSeq_setX
-    set_y, make = lgeos.GEOSCoordSeq_setY, lgeos.GEOSGeom_createPoint
-    for x, y in zip(np.asarray(lon, float).tolist(), np.asarray(lat, float).tolist()):
-        cs = create(1, 2)
-        set_x(cs, 0, x)
-        set_y(cs, 0, y)
-        p = new(Point)
-        put(p, "__geom__", make(cs))
-        put(p, "_is_empty", False)
-        put(p, "_ndim", 2)
-        yield p
-
-
-def _to_geodataframe(df):
-    import geopandas as gpd
-    geometry = _point_array(df["lon"].to_numpy(float), df["lat"].to_numpy(float))
+def to_geodataframe(table):
+    """The table as a :class:`geopandas.GeoDataFrame` in EPSG:4326 with a point geometry from ``lon, lat`` (none
+    where they are not finite: tie points not yet estimated), for export. GCP and observation tables are plain
+    DataFrames: the geometry is built here only (public ``geopandas.points_from_xy``), so that a 1e6-point job
+    does not pay for 1e6 shapely objects it never uses."""
+    df = pd.DataFrame(table).drop(columns="geometry", errors="ignore")
+    lon, lat = df["lon"].to_numpy(float), df["lat"].to_numpy(float)
+    geometry = gpd.points_from_xy(lon, lat, crs="EPSG:4326")
+    missing = ~(np.isfinite(lon) & np.isfinite(lat))
+    if missing.any():
+        geometry[missing] = None
     return gpd.GeoDataFrame(df, geometry=geometry, crs="EPSG:4326")
 
 
@@ -174,7 +123,6 @@ def fill_heights(gcps, dem, *, source: str = "GCPs"):
 def _clean_roles(role):
     """The role column filled (``control``), as text, stripped and lower-cased: on its distinct values when they
     are all text (one GCP table of 1e6 rows has one or two roles), else value by value."""
-    import pandas as pd
     codes, uniques = pd.factorize(role, use_na_sentinel=True)
     if all(type(u) is str for u in uniques):
         clean = np.array([u.strip().lower() for u in uniques] + ["control"], dtype=object)
@@ -186,9 +134,8 @@ def validate_gcps(gdf, *, source: str = "GCPs", dem=None, need_height: bool = Tr
     """Check and complete a GCP table: required columns, finite numbers, ids, roles, sigma, heights.
 
     A missing or NaN height is taken from ``dem`` (a :class:`gdal_gf4cal.dem.DEM`, geoid-aware) when given,
-    else it is an error. Returns a new GeoDataFrame following the schema.
+    else it is an error. Returns a new DataFrame following the schema (:func:`to_geodataframe` for a geometry).
     """
-    import pandas as pd
     df = pd.DataFrame(gdf).copy()
     df.columns = [str(c).strip() for c in df.columns]
     lower = {c.lower(): c for c in df.columns}
@@ -241,7 +188,7 @@ def validate_gcps(gdf, *, source: str = "GCPs", dem=None, need_height: bool = Tr
     if "geometry" in df.columns:
         df = df.drop(columns="geometry")
     ordered = list(SCHEMA) + [c for c in df.columns if c not in SCHEMA]
-    return _to_geodataframe(df[ordered].reset_index(drop=True))
+    return df[ordered].reset_index(drop=True)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -278,7 +225,22 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
         non-positive sigma, duplicate ``(point_id, image_id)``, a tie point seen by only one image, a GCP whose
         ground coordinates differ between its rows, a GCP without lon/lat.
     """
-    import pandas as pd
+    df = _renamed_observation_columns(table, source)
+    if len(df) == 0:
+        raise GCPError(f"{source}: no observations")
+    _check_ids_and_numbers(df, source)
+    gcp = _checked_kinds(df, source)
+    _check_points(df, gcp, source)
+    if gcp.any():
+        _check_gcp_ground(df, gcp, dem, need_height, source)
+    _check_roles_sigma_flags(df, source)
+    ordered = list(OBS_SCHEMA) + [c for c in df.columns if c not in OBS_SCHEMA]
+    return df[ordered].reset_index(drop=True)
+
+
+def _renamed_observation_columns(table, source):
+    """A copy of the table without geometry, its column names stripped and brought to the schema's (any case,
+    aliases such as ``image``, ``id``, ``col``/``row``), the required columns checked."""
     df = pd.DataFrame(table).copy()
     if "geometry" in df.columns:
         df = df.drop(columns="geometry")
@@ -293,8 +255,11 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
     if missing:
         raise GCPError(f"{source}: missing column(s) {', '.join(missing)}; expected "
                        "point_id,image,sample,line[,lon,lat,h][,role][,sigma]")
-    if len(df) == 0:
-        raise GCPError(f"{source}: no observations")
+    return df
+
+
+def _check_ids_and_numbers(df, source) -> None:
+    """Ids as stripped text, never empty; coordinates numeric (in place), image positions finite."""
     for c in ("point_id", "image_id"):
         bad = df[c].isna() | (df[c].astype(str).str.strip() == "")
         if bad.any():
@@ -311,6 +276,11 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
                 raise GCPError(f"{source}: column {c} has a missing, non-numeric or infinite value "
                                f"(row {int(np.flatnonzero(bad)[0]) + 1})")
         df[c] = values
+
+
+def _checked_kinds(df, source) -> np.ndarray:
+    """The ``kind`` column filled (in place; blank or absent: ``gcp`` where lon/lat are given, else ``tie``) and
+    checked; returns the GCP rows' mask."""
     has_ground = np.isfinite(df["lon"].to_numpy()) & np.isfinite(df["lat"].to_numpy())
     inferred = np.where(has_ground, "gcp", "tie")
     if "kind" not in df.columns:
@@ -327,6 +297,11 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
                        "coordinates or make it a tie point")
     if ((df["lat"].abs() > 90) | (df["lon"].abs() > 360)).any():
         raise GCPError(f"{source}: lon/lat out of range; ground coordinates must be WGS84 degrees")
+    return gcp
+
+
+def _check_points(df, gcp, source) -> None:
+    """One observation per point and image, one kind per point, tie points seen by two images or more."""
     dup = df.duplicated(["point_id", "image_id"])
     if dup.any():
         r = df[dup].iloc[0]
@@ -341,24 +316,30 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
     if lone_tie.any():
         raise GCPError(f"{source}: tie point {df['point_id'].iloc[int(np.flatnonzero(lone_tie)[0])]!r} is seen by "
                        "only one image; a tie point needs two or more (drop it or give its lon/lat to make it a GCP)")
-    if gcp.any():
-        g = df[gcp]
-        grouped = g.groupby("point_id", sort=False)[["lon", "lat", "h"]]
-        spread = (grouped.max() - grouped.min()).fillna(0.0)       # NaN heights are filled below, not compared
-        incons = (spread.to_numpy() > 0).any(axis=1)
-        if incons.any():
-            raise GCPError(f"{source}: GCP {spread.index[incons][0]!r} has different lon/lat/h on its rows; "
-                           "one ground point has one set of coordinates")
-        h = df["h"].to_numpy()
-        if (gcp & ~np.isfinite(h)).any():
-            if dem is not None:
-                filled = fill_heights(df[gcp], dem, source=source)
-                h = h.copy()
-                h[gcp] = filled["h"].to_numpy(float)
-                df["h"] = h
-            elif need_height:
-                n = int(df.loc[gcp & ~np.isfinite(h), "point_id"].nunique())
-                raise GCPError(f"{source}: {n} GCP(s) without height; give h or a DEM (--dem) to take heights from")
+
+
+def _check_gcp_ground(df, gcp, dem, need_height, source) -> None:
+    """One set of ground coordinates per GCP; missing heights from the DEM (in place) or an error."""
+    grouped = df[gcp].groupby("point_id", sort=False)[["lon", "lat", "h"]]
+    spread = (grouped.max() - grouped.min()).fillna(0.0)       # NaN heights are filled below, not compared
+    incons = (spread.to_numpy() > 0).any(axis=1)
+    if incons.any():
+        raise GCPError(f"{source}: GCP {spread.index[incons][0]!r} has different lon/lat/h on its rows; "
+                       "one ground point has one set of coordinates")
+    h = df["h"].to_numpy()
+    if (gcp & ~np.isfinite(h)).any():
+        if dem is not None:
+            filled = fill_heights(df[gcp], dem, source=source)
+            h = h.copy()
+            h[gcp] = filled["h"].to_numpy(float)
+            df["h"] = h
+        elif need_height:
+            n = int(df.loc[gcp & ~np.isfinite(h), "point_id"].nunique())
+            raise GCPError(f"{source}: {n} GCP(s) without height; give h or a DEM (--dem) to take heights from")
+
+
+def _check_roles_sigma_flags(df, source) -> None:
+    """Roles (filled ``control``), positive sigmas (filled 1 px) and the outlier flags as booleans, in place."""
     if "role" not in df.columns:
         df["role"] = "control"
     df["role"] = df["role"].fillna("control").astype(str).str.strip().str.lower().replace("", "control")
@@ -375,12 +356,9 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
         df[c] = _as_bool(df[c], c, source)
     if "outlier_level" in df.columns:
         df["outlier_level"] = df["outlier_level"].fillna("").astype(str)
-    ordered = list(OBS_SCHEMA) + [c for c in df.columns if c not in OBS_SCHEMA]
-    return df[ordered].reset_index(drop=True)
 
 
 def _as_bool(col, name, source):
-    import pandas as pd
     if col.dtype == bool:
         return col
     text = col.astype(str).str.strip().str.lower()
@@ -416,7 +394,7 @@ def _resolve_image(table, image_id, source="observations") -> str:
 
 
 def gcp_view(table, image_id: Optional[str] = None, *, kinds: Iterable[str] = ("gcp",)):
-    """The GCP table (one-image view) of ``image_id``: a GeoDataFrame in the GCP schema, extra columns kept.
+    """The GCP table (one-image view) of ``image_id``: a DataFrame in the GCP schema, extra columns kept.
 
     ``image_id`` may be the id itself or a path/file name whose stem matches one id; it may be omitted when the
     table holds one image. Only rows of ``kinds`` are returned (tie points have no ground coordinates until they
@@ -432,7 +410,7 @@ def gcp_view(table, image_id: Optional[str] = None, *, kinds: Iterable[str] = ("
     df = rows.drop(columns=[c for c in ("image_id", "kind", "geometry") if c in rows.columns])
     df = df.rename(columns={"point_id": "id"})
     ordered = list(SCHEMA) + [c for c in df.columns if c not in SCHEMA]
-    return _to_geodataframe(df[ordered].reset_index(drop=True))
+    return df[ordered].reset_index(drop=True)
 
 
 def from_gcps(gdf, image_id: str, *, kind: str = "gcp"):
@@ -441,11 +419,10 @@ def from_gcps(gdf, image_id: str, *, kind: str = "gcp"):
     ``image_id`` is the image's id (its file name, as in the ``OBS`` files). The GCP table is validated first
     (:func:`validate_gcps`, heights may be NaN).
     """
-    import pandas as pd
     if kind not in KINDS:
         raise GCPError(f"kind must be 'gcp' or 'tie', not {kind!r}")
     g = validate_gcps(gdf, need_height=False)
-    df = pd.DataFrame(g.drop(columns="geometry")).rename(columns={"id": "point_id"})
+    df = pd.DataFrame(g).rename(columns={"id": "point_id"})
     df.insert(1, "image_id", str(image_id))
     df.insert(2, "kind", kind)
     ordered = list(OBS_SCHEMA) + [c for c in df.columns if c not in OBS_SCHEMA]
@@ -457,7 +434,6 @@ def from_gcp_views(views: Mapping[str, object], *, validate: bool = True):
 
     GCP ids shared between images become the same ``point_id`` (one ground point, several observations).
     """
-    import pandas as pd
     if not views:
         raise GCPError("no GCP tables to combine")
     table = pd.concat([from_gcps(g, image_id) for image_id, g in views.items()], ignore_index=True)
@@ -500,7 +476,6 @@ def read_observations(path, *, images: Optional[Iterable[str]] = None, dem=None,
         points left with a single observation are dropped. Every image named must have observations.
     dem, need_height : see :func:`validate_observations`.
     """
-    import pandas as pd
     path = os.fspath(path)
     if not os.path.exists(path):
         raise GCPError(f"observation file not found: {path}")
@@ -511,7 +486,6 @@ def read_observations(path, *, images: Optional[Iterable[str]] = None, dem=None,
             df = pd.read_csv(path, skipinitialspace=True, comment="#", dtype=text,   # ids keep leading zeros
                              float_precision="round_trip")                 # floats read back identical
         elif ext in (".gpkg",):
-            import geopandas as gpd
             df = gpd.read_file(path, layer=layer) if layer else gpd.read_file(path)
             df = pd.DataFrame(df.drop(columns="geometry", errors="ignore"))
         else:
@@ -546,17 +520,12 @@ def write_observations(table, path, *, overwrite: bool = False, layer: str = "ob
     ext = os.path.splitext(path)[1].lower()
     if ext not in (".csv", ".gpkg"):
         raise GCPError(f"cannot write observations as {ext!r}; use .csv or .gpkg")
-    if not overwrite and os.path.exists(path):
-        raise InputOverwriteError(f"{path} exists; choose another output or allow overwriting (--overwrite)")
+    check_output_path(path, overwrite=overwrite)
     table = validate_observations(table, need_height=False)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with atomic_output(path) as tmp:
         if ext == ".csv":
             table.to_csv(tmp, index=False)
         else:
-            import geopandas as gpd
-            lon, lat = table["lon"].to_numpy(float), table["lat"].to_numpy(float)
-            geom = gpd.points_from_xy(lon, lat)
-            geom[~(np.isfinite(lon) & np.isfinite(lat))] = None       # tie points not yet estimated
-            gpd.GeoDataFrame(table, geometry=geom, crs="EPSG:4326").to_file(tmp, layer=layer, driver="GPKG")
+            to_geodataframe(table).to_file(tmp, layer=layer, driver="GPKG")
     return path

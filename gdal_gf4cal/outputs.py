@@ -36,11 +36,15 @@ import uuid
 from contextlib import contextmanager
 from typing import Callable, Dict, Iterable, Iterator, List, Optional, Sequence
 
-from .errors import Gf4calError, InputOverwriteError
+import numpy as np
+
+from ._gdal import gdal_exceptions, open_raster, open_vector
+from .errors import CancelledError, Gf4calError, InputOverwriteError
 
 __all__ = ["OutputSet", "atomic_output", "fix_mode", "same_file", "rpc_stem", "check_not_a_shadowing_sidecar",
            "count_features", "check_raster", "check_vector", "check_raster_size", "remove_stale_temporaries",
-           "process_tempdir", "raster_has_data", "MAX_RASTER_PIXELS"]
+           "process_tempdir", "raster_has_data", "MAX_RASTER_PIXELS", "check_output_path",
+           "scene_stem"]
 
 # Set by the CLI's SIGTERM/SIGINT handler: a run that has been told to stop never commits its outputs, even when the
 # KeyboardInterrupt was swallowed on the way (e.g. raised inside a GDAL callback that ignores Python exceptions).
@@ -110,6 +114,19 @@ def rpc_stem(path) -> str:
     return os.path.splitext(low)[0]
 
 
+def scene_stem(path) -> str:
+    """A scene's name for its outputs: ``scene.tif`` / ``scene.RPB`` / ``scene_RPC.TXT`` -> ``scene``.
+
+    Only the last extension goes: product names carry dots (``GF4_PMS_E88.5_N32.5_...``) and two scenes must not
+    collapse to one output name.
+    """
+    name = os.path.basename(os.fspath(path))
+    stem = os.path.splitext(name)[0] if not name.startswith(".") else name
+    if stem.upper().endswith("_RPC"):
+        stem = stem[:-4]
+    return stem or "scene"
+
+
 def check_not_a_shadowing_sidecar(out_path, sources: Sequence) -> None:
     """Refuse an ``.RPB`` / ``_RPC.TXT`` output that GDAL would read as the RPC of an input image.
 
@@ -141,7 +158,6 @@ def check_not_a_shadowing_sidecar(out_path, sources: Sequence) -> None:
 # ------------------------------------------------------------------------------------------------ checks
 def count_features(path) -> Dict[str, int]:
     """``{layer name: feature count}`` of a vector file, re-opened with OGR (a :class:`Gf4calError` if it cannot)."""
-    from ._gdal import open_vector
     ds = open_vector(path, what="written vector file")
     counts = {}
     for i in range(ds.GetLayerCount()):
@@ -168,7 +184,6 @@ def check_raster(bands: Optional[int] = None, *, require_data: bool = False,
     ``require_data`` it must hold a valid pixel (:func:`raster_has_data`), else the run fails naming
     ``empty_reason``."""
     def check(path: str) -> None:
-        from ._gdal import open_raster
         ds = open_raster(path, what="written raster")
         n = ds.RasterCount
         empty = require_data and not raster_has_data(ds)
@@ -191,8 +206,6 @@ def raster_has_data(ds, sample: int = 1024) -> bool:
     alpha, a value is not 0 (GDAL's warper fills with 0). GDAL's approximate min/max (a sample of blocks) answers
     for most rasters; only a raster that looks empty there is read decimated to at most ``sample`` x ``sample``
     (nearest neighbour) per band."""
-    import numpy as np
-    from ._gdal import gdal_exceptions
     for i in range(1, ds.RasterCount + 1):
         band = ds.GetRasterBand(i)
         try:
@@ -314,12 +327,33 @@ def _remove(path: str) -> None:
     for p in [path] + [path + c for c in _COMPANIONS]:
         try:
             if os.path.isdir(p) and not os.path.islink(p):
-                import shutil
                 shutil.rmtree(p, ignore_errors=True)
             elif os.path.lexists(p):
                 os.unlink(p)
         except OSError:
             pass
+
+
+def _check_not_an_input(path: str, inputs: Sequence[str]) -> None:
+    for i in inputs:
+        if same_file(path, i):
+            raise InputOverwriteError(f"output {path!r} is an input; choose a new output path")
+    check_not_a_shadowing_sidecar(path, inputs)
+
+
+def check_output_path(path, *, overwrite: bool = False, inputs: Iterable = (), directory: bool = False) -> str:
+    """The one write rule for an output path (:meth:`OutputSet.declare` and every library writer use it): not one
+    of ``inputs`` (also through links and shadowing sidecars), not an existing file unless ``overwrite``, not a
+    folder unless ``directory``. Raises :class:`~gdal_gf4cal.errors.InputOverwriteError` (one line: the path and
+    what to do); returns the path as text."""
+    path = os.fspath(path)
+    _check_not_an_input(path, [os.fspath(i) for i in inputs if isinstance(i, (str, os.PathLike)) and os.fspath(i)])
+    if os.path.lexists(path) and not overwrite:
+        raise InputOverwriteError(f"output {path!r} exists; remove it, choose a new path or pass --overwrite "
+                                  "(overwrite=True)")
+    if os.path.isdir(path) and not directory:
+        raise InputOverwriteError(f"output {path!r} is a folder; give a file name")
+    return path
 
 
 class _Output:
@@ -370,10 +404,7 @@ class OutputSet:
                 self._check_against_inputs(o.path, [os.fspath(path)])
 
     def _check_against_inputs(self, path: str, inputs: Sequence[str]) -> None:
-        for i in inputs:
-            if same_file(path, i):
-                raise InputOverwriteError(f"output {path!r} is an input; choose a new output path")
-        check_not_a_shadowing_sidecar(path, inputs)
+        _check_not_an_input(path, inputs)
 
     def declare(self, key: str, path, *, check: Optional[Callable[[str], None]] = None,
                 directory: bool = False) -> str:
@@ -396,12 +427,7 @@ class OutputSet:
                         os.path.abspath(other.path)).lower():
                 raise InputOverwriteError(f"outputs {other.key} and {key} are the same file {path!r}; give each "
                                           "output its own path")
-        self._check_against_inputs(path, self.inputs)
-        if os.path.lexists(path) and not self.overwrite:
-            raise InputOverwriteError(f"output {path!r} exists; remove it, choose a new path or pass --overwrite "
-                                      "(overwrite=True)")
-        if os.path.isdir(path) and not directory:
-            raise InputOverwriteError(f"output {path!r} is a folder; give a file name")
+        check_output_path(path, overwrite=self.overwrite, inputs=self.inputs, directory=directory)
         if path.startswith("/vsi"):
             tmp = path
         else:
@@ -520,7 +546,6 @@ class OutputSet:
 
     def commit(self) -> Dict[str, str]:
         """Check every written temporary, then rename them all into place (restoring replaced files on failure)."""
-        from .errors import CancelledError
         todo = [o for o in self._outputs.values() if not o.path.startswith("/vsi")]
         for o in todo:
             if not os.path.lexists(o.tmp):
@@ -573,7 +598,6 @@ class OutputSet:
                     _remove(os.path.join(path, name))
             elif before is None and os.path.isdir(path) and os.path.realpath(path) in {
                     os.path.realpath(d) for d in self._created_dirs}:
-                import shutil
                 shutil.rmtree(path, ignore_errors=True)
         self._folders = [] if self.committed else self._folders
         for d in reversed(self._created_dirs):

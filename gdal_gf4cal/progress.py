@@ -15,6 +15,16 @@ log = logging.getLogger(__name__)
 ProgressCallback = Callable[[float, str], None]
 
 
+def cancel_check(progress):
+    """A callable for :class:`~gdal_gf4cal.outputs.OutputSet` ``cancelled=``: asks ``progress`` (QGIS feedback
+    adapters expose ``is_cancelled()`` / ``isCanceled()``)."""
+    for name in ("is_cancelled", "isCanceled"):
+        f = getattr(progress, name, None)
+        if callable(f):
+            return f
+    return None
+
+
 def report(progress: Optional[ProgressCallback], fraction: float, message: str = "") -> None:
     """Call ``progress`` if given (clamping ``fraction`` to [0, 1])."""
     if progress is not None:

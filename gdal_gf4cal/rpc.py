@@ -22,9 +22,9 @@ from typing import Dict, Optional, Tuple, Union
 
 import numpy as np
 
-from ._rpc_poly import (_CHUNK, _EXPONENTS, DERIVATIVE_MATRICES, TERMS, monomial_derivatives,  # noqa: F401
-                        monomials)
+from ._rpc_poly import _CHUNK, _EXPONENTS, DERIVATIVE_MATRICES, TERMS, monomial_derivatives, monomials  # noqa: F401
 from .errors import RPCFormatError
+from .rpc_io import read_rpc_metadata, write_rpb, write_rpc_txt
 from .sensor import GDAL_PIXEL_OFFSET, LocalizationStats, SensorModelMixin, pixel_shift  # noqa: F401
 
 log = logging.getLogger(__name__)
@@ -154,7 +154,6 @@ class RPCModel(SensorModelMixin):
 
         The format is detected by content as well as by name (see :mod:`gdal_gf4cal.rpc_io`).
         """
-        from .rpc_io import read_rpc_metadata
         return cls.from_gdal_metadata(read_rpc_metadata(path), source=str(path))
 
     def to_gdal_metadata(self) -> Dict[str, str]:
@@ -174,12 +173,10 @@ class RPCModel(SensorModelMixin):
 
     def write_rpb(self, path, overwrite: bool = False) -> "Path":
         """Write a ``.RPB`` sidecar atomically (see :func:`gdal_gf4cal.rpc_io.write_rpb`)."""
-        from .rpc_io import write_rpb
         return write_rpb(self, path, overwrite=overwrite)
 
     def write_rpc_txt(self, path, overwrite: bool = False) -> "Path":
         """Write a ``_RPC.TXT`` sidecar atomically (see :func:`gdal_gf4cal.rpc_io.write_rpc_txt`)."""
-        from .rpc_io import write_rpc_txt
         return write_rpc_txt(self, path, overwrite=overwrite)
 
     # ------------------------------------------------------------------ properties

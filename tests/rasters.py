@@ -35,13 +35,13 @@ def write_tif(path, arr, gt=None, epsg=None, nodata=None, rpc: Optional[RPCModel
 def write_geoid_dem(src, dst, vertical_epsg: int) -> None:
     """The ellipsoidal DEM ``src`` as heights above EGM96 (H = h - N), declared as EPSG:4326+``vertical_epsg``."""
     from osgeo import gdal, osr
-    from gdal_gf4cal.dem import _geoid_transformer
+    from gdal_gf4cal.dem import geoid_transformer
     ds = gdal.Open(str(src))
     gt = ds.GetGeoTransform()
     h = ds.ReadAsArray().astype(float)
     W, H = ds.RasterXSize, ds.RasterYSize
     lon, lat = np.meshgrid(gt[0] + gt[1] * (np.arange(W) + 0.5), gt[3] + gt[5] * (np.arange(H) + 0.5))
-    _, _, hg = _geoid_transformer("egm96").transform(lon.ravel(), lat.ravel(), h.ravel(), direction="INVERSE")
+    _, _, hg = geoid_transformer("egm96").transform(lon.ravel(), lat.ravel(), h.ravel(), direction="INVERSE")
     out = gdal.GetDriverByName("GTiff").Create(str(dst), W, H, 1, gdal.GDT_Float64)
     out.SetGeoTransform(gt)
     srs = osr.SpatialReference()

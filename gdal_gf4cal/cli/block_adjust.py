@@ -27,7 +27,9 @@ def add_parser(parser):
                                                                     "from this orthophoto")
     parser.add_argument("--bands-of", nargs="+", action="extend", metavar="IMAGE=REFIMAGE",
                         help="IMAGE is another band of the CCD whose reference-band image is REFIMAGE (relative "
-                             "calibration: interior only, reference exterior fixed)")
+                             "calibration: interior only, reference exterior fixed); default: derived from the RPCs "
+                             "(an image whose footprint coincides with an earlier-given image's is another band of "
+                             "that CCD)")
     from . import add_rpc_pairs_argument
     add_rpc_pairs_argument(parser)
     parser.add_argument("--solver", choices=("simultaneous", "alternating"), default="simultaneous",
@@ -40,28 +42,16 @@ def add_parser(parser):
 
 
 def run(args) -> int:
+    # the engine is imported when the command runs, not when the CLI builds its parsers (start-up time)
     from ..progress import TextProgressBar
     from ..workflows import block_adjust
+    from ..workflows.block import summary_lines
     rep = block_adjust(args.images, dem=args.dem, geoid=args.geoid, gcps=args.gcps, ties=args.ties,
                        match_ties=args.match_ties, reference_ortho=args.reference_ortho, bands_of=args.bands_of,
                        solver=args.solver, out=args.out, overwrite=args.overwrite, progress=TextProgressBar(),
                        check_plausibility=not args.no_plausibility_check, rpcs=args.rpc)
-    for st in rep["stages"]:
-        print(f"{st['stage']} stage ({st['solver']}): {st['iterations']} iterations, "
-              f"{'converged' if st['converged'] else 'NOT converged'}, {st['n_tie_points']} tie points, "
-              f"reduced system {st['reduced_system_size']} unknowns, {st['n_rejected']} observations rejected")
-    for s in rep["seams"]:
-        if s.get("n"):
-            print(f"seam {s['pair'][0]} | {s['pair'][1]}: mean offset {s['before']['mean_px']:.3f} px before, "
-                  f"{s['after']['mean_px']:.3f} px after; largest along the overlap {s['before']['seam_max_px']:.3f} "
-                  f"-> {s['after']['seam_max_px']:.3f} px ({s['n']} tie points)")
-    for k, v in rep["band_to_band"].items():
-        if v["rms_px_after"] is not None:
-            print(f"band {k} vs {v['reference']}: tie RMS {v['rms_px_before']:.3f} -> {v['rms_px_after']:.3f} px")
-    if "solver_comparison" in rep:
-        c = rep["solver_comparison"]
-        print("solvers: " + "; ".join(f"{k} {v['iterations']} iterations" for k, v in c.items() if isinstance(v, dict))
-              + f"; largest prediction difference {c['max_prediction_difference_px']:.3g} px")
+    for line in summary_lines(rep):
+        print(line)
     print(f"wrote {len(rep['images'])} RPCs, calibration.json, report.json, residuals.gpkg, seams.png in "
           f"{rep['outputs']['report'].rsplit('/', 1)[0] if '/' in rep['outputs']['report'] else '.'}")
     from . import print_warnings

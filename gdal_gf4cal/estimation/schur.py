@@ -14,6 +14,7 @@ when ``p`` is large), then ``dx_p,i = N_pp,i^-1 (b_p,i - N_pg,i dx_g)``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import scipy.sparse as sp
@@ -41,6 +42,9 @@ class PointSolution:
     ok: np.ndarray
     dx_global: np.ndarray
     cov_global: np.ndarray
+    #: The reduced normal matrix ``S`` of the global parameters (unit weight) when the covariance was asked: for
+    #: :func:`~gdal_gf4cal.estimation.sigma0_and_cov`.
+    normal_global: Optional[np.ndarray] = None
 
 
 def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_min: float = 1e-30,
@@ -121,7 +125,7 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
     if covariance:
         cov_p = inv.copy()
         cov_p[ok] = inv_ok + np.einsum("nqi,ij,nrj->nqr", t, cov_g, t)
-    return PointSolution(dxp, cov_p, ok, dxg, cov_g)
+    return PointSolution(dxp, cov_p, ok, dxg, cov_g, s_dense if covariance else None)
 
 
 def _point_normals(jp, r, w, det_min: float):
@@ -216,4 +220,4 @@ def _solve_sparse(jp, r, w, npp, bp, ok, inv, jg, extra, covariance: bool) -> Po
         if tt is not None:
             t_ok = tt[ok]
             cov_p[ok] = inv[ok] + np.matmul(t_ok @ cov_g, t_ok.transpose(0, 2, 1))
-    return PointSolution(dxp, cov_p, ok, dxg, cov_g)
+    return PointSolution(dxp, cov_p, ok, dxg, cov_g, s_mat.toarray() if covariance else None)

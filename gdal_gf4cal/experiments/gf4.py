@@ -325,7 +325,7 @@ def _write_side_files(out_dir, scenes, new_rpcs, calib, camera_current, camera_t
     for key, cam in (("camera_current", camera_current), ("camera_true", camera_true),
                      ("camera_new", calib[CALIBRATION_SCENE]["rpc"].camera),
                      ("camera_new_rigorous", calib[CALIBRATION_SCENE]["rigorous"].camera)):
-        out[key] = cam.to_json(os.path.join(out_dir, f"{key}.json"))
+        out[key] = cam.to_json(os.path.join(out_dir, f"{key}.json"), overwrite=True)
     for name, s in scenes.items():
         out[f"{name}_rpb"] = str(s["rpc"].write_rpb(os.path.join(out_dir, f"{name}.RPB"), overwrite=True))
         out[f"{name}_recalibrated_rpb"] = str(new_rpcs[name]["rpc"].write_rpb(

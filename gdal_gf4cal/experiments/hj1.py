@@ -146,7 +146,7 @@ def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOIS
     if write_files:
         _report(progress, 0.92, "writing files")
         rpc.write_rpb(os.path.join(out_dir, "hj1.RPB"), overwrite=True)
-        write_gcps(gcps, os.path.join(out_dir, "gcps.csv"))
+        write_gcps(gcps, os.path.join(out_dir, "gcps.csv"), overwrite=True)
         _plot(os.path.join(out_dir, "hj1_cross_track_residuals.png"), gcps, basic_res, o3_res, W)
         rep["files"] = ["hj1.RPB", "gcps.csv", "hj1_cross_track_residuals.png", "report.json"]
     rep["elapsed_s"] = time.perf_counter() - t0

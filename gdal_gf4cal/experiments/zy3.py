@@ -131,7 +131,7 @@ def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOIS
     if write_files:
         for v in VIEWS:
             rpcs[v].write_rpb(os.path.join(out_dir, f"zy3_{v}.RPB"), overwrite=True)
-            write_gcps(field[v], os.path.join(out_dir, f"field_{v}.csv"))
+            write_gcps(field[v], os.path.join(out_dir, f"field_{v}.csv"), overwrite=True)
         rep["files"] = [f"zy3_{v}.RPB" for v in VIEWS] + [f"field_{v}.csv" for v in VIEWS] + ["report.json"]
     rep["elapsed_s"] = time.perf_counter() - t0
     if write_files:

@@ -9,10 +9,9 @@ from pathlib import Path
 from typing import Optional, Tuple, Union
 
 import numpy as np
+from pyproj import CRS, Transformer
 
 from ..errors import GCPError
-
-
 
 STANDARD_BEFORE = ("res_sample_before", "res_line_before")
 STANDARD_AFTER = ("res_sample_after", "res_line_after")
@@ -83,7 +82,6 @@ def _residual_pair(df, names) -> Optional[Tuple[np.ndarray, np.ndarray]]:
 
 
 def _transformer(crs):
-    from pyproj import CRS, Transformer
     crs = CRS.from_user_input(crs)
     if crs.equals(CRS.from_epsg(4326)):
         return crs, None

@@ -17,8 +17,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ._common import PathLike, _temp_path, _cleanup
-
+from ._common import PathLike, _cleanup, _temp_path
 
 # ----------------------------------------------------------------------------------------------------------------
 # report.json

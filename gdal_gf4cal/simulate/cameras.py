@@ -7,7 +7,6 @@ several sub-CCD cubics along the sample axis (GF7's three sub-CCDs per band, MET
 from __future__ import annotations
 
 import json
-import os
 from math import comb
 from typing import List, Sequence, Tuple
 
@@ -15,6 +14,7 @@ import numpy as np
 
 from ..atomic import atomic_output
 from ..camera import LookAngleModel, lookangle_terms
+from ..outputs import check_output_path
 
 #: Exponents (of s, of l) of the ten look-angle terms, in the camera module's order.
 TERM_EXPONENTS = [(0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2), (2, 1), (1, 2), (3, 0), (0, 3)]
@@ -111,8 +111,8 @@ class PiecewiseCamera:
         return cls(d["size"], [LookAngleModel.from_dict(p) for p in d["pieces"]], d["edges"], d.get("name", ""),
                    d.get("notes", ""))
 
-    def to_json(self, path) -> str:
-        return write_json_atomic(path, self.to_dict())
+    def to_json(self, path, overwrite: bool = False) -> str:
+        return write_json_atomic(path, self.to_dict(), overwrite=overwrite)
 
 
 def camera_from_dict(d: dict):
@@ -122,8 +122,8 @@ def camera_from_dict(d: dict):
     return LookAngleModel.from_dict(d)
 
 
-def write_json_atomic(path, obj) -> str:
-    path = os.fspath(path)
+def write_json_atomic(path, obj, overwrite: bool = False) -> str:
+    path = check_output_path(path, overwrite=overwrite)
     with atomic_output(path) as tmp, open(tmp, "w") as fh:
         json.dump(obj, fh, indent=2, default=_json_default)
         fh.write("\n")

@@ -6,7 +6,9 @@ import warnings
 from contextlib import contextmanager
 from typing import Any, Dict, Iterator, List, Optional, Tuple
 
-from .._gdal import try_open_raster
+from ..outputs import check_vector
+from ..progress import cancel_check  # noqa: F401  (re-exported: every workflow takes it from here)
+from ..scene import Scene, open_input  # noqa: F401  (Scene: the opened input the workflows pass around)
 
 
 def is_path(x) -> bool:
@@ -16,15 +18,10 @@ def is_path(x) -> bool:
 
 def _open_image(path) -> Tuple[Optional[Tuple[int, int]], List[str]]:
     """``((width, height), files)`` if GDAL opens ``path`` as a raster with pixels (``files``: the image and its
-    sidecars, all inputs), else ``(None, [path])`` (a standalone RPC file)."""
-    path = os.fspath(path)
-    low = path.lower()
-    if low.endswith((".rpb", "_rpc.txt", ".txt", ".json", ".geom")):
-        return None, [path]
-    ds = try_open_raster(path)
-    if ds is None or ds.RasterCount == 0 or ds.RasterXSize <= 1:
-        return None, [path]
-    return (ds.RasterXSize, ds.RasterYSize), [path] + list(ds.GetFileList() or [])
+    sidecars, all inputs), else ``(None, [path])`` (a standalone RPC file): :class:`~gdal_gf4cal.scene.Scene`'s
+    rules (:func:`~gdal_gf4cal.scene.open_input`)."""
+    _, size, files = open_input(path)
+    return size, files
 
 
 @contextmanager
@@ -52,20 +49,9 @@ def finish_report(rep: Dict[str, Any], warns: List[str]) -> Dict[str, Any]:
     return rep
 
 
-def cancel_check(progress):
-    """A callable for :class:`~gdal_gf4cal.outputs.OutputSet` ``cancelled=``: asks ``progress`` (QGIS feedback
-    adapters expose ``is_cancelled()`` / ``isCanceled()``)."""
-    for name in ("is_cancelled", "isCanceled"):
-        f = getattr(progress, name, None)
-        if callable(f):
-            return f
-    return None
-
-
 def declare_report_outputs(outs, *, residuals=None, plot=None, report=None) -> None:
     """Declare the optional outputs every estimating job shares: the residual GeoPackage (checked as a vector
     file), the residual plot and ``report.json`` (:class:`~gdal_gf4cal.outputs.OutputSet`)."""
-    from ..outputs import check_vector
     if residuals:
         outs.declare("residuals", residuals, check=check_vector())
     if plot:

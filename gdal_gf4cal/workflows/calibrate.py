@@ -8,22 +8,9 @@ import os
 from typing import Any, Dict
 
 from ..crop import product_rpc
-from ..outputs import OutputSet, check_vector
+from ..outputs import OutputSet, check_vector, scene_stem
 from ..dem import DEM
 from ._common import cancel_check, collect_warnings, finish_report, is_path
-
-
-def _scene_stem(path) -> str:
-    """``scene.tif`` / ``scene.RPB`` / ``scene_RPC.TXT`` -> ``scene``.
-
-    Only the last extension goes: product names carry dots (``GF4_PMS_E88.5_N32.5_...``) and two scenes must not
-    collapse to one output name.
-    """
-    name = os.path.basename(os.fspath(path))
-    stem = os.path.splitext(name)[0] if not name.startswith(".") else name
-    if stem.upper().endswith("_RPC"):
-        stem = stem[:-4]
-    return stem or "scene"
 
 
 def _check_outputs(paths, inputs, overwrite: bool) -> None:
@@ -64,7 +51,7 @@ def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, imag
         raise Gf4calError(f"max_condition {max_condition} makes no sense: a condition number is >= 1; give e.g. 1e6 "
                           "or leave it out")
     out = os.fspath(out_dir)
-    stem = _scene_stem(image if image is not None else rpc_path)
+    stem = scene_stem(image if image is not None else rpc_path)
     names = {"camera": "camera_new.json", "rpb": f"{stem}.RPB", "residuals_gpkg": "residuals.gpkg",
              "residuals_png": "residuals.png", "report": "report.json"}
     if image is not None:

@@ -124,7 +124,7 @@ def write_ellipsoidal_dem(dem_path: str, grid: str, bounds_lonlat, out_path: str
     """
     from osgeo import gdal
     import pyproj
-    from ..dem import _geoid_transformer
+    from ..dem import geoid_transformer
     from .._gdal import open_raster
     src = open_raster(dem_path, what="DEM", error=DEMError)
     gt = src.GetGeoTransform()
@@ -160,7 +160,7 @@ def write_ellipsoidal_dem(dem_path: str, grid: str, bounds_lonlat, out_path: str
     ok = np.isfinite(H.ravel())
     h = np.full(H.size, -9999.0)
     if np.any(ok):
-        _, _, h_ell = _geoid_transformer(grid).transform(np.asarray(plon)[ok], np.asarray(plat)[ok], H.ravel()[ok])
+        _, _, h_ell = geoid_transformer(grid).transform(np.asarray(plon)[ok], np.asarray(plat)[ok], H.ravel()[ok])
         h[ok] = h_ell
         if not np.all(np.isfinite(h[ok])):
             raise DEMError(f"the geoid grid {grid} does not cover the DEM around the image; use a global grid")

@@ -12,7 +12,6 @@ import numpy as np
 
 from .. import progress as _progress
 from ..compensation import apply_compensation, fit_compensation, ground_jacobian, ground_offsets_m
-from ..crop import image_rpc
 from ..dem import DEM
 from ..errors import GCPError
 from ..gcp import read_gcps, validate_gcps
@@ -24,7 +23,7 @@ from ..outputs import (OutputSet, check_not_a_shadowing_sidecar, check_raster, c
 from ..plausibility import MAX_UNCERTAINTY_PX, check_gcps_against, check_precision, correction_precision
 from ..report import plot_residuals, write_report_json, write_residuals_gpkg
 from ..rpc_io import write_rpb, write_rpc_txt, write_rpc_vrt
-from ._common import declare_report_outputs, _open_image, cancel_check, collect_warnings, finish_report, is_path
+from ._common import Scene, cancel_check, collect_warnings, declare_report_outputs, finish_report, is_path
 from .ortho import check_ortho_options, scene_footprint, warp_ortho
 
 # Old private names, kept for callers and tests that used them from compensation.py.
@@ -131,14 +130,15 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     """
     source = os.fspath(source)
     out = os.fspath(out)
-    kind, image_size, ortho_grid, outs = _prepare(
+    kind, scene, ortho_grid, outs = _prepare(
         source, out, gcps, dem, rpc, geoid, ortho, ortho_options, max_uncertainty_px=max_uncertainty_px,
         gcp_columns=gcp_columns, residuals=residuals, plot=plot, report=report, overwrite=overwrite, progress=progress)
+    image_size = scene.size
     warns: list = []
     with outs, collect_warnings(warns):
         _progress.report(progress, 0.0, "reading the RPC and GCPs")
         rpc, crop_note, dem_obj, table = _read_inputs(
-            source, rpc, gcps, dem, geoid, image_size, warns, check_plausibility=check_plausibility,
+            scene, rpc, gcps, dem, geoid, image_size, warns, check_plausibility=check_plausibility,
             check_fraction=check_fraction, seed=seed, layer=gcp_layer, crs=gcp_crs, columns=gcp_columns,
             pixel_convention=gcp_pixel_convention)
         _progress.report(progress, 0.1, "estimating the compensation")
@@ -155,7 +155,8 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
         if ortho is not None:
             rep["ortho"] = _write_ortho(outs, source, image_size, applied.rpc, dem, ortho_grid, ortho_options,
                                         _progress.scaled(progress, 0.9, 0.98))
-        _write_residual_outputs(outs, rpc, applied.rpc, result, image_size, dem_obj, residuals=residuals, plot=plot)
+        _write_residual_outputs(outs, rpc, applied.rpc, result, image_size, dem_obj, residuals=residuals,
+                                plot=plot)
         rep["outputs"] = outs.paths
         finish_report(rep, warns)
         if report:
@@ -167,15 +168,17 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
 
 def _prepare(source: str, out: str, gcps, dem, rpc, geoid, ortho, ortho_options, *, max_uncertainty_px,
              gcp_columns, **declare):
-    """Before any work: ``(kind, image_size, ortho_grid, outs)``, the output's kind, the image size (None for an
-    RPC file), the geoid grid of the ortho and the run's OutputSet; impossible outputs and options refused."""
+    """Before any work: ``(kind, scene, ortho_grid, outs)``, the output's kind, the opened input
+    (:class:`~gdal_gf4cal.workflows._common.Scene`), the geoid grid of the ortho and the run's OutputSet;
+    impossible outputs and options refused."""
     kind = output_kind(out)
     check_refine_options(max_uncertainty_px=max_uncertainty_px, gcp_columns=gcp_columns)
-    image_size, inputs = _open_image(source)
+    scene = Scene.open(source)
+    image_size, inputs = scene.size, list(scene.files)
     inputs += [os.fspath(x) for x in (gcps, dem, rpc) if is_path(x)]
     _check_outputs(source, kind, image_size, declare["residuals"])
     ortho_grid = None if ortho is None else _ortho_preflight(image_size, dem, geoid, ortho_options or {})
-    return kind, image_size, ortho_grid, _declare_outputs(inputs, out, ortho=ortho, **declare)
+    return kind, scene, ortho_grid, _declare_outputs(inputs, out, ortho=ortho, **declare)
 
 
 def _check_outputs(source: str, kind: str, image_size, residuals) -> None:
@@ -187,13 +190,14 @@ def _check_outputs(source: str, kind: str, image_size, residuals) -> None:
         raise GCPError(f"residuals are written as a GeoPackage: give a .gpkg path, not {os.fspath(residuals)!r}")
 
 
-def _read_inputs(source: str, rpc, gcps, dem, geoid, image_size, warns: list, *, check_plausibility: bool,
+def _read_inputs(scene: Scene, rpc, gcps, dem, geoid, image_size, warns: list, *, check_plausibility: bool,
                  check_fraction, seed: int, **reader):
     """``(rpc, crop_note, dem, table)``: the RPC, the DEM and the GCP table with its roles, the table checked
     against the RPC and the DEM (its warnings into ``warns`` at once) unless ``check_plausibility`` is off."""
-    rpc, crop_note = image_rpc(source, rpc)
+    scene = scene.with_rpc(rpc)
+    rpc, crop_note = scene.rpc, scene.note
     dem_obj = DEM.from_user_input(dem, geoid=geoid)
-    table = _read_table(gcps, dem_obj, source if image_size is not None else None, **reader)
+    table = _read_table(gcps, dem_obj, scene.path if image_size is not None else None, **reader)
     table = assign_roles(table, check_fraction, seed=seed)
     if check_plausibility:
         with collect_warnings(warns):         # now: the report written below lists them
@@ -266,10 +270,10 @@ def _fill_report(rep: Dict[str, Any], rpc, result, applied, precision, selection
 
 def _write_residual_outputs(outs, rpc, new_rpc, result, image_size, dem_obj, *, residuals, plot) -> None:
     """The residual GeoPackage (arrows as ground offsets through the original RPC, footprint of the new one on
-    the DEM, as the ortho) and the residual plot, into the OutputSet's temporaries, when asked for."""
+    the DEM) and the residual plot, into the OutputSet's temporaries, when asked for."""
     title = f"GCP residuals, {result.model.label}"
     if residuals:
-        fp = scene_footprint(new_rpc, image_size or rpc.image_size, dem_obj)
+        fp = scene_footprint(new_rpc, image_size or rpc.image_size, dem_obj)     # on the DEM, as the ortho
         write_residuals_gpkg(_with_ground_offsets(rpc, result.gcps), outs.tmp("residuals"), footprint=fp,
                              title=title, cancelled=outs.cancelled)   # a cancel mid-write stops it
         outs.set_check("residuals", check_vector({"gcps": len(result.gcps)}))

@@ -2,6 +2,7 @@
 registered (Wu et al., Jilin1-KF01A; the same inputs as ``gf4cal block-adjust``)."""
 from __future__ import annotations
 
+from typing import List
 
 from qgis.core import (
     QgsProcessing,
@@ -13,6 +14,7 @@ from qgis.core import (
     QgsProcessingParameterEnum,
     QgsProcessingParameterFile,
     QgsProcessingParameterFolderDestination,
+    QgsProcessingParameterMatrix,
     QgsProcessingParameterMultipleLayers,
     QgsProcessingParameterRasterLayer,
     QgsProcessingParameterString,
@@ -28,7 +30,24 @@ SOLVER_LABELS = ["Simultaneous (one sparse Gauss-Newton solve; recommended)",
 OBS_FILTER = "Observation tables (*.csv *.gpkg *.CSV *.GPKG);;All files (*.*)"
 
 
-split_bands_of = split_items
+def split_bands_of(cells) -> List[str]:
+    """BANDS_OF (a two-column table: band image, reference-band image; or ``IMAGE=REFIMAGE`` items, as text from
+    Python or qgis_process) -> ``["IMAGE=REFIMAGE", ...]``. A cell that is neither an item nor a table cell (e.g.
+    two names with a space) is passed on as it is, and the engine says how to write it."""
+    if isinstance(cells, str):
+        cells = [cells]
+    items, plain = [], []
+    for c in cells or []:
+        c = "" if c is None else str(c).strip()
+        if c in ("", "NULL"):
+            continue
+        if "=" in c:
+            items.extend(split_items(c))
+        else:
+            plain.append(c)
+    if len(plain) % 2 or any(split_items(c) != [c] for c in plain):
+        return items + plain
+    return items + [f"{a}={b}" for a, b in zip(plain[::2], plain[1::2])]
 
 
 class BlockAdjust(Gf4calAlgorithm):
@@ -60,7 +79,9 @@ class BlockAdjust(Gf4calAlgorithm):
         self._add(QgsProcessingParameterMultipleLayers(self.INPUT, self.tr("Images of the group (with RPCs)"),
                                                        QgsProcessing.TypeRaster),
                   "Every CCD image of the group, each with its RPC: the reference-band CCD images in their order "
-                  "across track (adjacent ones overlap), and the other bands' images (named in BANDS_OF). From Python or qgis_process, file paths.")
+                  "across track (adjacent ones overlap), and the other bands' images after them (paired with their CCD "
+                  "from the RPCs, or as BANDS_OF says). Separate views (stereo, other dates) are refused: use the "
+                  "bundle adjustment (gf4cal:bundleadjust). From Python or qgis_process, file paths.")
         self.add_dem_parameters(optional=False)
         self._add(QgsProcessingParameterFile(self.GCPS_FILE, self.tr("GCP observations (long table)"), optional=True,
                                              behavior=QgsProcessingParameterFile.File, fileFilter=OBS_FILTER),
@@ -79,11 +100,15 @@ class BlockAdjust(Gf4calAlgorithm):
         self._add(QgsProcessingParameterRasterLayer(self.REFERENCE_ORTHO, self.tr("Reference orthophoto"),
                                                     optional=True),
                   "Collect GCPs for the reference-band images by matching them against this orthophoto.")
-        self._add(QgsProcessingParameterString(self.BANDS_OF, self.tr("Bands of (IMAGE=REFIMAGE, ...)"),
-                                               optional=True, multiLine=True),
-                  "Which image is another band of which CCD: items IMAGE=REFIMAGE (the band image and the "
-                  "reference-band image of its CCD), separated by commas, semicolons or new lines, e.g. ccd1_green=ccd1_blue. "
-                  "These bands are calibrated relatively (interior only, reference exterior fixed).")
+        self._add(QgsProcessingParameterMatrix(self.BANDS_OF, self.tr("Bands of (optional: band image, reference-band "
+                                                                      "image of its CCD)"),
+                                               numberRows=0, hasFixedNumberRows=False, optional=True,
+                                               headers=[self.tr("Band image"), self.tr("Reference-band image")]),
+                  "Optional: which image is another band of which CCD, one row per band image (the band image and "
+                  "the reference-band image of its CCD, named as in the tables). Left empty, the pairing comes from "
+                  "the RPCs: an image whose footprint coincides with an earlier-listed image's is another band of "
+                  "that CCD. These bands are calibrated relatively (interior only, reference exterior fixed). From "
+                  "Python or qgis_process also IMAGE=REFIMAGE items, e.g. ccd1_green=ccd1_blue.")
         self.add_rpc_pairs_parameter()
         self._add(QgsProcessingParameterEnum(self.SOLVER, self.tr("Solver"), SOLVER_LABELS, defaultValue=0),
                   "How the group is solved.")
@@ -108,7 +133,9 @@ class BlockAdjust(Gf4calAlgorithm):
             self.addOutput(QgsProcessingOutputNumber(key, self.tr(label)))
 
     def run_algorithm(self, parameters, context, feedback, progress):
+        # the engine loads when the algorithm runs, not when QGIS loads the plugin
         from gdal_gf4cal.workflows import block_adjust
+        from gdal_gf4cal.workflows.block import summary_lines
 
         images = self.parameterAsFileList(parameters, self.INPUT, context)
         if len(images) < 2:
@@ -124,22 +151,21 @@ class BlockAdjust(Gf4calAlgorithm):
             ties=self.parameterAsFile(parameters, self.TIES_FILE, context) or None,
             match_ties=self.parameterAsBool(parameters, self.MATCH_TIES, context),
             reference_ortho=ortho.source() if ortho is not None else None,
-            bands_of=split_bands_of(self.parameterAsString(parameters, self.BANDS_OF, context)),
+            bands_of=split_bands_of(self.parameterAsMatrix(parameters, self.BANDS_OF, context)),
             solver=SOLVERS[self.parameterAsEnum(parameters, self.SOLVER, context)],
             reference_ccd=self.parameterAsString(parameters, self.REFERENCE_CCD, context) or None,
             check_plausibility=self.check_plausibility(parameters, context),
             rpcs=self.rpc_pairs(parameters, context))
         self.push_warnings(feedback, rep)
-        for st in rep["stages"]:
-            feedback.pushInfo(f"{st['stage']} stage ({st['solver']}): {st['iterations']} iterations, "
-                              f"{st['n_tie_points']} tie points, {st['n_rejected']} observations rejected")
         seams = [s for s in rep["seams"] if s.get("n")]
-        for s in seams:
-            feedback.pushInfo(f"seam {s['pair'][0]} | {s['pair'][1]}: mean offset {s['before']['mean_px']:.3f} px "
-                              f"before, {s['after']['mean_px']:.3f} px after ({s['n']} tie points)")
         band_after = [v["rms_px_after"] for v in rep["band_to_band"].values() if v.get("rms_px_after") is not None]
         outputs = rep["outputs"]
         self.load_gpkg_on_completion(outputs["residuals"], layers=("seams",))
+        feedback.pushInfo("Summary (as gf4cal block-adjust prints it; the iteration trace above gives, per stage, "
+                          "the largest change of a corrected position at each Gauss-Newton iteration: it rises "
+                          "again when the robust weights change between phases):")
+        for line in summary_lines(rep):
+            feedback.pushInfo(line)
         nan = float("nan")
         return {self.OUTPUT_FOLDER: folder,
                 "OUTPUT_RPCS": [p for k, p in outputs.items() if k.startswith("rpb:")],

@@ -84,7 +84,7 @@ def test_interior_not_extrapolated_beyond_the_observed_detector_range(scene, tmp
     t.to_csv(obs, index=False)
     errors = {}
     for label, limit in (("held", engine.MAX_EXTRAPOLATION_VARIANCE), ("free", np.inf)):
-        monkeypatch.setattr(engine, "MAX_EXTRAPOLATION_VARIANCE", limit)
+        monkeypatch.setattr(engine.coverage, "MAX_EXTRAPOLATION_VARIANCE", limit)   # where it is read
         out = str(tmp_path / label)
         assert main(["block-adjust", *_args(scene, obs), "--out", out]) == 0
         err = capsys.readouterr().err

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from gdal_gf4cal import DEM, GCPError, make_gcps, read_gcps, write_gcps
-from gdal_gf4cal.gcp import split_roles
+from gdal_gf4cal.gcp import split_roles, to_geodataframe
 
 
 @pytest.fixture
@@ -20,11 +20,11 @@ def test_round_trip(gcps, tmp_path, ext):
     path = write_gcps(gcps, tmp_path / f"gcps{ext}")
     back = read_gcps(path)
     assert list(back.columns[:8]) == ["id", "lon", "lat", "h", "sample", "line", "role", "sigma"]
-    assert back.crs.to_epsg() == 4326
+    assert to_geodataframe(back).crs.to_epsg() == 4326
     for c in ("lon", "lat", "h", "sample", "line", "sigma"):
         np.testing.assert_allclose(back[c], gcps[c], rtol=1e-9)
     assert list(back["id"]) == list(gcps["id"])
-    np.testing.assert_allclose(back.geometry.x, gcps["lon"], rtol=1e-12)
+    np.testing.assert_allclose(to_geodataframe(back).geometry.x, gcps["lon"], rtol=1e-12)
 
 
 def test_missing_height_taken_from_dem(tmp_path, srtm_path):

@@ -10,7 +10,6 @@ import os
 import numpy as np
 import pandas as pd
 import pytest
-from geopandas.testing import assert_geodataframe_equal
 
 from gdal_gf4cal import DEM, GCPError, InputOverwriteError, read_gcps
 from gdal_gf4cal.observations import (OBS_SCHEMA, flag_outliers, from_gcp_views, from_gcps, gcp_view, image_ids,
@@ -50,8 +49,8 @@ def test_gcp_view_is_lossless(views, scene):
         assert list(table.columns[:len(OBS_SCHEMA)]) == list(OBS_SCHEMA)
         assert set(table["kind"]) == {"gcp"} and set(table["image_id"]) == {image_id}
         back = gcp_view(table, image_id)
-        assert_geodataframe_equal(back, g, check_less_precise=False)              # every column, same order, same values
-        assert_geodataframe_equal(gcp_view(table, f"/elsewhere/{image_id}"), g)   # a path finds it by name
+        pd.testing.assert_frame_equal(back, g, check_exact=True)              # every column, same order, same values
+        pd.testing.assert_frame_equal(gcp_view(table, f"/elsewhere/{image_id}"), g)   # a path finds it by name
     _assert_truth(from_gcp_views(views), scene)
 
 
@@ -167,27 +166,30 @@ def test_outlier_levels_cumulative(tmp_path):
 
 
 def test_gcp_points_same_geometries_as_shapely_points():
-    """The GCP table's point geometries (fast path on shapely 1.8) are the ones ``Point(x, y)`` makes, also for
-    NaN and extreme coordinates, and behave as points (coordinates, WKB, distance, pickling)."""
+    """GCP tables are plain DataFrames; their export geometry (``to_geodataframe``) is the one ``Point(x, y)`` makes,
+    also for extreme coordinates, none where lon/lat are not finite, and behaves as points (WKB, distance, pickling).
+    No ctypes anywhere in the engine (no other library's internals)."""
+    import pathlib
     import pickle
     from shapely.geometry import Point
-    from gdal_gf4cal.observations import _point_array
+    from gdal_gf4cal.observations import make_gcps, to_geodataframe
     lon = np.array([0.0, -179.999999999, 1e-300, 123.456789012345678, np.nan, -0.0])
     lat = np.array([0.0, 89.5, -1e300, -33.3, 1.0, 5.0])
-    got = _point_array(lon, lat)
-    assert str(got.crs).upper().endswith("4326")
-    import shapely
-    if int(shapely.__version__.split(".")[0]) < 2:              # the fallback for GEOS < 3.10 (shapely 1.8 only)
-        from gdal_gf4cal.observations import _points_18
-        slow = list(_points_18(lon, lat, from_buffer=False))
-        assert len(slow) == len(lon) and all(a.wkb == b.wkb for a, b in zip(slow, got))
+    table = make_gcps(lon, lat, 0.0, np.ones(6), np.ones(6))
+    assert type(table) is pd.DataFrame and "geometry" not in table.columns
+    got = to_geodataframe(table).geometry
+    assert got.crs.to_epsg() == 4326 and got.isna().tolist() == [False] * 4 + [True, False]
     for g, x, y in zip(got, lon.tolist(), lat.tolist()):
+        if not np.isfinite(x):
+            continue
         ref = Point(x, y)
         assert g.geom_type == "Point" and not g.has_z
         assert g.wkb == ref.wkb
-        if np.isfinite(x):
-            assert (g.x, g.y) == (x, y) and g.distance(ref) == 0.0 and g.equals(ref)
-            assert pickle.loads(pickle.dumps(g)).wkb == ref.wkb
+        assert (g.x, g.y) == (x, y) and g.distance(ref) == 0.0 and g.equals(ref)
+        assert pickle.loads(pickle.dumps(g)).wkb == ref.wkb
+    engine = pathlib.Path(__file__).resolve().parents[2] / "gdal_gf4cal"
+    users = [str(p.relative_to(engine)) for p in engine.rglob("*.py") if "ctypes" in p.read_text(encoding="utf-8")]
+    assert users == [], users
 
 
 def test_roles_cleaned_as_pandas_does_value_by_value():
