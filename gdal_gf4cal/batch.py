@@ -15,7 +15,9 @@ from __future__ import annotations
 import concurrent.futures as cf
 import csv
 import glob
+import inspect
 import json
+import math
 import os
 import threading
 import time
@@ -23,10 +25,20 @@ import traceback
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
-from .errors import CancelledError, Gf4calError
-from .executors import map_ordered
+import numpy as np
+
+from .camera import LookAngleModel
+from .errors import CancelledError, GCPError, Gf4calError
+from .executors import SerialExecutor, dask_client, map_ordered
+from .lookangle import recalibrate_rpc
+from .outputs import OutputSet, atomic_output
 from .outputs import scene_stem  # noqa: F401  (batch.scene_stem: the name of a scene's outputs)
 from .progress import cancel_check, report
+from .report.json import report_text     # strict JSON: no NaN, absent values left out (as report.json)
+from .rpc import RPCModel
+from .rpc_io import rpc_file_format, write_rpb, write_rpc_vrt
+from .workflows.collect import collect_gcps_file
+from .workflows.refine import check_refine_options, refine_rpc
 
 SUMMARY_CSV = "batch_summary.csv"
 SUMMARY_JSON = "batch_summary.json"
@@ -132,7 +144,9 @@ class _LocalSceneProgress:
 
 class _DaskSceneProgress:
     """A scene's progress on a Dask worker (picklable): fractions go to the driver as worker events on
-    ``topic`` (at most every 0.5 s), and the task stops when the driver cancelled its future."""
+    ``topic`` (at most every 0.5 s), and the task stops when the driver cancelled its future.
+
+    ``distributed`` is an optional dependency (Dask clusters only), hence imported where it is used."""
 
     def __init__(self, topic: str, index: int):
         self.topic, self.index = topic, index
@@ -162,7 +176,6 @@ class _DaskSceneProgress:
 
 def _takes_progress(fn) -> bool:
     """Whether a scene function takes ``progress=`` (ours do; a user's may not)."""
-    import inspect
     try:
         ps = inspect.signature(fn).parameters
     except (TypeError, ValueError):
@@ -205,7 +218,6 @@ def _previous_rows(out_dir: str) -> Dict[str, Dict[str, Any]]:
 
 def write_summary(rows: List[Dict[str, Any]], out_dir: str, meta: Optional[Dict[str, Any]] = None) -> Dict[str, str]:
     """Write ``batch_summary.csv`` and ``.json`` in ``out_dir`` (atomically); returns their paths."""
-    from .outputs import atomic_output
     cols = list(_FIRST)
     for r in rows:
         cols += [k for k in r if k not in cols and k != "traceback"]
@@ -216,7 +228,6 @@ def write_summary(rows: List[Dict[str, Any]], out_dir: str, meta: Optional[Dict[
             w.writeheader()
             w.writerows(rows)
     counts = {s: sum(r["status"] == s for r in rows) for s in STATUSES}
-    from .report.json import report_text     # strict JSON: no NaN, absent values left out (as report.json)
     with atomic_output(json_path) as tmp:
         with open(tmp, "w", encoding="utf-8") as fh:
             fh.write(report_text({**(meta or {}), "counts": counts, "scenes": rows}, indent=1))
@@ -248,6 +259,61 @@ def run_batch(fn: Callable[..., Dict[str, Any]], scenes: Sequence, out_dir, outp
     dict ``{"command", "scenes" (rows), "counts", "summary": {"csv", "json"}}``.
     """
     out_dir = os.fspath(out_dir)
+    plans = _plan_scenes(scenes, out_dir, outputs_for)
+    rows, todo = _skip_complete(plans, out_dir, overwrite)
+    report(progress, 0.0, f"{len(todo)} of {len(plans)} scenes to run")
+    t0 = time.perf_counter()
+    tracker = _Tracker(cancel_check(progress))
+    client = dask_client(executor)
+    topic = f"gf4cal-batch-{os.getpid()}-{id(tracker)}"
+
+    def batch_progress(fraction, message):
+        try:
+            report(progress, fraction, message)
+        except BaseException:
+            tracker.cancel.set()          # running scenes on threads stop at their next progress call
+            raise
+
+    prog = _scene_progress(executor, client, tracker, topic, len(todo), batch_progress)
+    tasks = [SceneTask(fn, plans[i][0], plans[i][1], dict(params or {}, overwrite=overwrite), prog[k])
+             for k, i in enumerate(todo)]
+    meta: Dict[str, Any] = {"command": command}
+    done = [False] * len(tasks)
+    res: List[Any] = [None] * len(tasks)
+    try:
+        res = map_ordered(_run_scene, tasks, executor, progress=batch_progress, label="scene",
+                          return_exceptions=True, partial=tracker.partial, done=done, out=res)
+    except BaseException:
+        tracker.cancel.set()
+        # Cancelled: the finished scenes stay (their outputs are complete); the others are said cancelled.
+        for k, i in enumerate(todo):
+            rows[i] = res[k] if done[k] and isinstance(res[k], dict) else _row(plans[i], "cancelled",
+                                                                               "cancelled by the user")
+        meta.update(cancelled=True, wall_seconds=round(time.perf_counter() - t0, 3))
+        write_summary(rows, out_dir, meta)  # type: ignore[arg-type]
+        raise
+    finally:
+        if client is not None:
+            try:
+                client.unsubscribe_topic(topic)
+            except Exception:  # noqa: BLE001 - the cluster may be gone already
+                pass
+    for i, r in zip(todo, res):
+        if isinstance(r, BaseException):   # the task itself was lost (e.g. KilledWorker after retries)
+            msg = str(r).strip().splitlines()[0] if str(r).strip() else ""
+            r = _row(plans[i], "failed", f"{type(r).__name__}: {msg}")
+        rows[i] = r
+    meta["wall_seconds"] = round(time.perf_counter() - t0, 3)
+    paths = write_summary(rows, out_dir, meta)  # type: ignore[arg-type]
+    counts = {s: sum(r["status"] == s for r in rows) for s in STATUSES}  # type: ignore[index]
+    report(progress, 1.0, f"{counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped")
+    return {"command": command, "scenes": rows, "counts": counts, "summary": paths,
+            "wall_seconds": meta["wall_seconds"]}
+
+
+def _plan_scenes(scenes: Sequence, out_dir: str, outputs_for: Callable[[str], Dict[str, str]]):
+    """``[(scene, {role: output path})]``, the output folder created; refuses a file as folder, no scene, and
+    two scenes writing the same path."""
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise Gf4calError(f"--out {out_dir} is a file; with several scenes give a folder")
     scenes = expand_scenes(scenes)
@@ -262,6 +328,12 @@ def run_batch(fn: Callable[..., Dict[str, Any]], scenes: Sequence, out_dir, outp
                 raise Gf4calError(f"scenes {seen[p]} and {s} would both write {p}; rename one or run them "
                                   "into different folders")
             seen[p] = s
+    return plans
+
+
+def _skip_complete(plans, out_dir: str, overwrite: bool):
+    """Rows of the complete scenes (all outputs exist; the previous summary's row, status ``skipped``) and the
+    indices of the scenes to run."""
     prev = _previous_rows(out_dir)
     rows: List[Optional[Dict[str, Any]]] = [None] * len(plans)
     todo = []
@@ -272,66 +344,27 @@ def run_batch(fn: Callable[..., Dict[str, Any]], scenes: Sequence, out_dir, outp
             rows[i] = old
         else:
             todo.append(i)
-    report(progress, 0.0, f"{len(todo)} of {len(plans)} scenes to run")
-    t0 = time.perf_counter()
-    from .executors import SerialExecutor, dask_client
-    tracker = _Tracker(cancel_check(progress))
-    client = dask_client(executor)
-    topic = f"gf4cal-batch-{os.getpid()}-{id(tracker)}"
+    return rows, todo
+
+
+def _row(plan, status: str, error: str) -> Dict[str, Any]:
+    """The summary row of a scene that did not run to its end (cancelled, or its task lost)."""
+    return {"scene": plan[0], "status": status, "seconds": 0.0, "outputs": ";".join(plan[1].values()),
+            "error": error}
+
+
+def _scene_progress(executor, client, tracker: _Tracker, topic: str, n: int, batch_progress) -> List[Any]:
+    """Each scene's own progress callback: Dask worker events on ``topic``, the tracker on threads (serially
+    straight to the batch's bar), none on another executor (a process pool)."""
     if client is not None:
         client.subscribe_topic(topic, tracker.on_event)
-        prog: List[Any] = [_DaskSceneProgress(topic, k) for k in range(len(todo))]
-    elif executor is None or isinstance(executor, (SerialExecutor, cf.ThreadPoolExecutor)):
-        prog = [_LocalSceneProgress(tracker, k) for k in range(len(todo))]
+        return [_DaskSceneProgress(topic, k) for k in range(n)]
+    if executor is None or isinstance(executor, (SerialExecutor, cf.ThreadPoolExecutor)):
         if executor is None or isinstance(executor, SerialExecutor):
             # Serially the scene runs in this thread: its progress (e.g. over tiles) goes straight to the bar.
-            tracker.notify = lambda k, f: batch_progress((k + min(f, 1.0)) / len(todo), f"scene {k + 1}/{len(todo)}")
-    else:                                 # another executor (a process pool): scenes report no sub-progress
-        prog = [None] * len(todo)
-    tasks = [SceneTask(fn, plans[i][0], plans[i][1], dict(params or {}, overwrite=overwrite), prog[k])
-             for k, i in enumerate(todo)]
-    meta: Dict[str, Any] = {"command": command}
-
-    def batch_progress(fraction, message):
-        try:
-            report(progress, fraction, message)
-        except BaseException:
-            tracker.cancel.set()          # running scenes on threads stop at their next progress call
-            raise
-
-    done = [False] * len(tasks)
-    res: List[Any] = [None] * len(tasks)
-    try:
-        res = map_ordered(_run_scene, tasks, executor, progress=batch_progress, label="scene",
-                          return_exceptions=True, partial=tracker.partial, done=done, out=res)
-    except BaseException:
-        tracker.cancel.set()
-        # Cancelled: the finished scenes stay (their outputs are complete); the others are said cancelled.
-        for k, i in enumerate(todo):
-            rows[i] = res[k] if done[k] and isinstance(res[k], dict) else {
-                "scene": plans[i][0], "status": "cancelled", "seconds": 0.0,
-                "outputs": ";".join(plans[i][1].values()), "error": "cancelled by the user"}
-        meta.update(cancelled=True, wall_seconds=round(time.perf_counter() - t0, 3))
-        write_summary(rows, out_dir, meta)  # type: ignore[arg-type]
-        raise
-    finally:
-        if client is not None:
-            try:
-                client.unsubscribe_topic(topic)
-            except Exception:  # noqa: BLE001 - the cluster may be gone already
-                pass
-    for i, r in zip(todo, res):
-        if isinstance(r, BaseException):   # the task itself was lost (e.g. KilledWorker after retries)
-            msg = str(r).strip().splitlines()[0] if str(r).strip() else ""
-            r = {"scene": plans[i][0], "status": "failed", "seconds": 0.0,
-                 "outputs": ";".join(plans[i][1].values()), "error": f"{type(r).__name__}: {msg}"}
-        rows[i] = r
-    meta["wall_seconds"] = round(time.perf_counter() - t0, 3)
-    paths = write_summary(rows, out_dir, meta)  # type: ignore[arg-type]
-    counts = {s: sum(r["status"] == s for r in rows) for s in STATUSES}  # type: ignore[index]
-    report(progress, 1.0, f"{counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped")
-    return {"command": command, "scenes": rows, "counts": counts, "summary": paths,
-            "wall_seconds": meta["wall_seconds"]}
+            tracker.notify = lambda k, f: batch_progress((k + min(f, 1.0)) / n, f"scene {k + 1}/{n}")
+        return [_LocalSceneProgress(tracker, k) for k in range(n)]
+    return [None] * n                     # another executor (a process pool): scenes report no sub-progress
 
 
 # --------------------------------------------------------------------------------------------- scene functions
@@ -342,12 +375,6 @@ def apply_calibration_scene(scene: str, outputs: Dict[str, str], *, current, new
 
     Returns the figures ``image_shift_mean_px, image_shift_max_px`` (how far the new RPC moves the image) and
     ``rpc_fit_max_px`` (the refit's worst residual)."""
-    import numpy as np
-    from .camera import LookAngleModel
-    from .lookangle import recalibrate_rpc
-    from .outputs import OutputSet
-    from .rpc import RPCModel
-    from .rpc_io import write_rpb, write_rpc_vrt
     cur = current if hasattr(current, "tan_angles") else LookAngleModel.from_json(current)
     nw = new if hasattr(new, "tan_angles") else LookAngleModel.from_json(new)
     outs = OutputSet([scene] + [c for c in (current, new) if isinstance(c, (str, os.PathLike))],
@@ -376,9 +403,6 @@ def apply_calibration_batch(current, new, scenes: Sequence, out_dir, *, executor
                             progress=None) -> Dict[str, Any]:
     """Batch ``apply-calibration``: ``out_dir/<stem>.RPB`` (+ ``<stem>.vrt`` for rasters) per scene and the
     batch summary; see :func:`run_batch` and :func:`apply_calibration_scene`."""
-    from .errors import GCPError
-    from .camera import LookAngleModel
-    from .rpc_io import rpc_file_format
     out = os.fspath(out_dir)
     cur = current if hasattr(current, "tan_angles") else LookAngleModel.from_json(current)
     nw = new if hasattr(new, "tan_angles") else LookAngleModel.from_json(new)
@@ -405,8 +429,6 @@ def collect_gcps_scene(scene: str, outputs: Dict[str, str], *, reference, dem, o
     write ``outputs['gcps']``; tiles run serially inside the task (the batch is the parallel unit).
 
     Returns ``n_gcps, n_outliers, windows, median_precision_px, offset_sample_px, offset_line_px``."""
-    import numpy as np
-    from .workflows.collect import collect_gcps_file
     options.setdefault("workers", 1)
     rep = collect_gcps_file(scene, reference, dem, outputs["gcps"], overwrite=overwrite, progress=progress,
                             **options)
@@ -431,7 +453,6 @@ def collect_gcps_batch(scenes: Sequence, reference, dem, out_dir, *, ext: str = 
 def _scene_gcps(gcps_dir: str, scene: str, gcps_ext: str) -> str:
     """The scene's GCP file: ``gcps_dir/<stem><gcps_ext>``, else the one ``gcps_dir/<stem>.*`` there is (a CSV,
     header-less with ``--columns``, a QGIS .points, ...)."""
-    import glob
     stem = scene_stem(scene)
     path = os.path.join(gcps_dir, stem + gcps_ext)
     if os.path.exists(path):
@@ -454,8 +475,6 @@ def refine_scene(scene: str, outputs: Dict[str, str], *, gcps_dir: str, gcps_ext
     reader's ``gcp_columns`` and ``gcp_pixel_convention``, ``max_uncertainty_px``, ``check_plausibility``...).
 
     Returns ``n_control, n_check, control_rms_after_px, check_rms_after_px, check_ce90_after_m, n_outliers``."""
-    import math
-    from .workflows.refine import refine_rpc
     gcps = _scene_gcps(gcps_dir, scene, gcps_ext)
     rep = refine_rpc(scene, gcps, model, out=outputs["rpc"], report=outputs.get("report"), overwrite=overwrite,
                      progress=progress, **options)
@@ -473,7 +492,6 @@ def refine_batch(scenes: Sequence, gcps_dir, model: str, out_dir, *, out_ext: st
                  executor=None, overwrite: bool = False, progress=None, **options) -> Dict[str, Any]:
     """Batch ``refine``: ``out_dir/<stem><out_ext>`` (``.RPB``, ``_RPC.TXT`` or ``.vrt``) and
     ``out_dir/<stem>.report.json`` per scene, from ``gcps_dir/<stem><gcps_ext>``; see :func:`run_batch`."""
-    from .workflows.refine import check_refine_options
     check_refine_options(**options)       # a value that makes no sense fails once, not once per scene
     out = os.fspath(out_dir)
     return run_batch(refine_scene, scenes, out,

@@ -8,16 +8,17 @@ import os
 from typing import Optional
 
 import numpy as np
+from osgeo import gdal
 
 from .crop import image_rpc, sidecar_rpc
 from .dem import DEM
 from .errors import DEMError, RPCFormatError
 from .rpc import RPCModel
+from .rpc_io import rpc_file_format
 
 
 def image_size_of(path) -> Optional[tuple]:
     """(width, height) of a raster GDAL opens, or None for a sidecar / non-raster."""
-    from osgeo import gdal
     try:
         with gdal.ExceptionMgr(useExceptions=False):
             ds = gdal.OpenEx(os.fspath(path), gdal.OF_RASTER)
@@ -86,18 +87,7 @@ def describe_rpc(source, dem=None, geoid=None, rpc=None) -> dict:
     The size is the image's when there is one (``source`` itself, or the image next to a .RPB/_RPC.TXT sidecar),
     else guessed from the RPC's offsets and scales.
     """
-    from .rpc_io import rpc_file_format
-    note = None
-    if isinstance(rpc, RPCModel):
-        rpc_file = None
-    else:
-        rpc_file = os.fspath(rpc) if rpc is not None else None
-        rpc, note = image_rpc(source, rpc_file)
-    try:
-        fmt = rpc_file_format(rpc_file or source)
-    except RPCFormatError:                      # an image without an RPC: the file beside it image_rpc took
-        rpc_file = sidecar_rpc(source)
-        fmt = rpc_file_format(rpc_file)
+    rpc, rpc_file, fmt, note = _rpc_of(source, rpc)
     image = os.fspath(source) if rpc_file else _image_of(source, fmt)
     size = image_size_of(image) if image is not None else None
     size_from_image = size is not None
@@ -110,31 +100,12 @@ def describe_rpc(source, dem=None, geoid=None, rpc=None) -> dict:
         if uncovered:
             warnings.append(f"the RPC's image domain ({uncovered}) does not cover the {W} x {H} px image: "
                             "localisation extrapolates the RPC there (a cropped RPC?)")
-    s = np.array([0.0, W, W, 0.0])
-    l = np.array([0.0, 0.0, H, H])
-    if dem is not None:
-        dem_obj = DEM.from_user_input(dem, geoid=geoid)
-        lon, lat, h = rpc.localize_dem(s, l, dem_obj)
-        if not np.all(np.isfinite(h)):
-            raise DEMError(f"the footprint of {source} is not covered by the DEM {getattr(dem_obj, 'path', dem)}; "
-                           "use a DEM covering the scene or omit --dem")
-        where = f"DEM {getattr(dem_obj, 'path', dem)}"
-    else:
-        h = np.full(4, rpc.height_off)
-        lon, lat = rpc.localize(s, l, h)
-        where = f"constant height HEIGHT_OFF = {rpc.height_off:.1f} m"
+    lon, lat, h, where = _footprint(rpc, source, W, H, dem, geoid)
     failed = [name for name, a in zip(_CORNERS, lon) if not np.isfinite(a)]
     if failed:
         warnings.append(f"the RPC does not localise the {', '.join(failed)} corner(s) (NaN): the image lies outside "
                         "what the RPC can invert; check that this RPC belongs to this image")
-    # GSD at the image centre from the localisation Jacobian: metres on the ground per pixel along each axis.
-    cs, cl = W / 2.0, H / 2.0
-    hc = rpc.height_off
-    lo, la = rpc.localize(np.array([cs, cs + 1, cs]), np.array([cl, cl, cl + 1]), hc)
-    m_per_deg_lat = 111132.954 - 559.822 * np.cos(2 * np.radians(la[0]))
-    m_per_deg_lon = 111412.84 * np.cos(np.radians(la[0]))
-    gsd_s = float(np.hypot((lo[1] - lo[0]) * m_per_deg_lon, (la[1] - la[0]) * m_per_deg_lat))
-    gsd_l = float(np.hypot((lo[2] - lo[0]) * m_per_deg_lon, (la[2] - la[0]) * m_per_deg_lat))
+    gsd_s, gsd_l = _gsd_m(rpc, W, H)
     md = rpc.to_gdal_metadata()
     info = {
         "source": os.fspath(source),
@@ -160,3 +131,49 @@ def describe_rpc(source, dem=None, geoid=None, rpc=None) -> dict:
     if dem is not None:
         info["dem_height_range_m"] = [float(np.min(h)), float(np.max(h))]
     return info
+
+
+def _rpc_of(source, rpc):
+    """``(rpc, rpc_file, format, note)`` of ``source``: the model given, or read from ``rpc`` / the image / the
+    RPC file beside it (``rpc_file`` None when the image carries its RPC)."""
+    note = None
+    if isinstance(rpc, RPCModel):
+        rpc_file = None
+    else:
+        rpc_file = os.fspath(rpc) if rpc is not None else None
+        rpc, note = image_rpc(source, rpc_file)
+    try:
+        fmt = rpc_file_format(rpc_file or source)
+    except RPCFormatError:                      # an image without an RPC: the file beside it image_rpc took
+        rpc_file = sidecar_rpc(source)
+        fmt = rpc_file_format(rpc_file)
+    return rpc, rpc_file, fmt, note
+
+
+def _footprint(rpc: RPCModel, source, W: int, H: int, dem, geoid):
+    """``(lon, lat, h, where)`` of the image corners (clockwise from upper-left) localised on the DEM (refused
+    where it does not cover them) or at HEIGHT_OFF; ``where`` says which."""
+    s = np.array([0.0, W, W, 0.0])
+    l = np.array([0.0, 0.0, H, H])
+    if dem is not None:
+        dem_obj = DEM.from_user_input(dem, geoid=geoid)
+        lon, lat, h = rpc.localize_dem(s, l, dem_obj)
+        if not np.all(np.isfinite(h)):
+            raise DEMError(f"the footprint of {source} is not covered by the DEM {getattr(dem_obj, 'path', dem)}; "
+                           "use a DEM covering the scene or omit --dem")
+        return lon, lat, h, f"DEM {getattr(dem_obj, 'path', dem)}"
+    h = np.full(4, rpc.height_off)
+    lon, lat = rpc.localize(s, l, h)
+    return lon, lat, h, f"constant height HEIGHT_OFF = {rpc.height_off:.1f} m"
+
+
+def _gsd_m(rpc: RPCModel, W: int, H: int):
+    """GSD at the image centre from the localisation Jacobian: metres on the ground per pixel along each axis."""
+    cs, cl = W / 2.0, H / 2.0
+    hc = rpc.height_off
+    lo, la = rpc.localize(np.array([cs, cs + 1, cs]), np.array([cl, cl, cl + 1]), hc)
+    m_per_deg_lat = 111132.954 - 559.822 * np.cos(2 * np.radians(la[0]))
+    m_per_deg_lon = 111412.84 * np.cos(np.radians(la[0]))
+    gsd_s = float(np.hypot((lo[1] - lo[0]) * m_per_deg_lon, (la[1] - la[0]) * m_per_deg_lat))
+    gsd_l = float(np.hypot((lo[2] - lo[0]) * m_per_deg_lon, (la[2] - la[0]) * m_per_deg_lat))
+    return gsd_s, gsd_l

@@ -18,6 +18,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import contextlib
 import os
+import time
 import warnings
 from typing import Any, Callable, Iterator, List, Optional, Sequence
 
@@ -111,46 +112,60 @@ def get_executor(spec: Any = None, *, workers: Optional[int] = None,
                 raise
         return
     try:
-        import distributed
+        import distributed   # optional dependency (Dask runs only): imported when asked for
     except ImportError:
         raise ExecutorError("Dask is not installed; install python3-distributed (apt) or dask[distributed] "
                             "(pip), or run without --dask") from None
     if kind == "local":
-        import dask
-        with _quiet_tornado(), dask.config.set({"distributed.worker.daemon": False,
-                                                "distributed.nanny.pre-spawn-environ": dict(WORKER_ENV)}):
-            # No dashboard; the scheduler's HTTP server (metrics) on a free port: the default 8787 is often taken
-            # by another cluster, and distributed 2022.12 then leaks a socket and warns.
-            cluster = distributed.LocalCluster(n_workers=count, threads_per_worker=1, processes=True,
-                                               dashboard_address=None, silence_logs=40,
-                                               scheduler_kwargs={"dashboard": False, "dashboard_address": ":0"})
-            try:
-                client = distributed.Client(cluster)
-            except BaseException:
-                cluster.close()
-                raise
-        try:
+        with _local_client(distributed, count) as client:
             yield _client_executor(client)
-        finally:
-            with _quiet_tornado():
-                client.close()
-                cluster.close()
         return
     if s.startswith(("tcp://", "tls://", "ucx://", "inproc://")):
-        try:
-            with _quiet_tornado():
-                client = distributed.Client(s, timeout=connect_timeout_s)
-        except (OSError, TimeoutError) as exc:
-            raise ExecutorError(f"cannot reach the Dask scheduler at {s} within {connect_timeout_s:g} s "
-                                f"({type(exc).__name__}); start it with `dask scheduler` or check the "
-                                "address") from None
-        try:
+        with _remote_client(distributed, s, connect_timeout_s) as client:
             yield _client_executor(client)
-        finally:
-            with _quiet_tornado():
-                client.close()
         return
     raise ExecutorError(f"unknown executor {s!r}; use serial, threads[:N], local[:N] or tcp://HOST:PORT")
+
+
+@contextlib.contextmanager
+def _local_client(distributed, count: int):
+    """A Dask client of a local cluster of ``count`` single-threaded worker processes, closed on exit."""
+    import dask       # optional dependency, as distributed (see get_executor)
+    with _quiet_tornado(), dask.config.set({"distributed.worker.daemon": False,
+                                            "distributed.nanny.pre-spawn-environ": dict(WORKER_ENV)}):
+        # No dashboard; the scheduler's HTTP server (metrics) on a free port: the default 8787 is often taken
+        # by another cluster, and distributed 2022.12 then leaks a socket and warns.
+        cluster = distributed.LocalCluster(n_workers=count, threads_per_worker=1, processes=True,
+                                           dashboard_address=None, silence_logs=40,
+                                           scheduler_kwargs={"dashboard": False, "dashboard_address": ":0"})
+        try:
+            client = distributed.Client(cluster)
+        except BaseException:
+            cluster.close()
+            raise
+    try:
+        yield client
+    finally:
+        with _quiet_tornado():
+            client.close()
+            cluster.close()
+
+
+@contextlib.contextmanager
+def _remote_client(distributed, address: str, connect_timeout_s: float):
+    """A Dask client of the scheduler at ``address``, closed on exit; an unreachable one is named."""
+    try:
+        with _quiet_tornado():
+            client = distributed.Client(address, timeout=connect_timeout_s)
+    except (OSError, TimeoutError) as exc:
+        raise ExecutorError(f"cannot reach the Dask scheduler at {address} within {connect_timeout_s:g} s "
+                            f"({type(exc).__name__}); start it with `dask scheduler` or check the "
+                            "address") from None
+    try:
+        yield client
+    finally:
+        with _quiet_tornado():
+            client.close()
 
 
 def dask_client(executor):
@@ -243,7 +258,6 @@ def _drain_workers(client, timeout_s: float = 30.0) -> None:
     """After a cancel: wait (at most ``timeout_s``) until the workers run no task any more, so that the cancelled
     tasks have stopped at their next progress call and removed their partial outputs before the caller closes
     the cluster or reports."""
-    import time
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         try:

@@ -152,7 +152,50 @@ class FitReport:
 
 
 # ---------------------------------------------------------------------------------------------- linear algebra
-def _solve_regularised(G: np.ndarray, g: np.ndarray, A: np.ndarray, b: np.ndarray, lam: float,
+#: Points per chunk when the normal equations are accumulated (keeps the (40, chunk) block in cache).
+_CHUNK = 8192
+
+
+class _AxisDesign:
+    """The design of one image axis, ``A = [u * m, v * m[1:]]`` (n, 39) with per-point ``u``, ``v`` and the
+    (20, n) monomials ``Mt`` (term-major), never formed whole: its normal equations are accumulated over chunks
+    of points (each chunk's block ``[A_c | b_c]^T`` in cache, one symmetric product); ``A d`` and ``A^T q`` are
+    two products with ``Mt``."""
+
+    def __init__(self, Mt: np.ndarray, u: np.ndarray, v: np.ndarray):
+        self.Mt, self.u, self.v = Mt, u, v
+
+    def normal(self, b: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """``(A^T A, A^T b)``."""
+        Mt, u, v = self.Mt, self.u, self.v
+        n = Mt.shape[1]
+        block = np.empty((N_UNKNOWNS + 1, min(n, _CHUNK)))
+        Gb = np.zeros((N_UNKNOWNS + 1, N_UNKNOWNS + 1))
+        for s in range(0, n, _CHUNK):
+            e = min(n, s + _CHUNK)
+            B = block[:, :e - s]
+            np.multiply(Mt[:, s:e], u[s:e], out=B[:20])
+            np.multiply(Mt[1:, s:e], v[s:e], out=B[20:N_UNKNOWNS])
+            B[N_UNKNOWNS] = b[s:e]
+            Gb += B @ B.T
+        return Gb[:N_UNKNOWNS, :N_UNKNOWNS], Gb[:N_UNKNOWNS, N_UNKNOWNS].copy()
+
+    def dot(self, d: np.ndarray) -> np.ndarray:
+        """``A d``."""
+        t = np.stack([d[:20], np.concatenate([[0.0], d[20:]])]) @ self.Mt
+        return self.u * t[0] + self.v * t[1]
+
+    def tdot(self, q: np.ndarray) -> np.ndarray:
+        """``A^T q``."""
+        t = self.Mt @ np.stack([self.u * q, self.v * q], axis=1)
+        return np.concatenate([t[:, 0], t[1:, 1]])
+
+    def dense(self) -> np.ndarray:
+        """``A`` itself (n, 39), for the unregularised QR solve only."""
+        return np.hstack([(self.Mt * self.u).T, (self.Mt[1:] * self.v).T])
+
+
+def _solve_regularised(G: np.ndarray, g: np.ndarray, A: _AxisDesign, b: np.ndarray, lam: float,
                        x0: Optional[np.ndarray] = None) -> np.ndarray:
     """Solve ``min ||A d - b||^2 + lam * sum_j G_jj (x0 + d)_j^2`` for the step ``d`` (``G = A^T A``, ``g = A^T b``).
 
@@ -170,7 +213,7 @@ def _solve_regularised(G: np.ndarray, g: np.ndarray, A: np.ndarray, b: np.ndarra
     c = np.sqrt(diag[active])
     xs0 = np.zeros(c.size) if x0 is None else x0[active] * c
     if lam == 0.0:
-        As = A[:, active] / c
+        As = A.dense()[:, active] / c
         Rb = sla.qr(np.column_stack([As, b]), mode="r", check_finite=False)[0]
         k = c.size
         ds = sla.solve_triangular(Rb[:k, :k], Rb[:k, k], check_finite=False)
@@ -184,8 +227,8 @@ def _solve_regularised(G: np.ndarray, g: np.ndarray, A: np.ndarray, b: np.ndarra
         raise _IllPosed() from None
     ds = sla.cho_solve(cf, g[active] / c - lam * xs0, check_finite=False)
     # Iterative refinement: the residual of the *regularised* normal equations, formed from A itself.
-    Aa = A[:, active] if not np.all(active) else A
-    res = (Aa.T @ (b - Aa @ (ds / c))) / c - lam * (xs0 + ds)
+    d[active] = ds / c
+    res = A.tdot(b - A.dot(d))[active] / c - lam * (xs0 + ds)
     ds = ds + sla.cho_solve(cf, res, check_finite=False)
     if not np.all(np.isfinite(ds)):
         raise _IllPosed()
@@ -206,48 +249,60 @@ def _domain_monomials(single_height: bool) -> np.ndarray:
     return m
 
 
-def _fit_axis(M: np.ndarray, r: np.ndarray, lam: float, max_iter: int, guard_M: np.ndarray, abs_tol: float):
-    """Fit one image axis ``r ~ (a.m) / (1 + b.m[1:])``; returns (num(20), den(20), n_solves).
+def _fit_axis(Mt: np.ndarray, r: np.ndarray, lam: float, max_iter: int, guard_M: np.ndarray, abs_tol: float,
+              first: Tuple[np.ndarray, np.ndarray]):
+    """Fit one image axis ``r ~ (a.m) / (1 + b.m[1:])`` (``Mt`` the (20, n) monomials); returns (num(20),
+    den(20), n_solves). ``first``: the normal equations of the first, unweighted, step (the same for every
+    lambda of the ladder, :func:`_first_normals`).
 
     Raises ``_IllPosed`` if lambda is too small for this system (the caller moves up the ladder).
     """
-    n = M.shape[0]
-    M1 = M[:, 1:]
-    A = np.empty((n, N_UNKNOWNS))
-    w = np.ones(n)
+    w = np.ones(r.size)
     x = np.zeros(N_UNKNOWNS)
     prev = math.inf
     solves = 0
     # Tao & Hu: linearised equations weighted by 1/D of the previous iterate (D = 1 at the start).
     for _ in range(max(1, max_iter)):
-        np.multiply(M, w[:, None], out=A[:, :20])
-        np.multiply(M1, (-r * w)[:, None], out=A[:, 20:])
-        bw = r * w
-        x = _solve_regularised(A.T @ A, A.T @ bw, A, bw, lam)
+        A, bw = _AxisDesign(Mt, w, -r * w), r * w
+        x = _solve_regularised(*(first if solves == 0 else A.normal(bw)), A, bw, lam)
         solves += 1
-        D = 1.0 + M1 @ x[20:]
+        N, D = _num_den(Mt, x)
         if not np.all(np.isfinite(D)) or np.min(np.abs(D)) < 1e-12:
             raise _IllPosed()
         w = 1.0 / D
-        e = r - (M @ x[:20]) * w
+        e = r - N * w
         rms = float(np.sqrt(np.mean(e * e)))
         if abs(prev - rms) <= _REL_TOL * rms + abs_tol:
             break
         prev = rms
-    # Gauss-Newton on the true residual r - N/D; the Tikhonov term stays on x itself (not on the step).
+    x, gn_solves = _gauss_newton(Mt, r, lam, x, w, e, rms, abs_tol)
+    num = x[:20].copy()
+    den = np.concatenate([[1.0], x[20:]])
+    # Denominator guard over the fit points and the normalised domain: a near-zero denominator anywhere in
+    # the validity cube makes the RPC explode there, whatever the fit residuals say.
+    Dmin = min(float(np.min(den @ Mt)), float(np.min(guard_M @ den)))
+    if not Dmin > _MIN_DENOMINATOR:
+        raise _IllPosed()
+    return num, den, solves + gn_solves
+
+
+def _gauss_newton(Mt: np.ndarray, r: np.ndarray, lam: float, x: np.ndarray, w: np.ndarray, e: np.ndarray,
+                  rms: float, abs_tol: float):
+    """Gauss-Newton on the true residual ``r - N/D`` from the reweighting's ``x`` (``w = 1/D``, ``e`` its
+    residual); the Tikhonov term stays on x itself (not on the step). Returns (x, solves)."""
+    solves = 0
     for _ in range(_GN_STEPS):
         if rms <= abs_tol:
             break
         p = r - e  # current prediction N/D
-        np.multiply(M, w[:, None], out=A[:, :20])
-        np.multiply(M1, (-p * w)[:, None], out=A[:, 20:])
-        dx = _solve_regularised(A.T @ A, A.T @ e, A, e, lam, x0=x)
+        A = _AxisDesign(Mt, w, -p * w)
+        dx = _solve_regularised(*A.normal(e), A, e, lam, x0=x)
         solves += 1
         xn = x + dx
-        Dn = 1.0 + M1 @ xn[20:]
+        Nn, Dn = _num_den(Mt, xn)
         if not np.all(np.isfinite(Dn)) or np.min(np.abs(Dn)) < 1e-12:
             break
-        en = r - (M @ xn[:20]) / Dn
+        en = r - Nn / Dn
         rms_n = float(np.sqrt(np.mean(en * en)))
         if not rms_n < rms * (1.0 + 1e-12):
             break
@@ -255,14 +310,18 @@ def _fit_axis(M: np.ndarray, r: np.ndarray, lam: float, max_iter: int, guard_M: 
         x, w, e, rms = xn, 1.0 / Dn, en, rms_n
         if improved <= _REL_TOL * rms + abs_tol:
             break
-    num = x[:20].copy()
-    den = np.concatenate([[1.0], x[20:]])
-    # Denominator guard over the fit points and the normalised domain: a near-zero denominator anywhere in
-    # the validity cube makes the RPC explode there, whatever the fit residuals say.
-    Dmin = min(float(np.min(M @ den)), float(np.min(guard_M @ den)))
-    if not Dmin > _MIN_DENOMINATOR:
-        raise _IllPosed()
-    return num, den, solves
+    return x, solves
+
+
+def _num_den(Mt: np.ndarray, x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Numerator ``a.m`` and denominator ``1 + b.m[1:]`` of the unknowns ``x = (a, b)`` at every point."""
+    t = np.stack([x[:20], np.concatenate([[1.0], x[20:]])]) @ Mt
+    return t[0], t[1]
+
+
+def _first_normals(Mt: np.ndarray, r: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Normal equations of the first reweighting step (``w = 1``): computed once per axis for the whole ladder."""
+    return _AxisDesign(Mt, np.ones(r.size), -r).normal(r)
 
 
 # ---------------------------------------------------------------------------------------------- normalisation
@@ -367,6 +426,49 @@ def fit_rpc(lon, lat, h, sample, line, *, check=None, regularization="auto", max
         raise ValueError(f"pixel_convention must be 'gdal' or 'rpc', not {pixel_convention!r}")
     shift = GDAL_PIXEL_OFFSET if pixel_convention == "gdal" else 0.0
     check_pts = _check_points(check)
+    _check_fit_points(lon, lat, h, sample, line)
+    ladder = _regularization_ladder(regularization)
+    (samp_off, samp_scale, rs), (line_off, line_scale, rl) = _image_normalisation(sample - shift, line - shift)
+    ground, M, notes = _ground_monomials(lon, lat, h)
+    guard = _domain_monomials(ground["single_height"])
+    (sn, sd, s_it, s_lam), (ln, ld, l_it, l_lam) = (
+        _fit_axis_on_ladder(M, r, ladder, max_iter, guard, scale, axis, progress, 0.05 + 0.45 * k)
+        for k, (axis, r, scale) in enumerate((("sample", rs, samp_scale), ("line", rl, line_scale))))
+    rpc = RPCModel(line_off=line_off, samp_off=samp_off, lat_off=ground["lat_off"], long_off=ground["long_off"],
+                   height_off=ground["height_off"], line_scale=line_scale, samp_scale=samp_scale,
+                   lat_scale=ground["lat_scale"], long_scale=ground["long_scale"],
+                   height_scale=ground["height_scale"], line_num=ln, line_den=ld, samp_num=sn, samp_den=sd)
+    report(progress, 0.95, "checking the fitted RPC")
+    fit_err = _errors(rpc, (lon, lat, h, sample, line), pixel_convention)
+    check_err = None if check_pts is None else _errors(rpc, check_pts, pixel_convention)
+    report(progress, 1.0, "RPC fitted")
+    rep = FitReport(fit=fit_err, check=check_err, n_points=n, iterations=(s_it, l_it),
+                    regularization=(s_lam, l_lam), elapsed_s=time.perf_counter() - t0, notes=tuple(notes))
+    return rpc, rep
+
+
+def _errors(rpc: RPCModel, pts, pixel_convention: str = "gdal") -> FitErrors:
+    """Image errors of ``rpc`` at ``pts = (lon, lat, h, sample, line)``."""
+    lon, lat, h, sample, line = pts
+    ps, pl = rpc.project(lon, lat, h, pixel_convention=pixel_convention)
+    return FitErrors.from_residuals(sample - ps, line - pl)
+
+
+def _image_normalisation(raw_s: np.ndarray, raw_l: np.ndarray):
+    """``(offset, scale, normalised values)`` of the sample and of the line (raw RPC00B convention)."""
+    samp_off, samp_scale = _offset_scale(raw_s)
+    line_off, line_scale = _offset_scale(raw_l)
+    if samp_scale == 0.0 or line_scale == 0.0:
+        raise DegenerateGeometryError("fit_rpc: every point has the same "
+                                      f"{'sample' if samp_scale == 0.0 else 'line'}; spread the points over the "
+                                      "image")
+    return ((samp_off, samp_scale, (raw_s - samp_off) / samp_scale),
+            (line_off, line_scale, (raw_l - line_off) / line_scale))
+
+
+def _check_fit_points(lon, lat, h, sample, line) -> None:
+    """Refuse non-finite correspondences and fewer than :data:`N_UNKNOWNS` of them."""
+    n = lon.size
     finite = np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h) & np.isfinite(sample) & np.isfinite(line)
     if not np.all(finite):
         raise DegenerateGeometryError(f"fit_rpc: {int(np.count_nonzero(~finite))} of {n} correspondences are not "
@@ -375,28 +477,29 @@ def fit_rpc(lon, lat, h, sample, line, *, check=None, regularization="auto", max
         raise DegenerateGeometryError(f"fit_rpc: {n} correspondences cannot determine the {N_UNKNOWNS} unknowns "
                                       f"per image axis; give at least {N_UNKNOWNS} (a grid of >= 20x20 x 6 heights "
                                       "is the norm)")
+
+
+def _regularization_ladder(regularization) -> Tuple[float, ...]:
+    """The relative Tikhonov parameters to try, smallest first: the auto ladder or the one value given."""
     if isinstance(regularization, str):
         if regularization != "auto":
             raise ValueError(f"regularization must be 'auto' or a number >= 0, not {regularization!r}")
-        ladder = AUTO_REGULARIZATION
-    else:
-        lam = float(regularization)
-        if not (lam >= 0.0 and math.isfinite(lam)):
-            raise ValueError(f"regularization must be 'auto' or a number >= 0, not {regularization!r}")
-        ladder = (lam,)
+        return AUTO_REGULARIZATION
+    lam = float(regularization)
+    if not (lam >= 0.0 and math.isfinite(lam)):
+        raise ValueError(f"regularization must be 'auto' or a number >= 0, not {regularization!r}")
+    return (lam,)
 
-    raw_s = sample - shift
-    raw_l = line - shift
+
+def _ground_monomials(lon: np.ndarray, lat: np.ndarray, h: np.ndarray):
+    """Ground offsets/scales (dict, with ``single_height``), the (20, n) normalised monomials and notes.
+
+    Refuses a constant longitude or latitude and points on a line (the cross terms are then undetermined).
+    """
     long_off, long_scale = _lon_offset_scale(lon)
     lat_off, lat_scale = _offset_scale(lat)
     height_off, height_scale = _offset_scale(h)
-    samp_off, samp_scale = _offset_scale(raw_s)
-    line_off, line_scale = _offset_scale(raw_l)
     notes = []
-    if samp_scale == 0.0 or line_scale == 0.0:
-        raise DegenerateGeometryError("fit_rpc: every point has the same "
-                                      f"{'sample' if samp_scale == 0.0 else 'line'}; spread the points over the "
-                                      "image")
     if long_scale == 0.0 or lat_scale == 0.0:
         raise DegenerateGeometryError("fit_rpc: every point has the same "
                                       f"{'longitude' if long_scale == 0.0 else 'latitude'}; spread the points "
@@ -413,43 +516,26 @@ def fit_rpc(lon, lat, h, sample, line, *, check=None, regularization="auto", max
     if not sv[-1] > 1e-6 * sv[0]:
         raise DegenerateGeometryError("fit_rpc: the ground points lie on a line; spread them over the scene "
                                       "(a grid over the whole image)")
-    M = np.ascontiguousarray(monomials(L, P, H).T)
-    guard = _domain_monomials(single_height)
-    rs = (raw_s - samp_off) / samp_scale
-    rl = (raw_l - line_off) / line_scale
+    ground = {"long_off": long_off, "long_scale": long_scale, "lat_off": lat_off, "lat_scale": lat_scale,
+              "height_off": height_off, "height_scale": height_scale, "single_height": single_height}
+    return ground, monomials(L, P, H), notes
 
-    results = []
-    for k, (axis, r, scale) in enumerate((("sample", rs, samp_scale), ("line", rl, line_scale))):
-        report(progress, 0.05 + 0.45 * k, f"fitting the {axis} polynomials")
-        for lam in ladder:
-            try:
-                num, den, solves = _fit_axis(M, r, lam, max_iter, guard, _ABS_TOL_PX / scale)
-                break
-            except _IllPosed:
-                continue
-        else:
-            what = ("a larger regularization or 'auto'" if len(ladder) == 1 else
-                    "more points spread over the image and >= 6 height layers")
-            raise DegenerateGeometryError(f"fit_rpc: the {axis} RPC is undetermined by these points (singular system "
-                                          f"or a denominator near zero); use {what}")
-        results.append((num, den, solves, lam))
-    (sn, sd, s_it, s_lam), (ln, ld, l_it, l_lam) = results
-    rpc = RPCModel(line_off=line_off, samp_off=samp_off, lat_off=lat_off, long_off=long_off,
-                   height_off=height_off, line_scale=line_scale, samp_scale=samp_scale, lat_scale=lat_scale,
-                   long_scale=long_scale, height_scale=height_scale,
-                   line_num=ln, line_den=ld, samp_num=sn, samp_den=sd)
-    report(progress, 0.95, "checking the fitted RPC")
-    ps, pl = rpc.project(lon, lat, h, pixel_convention=pixel_convention)
-    fit_err = FitErrors.from_residuals(sample - ps, line - pl)
-    check_err = None
-    if check_pts is not None:
-        clon, clat, ch, cs, cl = check_pts
-        ps, pl = rpc.project(clon, clat, ch, pixel_convention=pixel_convention)
-        check_err = FitErrors.from_residuals(cs - ps, cl - pl)
-    report(progress, 1.0, "RPC fitted")
-    rep = FitReport(fit=fit_err, check=check_err, n_points=n, iterations=(s_it, l_it),
-                    regularization=(s_lam, l_lam), elapsed_s=time.perf_counter() - t0, notes=tuple(notes))
-    return rpc, rep
+
+def _fit_axis_on_ladder(M: np.ndarray, r: np.ndarray, ladder: Sequence[float], max_iter: int, guard: np.ndarray,
+                        scale: float, axis: str, progress: Optional[ProgressCallback], fraction: float):
+    """:func:`_fit_axis` with the smallest lambda of the ladder that works; returns (num, den, solves, lambda)."""
+    report(progress, fraction, f"fitting the {axis} polynomials")
+    first = _first_normals(M, r)
+    for lam in ladder:
+        try:
+            num, den, solves = _fit_axis(M, r, lam, max_iter, guard, _ABS_TOL_PX / scale, first)
+            return num, den, solves, lam
+        except _IllPosed:
+            continue
+    what = ("a larger regularization or 'auto'" if len(ladder) == 1 else
+            "more points spread over the image and >= 6 height layers")
+    raise DegenerateGeometryError(f"fit_rpc: the {axis} RPC is undetermined by these points (singular system "
+                                  f"or a denominator near zero); use {what}")
 
 
 # ---------------------------------------------------------------------------------------------- from a model
@@ -459,6 +545,16 @@ def _grid_axis(start: float, length: float, n: int, margin: float) -> np.ndarray
 
 def _midpoints(v: np.ndarray) -> np.ndarray:
     return 0.5 * (v[1:] + v[:-1]) if v.size > 1 else v.copy()
+
+
+def _localize_grid(model, xs: np.ndarray, ys: np.ndarray, heights: np.ndarray,
+                   progress: Optional[ProgressCallback], what: str, notes: list):
+    """Localise the grid ``xs x ys`` at every height: (lon, lat, h, sample, line); a note for dropped points."""
+    S, Lg = np.meshgrid(xs, ys)
+    pts, n_bad, n_all = _localize_layers(model, S, Lg, heights, progress, what)
+    if n_bad:
+        notes.append(f"{n_bad} of {n_all} {what} grid points could not be localised by the model and were dropped")
+    return pts
 
 
 def _localize_layers(model, S: np.ndarray, Lg: np.ndarray, heights: np.ndarray,
@@ -525,6 +621,57 @@ def fit_rpc_from_model(model, *, size: Optional[Sequence[float]] = None, window:
         Grid or layers below the METHODS §3 minimum, an empty window, or too few points localised.
     """
     t0 = time.perf_counter()
+    x0, y0, width, height = _image_window(model, size, window)
+    gx, gy = _grid_nodes(grid, margin, height_margin)
+    layers = _height_layers(model, height_range, n_layers, height_margin)
+    check_layers = _midpoints(layers)
+
+    xs = _grid_axis(x0, width, gx, margin)
+    ys = _grid_axis(y0, height, gy, margin)
+    notes = []
+    fit_pts = _localize_grid(model, xs, ys, layers, scaled(progress, 0.0, 0.45), "fit", notes)
+    check_pts = _localize_grid(model, _midpoints(xs), _midpoints(ys), check_layers, scaled(progress, 0.45, 0.8),
+                               "check", notes)
+    rpc, rep = fit_rpc(*fit_pts, check=check_pts, regularization=regularization,
+                       max_iter=max_iter, progress=scaled(progress, 0.8, 0.97))
+    # Vendors' image normalisation: the window centre and half size (the fit used the data's extent, which
+    # includes the margin). An exact re-expression of the same rational functions, not a refit.
+    rpc = _renormalise_image(rpc, x0 + 0.5 * width - GDAL_PIXEL_OFFSET, 0.5 * width,
+                             y0 + 0.5 * height - GDAL_PIXEL_OFFSET, 0.5 * height)
+    roundtrip = _model_roundtrip_max_px(model, check_pts)
+    # Errors are recomputed with the final (renormalised) RPC: the report describes exactly what is returned.
+    fit_err = _errors(rpc, fit_pts)
+    check_err = _errors(rpc, check_pts)
+    report(progress, 1.0, "RPC fitted")
+    rep = FitReport(fit=fit_err, check=check_err, n_points=rep.n_points, iterations=rep.iterations,
+                    regularization=rep.regularization, elapsed_s=time.perf_counter() - t0,
+                    model_roundtrip_max_px=roundtrip, notes=tuple(notes) + rep.notes)
+    return rpc, rep
+
+
+def _grid_nodes(grid, margin: float, height_margin: float) -> Tuple[int, int]:
+    """The fit grid's (samples, lines), at least 20 each (METHODS §3); the margins must be >= 0."""
+    gx, gy = (int(v) for v in grid)
+    if gx < 20 or gy < 20:
+        raise DegenerateGeometryError(f"fit_rpc_from_model: grid {gx}x{gy} is too coarse; use at least 20x20 "
+                                      "(METHODS §3)")
+    if not (margin >= 0.0 and height_margin >= 0.0):
+        raise ValueError(f"fit_rpc_from_model: margin and height_margin must be >= 0, not {margin!r}, "
+                         f"{height_margin!r}")
+    return gx, gy
+
+
+def _model_roundtrip_max_px(model, check_pts) -> Optional[float]:
+    """Largest ``project(localize(x)) - x`` of the model on the check grid (None if it cannot project)."""
+    clon, clat, ch, cs, cl = check_pts
+    if not (callable(getattr(model, "project", None)) and clon.size):
+        return None
+    ps, pl = model.project(clon, clat, ch)
+    return float(np.nanmax(np.hypot(np.asarray(ps, dtype=float) - cs, np.asarray(pl, dtype=float) - cl)))
+
+
+def _image_window(model, size, window) -> Tuple[float, float, float, float]:
+    """The fitted image window (x_off, y_off, width, height) from ``size``, ``window`` or ``model.size``."""
     if window is not None and size is not None:
         raise ValueError("fit_rpc_from_model: give size or window, not both")
     if window is None:
@@ -537,6 +684,11 @@ def fit_rpc_from_model(model, *, size: Optional[Sequence[float]] = None, window:
     x0, y0, width, height = (float(v) for v in window)
     if not (width > 0 and height > 0 and all(map(math.isfinite, (x0, y0, width, height)))):
         raise DegenerateGeometryError(f"fit_rpc_from_model: empty or invalid image window {tuple(window)}")
+    return x0, y0, width, height
+
+
+def _height_layers(model, height_range, n_layers: int, height_margin: float) -> np.ndarray:
+    """The fit heights: ``n_layers`` over ``height_range`` (or ``model.height_range``) widened by the margin."""
     if height_range is None:
         height_range = getattr(model, "height_range", None)
         if height_range is None:
@@ -545,55 +697,12 @@ def fit_rpc_from_model(model, *, size: Optional[Sequence[float]] = None, window:
     if not (math.isfinite(hmin) and math.isfinite(hmax) and hmin <= hmax):
         raise ValueError(f"fit_rpc_from_model: height_range must be finite (h_min, h_max) with h_min <= h_max, "
                          f"not {tuple(height_range)}")
-    gx, gy = (int(v) for v in grid)
-    if gx < 20 or gy < 20:
-        raise DegenerateGeometryError(f"fit_rpc_from_model: grid {gx}x{gy} is too coarse; use at least 20x20 "
-                                      "(METHODS §3)")
-    if not (margin >= 0.0 and height_margin >= 0.0):
-        raise ValueError(f"fit_rpc_from_model: margin and height_margin must be >= 0, not {margin!r}, "
-                         f"{height_margin!r}")
     if hmax > hmin:
         if int(n_layers) < 6:
             raise DegenerateGeometryError(f"fit_rpc_from_model: {n_layers} height layers are too few; use at least "
                                           "6 (METHODS §3)")
-        layers = _grid_axis(hmin, hmax - hmin, int(n_layers), height_margin)
-    else:
-        layers = np.array([hmin])
-    check_layers = _midpoints(layers)
-
-    xs = _grid_axis(x0, width, gx, margin)
-    ys = _grid_axis(y0, height, gy, margin)
-    S, Lg = np.meshgrid(xs, ys)
-    (lon, lat, h, s, l), n_bad, n_all = _localize_layers(model, S, Lg, layers, scaled(progress, 0.0, 0.45), "fit")
-    notes = []
-    if n_bad:
-        notes.append(f"{n_bad} of {n_all} fit grid points could not be localised by the model and were dropped")
-    Sc, Lc = np.meshgrid(_midpoints(xs), _midpoints(ys))
-    (clon, clat, ch, cs, cl), n_bad_c, n_all_c = _localize_layers(model, Sc, Lc, check_layers,
-                                                                  scaled(progress, 0.45, 0.8), "check")
-    if n_bad_c:
-        notes.append(f"{n_bad_c} of {n_all_c} check grid points could not be localised by the model and were "
-                     "dropped")
-    rpc, rep = fit_rpc(lon, lat, h, s, l, check=(clon, clat, ch, cs, cl), regularization=regularization,
-                       max_iter=max_iter, progress=scaled(progress, 0.8, 0.97))
-    # Vendors' image normalisation: the window centre and half size (the fit used the data's extent, which
-    # includes the margin). An exact re-expression of the same rational functions, not a refit.
-    rpc = _renormalise_image(rpc, x0 + 0.5 * width - GDAL_PIXEL_OFFSET, 0.5 * width,
-                             y0 + 0.5 * height - GDAL_PIXEL_OFFSET, 0.5 * height)
-    roundtrip = None
-    if callable(getattr(model, "project", None)) and clon.size:
-        ps, pl = model.project(clon, clat, ch)
-        roundtrip = float(np.nanmax(np.hypot(np.asarray(ps, dtype=float) - cs, np.asarray(pl, dtype=float) - cl)))
-    # Errors are recomputed with the final (renormalised) RPC: the report describes exactly what is returned.
-    ps, pl = rpc.project(lon, lat, h)
-    fit_err = FitErrors.from_residuals(s - ps, l - pl)
-    ps, pl = rpc.project(clon, clat, ch)
-    check_err = FitErrors.from_residuals(cs - ps, cl - pl)
-    report(progress, 1.0, "RPC fitted")
-    rep = FitReport(fit=fit_err, check=check_err, n_points=rep.n_points, iterations=rep.iterations,
-                    regularization=rep.regularization, elapsed_s=time.perf_counter() - t0,
-                    model_roundtrip_max_px=roundtrip, notes=tuple(notes) + rep.notes)
-    return rpc, rep
+        return _grid_axis(hmin, hmax - hmin, int(n_layers), height_margin)
+    return np.array([hmin])
 
 
 def _renormalise_image(rpc: RPCModel, samp_off: float, samp_scale: float, line_off: float,

@@ -1,6 +1,11 @@
 """Shared ``--dask`` / ``--batch`` options of the batch forms of the commands (issue 14); not a sub-command."""
 from __future__ import annotations
 
+import sys
+
+from ..executors import get_executor
+from ..progress import TextProgressBar
+
 
 def add_batch_options(parser, flag: bool = True) -> None:
     """Add ``--dask SPEC`` and (``flag``) ``--batch`` to a sub-command parser."""
@@ -14,9 +19,6 @@ def add_batch_options(parser, flag: bool = True) -> None:
 def run_batch_command(args, job) -> int:
     """Run ``job(executor, progress)`` (a :func:`gdal_gf4cal.batch.run_batch` call) on the ``--dask`` executor
     and print the summary; exit 0 when every scene succeeded (or was already done), 1 when some failed."""
-    import sys
-    from ..executors import get_executor
-    from ..progress import TextProgressBar
     with get_executor(args.dask) as ex:
         rep = job(ex, TextProgressBar())
     for r in rep["scenes"]:

@@ -1,6 +1,13 @@
 """``gf4cal collect-gcps``: automatic GCPs by matching a raw image against a reference orthophoto + DEM (issue 7)."""
 from __future__ import annotations
 
+from ..batch import collect_gcps_batch, expand_scenes
+from ..errors import Gf4calError
+from ..executors import get_executor
+from ..progress import TextProgressBar
+from ..workflows import collect_gcps_file
+from . import print_warnings
+from .batch_options import add_batch_options, run_batch_command
 from .ortho import add_geoid_argument
 
 NAME = "collect-gcps"
@@ -31,25 +38,17 @@ def add_parser(parser):
     parser.add_argument("--keep-outliers", action="store_true",
                         help="also write the flagged outliers (column outlier=True); by default only inliers")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
-    from .batch_options import add_batch_options
     add_batch_options(parser)
 
 
 def run(args) -> int:
-    from . import print_warnings
-    from ..batch import collect_gcps_batch, expand_scenes
-    from ..executors import get_executor
-    from ..progress import TextProgressBar
-    from ..workflows import collect_gcps_file
     scenes = expand_scenes(args.image)
     opts = dict(rpc=args.rpc, geoid=args.geoid, keep_outliers=args.keep_outliers, spacing_px=args.spacing,
                 window_px=args.window, min_peak=args.min_peak, search_px=args.search,
                 outlier_model=args.outlier_model, seed=args.seed, band=args.band, reference_band=args.reference_band)
     if len(scenes) > 1 or args.batch:
         if args.rpc:
-            from ..errors import Gf4calError
             raise Gf4calError("--rpc names one scene's RPC; in a batch each scene must carry its own RPC")
-        from .batch_options import run_batch_command
         return run_batch_command(args, lambda ex, pr: collect_gcps_batch(
             scenes, args.reference, args.dem, args.out, executor=ex, overwrite=args.overwrite, progress=pr, **opts))
     args.image = scenes[0]

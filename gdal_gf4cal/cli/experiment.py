@@ -6,6 +6,11 @@ prints its tables and writes ``DIR/report.json``; ``--size W H`` crops the simul
 """
 from __future__ import annotations
 
+from ..progress import TextProgressBar
+from ..workflows import run_experiment
+from ..workflows.experiment import available as _available
+from . import print_warnings
+
 
 NAME = "experiment"
 HELP = "Run a paper's experiment on simulated scenes (e.g. 'gf4': look-angle calibration, Tables 2-4)."
@@ -13,7 +18,6 @@ HELP = "Run a paper's experiment on simulated scenes (e.g. 'gf4': look-angle cal
 
 def available():
     """Names of the experiment modules in :mod:`gdal_gf4cal.experiments`."""
-    from ..workflows.experiment import available as _available
     return _available()
 
 
@@ -29,9 +33,6 @@ def add_parser(parser):
 
 
 def run(args) -> int:
-    from . import print_warnings
-    from ..progress import TextProgressBar
-    from ..workflows import run_experiment
     kwargs = {}
     if args.seed is not None:
         kwargs["seed"] = args.seed

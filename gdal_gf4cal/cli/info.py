@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 
+from ..describe import describe_rpc
+from . import add_rpc_argument
 from .ortho import add_geoid_argument
 
 NAME = "info"
@@ -11,7 +13,6 @@ HELP = "Describe the RPC of an image or sidecar: offsets, footprint, approximate
 
 def add_parser(parser):
     parser.add_argument("source", metavar="IMAGE_OR_RPC", help="image with an RPC, or a standalone RPC file")
-    from . import add_rpc_argument
     add_rpc_argument(parser)
     parser.add_argument("--dem", help="DEM to localise the footprint corners on (default: at HEIGHT_OFF)")
     add_geoid_argument(parser)
@@ -19,7 +20,6 @@ def add_parser(parser):
 
 
 def run(args) -> int:
-    from ..describe import describe_rpc
     info = describe_rpc(args.source, dem=args.dem, geoid=args.geoid, rpc=args.rpc)
     if args.json:
         print(json.dumps(info, indent=2))

@@ -1,6 +1,11 @@
 """``gf4cal intersect``: least-squares forward intersection of tie points from two or more RPC images (METHODS §7)."""
 from __future__ import annotations
 
+import math
+
+from ..workflows import intersect_files
+from . import print_warnings
+
 NAME = "intersect"
 HELP = "Intersect tie points seen in two or more RPC images; planar/height precision (and errors vs truth)."
 
@@ -20,8 +25,6 @@ def add_parser(parser):
 
 
 def run(args) -> int:
-    import math
-    from ..workflows import intersect_files
     rep = intersect_files(args.rpc, args.points, out=args.out, sigma_px=args.sigma, report=args.report,
                           overwrite=args.overwrite)
     print(f"{rep['n_intersected']} of {rep['n_points']} points intersected from {len(rep['rpcs'])} images")
@@ -45,6 +48,5 @@ def run(args) -> int:
                   f"{r['sigma_planar_m']:.3f},{r['sigma_height_m']:.3f}")
     else:
         print(f"wrote {args.out}")
-    from . import print_warnings
     print_warnings(rep)
     return 0

@@ -1,7 +1,14 @@
 """``gf4cal refine``: bias-compensate the RPC of an image with GCPs and write the refined RPC (METHODS §4)."""
 from __future__ import annotations
 
-from .ortho import add_geoid_argument
+from ..batch import refine_batch
+from ..compensation import MODEL_NAMES
+from ..errors import Gf4calError
+from ..progress import TextProgressBar
+from ..workflows import refine_rpc
+from . import add_gcp_reader_arguments, add_plausibility_argument, add_rpc_argument, print_warnings
+from .batch_options import add_batch_options, run_batch_command
+from .ortho import add_geoid_argument, add_ortho_arguments, cli_geoid_errors, print_ortho
 
 NAME = "refine"
 HELP = ("Refine an image's RPC with GCPs (translation, shift-drift, affine, poly2 or detector-poly) and write "
@@ -9,10 +16,8 @@ HELP = ("Refine an image's RPC with GCPs (translation, shift-drift, affine, poly
 
 
 def add_parser(parser):
-    from ..compensation import MODEL_NAMES
     parser.add_argument("source", nargs="+", metavar="IMAGE_OR_RPC", help="image with an RPC, or a standalone RPC "
                         "file (several with --batch)")
-    from . import add_rpc_argument
     add_rpc_argument(parser)
     parser.add_argument("--gcps", required=True,
                         help="GCPs: CSV (id,lon,lat,h,sample,line[,role][,sigma]), GeoPackage/GeoJSON point layer "
@@ -29,7 +34,6 @@ def add_parser(parser):
     parser.add_argument("--dem", help="DEM for GCPs without height")
     add_geoid_argument(parser)
     parser.add_argument("--gcp-crs", help="CRS of the GCPs' map coordinates when the file does not say")
-    from . import add_gcp_reader_arguments
     add_gcp_reader_arguments(parser)
     parser.add_argument("--check-fraction", type=float,
                         help="make this share of the GCPs check points (seeded, spread over the image)")
@@ -42,12 +46,10 @@ def add_parser(parser):
     parser.add_argument("--max-uncertainty", type=float, metavar="PX",
                         help="refuse a correction whose propagated 1-sigma uncertainty anywhere in the image exceeds "
                         "PX (default 10; a warning above 1 px)")
-    from . import add_plausibility_argument
     add_plausibility_argument(parser)
     parser.add_argument("--out", required=True, help="output .RPB, _RPC.TXT, or .vrt (image input)")
     parser.add_argument("--ortho", metavar="ORTHO.tif",
                         help="also orthorectify the image with the refined RPC over --dem into this GeoTIFF")
-    from .ortho import add_ortho_arguments
     add_ortho_arguments(parser)
     parser.add_argument("--report", help="write report.json")
     parser.add_argument("--residuals", help="write the GCPs and residuals as a styled GeoPackage (.gpkg)")
@@ -57,7 +59,6 @@ def add_parser(parser):
                         "globs, @list.txt), --gcps a folder of <stem>.gpkg tables (or one <stem>.* GCP file each, e.g. header-less "
                         "<stem>.csv with --columns), --out a folder (<stem>.RPB + "
                         "<stem>.report.json per scene, batch_summary.csv/.json); rerun skips finished scenes")
-    from .batch_options import add_batch_options
     add_batch_options(parser, flag=False)
 
 
@@ -66,15 +67,9 @@ def _fmt(x):
 
 
 def run(args) -> int:
-    from . import print_warnings
-    from ..progress import TextProgressBar
-    from ..workflows import refine_rpc
     if args.batch or args.dask:
         if args.rpc:
-            from ..errors import Gf4calError
             raise Gf4calError("--rpc names one scene's RPC; in a batch each scene must carry its own RPC")
-        from .batch_options import run_batch_command
-        from ..batch import refine_batch
         return run_batch_command(args, lambda ex, pr: refine_batch(
             args.source, args.gcps, args.model, args.out, executor=ex, overwrite=args.overwrite, progress=pr,
             order=args.order, along=args.along, ccd_axis=args.ccd_axis, dem=args.dem, geoid=args.geoid,
@@ -83,10 +78,8 @@ def run(args) -> int:
             gcp_columns=args.columns, gcp_pixel_convention=args.gcp_pixel_convention,
             max_uncertainty_px=args.max_uncertainty, check_plausibility=not args.no_plausibility_check))
     if len(args.source) != 1:
-        from ..errors import Gf4calError
         raise Gf4calError("several scenes: add --batch (then --gcps is a folder of <stem>.gpkg and --out a folder)")
     args.source = args.source[0]
-    from .ortho import cli_geoid_errors, print_ortho
     ortho_options = {"crs": args.crs, "res_m": args.res, "resampling": args.resampling, "force": args.force}
     rep = cli_geoid_errors(refine_rpc, args.source, args.gcps, args.model, out=args.out, order=args.order, along=args.along,
                      ccd_axis=args.ccd_axis, dem=args.dem, geoid=args.geoid, gcp_crs=args.gcp_crs,

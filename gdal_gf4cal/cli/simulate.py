@@ -1,13 +1,17 @@
 """``gf4cal simulate``: write a simulated scene with known truth (METHODS §10)."""
 from __future__ import annotations
 
+from ..progress import TextProgressBar
+from ..simulate import SENSORS
+from ..workflows import simulate_scene
+from . import print_warnings
+
 NAME = "simulate"
 HELP = ("Simulate a scene of a known sensor (gf4, zy3, hj1, jl1, gf7) with known truth: image or placeholder, RPC "
         "fitted from the current model, DEM, GCPs from the true model, check grid, cameras, truth.json.")
 
 
 def add_parser(parser):
-    from ..simulate import SENSORS
     parser.add_argument("--sensor", required=True, choices=sorted(SENSORS), help="sensor family")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of errors, terrain and GCPs (default 0)")
@@ -55,9 +59,6 @@ def _observation_options(args):
 
 
 def run(args) -> int:
-    from . import print_warnings
-    from ..progress import TextProgressBar
-    from ..workflows import simulate_scene
     res = simulate_scene(args.sensor, args.out, overwrite=args.overwrite, seed=args.seed, center=args.center,
                       size=args.size, crop=args.crop,
                       n_gcps=args.n_gcps, gcp_noise_px=args.gcp_noise, outlier_fraction=args.outlier_fraction,

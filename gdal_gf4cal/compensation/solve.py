@@ -62,11 +62,11 @@ def _table(gcps):
     return tab
 
 
-def _solve_axis(a, y, w, prior=None) -> Tuple[np.ndarray, np.ndarray, Any]:
+def _solve_axis(a, y, w, prior=None, solver: str = "svd") -> Tuple[np.ndarray, np.ndarray, Any]:
     """Weighted LS of one axis through :func:`gdal_gf4cal.estimation.weighted_lsq` (METHODS §4): returns
     ``(coef, N^-1, estimate)`` for weights ``w`` (zeros drop a row; their residuals are still computed and
     normalised with the a-priori weights ``prior``)."""
-    est = weighted_lsq(a, y, w, prior=prior, apriori=True)
+    est = weighted_lsq(a, y, w, prior=prior, apriori=True, solver=solver)
     return est.x, est.cov, est
 
 def _check_rank(a_list, model: CompensationModel, n_ctrl: int, terms=None) -> float:
@@ -105,10 +105,13 @@ _MAX_AMPLIFICATION = 1000.0
 class CompensationProblem:
     """The control GCPs of a compensation as a problem of the robust driver (its protocol: ``n_points``, ``k``,
     ``n_params``, ``min_points``, ``fit``, ``redundancy``, ``start_design``): per point a sample and a line
-    observation, the two axes solved separately (:func:`_normalised`; ``parts`` keeps its last result)."""
+    observation, the two axes solved separately (:func:`_normalised`; ``parts`` keeps its last result).
+    ``solver``: ``"normal"`` for the robust iterations (:func:`_robust_set`), ``"svd"`` for the final estimate
+    and its covariance (:func:`~gdal_gf4cal.estimation.solve_normal_scaled`)."""
 
-    def __init__(self, a_s, a_l, y_s, y_l, w0, min_points: int):
+    def __init__(self, a_s, a_l, y_s, y_l, w0, min_points: int, solver: str = "svd"):
         self.a_s, self.a_l, self.y_s, self.y_l, self.w0 = a_s, a_l, y_s, y_l, w0
+        self.solver = solver
         self.n_points, self.k, self.n_params = len(w0), 2, a_s.shape[1] + a_l.shape[1]
         self.min_points = int(min_points)
         self.parts: tuple = ()
@@ -126,7 +129,7 @@ class CompensationProblem:
     def fit(self, point_weights) -> Estimate:
         used = np.asarray(point_weights) > 0
         self.parts = norm_s, norm_l, cs, cl, ns, nl, sig_s, sig_l, red, dof = _normalised(
-            self.a_s, self.a_l, self.y_s, self.y_l, self.w0, used)
+            self.a_s, self.a_l, self.y_s, self.y_l, self.w0, used, self.solver)
         p_s = cs.size
         cov = np.zeros((self.n_params, self.n_params))
         cov[:p_s, :p_s], cov[p_s:, p_s:] = sig_s ** 2 * ns, sig_l ** 2 * nl
@@ -244,8 +247,12 @@ def _robust_set(problem: CompensationProblem, ctrl, robust: bool, snoop: Snoopin
     if redundancy < 2:
         return ctrl.copy(), np.zeros(ctrl.size, bool), 0, [
             f"no robust estimation: redundancy {max(redundancy, 0)} is too small to detect blunders"]
-    est = robust_fit(problem, norm=snoop, start="lts", candidates=ctrl, min_points=problem.min_points,
-                     max_iter=max_iter, on_degenerate="stop")
+    problem.solver = "normal"        # the iterations: normal equations; the final estimate (the caller's): SVD
+    try:
+        est = robust_fit(problem, norm=snoop, start="lts", candidates=ctrl, min_points=problem.min_points,
+                         max_iter=max_iter, on_degenerate="stop")
+    finally:
+        problem.solver = "svd"
     notes = list(est.notes)
     if est.norm_info.get("degenerate"):
         notes.append("rejecting blunders would leave the model undetermined; all control points kept")
@@ -301,12 +308,12 @@ def _leave_one_out(tab, designs, n_invs, w0, used) -> None:
             tab[f"res_{axis}_loo"] = np.where(used, v / (1.0 - hat), v)
 
 
-def _normalised(a_s, a_l, y_s, y_l, w0, used):
+def _normalised(a_s, a_l, y_s, y_l, w0, used, solver: str = "svd"):
     """LS on ``used``; normalised residuals of every point, a-posteriori sigma per axis, redundancy and the
     degrees of freedom ``(sample, line)`` of the sigma estimates."""
     wu = np.where(used, w0, 0.0)
-    cs, ns, est_s = _solve_axis(a_s, y_s, wu, w0)
-    cl, nl, est_l = _solve_axis(a_l, y_l, wu, w0)
+    cs, ns, est_s = _solve_axis(a_s, y_s, wu, w0, solver)
+    cl, nl, est_l = _solve_axis(a_l, y_l, wu, w0, solver)
     vs, vl = est_s.residuals, est_l.residuals
     red_s, red_l = est_s.dof, est_l.dof
     # With no redundancy the a-priori sigma (weights) is all we know: sigma0 = 1 (weighted_lsq's convention).

@@ -46,31 +46,59 @@ def _free_mask(blocks: Dict[str, slice], frozen: Sequence[str], p: int) -> np.nd
 
 
 def solve_normal_scaled(a: np.ndarray, y: np.ndarray, w: np.ndarray, hint: str = "",
-                        max_condition: float = MAX_CONDITION) -> Tuple[np.ndarray, np.ndarray, float]:
+                        max_condition: float = MAX_CONDITION,
+                        solver: str = "svd") -> Tuple[np.ndarray, np.ndarray, float]:
     """``(x, N^-1, cond)`` of the weighted LS ``a x ~ y`` through the SVD of the column-scaled ``sqrt(w) a``.
 
+    ``solver="normal"``: through the eigen-decomposition of its ``p x p`` normal matrix instead of the SVD of the
+    ``n x p`` design, the same numbers to rounding (for the iterations of a robust loop over many points); a
+    condition number above :data:`_NORMAL_CONDITION`, where the normal matrix loses the small singular values,
+    goes back to the SVD, so both solvers refuse the same layouts.
     Raises :class:`DegenerateGeometryError` (with the condition number) when the layout does not determine ``x``.
     """
+    if solver not in ("svd", "normal"):
+        raise ValueError(f"solver must be 'svd' or 'normal', not {solver!r}")
     sw = np.sqrt(np.maximum(w, 0.0))
     aw = a * sw[:, None]
     scale = np.linalg.norm(aw, axis=0)
     scale = np.where(scale > 0, scale, 1.0)
-    u, s, vt = np.linalg.svd(aw / scale, full_matrices=False)
+    s = np.zeros(0)
+    if solver == "normal":
+        s, vt, rhs = _scaled_normal_eig(aw / scale, y * sw)
+    if not (s.size and s[-1] > 0 and s[0] / s[-1] <= _NORMAL_CONDITION):
+        u, s, vt = np.linalg.svd(aw / scale, full_matrices=False)
+        rhs = u.T @ (y * sw)
     cond = float(s[0] / s[-1]) if s.size and s[-1] > 0 else math.inf
     if not s.size or cond > max_condition:
         raise DegenerateGeometryError(
             f"the observations do not determine the parameters (condition number {cond:.3g}){hint}; add "
             "observations spread over the image or estimate fewer parameters")
-    z = (vt.T / s) @ (u.T @ (y * sw))
+    z = (vt.T / s) @ rhs
     x = z / scale
     vs = vt.T / s
     n_inv = (vs @ vs.T) / np.outer(scale, scale)
     return x, n_inv, cond
 
 
+#: Largest condition number (of the column-scaled design) solved through the normal matrix by
+#: ``solver="normal"``; above it the SVD (the normal matrix squares it).
+_NORMAL_CONDITION = 1e4
+
+
+def _scaled_normal_eig(a: np.ndarray, y: np.ndarray):
+    """``(s, vt, u^T y)`` of the thin SVD ``a = u diag(s) vt`` from the eigen-decomposition of ``a^T a``
+    (singular values in decreasing order)."""
+    ev, v = np.linalg.eigh(a.T @ a)
+    ev, v = ev[::-1], v[:, ::-1]
+    s = np.sqrt(np.maximum(ev, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rhs = np.where(s > 0, (v.T @ (a.T @ y)) / s, 0.0)
+    return s, v.T, rhs
+
+
 def weighted_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), frozen: Sequence[str] = (),
                  values=None, prior=None, apriori: bool = False, hint: str = "",
-                 max_condition: float = MAX_CONDITION) -> Estimate:
+                 max_condition: float = MAX_CONDITION, solver: str = "svd") -> Estimate:
     """Weighted least squares ``design @ x ~ obs`` with freezable named blocks (METHODS §4).
 
     Parameters
@@ -90,6 +118,8 @@ def weighted_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), fro
         (default 1).
     apriori : bool
         Covariance from the a-priori weights (``N^-1``) instead of ``sigma0^2 N^-1``.
+    solver : ``"svd"`` or ``"normal"``
+        See :func:`solve_normal_scaled` (the same diagnostics either way).
 
     Returns
     -------
@@ -119,7 +149,7 @@ def weighted_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), fro
     if n_used < pf:
         raise DegenerateGeometryError(f"{n_used} observations cannot determine {pf} parameters{hint}; add "
                                       "observations or freeze/estimate fewer parameters")
-    xf, n_inv, cond = solve_normal_scaled(af[used], y_free[used], w[used], hint, max_condition)
+    xf, n_inv, cond = solve_normal_scaled(af[used], y_free[used], w[used], hint, max_condition, solver)
     x[free] = xf
     v = y - a @ x
     dof = n_used - pf

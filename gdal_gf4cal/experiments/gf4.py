@@ -27,7 +27,12 @@ import numpy as np
 
 from ..lookangle import calibrate_lookangle, calibrate_lookangle_rigorous, compare_lookangle, recalibrate_rpc
 from ..progress import report
-from ..stats import axis_stats, internal_accuracy
+from ..report import plot_residuals, write_report_json, write_residuals_gpkg
+from ..rpc_fit import fit_rpc_from_model
+from ..simulate import make_scene
+from ..simulate.models import FrameModel
+from ..simulate.scene import check_grid, simulate_gcps
+from ..stats import axis_stats, internal_accuracy, remove_low_order
 
 #: The paper's Table 1: name -> (control points, imaging time, centre (lon, lat), GSD m).
 TABLE1 = {
@@ -59,7 +64,6 @@ def _exterior_error(rng, ifov: float) -> Dict[str, float]:
 
 def _true_model(current, camera_true, ext: Optional[Dict[str, float]]):
     """The scene's true rigorous model: the common true camera, the scene's attitude with its own error."""
-    from ..simulate.models import FrameModel
     R = np.asarray(current.rotation, dtype=float)
     if ext:
         R = R @ _rot(2, ext["yaw_rad"]) @ _rot(0, ext["pitch_rad"]) @ _rot(1, ext["roll_rad"])
@@ -142,20 +146,69 @@ def run(out_dir, *, seed: int = DEFAULT_SEED, progress=None, gcp_noise_px: float
     -------
     dict : the report (``table1`` ... ``table4``, ``check_grid``, ``calibration``, ``truth``).
     """
-    from ..report import plot_residuals, write_report_json, write_residuals_gpkg
-    from ..rpc_fit import fit_rpc_from_model
-    from ..simulate import make_scene
-    from ..simulate.scene import check_grid, simulate_gcps
-
     t0 = time.perf_counter()
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
     counts = {k: v[0] for k, v in TABLE1.items()}
     counts.update(n_gcps or {})
-    rng = np.random.default_rng(seed)
     names = list(TABLE1)
+    scenes, camera_current, camera_true, truth_camera = _simulate_scenes(names, counts, seed=seed, size=size,
+                                                                         gcp_noise_px=gcp_noise_px,
+                                                                         progress=progress)
+    table1 = {name: {"gcps": int(len(s["gcps"])), "time": s["time"], "center": list(s["center"]),
+                     "gsd_m": float(s["image"].gsd_m), "paper_gsd_m": TABLE1[name][3],
+                     "size": list(s["image"].size)} for name, s in scenes.items()}
 
-    # ---- scenes: one camera (current + true), per-scene attitude drift, RPC from the current model, GCPs.
+    table2, calib = _table2(scenes, camera_current, progress)
+
+    # ---- Table 3: the calibration scene.
+    report(progress, 0.68, f"recalibrating {CALIBRATION_SCENE}")
+    cal_rpc, cal_rig = calib[CALIBRATION_SCENE]["rpc"], calib[CALIBRATION_SCENE]["rigorous"]
+    new_rpcs: Dict[str, Dict[str, Any]] = {}
+    new_rpcs[CALIBRATION_SCENE] = _recalibrated(scenes[CALIBRATION_SCENE], camera_current, cal_rpc, cal_rig)
+    table3 = _table3(scenes[CALIBRATION_SCENE], new_rpcs[CALIBRATION_SCENE])
+
+    # ---- Table 4: the other scenes with the calibration scene's camera; internal accuracy (eq. 8).
+    table4, eq8, check = {}, {}, {}
+    for i, name in enumerate(names):
+        report(progress, 0.72 + 0.2 * i / len(names), f"recalibrating {name}")
+        s = scenes[name]
+        if name != CALIBRATION_SCENE:
+            new_rpcs[name] = _recalibrated(s, camera_current, cal_rpc, cal_rig)
+            g = s["gcps"]
+            glon, glat, gh = (g[c].to_numpy(float) for c in ("lon", "lat", "h"))
+            cols = {"before": _internal(g, *s["rpc"].project(glon, glat, gh)),
+                    "rigorous": _internal(g, *new_rpcs[name]["rigorous"].project(glon, glat, gh)),
+                    "rpc": _internal(g, *new_rpcs[name]["rpc"].project(glon, glat, gh))}
+            table4[name] = {k: v[0] for k, v in cols.items()}
+            eq8[name] = {k: v[1] for k, v in cols.items()}
+        check[name] = _check_grid_entry(name, s, new_rpcs[name]["rpc"], new_rpcs[name]["rigorous"])
+        n_used = int(cal_rpc.n_control - cal_rpc.n_outliers)
+        check[name]["floor_px"] = gcp_noise_px * math.sqrt(10.0 / n_used)
+
+    rep = _report_dict(seed=seed, gcp_noise_px=gcp_noise_px, scenes=scenes, calib=calib, new_rpcs=new_rpcs,
+                       tables=(table1, table2, table3, table4, eq8, check), truth_camera=truth_camera,
+                       camera_true=camera_true, camera_current=camera_current)
+    report(progress, 0.94, "writing outputs")
+    outputs = {"report": os.path.join(out_dir, "report.json")}
+    if write_files:
+        outputs.update(_write_side_files(out_dir, scenes, new_rpcs, calib, camera_current, camera_true,
+                                         plot_residuals, write_residuals_gpkg))
+    rep["outputs"] = outputs
+    rep["elapsed_s"] = time.perf_counter() - t0
+    write_report_json(rep, outputs["report"])
+    if verbose:
+        print(format_tables(rep))
+        print(f"\nwrote {outputs['report']} ({rep['elapsed_s']:.1f} s)")
+    report(progress, 1.0, "done")
+    return rep
+
+
+def _simulate_scenes(names, counts, *, seed, size, gcp_noise_px, progress):
+    """Scenes: one camera (current + true), per-scene attitude drift, RPC from the current model, GCPs, check grid.
+
+    Returns ``(scenes, camera_current, camera_true, truth_camera)``."""
+    rng = np.random.default_rng(seed)
     scenes: Dict[str, Dict[str, Any]] = {}
     camera_true = camera_current = None
     for i, name in enumerate(names):
@@ -177,84 +230,71 @@ def run(out_dir, *, seed: int = DEFAULT_SEED, progress=None, gcp_noise_px: float
         grid = check_grid(im, sc.dem, n=41)
         scenes[name] = {"scene": sc, "image": im, "rpc": rpc, "rpc_fit": fit_rep, "gcps": gcps, "grid": grid,
                         "exterior_error": ext, "time": t_img, "center": center}
+    return scenes, camera_current, camera_true, truth_camera
 
-    table1 = {name: {"gcps": int(len(s["gcps"])), "time": s["time"], "center": list(s["center"]),
-                     "gsd_m": float(s["image"].gsd_m), "paper_gsd_m": TABLE1[name][3],
-                     "size": list(s["image"].size)} for name, s in scenes.items()}
 
-    # ---- Table 2: each scene calibrated from its own GCPs, RPC-based vs rigorous.
+def _table2(scenes, camera_current, progress):
+    """Table 2: each scene calibrated from its own GCPs, RPC-based vs rigorous; ``(table2, calibrations)``."""
     table2, calib = {}, {}
-    for i, name in enumerate(names):
-        report(progress, 0.45 + 0.2 * i / len(names), f"calibrating {name}")
-        s = scenes[name]
+    for i, (name, s) in enumerate(scenes.items()):
+        report(progress, 0.45 + 0.2 * i / len(scenes), f"calibrating {name}")
         res_rpc = calibrate_lookangle(s["rpc"], s["gcps"], camera_current)
         res_rig = calibrate_lookangle_rigorous(s["image"].current, s["gcps"])
         d = compare_lookangle(res_rpc.camera, res_rig.camera, grid_px=50)
         table2[name] = {"line": d["line"], "sample": d["sample"]}
         calib[name] = {"rpc": res_rpc, "rigorous": res_rig}
+    return table2, calib
 
-    # ---- Table 3: the calibration scene.
-    report(progress, 0.68, f"recalibrating {CALIBRATION_SCENE}")
-    s1 = scenes[CALIBRATION_SCENE]
-    cal_rpc, cal_rig = calib[CALIBRATION_SCENE]["rpc"], calib[CALIBRATION_SCENE]["rigorous"]
+
+def _recalibrated(s, camera_current, cal_rpc, cal_rig) -> Dict[str, Any]:
+    """The scene's RPC recalibrated for the RPC-calibrated camera, and refitted from the rigorous model with the
+    rigorously calibrated camera (and their fit reports)."""
+    rpc_new, rep_new = recalibrate_rpc(s["rpc"], camera_current, cal_rpc.camera)
+    rpc_rig, rep_rig = fit_rpc_from_model(s["image"].current.with_camera(cal_rig.camera))
+    return {"rpc": rpc_new, "rpc_fit": rep_new, "rigorous": rpc_rig, "rigorous_fit": rep_rig}
+
+
+def _table3(s1, new1) -> Dict[str, Any]:
+    """Table 3: the calibration scene's GCP residuals: initial, low order removed, rigorous, RPC-based."""
     g1 = s1["gcps"]
     lon, lat, h = (g1[c].to_numpy(float) for c in ("lon", "lat", "h"))
     ms, ml = g1["sample"].to_numpy(float), g1["line"].to_numpy(float)
     keys3 = ("mean", "rms", "std")
-    new_rpcs: Dict[str, Dict[str, Any]] = {}
-
-    def recalibrated(name):
-        s = scenes[name]
-        rpc_new, rep_new = recalibrate_rpc(s["rpc"], camera_current, cal_rpc.camera)
-        rpc_rig, rep_rig = fit_rpc_from_model(s["image"].current.with_camera(cal_rig.camera))
-        new_rpcs[name] = {"rpc": rpc_new, "rpc_fit": rep_new, "rigorous": rpc_rig, "rigorous_fit": rep_rig}
-        return rpc_new, rpc_rig
-
-    rpc_new1, rpc_rig1 = recalibrated(CALIBRATION_SCENE)
     s0, l0 = s1["rpc"].project(lon, lat, h)
     lo = internal_accuracy(ms, ml, s0, l0)
-    sr, lr = rpc_rig1.project(lon, lat, h)
-    sn, ln = rpc_new1.project(lon, lat, h)
-    table3 = {"initial": _pair(ms - s0, ml - l0, keys3),
-              "low_order_removed": {"line": {k: lo["line"][k] for k in keys3},
-                                    "sample": {k: lo["sample"][k] for k in keys3}},
-              "rigorous": _pair(ms - sr, ml - lr, keys3),
-              "rpc": _pair(ms - sn, ml - ln, keys3)}
+    sr, lr = new1["rigorous"].project(lon, lat, h)
+    sn, ln = new1["rpc"].project(lon, lat, h)
+    return {"initial": _pair(ms - s0, ml - l0, keys3),
+            "low_order_removed": {"line": {k: lo["line"][k] for k in keys3},
+                                  "sample": {k: lo["sample"][k] for k in keys3}},
+            "rigorous": _pair(ms - sr, ml - lr, keys3),
+            "rpc": _pair(ms - sn, ml - ln, keys3)}
 
-    # ---- Table 4: the other scenes with the calibration scene's camera; internal accuracy (eq. 8).
-    table4, eq8, check = {}, {}, {}
-    for i, name in enumerate(names):
-        report(progress, 0.72 + 0.2 * i / len(names), f"recalibrating {name}")
-        s = scenes[name]
+
+def _check_grid_entry(name: str, s, rpc_new, rpc_rig) -> Dict[str, Any]:
+    """Dense check grid against the true model (absolute for the calibration scene, eq. 8 for scenes with
+    attitude drift): before, rigorous, RPC-based."""
+    grid = s["grid"]
+    gl, ga, gh = (grid[c].to_numpy(float) for c in ("lon", "lat", "h"))
+    st, lt = grid["sample_true"].to_numpy(float), grid["line_true"].to_numpy(float)
+    entry = {}
+    for key, model in (("before", s["rpc"]), ("rigorous", rpc_rig), ("rpc", rpc_new)):
+        ps, pl = model.project(gl, ga, gh)
         if name == CALIBRATION_SCENE:
-            rpc_new, rpc_rig = rpc_new1, rpc_rig1
+            entry[key] = _pair(st - ps, lt - pl, ("mean", "rms", "max"))
         else:
-            rpc_new, rpc_rig = recalibrated(name)
-            g = s["gcps"]
-            glon, glat, gh = (g[c].to_numpy(float) for c in ("lon", "lat", "h"))
-            cols = {"before": _internal(g, *s["rpc"].project(glon, glat, gh)),
-                    "rigorous": _internal(g, *rpc_rig.project(glon, glat, gh)),
-                    "rpc": _internal(g, *rpc_new.project(glon, glat, gh))}
-            table4[name] = {k: v[0] for k, v in cols.items()}
-            eq8[name] = {k: v[1] for k, v in cols.items()}
-        # Dense check grid against the true model (absolute for PMS1, eq. 8 for scenes with attitude drift).
-        grid = s["grid"]
-        gl, ga, gh = (grid[c].to_numpy(float) for c in ("lon", "lat", "h"))
-        st, lt = grid["sample_true"].to_numpy(float), grid["line_true"].to_numpy(float)
-        entry = {}
-        for key, model in (("before", s["rpc"]), ("rigorous", rpc_rig), ("rpc", rpc_new)):
-            ps, pl = model.project(gl, ga, gh)
-            if name == CALIBRATION_SCENE:
-                entry[key] = _pair(st - ps, lt - pl, ("mean", "rms", "max"))
-            else:
-                ia = internal_accuracy(st, lt, ps, pl)
-                entry[key] = {"line": {k: ia["line"][k] for k in ("mean", "rms", "max")},
-                              "sample": {k: ia["sample"][k] for k in ("mean", "rms", "max")}}
-        n_used = int(cal_rpc.n_control - cal_rpc.n_outliers)
-        entry["floor_px"] = gcp_noise_px * math.sqrt(10.0 / n_used)
-        check[name] = entry
+            ia = internal_accuracy(st, lt, ps, pl)
+            entry[key] = {"line": {k: ia["line"][k] for k in ("mean", "rms", "max")},
+                          "sample": {k: ia["sample"][k] for k in ("mean", "rms", "max")}}
+    return entry
 
-    rep = {
+
+def _report_dict(*, seed, gcp_noise_px, scenes, calib, new_rpcs, tables, truth_camera, camera_true,
+                 camera_current) -> Dict[str, Any]:
+    """The experiment's report: Tables 1-4, the check grid, the calibrations, the RPC fits and the truth."""
+    table1, table2, table3, table4, eq8, check = tables
+    cal_rpc = calib[CALIBRATION_SCENE]["rpc"]
+    return {
         "experiment": "gf4 look-angle calibration from the RPC alone (seed 000, METHODS §5)",
         "seed": seed, "gcp_noise_px": gcp_noise_px, "calibration_scene": CALIBRATION_SCENE,
         "units": "pixels", "table1": table1, "table2": table2, "table3": table3, "table4": table4,
@@ -276,20 +316,6 @@ def run(out_dir, *, seed: int = DEFAULT_SEED, progress=None, gcp_noise_px: float
                                                         compare_lookangle(cal_rpc.camera, camera_true).items()
                                                         if k in ("line", "sample")}},
     }
-
-    report(progress, 0.94, "writing outputs")
-    outputs = {"report": os.path.join(out_dir, "report.json")}
-    if write_files:
-        outputs.update(_write_side_files(out_dir, scenes, new_rpcs, calib, camera_current, camera_true,
-                                         plot_residuals, write_residuals_gpkg))
-    rep["outputs"] = outputs
-    rep["elapsed_s"] = time.perf_counter() - t0
-    write_report_json(rep, outputs["report"])
-    if verbose:
-        print(format_tables(rep))
-        print(f"\nwrote {outputs['report']} ({rep['elapsed_s']:.1f} s)")
-    report(progress, 1.0, "done")
-    return rep
 
 
 def _write_side_files(out_dir, scenes, new_rpcs, calib, camera_current, camera_true, plot_residuals,
@@ -324,6 +350,5 @@ def _write_side_files(out_dir, scenes, new_rpcs, calib, camera_current, camera_t
 
 
 def _remove_low_order(g, cs, cl):
-    from ..stats import remove_low_order
     meas_s, meas_l = g["sample"].to_numpy(float), g["line"].to_numpy(float)
     return remove_low_order(meas_s, meas_l, meas_s - g[cs].to_numpy(float), meas_l - g[cl].to_numpy(float))

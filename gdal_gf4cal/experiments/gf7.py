@@ -25,8 +25,13 @@ import time
 from typing import Any, Dict
 
 import numpy as np
+import pandas as pd
 
+from .. import panms
 from ..progress import report as _report
+from ..report import write_report_json
+from ..simulate.gf7 import cover_class, make_gf7_scene, true_misregistration
+from ..stats import share_within
 
 #: The paper's numbers (METHODS §9): before, after linear, after piecewise; jitter; reuse; cloudy scene.
 PAPER = {"before": {"rms_sample_px": 0.60, "rms_line_px": 0.30, "p_le_0.25": "< 0.01"},
@@ -43,7 +48,6 @@ N_SPARSE = 200
 
 
 def _cells(scene, cell_px, noise_px, rng, cloud_noise_px=None):
-    from ..simulate.gf7 import cover_class, true_misregistration
     ms = scene.image("ms")
     W, H = ms.size
     s, l = np.meshgrid(np.arange(W // cell_px) * cell_px + cell_px / 2.0,
@@ -53,7 +57,6 @@ def _cells(scene, cell_px, noise_px, rng, cloud_noise_px=None):
     lon, lat, _ = ms.true.localize_dem(s, l, scene.dem)
     clear = cover_class(scene, lon, lat) == 0
     noise = np.where(clear, noise_px, cloud_noise_px if cloud_noise_px else noise_px)
-    import pandas as pd
     return pd.DataFrame({"sample": s, "line": l, "d_sample": ds + rng.normal(0, 1, s.size) * noise,
                          "d_line": dl + rng.normal(0, 1, s.size) * noise, "sigma_sample": noise_px,
                          "sigma_line": noise_px, "usable": clear, "clear": clear})
@@ -65,7 +68,6 @@ def _row(step: dict) -> Dict[str, float]:
 
 
 def _evaluate(model, cells, mask) -> Dict[str, float]:
-    from ..stats import share_within
     ps, pl = model.predict(cells["sample"], cells["line"])
     rs, rl = (cells["d_sample"] - ps).to_numpy()[mask], (cells["d_line"] - pl).to_numpy()[mask]
     return {"rms_sample_px": float(np.sqrt(np.mean(rs ** 2))), "rms_line_px": float(np.sqrt(np.mean(rl ** 2))),
@@ -82,9 +84,6 @@ def run(out_dir, *, seed: int = 0, progress=None, cell_px: int = CELL_PX, cell_n
     ``model.json``). ``seed`` offsets every scene seed. Returns the report: ``table2`` (per scene: ``before``,
     ``linear``, ``piecewise``), ``jitter`` (per scene: ``piecewise``, ``jitter``, components vs truth),
     ``table3`` (per scene: ``reuse``, ``solve``), ``cloudy`` (``all_cells``, ``clear_cells``), ``paper``."""
-    from .. import panms
-    from ..report import write_report_json
-    from ..simulate.gf7 import make_gf7_scene
 
     t0 = time.perf_counter()
     out_dir = os.fspath(out_dir)

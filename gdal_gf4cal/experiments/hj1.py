@@ -34,7 +34,13 @@ from typing import Any, Dict
 
 import numpy as np
 
+from ..compensation import fit_compensation
+from ..gcp import write_gcps
+from ..gcp_formats import assign_roles
 from ..progress import report as _report
+from ..report import write_report_json
+from ..rpc_fit import fit_rpc_from_model
+from ..simulate import make_scene, simulate_gcps
 from ..stats import axis_stats
 
 #: The paper's Tables 1-2 (px): model -> role -> axis -> (rms, max); along-track not given for the polynomials.
@@ -83,12 +89,6 @@ def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOIS
     in px (nothing else at those levels), ``floor`` and ``uncompensated`` of the same ``control|check`` shape,
     ``n_control``/``n_check``, ``profile`` (cross-track RMS per eighth of the swath), ``paper``, ``scene``.
     """
-    from ..compensation import fit_compensation
-    from ..gcp_formats import assign_roles
-    from ..report import write_report_json
-    from ..rpc_fit import fit_rpc_from_model
-    from ..simulate import make_scene, simulate_gcps
-
     t0 = time.perf_counter()
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
@@ -105,14 +105,7 @@ def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOIS
     gcps = assign_roles(gcps, n_check / n, seed=seed)
     role = gcps["role"].to_numpy(str)
 
-    # The floor: measurements with the true camera distortion removed (simulator truth) -- what is left is not a
-    # function of the detector position (noise + the small attitude oscillation).
-    lon, lat, h = (gcps[c].to_numpy(float) for c in ("lon", "lat", "h"))
-    s_dist, l_dist = im.current.with_camera(im.true.camera).project(lon, lat, h)
-    s_cur, l_cur = im.current.project(lon, lat, h)
-    oracle = gcps.copy()
-    oracle["sample"] = gcps["sample"] - (np.asarray(s_dist) - s_cur)
-    oracle["line"] = gcps["line"] - (np.asarray(l_dist) - l_cur)
+    oracle = _without_distortion(im, gcps)
 
     models: Dict[str, Any] = {}
     tables: Dict[str, Any] = {}
@@ -152,7 +145,6 @@ def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOIS
     }
     if write_files:
         _report(progress, 0.92, "writing files")
-        from ..gcp import write_gcps
         rpc.write_rpb(os.path.join(out_dir, "hj1.RPB"), overwrite=True)
         write_gcps(gcps, os.path.join(out_dir, "gcps.csv"), overwrite=True)
         _plot(os.path.join(out_dir, "hj1_cross_track_residuals.png"), gcps, basic_res, o3_res, W)
@@ -164,6 +156,18 @@ def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOIS
         print(format_tables(rep))
     _report(progress, 1.0, "done")
     return rep
+
+
+def _without_distortion(im, gcps):
+    """The floor's measurements: the GCPs with the true camera distortion removed (simulator truth) -- what is
+    left is not a function of the detector position (noise + the small attitude oscillation)."""
+    lon, lat, h = (gcps[c].to_numpy(float) for c in ("lon", "lat", "h"))
+    s_dist, l_dist = im.current.with_camera(im.true.camera).project(lon, lat, h)
+    s_cur, l_cur = im.current.project(lon, lat, h)
+    oracle = gcps.copy()
+    oracle["sample"] = gcps["sample"] - (np.asarray(s_dist) - s_cur)
+    oracle["line"] = gcps["line"] - (np.asarray(l_dist) - l_cur)
+    return oracle
 
 
 def format_tables(rep: Dict[str, Any]) -> str:
@@ -188,6 +192,7 @@ def format_tables(rep: Dict[str, Any]) -> str:
 
 def _plot(path, gcps, basic, order3, width):
     """Cross-track residuals vs detector position, basic vs cubic (like the paper's Figs. 4-7)."""
+    # matplotlib is imported only here: the one plot of the module, written only with write_files.
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     fig = Figure(figsize=(9, 4.5))

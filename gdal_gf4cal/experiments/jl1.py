@@ -39,8 +39,19 @@ import time
 from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
+import pandas as pd
 
+from ..block import (adjust_block, calibrated_model, calibration_dict, corrected_model, prediction_std,
+                     write_calibration)
+from ..geodesy import metres_per_degree
 from ..progress import report as _report
+from ..report import write_report_json
+from ..rpc_fit import fit_rpc_from_model
+from ..simulate import block_observations, make_scene, simulate_gcps
+from ..simulate.geodesy import geodetic_to_ecef
+from ..simulate.jl1 import ORBIT_ATTITUDE_SIGMA_ARCSEC
+from ..stats import ce90
+from .zy3 import spread_order
 
 BANDS = ("pan", "blue", "green", "red", "nir")
 REFERENCE_BAND = "blue"
@@ -76,7 +87,6 @@ def _rms(x) -> float:
 
 def _metres(lon, lat, h, lon0, lat0):
     """East and north differences (m) of ``(lon, lat)`` from ``(lon0, lat0)``."""
-    from ..geodesy import metres_per_degree
     mx, my = metres_per_degree(lat0, h)
     return (np.asarray(lon) - lon0) * mx, (np.asarray(lat) - lat0) * my
 
@@ -106,13 +116,11 @@ def _band_to_band(models, scene, ccd: int, band: str) -> float:
 
 
 def _orbit_scene(seed, size, dem, orbit_seed):
-    from ..simulate import make_scene
     return make_scene("jl1", seed=seed, size=size, dem=dem, options={"orbit_seed": int(orbit_seed)})
 
 
 def _rpcs_for(scene, base_scene, base_rpcs):
     """The scene's vendor RPCs: the base scene's where the nominal (current) models agree, else refitted."""
-    from ..rpc_fit import fit_rpc_from_model
     out = {}
     for im in scene.images:
         b = base_scene.image(im.name)
@@ -144,7 +152,6 @@ def _ground_errors(models, scene, names):
 
 def _distance(scene, lon, lat, h) -> np.ndarray:
     """Satellite-to-ground distance ``D`` (m): orbit radius - geocentric radius of the ground points."""
-    from ..simulate.geodesy import geodetic_to_ecef
     radius = float(scene.images[0].info["group"]["orbit"]["radius_m"])
     return radius - np.linalg.norm(np.asarray(geodetic_to_ecef(lon, lat, h)), axis=-1)
 
@@ -168,15 +175,6 @@ def run(out_dir, *, seed: int = 3, progress=None, size=DEFAULT_SIZE, gcp_noise_p
     ``table4`` (per CCD and band: band-to-band RMS before/after), ``table5`` (per orbit and ``summary``: CE90 measured
     and implied, ratio), ``table6`` (per scene and ``summary``: check planar RMS m), ``calibration`` (stages).
     """
-    import pandas as pd
-
-    from ..block import adjust_block, calibrated_model, calibration_dict, corrected_model, prediction_std
-    from ..report import write_report_json
-    from ..rpc_fit import fit_rpc_from_model
-    from ..simulate import block_observations, make_scene, simulate_gcps
-    from ..stats import ce90
-    from .zy3 import spread_order
-
     t0 = time.perf_counter()
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
@@ -188,12 +186,7 @@ def run(out_dir, *, seed: int = 3, progress=None, size=DEFAULT_SIZE, gcp_noise_p
     ref_names = [_name(k, REFERENCE_BAND) for k in range(1, N_CCD + 1)]
     pan_names = [_name(k, "pan") for k in range(1, N_CCD + 1)]
     bands_of = {n: _name(scene.image(n).info["ccd"], REFERENCE_BAND) for n in names if n not in ref_names}
-    rpcs: Dict[str, Any] = {}
-    fit_max = 0.0
-    for i, im in enumerate(scene.images):
-        _report(progress, 0.02 + 0.1 * i / len(names), f"fitting the RPC of {im.name}")
-        rpcs[im.name], fit = fit_rpc_from_model(im.current, size=im.size)
-        fit_max = max(fit_max, float(fit.max_px))
+    rpcs, fit_max = _vendor_rpcs(scene, progress)
     _report(progress, 0.13, "GCPs and tie points")
     obs = block_observations(scene, n_gcps=n_gcps, gcp_noise_px=gcp_noise_px, n_overlap_ties=n_ties,
                              n_band_ties=n_ties, tie_noise_px=tie_noise_px, seed=seed)
@@ -201,13 +194,57 @@ def run(out_dir, *, seed: int = 3, progress=None, size=DEFAULT_SIZE, gcp_noise_p
     est = adjust_block(obs, rpcs, scene.dem, order=ref_names, bands_of=bands_of)
     cal = calibration_dict(est)
     corrected = {n: corrected_model(est, n, rpcs[n]) for n in names}
-
-    # ---- Table 3: calibration accuracy per CCD and band (px of the band)
     _report(progress, 0.3, "Table 3: calibration accuracy")
+    table3 = _table3(scene, est, rpcs, corrected)
+    _report(progress, 0.35, "Table 4: band-to-band registration")
+    table4 = {f"ccd{k}": {b: {"before": _band_to_band(rpcs, scene, k, b), "after": _band_to_band(corrected, scene,
+                                                                                                 k, b)}
+                          for b in BANDS if b != REFERENCE_BAND} for k in range(1, N_CCD + 1)}
+    orbits, summary5 = _table5(scene, terrain, rpcs, cal, pan_names, seed=seed, size=size, n_orbits=n_orbits,
+                               progress=progress)
+    scenes = []
+    for i in range(n_scenes):
+        _report(progress, 0.75 + 0.2 * i / max(n_scenes, 1), f"Table 6: scene {i + 1} of {n_scenes} with GCPs")
+        scenes.append(_table6_scene(scene, terrain, rpcs, cal, pan_names, ref_names, i, seed=seed, size=size,
+                                    gcp_noise_px=gcp_noise_px, n_scene_gcps=n_scene_gcps))
+    summary6 = {"n_scenes": len(scenes),
+                "check_planar_rms_m": _rms([s["after"]["planar_rms_m"] for s in scenes]) if scenes else None,
+                "max_check_planar_rms_m": max((s["after"]["planar_rms_m"] for s in scenes), default=None),
+                "gsd_m": float(scene.image(pan_names[0]).gsd_m)}
+    rep = _report_dict(seed=seed, size=size, gcp_noise_px=gcp_noise_px, tie_noise_px=tie_noise_px, fit_max=fit_max,
+                       est=est, cal=cal, table3=table3, table4=table4, orbits=orbits, summary5=summary5,
+                       scenes=scenes, summary6=summary6)
+    rep["elapsed_s"] = time.perf_counter() - t0
+    text = format_tables(rep)
+    if write_files:
+        write_calibration(cal, os.path.join(out_dir, "calibration.json"))
+        with open(os.path.join(out_dir, "tables.txt"), "w", encoding="utf-8") as fh:
+            fh.write(text + "\n")
+        rep["files"] = ["report.json", "tables.txt", "calibration.json"]
+        write_report_json(rep, os.path.join(out_dir, "report.json"))
+    if verbose:
+        print(text)
+    _report(progress, 1.0, "done")
+    return rep
+
+
+def _vendor_rpcs(scene, progress):
+    """Each image's vendor RPC fitted from its nominal (current) camera, and the largest fit error (px)."""
+    rpcs: Dict[str, Any] = {}
+    fit_max = 0.0
+    for i, im in enumerate(scene.images):
+        _report(progress, 0.02 + 0.1 * i / len(scene.images), f"fitting the RPC of {im.name}")
+        rpcs[im.name], fit = fit_rpc_from_model(im.current, size=im.size)
+        fit_max = max(fit_max, float(fit.max_px))
+    return rpcs, fit_max
+
+
+def _table3(scene, est, rpcs, corrected) -> Dict[str, Any]:
+    """Table 3: calibration accuracy per CCD and band (px of the band): before, after, floor, check GCPs."""
     table3: Dict[str, Any] = {}
     tab = est.table
-    for n in names:
-        im = scene.image(n)
+    for im in scene.images:
+        n = im.name
         S, L = _grid(im.size)
         bs, bl = _image_errors(rpcs[n], im, scene.dem, S, L)
         a_s, a_l = _image_errors(corrected[n], im, scene.dem, S, L)
@@ -219,23 +256,14 @@ def run(out_dir, *, seed: int = 3, progress=None, size=DEFAULT_SIZE, gcp_noise_p
                      "floor": {"across": _rms(fs), "along": _rms(fl)},
                      "check": {"n": int(len(chk)), "across": _rms(chk["res_sample_after"]),
                                "along": _rms(chk["res_line_after"])}}
-    interior_max = max(max(v["after"]["across"], v["after"]["along"]) for v in table3.values())
-    floor_ratio = max(math.hypot(v["after"]["across"], v["after"]["along"]) /
-                      max(math.hypot(v["floor"]["across"], v["floor"]["along"]), 1e-12) for v in table3.values())
+    return table3
 
-    # ---- Table 4: band-to-band registration (px of the MS band)
-    _report(progress, 0.35, "Table 4: band-to-band registration")
-    table4: Dict[str, Any] = {}
-    for k in range(1, N_CCD + 1):
-        table4[f"ccd{k}"] = {b: {"before": _band_to_band(rpcs, scene, k, b), "after": _band_to_band(corrected, scene,
-                                                                                                  k, b)}
-                             for b in BANDS if b != REFERENCE_BAND}
-    b2b_max = max(v["after"] for row in table4.values() for v in row.values())
 
-    # ---- Table 5: orbits without control
+def _table5(scene, terrain, rpcs, cal, pan_names, *, seed, size, n_orbits, progress):
+    """Table 5: the calibration applied to ``n_orbits`` other orbits without control; per orbit and summary."""
+    names = [im.name for im in scene.images]
     orbits: List[Dict[str, Any]] = []
     all_err, all_implied, all_dist = [], [], []
-    from ..simulate.jl1 import ORBIT_ATTITUDE_SIGMA_ARCSEC
     for i in range(n_orbits):
         _report(progress, 0.4 + 0.35 * i / max(n_orbits, 1), f"Table 5: orbit {i + 1} of {n_orbits} without control")
         osc = _orbit_scene(seed, size, terrain, 1000 + i)
@@ -262,51 +290,59 @@ def run(out_dir, *, seed: int = 3, progress=None, size=DEFAULT_SIZE, gcp_noise_p
                     ORBIT_ATTITUDE_SIGMA_ARCSEC * ARCSEC,
                     "band_to_band_max_px": max(o["band_to_band_max_px"] for o in orbits)}
         summary5["ratio"] = summary5["ce90_m"] / summary5["implied_ce90_m"]
+    return orbits, summary5
 
-    # ---- Table 6: scenes with 5 GCPs
-    scenes: List[Dict[str, Any]] = []
-    for i in range(n_scenes):
-        _report(progress, 0.75 + 0.2 * i / max(n_scenes, 1), f"Table 6: scene {i + 1} of {n_scenes} with GCPs")
-        osc = _orbit_scene(seed, size, terrain, 2000 + i)
-        orpcs = _rpcs_for(osc, scene, rpcs)
-        per = max(4, -(-(n_scene_gcps + 12) // len(pan_names)))
-        tables = simulate_gcps(osc, n_gcps=per, gcp_noise_px=gcp_noise_px, check_fraction=0.0, seed=seed + 7 * i)
-        g = pd.concat([tables[n].assign(image=n, id=n + ":" + tables[n]["id"].astype(str)) for n in pan_names],
-                      ignore_index=True)                   # drawn per image: ids made unique across images
-        order = spread_order(g["lon"].to_numpy(float), g["lat"].to_numpy(float))
-        ctrl = np.zeros(len(g), bool)
-        ctrl[order[:n_scene_gcps]] = True
-        # the scene's exterior from its 5 GCPs, the calibrated interiors held (adjust_block(calibration=...))
-        ctrl_obs = g[ctrl].rename(columns={"id": "point_id", "image": "image_id"}).assign(kind="gcp")
-        scene_models = {n: orpcs[n] for n in pan_names + ref_names}
-        est_i = adjust_block(ctrl_obs[["point_id", "image_id", "kind", "sample", "line", "sigma", "role", "lon", "lat",
-                                       "h"]], scene_models, osc.dem, calibration=cal)
-        cal_i = calibration_dict(est_i)
-        chk = g[~ctrl]
-        res = {}
-        for tag, c in (("no_gcp", cal), ("gcps", cal_i)):
-            de, dn = [], []
-            for n in pan_names:
-                r = chk[chk["image"] == n]
-                m = calibrated_model(c, n, orpcs[n])
-                mlon, mlat, _ = m.localize_dem(r["truth_sample"].to_numpy(float), r["truth_line"].to_numpy(float),
-                                               osc.dem)
-                a, b = _metres(mlon, mlat, r["h"].to_numpy(float), r["lon"].to_numpy(float),
-                               r["lat"].to_numpy(float))
-                de.append(a)
-                dn.append(b)
-            de, dn = np.concatenate(de), np.concatenate(dn)
-            res[tag] = {"planar_rms_m": _rms(np.hypot(de, dn)), "east_rms_m": _rms(de), "north_rms_m": _rms(dn)}
-        scenes.append({"orbit_seed": 2000 + i, "n_control": int(ctrl.sum()), "n_check": int(len(chk)),
-                       "control_per_image": {n: int(((g["image"] == n) & ctrl).sum()) for n in pan_names},
-                       "control_rms_px": _rms(est_i.residuals), "exterior": cal_i["exterior"],
-                       "before": res["no_gcp"], "after": res["gcps"]})
-    summary6 = {"n_scenes": len(scenes),
-                "check_planar_rms_m": _rms([s["after"]["planar_rms_m"] for s in scenes]) if scenes else None,
-                "max_check_planar_rms_m": max((s["after"]["planar_rms_m"] for s in scenes), default=None),
-                "gsd_m": float(scene.image(pan_names[0]).gsd_m)}
 
-    rep: Dict[str, Any] = {
+def _table6_scene(scene, terrain, rpcs, cal, pan_names, ref_names, i: int, *, seed, size, gcp_noise_px,
+                  n_scene_gcps) -> Dict[str, Any]:
+    """Table 6, scene ``i``: its exterior re-estimated from ``n_scene_gcps`` well-spread GCPs (interiors held);
+    the other GCPs as check points, without and with those GCPs."""
+    osc = _orbit_scene(seed, size, terrain, 2000 + i)
+    orpcs = _rpcs_for(osc, scene, rpcs)
+    per = max(4, -(-(n_scene_gcps + 12) // len(pan_names)))
+    tables = simulate_gcps(osc, n_gcps=per, gcp_noise_px=gcp_noise_px, check_fraction=0.0, seed=seed + 7 * i)
+    g = pd.concat([tables[n].assign(image=n, id=n + ":" + tables[n]["id"].astype(str)) for n in pan_names],
+                  ignore_index=True)                   # drawn per image: ids made unique across images
+    order = spread_order(g["lon"].to_numpy(float), g["lat"].to_numpy(float))
+    ctrl = np.zeros(len(g), bool)
+    ctrl[order[:n_scene_gcps]] = True
+    # the scene's exterior from its 5 GCPs, the calibrated interiors held (adjust_block(calibration=...))
+    ctrl_obs = g[ctrl].rename(columns={"id": "point_id", "image": "image_id"}).assign(kind="gcp")
+    scene_models = {n: orpcs[n] for n in pan_names + ref_names}
+    est_i = adjust_block(ctrl_obs[["point_id", "image_id", "kind", "sample", "line", "sigma", "role", "lon", "lat",
+                                   "h"]], scene_models, osc.dem, calibration=cal)
+    cal_i = calibration_dict(est_i)
+    chk = g[~ctrl]
+    res = {tag: _check_errors(c, chk, orpcs, osc.dem, pan_names) for tag, c in (("no_gcp", cal), ("gcps", cal_i))}
+    return {"orbit_seed": 2000 + i, "n_control": int(ctrl.sum()), "n_check": int(len(chk)),
+            "control_per_image": {n: int(((g["image"] == n) & ctrl).sum()) for n in pan_names},
+            "control_rms_px": _rms(est_i.residuals), "exterior": cal_i["exterior"],
+            "before": res["no_gcp"], "after": res["gcps"]}
+
+
+def _check_errors(cal, chk, orpcs, dem, pan_names) -> Dict[str, float]:
+    """Planar, east and north RMS (m) of the check points' true image positions localised on the DEM by the
+    calibrated models."""
+    de, dn = [], []
+    for n in pan_names:
+        r = chk[chk["image"] == n]
+        m = calibrated_model(cal, n, orpcs[n])
+        mlon, mlat, _ = m.localize_dem(r["truth_sample"].to_numpy(float), r["truth_line"].to_numpy(float), dem)
+        a, b = _metres(mlon, mlat, r["h"].to_numpy(float), r["lon"].to_numpy(float), r["lat"].to_numpy(float))
+        de.append(a)
+        dn.append(b)
+    de, dn = np.concatenate(de), np.concatenate(dn)
+    return {"planar_rms_m": _rms(np.hypot(de, dn)), "east_rms_m": _rms(de), "north_rms_m": _rms(dn)}
+
+
+def _report_dict(*, seed, size, gcp_noise_px, tie_noise_px, fit_max, est, cal, table3, table4, orbits, summary5,
+                 scenes, summary6) -> Dict[str, Any]:
+    """The experiment's report: its options, the calibration, Tables 3-6, their summary and notes."""
+    interior_max = max(max(v["after"]["across"], v["after"]["along"]) for v in table3.values())
+    floor_ratio = max(math.hypot(v["after"]["across"], v["after"]["along"]) /
+                      max(math.hypot(v["floor"]["across"], v["floor"]["along"]), 1e-12) for v in table3.values())
+    b2b_max = max(v["after"] for row in table4.values() for v in row.values())
+    return {
         "experiment": "jl1", "seed": int(seed), "size": list(size) if size else None,
         "gcp_noise_px": float(gcp_noise_px), "tie_noise_px": float(tie_noise_px), "rpc_fit_max_px": fit_max,
         "paper": PAPER,
@@ -328,19 +364,6 @@ def run(out_dir, *, seed: int = 3, progress=None, size=DEFAULT_SIZE, gcp_noise_p
                   "Table 6: 5 well-spread GCPs per scene over the 4 pan CCDs re-estimate the exterior (interiors "
                   "calibrated); the other GCPs are check points (localised on the DEM)"],
     }
-    rep["elapsed_s"] = time.perf_counter() - t0
-    text = format_tables(rep)
-    if write_files:
-        from ..block import write_calibration
-        write_calibration(cal, os.path.join(out_dir, "calibration.json"))
-        with open(os.path.join(out_dir, "tables.txt"), "w", encoding="utf-8") as fh:
-            fh.write(text + "\n")
-        rep["files"] = ["report.json", "tables.txt", "calibration.json"]
-        write_report_json(rep, os.path.join(out_dir, "report.json"))
-    if verbose:
-        print(text)
-    _report(progress, 1.0, "done")
-    return rep
 
 
 def format_tables(rep: Dict[str, Any], bands: Optional[Sequence[str]] = None) -> str:

@@ -24,8 +24,14 @@ from typing import Any, Dict, Optional, Sequence
 
 import numpy as np
 
+from ..compensation import CompensatedRPC, fit_compensation
 from ..errors import DegenerateGeometryError, GCPError
+from ..gcp import write_gcps
+from ..intersection import intersect, intersection_accuracy
 from ..progress import report as _report
+from ..report import write_report_json
+from ..rpc_fit import fit_rpc_from_model
+from ..simulate import make_scene, simulate_gcps
 
 VIEWS = ("nadir", "fwd", "bwd")
 COMBINATIONS = {"nadir+fwd": ("nadir", "fwd"), "nadir+bwd": ("nadir", "bwd"), "fwd+bwd": ("fwd", "bwd"),
@@ -54,7 +60,6 @@ def spread_order(x, y) -> np.ndarray:
 
 
 def _accuracy(models_by_view, pts_by_view, truth, combo, sel, sigma_px):
-    from ..intersection import intersect, intersection_accuracy
     models = [models_by_view[v] for v in combo]
     pts = np.stack([pts_by_view[v][sel] for v in combo])
     res = intersect(models, pts, sigma_px=sigma_px)
@@ -75,11 +80,6 @@ def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOIS
     height_rms_m, n_check, ...}``, ``no_gcp`` (= n_control 0), ``views`` (image-space bias of each RPC on the
     field), ``scene``.
     """
-    from ..compensation import CompensatedRPC, fit_compensation
-    from ..report import write_report_json
-    from ..rpc_fit import fit_rpc_from_model
-    from ..simulate import make_scene, simulate_gcps
-
     t0 = time.perf_counter()
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
@@ -90,15 +90,7 @@ def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOIS
         _report(progress, 0.05 + 0.05 * k, f"fitting the {v} RPC")
         rpcs[v], fits[v] = fit_rpc_from_model(scene.image(v).current, size=scene.image(v).size)
     _report(progress, 0.2, "surveying the test field")
-    tables = simulate_gcps(scene, n_gcps=4 * n_field, gcp_noise_px=gcp_noise_px, check_fraction=0.0, seed=seed)
-    common = set(tables[VIEWS[0]]["id"])
-    for v in VIEWS[1:]:
-        common &= set(tables[v]["id"])
-    ids = [i for i in tables[VIEWS[0]]["id"] if i in common][:n_field]
-    if len(ids) < max(4, max_control + 2):
-        raise GCPError(f"only {len(ids)} test-field points are seen by all three views; use a larger scene (size) "
-                       f"or fewer control points (max_control < {len(ids) - 1})")
-    field = {v: tables[v].set_index("id").loc[ids].reset_index() for v in VIEWS}
+    ids, field = _test_field(scene, n_field, max_control, gcp_noise_px, seed)
     base = field["nadir"]
     truth = tuple(base[c].to_numpy(float) for c in ("lon", "lat", "h"))
     pts = {v: field[v][["sample", "line"]].to_numpy(float) for v in VIEWS}
@@ -118,24 +110,17 @@ def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOIS
             _report(progress, 0.25 + 0.7 * step / n_steps, f"{model}, {n_ctrl} GCPs")
             ctrl = np.zeros(n_pts, bool)
             ctrl[order[:n_ctrl]] = True
-            comp = {}
             try:
-                for v in VIEWS:
-                    g = field[v].assign(role=np.where(ctrl, "control", "check"))
-                    comp[v] = CompensatedRPC(rpcs[v], fit_compensation(rpcs[v], g, model, robust=False))
+                comp = {v: CompensatedRPC(rpcs[v], fit_compensation(
+                    rpcs[v], field[v].assign(role=np.where(ctrl, "control", "check")), model, robust=False))
+                    for v in VIEWS}
             except (GCPError, DegenerateGeometryError) as exc:   # too few / degenerate GCPs for this model
                 table[model][str(n_ctrl)] = {"skipped": str(exc).splitlines()[0]}
                 continue
             table[model][str(n_ctrl)] = {c: _accuracy(comp, pts, truth, combo, ~ctrl, gcp_noise_px)
                                          for c, combo in COMBINATIONS.items()}
 
-    views = {}
-    for v in VIEWS:
-        s, l = rpcs[v].project(*truth)
-        views[v] = {"mean_bias_px": {"sample": float(np.mean(pts[v][:, 0] - s)),
-                                     "line": float(np.mean(pts[v][:, 1] - l))},
-                    "size": list(scene.image(v).size), "gsd_m": float(scene.image(v).gsd_m),
-                    "rpc_fit_max_px": float(fits[v].max_px)}
+    views = {v: _view_bias(scene.image(v), rpcs[v], fits[v], pts[v], truth) for v in VIEWS}
     rep: Dict[str, Any] = {
         "experiment": "zy3", "seed": int(seed), "gcp_noise_px": float(gcp_noise_px), "n_field": n_pts,
         "combinations": {k: list(v) for k, v in COMBINATIONS.items()}, "models": list(MODELS),
@@ -144,7 +129,6 @@ def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOIS
                 "from the compensated RPCs of each view combination; n_control 0 = the RPCs as delivered",
     }
     if write_files:
-        from ..gcp import write_gcps
         for v in VIEWS:
             rpcs[v].write_rpb(os.path.join(out_dir, f"zy3_{v}.RPB"), overwrite=True)
             write_gcps(field[v], os.path.join(out_dir, f"field_{v}.csv"), overwrite=True)
@@ -156,6 +140,27 @@ def run(out_dir, *, seed: int = 0, progress=None, gcp_noise_px: float = GCP_NOIS
         print(format_table(rep))
     _report(progress, 1.0, "done")
     return rep
+
+
+def _test_field(scene, n_field: int, max_control: int, gcp_noise_px: float, seed: int):
+    """The test field: ``(ids, {view: GCP table})`` of up to ``n_field`` points seen by all three views (refused
+    below ``max(4, max_control + 2)``)."""
+    tables = simulate_gcps(scene, n_gcps=4 * n_field, gcp_noise_px=gcp_noise_px, check_fraction=0.0, seed=seed)
+    common = set(tables[VIEWS[0]]["id"])
+    for v in VIEWS[1:]:
+        common &= set(tables[v]["id"])
+    ids = [i for i in tables[VIEWS[0]]["id"] if i in common][:n_field]
+    if len(ids) < max(4, max_control + 2):
+        raise GCPError(f"only {len(ids)} test-field points are seen by all three views; use a larger scene (size) "
+                       f"or fewer control points (max_control < {len(ids) - 1})")
+    return ids, {v: tables[v].set_index("id").loc[ids].reset_index() for v in VIEWS}
+
+
+def _view_bias(image, rpc, fit, pts, truth) -> Dict[str, Any]:
+    """The delivered RPC's mean image bias on the field (px), the view's size, GSD and RPC fit error."""
+    s, l = rpc.project(*truth)
+    return {"mean_bias_px": {"sample": float(np.mean(pts[:, 0] - s)), "line": float(np.mean(pts[:, 1] - l))},
+            "size": list(image.size), "gsd_m": float(image.gsd_m), "rpc_fit_max_px": float(fit.max_px)}
 
 
 def format_table(rep: Dict[str, Any], counts: Optional[Sequence[int]] = None) -> str:

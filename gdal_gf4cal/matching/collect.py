@@ -37,20 +37,24 @@ after each tile), whatever the image size and the search range.
 from __future__ import annotations
 
 import concurrent.futures as cf
+from dataclasses import dataclass, field
 import math
 import os
 import threading
-from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+from osgeo import gdal
 
+from .._gdal import with_gdal_exceptions
+from ..dem import DEM
 from ..errors import Gf4calError
+from ..gcp import make_gcps
 from ..progress import report
+from ..rpc import RPCModel
 from .correlate import correlate_spectra, phase_correlate, spectra, window_measures
 from .filters import reject_outliers
 from .resample import RawReference, ReferenceImage, read_block, reference_on_grids
-from .._gdal import with_gdal_exceptions
 
 __all__ = ["TileSpec", "STATUS", "collect_gcps", "plan_tiles", "match_tile", "assemble_gcps", "run_tiles"]
 
@@ -107,7 +111,6 @@ def _file_key(path: str) -> Tuple:
 
 
 def _dem_from_spec(spec: Tuple):
-    from ..dem import DEM
     if spec[0] == "constant":
         return DEM.from_user_input(float(spec[1]))
     return _cached(("dem",) + _file_key(spec[1]) + tuple(spec[2:]),
@@ -115,7 +118,6 @@ def _dem_from_spec(spec: Tuple):
 
 
 def _dem_spec(dem) -> Tuple:
-    from ..dem import DEM
     if isinstance(dem, (int, float, np.integer, np.floating)):
         return ("constant", float(dem))
     if isinstance(dem, DEM):
@@ -216,7 +218,6 @@ def match_tile(spec: TileSpec) -> Dict[str, np.ndarray]:
     peak_ratio, ncc, precision_px, texture``, ``flat`` (flat share of the window's central half, the larger of
     the two images': water, flat cloud) and ``status`` (see :data:`STATUS`).
     """
-    from osgeo import gdal
     c = np.asarray(spec.centers, dtype=float).reshape(-1, 2)
     n = c.shape[0]
     out = {k: np.full(n, np.nan) for k in ("lon", "lat", "h", "dsample", "dline", "peak", "peak_ratio", "ncc",
@@ -269,45 +270,7 @@ def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
     wy0 = np.round(c[:, 1] - w / 2).astype(int)
     W, H = ds.RasterXSize, ds.RasterYSize
     sigma = p.get("sigma_px", 1.0)
-
-    # ---- coarse level: offsets up to ~ w f / 4.
-    shift_x = np.zeros(n)
-    shift_y = np.zeros(n)
-    live = status == 0
-    if f > 1 and live.any():
-        cw = w * f
-        # The coarse footprint is kept inside the image where possible (the error field is smooth, so the
-        # offset found a little aside still guides the fine level); it can stick out of a small image.
-        cx0 = np.clip(wx0 + w // 2 - cw // 2, 0, max(W - cw, 0))
-        cy0 = np.clip(wy0 + w // 2 - cw // 2, 0, max(H - cw, 0))
-        idx = np.flatnonzero(live)
-        # The coarse level only has to land within a few pixels: the reference is read decimated to about the
-        # coarse spacing (4 times fewer pixels to read, filter and interpolate than the fine level's 2 per spacing).
-        ref_c = reference_on_grids(rpc, dem, ref, cx0[idx], cy0[idx], w, spacing=f, geometry_step=step,
-                                   oversample=1.0)
-        # Decimated reads: GDAL averages f x f blocks while reading (or uses overviews), so the coarse level
-        # holds w x w pixels per window, not the (w f)^2 full-resolution footprint.
-        raw_c = _read_boxes(ds, spec.band, spec.image_nodata, cx0[idx], cy0[idx], cw, decimation=f)
-        # The coarse level only has to land within a few pixels: fill small gaps instead of giving up.
-        bad_ref = np.isnan(ref_c).mean(axis=(1, 2))
-        bad_raw = np.isnan(raw_c).mean(axis=(1, 2))
-        usable = (bad_ref < 0.5) & (bad_raw < 0.5)
-        # Gaps are filled with the window mean in *both* images at the same places, so a no-data border does
-        # not become a one-sided edge that would attract the peak.
-        gaps_both = np.isnan(ref_c) | np.isnan(raw_c)
-        for arr in (ref_c, raw_c):
-            gaps = gaps_both
-            cnt = (~gaps).sum(axis=(1, 2))
-            mean = np.where(gaps, 0.0, arr).sum(axis=(1, 2)) / np.maximum(cnt, 1)
-            arr[gaps] = np.broadcast_to(mean[:, None, None], arr.shape)[gaps]
-        rc = phase_correlate(ref_c, raw_c, sigma_px=sigma)
-        good = usable & (rc.peak_ratio >= p["min_peak_ratio"]) & (rc.peak >= p["min_peak"])
-        shift_x[idx] = np.where(usable, rc.dx * f, 0.0)
-        shift_y[idx] = np.where(usable, rc.dy * f, 0.0)
-        # Windows whose coarse match is ambiguous borrow the tile's median offset (errors are smooth).
-        if good.any() and not good.all():
-            shift_x[idx[~good]] = np.median(shift_x[idx[good]])
-            shift_y[idx[~good]] = np.median(shift_y[idx[good]])
+    shift_x, shift_y = _coarse_offsets(spec, ds, rpc, dem, ref, wx0, wy0, status == 0, step, sigma)
 
     # ---- fine level: the reference window at c, the raw window at c + the integer offset found so far.
     idx = np.flatnonzero(status == 0)
@@ -316,35 +279,131 @@ def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
     m = idx.size
     ref_f = reference_on_grids(rpc, dem, ref, wx0[idx], wy0[idx], w, spacing=1.0, geometry_step=step,
                                shared=isinstance(ref, RawReference))
-    nan_ref = np.isnan(ref_f).any(axis=(1, 2))
-    a = np.where(nan_ref[:, None, None], 0.0, ref_f).astype(np.float32)
-    Fs = spectra(a)  # the reference windows do not move: one transform for every pass
-    ox = np.round(shift_x[idx]).astype(int)
-    oy = np.round(shift_y[idx]).astype(int)
-    b = np.zeros((m, w, w), dtype=np.float32)
-    nan_raw = np.zeros(m, dtype=bool)
-    outside = np.zeros(m, dtype=bool)
-    fields = ("dx", "dy", "peak", "peak_ratio", "ncc", "precision_px")
-    res = {k: np.full(m, np.nan) for k in fields}
+    fine = _FinePasses(spec, ds, ref_f, wx0[idx], wy0[idx], shift_x[idx], shift_y[idx], lim, sigma)
+    if f == 1 and m >= 16:
+        # Without a coarse level every window would start at offset 0 and most would need a second pass once
+        # their offset is found. Pilots (every 4th window) go first; where they agree on a smooth (affine)
+        # offset field, the others start at its prediction and mostly finish in one pass.
+        pilots = np.arange(0, m, 4)
+        fine.passes(pilots)
+        rest = np.setdiff1d(np.arange(m), pilots)
+        res = fine.res
+        pred = _predict_offsets(c[idx], fine.ox + res["dx"], fine.oy + res["dy"], pilots, rest, res,
+                                ~(fine.nan_ref | fine.nan_raw), p)
+        if pred is not None:
+            fine.ox[rest] = np.clip(np.round(pred[0]), -lim, lim).astype(int)
+            fine.oy[rest] = np.clip(np.round(pred[1]), -lim, lim).astype(int)
+        fine.passes(rest)
+    else:
+        fine.passes(np.arange(m))
+    ox, oy, res = fine.ox, fine.oy, fine.res
+    okw = ~(fine.nan_ref | fine.nan_raw)
+    fine.a[~okw] = 0.0
+    st = status[idx]
+    # Fine window beyond the raster: the ground point is (truly) not in the image.
+    fx0, fy0 = wx0[idx] + ox, wy0[idx] + oy
+    beyond = fine.outside | (fx0 < 0) | (fy0 < 0) | (fx0 + w > W) | (fy0 + w > H) | near_edge[idx]
+    st[~okw] = np.where(beyond[~okw], 5, 1)
+    tex, flat = _flag_windows(st, fine.a, fine.b, res, p)
+    status[idx] = st
+    out["dsample"][idx] = ox + res["dx"]
+    out["dline"][idx] = oy + res["dy"]
+    for k in ("peak", "peak_ratio", "ncc", "precision_px"):
+        out[k][idx] = res[k]
+    out["texture"][idx] = tex
+    out["flat"][idx] = flat
+    return out
 
-    def passes(active):
+
+def _coarse_offsets(spec: TileSpec, ds, rpc, dem, ref, wx0, wy0, live, step: int, sigma: float):
+    """Coarse level (factor f > 1): offsets ``(shift_x, shift_y)`` up to ~ w f / 4 of the ``live`` windows, found
+    on decimated reads; zero without a coarse level."""
+    p = spec.params
+    w = int(spec.window_px)
+    f = int(spec.factor)
+    n = wx0.size
+    W, H = ds.RasterXSize, ds.RasterYSize
+    shift_x = np.zeros(n)
+    shift_y = np.zeros(n)
+    if not (f > 1 and live.any()):
+        return shift_x, shift_y
+    cw = w * f
+    # The coarse footprint is kept inside the image where possible (the error field is smooth, so the
+    # offset found a little aside still guides the fine level); it can stick out of a small image.
+    cx0 = np.clip(wx0 + w // 2 - cw // 2, 0, max(W - cw, 0))
+    cy0 = np.clip(wy0 + w // 2 - cw // 2, 0, max(H - cw, 0))
+    idx = np.flatnonzero(live)
+    # The coarse level only has to land within a few pixels: the reference is read decimated to about the
+    # coarse spacing (4 times fewer pixels to read, filter and interpolate than the fine level's 2 per spacing).
+    ref_c = reference_on_grids(rpc, dem, ref, cx0[idx], cy0[idx], w, spacing=f, geometry_step=step,
+                               oversample=1.0)
+    # Decimated reads: GDAL averages f x f blocks while reading (or uses overviews), so the coarse level
+    # holds w x w pixels per window, not the (w f)^2 full-resolution footprint.
+    raw_c = _read_boxes(ds, spec.band, spec.image_nodata, cx0[idx], cy0[idx], cw, decimation=f)
+    # The coarse level only has to land within a few pixels: fill small gaps instead of giving up.
+    bad_ref = np.isnan(ref_c).mean(axis=(1, 2))
+    bad_raw = np.isnan(raw_c).mean(axis=(1, 2))
+    usable = (bad_ref < 0.5) & (bad_raw < 0.5)
+    # Gaps are filled with the window mean in *both* images at the same places, so a no-data border does
+    # not become a one-sided edge that would attract the peak.
+    gaps_both = np.isnan(ref_c) | np.isnan(raw_c)
+    for arr in (ref_c, raw_c):
+        gaps = gaps_both
+        cnt = (~gaps).sum(axis=(1, 2))
+        mean = np.where(gaps, 0.0, arr).sum(axis=(1, 2)) / np.maximum(cnt, 1)
+        arr[gaps] = np.broadcast_to(mean[:, None, None], arr.shape)[gaps]
+    rc = phase_correlate(ref_c, raw_c, sigma_px=sigma)
+    good = usable & (rc.peak_ratio >= p["min_peak_ratio"]) & (rc.peak >= p["min_peak"])
+    shift_x[idx] = np.where(usable, rc.dx * f, 0.0)
+    shift_y[idx] = np.where(usable, rc.dy * f, 0.0)
+    # Windows whose coarse match is ambiguous borrow the tile's median offset (errors are smooth).
+    if good.any() and not good.all():
+        shift_x[idx[~good]] = np.median(shift_x[idx[good]])
+        shift_y[idx[~good]] = np.median(shift_y[idx[good]])
+    return shift_x, shift_y
+
+
+class _FinePasses:
+    """The fine level's state over the ``m`` windows still matched: the reference windows ``a`` (one transform
+    for every pass: they do not move), the raw windows ``b`` at the integer offsets ``ox, oy``, the correlation
+    results ``res`` and the no-data / outside flags."""
+
+    FIELDS = ("dx", "dy", "peak", "peak_ratio", "ncc", "precision_px")
+
+    def __init__(self, spec: TileSpec, ds, ref_f, wx0, wy0, shift_x, shift_y, lim: int, sigma: float):
+        m = wx0.size
+        w = int(spec.window_px)
+        self.spec, self.ds, self.wx0, self.wy0, self.lim, self.sigma = spec, ds, wx0, wy0, lim, sigma
+        self.nan_ref = np.isnan(ref_f).any(axis=(1, 2))
+        self.a = np.where(self.nan_ref[:, None, None], 0.0, ref_f).astype(np.float32)
+        self.Fs = spectra(self.a)
+        self.ox = np.round(shift_x).astype(int)
+        self.oy = np.round(shift_y).astype(int)
+        self.b = np.zeros((m, w, w), dtype=np.float32)
+        self.nan_raw = np.zeros(m, dtype=bool)
+        self.outside = np.zeros(m, dtype=bool)
+        self.res = {k: np.full(m, np.nan) for k in self.FIELDS}
+
+    def passes(self, active):
         """Up to three passes over windows ``active``: read the raw window at the current offset, correlate,
         move by the integer part of the residual; only windows still moving are re-read and re-correlated."""
+        ox, oy, lim, w = self.ox, self.oy, self.lim, int(self.spec.window_px)
         for it in range(3):
             axo, ayo = ox[active], oy[active]
             out_a = (np.abs(axo) > lim) | (np.abs(ayo) > lim)
-            raw_a = _read_boxes(ds, spec.band, spec.image_nodata, wx0[idx[active]] + np.clip(axo, -lim, lim),
-                                wy0[idx[active]] + np.clip(ayo, -lim, lim), w)
+            raw_a = _read_boxes(self.ds, self.spec.band, self.spec.image_nodata,
+                                self.wx0[active] + np.clip(axo, -lim, lim), self.wy0[active] + np.clip(ayo, -lim, lim),
+                                w)
             nan_a = np.isnan(raw_a).any(axis=(1, 2)) | out_a
-            okw = ~(nan_ref[active] | nan_a)
+            okw = ~(self.nan_ref[active] | nan_a)
             raw_a[~okw] = 0.0
-            Fa = Fs.take(active)
+            Fa = self.Fs.take(active)
             if not okw.all():
                 # A window without a usable pair correlates two zero windows (shift 0): it stops moving and is
                 # flagged below, exactly as any other no-data window.
                 Fa.S[~okw] = 0
             Gs = spectra(raw_a)
-            pk = correlate_spectra(Fa, Gs, sigma)
+            pk = correlate_spectra(Fa, Gs, self.sigma)
             jump_x = np.where(okw & (np.abs(pk.dx) > 0.5), np.round(pk.dx), 0).astype(int)
             jump_y = np.where(okw & (np.abs(pk.dy) > 0.5), np.round(pk.dy), 0).astype(int)
             # The last pass must not move the raw window: the measurement (and a, b, outside) belong to the
@@ -353,38 +412,22 @@ def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
             done = np.ones(active.size, bool) if it == 2 else ~((jump_x != 0) | (jump_y != 0))
             q = pk.quality(Fa, Gs, np.flatnonzero(done))
             sel = active[done]
-            for k in fields:
-                res[k][sel] = getattr(q, k)
-            b[sel] = raw_a[done]
-            nan_raw[sel] = nan_a[done]
-            outside[sel] = out_a[done]
+            for k in self.FIELDS:
+                self.res[k][sel] = getattr(q, k)
+            self.b[sel] = raw_a[done]
+            self.nan_raw[sel] = nan_a[done]
+            self.outside[sel] = out_a[done]
             ox[active[~done]] += jump_x[~done]
             oy[active[~done]] += jump_y[~done]
             active = active[~done]
             if active.size == 0:
                 break
 
-    if f == 1 and m >= 16:
-        # Without a coarse level every window would start at offset 0 and most would need a second pass once
-        # their offset is found. Pilots (every 4th window) go first; where they agree on a smooth (affine)
-        # offset field, the others start at its prediction and mostly finish in one pass.
-        pilots = np.arange(0, m, 4)
-        passes(pilots)
-        rest = np.setdiff1d(np.arange(m), pilots)
-        pred = _predict_offsets(c[idx], ox + res["dx"], oy + res["dy"], pilots, rest, res, ~(nan_ref | nan_raw), p)
-        if pred is not None:
-            ox[rest] = np.clip(np.round(pred[0]), -lim, lim).astype(int)
-            oy[rest] = np.clip(np.round(pred[1]), -lim, lim).astype(int)
-        passes(rest)
-    else:
-        passes(np.arange(m))
-    okw = ~(nan_ref | nan_raw)
-    a[~okw] = 0.0
-    st = status[idx]
-    # Fine window beyond the raster: the ground point is (truly) not in the image.
-    fx0, fy0 = wx0[idx] + ox, wy0[idx] + oy
-    beyond = outside | (fx0 < 0) | (fy0 < 0) | (fx0 + w > W) | (fy0 + w > H) | near_edge[idx]
-    st[~okw] = np.where(beyond[~okw], 5, 1)
+
+def _flag_windows(st, a, b, res, p):
+    """Status codes of the windows still 0 (2 flat, 3 weak peak, 4 quadrant check failed), in place; returns their
+    texture and flat fraction."""
+    w = a.shape[-1]
     # Texture over the whole window, and no more than half of its central half flat: a GCP is the window centre,
     # so a window centred on water or on a flat cloud is skipped even when a shoreline elsewhere would correlate.
     q0, q1 = w // 4, w - w // 4
@@ -399,14 +442,7 @@ def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
     # Quarter check at the integer alignment (the residual is < 1 px; the threshold is far from 1 anyway).
     quad = _quadrant_ok(a, b, p["min_quadrant_ncc"])
     st[(st == 0) & ~quad] = 4
-    status[idx] = st
-    out["dsample"][idx] = ox + res["dx"]
-    out["dline"][idx] = oy + res["dy"]
-    for k in ("peak", "peak_ratio", "ncc", "precision_px"):
-        out[k][idx] = res[k]
-    out["texture"][idx] = tex
-    out["flat"][idx] = flat
-    return out
+    return tex, flat
 
 
 # ---------------------------------------------------------------------------------------------- planning side
@@ -416,7 +452,6 @@ DEFAULTS = dict(min_peak=0.2, min_peak_ratio=2.0, min_ncc=0.3, min_texture=1.5, 
 
 @with_gdal_exceptions
 def _image_info(image, band: int):
-    from osgeo import gdal
     path = image.GetDescription() if hasattr(image, "GetDescription") else os.fspath(image)
     try:
         ds = gdal.Open(path)
@@ -439,7 +474,6 @@ def plan_tiles(image, rpc, reference, dem, spacing_px: int = 256, window_px: int
     ``reference_model`` (a sensor model) makes ``reference`` a raw image seen through it
     (:class:`.resample.RawReference`) instead of an orthophoto.
     """
-    from ..rpc import RPCModel
     path, W, H, nodata = _image_info(image, band)
     if rpc is None:
         rpc = RPCModel.from_file(path)
@@ -508,7 +542,6 @@ def assemble_gcps(results: Sequence[Dict[str, np.ndarray]], ctx: Dict[str, Any],
     ``peak, peak_ratio, ncc, precision_px, texture, dsample, dline, outlier`` for the accepted windows;
     ``gdf.attrs['windows']`` counts windows per status (:data:`STATUS`) and outliers.
     """
-    from ..gcp import make_gcps
     keys = results[0].keys() if results else []
     allr = {k: np.concatenate([np.atleast_1d(r[k]) for r in results]) for k in keys}
     st = allr.get("status", np.zeros(0, dtype=np.int8))

@@ -37,6 +37,7 @@ from functools import lru_cache
 from typing import Tuple
 
 import numpy as np
+from scipy import ndimage
 import scipy.fft as sfft
 
 #: Variance inflation of the phase-regression precision for the taper's correlation between frequencies.
@@ -395,7 +396,6 @@ def flat_fraction(windows: np.ndarray, region=None, box: int = 5, ratio: float =
 
 def _flat(a, gx, gy, sigma, region=None, box: int = 5, ratio: float = 0.05, noise_factor: float = 3.0, std=None):
     """:func:`flat_fraction` from precomputed gradients and noise estimate (shared with the texture test)."""
-    from scipy import ndimage
     g2 = np.zeros_like(a)
     g2[..., 1:-1, 1:-1] = (gx * gx + gy * gy) / 4.0
     local = ndimage.uniform_filter(g2, size=(1,) * (a.ndim - 2) + (box, box), mode="nearest")

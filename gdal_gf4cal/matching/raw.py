@@ -28,9 +28,12 @@ import os
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
+import pandas as pd
 
 from ..errors import Gf4calError
 from ..progress import report
+from ..rpc import RPCModel
+from ..stats import grouped_trimmed_mean
 from .collect import STATUS, _dem_from_spec, _dem_spec, _image_info, plan_tiles, run_tiles
 from .filters import reject_outliers
 from .resample import RawReference
@@ -55,7 +58,6 @@ MIN_SIGMA_PX = 0.05
 def _model_or_rpc(model, path: str, what: str):
     if model is not None:
         return model
-    from ..rpc import RPCModel
     try:
         return RPCModel.from_file(path)
     except Gf4calError as exc:
@@ -130,7 +132,6 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
     ``outlier``. ``df.attrs``: ``windows`` (counts by status), ``scale`` (reference px per image px), ``region``
     (the box matched).
     """
-    import pandas as pd
     path, W, H, _ = _image_info(image, band)
     ref_path = os.fspath(reference_image)
     if not os.path.exists(ref_path) and not ref_path.startswith("/vsi"):
@@ -139,12 +140,7 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
     reference_model = _model_or_rpc(reference_model, ref_path, "reference image")
     box, scale = overlap_region(path, model, ref_path, reference_model, dem, band=band,
                                 reference_band=reference_band, step_px=max(16, min(int(window_px), 64)))
-    if region is not None:
-        r = [float(v) for v in region]
-        box = (max(box[0], r[0]), max(box[1], r[1]), min(box[2], r[2]), min(box[3], r[3]))
-        if box[2] <= box[0] or box[3] <= box[1]:
-            raise Gf4calError(f"region {tuple(region)} of {os.path.basename(path)} is outside its overlap with "
-                              f"{os.path.basename(ref_path)}; give a region inside the overlap")
+    box = _within_region(box, region, path, ref_path)
     specs, ctx = plan_tiles(path, model, ref_path, dem, spacing_px, window_px, search_px=search_px,
                             tile_windows=tile_windows, band=band, reference_band=reference_band,
                             reference_model=reference_model, region=box, margin_px=margin_px, **params)
@@ -155,11 +151,7 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
     r = {k: v[order] for k, v in r.items()}
     st = r["status"].astype(np.int8)
     acc = st == 0
-    outlier = np.zeros(st.size, dtype=bool)
-    if outlier_model is not None and acc.sum() >= 8:
-        flt = reject_outliers(r["center_sample"][acc], r["center_line"][acc], r["dsample"][acc], r["dline"][acc],
-                              model=outlier_model, threshold_px=outlier_threshold_px, seed=seed)
-        outlier[np.flatnonzero(acc)] = flt.outlier
+    outlier = _outliers(r, acc, outlier_model, outlier_threshold_px, seed)
     d_s = np.where(acc, r["dsample"], np.nan)
     d_l = np.where(acc, r["dline"], np.nan)
     prec = np.where(acc, np.maximum(np.nan_to_num(r["precision_px"], nan=np.inf), min_sigma_px), np.nan)
@@ -179,6 +171,28 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
     return df
 
 
+def _within_region(box, region, path: str, ref_path: str):
+    """The overlap ``box`` cut to ``region`` (if given); refused when they do not meet."""
+    if region is None:
+        return box
+    r = [float(v) for v in region]
+    box = (max(box[0], r[0]), max(box[1], r[1]), min(box[2], r[2]), min(box[3], r[3]))
+    if box[2] <= box[0] or box[3] <= box[1]:
+        raise Gf4calError(f"region {tuple(region)} of {os.path.basename(path)} is outside its overlap with "
+                          f"{os.path.basename(ref_path)}; give a region inside the overlap")
+    return box
+
+
+def _outliers(r, acc, outlier_model: Optional[str], threshold_px: float, seed: int) -> np.ndarray:
+    """Outlier flags of the accepted offsets (RANSAC + MAD, :func:`.filters.reject_outliers`; with >= 8 of them)."""
+    outlier = np.zeros(acc.size, dtype=bool)
+    if outlier_model is not None and acc.sum() >= 8:
+        flt = reject_outliers(r["center_sample"][acc], r["center_line"][acc], r["dsample"][acc], r["dline"][acc],
+                              model=outlier_model, threshold_px=threshold_px, seed=seed)
+        outlier[np.flatnonzero(acc)] = flt.outlier
+    return outlier
+
+
 def match_ties(image_a, model_a, image_b, model_b, dem, *, ids: Tuple[str, str] = ("a", "b"), spacing_px: int = 64,
                window_px: int = 32, search_px: float = 16, band_a: int = 1, band_b: int = 1, region=None,
                executor=None, workers: Optional[int] = None, progress=None, **params):
@@ -193,7 +207,6 @@ def match_ties(image_a, model_a, image_b, model_b, dem, *, ids: Tuple[str, str] 
     ``search_px`` (default 16: seams of a few pixels between CCDs, band offsets) sets the coarse level.
     Raises :class:`Gf4calError` when the images do not overlap or no window in the overlap matches.
     """
-    import pandas as pd
     t = match_raw(image_a, model_a, image_b, model_b, dem, spacing_px=spacing_px, window_px=window_px,
                   search_px=search_px, band=band_a, reference_band=band_b, region=region, executor=executor,
                   workers=workers, progress=progress, **params)
@@ -258,8 +271,6 @@ def cells_from_matches(matches, width: int, height: int, *, cell_px: int = 64, m
     when fewer than ``min_matches`` are kept, the accepted share of the cell's windows is below
     ``min_accepted_fraction`` or ``clear_fraction`` is below 0.5 (a cell mostly cloud / water / texture-less).
     """
-    import pandas as pd
-    from ..stats import grouped_trimmed_mean
     cell = int(cell_px)
     if cell < 1:
         raise Gf4calError(f"cell size must be a positive number of pixels (got {cell_px})")

@@ -23,9 +23,12 @@ import os
 from typing import Tuple
 
 import numpy as np
+from osgeo import gdal
+import pyproj
+from scipy import ndimage
 
-from ..errors import Gf4calError
 from .._gdal import with_gdal_exceptions
+from ..errors import Gf4calError
 
 __all__ = ["ReferenceImage", "RawReference", "grid_nodes", "read_block", "reference_on_grids"]
 
@@ -56,7 +59,6 @@ class ReferenceImage:
         if gt is None:
             raise Gf4calError(f"reference {self.path} has no geotransform; give an orthorectified, "
                               "georeferenced image (e.g. a GeoTIFF)")
-        from osgeo import gdal
         self.geotransform = tuple(gt)
         self._inv = gdal.InvGeoTransform(gt)
         if self._inv is None:
@@ -79,7 +81,6 @@ class ReferenceImage:
     @with_gdal_exceptions
     def _open(self):
         if self._ds is None:
-            from osgeo import gdal
             try:
                 self._ds = gdal.Open(self.path)
             except RuntimeError as exc:
@@ -92,7 +93,6 @@ class ReferenceImage:
     @property
     def transformer(self):
         if self._transformer is None:
-            import pyproj
             self._transformer = pyproj.Transformer.from_crs("EPSG:4326", pyproj.CRS.from_wkt(self.crs_wkt),
                                                             always_xy=True)
         return self._transformer
@@ -174,7 +174,6 @@ def read_block(band, width: int, height: int, nodata, x0: int, y0: int, nx: int,
     The output has ``ceil(n / decimation)`` pixels per axis; decimated pixel ``i`` covers full-resolution pixels
     ``[x0 + i*d, x0 + (i+1)*d)``; only whole cells inside the raster are read.
     """
-    from osgeo import gdal
     d = max(int(decimation), 1)
     ox, oy = -(-nx // d), -(-ny // d)
     out = np.full((oy, ox), np.nan, dtype=np.float32)
@@ -333,7 +332,6 @@ def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, s
 def _sample_reference(reference: ReferenceImage, fx: np.ndarray, fy: np.ndarray, dec: int, sigma: float,
                       margin: int, order: int) -> np.ndarray:
     """Sample the reference at continuous pixel coordinates ``fx, fy`` (one read of their bounding box)."""
-    from scipy import ndimage
     out = np.full(fx.shape, np.nan)
     bx0 = int(math.floor(fx.min())) - margin
     by0 = int(math.floor(fy.min())) - margin
@@ -375,7 +373,6 @@ def _sample_reference_each(reference: ReferenceImage, fx: np.ndarray, fy: np.nda
     ``margin`` inside). A sparse grid of small windows otherwise spends more time in per-call overhead than in
     interpolation. Samples within reach of no-data or outside the raster are NaN, as in the one-block path.
     """
-    from scipy import ndimage
     n = fx.shape[0]
     d = dec
     reach = (2 if order >= 2 else 1) + int(math.ceil(3 * sigma))

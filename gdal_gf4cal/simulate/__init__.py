@@ -6,6 +6,7 @@ files. See DESIGN.md, section "Simulator API".
 """
 from .cameras import PiecewiseCamera, camera_from_dict, crop_camera, shift_coefficients
 from .models import Attitude, CircularOrbit, FrameModel, PushbroomModel
+from .render import render_image, texture_value, write_reference_ortho
 from .scene import ImageResult, SceneResult, check_grid, simulate_gcps, write_placeholder_tif, write_scene
 from .sensors import SENSORS, SimImage, SimScene, SimulationError, make_scene
 from .jl1 import block_observations          # registers jl1 in SENSORS
@@ -17,11 +18,3 @@ __all__ = [
     "make_scene", "render_image", "shift_coefficients", "simulate_gcps", "texture_value", "write_placeholder_tif",
     "write_reference_ortho", "write_scene",
 ]
-
-
-def __getattr__(name):
-    # Rendering pulls in more machinery; load it on first use.
-    if name in ("render_image", "texture_value", "write_reference_ortho"):
-        from . import render
-        return getattr(render, name)
-    raise AttributeError(name)

@@ -10,6 +10,8 @@ from __future__ import annotations
 from typing import Optional
 
 import numpy as np
+from osgeo import gdal, osr
+import pyproj
 
 from .._gdal import with_gdal_exceptions
 
@@ -79,8 +81,6 @@ def urban_dsm(path, terrain, center, *, size_px: int = 400, res_m: float = 0.5, 
     -------
     dict: ``epsg``, ``geotransform``, ``hole_fraction`` (measured), ``n_buildings``, ``height_range`` (m).
     """
-    import pyproj
-    from osgeo import gdal, osr
     rng = np.random.default_rng(seed)
     epsg = _utm_epsg(*center)
     to_utm = pyproj.Transformer.from_crs("EPSG:4326", f"EPSG:{epsg}", always_xy=True)

@@ -30,18 +30,27 @@ the default camera (``camera_seed=4``, seed 004 of the project).
 """
 from __future__ import annotations
 
-import contextvars
-import os
 from contextlib import closing, contextmanager
+import contextvars
 from dataclasses import asdict, dataclass, fields, replace
+import os
 from typing import Optional
 
 import numpy as np
+from osgeo import gdal
+from scipy.interpolate import RectBivariateSpline
 
 from .._gdal import with_gdal_exceptions
-from .building import SENSORS, SensorSpec
+from ..atomic import atomic_output
+from ..progress import report, scaled
+from .building import SENSORS, SensorSpec, SimImage, _align_orbit, _linear_camera, _pushbroom, _scale_size
+from .building import _center_time, _probe, SimulationError
+from .cameras import write_json_atomic
 from .geodesy import geodetic_to_ecef
 from .models import CAMERA_TO_BODY, Attitude
+from .render import _bounded_map, _DemGrid, _Reference, ground_of_pixels, model_bounds, texture_value, value_noise
+from .scene import set_crop_origin, write_placeholder_tif, write_scene
+from .sensors import make_scene
 
 #: Full detector arrays (W, H), GSD (m) of the two images.
 PAN_FULL, MS_FULL = (30720, 30720), (7680, 7680)
@@ -95,7 +104,6 @@ def gf7_options(**kw):
 
 
 def _check_options(opt: GF7Options):
-    from .building import SimulationError
     if not (0.0 < abs(opt.look_time_s) <= 2.0):
         raise SimulationError(f"look_time_s {opt.look_time_s} must be non-zero and at most 2 s (GF7: 0.117 s)")
     if not (0.0 <= opt.clouds < 1.0 and 0.0 <= opt.water < 1.0 and opt.clouds + opt.water < 0.95):
@@ -225,7 +233,6 @@ class SubCCDCamera:
                    d.get("name", ""), d.get("notes", ""))
 
     def to_json(self, path, overwrite: bool = False) -> str:
-        from .cameras import write_json_atomic
         return write_json_atomic(path, self.to_dict(), overwrite=overwrite)
 
 
@@ -260,7 +267,6 @@ def _jitter_spectrum(camera_seed: int, look_time_s: float, ms_ifov: float, rng_p
 def _cross_track_gap_m(orbit, yaw, cams, center, h):
     """Cross-track distance (m) between the ground points of the pan and MS reference detectors at the times
     they see the along-track position of ``center``."""
-    from .building import _center_time, _probe
     att = Attitude(yaw=(yaw,))
     g = []
     for cam, s_ref in cams:
@@ -277,7 +283,6 @@ def build_gf7(rng, center, size, h_mid, **options):
     """GF7 builder for :func:`gdal_gf4cal.simulate.make_scene` (METHODS §9, §10); options: the keywords of
     :class:`GF7Options` (``make_scene(..., options={...})``) over those of :func:`gf7_options` (default
     :class:`GF7Options`)."""
-    from .building import SimImage, _align_orbit, _linear_camera, _pushbroom, _scale_size
     opt = _OPTIONS.get() or GF7Options()
     opt = replace(opt, **options) if options else opt
     _check_options(opt)
@@ -287,28 +292,10 @@ def build_gf7(rng, center, size, h_mid, **options):
     pan_ifov = PAN_GSD_M * np.cos(np.arctan(back)) ** 2 / alt
     ref = _linear_camera(PAN_FULL, pan_ifov, 0.0, back, "ref")
     orbit = _align_orbit(center, h_mid, alt, incl, ref, CAMERA_TO_BODY, PAN_FULL[0] / 2)
-    # MS view angle for the look-time difference, and the yaw steering (alternated: each depends on the other).
-    dty = -opt.look_time_s * 6.9e3 / alt
-    yaw = 0.0
     # One focal plane and lens: an MS detector is exactly RATIO pan detectors wide (in tan_x), so the nominal pan
     # and MS sub-CCD edges are the same look angles.
     ms_ifov = RATIO * pan_ifov
-    for _ in range(4):
-        ms_probe = _linear_camera(MS_FULL, ms_ifov, 0.0, back + dty, "ms probe")
-        cams = [(ref, PAN_FULL[0] / 2), (ms_probe, MS_FULL[0] / 2)]
-        if opt.yaw_steering:
-            y0, d = yaw, 1e-3
-            for _ in range(4):
-                f0, _ = _cross_track_gap_m(orbit, y0, cams, center, h_mid)
-                f1, _ = _cross_track_gap_m(orbit, y0 + d, cams, center, h_mid)
-                y0 -= f0 * d / (f1 - f0)
-                d = max(1e-6, min(1e-3, abs(f0 * d / (f1 - f0))))
-            yaw = y0
-        gap_m, dt = _cross_track_gap_m(orbit, yaw, cams, center, h_mid)
-        dty *= opt.look_time_s / dt
-    ms_probe = _linear_camera(MS_FULL, ms_ifov, 0.0, back + dty, "ms probe")
-    gap_m, dt = _cross_track_gap_m(orbit, yaw, [(ref, PAN_FULL[0] / 2), (ms_probe, MS_FULL[0] / 2)], center,
-                                   h_mid)
+    dty, yaw, gap_m, dt = _ms_view(opt, orbit, ref, back, ms_ifov, alt, center, h_mid)
     att_cur = Attitude(yaw=(yaw,))
     # Shared exterior errors (scene seed): attitude biases ~6 MS px, a slow drift; cancel mostly in pan-MS.
     t_half = MS_FULL[1] / 2 * MS_GSD_M / 6.9e3
@@ -316,15 +303,7 @@ def build_gf7(rng, center, size, h_mid, **options):
                   pitch=(rng.normal(0, 6) * ms_ifov,), yaw=(yaw + rng.normal(0, 2e-5),))
     jit, jit_px = _jitter_spectrum(opt.camera_seed, opt.look_time_s, ms_ifov, rng)
     jit = jit if opt.jitter else []
-    # Linear truth of the MS relative to the pan (scene seed): camera offset/scale, offset/rotation (px at the
-    # edge of the array), relative roll/pitch drift (px at the end of the full scene).
-    # The sample offset is negative: the geometry itself leaves ~ -0.2 px (shared attitude biases seen 0.117 s
-    # apart), so "before" is ~0.6 px in sample whatever the seed (METHODS §9).
-    sgn = rng.choice([-1.0, 1.0], 6)
-    lin = {"sample_offset_px": -rng.uniform(0.35, 0.5), "sample_scale_px_at_edge": sgn[1] * rng.uniform(
-        0.1, 0.2), "sample_drift_px_at_end": sgn[2] * rng.uniform(0.05, 0.1),
-        "line_offset_px": sgn[3] * rng.uniform(0.15, 0.25), "line_rotation_px_at_edge": sgn[4] * rng.uniform(
-        0.08, 0.15), "line_drift_px_at_end": sgn[5] * rng.uniform(0.05, 0.1)}
+    lin = _ms_linear_truth(rng)
     att_pan = Attitude(roll=shared["roll"], pitch=shared["pitch"], yaw=shared["yaw"], jitter=list(jit))
     rate_r = lin["sample_drift_px_at_end"] * ms_ifov / t_half
     rate_p = lin["line_drift_px_at_end"] * ms_ifov / t_half
@@ -341,31 +320,77 @@ def build_gf7(rng, center, size, h_mid, **options):
     images = []
     for name, full, gsd, ty0, ifov, att_true in (("pan", PAN_FULL, PAN_GSD_M, back, pan_ifov, att_pan),
                                                   ("ms", MS_FULL, MS_GSD_M, back + dty, ms_ifov, att_ms)):
-        cam_cur = _linear_camera(full, ifov, 0.0, ty0, f"gf7 {name} current")
-        edges = np.linspace(0, full[0], 4)
-        cx, cy = truth[name]
-        lx = (lin["sample_offset_px"], lin["sample_scale_px_at_edge"]) if name == "ms" else (0.0, 0.0)
-        ly = (lin["line_offset_px"], lin["line_rotation_px_at_edge"]) if name == "ms" else (0.0, 0.0)
-        cam_true = SubCCDCamera(full, full, ifov, 0.0, ty0, edges, cx, cy, lx, ly, name=f"gf7 {name} true")
-        s = _scale_size(full, size, PAN_FULL) if name != "pan" else size
-        cur, tru, info = _pushbroom(f"gf7 {name}", full, s, cam_cur, cam_cur, orbit, att_cur, att_true,
-                                    CAMERA_TO_BODY, crop_center, h_mid, gsd, None,
-                                    {"view_tan_y": ty0, "ifov_rad": ifov})
-        tru = tru.with_camera(cam_true.cropped(info["crop_offset"], cur.size))
-        info.update(attitude_true=att_true.to_dict(), attitude_current=att_cur.to_dict(), orbit=orbit.to_dict())
-        errors = {"sub_ccd_edges_full_px": edges.tolist(), "sub_ccd_quartic_x_px": cx.tolist(),
-                  "sub_ccd_quartic_y_px": cy.tolist(),
-                  "poly_variable": "u_k = (S - mid_k) / half_k of the full band's sub-CCD k",
-                  "camera_seed": opt.camera_seed, "jitter": [list(j) for j in att_true.jitter]}
+        im = _gf7_image(name, full, gsd, ty0, ifov, att_true, att_cur, orbit, truth[name],
+                        lin if name == "ms" else None, size, crop_center, h_mid, opt)
         if name == "ms":
-            errors.update(linear_truth=lin, jitter_differential_px=jit_px if opt.jitter else [],
-                          look_time_s=float(dt), look_time_requested_s=opt.look_time_s,
-                          yaw_steering_rad=float(yaw) if opt.yaw_steering else 0.0,
-                          pan_ms_cross_track_gap_m=gap_m, options=asdict(opt), bands=list(MS_BANDS))
-        images.append(SimImage(name, cur, tru, gsd, errors, info))
+            im.errors.update(linear_truth=lin, jitter_differential_px=jit_px if opt.jitter else [],
+                             look_time_s=float(dt), look_time_requested_s=opt.look_time_s,
+                             yaw_steering_rad=float(yaw) if opt.yaw_steering else 0.0,
+                             pan_ms_cross_track_gap_m=gap_m, options=asdict(opt), bands=list(MS_BANDS))
+        images.append(im)
     ms = images[1]
     ms.errors["cover"] = _cover_params(opt, ms.true, h_mid, seed_salt=int(rng.integers(0, 2 ** 31)))
     return images
+
+
+def _ms_view(opt, orbit, ref, back: float, ms_ifov: float, alt: float, center, h_mid: float):
+    """The MS view angle for the look-time difference and the yaw steering, alternated (each depends on the
+    other): ``(dty, yaw, pan-MS cross-track gap m, look time s)``."""
+    dty = -opt.look_time_s * 6.9e3 / alt
+    yaw = 0.0
+    for _ in range(4):
+        ms_probe = _linear_camera(MS_FULL, ms_ifov, 0.0, back + dty, "ms probe")
+        cams = [(ref, PAN_FULL[0] / 2), (ms_probe, MS_FULL[0] / 2)]
+        if opt.yaw_steering:
+            y0, d = yaw, 1e-3
+            for _ in range(4):
+                f0, _ = _cross_track_gap_m(orbit, y0, cams, center, h_mid)
+                f1, _ = _cross_track_gap_m(orbit, y0 + d, cams, center, h_mid)
+                y0 -= f0 * d / (f1 - f0)
+                d = max(1e-6, min(1e-3, abs(f0 * d / (f1 - f0))))
+            yaw = y0
+        gap_m, dt = _cross_track_gap_m(orbit, yaw, cams, center, h_mid)
+        dty *= opt.look_time_s / dt
+    ms_probe = _linear_camera(MS_FULL, ms_ifov, 0.0, back + dty, "ms probe")
+    gap_m, dt = _cross_track_gap_m(orbit, yaw, [(ref, PAN_FULL[0] / 2), (ms_probe, MS_FULL[0] / 2)], center,
+                                   h_mid)
+    return dty, yaw, gap_m, dt
+
+
+def _ms_linear_truth(rng) -> dict:
+    """Linear truth of the MS relative to the pan (scene seed): camera offset/scale, offset/rotation (px at the
+    edge of the array), relative roll/pitch drift (px at the end of the full scene).
+
+    The sample offset is negative: the geometry itself leaves ~ -0.2 px (shared attitude biases seen 0.117 s
+    apart), so "before" is ~0.6 px in sample whatever the seed (METHODS §9)."""
+    sgn = rng.choice([-1.0, 1.0], 6)
+    return {"sample_offset_px": -rng.uniform(0.35, 0.5), "sample_scale_px_at_edge": sgn[1] * rng.uniform(
+        0.1, 0.2), "sample_drift_px_at_end": sgn[2] * rng.uniform(0.05, 0.1),
+        "line_offset_px": sgn[3] * rng.uniform(0.15, 0.25), "line_rotation_px_at_edge": sgn[4] * rng.uniform(
+        0.08, 0.15), "line_drift_px_at_end": sgn[5] * rng.uniform(0.05, 0.1)}
+
+
+def _gf7_image(name: str, full, gsd: float, ty0: float, ifov: float, att_true, att_cur, orbit, sub_ccd, lin,
+               size, crop_center, h_mid: float, opt):
+    """One GF7 band image: a linear current camera, the true sub-CCD camera (quartics per sub-CCD, plus the MS
+    linear truth ``lin``), the crop and its error record."""
+    cam_cur = _linear_camera(full, ifov, 0.0, ty0, f"gf7 {name} current")
+    edges = np.linspace(0, full[0], 4)
+    cx, cy = sub_ccd
+    lx = (lin["sample_offset_px"], lin["sample_scale_px_at_edge"]) if lin is not None else (0.0, 0.0)
+    ly = (lin["line_offset_px"], lin["line_rotation_px_at_edge"]) if lin is not None else (0.0, 0.0)
+    cam_true = SubCCDCamera(full, full, ifov, 0.0, ty0, edges, cx, cy, lx, ly, name=f"gf7 {name} true")
+    s = _scale_size(full, size, PAN_FULL) if name != "pan" else size
+    cur, tru, info = _pushbroom(f"gf7 {name}", full, s, cam_cur, cam_cur, orbit, att_cur, att_true,
+                                CAMERA_TO_BODY, crop_center, h_mid, gsd, None,
+                                {"view_tan_y": ty0, "ifov_rad": ifov})
+    tru = tru.with_camera(cam_true.cropped(info["crop_offset"], cur.size))
+    info.update(attitude_true=att_true.to_dict(), attitude_current=att_cur.to_dict(), orbit=orbit.to_dict())
+    errors = {"sub_ccd_edges_full_px": edges.tolist(), "sub_ccd_quartic_x_px": cx.tolist(),
+              "sub_ccd_quartic_y_px": cy.tolist(),
+              "poly_variable": "u_k = (S - mid_k) / half_k of the full band's sub-CCD k",
+              "camera_seed": opt.camera_seed, "jitter": [list(j) for j in att_true.jitter]}
+    return SimImage(name, cur, tru, gsd, errors, info)
 
 
 # ---------------------------------------------------------------------------------------------------- cover
@@ -376,7 +401,6 @@ def _merc(lon, lat):
 
 
 def _cover_fields(lon, lat, p):
-    from .render import value_noise
     x, y = _merc(lon, lat)
     wl = p["wavelength_m"]
     cloud = 0.7 * value_noise(x, y, wl, p["salt"]) + 0.3 * value_noise(x, y, wl / 3.3, p["salt"] + 1)
@@ -425,7 +449,6 @@ def make_gf7_scene(*, seed: int = 0, camera_seed: int = 4, look_time_s: float = 
     """A GF7 pan + MS scene in memory (METHODS §9, §10): :func:`gdal_gf4cal.simulate.make_scene` with the
     :class:`GF7Options`. ``seed`` seeds the exterior (orbit, attitude, linear truth, jitter phases, terrain);
     ``camera_seed`` the sub-CCD truth and jitter spectrum (scenes sharing it share the piecewise truth)."""
-    from .sensors import make_scene
     with gf7_options(look_time_s=look_time_s, jitter=jitter, camera_seed=camera_seed, yaw_steering=yaw_steering,
                      clouds=clouds, water=water, crop_center_ms_px=crop_center_ms_px):
         return make_scene("gf7", seed=seed, center=center, size=size, dem=dem, dem_path=dem_path,
@@ -498,7 +521,6 @@ def misregistration_nodes(scene, step: float = 16.0, window=None):
 
 
 def _spline(cols, rows, values):
-    from scipy.interpolate import RectBivariateSpline
     v = np.where(np.isfinite(values), values, np.nanmean(values))
     kx, ky = min(3, rows.size - 1), min(3, cols.size - 1)
     return RectBivariateSpline(rows, cols, v, kx=kx, ky=ky)
@@ -516,9 +538,6 @@ def write_misregistration_truth(scene, path, *, step: float = 8.0, tile: int = 5
     :func:`true_misregistration` by the pan jump (~0.1 px). Written tile by tile, atomically.
     ``window = (x0, y0, w, h)`` (MS image pixels): the field of that crop only, on its grid, with the crop's
     origin as a pixel-unit geotransform (:func:`.scene.set_crop_origin`)."""
-    from osgeo import gdal
-    from ..atomic import atomic_output
-    from .scene import set_crop_origin
     ms = scene.image("ms")
     wx, wy, W, H = window if window is not None else (0, 0) + tuple(ms.size)
     nodes = misregistration_nodes(scene, step, window)
@@ -577,7 +596,6 @@ def ground_reflectance(scene, lon, lat, *, edge_m: float, reference=None):
     its values / 255); band ``k`` = ``gain_k v + offset_k`` + a slow per-band variation; clouds (flat bright) and
     water (flat dark, NIR darkest) replace it by their cover weights (:func:`cover_weights`). The pan is the mean
     of the four bands, so pan and MS show the same ground."""
-    from .render import texture_value, value_noise
     lon, lat = np.asarray(lon, dtype=float), np.asarray(lat, dtype=float)
     seed = int(scene.seed)
     if reference is None:
@@ -598,7 +616,6 @@ def ground_reflectance(scene, lon, lat, *, edge_m: float, reference=None):
 def band_color(name: str) -> int:
     """GDAL colour interpretation of an MS band name (blue, green, red -> Blue, Green, Red; NIR -> Undefined,
     never Alpha)."""
-    from osgeo import gdal
     return {"blue": gdal.GCI_BlueBand, "green": gdal.GCI_GreenBand, "red": gdal.GCI_RedBand}.get(
         name, gdal.GCI_Undefined)
 
@@ -618,11 +635,6 @@ def render_gf7_image(scene, name: str, path, *, reference=None, mask_path=None, 
     h)`` (image pixels): render only that crop (nothing outside it is computed), written with its origin as a
     pixel-unit geotransform (:func:`.scene.set_crop_origin`). Tiled, ``workers`` threads, memory of a few tiles;
     atomic."""
-    from osgeo import gdal
-    from ..atomic import atomic_output
-    from ..progress import report
-    from .render import _bounded_map, _DemGrid, _Reference, ground_of_pixels, model_bounds
-    from .scene import set_crop_origin
     im = scene.image(name)
     model = im.true
     wx, wy, W, H = window if window is not None else (0, 0) + tuple(model.size)
@@ -681,7 +693,6 @@ def _maybe_atomic(path):
     if path is None:
         yield None
         return
-    from ..atomic import atomic_output
     with atomic_output(os.fspath(path)) as tmp:
         yield tmp
 
@@ -710,7 +721,6 @@ class GF7Crop:
 def gf7_crop(crop) -> GF7Crop:
     """A :class:`GF7Crop` from ``(x0, y0, width, height)`` in pan pixels of the full product (``--crop``), checked:
     multiples of 4, at least 64 x 64, inside the 30720 x 30720 pan array."""
-    from .building import SimulationError
     if isinstance(crop, GF7Crop):
         return crop
     vals = [int(v) for v in crop]
@@ -730,7 +740,6 @@ def gf7_crop(crop) -> GF7Crop:
 
 
 def _full_scene(scene):
-    from .building import SimulationError
     if tuple(scene.image("ms").size) != MS_FULL:
         raise SimulationError("crop truth needs the full-product scene (make_gf7_scene without size)")
     return scene
@@ -755,8 +764,6 @@ def _write_gf7_images(scene, results, *, render, reference, windows, workers, ti
     by :func:`render_gf7_image` (or placeholders), ``ms/cover_mask.tif``, ``ms/misregistration_truth.tif``
     (:func:`write_misregistration_truth`); each on the crop's ``windows`` when given. Returns the ``"gf7"``
     record of truth.json."""
-    from ..progress import report, scaled
-    from .scene import write_placeholder_tif
     files = {}
     for name, (f0, f1) in (("pan", (0.0, 0.6)), ("ms", (0.6, 0.8))):
         paths = results[name].paths
@@ -806,7 +813,6 @@ def write_gf7_scene(out_dir, *, seed: int = 0, camera_seed: int = 4, look_time_s
     and only the crop written, keeping its place (see :func:`~gdal_gf4cal.simulate.write_scene`); the truth of
     the crop from :func:`crop_misregistration` / :func:`crop_sub_ccd_edges`. Other options as
     :func:`make_gf7_scene`. Returns the :class:`~gdal_gf4cal.simulate.SceneResult`."""
-    from .scene import write_scene
     options = dict(look_time_s=look_time_s, jitter=jitter, camera_seed=camera_seed, yaw_steering=yaw_steering,
                    clouds=clouds, water=water, crop_center_ms_px=crop_center_ms_px)
     return write_scene("gf7", os.fspath(out_dir), seed=seed, center=center, size=size, crop=crop, n_gcps=n_gcps,

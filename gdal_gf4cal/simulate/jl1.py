@@ -28,11 +28,14 @@ for W < 800): a cropped group is a small group of the same camera, so tests stay
 from __future__ import annotations
 
 import copy
-from typing import Dict, List, Optional
+import os
+from typing import Any, Dict, List, Optional
 
 import numpy as np
+import pandas as pd
 
 from .models import Attitude
+from .scene import _write_csv, simulate_gcps
 from .building import (ARCSEC, SENSORS, SensorSpec, CAMERA_TO_BODY, SimImage, SimulationError, _align_orbit, _crop_any, _linear_camera,
                       _poly_px, _pushbroom, _shift_center, _yaw_steering)
 
@@ -82,15 +85,7 @@ def build_jl1(rng, center, size, h_mid, *, orbit_seed: Optional[int] = None) -> 
     h_mid : mean terrain height (m).
     orbit_seed : None (calibration scene) or a seed of the per-orbit attitude error (validation scenes).
     """
-    if abs(center[1]) > MAX_ABS_LAT_DEG:
-        raise SimulationError(f"jl1: centre latitude {center[1]} is beyond the orbit's reach; "
-                              f"choose |lat| <= {MAX_ABS_LAT_DEG:g}")
-    if size is None:
-        W, H = CCD_PX, CCD_PX
-    else:
-        W, H = int(size[0]), int(size[1])
-        if W < 64 or H < 16 or W > CCD_PX:
-            raise SimulationError(f"jl1: --size {W} {H} must have 64 <= W <= {CCD_PX} and H >= 16")
+    W, H = _ccd_size(center, size)
     full_pan = (W, max(H, CCD_PX))
     overlap = _overlap_px(W)
     alt = ALTITUDE_M
@@ -102,34 +97,14 @@ def build_jl1(rng, center, size, h_mid, *, orbit_seed: Optional[int] = None) -> 
     # detector; the trailing row then sees the same ground tracks, so the rows' CCDs overlap as designed.
     yaw0 = _yaw_steering(orbit, center, h_mid, (CCD_PX, CCD_PX), ifov, dty / 2)
     att_cur = Attitude(yaw=(yaw0,))
-    sign = lambda: rng.choice([-1.0, 1.0])                                   # noqa: E731
-    ext = {"roll_rad": sign() * rng.uniform(2.0, 6.0) * ARCSEC,
-           "roll_drift_rad_s": sign() * rng.uniform(0.5, 1.5) * ARCSEC,
-           "pitch_rad": sign() * rng.uniform(2.0, 6.0) * ARCSEC,
-           "pitch_drift_rad_s": sign() * rng.uniform(0.5, 1.5) * ARCSEC,
-           "yaw_rad": sign() * rng.uniform(20.0, 60.0) * ARCSEC,
-           "t0_s": 0.0}
-    if orbit_seed is not None:
-        orng = np.random.default_rng(int(orbit_seed) + 8191)
-        d = orng.normal(0.0, ORBIT_ATTITUDE_SIGMA_ARCSEC, 3) * ARCSEC
-        orbit_err = {"orbit_seed": int(orbit_seed), "roll_rad": float(d[0]), "pitch_rad": float(d[1]),
-                     "yaw_rad": float(d[2]), "sigma_arcsec": ORBIT_ATTITUDE_SIGMA_ARCSEC}
-    else:
-        orbit_err = {"orbit_seed": None, "roll_rad": 0.0, "pitch_rad": 0.0, "yaw_rad": 0.0,
-                     "sigma_arcsec": 0.0}
+    ext = _exterior_error(rng)
+    orbit_err = _orbit_attitude_error(orbit_seed)
     # The camera (interior, seams) is drawn against the group's exterior alone; the orbit's error is added last.
     att_group = Attitude(roll=(ext["roll_rad"], ext["roll_drift_rad_s"]), pitch=(ext["pitch_rad"],
                          ext["pitch_drift_rad_s"]), yaw=(yaw0 + ext["yaw_rad"],))
     att_true = Attitude(roll=(ext["roll_rad"] + orbit_err["roll_rad"], ext["roll_drift_rad_s"]),
                         pitch=(ext["pitch_rad"] + orbit_err["pitch_rad"], ext["pitch_drift_rad_s"]),
                         yaw=(yaw0 + ext["yaw_rad"] + orbit_err["yaw_rad"],))
-
-    def camera(band, tx0, ty0, i_s, i_l, name):
-        f = 1 if band == "pan" else MS_FACTOR
-        full = (W // f, full_pan[1] // f)
-        extra = (None, None) if i_s is None else (_poly_px([-c for c in i_s]), _poly_px([-c for c in i_l]))
-        return full, _linear_camera(full, ifov * f, tx0, ty0, name, *extra)
-
     images: Dict[tuple, SimImage] = {}
     interior: Dict[tuple, list] = {}
     seams: Dict[str, list] = {}
@@ -145,8 +120,8 @@ def build_jl1(rng, center, size, h_mid, *, orbit_seed: Optional[int] = None) -> 
             i_s = [rng.normal(0, 2), rng.normal(0, 1), rng.normal(0, 0.8), rng.normal(0, 1.2)]
             i_l = [rng.normal(0, 2), rng.normal(0, 1), rng.normal(0, 0.8), rng.normal(0, 0.4)]
             name = image_name(k + 1, band)
-            full, cam_cur = camera(band, tx0, ty0, None, None, f"jl1 {name} current")
-            _, cam_true = camera(band, tx0, ty0, i_s, i_l, f"jl1 {name} true")
+            full, cam_cur = _band_camera(band, W, full_pan[1], ifov, tx0, ty0, None, None, f"jl1 {name} current")
+            _, cam_true = _band_camera(band, W, full_pan[1], ifov, tx0, ty0, i_s, i_l, f"jl1 {name} true")
             cur, tru, info = _pushbroom(f"jl1 {name}", full, band_size, cam_cur, cam_true, orbit, att_cur, att_group,
                                         CAMERA_TO_BODY, _shift_center(center, orbit, off * PAN_GSD_M), h_mid, gsd,
                                         None, {"ccd": k + 1, "band": band, "ifov_rad": ifov * f,
@@ -158,31 +133,8 @@ def build_jl1(rng, center, size, h_mid, *, orbit_seed: Optional[int] = None) -> 
                                                  "position of the detector (tan angle / ifov), px of this band"}
             images[(k, band)] = SimImage(name, cur, tru, gsd, {}, info)
             interior[(k, band)] = [i_s, i_l]
-        # Seams: set each CCD's constant interior term so that the seam with its left neighbour is 2-5 px.
-        for k in range(1, N_CCD):
-            a, b = images[(k - 1, band)], images[(k, band)]
-            S = _seam_vector(a, b, h_mid)
-            target = rng.uniform(*SEAM_RANGE_PX)
-            norm = float(np.hypot(*S))
-            direction = S / norm if norm > 1e-6 else np.array([np.cos(t := rng.uniform(0, 2 * np.pi)), np.sin(t)])
-            delta = direction * target - S
-            i_s, i_l = interior[(k, band)]
-            i_s[0] += float(delta[0])
-            i_l[0] += float(delta[1])
-            tx0 = ifov * (k - (N_CCD - 1) / 2.0) * (W - overlap)
-            ty0 = b.info["view_tan_y"]
-            _, cam_true = camera(band, tx0, ty0, i_s, i_l, f"jl1 {b.name} true")
-            b.true = b.true.with_camera(_crop_any(cam_true, tuple(b.info["crop_offset"]), b.size))
-            b.true.name = f"jl1 {b.name} true"
-            seams[f"{a.name}|{b.name}"] = [float(v) for v in direction * target]
-    for (k, band), im in images.items():
-        i_s, i_l = interior[(k, band)]
-        im.true = copy.copy(im.true)
-        im.true.attitude = att_true
-        im.errors = {"interior_sample_px_poly": list(map(float, i_s)), "interior_line_px_poly": list(map(float, i_l)),
-                     "poly_variable": "u = (s - W/2) / (W/2) of this CCD image (full CCD length)",
-                     "definition": "true image position = current + I(u_true) + exterior effects (METHODS §8)",
-                     "focal_plane": im.info["focal_plane"]}
+        seams.update(_set_seams(images, interior, band, rng, h_mid, W, full_pan[1], ifov, overlap))
+    _set_errors(images, interior, att_true)
     group = {"exterior": ext, "orbit_attitude_error": orbit_err, "yaw_steering_rad": yaw0,
              "attitude_current": att_cur.to_dict(), "attitude_true": att_true.to_dict(), "orbit": orbit.to_dict(),
              "overlap_pan_px": overlap, "stagger_s": STAGGER_S, "reference_band": REFERENCE_BAND,
@@ -195,6 +147,86 @@ def build_jl1(rng, center, size, h_mid, *, orbit_seed: Optional[int] = None) -> 
         im.info.update(group=group)
     out[0].info["scene_truth"] = {"block": group}
     return out
+
+
+def _ccd_size(center, size):
+    """(W, H) pan pixels of each CCD image; refuses a centre beyond the orbit's reach and a size out of range."""
+    if abs(center[1]) > MAX_ABS_LAT_DEG:
+        raise SimulationError(f"jl1: centre latitude {center[1]} is beyond the orbit's reach; "
+                              f"choose |lat| <= {MAX_ABS_LAT_DEG:g}")
+    if size is None:
+        return CCD_PX, CCD_PX
+    W, H = int(size[0]), int(size[1])
+    if W < 64 or H < 16 or W > CCD_PX:
+        raise SimulationError(f"jl1: --size {W} {H} must have 64 <= W <= {CCD_PX} and H >= 16")
+    return W, H
+
+
+def _exterior_error(rng) -> Dict[str, float]:
+    """The group's exterior truth: attitude offsets and drifts of random sign (drawn in this order)."""
+    sign = lambda: rng.choice([-1.0, 1.0])                                   # noqa: E731
+    return {"roll_rad": sign() * rng.uniform(2.0, 6.0) * ARCSEC,
+            "roll_drift_rad_s": sign() * rng.uniform(0.5, 1.5) * ARCSEC,
+            "pitch_rad": sign() * rng.uniform(2.0, 6.0) * ARCSEC,
+            "pitch_drift_rad_s": sign() * rng.uniform(0.5, 1.5) * ARCSEC,
+            "yaw_rad": sign() * rng.uniform(20.0, 60.0) * ARCSEC,
+            "t0_s": 0.0}
+
+
+def _orbit_attitude_error(orbit_seed: Optional[int]) -> Dict[str, Any]:
+    """The orbit's own attitude error, N(0, ORBIT_ATTITUDE_SIGMA_ARCSEC) per axis from ``orbit_seed`` (none for
+    the calibration scene)."""
+    if orbit_seed is None:
+        return {"orbit_seed": None, "roll_rad": 0.0, "pitch_rad": 0.0, "yaw_rad": 0.0, "sigma_arcsec": 0.0}
+    orng = np.random.default_rng(int(orbit_seed) + 8191)
+    d = orng.normal(0.0, ORBIT_ATTITUDE_SIGMA_ARCSEC, 3) * ARCSEC
+    return {"orbit_seed": int(orbit_seed), "roll_rad": float(d[0]), "pitch_rad": float(d[1]),
+            "yaw_rad": float(d[2]), "sigma_arcsec": ORBIT_ATTITUDE_SIGMA_ARCSEC}
+
+
+def _band_camera(band: str, W: int, full_h: int, ifov: float, tx0: float, ty0: float, i_s, i_l, name: str):
+    """``(full size, camera)`` of one CCD of ``band``: linear look angles at ``(tx0, ty0)``, plus the interior
+    polynomials ``i_s, i_l`` (px) of a true camera."""
+    f = 1 if band == "pan" else MS_FACTOR
+    full = (W // f, full_h // f)
+    extra = (None, None) if i_s is None else (_poly_px([-c for c in i_s]), _poly_px([-c for c in i_l]))
+    return full, _linear_camera(full, ifov * f, tx0, ty0, name, *extra)
+
+
+def _set_seams(images, interior, band: str, rng, h_mid: float, W: int, full_h: int, ifov: float,
+               overlap: int) -> Dict[str, list]:
+    """Set each CCD's constant interior term of ``band`` so that the seam with its left neighbour is 2-5 px;
+    returns the seams as designed."""
+    seams = {}
+    for k in range(1, N_CCD):
+        a, b = images[(k - 1, band)], images[(k, band)]
+        S = _seam_vector(a, b, h_mid)
+        target = rng.uniform(*SEAM_RANGE_PX)
+        norm = float(np.hypot(*S))
+        direction = S / norm if norm > 1e-6 else np.array([np.cos(t := rng.uniform(0, 2 * np.pi)), np.sin(t)])
+        delta = direction * target - S
+        i_s, i_l = interior[(k, band)]
+        i_s[0] += float(delta[0])
+        i_l[0] += float(delta[1])
+        tx0 = ifov * (k - (N_CCD - 1) / 2.0) * (W - overlap)
+        ty0 = b.info["view_tan_y"]
+        _, cam_true = _band_camera(band, W, full_h, ifov, tx0, ty0, i_s, i_l, f"jl1 {b.name} true")
+        b.true = b.true.with_camera(_crop_any(cam_true, tuple(b.info["crop_offset"]), b.size))
+        b.true.name = f"jl1 {b.name} true"
+        seams[f"{a.name}|{b.name}"] = [float(v) for v in direction * target]
+    return seams
+
+
+def _set_errors(images, interior, att_true: Attitude) -> None:
+    """The true models get the orbit's attitude; each image's ``errors`` its interior truth."""
+    for (k, band), im in images.items():
+        i_s, i_l = interior[(k, band)]
+        im.true = copy.copy(im.true)
+        im.true.attitude = att_true
+        im.errors = {"interior_sample_px_poly": list(map(float, i_s)), "interior_line_px_poly": list(map(float, i_l)),
+                     "poly_variable": "u = (s - W/2) / (W/2) of this CCD image (full CCD length)",
+                     "definition": "true image position = current + I(u_true) + exterior effects (METHODS §8)",
+                     "focal_plane": im.info["focal_plane"]}
 
 
 def _seam_vector(left: SimImage, right: SimImage, h, n_lines: int = 5):
@@ -277,21 +309,36 @@ def block_observations(scene, *, gcps=None, n_gcps: int = 50, gcp_noise_px: floa
     ``truth_lon, truth_lat, truth_h`` the true ground point of every row. Tie points share ``point_id`` across
     images (``T...`` overlap ties, ``B...`` band ties); GCP ids are ``G...``.
     """
-    import pandas as pd
+    _check_tie_options(scene, reference_band, tie_noise_px, n_overlap_ties, n_band_ties, tie_outlier_fraction)
+    rng = np.random.default_rng((scene.seed if seed is None else seed) + 524287)
+    if gcps is None:
+        gcps = simulate_gcps(scene, n_gcps=n_gcps, gcp_noise_px=gcp_noise_px, check_fraction=check_fraction,
+                             seed=seed)
+    rows = _gcp_rows(gcps)
+    draws = _TieDraws(rng, tie_noise_px)
+    if n_overlap_ties:
+        rows += _overlap_tie_rows(scene, draws, n_overlap_ties)
+    if n_band_ties:
+        rows += _band_tie_rows(scene, draws, n_band_ties, reference_band)
+    df = pd.concat([pd.DataFrame(r) for r in rows], ignore_index=True)[OBSERVATION_COLUMNS]
+    if tie_outlier_fraction > 0:
+        _add_tie_outliers(df, rng, tie_outlier_fraction, tie_outlier_range_px)
+    return df
+
+
+def _check_tie_options(scene, reference_band: str, tie_noise_px: float, n_overlap_ties: int, n_band_ties: int,
+                       tie_outlier_fraction: float) -> None:
     if scene.sensor != "jl1":
         raise SimulationError(f"block observations are for jl1 scenes, not {scene.sensor}; use simulate_gcps")
     if reference_band not in MS_BANDS:
         raise SimulationError(f"reference band {reference_band!r} unknown; choose one of {', '.join(MS_BANDS)}")
     if tie_noise_px < 0 or n_overlap_ties < 0 or n_band_ties < 0 or not 0 <= tie_outlier_fraction < 1:
         raise SimulationError("need tie_noise_px, n_overlap_ties, n_band_ties >= 0 and 0 <= tie_outlier_fraction < 1")
-    rng = np.random.default_rng((scene.seed if seed is None else seed) + 524287)
-    dem = scene.dem
-    sig = max(tie_noise_px, 1e-3)
+
+
+def _gcp_rows(gcps) -> list:
+    """Observation rows of the GCP tables (their measurements, sigma and outlier truth as they are)."""
     rows = []
-    if gcps is None:
-        from .scene import simulate_gcps
-        gcps = simulate_gcps(scene, n_gcps=n_gcps, gcp_noise_px=gcp_noise_px, check_fraction=check_fraction,
-                             seed=seed)
     for name, g in gcps.items():
         lon, lat, h = (g[c].to_numpy(float) for c in ("lon", "lat", "h"))
         rows.append(_rows(g["id"].to_numpy(object), name, "gcp", g["sample"].to_numpy(float),
@@ -300,75 +347,92 @@ def block_observations(scene, *, gcps=None, n_gcps: int = 50, gcp_noise_px: floa
         rows[-1]["sigma"] = g["sigma"].to_numpy(float)
         if "truth_outlier" in g:
             rows[-1]["truth_outlier"] = g["truth_outlier"].to_numpy(bool)
+    return rows
 
-    def noisy(v):
-        return v + (rng.normal(0.0, tie_noise_px, v.shape) if tie_noise_px > 0 else 0.0)
 
-    nan = lambda n: np.full(n, np.nan)                                          # noqa: E731
-    counter = [0]
+class _TieDraws:
+    """The tie points' random draws from one generator, in order: matching noise and running point ids."""
 
-    def ids(prefix, n):
-        out = np.array([f"{prefix}{counter[0] + i + 1:06d}" for i in range(n)], dtype=object)
-        counter[0] += n
+    def __init__(self, rng, tie_noise_px: float):
+        self.rng, self.noise, self.count = rng, tie_noise_px, 0
+        self.sigma = max(tie_noise_px, 1e-3)
+
+    def noisy(self, v):
+        return v + (self.rng.normal(0.0, self.noise, v.shape) if self.noise > 0 else 0.0)
+
+    def ids(self, prefix: str, n: int):
+        out = np.array([f"{prefix}{self.count + i + 1:06d}" for i in range(n)], dtype=object)
+        self.count += n
         return out
 
+    def rows(self, pid, im, ts, tl, lon, lat, h) -> dict:
+        """Rows of tie observations in ``im``: true positions ``ts, tl`` plus noise; ground unknown (NaN)."""
+        nan = np.full(len(pid), np.nan)
+        return _rows(pid, im.name, "tie", self.noisy(ts), self.noisy(tl), self.sigma, "control", nan, nan.copy(),
+                     nan.copy(), ts, tl, lon, lat, h)
+
+
+def _overlap_tie_rows(scene, draws: _TieDraws, n_ties: int) -> list:
+    """Tie points between adjacent CCDs, per band, in their overlap (``T...`` ids)."""
     by_name = {im.name: im for im in scene.images}
     n_ccd = max(int(im.info["ccd"]) for im in scene.images)
-    # Ties between adjacent CCDs, per band, in their overlap.
+    rows = []
     for band in BANDS:
         for k in range(1, n_ccd):
             left, right = by_name[image_name(k, band)], by_name[image_name(k + 1, band)]
-            if n_overlap_ties == 0:
-                continue
             ov = float(np.nanmax(overlap_width_px(left, right, float(np.mean(right.true.height_range)))))
-            m = 4 * n_overlap_ties
-            s = rng.uniform(0.0, max(ov, 1.0), m)
-            l = rng.uniform(0.0, right.size[1], m)
-            lon, lat, h = right.true.localize_dem(s, l, dem)
+            m = 4 * n_ties
+            s = draws.rng.uniform(0.0, max(ov, 1.0), m)
+            l = draws.rng.uniform(0.0, right.size[1], m)
+            lon, lat, h = right.true.localize_dem(s, l, scene.dem)
             ls, ll = left.true.project(lon, lat, h)
             rs, rl = right.true.project(lon, lat, h)
             ok = _inside(left.true, ls, ll) & _inside(right.true, rs, rl) & np.isfinite(h)
-            sel = np.flatnonzero(ok)[:n_overlap_ties]
-            pid = ids("T", sel.size)
+            sel = np.flatnonzero(ok)[:n_ties]
+            pid = draws.ids("T", sel.size)
             for im, ts, tl in ((left, ls, ll), (right, rs, rl)):
-                n = sel.size
-                rows.append(_rows(pid, im.name, "tie", noisy(ts[sel]), noisy(tl[sel]), sig, "control", nan(n),
-                                  nan(n), nan(n), ts[sel], tl[sel], lon[sel], lat[sel], h[sel]))
-    # Ties between the reference band and every other band of the same CCD (one point, up to five rays).
+                rows.append(draws.rows(pid, im, ts[sel], tl[sel], lon[sel], lat[sel], h[sel]))
+    return rows
+
+
+def _band_tie_rows(scene, draws: _TieDraws, n_ties: int, reference_band: str) -> list:
+    """Tie points between the reference band and every other band of the same CCD (one point, up to five rays;
+    ``B...`` ids)."""
+    by_name = {im.name: im for im in scene.images}
+    n_ccd = max(int(im.info["ccd"]) for im in scene.images)
+    rows = []
     for k in range(1, n_ccd + 1):
-        if n_band_ties == 0:
-            continue
         refim = by_name[image_name(k, reference_band)]
-        m = 2 * n_band_ties
+        m = 2 * n_ties
         W, H = refim.size
-        s, l = rng.uniform(0.0, W, m), rng.uniform(0.0, H, m)
-        lon, lat, h = refim.true.localize_dem(s, l, dem)
+        s, l = draws.rng.uniform(0.0, W, m), draws.rng.uniform(0.0, H, m)
+        lon, lat, h = refim.true.localize_dem(s, l, scene.dem)
         others = [by_name[image_name(k, b)] for b in BANDS if b != reference_band]
         proj = [im.true.project(lon, lat, h) for im in others]
         inside = np.array([_inside(im.true, ps, pl) for im, (ps, pl) in zip(others, proj)])
         rs, rl = refim.true.project(lon, lat, h)
         ok = np.isfinite(h) & inside.any(axis=0) & _inside(refim.true, rs, rl)
-        sel = np.flatnonzero(ok)[:n_band_ties]
-        pid = ids("B", sel.size)
+        sel = np.flatnonzero(ok)[:n_ties]
+        pid = draws.ids("B", sel.size)
         for im, (ts, tl), ins in [(refim, (rs, rl), np.ones(rs.shape, bool))] + list(zip(others, proj, inside)):
             use = ins[sel]
             j = sel[use]
-            n = j.size
-            rows.append(_rows(pid[use], im.name, "tie", noisy(ts[j]), noisy(tl[j]), sig, "control", nan(n), nan(n),
-                              nan(n), ts[j], tl[j], lon[j], lat[j], h[j]))
-    df = pd.concat([pd.DataFrame(r) for r in rows], ignore_index=True)[OBSERVATION_COLUMNS]
-    if tie_outlier_fraction > 0:
-        tie = df["kind"].to_numpy() == "tie"
-        pids = df.loc[tie, "point_id"].unique()
-        bad = rng.permutation(pids)[:int(round(tie_outlier_fraction * pids.size))]
-        # the last observation of each chosen point (never its first, so the point keeps a correct ray)
-        last = df[tie & df["point_id"].isin(bad).to_numpy()].groupby("point_id").tail(1).index.to_numpy()
-        mag = rng.uniform(*tie_outlier_range_px, last.size)
-        ang = rng.uniform(0.0, 2 * np.pi, last.size)
-        df.loc[last, "sample"] += mag * np.cos(ang)
-        df.loc[last, "line"] += mag * np.sin(ang)
-        df.loc[last, "truth_outlier"] = True
-    return df
+            rows.append(draws.rows(pid[use], im, ts[j], tl[j], lon[j], lat[j], h[j]))
+    return rows
+
+
+def _add_tie_outliers(df, rng, fraction: float, range_px) -> None:
+    """Give ``fraction`` of the tie points a wrong match: the last observation of each chosen point (never its
+    first, so the point keeps a correct ray) moved by ``range_px`` in a random direction; ``truth_outlier`` set."""
+    tie = df["kind"].to_numpy() == "tie"
+    pids = df.loc[tie, "point_id"].unique()
+    bad = rng.permutation(pids)[:int(round(fraction * pids.size))]
+    last = df[tie & df["point_id"].isin(bad).to_numpy()].groupby("point_id").tail(1).index.to_numpy()
+    mag = rng.uniform(*range_px, last.size)
+    ang = rng.uniform(0.0, 2 * np.pi, last.size)
+    df.loc[last, "sample"] += mag * np.cos(ang)
+    df.loc[last, "line"] += mag * np.sin(ang)
+    df.loc[last, "truth_outlier"] = True
 
 
 def write_observations(scene, out_dir, gcps, observation_options, written) -> dict:
@@ -376,8 +440,6 @@ def write_observations(scene, out_dir, gcps, observation_options, written) -> di
 
     ``written`` (list) receives the path, so that a failing :func:`~gdal_gf4cal.simulate.write_scene` removes it.
     """
-    import os
-    from .scene import _write_csv
     opts = dict(observation_options or {})
     allowed = {"n_overlap_ties", "n_band_ties", "tie_noise_px", "tie_outlier_fraction", "reference_band", "seed"}
     if set(opts) - allowed:

@@ -11,6 +11,7 @@ intersection is solved along it by a few secant steps on an in-memory copy of th
 """
 from __future__ import annotations
 
+import functools
 import os
 import tempfile
 import threading
@@ -19,11 +20,15 @@ from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from typing import Optional
 
 import numpy as np
+import pyproj
+from osgeo import gdal, osr
+from scipy.ndimage import map_coordinates
 
-from ..atomic import atomic_output
+from .._gdal import with_gdal_exceptions
+from ..atomic import atomic_output, fix_mode
+from ..dem import DEM
 from ..errors import DEMError, Gf4calError
 from ..progress import report
-from .._gdal import with_gdal_exceptions
 
 _M_PER_DEG = 111320.0
 
@@ -125,7 +130,6 @@ def texture_value(lon, lat, seed: int = 0, scale_m: float = 150.0, edge_m: Optio
 def create_ortho_tif(path, nx: int, ny: int, top_left, resolution_deg: float):
     """A new tiled DEFLATE Byte GeoTIFF in EPSG:4326 (``top_left = (lon, lat)`` of the outer corner), open for
     writing block by block (call ``FlushCache()`` after each block to keep memory at a block)."""
-    from osgeo import gdal, osr
     ds = gdal.GetDriverByName("GTiff").Create(os.fspath(path), nx, ny, 1, gdal.GDT_Byte,
                                               ["TILED=YES", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"])
     ds.SetGeoTransform((top_left[0], resolution_deg, 0.0, top_left[1], 0.0, -resolution_deg))
@@ -257,7 +261,6 @@ class _Reference:
 
     @with_gdal_exceptions
     def __init__(self, path: str, image_gsd_m: float):
-        from osgeo import gdal, osr
         self.path = os.fspath(path)
         try:
             ds = gdal.Open(self.path)
@@ -276,7 +279,6 @@ class _Reference:
         lo, hi = band.ComputeRasterMinMax(True)
         self.lo, self.hi = float(lo), float(max(hi, lo + 1e-9))
         srs = osr.SpatialReference(wkt=wkt)
-        import pyproj
         self.geographic = bool(srs.IsGeographic())
         self.tr = pyproj.Transformer.from_crs("EPSG:4326", pyproj.CRS.from_wkt(wkt), always_xy=True)
         ref_m = abs(gt[1]) * (_M_PER_DEG if self.geographic else 1.0)
@@ -287,13 +289,10 @@ class _Reference:
     def _ds(self):
         ds = getattr(self._local, "ds", None)
         if ds is None:
-            from osgeo import gdal
             ds = self._local.ds = gdal.Open(self.path)
         return ds
 
     def sample(self, lon, lat):
-        from osgeo import gdal
-        from scipy.ndimage import map_coordinates
         x, y = self.tr.transform(lon, lat)
         col = (np.asarray(x) - self.gt[0]) / self.gt[1]
         row = (np.asarray(y) - self.gt[3]) / self.gt[5]
@@ -446,54 +445,27 @@ def render_image(model, dem, path, *, reference=None, seed: int = 0, gsd_m: Opti
         receives the mask (255 = cloud).
     tile, workers : tile size and number of threads; memory stays at a few tiles.
     """
-    from osgeo import gdal
-    from ..dem import DEM
-    from ..atomic import fix_mode
     dem = DEM.coerce(dem)
     W, H = model.size
     if gsd_m is None:
-        lon, lat = model.localize(np.array([W / 2, W / 2 + 1]), np.array([H / 2, H / 2]), float(np.mean(model.height_range)))
-        gsd_m = float(np.hypot((lon[1] - lon[0]) * _M_PER_DEG * np.cos(np.radians(lat[0])),
-                               (lat[1] - lat[0]) * _M_PER_DEG))
+        gsd_m = _centre_gsd_m(model)
     demgrid = _DemGrid(dem, model_bounds(model))
     ref = _Reference(reference, gsd_m) if reference is not None else None
     threshold = None
     if paint_clouds > 0:
         gx, gy = np.meshgrid(np.linspace(0, W, 200), np.linspace(0, H, 200))
         threshold = float(np.quantile(_cloud_field(gx, gy, W, H, seed), 1.0 - paint_clouds))
-
-    def do_tile(x0, y0, w, h):
-        lon, lat, _ = ground_of_pixels(model, demgrid, x0, y0, w, h)
-        if ref is not None:
-            v = np.clip(ref.sample(lon, lat), 0, 255)
-        else:
-            v = 20.0 + 220.0 * texture_value(lon, lat, seed, 3.0 * gsd_m)
-        mask = None
-        if threshold is not None:
-            px, py = np.meshgrid(x0 + np.arange(w) + 0.5, y0 + np.arange(h) + 0.5)
-            a = np.clip((_cloud_field(px, py, W, H, seed) - threshold) / 0.04, 0.0, 1.0)
-            v = v * (1 - a) + 250.0 * a
-            mask = np.where(a > 0.5, 255, 0).astype(np.uint8)
-        return x0, y0, np.clip(np.round(v), 1, 255).astype(np.uint8), mask
-
+    do_tile = functools.partial(_render_tile, model, demgrid, ref, seed, gsd_m, threshold)
     path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
     tmps = []
     opts = ["TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"]
     try:
-        fd, tmp = tempfile.mkstemp(prefix=".render-", suffix=".tif", dir=folder)
-        os.close(fd)
-        tmps.append(tmp)
-        ds = gdal.GetDriverByName("GTiff").Create(tmp, W, H, 1, gdal.GDT_Byte, opts)
+        ds = _create_byte_tiff(path, ".render-", W, H, opts, tmps)
         band = ds.GetRasterBand(1)
         band.SetNoDataValue(0)
         mds = mband = None
         if cloud_mask_path and threshold is not None:
-            fd, tmpm = tempfile.mkstemp(prefix=".mask-", suffix=".tif", dir=os.path.dirname(os.path.abspath(
-                cloud_mask_path)))
-            os.close(fd)
-            tmps.append(tmpm)
-            mds = gdal.GetDriverByName("GTiff").Create(tmpm, W, H, 1, gdal.GDT_Byte, opts)
+            mds = _create_byte_tiff(cloud_mask_path, ".mask-", W, H, opts, tmps)
             mband = mds.GetRasterBand(1)
         tiles = [(x, y, min(tile, W - x), min(tile, H - y)) for y in range(0, H, tile) for x in range(0, W, tile)]
         # closing(): a cancel raised by report() stops the pool at once, not when the generator is collected.
@@ -508,7 +480,7 @@ def render_image(model, dem, path, *, reference=None, seed: int = 0, gsd_m: Opti
         ds.SetMetadataItem("GF4CAL_RENDERED", "true model; " + (f"reference {reference}" if reference else
                                                                   f"built-in texture seed {seed}"))
         ds = None
-        os.replace(tmp, path)
+        os.replace(tmps[0], path)
         fix_mode(path)
         if mds is not None:
             mds = None
@@ -519,3 +491,38 @@ def render_image(model, dem, path, *, reference=None, seed: int = 0, gsd_m: Opti
             if os.path.exists(t):
                 os.unlink(t)
     return path
+
+
+def _centre_gsd_m(model) -> float:
+    """Ground size of one pixel at the image centre along the sample axis (m)."""
+    W, H = model.size
+    lon, lat = model.localize(np.array([W / 2, W / 2 + 1]), np.array([H / 2, H / 2]), float(np.mean(model.height_range)))
+    return float(np.hypot((lon[1] - lon[0]) * _M_PER_DEG * np.cos(np.radians(lat[0])),
+                          (lat[1] - lat[0]) * _M_PER_DEG))
+
+
+def _render_tile(model, demgrid, ref, seed: int, gsd_m: float, threshold: Optional[float], x0: int, y0: int,
+                 w: int, h: int):
+    """One tile ``(x0, y0, Byte values, cloud mask or None)``: the reference (or the texture) at the pixels'
+    ground, with clouds painted above ``threshold``."""
+    W, H = model.size
+    lon, lat, _ = ground_of_pixels(model, demgrid, x0, y0, w, h)
+    if ref is not None:
+        v = np.clip(ref.sample(lon, lat), 0, 255)
+    else:
+        v = 20.0 + 220.0 * texture_value(lon, lat, seed, 3.0 * gsd_m)
+    mask = None
+    if threshold is not None:
+        px, py = np.meshgrid(x0 + np.arange(w) + 0.5, y0 + np.arange(h) + 0.5)
+        a = np.clip((_cloud_field(px, py, W, H, seed) - threshold) / 0.04, 0.0, 1.0)
+        v = v * (1 - a) + 250.0 * a
+        mask = np.where(a > 0.5, 255, 0).astype(np.uint8)
+    return x0, y0, np.clip(np.round(v), 1, 255).astype(np.uint8), mask
+
+
+def _create_byte_tiff(path: str, prefix: str, W: int, H: int, opts, tmps: list):
+    """A one-band Byte GeoTIFF on a fresh temporary beside ``path`` (appended to ``tmps``)."""
+    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=".tif", dir=os.path.dirname(os.path.abspath(path)))
+    os.close(fd)
+    tmps.append(tmp)
+    return gdal.GetDriverByName("GTiff").Create(tmp, W, H, 1, gdal.GDT_Byte, opts)

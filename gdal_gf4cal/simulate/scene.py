@@ -14,13 +14,21 @@ from dataclasses import dataclass, field
 from typing import Dict, Optional
 
 import numpy as np
+import pandas as pd
+from osgeo import gdal
 
-from ..errors import CancelledError, Gf4calError
-from ..progress import report, scaled
-from ..atomic import atomic_output
-from .cameras import write_json_atomic
-from .sensors import SENSORS, SimImage, SimScene, SimulationError, make_scene
 from .._gdal import with_gdal_exceptions
+from ..atomic import atomic_output
+from ..dem import DEM
+from ..errors import CancelledError, Gf4calError
+from ..gcp import make_gcps, write_gcps
+from ..geodesy import metres_per_degree
+from ..progress import report, scaled
+from ..rpc_fit import fit_rpc_from_model
+from .cameras import write_json_atomic
+from .render import model_bounds, render_image, write_reference_ortho
+from .sensors import SENSORS, SimImage, SimScene, SimulationError, make_scene
+from .terrain import write_dem_tif
 
 #: Sensors whose images cover the same ground (GCPs drawn once, from the first image).
 _SHARED_COVERAGE = {"zy3", "gf7"}
@@ -72,7 +80,6 @@ def simulate_gcps(scene: SimScene, *, n_gcps: int = 200, gcp_noise_px: float = 0
     ``check_fraction`` of the ground points (the same in every image), else "control". Ids are shared between
     images: the same id is the same ground point.
     """
-    from ..gcp import make_gcps
     if n_gcps < 1:
         raise SimulationError("n_gcps must be at least 1")
     if not (0.0 <= outlier_fraction < 1.0) or not (0.0 <= check_fraction < 1.0) or gcp_noise_px < 0:
@@ -97,7 +104,6 @@ def simulate_gcps(scene: SimScene, *, n_gcps: int = 200, gcp_noise_px: float = 0
                 & (np.abs(cs - ts[inside]) < 100) & (np.abs(cl - tl[inside]) < 100))
         # ... and whose true image point localises back to them (a folded projection does not)
         blon, blat = im.true.localize(ts[inside], tl[inside], h[inside])
-        from ..geodesy import metres_per_degree
         mx, my = metres_per_degree(lat[inside])
         back = np.hypot((np.asarray(blon) - lon[inside]) * mx, (np.asarray(blat) - lat[inside]) * my)
         near &= np.isfinite(back) & (back < 0.01 * im.gsd_m)
@@ -124,7 +130,6 @@ def check_grid(image: SimImage, dem, n: int = 41):
 
     Returns a DataFrame ``lon, lat, h, sample_current, line_current, sample_true, line_true``.
     """
-    import pandas as pd
     W, H = image.size
     s, l = np.meshgrid((np.arange(n) + 0.5) * W / n, (np.arange(n) + 0.5) * H / n)
     lon, lat, h = image.current.localize_dem(s.ravel(), l.ravel(), dem)
@@ -147,7 +152,6 @@ def set_crop_origin(ds, window) -> None:
 def write_placeholder_tif(path: str, size, dtype: str = "Byte", *, bands: int = 1, origin=None) -> str:
     """A sparse tiled GeoTIFF of the image size: unwritten blocks cost nothing (10240^2 in a few kB);
     ``origin = (col0, row0)``: a crop of a product (:func:`set_crop_origin`)."""
-    from osgeo import gdal
     with atomic_output(path) as tmp:
         ds = gdal.GetDriverByName("GTiff").Create(tmp, int(size[0]), int(size[1]), int(bands),
                                                   gdal.GetDataTypeByName(dtype),
@@ -203,12 +207,61 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
     progress : callback ``(fraction, message)``; raising :class:`CancelledError` from it cancels (files written by
         this call are removed).
     """
-    from ..dem import DEM
-    from ..rpc_fit import fit_rpc_from_model
     t0 = time.perf_counter()
     out_dir = os.fspath(out_dir)
     spec = SENSORS.get(sensor_name)
     windows = _crop_windows(spec, sensor_name, crop, size)
+    options, paint_clouds = _check_render_options(spec, options, paint_clouds, render, reference)
+    _refuse_inputs_among_outputs(sensor_name, out_dir, [reference, getattr(dem, "path", dem)])
+    os.makedirs(out_dir, exist_ok=True)
+    written = []
+    try:
+        dem_path = os.path.join(out_dir, "dem.tif")
+        scene = _scene_with_dem(sensor_name, dem, dem_path, seed=seed, center=center, size=size,
+                                progress=scaled(progress, 0.0, 0.1), options=options)
+        written.append(dem_path)
+        report(progress, 0.1, "control points")
+        gcps = simulate_gcps(scene, n_gcps=n_gcps, gcp_noise_px=gcp_noise_px, outlier_fraction=outlier_fraction,
+                             check_fraction=check_fraction)
+        write_images = SENSORS[scene.sensor].write_images
+        truth = dict(scene.truth)
+        truth["gcps"] = {"n_gcps": n_gcps, "gcp_noise_px": gcp_noise_px, "outlier_fraction": outlier_fraction,
+                         "check_fraction": check_fraction, "outlier_range_px": [5.0, 30.0],
+                         "measured": "truth (true model) + N(0, gcp_noise_px) per axis + outlier offset"}
+        render_options = None if write_images is not None else {
+            "render": render, "reference": reference, "seed": seed, "paint_clouds": paint_clouds,
+            "workers": workers, "tile": tile, "reference_ortho": reference_ortho}
+        results = _write_image_folders(scene, out_dir, gcps, windows, render_options, check_grid_n, written,
+                                       progress, sensor_name, truth)
+        if write_images is not None:
+            truth[scene.sensor] = write_images(scene, results, render=render, reference=reference, windows=windows,
+                                               workers=workers, tile=tile, progress=scaled(progress, 0.3, 0.98),
+                                               written=written)
+        _add_crop_and_observations(truth, scene, windows, out_dir, gcps, observation_options, written)
+        truth["elapsed_s"] = time.perf_counter() - t0
+        truth_path = os.path.join(out_dir, "truth.json")
+        write_json_atomic(truth_path, truth, overwrite=True)
+        report(progress, 1.0, "scene written")
+        return SceneResult(scene, out_dir, results, truth_path, dem_path, time.perf_counter() - t0, windows)
+    except (CancelledError, Gf4calError, OSError, ValueError, KeyboardInterrupt):
+        for path in written:
+            if os.path.exists(path):
+                os.unlink(path)
+        raise
+
+
+def _scene_with_dem(sensor_name: str, dem, dem_path: str, **kw) -> SimScene:
+    """The simulated scene, its DEM written to ``dem_path`` (the one given, copied; else the simulated terrain)."""
+    if dem is not None:
+        scene = make_scene(sensor_name, dem=DEM.from_user_input(dem), **kw)
+        _copy_dem(scene, dem_path)
+        return scene
+    return make_scene(sensor_name, dem_path=dem_path, **kw)
+
+
+def _check_render_options(spec, options, paint_clouds: float, render: bool, reference):
+    """``(options, paint_clouds)``: clouds go to the sensor's own ``clouds`` option when it has one; clouds and
+    a reference without rendering, or a cloud fraction outside [0, 1), are refused."""
     if spec is not None and paint_clouds > 0 and "clouds" in spec.options:
         options = dict(options or {}, clouds=paint_clouds)
         paint_clouds = 0.0
@@ -220,117 +273,106 @@ def write_scene(sensor_name: str, out_dir, seed: int = 0, center=None, size=None
         raise SimulationError("paint_clouds must be a fraction in [0, 1)")
     if paint_clouds > 0 and not render:
         raise SimulationError("--clouds only makes sense with --render")
-    _refuse_inputs_among_outputs(sensor_name, out_dir, [reference, getattr(dem, "path", dem)])
-    os.makedirs(out_dir, exist_ok=True)
-    written = []
-    try:
-        dem_path = os.path.join(out_dir, "dem.tif")
-        if dem is not None:
-            dem_obj = DEM.from_user_input(dem)
-            scene = make_scene(sensor_name, seed=seed, center=center, size=size, dem=dem_obj,
-                               progress=scaled(progress, 0.0, 0.1), options=options)
-            _copy_dem(scene, dem_path)
+    return options, paint_clouds
+
+
+def _write_image_folders(scene: SimScene, out_dir: str, gcps, windows, render_options: Optional[Dict],
+                         check_grid_n: int, written: list, progress, sensor_name: str, truth: Dict) -> Dict:
+    """Every image's folder (:func:`_write_image`; progress 0.1 .. 0.3 when the sensor writes its images
+    itself, else .. 1.0); each image's RPC fit, GCP count and files recorded in ``truth``."""
+    results = {}
+    n_im = len(scene.images)
+    truth["files"] = {}
+    for k, im in enumerate(scene.images):
+        span = 0.2 if render_options is None else 0.9         # the sensor's images: 0.3 .. 0.98
+        p = scaled(progress, 0.1 + span * k / n_im, 0.1 + span * (k + 1) / n_im)
+        d = os.path.join(out_dir, im.name) if im.name else out_dir
+        os.makedirs(d, exist_ok=True)
+        result = _write_image(scene, im, d, gcps[im.name], windows, render_options, check_grid_n, written, p,
+                              sensor_name)
+        results[im.name] = result
+        key = im.name or "scene"
+        truth["images"][key]["rpc_fit"] = result.fit_report.to_dict()
+        truth["images"][key]["n_gcps"] = int(len(result.gcps))
+        truth["files"][key] = {k_: os.path.relpath(v, out_dir) for k_, v in result.paths.items()}
+    truth["files"]["dem"] = "dem.tif"
+    return results
+
+
+def _write_image(scene: SimScene, im: SimImage, d: str, g, windows, render_options: Optional[Dict],
+                 check_grid_n: int, written: list, p, sensor_name: str) -> "ImageResult":
+    """One image's files in folder ``d``: its RPC fitted from the current model, the image (rendered, a
+    placeholder, or left to the sensor's own writer when ``render_options`` is None), GCPs, check grid and
+    cameras; every path written appended to ``written``."""
+    report(p, 0.0, f"{im.name or sensor_name}: fitting the RPC")
+    rpc, rep = fit_rpc_from_model(im.current)
+    paths = {k_: os.path.join(d, f) for k_, f in (
+        ("image", "scene.tif"), ("rpc", "product.RPB" if windows else "scene.RPB"), ("gcps_csv", "gcps.csv"),
+        ("gcps_gpkg", "gcps.gpkg"), ("check_grid", "check_grid.csv"),
+        ("camera_current", "camera_current.json"), ("camera_true", "camera_true.json"))}
+    if render_options is not None:                 # else the sensor writes its images after every image folder
+        if render_options["render"]:
+            _render(scene, im, d, paths, written, p, sensor_name, **render_options)
         else:
-            scene = make_scene(sensor_name, seed=seed, center=center, size=size, dem_path=dem_path,
-                               progress=scaled(progress, 0.0, 0.1), options=options)
-        written.append(dem_path)
-        report(progress, 0.1, "control points")
-        gcps = simulate_gcps(scene, n_gcps=n_gcps, gcp_noise_px=gcp_noise_px, outlier_fraction=outlier_fraction,
-                             check_fraction=check_fraction)
-        results = {}
-        n_im = len(scene.images)
-        write_images = SENSORS[scene.sensor].write_images
-        truth = dict(scene.truth)
-        truth["gcps"] = {"n_gcps": n_gcps, "gcp_noise_px": gcp_noise_px, "outlier_fraction": outlier_fraction,
-                         "check_fraction": check_fraction, "outlier_range_px": [5.0, 30.0],
-                         "measured": "truth (true model) + N(0, gcp_noise_px) per axis + outlier offset"}
-        truth["files"] = {}
-        for k, im in enumerate(scene.images):
-            span = 0.2 if write_images is not None else 0.9         # the sensor's images: 0.3 .. 0.98
-            p = scaled(progress, 0.1 + span * k / n_im, 0.1 + span * (k + 1) / n_im)
-            d = os.path.join(out_dir, im.name) if im.name else out_dir
-            os.makedirs(d, exist_ok=True)
-            report(p, 0.0, f"{im.name or sensor_name}: fitting the RPC")
-            rpc, rep = fit_rpc_from_model(im.current)
-            paths = {k_: os.path.join(d, f) for k_, f in (
-                ("image", "scene.tif"), ("rpc", "product.RPB" if windows else "scene.RPB"), ("gcps_csv", "gcps.csv"),
-                ("gcps_gpkg", "gcps.gpkg"), ("check_grid", "check_grid.csv"),
-                ("camera_current", "camera_current.json"), ("camera_true", "camera_true.json"))}
-            if write_images is not None:
-                pass                                   # the sensor writes its images below
-            elif render:
-                from .render import render_image
-                cloud_path = os.path.join(d, "cloud_mask.tif") if paint_clouds > 0 else None
-                render_image(im.true, scene.dem, paths["image"], reference=reference, seed=seed, gsd_m=im.gsd_m,
-                             paint_clouds=paint_clouds, cloud_mask_path=cloud_path, workers=workers, tile=tile,
-                             progress=scaled(p, 0.1, 0.9))
-                if cloud_path:
-                    paths["cloud_mask"] = cloud_path
-                    written.append(cloud_path)
-                if reference is None and reference_ortho:
-                    from .render import model_bounds, write_reference_ortho
-                    report(p, 0.9, f"{im.name or sensor_name}: reference orthophoto")
-                    paths["reference"] = os.path.join(d, "reference.tif")
-                    written.append(paths["reference"])
-                    # The footprint plus >= 128 px on each side: a biased RPC (tests shift it by 50+ px) still
-                    # finds ground under every window of the image.
-                    W_, H_ = im.size
-                    margin = max(0.03, 128.0 / max(1, min(W_, H_)))
-                    write_reference_ortho(paths["reference"], model_bounds(im.true, margin=margin),
-                                          im.gsd_m / 111320.0, seed=seed, scale_m=3.0 * im.gsd_m, workers=workers)
-            else:
-                write_placeholder_tif(paths["image"], im.size)
-            if write_images is None:
-                written.append(paths["image"])
-            rpc.write_rpb(paths["rpc"], overwrite=True)
-            written.append(paths["rpc"])
-            report(p, 0.92, f"{im.name or sensor_name}: GCPs and check grid")
-            from ..gcp import write_gcps
-            g = gcps[im.name]
-            with warnings.catch_warnings():
-                # geopandas warns when writing an empty table (a tiny crop may contain no GCP); that is fine.
-                warnings.simplefilter("ignore", UserWarning)
-                write_gcps(g, paths["gcps_csv"], overwrite=True)
-                write_gcps(g, paths["gcps_gpkg"], overwrite=True)
-            written += [paths["gcps_csv"], paths["gcps_gpkg"]]
-            grid = check_grid(im, scene.dem, check_grid_n)
-            _write_csv(grid, paths["check_grid"])
-            written.append(paths["check_grid"])
-            for key_, cam in (("camera_current", im.current.camera), ("camera_true", im.true.camera)):
-                cam.to_json(paths[key_], overwrite=True)
-            written += [paths["camera_current"], paths["camera_true"]]
-            results[im.name] = ImageResult(im.name, d, rpc, rep, g, grid, paths)
-            key = im.name or "scene"
-            truth["images"][key]["rpc_fit"] = rep.to_dict()
-            truth["images"][key]["n_gcps"] = int(len(g))
-            truth["files"][key] = {k_: os.path.relpath(v, out_dir) for k_, v in paths.items()}
-        truth["files"]["dem"] = "dem.tif"
-        if write_images is not None:
-            truth[scene.sensor] = write_images(scene, results, render=render, reference=reference, windows=windows,
-                                               workers=workers, tile=tile, progress=scaled(progress, 0.3, 0.98),
-                                               written=written)
-        if windows:
-            truth["crop"] = {"windows": {k: list(v) for k, v in windows.items()},
-                             "convention": "image pixel (x, y) = product pixel (x0 + x, y0 + y); the images carry "
-                                           "(x0, y0) as a pixel-unit geotransform without CRS; product.RPB, the "
-                                           "GCPs and the check grid are in product pixels"}
-        write_observations = SENSORS[scene.sensor].write_observations
-        if write_observations is not None:
-            truth["observations"] = write_observations(scene, out_dir, gcps, observation_options, written)
-            truth["files"]["observations"] = "observations.csv"
-        elif observation_options:
-            raise SimulationError(f"observation_options are for sensors with an observation table (jl1), not "
-                                  f"{scene.sensor}")
-        truth["elapsed_s"] = time.perf_counter() - t0
-        truth_path = os.path.join(out_dir, "truth.json")
-        write_json_atomic(truth_path, truth, overwrite=True)
-        report(progress, 1.0, "scene written")
-        return SceneResult(scene, out_dir, results, truth_path, dem_path, time.perf_counter() - t0, windows)
-    except (CancelledError, Gf4calError, OSError, ValueError, KeyboardInterrupt):
-        for path in written:
-            if os.path.exists(path):
-                os.unlink(path)
-        raise
+            write_placeholder_tif(paths["image"], im.size)
+        written.append(paths["image"])
+    rpc.write_rpb(paths["rpc"], overwrite=True)
+    written.append(paths["rpc"])
+    report(p, 0.92, f"{im.name or sensor_name}: GCPs and check grid")
+    with warnings.catch_warnings():
+        # geopandas warns when writing an empty table (a tiny crop may contain no GCP); that is fine.
+        warnings.simplefilter("ignore", UserWarning)
+        write_gcps(g, paths["gcps_csv"], overwrite=True)
+        write_gcps(g, paths["gcps_gpkg"], overwrite=True)
+    written += [paths["gcps_csv"], paths["gcps_gpkg"]]
+    grid = check_grid(im, scene.dem, check_grid_n)
+    _write_csv(grid, paths["check_grid"])
+    written.append(paths["check_grid"])
+    for key_, cam in (("camera_current", im.current.camera), ("camera_true", im.true.camera)):
+        cam.to_json(paths[key_], overwrite=True)
+    written += [paths["camera_current"], paths["camera_true"]]
+    return ImageResult(im.name, d, rpc, rep, g, grid, paths)
+
+
+def _render(scene: SimScene, im: SimImage, d: str, paths: Dict[str, str], written: list, p, sensor_name: str, *,
+            render, reference, seed, paint_clouds, workers, tile, reference_ortho) -> None:
+    """Render ``scene.tif`` through the true model (with its cloud mask), and the built-in texture's reference
+    orthophoto when asked for; adds their paths to ``paths`` and ``written`` (not the image's)."""
+    cloud_path = os.path.join(d, "cloud_mask.tif") if paint_clouds > 0 else None
+    render_image(im.true, scene.dem, paths["image"], reference=reference, seed=seed, gsd_m=im.gsd_m,
+                 paint_clouds=paint_clouds, cloud_mask_path=cloud_path, workers=workers, tile=tile,
+                 progress=scaled(p, 0.1, 0.9))
+    if cloud_path:
+        paths["cloud_mask"] = cloud_path
+        written.append(cloud_path)
+    if reference is None and reference_ortho:
+        report(p, 0.9, f"{im.name or sensor_name}: reference orthophoto")
+        paths["reference"] = os.path.join(d, "reference.tif")
+        written.append(paths["reference"])
+        # The footprint plus >= 128 px on each side: a biased RPC (tests shift it by 50+ px) still
+        # finds ground under every window of the image.
+        W_, H_ = im.size
+        margin = max(0.03, 128.0 / max(1, min(W_, H_)))
+        write_reference_ortho(paths["reference"], model_bounds(im.true, margin=margin),
+                              im.gsd_m / 111320.0, seed=seed, scale_m=3.0 * im.gsd_m, workers=workers)
+
+
+def _add_crop_and_observations(truth: Dict, scene: SimScene, windows, out_dir: str, gcps, observation_options,
+                               written: list) -> None:
+    """The crop windows and their convention into ``truth``; the sensor's observation table written (jl1),
+    observation options refused for the other sensors."""
+    if windows:
+        truth["crop"] = {"windows": {k: list(v) for k, v in windows.items()},
+                         "convention": "image pixel (x, y) = product pixel (x0 + x, y0 + y); the images carry "
+                                       "(x0, y0) as a pixel-unit geotransform without CRS; product.RPB, the "
+                                       "GCPs and the check grid are in product pixels"}
+    write_observations = SENSORS[scene.sensor].write_observations
+    if write_observations is not None:
+        truth["observations"] = write_observations(scene, out_dir, gcps, observation_options, written)
+        truth["files"]["observations"] = "observations.csv"
+    elif observation_options:
+        raise SimulationError(f"observation_options are for sensors with an observation table (jl1), not "
+                              f"{scene.sensor}")
 
 
 #: Files write_scene may write per image folder (see DESIGN.md "Simulator API").
@@ -368,7 +410,6 @@ def _refuse_inputs_among_outputs(sensor_name: str, out_dir: str, inputs) -> None
 
 def _copy_dem(scene: SimScene, dem_path: str):
     """dem.tif for a user DEM: the DEM resampled (as ellipsoidal heights) over the footprint, or a constant."""
-    from .terrain import write_dem_tif
     hr = scene.truth["height_range_m"]
     bounds = None
     lons, lats = [], []

@@ -17,10 +17,13 @@ from typing import Dict, Optional
 
 import numpy as np
 
+from ..dem import DEM
 from ..errors import DEMError
+from ..progress import report
 from .cameras import camera_from_normalised_polys, crop_camera
 from .geodesy import (GEO_RADIUS, WGS84_A, enu_basis, geodetic_to_ecef, rot_x)
 from .models import CAMERA_TO_BODY, Attitude, FrameModel
+from .terrain import synthetic_dem_array, write_dem_tif
 from .building import (ARCSEC, SENSORS, SensorSpec, SimImage, SimScene, SimulationError, _align_orbit, _crop,  # noqa: F401
                        _linear_camera, _poly_px, _pushbroom, _scale_size, _yaw_steering)
 
@@ -249,8 +252,7 @@ def _gsd(model):
     W, H = model.size
     s, l = np.array([W / 2, W / 2 + 1, W / 2]), np.array([H / 2, H / 2, H / 2 + 1])
     h = float(np.mean(model.height_range))
-    from .geodesy import geodetic_to_ecef as g2e
-    P = g2e(*model.localize(s, l, np.full(3, h)), np.full(3, h))
+    P = geodetic_to_ecef(*model.localize(s, l, np.full(3, h)), np.full(3, h))
     return float(np.linalg.norm(P[1] - P[0])), float(np.linalg.norm(P[2] - P[0]))
 
 
@@ -270,20 +272,7 @@ def make_scene(sensor: str, *, seed: int = 0, center=None, size=None, dem=None, 
     options : sensor-specific keywords of :attr:`SensorSpec.options` (jl1: ``orbit_seed``, the per-orbit attitude
         error of validation scenes, :mod:`.jl1`).
     """
-    from ..dem import DEM
-    from ..progress import report
-    if sensor not in SENSORS:
-        raise SimulationError(f"unknown sensor {sensor!r}; choose one of {', '.join(SENSORS)}")
-    spec = SENSORS[sensor]
-    center = tuple(float(v) for v in (center if center is not None else spec.default_center))
-    if len(center) != 2 or not (-180 <= center[0] <= 360 and -90 <= center[1] <= 90):
-        raise SimulationError(f"centre {center} is not a valid (lon, lat) in degrees")
-    if size is not None:
-        size = (int(size[0]), int(size[1]))
-    options = dict(options or {})
-    if set(options) - set(spec.options):
-        raise SimulationError(f"{sensor} has no option {sorted(set(options) - set(spec.options))}; "
-                              f"it takes {list(spec.options) or 'none'}")
+    spec, center, size, options = _scene_options(sensor, center, size, options)
     rng = np.random.default_rng(seed)
     report(progress, 0.0, "building sensor models")
     user_dem = DEM.from_user_input(dem)
@@ -300,35 +289,11 @@ def make_scene(sensor: str, *, seed: int = 0, center=None, size=None, dem=None, 
         # (and the same slopes) as the full scene.
         full_images = images if size is None else spec.build(np.random.default_rng(seed), center, None, h_mid,
                                                                   **options)
-        bounds = _footprint(full_images, relief)
-        mx, my = 0.1 * (bounds[2] - bounds[0]) + 0.01, 0.1 * (bounds[3] - bounds[1]) + 0.01
-        bounds = (bounds[0] - mx, bounds[1] - my, bounds[2] + mx, bounds[3] + my)
-        gsd_min = min(_nominal_gsd(im) for im in full_images)
-        cell = max((bounds[2] - bounds[0]) / 1500, (bounds[3] - bounds[1]) / 1500, 4 * gsd_min / 111320.0)
-        from .terrain import synthetic_dem_array, write_dem_tif
-        heights, gt = synthetic_dem_array(bounds, cell, seed + 7919, relief)
-        path = dem_path or f"/vsimem/gf4cal_sim_{uuid.uuid4().hex}.tif"
-        write_dem_tif(path, heights, gt)
-        the_dem = DEM.from_file(path)
-        h_lo, h_hi = float(heights.min()), float(heights.max())
-        dem_info = {"type": "synthetic fractal", "seed": seed + 7919, "bounds": list(bounds), "cell_deg": cell,
-                    "height_range_m": [h_lo, h_hi]}
+        the_dem, path, (h_lo, h_hi), dem_info = _synthetic_dem(full_images, relief, seed, dem_path)
     else:
         the_dem = user_dem
         path = getattr(user_dem, "path", None)
-        if user_dem.is_constant:
-            h_lo = h_hi = user_dem.constant_height
-        else:
-            bounds = _footprint(images, (h_mid,))
-            g = np.linspace(0, 1, 60)
-            lo, la = np.meshgrid(bounds[0] + g * (bounds[2] - bounds[0]), bounds[1] + g * (bounds[3] - bounds[1]))
-            # Sampled with nodata="nan" (the footprint may overhang the DEM), through the DEM's geoid: the range
-            # must be ellipsoidal like every height the models use.
-            hh = np.asarray(user_dem.sample(lo, la, nodata="nan"))
-            if not np.any(np.isfinite(hh)):
-                raise DEMError(f"DEM {user_dem.path} does not cover the simulated footprint {bounds}; "
-                               "use a DEM covering the scene or another --center")
-            h_lo, h_hi = float(np.nanmin(hh)), float(np.nanmax(hh))
+        h_lo, h_hi = _user_dem_range(user_dem, images, h_mid)
         dem_info = {"type": "user", "path": path, "height_range_m": [h_lo, h_hi]}
     margin = max(50.0, 0.1 * (h_hi - h_lo))
     hr = (h_lo - margin, h_hi + margin)
@@ -347,6 +312,56 @@ def make_scene(sensor: str, *, seed: int = 0, center=None, size=None, dem=None, 
                                              "info": im.info} for im in images}, **scene_truth}
     report(progress, 1.0, "scene built")
     return SimScene(sensor, seed, center, images, the_dem, path, truth)
+
+
+def _scene_options(sensor: str, center, size, options):
+    """``(spec, center, size, options)`` checked: a known sensor, a valid centre, the sensor's own options."""
+    if sensor not in SENSORS:
+        raise SimulationError(f"unknown sensor {sensor!r}; choose one of {', '.join(SENSORS)}")
+    spec = SENSORS[sensor]
+    center = tuple(float(v) for v in (center if center is not None else spec.default_center))
+    if len(center) != 2 or not (-180 <= center[0] <= 360 and -90 <= center[1] <= 90):
+        raise SimulationError(f"centre {center} is not a valid (lon, lat) in degrees")
+    if size is not None:
+        size = (int(size[0]), int(size[1]))
+    options = dict(options or {})
+    if set(options) - set(spec.options):
+        raise SimulationError(f"{sensor} has no option {sorted(set(options) - set(spec.options))}; "
+                              f"it takes {list(spec.options) or 'none'}")
+    return spec, center, size, options
+
+
+def _synthetic_dem(full_images, relief, seed: int, dem_path: Optional[str]):
+    """Seeded fractal terrain over the full images' footprint (plus 10 %), written to ``dem_path`` (default an
+    in-memory file): ``(DEM, path, (h_lo, h_hi), truth record)``."""
+    bounds = _footprint(full_images, relief)
+    mx, my = 0.1 * (bounds[2] - bounds[0]) + 0.01, 0.1 * (bounds[3] - bounds[1]) + 0.01
+    bounds = (bounds[0] - mx, bounds[1] - my, bounds[2] + mx, bounds[3] + my)
+    gsd_min = min(_nominal_gsd(im) for im in full_images)
+    cell = max((bounds[2] - bounds[0]) / 1500, (bounds[3] - bounds[1]) / 1500, 4 * gsd_min / 111320.0)
+    heights, gt = synthetic_dem_array(bounds, cell, seed + 7919, relief)
+    path = dem_path or f"/vsimem/gf4cal_sim_{uuid.uuid4().hex}.tif"
+    write_dem_tif(path, heights, gt)
+    h_lo, h_hi = float(heights.min()), float(heights.max())
+    dem_info = {"type": "synthetic fractal", "seed": seed + 7919, "bounds": list(bounds), "cell_deg": cell,
+                "height_range_m": [h_lo, h_hi]}
+    return DEM.from_file(path), path, (h_lo, h_hi), dem_info
+
+
+def _user_dem_range(user_dem, images, h_mid: float):
+    """``(h_lo, h_hi)`` of the user's DEM over the images' footprint (refused if it does not cover it)."""
+    if user_dem.is_constant:
+        return user_dem.constant_height, user_dem.constant_height
+    bounds = _footprint(images, (h_mid,))
+    g = np.linspace(0, 1, 60)
+    lo, la = np.meshgrid(bounds[0] + g * (bounds[2] - bounds[0]), bounds[1] + g * (bounds[3] - bounds[1]))
+    # Sampled with nodata="nan" (the footprint may overhang the DEM), through the DEM's geoid: the range
+    # must be ellipsoidal like every height the models use.
+    hh = np.asarray(user_dem.sample(lo, la, nodata="nan"))
+    if not np.any(np.isfinite(hh)):
+        raise DEMError(f"DEM {user_dem.path} does not cover the simulated footprint {bounds}; "
+                       "use a DEM covering the scene or another --center")
+    return float(np.nanmin(hh)), float(np.nanmax(hh))
 
 
 def _nominal_gsd(im):

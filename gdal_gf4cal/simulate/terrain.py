@@ -8,9 +8,10 @@ from __future__ import annotations
 from typing import Tuple
 
 import numpy as np
+from osgeo import gdal, osr
 
-from ..atomic import atomic_output
 from .._gdal import with_gdal_exceptions
+from ..atomic import atomic_output
 
 
 def fractal_surface(shape: Tuple[int, int], seed: int, beta: float = 3.2) -> np.ndarray:
@@ -54,7 +55,6 @@ def synthetic_dem_array(bounds, cell_deg: float, seed: int, height_range=(3500.0
 @with_gdal_exceptions
 def write_dem_tif(path: str, heights: np.ndarray, geotransform) -> str:
     """Write a float32 EPSG:4326 GeoTIFF atomically (``/vsimem/`` paths are written directly)."""
-    from osgeo import gdal, osr
     srs = osr.SpatialReference()
     srs.ImportFromEPSG(4326)
     ny, nx = heights.shape

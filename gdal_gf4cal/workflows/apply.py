@@ -7,10 +7,18 @@ from typing import Any, Dict, Sequence
 
 import numpy as np
 
-from ..errors import GCPError, InputOverwriteError
+from .. import progress as _progress
+from ..block import calibrated_model, read_calibration
+from ..camera import LookAngleModel
 from ..crop import image_rpc, paired_rpc_files, product_rpc
+from ..errors import GCPError, InputOverwriteError
+from ..lookangle import recalibrate_rpc
 from ..outputs import OutputSet, scene_stem
+from ..report import write_report_json
+from ..rpc_fit import fit_rpc_from_model
+from ..rpc_io import rpc_file_format, write_rpb, write_rpc_vrt
 from ._common import _open_image, cancel_check, collect_warnings, finish_report
+from .block import image_keys
 
 
 def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: bool = False,
@@ -26,11 +34,6 @@ def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: boo
     its origin in the product with the product's RPC (paired, or beside it): the product's RPC (the camera's pixels)
     is recalibrated, then shifted to the crop (:func:`gdal_gf4cal.crop.product_rpc`; the report's ``notes`` say so).
     """
-    from .. import progress as _progress
-    from ..camera import LookAngleModel
-    from ..lookangle import recalibrate_rpc
-    from ..report import write_report_json
-    from ..rpc_io import rpc_file_format, write_rpb, write_rpc_vrt
 
     cur = current if hasattr(current, "tan_angles") else LookAngleModel.from_json(current)
     nw = new if hasattr(new, "tan_angles") else LookAngleModel.from_json(new)
@@ -101,12 +104,6 @@ def apply_block_calibration(calibration, scenes: Sequence, out_dir, *, overwrite
     ``--rpc``): the RPC file of an image that carries none (a crop with its product's RPC: shifted by its origin as
     ``block-adjust --rpc`` does, :func:`gdal_gf4cal.crop.image_rpc`; the report's ``notes`` say so).
     """
-    from .. import progress as _progress
-    from ..block import calibrated_model, read_calibration
-    from ..report import write_report_json
-    from ..rpc_fit import fit_rpc_from_model
-    from ..rpc_io import rpc_file_format, write_rpb, write_rpc_vrt
-    from .block import image_keys
 
     cal = calibration if isinstance(calibration, dict) else read_calibration(calibration)
     scenes = [os.fspath(s) for s in scenes]

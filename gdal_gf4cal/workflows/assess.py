@@ -6,10 +6,18 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from .. import stats
+from ..compensation import ground_offsets_m
 from ..crop import image_rpc
-from ..outputs import OutputSet, check_vector
 from ..dem import DEM
+from ..gcp import read_gcps, validate_gcps
+from ..outputs import OutputSet, check_vector
+from ..plausibility import check_gcps_against
+from ..progress import report as _report
+from ..report import plot_residuals, write_report_json, write_residuals_gpkg
+from ..rpc import RPCModel
 from ._common import declare_report_outputs, cancel_check, collect_warnings, finish_report, is_path
+from .ortho import scene_footprint
 
 
 def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[str] = None,
@@ -47,14 +55,6 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
         "warnings"}``; a role without points is absent. ``ce90_m`` converts residuals to ground metres through the
         RPC's ground Jacobian at each GCP; ``internal`` removes a rotation + translation first (needs >= 2 points).
     """
-    from .. import stats
-    from ..compensation import ground_offsets_m
-    from ..gcp import read_gcps, validate_gcps
-    from ..progress import report as _report
-    from ..report import plot_residuals, write_report_json, write_residuals_gpkg
-    from .ortho import scene_footprint
-    from ..rpc import RPCModel
-
     src_name = None if isinstance(source, RPCModel) else os.fspath(source)
     outs = OutputSet([src_name, gcps if is_path(gcps) else None, dem if is_path(dem) else None,
                       rpc if is_path(rpc) else None],
@@ -70,35 +70,14 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
         else:
             table = validate_gcps(gcps, dem=dem_obj)
         if check_plausibility:
-            from ..plausibility import check_gcps_against
             with collect_warnings(warns):         # now: the report written below lists them
                 check_gcps_against(rpc, table, image_size, dem=dem_obj)
         _report(progress, 0.2, "projecting the GCPs")
-        lon, lat, h = (table[c].to_numpy(float) for c in ("lon", "lat", "h"))
-        s_pred, l_pred = (np.asarray(v, float) for v in rpc.project(lon, lat, h))
-        table = table.copy()
-        table["pred_sample"], table["pred_line"] = s_pred, l_pred
-        table["res_sample"] = table["sample"].to_numpy(float) - s_pred
-        table["res_line"] = table["line"].to_numpy(float) - l_pred
-        east, north = ground_offsets_m(rpc, lon, lat, h, table["res_sample"].to_numpy(),
-                                       table["res_line"].to_numpy())
-        table["res_east_m"], table["res_north_m"] = east, north
+        table = _with_residuals(rpc, table)
         out: dict = {"source": src_name, "n": int(len(table)), "residuals": "measured - RPC(ground), px"}
         if note:
             out["notes"] = [note]
-        roles = {"all": np.ones(len(table), bool)}
-        for role in ("control", "check"):
-            m = (table["role"] == role).to_numpy()
-            if m.any() and not m.all():
-                roles[role] = m
-        for key, m in roles.items():
-            rs, rl = table["res_sample"].to_numpy()[m], table["res_line"].to_numpy()[m]
-            entry = stats.residual_report(rs, rl)
-            entry["ce90_m"] = stats.ce90(east[m], north[m])
-            if m.sum() >= 2:
-                entry["internal"] = stats.internal_accuracy(table["sample"].to_numpy()[m],
-                                                            table["line"].to_numpy()[m], s_pred[m], l_pred[m])
-            out[key] = entry
+        out.update(_role_statistics(table))
         _report(progress, 0.6, "writing outputs")
         if residuals:
             footprint = None
@@ -116,4 +95,42 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
             write_report_json(out, outs.tmp("report"))
     finish_report(out, warns)
     _report(progress, 1.0, "done")
+    return out
+
+
+def _with_residuals(rpc, table):
+    """A copy of ``table`` with the RPC's predictions (``pred_sample``, ``pred_line``), the residuals
+    ``measured - predicted`` (``res_sample``, ``res_line``, px) and the same as ground offsets (``res_east_m``,
+    ``res_north_m``) through the RPC's ground Jacobian."""
+    lon, lat, h = (table[c].to_numpy(float) for c in ("lon", "lat", "h"))
+    s_pred, l_pred = (np.asarray(v, float) for v in rpc.project(lon, lat, h))
+    table = table.copy()
+    table["pred_sample"], table["pred_line"] = s_pred, l_pred
+    table["res_sample"] = table["sample"].to_numpy(float) - s_pred
+    table["res_line"] = table["line"].to_numpy(float) - l_pred
+    east, north = ground_offsets_m(rpc, lon, lat, h, table["res_sample"].to_numpy(),
+                                   table["res_line"].to_numpy())
+    table["res_east_m"], table["res_north_m"] = east, north
+    return table
+
+
+def _role_statistics(table) -> dict:
+    """``{"all"|"control"|"check": {"n", "line", "sample", "planar", "ce90_m", "internal"}}``; a role is there only
+    when some points but not all have it."""
+    s_pred, l_pred = table["pred_sample"].to_numpy(), table["pred_line"].to_numpy()
+    east, north = table["res_east_m"].to_numpy(), table["res_north_m"].to_numpy()
+    roles = {"all": np.ones(len(table), bool)}
+    for role in ("control", "check"):
+        m = (table["role"] == role).to_numpy()
+        if m.any() and not m.all():
+            roles[role] = m
+    out = {}
+    for key, m in roles.items():
+        rs, rl = table["res_sample"].to_numpy()[m], table["res_line"].to_numpy()[m]
+        entry = stats.residual_report(rs, rl)
+        entry["ce90_m"] = stats.ce90(east[m], north[m])
+        if m.sum() >= 2:
+            entry["internal"] = stats.internal_accuracy(table["sample"].to_numpy()[m],
+                                                        table["line"].to_numpy()[m], s_pred[m], l_pred[m])
+        out[key] = entry
     return out

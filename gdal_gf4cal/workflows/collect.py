@@ -5,10 +5,12 @@ from __future__ import annotations
 import os
 from typing import Any, Dict
 
-from ..errors import Gf4calError
 from ..crop import image_rpc
-from ..outputs import OutputSet, check_vector
 from ..dem import DEM
+from ..errors import Gf4calError
+from ..gcp import write_gcps
+from ..matching import collect_gcps
+from ..outputs import OutputSet, check_vector
 from ._common import cancel_check, collect_warnings, finish_report
 
 _EXTS = (".gpkg", ".csv", ".geojson", ".json")
@@ -23,8 +25,6 @@ def collect_gcps_file(image, reference, dem, out, *, rpc=None, geoid=None, keep_
     an input or (without ``overwrite``) an existing file. Returns ``{"windows", "n_gcps", "n_outliers", "output",
     "gcps" (the GeoDataFrame, all rows), "table" (the rows written), "warnings"}``.
     """
-    from ..gcp import write_gcps
-    from ..matching import collect_gcps
     out = os.fspath(out)
     if os.path.splitext(out)[1].lower() not in _EXTS:
         raise Gf4calError(f"output {out!r}: use a name ending in .gpkg, .csv or .geojson")

@@ -7,6 +7,7 @@ import os
 import pkgutil
 from typing import Any, Dict, List
 
+from .. import experiments
 from ..errors import Gf4calError
 from ..outputs import OutputSet
 from ._common import cancel_check, collect_warnings, finish_report
@@ -14,7 +15,6 @@ from ._common import cancel_check, collect_warnings, finish_report
 
 def available() -> List[str]:
     """Names of the experiment modules in :mod:`gdal_gf4cal.experiments`."""
-    from .. import experiments
     return sorted(m.name for m in pkgutil.iter_modules(experiments.__path__) if not m.name.startswith("_"))
 
 

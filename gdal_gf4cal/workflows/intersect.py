@@ -8,10 +8,14 @@ import os
 from typing import Any, Dict, Optional, Sequence
 
 import numpy as np
+import pandas as pd
 
-from ..errors import DegenerateGeometryError, GCPError
 from ..crop import image_and_rpc, image_rpc
+from ..errors import DegenerateGeometryError, GCPError
+from ..gcp import write_gcps
+from ..intersection import ground_errors_m, intersect, intersection_accuracy
 from ..outputs import OutputSet, check_vector
+from ..report import write_report_json
 from ._common import cancel_check, collect_warnings, finish_report
 
 
@@ -27,7 +31,6 @@ def read_tie_points(path, n_images: int, names: Sequence[str] = ()):
     Optional ``lon, lat, h`` columns are ground truth (reported as errors). Returns ``(ids, points, truth)`` with
     ``points`` of shape (n_images, N, 2) and ``truth`` a (3, N) array or None.
     """
-    import pandas as pd
     try:
         df = pd.read_csv(path, skipinitialspace=True, comment="#")
     except Exception as exc:  # pandas raises several types
@@ -83,8 +86,6 @@ def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional
     sigma_planar_m, sigma_height_m, sigma0`` and, with ground truth, ``err_east_m, err_north_m, err_h_m``.
     Outputs are written together after the intersection, or none is.
     """
-    import pandas as pd
-    from ..intersection import ground_errors_m, intersect, intersection_accuracy
     paths = [os.fspath(p) for p in rpc_paths]
     if len(paths) < 2:
         raise DegenerateGeometryError("forward intersection needs at least 2 RPCs (--rpc A B [C ...])")
@@ -120,7 +121,6 @@ def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional
             table["err_east_m"], table["err_north_m"], table["err_h_m"] = e, n, u
             rep["accuracy"] = intersection_accuracy(res, *truth)
         if out:
-            from ..gcp import write_gcps
             write_gcps(table, outs.tmp("points"))        # a point layer (EPSG:4326) for .gpkg/.geojson
             if out.lower().endswith(".gpkg"):
                 outs.set_check("points", check_vector({"gcps": len(table)}))
@@ -128,7 +128,6 @@ def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional
         rep["outputs"] = outs.paths
         finish_report(rep, warns)
         if report:
-            from ..report import write_report_json
             write_report_json(rep, outs.tmp("report"))
     finish_report(rep, warns)
     rep["table"] = table

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 
 from ..outputs import OutputSet
+from ..simulate import write_scene
 from ._common import cancel_check, collect_warnings, finish_report
 
 
@@ -15,7 +16,6 @@ def simulate_scene(sensor: str, out_dir, *, overwrite: bool = False, dem=None, r
     ``out_dir`` must not exist, be empty, or (``overwrite``) be replaced in place; it must not hold an input (``dem``,
     ``reference``). Returns the :class:`~gdal_gf4cal.simulate.SceneResult` with a ``warnings`` list attribute.
     """
-    from ..simulate import write_scene
     outs = OutputSet([dem, reference], overwrite=overwrite, cancelled=cancel_check(progress))
     outs.declare_folder("scene", out_dir)
     warns: list = []
