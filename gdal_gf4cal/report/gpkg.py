@@ -136,7 +136,7 @@ def _ogr_rows(layer, records, ok, columns, fields, cancelled) -> None:
                 if col[i] is not None:          # fields of a new feature are unset: NULL in the GeoPackage
                     put(feature, j, col[i])
             if layer.CreateFeature(feature) != 0:
-                raise Gf4calError(f"cannot write to layer {layer.GetName()!r}; check the disk is not full")
+                raise Gf4calError(f"cannot write to layer {layer.GetName()!r}: the disk is full or the folder not writable")
         if cancelled():
             raise CancelledError("cancelled while writing the residual GeoPackage; nothing was kept")
 
@@ -167,7 +167,7 @@ def _write_layers(path: Path, layers: Sequence[_Layer], srs, *, append: bool, ca
             styles.append((spec.name, layer.GetGeometryColumn(), *spec.style))
         _write_layer_styles(ds, styles)
         if ds.CommitTransaction() != 0:
-            raise Gf4calError(f"cannot write the GeoPackage {path} (the commit failed: disk full?); nothing was kept")
+            raise Gf4calError(f"cannot write the GeoPackage {path}: the disk is full (the commit failed); nothing was kept")
         ds = None
         if bulk and not check_cancel():
             sids = srs_ids(tmp, [spec.name for spec in layers])
