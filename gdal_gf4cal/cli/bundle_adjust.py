@@ -30,6 +30,10 @@ def add_parser(parser):
                              "over a view, with a note)")
     parser.add_argument("--max-pairs", type=int, metavar="N", help="--match-ties: match at most N pairs of views "
                                                                    "(default: every overlapping pair)")
+    parser.add_argument("--prior-sigma", nargs="+", metavar="[VIEW=]PX",
+                        help="how far (px, 1 sigma) each view's RPC may be off: the datum prior that holds the block "
+                             "without GCPs; a number for every view and/or VIEW=PX for one (default: the RPC's "
+                             "ERR_BIAS, else 3 px); widen it for a view known to be far off")
     from . import add_plausibility_argument, add_rpc_pairs_argument
     add_rpc_pairs_argument(parser)
     add_plausibility_argument(parser, "GCPs")
@@ -45,7 +49,8 @@ def run(args) -> int:
     from ..progress import TextProgressBar
     from ..workflows import bundle_adjust
     rep = bundle_adjust(args.images, ties=args.ties, match_ties=args.match_ties, dem=args.dem, geoid=args.geoid,
-                        gcps=args.gcps, model=args.model, max_pairs=args.max_pairs, rpcs=args.rpc, out=args.out,
+                        gcps=args.gcps, model=args.model, max_pairs=args.max_pairs, rpcs=args.rpc,
+                        prior_sigma_px=args.prior_sigma, out=args.out,
                         overwrite=args.overwrite, progress=TextProgressBar(),
                         check_plausibility=not args.no_plausibility_check)
     t, est = rep["ties"], rep["estimate"]
@@ -65,8 +70,11 @@ def run(args) -> int:
         print(f"pair {pair.replace('|', ' | ')}: tie RMS {_fmt(rep['reprojection_px']['before']['per_pair'].get(pair))}"
               f" -> {_fmt(after)} px")
     print(f"datum drift {rep['datum_drift_m']:.3f} m (mean move of the tie points)")
-    print(f"wrote {len(rep['views'])} RPCs, report.json, residuals.gpkg, ties.png in "
-          f"{rep['outputs']['report'].rsplit('/', 1)[0] if '/' in rep['outputs']['report'] else '.'}")
+    import os
+    vrts = sum("vrt" in v for v in rep["views"].values())
+    print(f"wrote {len(rep['views'])} RPCs{f' ({vrts} as VRTs over the images too)' if vrts else ''}, report.json, "
+          f"residuals.gpkg, ties.png{', ties.csv' if 'ties' in rep['outputs'] else ''} in "
+          f"{os.path.dirname(rep['outputs']['report']) or '.'}")
     from . import print_warnings
     print_warnings(rep)
     return 0

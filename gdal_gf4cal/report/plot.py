@@ -253,8 +253,8 @@ def plot_tie_residuals(table, path: PathLike, *, sizes=None, title: str = "Tie r
             ax.set_aspect("equal")
             ax.set_xlabel("sample (px)", fontsize=8)
             ax.set_ylabel("line (px)", fontsize=8)
-    fig.suptitle(f"{title} (arrows: {0.08 / max(longest, 1e-9):.3g} x the image's size per px of residual; red: "
-                 "outliers)")
+    fig.suptitle(f"{title}\none exaggeration: a 1 px residual is drawn {8.0 / max(longest, 1e-9):.3g} % of the "
+                 "image's side; red: outliers")
     fig.tight_layout()
     return _save(fig, path)
 

@@ -12,13 +12,15 @@ a spanning set that connects every view first, then the largest other overlaps, 
 
 Outputs in ``out``: ``<key>.RPB`` per view (the corrected model refitted as an RPC, METHODS §3) and, when the view is
 an image, ``<key>.vrt`` over the untouched image carrying that RPC (``gdalwarp -rpc <key>.vrt ...``);
-``report.json`` (tie reprojection before/after per view and per pair, corrections with sigmas, datum drift,
-precision, the RPC refit errors), ``residuals.gpkg`` (per view its ties with before/after residual vectors, styled)
-and ``ties.png``.
+``report.json`` (tie reprojection before/after per view and per pair, corrections with sigmas, each view's
+correction relative to the first view's, datum drift, precision, the RPC refit errors), ``residuals.gpkg`` (per view
+its ties with before/after residual vectors, styled, and the tie points' adjusted ground), ``ties.png``, and with
+``--match-ties`` the matched ties as ``ties.csv`` (an observation table ``--ties`` reads back).
 
-Refused before anything is written (one line): fewer than two views, no tie source, ties naming images not given,
-a tie seen by one view only, tie measurements outside their image, ``--match-ties`` on an RPC file alone, a view
-without any tie to the others.
+Refused with one line, nothing written: fewer than two views, no tie source, ties naming images not given, a tie
+seen by one view only, ``--match-ties`` on an RPC file alone, a view overlapping no other (matching); the engine
+refuses tie measurements outside their image and a view sharing no tie with the others
+(:mod:`gdal_gf4cal.bundle.inputs`).
 """
 from __future__ import annotations
 
@@ -30,13 +32,14 @@ import numpy as np
 
 from ..crop import image_rpc, paired_rpc_files
 from ..errors import Gf4calError, GCPError
+from ..observations import write_observations
 from ..outputs import OutputSet
 from ..rpc import RPCModel
 from . import block as _block
 from ._common import _open_image, cancel_check, collect_warnings, declare_report_outputs, finish_report
 
-__all__ = ["MODELS", "Views", "bundle_adjust", "check_ties_inside", "choose_pairs", "load_views", "match_pair",
-           "match_view_ties"]
+__all__ = ["MODELS", "PRIOR_SIGMA", "Views", "bundle_adjust", "choose_pairs", "load_views", "match_pair",
+           "match_view_ties", "parse_prior_sigma", "relative_corrections"]
 
 #: Correction models per view (METHODS §11, the bases of §4), in the CLI's order.
 MODELS = ("translation", "shift-drift", "affine")
@@ -48,8 +51,6 @@ TIES_PER_PAIR = 300
 #: search cannot exceed its window); the fine pass then matches with that offset taken out.
 COARSE_PASSES = ((64, 64), (96, 96))
 COARSE_MIN_WINDOWS = 5
-#: Tie measurements this far outside their image (px) are refused (a pixel of the image, by definition).
-OUTSIDE_TOLERANCE_PX = 0.5
 
 
 @dataclass
@@ -62,6 +63,7 @@ class Views:
     sizes: Dict[str, Optional[Tuple[int, int]]]
     inputs: List[str] = field(default_factory=list)
     notes: List[str] = field(default_factory=list)
+    prior: Any = None
 
     def path(self, key: str) -> str:
         return self.paths[self.keys.index(key)]
@@ -111,26 +113,6 @@ def load_views(images: Sequence, rpcs=None, *, need_images: bool = False) -> Vie
         views.models[k], views.sizes[k] = model, size
         views.notes += [f"{k}: {note}"] if note else []
     return views
-
-
-def check_ties_inside(tab, views: Views) -> None:
-    """Refuse tie measurements outside their view (beyond :data:`OUTSIDE_TOLERANCE_PX`; an RPC file alone: its
-    RPC's image domain): a tie is a pixel of the image it names, so such rows belong to another image or use other
-    pixel units."""
-    if tab is None:
-        return
-    ties = tab[tab["kind"] == "tie"]
-    for k, t in ties.groupby("image_id", sort=False):
-        W, H = views.extent(k)
-        s, l = t["sample"].to_numpy(float), t["line"].to_numpy(float)
-        tol = OUTSIDE_TOLERANCE_PX
-        out = (s < -tol) | (s > W + tol) | (l < -tol) | (l > H + tol)
-        if out.any():
-            i = int(np.flatnonzero(out)[0])
-            what = "image" if views.is_image(k) else "image its RPC describes"
-            raise GCPError(f"{int(out.sum())} of {len(t)} tie measurements of {k} lie outside its {W:.0f} x {H:.0f} "
-                           f"px {what} (e.g. point {t['point_id'].iloc[i]!r} at sample {s[i]:.1f}, line {l[i]:.1f}): "
-                           "they belong to another image or use other pixel units; fix or remove them")
 
 
 def _overlaps(views: Views, dem) -> List[Tuple[float, str, str]]:
@@ -255,6 +237,36 @@ def match_view_ties(views: Views, dem, *, max_pairs: Optional[int] = None, progr
     return tab.drop(columns=[c for c in ("score", "status") if c in tab.columns]), infos
 
 
+#: How messages name the prior option (QGIS: ``(PRIOR_SIGMA)``).
+PRIOR_SIGMA = "prior sigma (--prior-sigma)"
+
+
+def parse_prior_sigma(items, views: Views):
+    """``--prior-sigma [VIEW=]PX ...`` (or a number, or ``{view: px}``) -> what the engine takes: ``None``, one
+    number for every view, or ``{view key: px}`` (views not named keep the engine's default: the RPC's ERR_BIAS,
+    else a few pixels). A bare number and VIEW=PX items may be mixed: the number is then every other view's."""
+    if items is None or isinstance(items, (int, float)):
+        return None if items is None else float(items)
+    pairs = items.items() if isinstance(items, dict) else [
+        tuple(str(i).split("=", 1)) if "=" in str(i) else (None, i) for i in items]
+    out: Dict[Optional[str], float] = {}
+    for view, value in pairs:
+        try:
+            px = float(value)
+        except (TypeError, ValueError):
+            raise GCPError(f"{PRIOR_SIGMA} {value!r}: give pixels, e.g. 3 or right=100") from None
+        if not np.isfinite(px) or px <= 0:
+            raise GCPError(f"{PRIOR_SIGMA} {value!r}: give a positive number of pixels")
+        key = None if view is None else _block._resolve(view, views.paths, views.keys, PRIOR_SIGMA)
+        out[key] = px
+    if not out:
+        return None
+    if set(out) == {None}:
+        return out[None]
+    every = out.pop(None, None)
+    return {k: out.get(k, every) for k in views.keys if out.get(k, every) is not None}
+
+
 def _observations(views: Views, ties, gcps, dem, warns: List[str]):
     """The tie and GCP files read and merged, image names resolved to view keys (as block-adjust reads them: a
     tie naming an image not given is refused, GCPs of other images are left out with a warning); None without
@@ -266,7 +278,7 @@ def _observations(views: Views, ties, gcps, dem, warns: List[str]):
                             warns=warns)
 
 
-def _prepare(images, *, ties, gcps, match_ties, dem, geoid, rpcs, check_plausibility, warns):
+def _prepare(images, *, ties, gcps, match_ties, dem, geoid, rpcs, prior_sigma_px, check_plausibility, warns):
     """Everything read and checked before any output is declared: ``(views, dem, table)``."""
     from ..dem import DEM
     views = load_views(images, rpcs, need_images=match_ties)
@@ -276,9 +288,9 @@ def _prepare(images, *, ties, gcps, match_ties, dem, geoid, rpcs, check_plausibi
         dem_obj = DEM.constant(h)
         warns.append(f"no DEM: views matched on a constant height of {h:.0f} m (the RPCs' mean height offset); give "
                      "--dem for terrain with relief")
+    views.prior = parse_prior_sigma(prior_sigma_px, views)
     tab = _observations(views, ties, gcps, dem_obj, warns)
     if tab is not None:
-        check_ties_inside(tab, views)
         if check_plausibility and (tab["kind"] == "gcp").any():
             with collect_warnings(warns):
                 _block.check_observations(tab[tab["kind"] == "gcp"], views.models,
@@ -287,10 +299,12 @@ def _prepare(images, *, ties, gcps, match_ties, dem, geoid, rpcs, check_plausibi
     return views, dem_obj, tab
 
 
-def _declare(views: Views, out, overwrite: bool, progress) -> OutputSet:
+def _declare(views: Views, out, overwrite: bool, progress, matched: bool) -> OutputSet:
     """Every output declared before any work (module docstring)."""
     outd = os.fspath(out)
     outs = OutputSet(views.inputs, overwrite=overwrite, cancelled=cancel_check(progress))
+    if matched:
+        outs.declare("ties", os.path.join(outd, "ties.csv"))
     for k in views.keys:
         outs.declare(f"rpb:{k}", os.path.join(outd, f"{k}.RPB"))
         if views.is_image(k):
@@ -320,7 +334,9 @@ def bundle_adjust(images: Sequence, *, out, ties=None, match_ties: bool = False,
         support it, with a note).
     max_pairs : at most this many pairs matched (default every overlapping pair).
     rpcs : ``["IMAGE=RPC", ...]`` or ``{image: rpc}``: an image's RPC given apart (a crop's product RPC).
-    prior_sigma_px : the datum prior of every view's correction (default: the RPC's stated error, else the engine's).
+    prior_sigma_px : σ (px) of the datum prior on each view's correction parameters: a number for every view,
+        ``{view: px}`` or ``["PX", "VIEW=PX", ...]`` (CLI ``--prior-sigma``); default the RPC's stated bias error
+        (ERR_BIAS), else a few pixels. A view known to be far off (a deliberately biased RPC) needs a wide one.
     check_plausibility : check GCPs as ``refine`` does (``False``: experts).
 
     Returns
@@ -332,15 +348,17 @@ def bundle_adjust(images: Sequence, *, out, ties=None, match_ties: bool = False,
     _check_options(paths, ties, match_ties, model, max_pairs)
     warns: List[str] = []
     views, dem_obj, tab = _prepare(paths, ties=ties, gcps=gcps, match_ties=match_ties, dem=dem, geoid=geoid,
-                                   rpcs=rpcs, check_plausibility=check_plausibility, warns=warns)
-    outs = _declare(views, out, overwrite, progress)
+                                   rpcs=rpcs, prior_sigma_px=prior_sigma_px,
+                                   check_plausibility=check_plausibility, warns=warns)
+    outs = _declare(views, out, overwrite, progress, match_ties)
     with outs, collect_warnings(warns):
         pairs_info = []
         if match_ties:
             matched, pairs_info = match_view_ties(views, dem_obj, max_pairs=max_pairs,
                                                   progress=_progress.scaled(progress, 0.0, 0.4))
             tab = _merge(tab, matched)
-        est, after = _adjust(views, tab, dem_obj, model, prior_sigma_px, _progress.scaled(progress, 0.4, 0.8))
+            write_observations(matched, outs.tmp("ties"), overwrite=True)
+        est, after = _adjust(views, tab, dem_obj, model, views.prior, _progress.scaled(progress, 0.4, 0.8))
         rep = _report(views, est, after, model, pairs_info, outs, ties_source=_tie_source(ties, match_ties))
         _write_outputs(views, est, after, rep, outs, _progress.scaled(progress, 0.8, 1.0))
         finish_report(rep, warns)
