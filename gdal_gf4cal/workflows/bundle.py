@@ -160,10 +160,12 @@ def choose_pairs(overlaps: Sequence[Tuple[float, str, str]], keys: Sequence[str]
         groups.setdefault(find(k), []).append(k)
     if len(groups) > 1:
         apart = min(groups.values(), key=len)
-        who = f"view {apart[0]} overlaps" if len(apart) == 1 else f"views {', '.join(apart)} overlap"
-        raise GCPError(f"{who} no other view on the ground (through the RPCs and the DEM), so no tie can join "
-                       f"{'it' if len(apart) == 1 else 'them'} to the others; drop "
-                       f"{'it' if len(apart) == 1 else 'them'}, give views of the same ground, or give --ties")
+        if len(apart) == 1:
+            raise GCPError(f"view {apart[0]} overlaps no other view on the ground (through the RPCs and the DEM), so "
+                           "no tie can join it to the others; drop it, give views of the same ground, or give --ties")
+        raise GCPError(f"the views fall into {len(groups)} groups that overlap nowhere on the ground ("
+                       + " | ".join(", ".join(g) for g in groups.values())
+                       + "), so no tie can join them; adjust each group apart, or give --ties")
     n = len(tree) + len(rest) if max_pairs is None else max(int(max_pairs), len(tree))
     return tree + rest[:max(0, n - len(tree))]
 
