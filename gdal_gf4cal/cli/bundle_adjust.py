@@ -57,14 +57,15 @@ def run(args) -> int:
     print(f"{t['n_points']} tie points ({t['n_observations']} observations, {t['source']}), {rep['n_outliers']} "
           f"observations rejected; {est['iterations']} iterations, "
           f"{'converged' if est['converged'] else 'NOT converged'}")
-    rel = rep["relative_to_first_view_px"]["views"]
+    ref = rep["relative_to_first_view_px"]["reference"]
     for k, v in rep["views"].items():
         c = v["correction"]["parameters_px"]
-        r = rel.get(k, {})
+        r = rep["relative_to_first_view_px"]["views"].get(k, {})
+        rel = "" if k == ref or not r else (
+            f" (relative to {ref}: sample {r['sample']:+.3f} +- {r['sample_std']:.3f}, line {r['line']:+.3f} +- "
+            f"{r['line_std']:.3f})")
         print(f"{k}: {v['model_used']} correction sample {c.get('sample_1', 0.0):+.3f} line {c.get('line_1', 0.0):+.3f}"
-              f" px at the centre (relative to {rep['relative_to_first_view_px']['reference']}: "
-              f"{r.get('sample', 0.0):+.3f} +- {r.get('sample_std', 0.0):.3f}, {r.get('line', 0.0):+.3f} +- "
-              f"{r.get('line_std', 0.0):.3f}); tie RMS {_fmt(v['reprojection_px']['before'])} -> "
+              f" px at the centre{rel}; tie RMS {_fmt(v['reprojection_px']['before'])} -> "
               f"{_fmt(v['reprojection_px']['after'])} px")
     for pair, after in rep["reprojection_px"]["after"]["per_pair"].items():
         print(f"pair {pair.replace('|', ' | ')}: tie RMS {_fmt(rep['reprojection_px']['before']['per_pair'].get(pair))}"
