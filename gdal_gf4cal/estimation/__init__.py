@@ -16,3 +16,5 @@ from .robust import (IRLSSolution, critical_value, high_breakdown_start, irls, m
 __all__ = ["Estimate", "Block", "weighted_lsq", "solve_with_points", "critical_value", "high_breakdown_start",
            "robust_lsq", "normal_solve", "irls", "IRLSSolution", "radial_huber_weights", "readmissible",
            "min_subset_points"]
+from .indexed import IndexedJacobian  # noqa: E402  (bundle adjustment: rows touching a few globals)
+__all__ += ["IndexedJacobian"]
