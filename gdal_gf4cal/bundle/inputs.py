@@ -55,8 +55,9 @@ def check_inputs(observations, models: Mapping[str, object], sizes, dem=None) ->
 
 
 def _check_inside(tab: pd.DataFrame, sizes) -> None:
-    w = tab["image_id"].map(lambda v: sizes[v][0]).to_numpy(float)
-    h = tab["image_id"].map(lambda v: sizes[v][1]).to_numpy(float)
+    codes, names = pd.factorize(tab["image_id"])
+    wh = np.array([sizes[v] for v in names], float)
+    w, h = wh[codes, 0], wh[codes, 1]
     s, l = tab["sample"].to_numpy(float), tab["line"].to_numpy(float)
     out = (s < 0) | (s > w) | (l < 0) | (l > h)
     if out.any():

@@ -123,6 +123,10 @@ class Rays:
     def rows_per_point(self) -> int:
         return 2 * self.k + 3
 
+    def flat_rows(self, axis: int) -> np.ndarray:
+        """Each ray's row (``axis`` 0: sample, 1: line) in the flattened padded layout ``(n_points * R)``."""
+        return self.point * self.rows_per_point + 2 * self.slot + axis
+
 
 def pixel_size_m(rpc, size: Tuple[int, int]) -> float:
     """Ground size of a pixel (m, geometric mean of both axes) at the image centre and the RPC's mid height."""

@@ -60,25 +60,24 @@ class BundleEstimate(Estimate):
         return out
 
 
-def _rms(v: np.ndarray) -> Optional[float]:
-    return float(np.sqrt(np.mean(np.sum(v * v, axis=1)))) if len(v) else None
-
-
 def reprojection(res: np.ndarray, rays: Rays, layout: ViewLayout, used: np.ndarray) -> Dict[str, Any]:
     """``{'per_view': {view: rms}, 'per_pair': {'a|b': rms}, 'all': rms}`` of residuals ``res`` (n_rays, 2) over the
-    rays ``used``; a pair's RMS is over the rays in ``a`` and ``b`` of the points both see."""
-    per_view = {v: _rms(res[used & (rays.view == j)]) for j, v in enumerate(layout.views)}
+    rays ``used``; a pair's RMS is over the rays in ``a`` and ``b`` of the points both see (px)."""
     m = len(layout.views)
-    seen = np.zeros((rays.n_points, m), bool)
-    seen[rays.point[used], rays.view[used]] = True
-    per_pair: Dict[str, Optional[float]] = {}
-    for a in range(m):
-        for b in range(a + 1, m):
-            both = seen[:, a] & seen[:, b]
-            sel = used & both[rays.point] & ((rays.view == a) | (rays.view == b))
-            if sel.any():
-                per_pair[f"{layout.views[a]}|{layout.views[b]}"] = _rms(res[sel])
-    return {"per_view": per_view, "per_pair": per_pair, "all": _rms(res[used])}
+    sq = np.where(used, np.sum(res * res, axis=1), 0.0)
+    seen = np.zeros((rays.n_points, m))
+    sqp = np.zeros((rays.n_points, m))
+    seen[rays.point[used], rays.view[used]] = 1.0
+    sqp[rays.point[used], rays.view[used]] = sq[used]
+    n_view, s_view = seen.sum(axis=0), sqp.sum(axis=0)
+    count = seen.T @ seen                                         # points seen by both views
+    pair_sq = seen.T @ sqp + sqp.T @ seen                         # [a, b]: both rays' squares of those points
+    per_view = {v: (float(np.sqrt(s_view[j] / n_view[j])) if n_view[j] else None)
+                for j, v in enumerate(layout.views)}
+    per_pair = {f"{layout.views[a]}|{layout.views[b]}": float(np.sqrt(pair_sq[a, b] / (2.0 * count[a, b])))
+                for a in range(m) for b in range(a + 1, m) if count[a, b] > 0}
+    n = int(np.count_nonzero(used))
+    return {"per_view": per_view, "per_pair": per_pair, "all": float(np.sqrt(sq.sum() / n)) if n else None}
 
 
 def view_correction(layout: ViewLayout, view: str, x: np.ndarray, cov: np.ndarray, sigma0: float,

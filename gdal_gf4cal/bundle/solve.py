@@ -15,7 +15,7 @@ from typing import Any, Dict, List, Mapping, Optional
 import numpy as np
 import scipy.sparse as sp
 
-from ..estimation import solve_with_points
+from ..estimation import IndexedJacobian, solve_with_points
 from ..geodesy import metres_per_degree
 from .model import Rays, ViewLayout
 
@@ -68,20 +68,19 @@ def project_all(models: Mapping[str, Any], layout: ViewLayout, rays: Rays, state
     return Linearisation(pred, rpc_pred, jp, design)
 
 
-def _global_jacobian(layout: ViewLayout, rays: Rays, lin: Linearisation, n_rows: int) -> sp.csr_matrix:
-    """Sparse ``d(pred)/d(x)`` in the padded point-major row layout (rows ``point * R + 2 slot + axis``)."""
-    r_pp = rays.rows_per_point
-    data, ri, ci = [], [], []
+def _global_jacobian(layout: ViewLayout, rays: Rays, lin: Linearisation) -> IndexedJacobian:
+    """``d(pred)/d(x)`` of every padded point row by column index (rows ``2 slot + axis`` of each point): a ray
+    touches its view's sample (or line) terms only."""
+    c = max(max(len(t) for t in layout.models_used[v].terms) for v in layout.views)
+    n_rows = rays.n_points * rays.rows_per_point
+    cols, vals = np.zeros((n_rows, c), int), np.zeros((n_rows, c))
     for j, (rows, a_s, a_l) in lin.design.items():
-        sl_s, sl_l = layout.slices(layout.views[j])
-        base = rays.point[rows] * r_pp + 2 * rays.slot[rows]
-        for axis, a, sl in ((0, a_s, sl_s), (1, a_l, sl_l)):
-            cols = np.arange(sl.start, sl.stop)
-            data.append(a.ravel())
-            ri.append(np.repeat(base + axis, cols.size))
-            ci.append(np.tile(cols, rows.size))
-    return sp.csr_matrix((np.concatenate(data), (np.concatenate(ri), np.concatenate(ci))),
-                         shape=(n_rows, layout.n_params))
+        for axis, a, sl in zip((0, 1), (a_s, a_l), layout.slices(layout.views[j])):
+            flat = rays.flat_rows(axis)[rows]
+            cols[flat, :sl.stop - sl.start] = np.arange(sl.start, sl.stop)
+            vals[flat, :sl.stop - sl.start] = a
+    shape = (rays.n_points, rays.rows_per_point, c)
+    return IndexedJacobian(cols.reshape(shape), vals.reshape(shape), layout.n_params)
 
 
 @dataclass
@@ -100,15 +99,16 @@ def linearise(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights
     """The padded point-block system at ``state``: ``(jac_points, residuals, weights, jac_global, extra, lin)``."""
     lin = project_all(models, layout, rays, state)
     n_pts, r_pp, k2 = rays.n_points, rays.rows_per_point, 2 * rays.k
-    jp = np.zeros((n_pts, r_pp, 3))
-    res = np.zeros((n_pts, r_pp))
-    w = np.zeros((n_pts, r_pp))
+    jp = np.zeros((n_pts * r_pp, 3))
+    res = np.zeros(n_pts * r_pp)
+    w = np.zeros(n_pts * r_pp)
     v = rays.meas - lin.pred
     for axis in (0, 1):
-        idx = (rays.point, 2 * rays.slot + axis)
-        jp[idx] = lin.jac_points[:, axis, :]
-        res[idx] = v[:, axis]
-        w[idx] = wts.rays
+        flat = rays.flat_rows(axis)
+        jp[flat] = lin.jac_points[:, axis, :]
+        res[flat] = v[:, axis]
+        w[flat] = wts.rays
+    jp, res, w = jp.reshape(n_pts, r_pp, 3), res.reshape(n_pts, r_pp), w.reshape(n_pts, r_pp)
     mx, my = metres_per_degree(state.ground[:, 1], state.ground[:, 2])
     to_m = np.stack([mx, my, np.ones_like(mx)], axis=1)
     delta = np.nan_to_num((wts.ground_obs - state.ground) * to_m)
@@ -116,7 +116,7 @@ def linearise(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights
         jp[:, k2 + c, c] = 1.0
         res[:, k2 + c] = delta[:, c]
         w[:, k2 + c] = wts.ground[:, c]
-    jg = _global_jacobian(layout, rays, lin, n_pts * r_pp)
+    jg = _global_jacobian(layout, rays, lin)
     extra = (sp.identity(layout.n_params, format="csr"), -state.x, wts.prior)
     return jp, res, w, jg, extra, lin
 
@@ -130,7 +130,7 @@ def step(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights, cov
     mx, my = metres_per_degree(state.ground[:, 1], state.ground[:, 2])
     ground = state.ground + dp / np.stack([mx, my, np.ones_like(mx)], axis=1)
     x = state.x + sol.dx_global
-    gm = (jg @ sol.dx_global).reshape(rays.n_points, -1)
+    gm = np.einsum("nkc,nkc->nk", jg.vals, sol.dx_global[jg.cols])
     ray_g = np.stack([gm[rays.point, 2 * rays.slot], gm[rays.point, 2 * rays.slot + 1]], axis=1)
     move = np.abs(np.einsum("nrq,nq->nr", lin.jac_points, dp[rays.point]) + ray_g)
     used = wts.rays > 0

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import DegenerateGeometryError
+from .indexed import IndexedJacobian, solve_indexed
 
 #: Global parameter count above which the reduced system is assembled and solved with scipy.sparse.
 SPARSE_ABOVE = 500
@@ -52,7 +53,8 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
         ``observed - predicted`` and weights (0: not observed).
     jac_global : ndarray (N, r, p), optional
         Derivatives by the global parameters.
-        Or a ``scipy.sparse`` matrix ``(N * r, p)`` (rows point-major: row ``i * r + k`` is observation ``k`` of
+        Or an :class:`~gdal_gf4cal.estimation.indexed.IndexedJacobian` (each row's few global columns by index;
+        chunked dense assembly, the fast path of bundle adjustment). Or a ``scipy.sparse`` matrix ``(N * r, p)`` (rows point-major: row ``i * r + k`` is observation ``k`` of
         point ``i``): the normal equations are then assembled sparsely (each observation touching a few global
         parameters, as in block adjustment, METHODS §8), cost linear in ``N``.
     det_min : float
@@ -73,6 +75,8 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
     jw = (jp * w[:, :, None]).transpose(0, 2, 1)                              # (n, q, r): matmul, not 3-way einsum
     npp = np.matmul(jw, jp)
     bp = np.matmul(jw, r[:, :, None])[:, :, 0]
+    if isinstance(jac_global, IndexedJacobian):                               # rows touching a few globals
+        return PointSolution(*solve_indexed(jp, r, w, npp, bp, jac_global, extra, covariance, det_min))
     inv = np.full((n, q, q), np.nan)
     if q == 2:                                                                # closed form (many 2x2 blocks)
         det = npp[:, 0, 0] * npp[:, 1, 1] - npp[:, 0, 1] * npp[:, 1, 0]
