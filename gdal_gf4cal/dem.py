@@ -550,8 +550,8 @@ class DEM:
                 return h
             i = int(np.flatnonzero(bad)[0])
             raise DEMError(f"DEM {self.path}: {int(bad.sum())} point(s) fall outside the DEM or on no-data "
-                           f"(first at lon {lon[i]:.6f}, lat {lat[i]:.6f}); use a DEM that covers the scene or "
-                           "choose a fallback height (nodata=<metres>)")
+                           f"(first at lon {lon[i]:.6f}, lat {lat[i]:.6f}); use a DEM that covers the scene (a "
+                           "larger tile or a mosaic, e.g. gdalbuildvrt)")
         h = h.copy()
         h[bad] = float(policy)
         return h

@@ -28,9 +28,11 @@ from qgis.PyQt.QtCore import QCoreApplication
 
 from gdal_gf4cal.errors import CancelledError, Gf4calError
 
+#: The GEOID choice of every algorithm (one vocabulary: same order, labels and default, index 0), and the engine's
+#: ``geoid=`` word of each (the CLI's ``--geoid auto|egm96|egm2008|none|PATH``, same order).
 GEOID_OPTIONS = ["As the DEM's CRS declares (ellipsoidal when it declares none)", "Heights above EGM96",
                  "Heights above EGM2008", "Ellipsoidal heights (no conversion, whatever the CRS declares)"]
-_GEOIDS = [None, "egm96", "egm2008", False]
+GEOID_VALUES = ["auto", "egm96", "egm2008", "none"]
 PIXEL_CONVENTIONS = [None, "corner", "center"]
 PIXEL_CONVENTION_LABELS = ["The file format's own (centre for orthority GeoJSON and ASP .gcp, else corner)",
                            "Pixel corners at integers (GDAL: first pixel centre at 0.5)",
@@ -56,6 +58,27 @@ def split_items(text: str) -> List[str]:
 
 TRACKER = "https://github.com/gdal-gf4cal/gdal_gf4cal/issues"
 
+#: The papers the help texts cite (an algorithm lists its keys in ``REFERENCES``; its help ends with them).
+PAPERS = {
+    "grodecki": "Grodecki J., Dial G. (2003). Block adjustment of high-resolution satellite images described by "
+                "rational polynomials. Photogrammetric Engineering & Remote Sensing 69(1), 59-68.",
+    "fraser": "Fraser C.S., Hanley H.B. (2005). Bias-compensated RPCs for sensor orientation of high-resolution "
+              "satellite imagery. Photogrammetric Engineering & Remote Sensing 71(8), 909-915.",
+    "tao": "Tao C.V., Hu Y. (2001). A comprehensive study of the rational function model for photogrammetric "
+           "processing. Photogrammetric Engineering & Remote Sensing 67(12), 1347-1357.",
+    "huang": "Huang Q., Zhao H., Yang J. (2014). Geometric positioning and error analysis of HJ-1 wide-coverage CCD "
+             "images (detector-position polynomial). Geomatics and Information Science of Wuhan University 39(12), "
+             "1425-1429.",
+    "pi": "Pi Y., Wang M., Wang S., Zhao H., Zhao L. (2023). On-orbit geometric calibration of the Gaofen-4 "
+          "visible area-array camera based on the rational polynomial model. Acta Optica Sinica.",
+    "wu": "Wu H., Bai Y., Wang L., Zhang L., Wang D., Ba Q., Jia Y., Zhong X. On-orbit geometric calibration of the "
+          "Jilin1-KF01A wide-field camera: look angles per CCD, inter-CCD consistency, band-to-band registration "
+          "(Chang Guang Satellite Technology).",
+    "zhang": "Zhang Y., Wang M., Wan Y., Zhou B., Feng J., Cao B., Yao Y. (2023). A pan-multispectral registration "
+             "error compensation model for Gaofen-7 image fusion. Geomatics and Information Science of Wuhan "
+             "University 48(7).",
+}
+
 
 def one_line(exc: BaseException) -> str:
     """The first line of an exception's message (the engine's messages say what to do in one line)."""
@@ -70,10 +93,12 @@ def planar_rms(stats) -> float:
     return float((stats["sample"]["rms"] ** 2 + stats["line"]["rms"] ** 2) ** 0.5)
 
 
-def _layer_file(layer) -> str:
+#: GCP files whose format maps its own fields (no field choice): ASP .gcp and QGIS Georeferencer .points.
+SELF_DESCRIBED_GCP_EXTS = (".gcp", ".points")
+
+
+def layer_file_path(layer) -> str:
     """The file a vector layer reads (OGR ``path|layername=...`` or a delimited-text ``file:///path?...`` URI)."""
-    if layer is None:
-        raise QgsProcessingException("A column map (GCP_COLUMNS) needs a GCP layer read from a file.")
     from qgis.core import QgsProviderRegistry
     parts = QgsProviderRegistry.instance().decodeUri(layer.providerType(), layer.source())
     path = parts.get("path") if parts else None
@@ -84,6 +109,14 @@ def _layer_file(layer) -> str:
             path = QUrl(src).toLocalFile()
         else:
             path = src.split("|")[0]
+    return path
+
+
+def _layer_file(layer) -> str:
+    """The file of the GCP layer read with a column map (GCP_COLUMNS); refused when it is not read from a file."""
+    if layer is None:
+        raise QgsProcessingException("A column map (GCP_COLUMNS) needs a GCP layer read from a file.")
+    path = layer_file_path(layer)
     if not os.path.isfile(path):
         raise QgsProcessingException(f"A column map (GCP_COLUMNS) needs a GCP layer read from a file, not {path!r}.")
     return path
@@ -133,6 +166,7 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
     GROUP = "RPC calibration"
     GROUP_ID = "calibration"
     HELP = ""
+    REFERENCES: tuple = ()       # keys of PAPERS cited by HELP
 
     # Parameter names shared by the algorithms (same name = same meaning).
     INPUT = "INPUT"
@@ -187,6 +221,8 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
             lines.append("")
             lines.append(self.tr("Parameters:"))
             lines += [f"- {p.description()} ({p.name()}): {p.help()}" for p in params]
+        if self.REFERENCES:
+            lines += ["", self.tr("References:")] + [f"- {PAPERS[k]}" for k in self.REFERENCES]
         return "\n".join(lines)
 
     def helpUrl(self) -> str:
@@ -251,8 +287,10 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
                                                       [QgsProcessing.TypeVectorPoint, QgsProcessing.TypeVector],
                                                       optional=True),
                   "Point layer: the geometry is the ground position (any CRS); fields give the image position. "
-                  "Or a header-less CSV/text file read with a column map (GCP_COLUMNS). Or leave it empty and give "
-                  "a raster with embedded GCPs (GCP_RASTER).")
+                  "An orthority GCP GeoJSON ('ji' property), an ASP .gcp or a QGIS Georeferencer .points file is "
+                  "read as the command line reads it (its fields mapped by the format; the field choices below are "
+                  "not used). Or a header-less CSV/text file read with a column map (GCP_COLUMNS). Or leave it empty "
+                  "and give a raster with embedded GCPs (GCP_RASTER).")
         fields = [
             (self.SAMPLE_FIELD, "Image column (sample) field", "sample", False,
              "Field holding the image column of each GCP, in pixels, GDAL convention (first pixel centre 0.5)."),
@@ -313,15 +351,31 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
     def add_dem_parameters(self, optional=True):
         self._add(QgsProcessingParameterRasterLayer(self.DEM, self.tr("DEM"), optional=optional),
                   "Height model (any GDAL raster, any CRS) for GCP heights and line-of-sight intersections.")
+        self.add_geoid_parameters()
+
+    def add_geoid_parameters(self):
+        """GEOID (what the DEM's heights are above, :data:`GEOID_OPTIONS`) and GEOID_GRID (a grid file), advanced:
+        the same two parameters in every algorithm with a DEM."""
         p = QgsProcessingParameterEnum(self.GEOID, self.tr("DEM heights are"), GEOID_OPTIONS, defaultValue=0,
                                        optional=True)
         p.setFlags(p.flags() | p.FlagAdvanced)
-        self._add(p, "Vertical reference of the DEM: heights above a geoid are converted to ellipsoidal heights "
-                     "with PROJ's geoid grid; 'Ellipsoidal heights' uses them as they are.")
+        self._add(p, "What the DEM's heights are above. 'As the DEM's CRS declares' converts heights above EGM96 or "
+                     "EGM2008 to ellipsoidal heights (with PROJ's geoid grid) when the CRS says so and uses them as "
+                     "they are otherwise; 'Ellipsoidal heights' never converts.")
         p = QgsProcessingParameterFile(self.GEOID_GRID, self.tr("Geoid grid file (optional)"), optional=True,
-                                       behavior=QgsProcessingParameterFile.File)
+                                       behavior=QgsProcessingParameterFile.File,
+                                       fileFilter="Geoid grids (*.tif *.gtx);;All files (*)")
         p.setFlags(p.flags() | p.FlagAdvanced)
         self._add(p, "A geoid grid (.tif/.gtx) to use instead of PROJ's: the DEM's heights are above this geoid.")
+
+    def geoid_choice(self, parameters, context):
+        """The engine's ``geoid=`` from GEOID and GEOID_GRID: the grid path when given, else a word of
+        :data:`GEOID_VALUES` (``"auto"`` for an algorithm without GEOID)."""
+        geoid = GEOID_VALUES[self.parameterAsEnum(parameters, self.GEOID, context)] \
+            if self.parameterDefinition(self.GEOID) is not None else "auto"
+        if self.parameterDefinition(self.GEOID_GRID) is not None:
+            geoid = self.parameterAsFile(parameters, self.GEOID_GRID, context) or geoid
+        return geoid
 
     def add_plot_output(self, help_text: str):
         self._add(QgsProcessingParameterFileDestination(self.OUTPUT_PLOT, self.tr("Residual plot"),
@@ -358,14 +412,11 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
 
     def dem_source(self, parameters, context):
         """``(path, geoid)`` of the DEM parameter for a workflow taking a DEM path and a geoid choice, or
-        ``(None, None)``: the geoid as the engine's ``geoid=`` (None, 'egm96', 'egm2008', False or a grid path)."""
+        ``(None, None)``: the geoid as the engine's ``geoid=`` (:meth:`geoid_choice`)."""
         layer = self.parameterAsRasterLayer(parameters, self.DEM, context)
         if layer is None:
             return None, None
-        geoid = _GEOIDS[self.parameterAsEnum(parameters, self.GEOID, context)] \
-            if self.parameterDefinition(self.GEOID) is not None else None
-        if self.parameterDefinition(self.GEOID_GRID) is not None:
-            geoid = self.parameterAsFile(parameters, self.GEOID_GRID, context) or geoid
+        geoid = self.geoid_choice(parameters, context)
         return layer.source(), geoid
 
     def read_dem(self, parameters, context):
@@ -377,15 +428,14 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         return DEM.from_file(path, geoid=geoid)
 
     def read_gcps(self, parameters, context, feedback, dem=None):
-        """The GCP layer as an engine GCP table (DESIGN.md schema, EPSG:4326), read by the engine's own reader.
+        """The GCPs as an engine GCP table (DESIGN.md schema, EPSG:4326), read by the engine's own readers.
 
-        QGIS hands over the layer's file and layer name (exporting it to a temporary GeoPackage only when the
-        source is not a file OGR reads, e.g. a memory layer or a selection); :func:`gdal_gf4cal.gcp_formats.
-        read_gcp_layer` reads it (geometry = ground position in any CRS, reprojected to WGS84). Chosen fields
-        name the sample, line, height, id, role and sigma columns; a chosen field the layer lacks is an error.
+        A raster with embedded GCPs (GCP_RASTER); a file whose format names its own fields (orthority GCP GeoJSON,
+        ASP ``.gcp``, QGIS ``.points``: :meth:`self_described_gcp_file`) or a header-less file with a column map
+        (GCP_COLUMNS) read as the CLI reads it (:func:`gdal_gf4cal.gcp.read_gcps`, with the input image); else the
+        point layer with the chosen fields (:meth:`read_gcp_fields`).
         """
-        from gdal_gf4cal.gcp import validate_gcps
-        from gdal_gf4cal.gcp_formats import read_gcp_layer
+        from gdal_gf4cal.gcp import read_gcps
 
         convention = PIXEL_CONVENTIONS[self.parameterAsEnum(parameters, self.GCP_PIXEL_CONVENTION, context)] \
             if self.parameterDefinition(self.GCP_PIXEL_CONVENTION) is not None else None
@@ -396,44 +446,66 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
             if has_layer:
                 raise QgsProcessingException(self.tr(
                     "Give either the GCP layer (GCPS) or a raster with embedded GCPs (GCP_RASTER), not both."))
-            from gdal_gf4cal.gcp import read_gcps
             return read_gcps(raster.source(), dem=dem, pixel_convention=convention)
         if not has_layer:
             raise QgsProcessingException(self.tr(
                 "Choose the GCP layer (GCPS), or a raster with embedded GCPs (GCP_RASTER)."))
-        source = self.parameterAsSource(parameters, self.GCPS, context)
-        if source is None:
-            raise QgsProcessingException(self.invalidSourceError(parameters, self.GCPS))
+        own = self.self_described_gcp_file(parameters, context)
+        if own is not None:
+            return read_gcps(own, dem=dem, pixel_convention=convention, image=self._gcp_image(parameters, context))
         columns = self.parameterAsString(parameters, self.GCP_COLUMNS, context) \
             if self.parameterDefinition(self.GCP_COLUMNS) is not None else ""
         if columns.strip():    # a header-less file: the engine reads it with the map (the fields are not used)
-            from gdal_gf4cal.gcp import read_gcps
             return read_gcps(_layer_file(self.parameterAsVectorLayer(parameters, self.GCPS, context)), dem=dem,
                              columns=columns, pixel_convention=convention)
+        return self.read_gcp_fields(parameters, context, feedback, dem, convention)
+
+    def self_described_gcp_file(self, parameters, context) -> Optional[str]:
+        """The GCP file when its format maps its own fields, as the CLI reads it: ASP ``.gcp``, QGIS ``.points``, or
+        orthority's GCP GeoJSON (a ``ji`` property holding [column, row]); else None (a layer read by its fields)."""
+        value = parameters.get(self.GCPS)
+        if isinstance(value, str):
+            path = value.split("|")[0]
+            if path.startswith("file:"):
+                from qgis.PyQt.QtCore import QUrl
+                path = QUrl(path).toLocalFile()
+        else:
+            layer = self.parameterAsVectorLayer(parameters, self.GCPS, context)
+            path = layer_file_path(layer) if layer is not None else None
+        if not path or not os.path.isfile(path):
+            return None
+        ext = os.path.splitext(path)[1].lower()
+        if ext in SELF_DESCRIBED_GCP_EXTS:
+            return path
+        if ext in (".geojson", ".json"):
+            from qgis.core import QgsVectorLayer
+            if "ji" in QgsVectorLayer(path, "gcps", "ogr").fields().names():
+                return path
+        return None
+
+    def _gcp_image(self, parameters, context) -> Optional[str]:
+        """The input image the GCPs belong to (selects its rows of a multi-image GCP file), or None."""
+        if not isinstance(self.parameterDefinition(self.INPUT), QgsProcessingParameterRasterLayer):
+            return None
+        layer = self.parameterAsRasterLayer(parameters, self.INPUT, context)
+        return layer.source() if layer is not None else None
+
+    def read_gcp_fields(self, parameters, context, feedback, dem, convention):
+        """The GCP point layer read with its chosen fields (SAMPLE_FIELD, ...) by
+        :func:`gdal_gf4cal.gcp_formats.read_gcp_layer` (geometry = ground position in any CRS, reprojected to
+        WGS84); QGIS hands over the layer's file, exporting it to a temporary GeoPackage only when OGR cannot read
+        its source (a memory layer, a selection)."""
+        from gdal_gf4cal.gcp import validate_gcps
+        from gdal_gf4cal.gcp_formats import read_gcp_layer
+
+        source = self.parameterAsSource(parameters, self.GCPS, context)
+        if source is None:
+            raise QgsProcessingException(self.invalidSourceError(parameters, self.GCPS))
         if QgsWkbTypes.geometryType(source.wkbType()) != QgsWkbTypes.PointGeometry:
             raise QgsProcessingException(self.tr(
                 "The GCP layer must be a point layer (ground positions), or a header-less CSV/text file read with "
                 "a column map (GCP_COLUMNS)."))
-        names = source.fields().names()
-        chosen = {}
-        for param, key, required in ((self.SAMPLE_FIELD, "sample", True), (self.LINE_FIELD, "line", True),
-                                     (self.HEIGHT_FIELD, "h", False), (self.ID_FIELD, "id", False),
-                                     (self.ROLE_FIELD, "role", False), (self.SIGMA_FIELD, "sigma", False)):
-            if self.parameterDefinition(param) is None:
-                continue
-            field = self.parameterAsString(parameters, param, context)
-            if not field:
-                if required:
-                    raise QgsProcessingException(self.tr(f"Choose the GCP layer's {key} field ({param})."))
-                continue
-            if field not in names:
-                explicit = param in parameters and parameters[param] not in (None, "")
-                if required or explicit:
-                    raise QgsProcessingException(self.tr(
-                        f"The GCP layer has no field '{field}' ({param}); its fields are: {', '.join(names)}. "
-                        f"Choose the field holding the {key} values."))
-                continue  # an optional field left at its default name that the layer does not have
-            chosen[key] = field
+        chosen = self._chosen_fields(parameters, context, source.fields().names())
         if source.featureCount() == 0:
             raise QgsProcessingException(self.tr("The GCP layer has no features."))
         if "h" not in chosen and dem is None:
@@ -461,6 +533,30 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
                 table[key] = values.to_numpy()
                 changed = True
         return validate_gcps(table, source=f"GCP layer {source.sourceName()!r}", dem=dem) if changed else table
+
+    def _chosen_fields(self, parameters, context, names) -> Dict[str, str]:
+        """``{engine column: layer field}`` of the field parameters; a required or explicitly chosen field the layer
+        lacks is an error naming the layer's fields."""
+        chosen = {}
+        for param, key, required in ((self.SAMPLE_FIELD, "sample", True), (self.LINE_FIELD, "line", True),
+                                     (self.HEIGHT_FIELD, "h", False), (self.ID_FIELD, "id", False),
+                                     (self.ROLE_FIELD, "role", False), (self.SIGMA_FIELD, "sigma", False)):
+            if self.parameterDefinition(param) is None:
+                continue
+            field = self.parameterAsString(parameters, param, context)
+            if not field:
+                if required:
+                    raise QgsProcessingException(self.tr(f"Choose the GCP layer's {key} field ({param})."))
+                continue
+            if field not in names:
+                explicit = param in parameters and parameters[param] not in (None, "")
+                if required or explicit:
+                    raise QgsProcessingException(self.tr(
+                        f"The GCP layer has no field '{field}' ({param}); its fields are: {', '.join(names)}. "
+                        f"Choose the field holding the {key} values."))
+                continue  # an optional field left at its default name that the layer does not have
+            chosen[key] = field
+        return chosen
 
     def push_warnings(self, feedback, rep) -> None:
         """Send the workflow report's ``notes`` and ``warnings`` (lists of one-line str) to the Processing log."""
@@ -492,6 +588,12 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         """Open ``uri`` as a layer (with its default style, or the QML text ``style``) in the project when the
         algorithm finishes."""
         self._to_load.append((uri, name, kind) if style is None else (uri, name, kind, style))
+
+    def name_output_layer(self, context, destination: str, image: str) -> None:
+        """Name the raster output Processing loads ``<image stem> ortho`` (not the parameter's label)."""
+        if destination and context.willLoadLayerOnCompletion(destination):
+            stem = os.path.splitext(os.path.basename(image.split("|")[0]))[0]
+            context.layerToLoadOnCompletionDetails(destination).name = f"{stem} ortho"
 
     def load_gpkg_on_completion(self, path: str, layers=("footprint", "residual_vectors_before",
                                                          "residual_vectors", "gcps")) -> None:
@@ -535,6 +637,14 @@ class Gf4calAlgorithm(QgsProcessingAlgorithm):
         self._created, self._created_dirs = [], []
 
     # ---- running -------------------------------------------------------------------------------------------
+    def checkParameterValues(self, parameters, context):
+        # An ASP .gcp or a QGIS .points file is no layer QGIS opens: the engine reads it (read_gcps).
+        value = parameters.get(self.GCPS) if self.parameterDefinition(self.GCPS) is not None else None
+        if isinstance(value, str) and os.path.isfile(value) and \
+                os.path.splitext(value)[1].lower() in SELF_DESCRIBED_GCP_EXTS:
+            parameters = {k: v for k, v in parameters.items() if k != self.GCPS}
+        return super().checkParameterValues(parameters, context)
+
     def run_algorithm(self, parameters: Dict[str, Any], context, feedback,
                       progress: FeedbackProgress) -> Dict[str, Any]:
         raise NotImplementedError

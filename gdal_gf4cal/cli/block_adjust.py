@@ -1,9 +1,12 @@
 """``gf4cal block-adjust``: multi-CCD / band-to-band block calibration of one group from its RPC images (METHODS §8)."""
 from __future__ import annotations
 
+from .ortho import add_geoid_argument
+
 NAME = "block-adjust"
-HELP = ("Block calibration of one multi-CCD group (METHODS §8): recalibrated RPCs per CCD image and band (seams "
-        "removed, bands registered), calibration.json, report.json, residuals.gpkg and seams.png in --out.")
+HELP = ("Block calibration of one multi-CCD group (Wu et al., Jilin1-KF01A): recalibrated RPCs per CCD image "
+        "and band (seams removed, bands registered), calibration.json, report.json, residuals.gpkg and seams.png "
+        "in --out.")
 
 
 def add_parser(parser):
@@ -12,8 +15,7 @@ def add_parser(parser):
                              "track (adjacent ones overlap), then the other bands' images (see --bands-of)")
     parser.add_argument("--dem", required=True, help="DEM (any GDAL raster) or a constant height in metres: "
                                                      "tie-point heights")
-    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
-                                        "(default: ellipsoidal)")
+    add_geoid_argument(parser)
     parser.add_argument("--gcps", metavar="OBS", help="GCP observations (CSV/GeoPackage: point_id,image,sample,line,"
                                                       "lon,lat,h[,role][,sigma]; image = the image's file or folder "
                                                       "name)")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import sys
 
+from .ortho import add_geoid_argument
+
 NAME = "calibrate-lookangle"
 HELP = ("Calibrate the detector look-angle model (GF4-type area array) from a scene's RPC, its camera file and "
         "GCPs; write camera_new.json, the recalibrated RPC (.RPB, VRT), residuals and report.json.")
@@ -24,8 +26,7 @@ def add_parser(parser):
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
     parser.add_argument("--image", help="the scene's image: also write DIR/<image>.vrt carrying the new RPC")
     parser.add_argument("--dem", help="DEM for GCPs without height")
-    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
-                        "(default: what the DEM's CRS declares, else ellipsoidal; 'none' never converts)")
+    add_geoid_argument(parser)
     parser.add_argument("--no-robust", action="store_true", help="plain least squares: no blunder detection")
     parser.add_argument("--max-condition", type=float, default=None,
                         help="refuse GCP layouts whose condition number exceeds this (default 1e6)")

@@ -1,6 +1,8 @@
 """``gf4cal collect-gcps``: automatic GCPs by matching a raw image against a reference orthophoto + DEM (issue 7)."""
 from __future__ import annotations
 
+from .ortho import add_geoid_argument
+
 NAME = "collect-gcps"
 HELP = ("Collect GCPs automatically: sub-pixel matching of the raw image (with its RPC) against a reference "
         "orthophoto and a DEM; writes a GCP table that refine and calibrate-lookangle read directly.")
@@ -12,8 +14,7 @@ def add_parser(parser):
     parser.add_argument("--reference", required=True, metavar="ORTHO",
                         help="reference orthophoto: any GDAL raster with a CRS (overviews are used when finer)")
     parser.add_argument("--dem", required=True, help="DEM (any GDAL raster, any CRS) or a constant height in metres")
-    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
-                        "(default: what the DEM's CRS declares, else ellipsoidal; 'none' never converts)")
+    add_geoid_argument(parser)
     parser.add_argument("--rpc", help="read the RPC from this file instead of the image")
     parser.add_argument("--out", required=True, help="output GCP table: .gpkg, .csv or .geojson")
     parser.add_argument("--spacing", type=int, default=256, metavar="PX", help="grid step in pixels (default 256)")

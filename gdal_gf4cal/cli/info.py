@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 
+from .ortho import add_geoid_argument
+
 NAME = "info"
 HELP = "Describe the RPC of an image or sidecar: offsets, footprint, approximate GSD, height range."
 
@@ -12,8 +14,7 @@ def add_parser(parser):
     from . import add_rpc_argument
     add_rpc_argument(parser)
     parser.add_argument("--dem", help="DEM to localise the footprint corners on (default: at HEIGHT_OFF)")
-    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
-                        "(default: what the DEM's CRS declares, else ellipsoidal; 'none' never converts)")
+    add_geoid_argument(parser)
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
 
 

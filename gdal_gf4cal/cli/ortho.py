@@ -1,17 +1,19 @@
-"""``gf4cal ortho``: orthorectify an image with its (refined) RPC over a DEM made ellipsoidal (METHODS §2, §4.2)."""
+"""``gf4cal ortho``: orthorectify an image with its (refined) RPC over a DEM made ellipsoidal."""
 from __future__ import annotations
 
 NAME = "ortho"
 HELP = ("Orthorectify an image with its RPC (or a refined one, --rpc) over a DEM with GDAL's warper; heights above "
         "a geoid are made ellipsoidal first (the grid is found through PROJ), else the run is refused.")
 
-GEOID_HELP = ("what the DEM's heights are above: auto (default: what the DEM's CRS declares), none (use them as they "
-              "are), egm96, egm2008, or the PATH of a geoid grid (.gtx/.tif)")
+#: One ``--geoid`` for every command, the words and order of the QGIS "DEM heights are" choice.
+GEOID_HELP = ("what the DEM's heights are above: auto (default: what the DEM's CRS declares, ellipsoidal when it "
+              "declares none), egm96, egm2008, none (ellipsoidal: never converted), or the PATH of a geoid grid "
+              "(.gtx/.tif)")
 
 
-def add_geoid_argument(parser, default="auto"):
-    """The ``--geoid`` option shared by ``ortho`` and ``refine``."""
-    parser.add_argument("--geoid", default=default, metavar="none|egm96|egm2008|PATH|auto", help=GEOID_HELP)
+def add_geoid_argument(parser):
+    """The ``--geoid`` option of every command taking a DEM (same words, order and default everywhere)."""
+    parser.add_argument("--geoid", default="auto", metavar="auto|egm96|egm2008|none|PATH", help=GEOID_HELP)
 
 
 def add_ortho_arguments(parser, out_required=True):

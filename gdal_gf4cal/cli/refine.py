@@ -1,6 +1,8 @@
 """``gf4cal refine``: bias-compensate the RPC of an image with GCPs and write the refined RPC (METHODS §4)."""
 from __future__ import annotations
 
+from .ortho import add_geoid_argument
+
 NAME = "refine"
 HELP = ("Refine an image's RPC with GCPs (translation, shift-drift, affine, poly2 or detector-poly) and write "
         "it as .RPB, _RPC.TXT or a VRT over the untouched image.")
@@ -25,8 +27,7 @@ def add_parser(parser):
     parser.add_argument("--ccd-axis", choices=("sample", "line"), default="sample",
                         help="detector-poly: image axis along the CCD line (default sample)")
     parser.add_argument("--dem", help="DEM for GCPs without height")
-    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
-                        "(default: what the DEM's CRS declares, else ellipsoidal; 'none' never converts)")
+    add_geoid_argument(parser)
     parser.add_argument("--gcp-crs", help="CRS of the GCPs' map coordinates when the file does not say")
     from . import add_gcp_reader_arguments
     add_gcp_reader_arguments(parser)

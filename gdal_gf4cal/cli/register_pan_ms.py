@@ -3,9 +3,12 @@ from __future__ import annotations
 
 import sys
 
+from .ortho import add_geoid_argument
+
 NAME = "register-pan-ms"
-HELP = ("Register a multispectral image to its panchromatic image (sub-CCD jumps, attitude, jitter; METHODS §9): "
-        "write correction.tif, ms_on_pan.tif (for gdal_pansharpen.py), model.json, ms_approx.RPB, report.json, "
+HELP = ("Register a multispectral image to its panchromatic image (sub-CCD jumps, attitude, jitter; Zhang et "
+        "al. 2023): write correction.tif, ms_on_pan.tif (for gdal_pansharpen.py), model.json, ms_approx.RPB, "
+        "report.json, "
         "cells.gpkg and plots.")
 
 
@@ -13,8 +16,7 @@ def add_parser(parser):
     parser.add_argument("pan", metavar="PAN", help="panchromatic image with its RPC (raw product)")
     parser.add_argument("ms", metavar="MS", help="multispectral image of the same scene with its RPC")
     parser.add_argument("--dem", required=True, help="DEM covering the scene (SRTM is enough) or a height in m")
-    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
-                        "(default: what the DEM's CRS declares, else ellipsoidal; 'none' never converts)")
+    add_geoid_argument(parser)
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
     parser.add_argument("--sub-ccds", type=int, default=None, metavar="N",
                         help="N equal sub-CCDs per band, counted on the full product when the crop's place in it is "

@@ -12,7 +12,7 @@ import numpy as np
 from .._gdal import with_quiet_errors
 from ..errors import CancelledError, GCPError, Gf4calError
 from ._common import _as_bool_array, STANDARD_BEFORE, STANDARD_AFTER, PathLike, _temp_path, _cleanup, _column, _lonlat, _residual_pair, _transformer, _pixel_size, _nice
-from .styles import _class_breaks, _vector_style, _points_style, _footprint_style, _sld
+from .styles import _class_breaks, _vector_style, _points_style, _footprint_style, _sld, seams_style
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -679,8 +679,11 @@ def write_points_layer(path: PathLike, layer: str, columns: Mapping[str, np.ndar
     try:
         if ds.StartTransaction() != 0:
             raise Gf4calError(f"cannot write the GeoPackage {path}; check the folder is writable")
-        lyr = _create_layer(ds, layer, srs, ogr.wkbPoint, fields, description)
-        qml, sld = _points_style()
+        if layer == "seams":       # seam offsets: graduated arrows, the factor in the title (styles.seams_style)
+            qml, sld, title, _ = seams_style(cols, lon, lat)
+        else:
+            (qml, sld), title = _points_style(), None
+        lyr = _create_layer(ds, layer, srs, ogr.wkbPoint, fields, description, identifier=title)
         _write_layer_styles(ds, [(layer, lyr.GetGeometryColumn(), qml, _sld(layer, sld), description)])
         if ds.CommitTransaction() != 0:
             raise Gf4calError(f"cannot write the GeoPackage {path} (the commit failed: disk full?)")

@@ -171,46 +171,71 @@ def plot_seams(seams, path: PathLike, *, residual_rms=None, title: str = "Seams 
 
     ``seams``: the list of :func:`gdal_gf4cal.block.seam_offsets` (each with ``pair`` and ``points``: ``line_b``,
     ``ds_before``, ``dl_before``, ``ds_after``, ``dl_after``, px). Left panels: sample and line offset of each
-    overlap's tie points against their line (before faded, after solid). ``residual_rms``: ``{image: (before,
-    after)}`` planar RMS px, drawn as bars on the right.
+    overlap's tie points against their line (before faded, after solid), one colour per pair, the legend below
+    the panels (never over the data). ``residual_rms``: ``{image: (before, after)}`` planar RMS px, drawn as bars
+    on the right.
     """
+    return _save(seams_figure(seams, residual_rms=residual_rms, title=title, dpi=dpi), path)
+
+
+def pair_colours(n: int) -> list:
+    """``n`` distinct colours (hex): matplotlib's tab10 / tab20 up to 20, else evenly spaced hues of a perceptual
+    cyclic map; never a repeated colour."""
+    from matplotlib import colormaps
+    from matplotlib.colors import to_hex
+    if n <= 10:
+        return [to_hex(c) for c in colormaps["tab10"].colors[:n]]
+    if n <= 20:
+        return [to_hex(c) for c in colormaps["tab20"].colors[:n]]
+    cmap = colormaps["twilight_shifted"] if n > 60 else colormaps["hsv"]
+    return [to_hex(cmap(k / n)) for k in range(n)]
+
+
+def seams_figure(seams, *, residual_rms=None, title: str = "Seams between adjacent CCDs", dpi: int = 110):
+    """The figure of :func:`plot_seams` (a matplotlib ``Figure``, not saved)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     ncol = 3 if residual_rms else 2
-    fig = Figure(figsize=(5.0 * ncol, 4.6), dpi=dpi)
+    drawn = [s for s in seams if s.get("points")]
+    legend_rows = -(-len(drawn) // 4) if drawn else 0
+    fig = Figure(figsize=(5.0 * ncol, 4.6 + 0.22 * legend_rows), dpi=dpi)
     FigureCanvasAgg(fig)
     axes = [fig.add_subplot(1, ncol, i + 1) for i in range(ncol)]
-    colours = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f"]
-    for k, entry in enumerate(s for s in seams if s.get("points")):
+    handles = []
+    for entry, c in zip(drawn, pair_colours(len(drawn))):
         p = entry["points"]
-        c = colours[k % len(colours)]
-        label = f"{entry['pair'][0]} | {entry['pair'][1]}"
         for ax, key in zip(axes[:2], ("ds", "dl")):
             ax.plot(p["line_b"], p[f"{key}_before"], ".", color=c, alpha=0.25, ms=3)
-            ax.plot(p["line_b"], p[f"{key}_after"], "o", color=c, ms=3, label=label + " (after)")
+            h, = ax.plot(p["line_b"], p[f"{key}_after"], "o", color=c, ms=3,
+                         label=f"{entry['pair'][0]} | {entry['pair'][1]}")
+        handles.append(h)
     for ax, name in zip(axes[:2], ("sample", "line")):
         ax.axhline(0.0, color="k", lw=0.6)
         ax.set_xlabel("line (right image of the pair)")
         ax.set_ylabel(f"{name} offset, px (faded: before)")
         ax.set_title(f"{name} seam offset")
-    if seams:
-        axes[0].legend(fontsize=7, loc="best")
     if residual_rms:
-        names = list(residual_rms)
-        before = [residual_rms[n][0] for n in names]
-        after = [residual_rms[n][1] for n in names]
-        xs = np.arange(len(names))
-        axes[2].bar(xs - 0.2, before, 0.4, color="#bbbbbb", label="before")
-        axes[2].bar(xs + 0.2, after, 0.4, color="#1f4fd1", label="after")
-        axes[2].set_xticks(xs)
-        axes[2].set_xticklabels(names, rotation=90, fontsize=7)
-        axes[2].set_yscale("log")
-        axes[2].set_ylabel("planar RMS residual, px")
-        axes[2].set_title("residuals per CCD and band")
-        axes[2].legend(fontsize=7)
+        _residual_bars(axes[2], residual_rms)
     fig.suptitle(title)
-    fig.tight_layout()
-    return _save(fig, path)
+    bottom = 0.0
+    if handles:          # below the panels, outside every axes: one entry (and colour) per pair
+        bottom = min(0.45, (0.22 * legend_rows + 0.15) / fig.get_figheight())
+        fig.legend(handles=handles, loc="lower center", ncol=min(4, len(handles)), fontsize=7, frameon=False,
+                   title="overlap (left | right image): after; faded: before", title_fontsize=7)
+    fig.tight_layout(rect=(0.0, bottom, 1.0, 1.0))
+    return fig
+
+
+def _residual_bars(ax, residual_rms) -> None:
+    names = list(residual_rms)
+    xs = np.arange(len(names))
+    ax.bar(xs - 0.2, [residual_rms[n][0] for n in names], 0.4, color="#bbbbbb", label="before")
+    ax.bar(xs + 0.2, [residual_rms[n][1] for n in names], 0.4, color="#1f4fd1", label="after")
+    ax.set_xticks(xs)
+    ax.set_xticklabels(names, rotation=90, fontsize=7)
+    ax.set_yscale("log")
+    ax.set_ylabel("planar RMS residual, px (grey: before, blue: after)")
+    ax.set_title("residuals per CCD and band")
 
 
 def plot_tie_residuals(table, path: PathLike, *, sizes=None, title: str = "Tie residuals per view",

@@ -149,6 +149,78 @@ def _points_style() -> Tuple[str, str]:
     return qml, "".join(sld)
 
 
+def seams_ground_scale(columns: Mapping[str, Any], lon, lat) -> Tuple[float, float]:
+    """(ground metres per pixel, median metres between neighbouring tie points) of a seams layer, from its points:
+    along each pair's seam (``pair``), the ground distance between consecutive points (sorted by ``line_b``) over
+    their line difference. NaN when no pair has two points on different lines."""
+    from ..geodesy import metres_per_degree
+    lon, lat = np.asarray(lon, float), np.asarray(lat, float)
+    pair = np.asarray(columns["pair"]).astype(str)
+    line = np.asarray(columns["line_b"], float)
+    order = np.lexsort((line, pair))
+    p, ln, x, y = pair[order], line[order], lon[order], lat[order]
+    same = (p[1:] == p[:-1]) & (np.abs(np.diff(ln)) > 0.5)
+    mx, my = metres_per_degree(0.5 * (y[1:] + y[:-1]))
+    step = np.hypot(np.diff(x) * mx, np.diff(y) * my)
+    if not np.any(same):
+        return float("nan"), float("nan")
+    return (float(np.median(step[same] / np.abs(np.diff(ln))[same])), float(np.median(step[same])))
+
+
+def seams_style(columns: Mapping[str, Any], lon, lat) -> Tuple[str, str, str, float]:
+    """QGIS style of block calibration's ``seams`` point layer (one feature per overlap tie point, fields ``pair,
+    line_b, ds_after, dl_after, offset_px_after, ...``): graduated by ``offset_px_after`` (the seam offset left
+    after calibration, px), each tie point a dot with an arrow of its after-offset (sample -> east, line -> south,
+    as the residual layers) drawn on the ground with ONE exaggeration, chosen so the longest regular arrow is about
+    1.5 times the spacing of the tie points. Returns ``(qml, sld, title, factor)``; the title states the factor as
+    the residual layers' titles do (``"seams after (x2500)"``); without a ground scale (a single point per pair) the
+    factor is metres drawn per pixel of offset (``"seams after (1 px = 50 m)"``)."""
+    from ..geodesy import metres_per_degree
+    mag = np.asarray(columns["offset_px_after"], float)
+    gsd, spacing = seams_ground_scale(columns, lon, lat)
+    finite = mag[np.isfinite(mag)]
+    longest = float(np.percentile(finite, 99)) if finite.size else 0.0
+    if not (np.isfinite(spacing) and spacing > 0):
+        w, so, e, n = np.nanmin(lon), np.nanmin(lat), np.nanmax(lon), np.nanmax(lat)
+        mx, my = metres_per_degree(0.5 * (so + n))
+        spacing = 0.05 * max(float(np.hypot((e - w) * mx, (n - so) * my)), 1.0)
+    metres_per_px = _nice(1.5 * spacing / longest) if longest > 0 else _nice(spacing)
+    if np.isfinite(gsd) and gsd > 0:
+        factor = _nice(metres_per_px / gsd)
+        metres_per_px, title = factor * gsd, f"seams after (x{factor:g})"
+    else:
+        factor, title = metres_per_px, f"seams after (1 px = {metres_per_px:g} m)"
+    mpd_lat = float(metres_per_degree(float(np.nanmean(lat)))[1])
+    k = metres_per_px / mpd_lat          # degrees of latitude per pixel of offset (longitude: / cos(lat))
+    expr = (f'make_line($geometry, make_point($x + "ds_after" * {k:.10g} / cos(radians($y)), '
+            f'$y - "dl_after" * {k:.10g}))')
+    breaks = _class_breaks(mag)
+    ranges, symbols, rules = [], [], []
+    for i in range(len(breaks) - 1):
+        lo, hi = breaks[i], breaks[i + 1]
+        label = f"{lo:g} - {hi:g} px" if i < len(breaks) - 2 else f">= {lo:g} px"
+        ranges.append(f'<range lower="{lo:.10g}" upper="{hi:.10g}" symbol="{i}" label={quoteattr(label)} '
+                      'render="true"/>')
+        arrow = _layer("GeometryGenerator", {"SymbolType": "Line", "geometryModifier": expr, "units": "MapUnit"},
+                       _arrow_symbol(f"@{i}@0", _RAMP[i]))
+        dot = _marker_symbol(str(i), "circle", _RAMP[i], 1.6)
+        symbols.append(dot.replace('<layer class="SimpleMarker"', arrow + '<layer class="SimpleMarker"', 1))
+        rules.append(
+            f"<se:Rule><se:Name>{escape(label)}</se:Name><ogc:Filter><ogc:And>"
+            f"<ogc:PropertyIsGreaterThanOrEqualTo><ogc:PropertyName>offset_px_after</ogc:PropertyName>"
+            f"<ogc:Literal>{lo:.10g}</ogc:Literal></ogc:PropertyIsGreaterThanOrEqualTo>"
+            f"<ogc:PropertyIsLessThan><ogc:PropertyName>offset_px_after</ogc:PropertyName>"
+            f"<ogc:Literal>{hi:.10g}</ogc:Literal></ogc:PropertyIsLessThan></ogc:And></ogc:Filter>"
+            f"<se:PointSymbolizer><se:Graphic><se:Mark><se:WellKnownName>circle</se:WellKnownName><se:Fill>"
+            f'<se:SvgParameter name="fill">{_RAMP[i]}</se:SvgParameter></se:Fill></se:Mark>'
+            f"<se:Size>6</se:Size></se:Graphic></se:PointSymbolizer></se:Rule>")
+    qml = _qml('<renderer-v2 type="graduatedSymbol" attr="offset_px_after" graduatedMethod="GraduatedColor" '
+               'symbollevels="0" forceraster="0" enableorderby="0" referencescale="-1">'
+               f"<ranges>{''.join(ranges)}</ranges><symbols>{''.join(symbols)}</symbols>"
+               '<mode name="equal"/><rotation/><sizescale/></renderer-v2>')
+    return qml, "".join(rules), title, factor
+
+
 def _footprint_style() -> Tuple[str, str]:
     fill = _symbol("fill", "0", _layer("SimpleFill", {
         "color": _rgba(_FOOTPRINT_COLOUR, 30), "style": "solid", "outline_color": _rgba(_FOOTPRINT_COLOUR),

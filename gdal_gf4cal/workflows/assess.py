@@ -51,7 +51,8 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
     from ..compensation import ground_offsets_m
     from ..gcp import read_gcps, validate_gcps
     from ..progress import report as _report
-    from ..report import footprint_from_rpc, plot_residuals, write_report_json, write_residuals_gpkg
+    from ..report import plot_residuals, write_report_json, write_residuals_gpkg
+    from .ortho import scene_footprint
     from ..rpc import RPCModel
 
     src_name = None if isinstance(source, RPCModel) else os.fspath(source)
@@ -102,7 +103,7 @@ def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[s
         if residuals:
             footprint = None
             if image_size is not None:
-                footprint = footprint_from_rpc(rpc, image_size, h=float(rpc.height_off))
+                footprint = scene_footprint(rpc, image_size, dem_obj)         # on the DEM when given
             write_residuals_gpkg(table, outs.tmp("residuals"), footprint=footprint, before=("res_sample", "res_line"),
                                  after=None, title="RPC accuracy", cancelled=outs.cancelled)
             outs.set_check("residuals", check_vector({"gcps": len(table)}))

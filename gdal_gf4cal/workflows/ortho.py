@@ -1,7 +1,8 @@
 """``gf4cal ortho`` / QGIS "Orthorectify": an orthoimage from an image, its (refined) RPC and a DEM (METHODS §2, §4.2).
 
-GDAL does the warping (``gdal.Warp`` with the RPC transformer and ``RPC_DEM``, multithreaded, tiled and compressed
-GeoTIFF). This module makes sure the DEM GDAL samples holds ELLIPSOIDAL heights: when the DEM's heights are above a
+GDAL does the warping (``gdal.Warp`` with the RPC transformer and ``RPC_DEM``, multithreaded, into a warped VRT with
+an alpha band, written by ``gdal.Translate`` as a tiled, compressed GeoTIFF with a no-data value, the alpha as an
+internal mask and internal overviews: no black collar, fast to pan). This module makes sure the DEM GDAL samples holds ELLIPSOIDAL heights: when the DEM's heights are above a
 geoid (declared by its compound CRS, ``geoid="auto"``, or named with ``geoid=``) it writes a temporary ellipsoidal
 GeoTIFF over the image footprint (the DEM's own grid, ``h = H + N`` at each pixel centre through PROJ's grid of that
 geoid) and warps with it; GDAL's own vertical handling is switched off (``RPC_DEM_APPLY_VDATUM_SHIFT=FALSE``), so a
@@ -23,6 +24,51 @@ from ._common import _open_image, cancel_check, collect_warnings, finish_report
 RESAMPLING = ("near", "bilinear", "cubic", "cubicspline", "lanczos", "average", "mode")
 #: Creation options of the ortho: tiled, compressed, BigTIFF when needed (COG-friendly layout).
 CREATION_OPTIONS = ["TILED=YES", "BLOCKXSIZE=512", "BLOCKYSIZE=512", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"]
+#: Overviews are built (factors 2, 4, 8, ...) until the smaller side is at most this many pixels.
+OVERVIEW_MIN_SIZE = 256
+
+
+def overview_factors(width: int, height: int, min_size: int = OVERVIEW_MIN_SIZE) -> list:
+    """Overview decimation factors 2, 4, 8, ... until the smaller side of the coarsest level is <= ``min_size`` px
+    (none for a raster already that small)."""
+    factors, f = [], 2
+    while min(width, height) / (f // 2) > min_size:
+        factors.append(f)
+        f *= 2
+    return factors
+
+
+def _write_ortho(warped, out_path: str, resampling: str, callback) -> Dict[str, Any]:
+    """The warped VRT (image bands + alpha) written as the ortho GeoTIFF: tiled, compressed, the image bands with a
+    no-data value (the source's, else 0) and the alpha as an internal per-dataset mask (QGIS and GDAL draw no
+    collar), internal overviews of the bands and the mask. Returns ``res_m``, ``size_px``, ``nodata``,
+    ``overviews`` and ``empty`` (no valid pixel)."""
+    from osgeo import gdal
+    from ..outputs import raster_has_data
+    if warped is None:
+        raise Gf4calError("gdal.Warp failed without a message")
+    n = warped.RasterCount - 1                          # the last band is the alpha
+    nodata = warped.GetRasterBand(1).GetNoDataValue()
+    nodata = 0.0 if nodata is None else float(nodata)
+    prev = gdal.GetThreadLocalConfigOption("GDAL_TIFF_INTERNAL_MASK", None)
+    gdal.SetThreadLocalConfigOption("GDAL_TIFF_INTERNAL_MASK", "YES")
+    try:
+        ds = gdal.Translate(out_path, warped, format="GTiff", bandList=list(range(1, n + 1)), maskBand=n + 1,
+                            noData=nodata, creationOptions=CREATION_OPTIONS,
+                            callback=lambda f, m, d: callback(0.9 * f, m, d))
+        if ds is None:
+            raise Gf4calError("writing the ortho failed without a message")
+        factors = overview_factors(ds.RasterXSize, ds.RasterYSize)
+        if factors:
+            method = {"near": "NEAREST", "mode": "MODE"}.get(resampling, "AVERAGE")
+            ds.BuildOverviews(method, factors, callback=lambda f, m, d: callback(0.9 + 0.1 * f, m, d))
+        gt = ds.GetGeoTransform()
+        out = {"res_m": float(abs(gt[1])), "size_px": [ds.RasterXSize, ds.RasterYSize], "nodata": nodata,
+               "overviews": len(factors), "empty": not raster_has_data(ds)}
+        ds = None
+    finally:
+        gdal.SetThreadLocalConfigOption("GDAL_TIFF_INTERNAL_MASK", prev)
+    return out
 
 
 def utm_epsg(lon_deg: float, lat_deg: float) -> int:
@@ -54,6 +100,19 @@ def footprint_lonlat(rpc, image_size: Tuple[int, int], h_range_m: Tuple[float, f
     w, e, so, n = lon.min(), lon.max(), lat.min(), lat.max()
     dx, dy = (e - w) * margin + 1e-4, (n - so) * margin + 1e-4
     return (float(w - dx), float(so - dy), float(e + dx), float(n + dy))
+
+
+def scene_footprint(rpc, image_size, dem=None):
+    """The scene footprint polygon (lon/lat) of the residual GeoPackages: the image border localised on ``dem``
+    (its lines of sight intersected with the DEM, as the ortho is warped: within a pixel of the ortho's valid
+    area), border points beyond the DEM at the RPC's HEIGHT_OFF; without a DEM at HEIGHT_OFF. None when the border
+    does not localise."""
+    from ..report import footprint_from_rpc
+    h0 = float(rpc.height_off)
+    try:
+        return footprint_from_rpc(rpc, image_size, h=h0 if dem is None else dem.with_nodata(h0))
+    except Gf4calError:
+        return None
 
 
 def write_ellipsoidal_dem(dem_path: str, grid: str, bounds_lonlat, out_path: str) -> str:
@@ -248,7 +307,8 @@ def orthorectify(image, *, dem, out, rpc=None, geoid="auto", crs="utm", res_m: O
     image : a raster GDAL opens (its own RPC is used unless ``rpc`` is given)
     dem : DEM path (any CRS); ``geoid`` says what its heights are above: ``"auto"`` (default: what its CRS
         declares), ``"none"`` (use as they are), ``"egm96"``, ``"egm2008"`` or a grid path
-    out : output GeoTIFF (tiled, deflate-compressed); never an input; an existing file only with ``overwrite``
+    out : output GeoTIFF (tiled, deflate-compressed, a no-data value and an internal mask of the valid area,
+        internal overviews); never an input; an existing file only with ``overwrite``
     rpc : optional RPC source (refined ``.vrt``, ``.RPB``, ``_RPC.TXT``, ...) replacing the image's own
     crs : output CRS (``"utm"``: the UTM zone of the scene centre; else ``EPSG:XXXX`` or any GDAL CRS string)
     res_m : output pixel size in CRS units (metres for UTM); default GDAL's choice (about the image's GSD)
@@ -260,7 +320,7 @@ def orthorectify(image, *, dem, out, rpc=None, geoid="auto", crs="utm", res_m: O
     -------
     dict
         ``input``, ``rpc``, ``dem``, ``geoid`` (``{"name", "grid"}``, absent when heights are used as they are),
-        ``crs``, ``res_m``, ``size_px``, ``resampling``, ``outputs``, ``warnings``, ``notes`` (e.g. the crop origin
+        ``crs``, ``res_m``, ``size_px``, ``nodata``, ``overviews`` (number of levels), ``resampling``, ``outputs``, ``warnings``, ``notes`` (e.g. the crop origin
         applied, :func:`gdal_gf4cal.crop.image_rpc`).
         Raises :class:`~gdal_gf4cal.geoid.GeoidGridMissing` (nothing written) when a geoid cannot be applied; a
         :class:`Gf4calError` (nothing written) for an output CRS that cannot hold the scene, a resolution coarser than
@@ -312,7 +372,8 @@ def warp_ortho(image: str, image_size, model, dem: str, grid: Optional[str], out
     """Warp ``image`` (with ``model`` as its RPC, or its own when None) over ``dem`` into ``out_path`` (a temporary
     of an :class:`OutputSet`); ``grid``: the geoid grid making the DEM ellipsoidal (None: heights used as they are).
 
-    Returns the ortho part of the report: ``geoid`` (when applied), ``crs``, ``res_m``, ``size_px``, ``resampling``.
+    Returns the ortho part of the report: ``geoid`` (when applied), ``crs``, ``res_m``, ``size_px``, ``nodata``,
+    ``overviews``, ``resampling`` (the file: :func:`_write_ortho`).
     The output CRS and size are checked before anything is written (:func:`check_ortho_size`); a result without a
     valid pixel is refused.
     """
@@ -320,7 +381,7 @@ def warp_ortho(image: str, image_size, model, dem: str, grid: Optional[str], out
     from .. import progress as _progress
     from ..dem import DEM
     from ..rpc import RPCModel
-    from ..outputs import process_tempdir, raster_has_data
+    from ..outputs import process_tempdir
     from .._gdal import gdal_exceptions, open_raster
     rep: Dict[str, Any] = {}
     with process_tempdir("gf4cal_ortho_") as tmpdir:
@@ -352,35 +413,29 @@ def warp_ortho(image: str, image_size, model, dem: str, grid: Optional[str], out
 
         def _cb(fraction, _msg, _data):
             try:
-                _progress.report(progress, 0.1 + 0.85 * fraction, "warping")
+                _progress.report(progress, 0.1 + 0.85 * fraction, "warping" if fraction < 0.9 else "overviews")
             except CancelledError as exc:
                 cancelled.append(exc)
                 return 0
             return 1
 
-        opts = dict(format="GTiff", dstSRS=dst_srs, rpc=True, resampleAlg=resampling, multithread=True,
+        opts = dict(format="VRT", dstSRS=dst_srs, rpc=True, resampleAlg=resampling, multithread=True, dstAlpha=True,
                     transformerOptions=[f"RPC_DEM={dem_used}", "RPC_DEMINTERPOLATION=bilinear",
                                         "RPC_DEM_APPLY_VDATUM_SHIFT=FALSE"],
-                    warpOptions=["NUM_THREADS=ALL_CPUS"], creationOptions=CREATION_OPTIONS, callback=_cb)
+                    warpOptions=["NUM_THREADS=ALL_CPUS"])
         if res_m is not None:
             opts.update(xRes=float(res_m), yRes=float(res_m), targetAlignedPixels=True)
         try:
             with gdal_exceptions():
-                ds = gdal.Warp(out_path, src_path, **opts)
-                if ds is None:
-                    raise Gf4calError("gdal.Warp failed without a message")
-                gt = ds.GetGeoTransform()
-                rep["res_m"] = float(abs(gt[1]))
-                rep["size_px"] = [ds.RasterXSize, ds.RasterYSize]
-                empty = not cancelled and not raster_has_data(ds)
-                ds = None
+                rep.update(_write_ortho(gdal.Warp(os.path.join(tmpdir, "warped.vrt"), src_path, **opts), out_path,
+                                        resampling, _cb))
         except RuntimeError as exc:
             if cancelled:
                 raise cancelled[0] from None
             raise _warp_failure(exc, out_path) from None
         if cancelled:
             raise cancelled[0]
-        if empty:
+        if rep.pop("empty"):
             raise Gf4calError(f"the ortho came out without a single valid pixel: the image's RPC does not see the "
                               f"DEM {os.path.basename(dem)} (the DEM does not cover the scene, or the RPC is not the "
                               "image's); nothing was kept")

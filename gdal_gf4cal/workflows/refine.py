@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 from typing import Any, Dict, Optional, Sequence
 
-from ..errors import GCPError, Gf4calError
+from ..errors import GCPError
 from ..crop import image_rpc
 from ..outputs import OutputSet, check_not_a_shadowing_sidecar, check_vector, rpc_stem, same_file
 from ..dem import DEM
@@ -199,11 +199,9 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
                                       progress=_progress.scaled(progress, 0.9, 0.98), **(ortho_options or {}))
         title = f"GCP residuals, {result.model.label}"
         if residuals:
-            from ..report import footprint_from_rpc, write_residuals_gpkg
-            try:
-                fp = footprint_from_rpc(applied.rpc, image_size or rpc.image_size, h=float(rpc.height_off))
-            except Gf4calError:
-                fp = None
+            from ..report import write_residuals_gpkg
+            from .ortho import scene_footprint
+            fp = scene_footprint(applied.rpc, image_size or rpc.image_size, dem_obj)     # on the DEM, as the ortho
             write_residuals_gpkg(_with_ground_offsets(rpc, result.gcps), outs.tmp("residuals"), footprint=fp,
                                  title=title, cancelled=outs.cancelled)   # a cancel mid-write stops it
             outs.set_check("residuals", check_vector({"gcps": len(result.gcps)}))

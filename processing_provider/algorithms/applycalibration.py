@@ -1,4 +1,4 @@
-"""``gf4cal:applycalibration`` - recalibrate the RPCs of other scenes for a calibrated camera (METHODS §5 step 4)."""
+"""``gf4cal:applycalibration`` - recalibrate the RPCs of other scenes for a calibrated camera."""
 from __future__ import annotations
 
 from qgis.core import (
@@ -21,8 +21,9 @@ class ApplyCalibration(Gf4calAlgorithm):
     GROUP_ID = "calibration"
     HELP = ("Recalibrates the RPC of every scene made with the current camera for the new camera (from 'Calibrate "
             "camera look angles'): for ground grid points the old RPC gives the old image point, the two cameras "
-            "give the new one, and a new RPC is fitted (METHODS §5 step 4). Writes <scene>.RPB (and <scene>.vrt "
+            "give the new one, and a new RPC is fitted (Pi et al. 2023). Writes <scene>.RPB (and <scene>.vrt "
             "over each untouched image) and report.json with each fit error and how far the image moved.")
+    REFERENCES = ("pi", "tao")
 
     CURRENT_CAMERA = "CURRENT_CAMERA"
     NEW_CAMERA = "NEW_CAMERA"

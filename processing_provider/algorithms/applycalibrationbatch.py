@@ -1,5 +1,5 @@
 """``gf4cal:applycalibrationbatch`` - recalibrate the RPCs of many scenes for a calibrated camera, resumable, on
-threads or a Dask scheduler (METHODS §5 step 4, issue 14)."""
+threads or a Dask scheduler (issue 14)."""
 from __future__ import annotations
 
 from qgis.core import QgsProcessing, QgsProcessingParameterFile
@@ -15,6 +15,7 @@ class ApplyCalibrationBatch(BatchAlgorithm):
     HELP = ("Recalibrates the RPC of every scene made with the current camera for the new camera, as 'Apply a "
             "camera calibration to other scenes' does, scene by scene: <scene>.RPB (and <scene>.vrt over each "
             "untouched image) with, in the summary, how far each image moved and each refit's error." + BATCH_HELP)
+    REFERENCES = ("pi", "tao")
 
     CURRENT_CAMERA = "CURRENT_CAMERA"
     NEW_CAMERA = "NEW_CAMERA"

@@ -1,4 +1,4 @@
-"""``gf4cal:assessaccuracy`` - how well an RPC fits GCPs (METHODS §6): per-axis and planar statistics, CE90,
+"""``gf4cal:assessaccuracy`` - how well an RPC fits GCPs: per-axis and planar statistics, CE90,
 internal accuracy, per role, with the residuals as a styled GeoPackage."""
 from __future__ import annotations
 
@@ -17,10 +17,12 @@ class AssessAccuracy(Gf4calAlgorithm):
     GROUP_ID = "accuracy"
     HELP = ("Projects every GCP through the RPC and reports the residuals (measured - predicted, px): per axis mean, "
             "RMS, RMSE (spread about the mean) and max; planar RMS and CE90 in pixels and in ground metres; and the "
-            "internal accuracy, what remains after removing a rotation + translation (seed 000 eq. 8). Control and "
-            "check points are reported separately when the GCP layer has both roles. The GeoPackage holds the GCPs "
+            "internal accuracy, what remains after removing a rotation + translation (Pi et al. 2023, eq. 8). "
+            "Control and check points are reported separately when the GCP layer has both roles. The GeoPackage "
+            "holds the GCPs "
             "with their residuals and the residual arrows (sample -> east, line -> south, exaggerated by the factor "
             "stated in the layer).")
+    REFERENCES = ("pi",)
 
     def initAlgorithm(self, config=None):
         self.add_input_rpc()

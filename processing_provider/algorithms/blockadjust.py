@@ -1,5 +1,5 @@
 """``gf4cal:blockadjust`` - block calibration of one multi-CCD group from its RPC images: seams removed, bands
-registered (METHODS §8, seed 003; the same inputs as ``gf4cal block-adjust``)."""
+registered (Wu et al., Jilin1-KF01A; the same inputs as ``gf4cal block-adjust``)."""
 from __future__ import annotations
 
 
@@ -38,13 +38,14 @@ class BlockAdjust(Gf4calAlgorithm):
     GROUP_ID = "calibration"
     HELP = ("Calibrates one group of a multi-CCD push-broom camera delivered as one RPC image per CCD and band "
             "(e.g. Jilin-1 wide-field): an exterior shared by the group (roll, pitch, yaw, roll and pitch drift) and "
-            "a cubic interior per CCD and band, from GCPs and tie points, in one sparse adjustment (METHODS §8). "
+            "a cubic interior per CCD and band, from GCPs and tie points, in one sparse adjustment (Wu et al.). "
             "Adjacent CCDs then agree in their overlaps and the bands register. Writes into the output folder one "
             "recalibrated RPC per image (<image>.RPB, refit error reported), calibration.json (for 'Apply a camera "
             "calibration' to other scenes of the same group), report.json (seam offsets before/after, residuals "
             "per CCD and band, band-to-band registration), residuals.gpkg (per image its GCPs and residual vectors, "
             "and a 'seams' layer) and seams.png. Images are named in the tables by their file name without "
             "extension, or by their folder name when file names repeat (ccd1/scene.tif -> ccd1).")
+    REFERENCES = ("wu",)
 
     GCPS_FILE = "GCPS_FILE"
     TIES_FILE = "TIES_FILE"
@@ -85,7 +86,7 @@ class BlockAdjust(Gf4calAlgorithm):
                   "These bands are calibrated relatively (interior only, reference exterior fixed).")
         self.add_rpc_pairs_parameter()
         self._add(QgsProcessingParameterEnum(self.SOLVER, self.tr("Solver"), SOLVER_LABELS, defaultValue=0),
-                  "How the group is solved (METHODS §8).")
+                  "How the group is solved.")
         p = self._add(QgsProcessingParameterString(self.REFERENCE_CCD, self.tr("Reference CCD image (datum)"),
                                                    optional=True),
                       "The reference-band CCD image whose constant and linear interior terms are fixed (the datum); "

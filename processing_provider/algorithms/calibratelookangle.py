@@ -1,5 +1,5 @@
 """``gf4cal:calibratelookangle`` - calibrate an area-array camera's look angles from a scene's RPC and GCPs
-(METHODS §5, seed 000) and write the new camera file and the recalibrated RPC."""
+(Pi et al. 2023) and write the new camera file and the recalibrated RPC."""
 from __future__ import annotations
 
 import os
@@ -23,11 +23,12 @@ class CalibrateLookAngle(Gf4calAlgorithm):
     GROUP = "RPC calibration"
     GROUP_ID = "calibration"
     HELP = ("On-orbit calibration of an area-array camera's detector look-angle model (cubic in the detector "
-            "numbers) from one scene's RPC, the camera file the RPC was made with and GCPs (METHODS §5). Writes "
+            "numbers) from one scene's RPC, the camera file the RPC was made with and GCPs (Pi et al. 2023). Writes "
             "camera_new.json, the recalibrated RPC (<scene>.RPB, and <scene>.vrt over the untouched image when "
             "INPUT is an image), residuals.gpkg (styled GCPs and residual arrows), residuals.png, report.json and "
             "the GCPs used (gcps_used.csv). Without a vendor camera file, a nominal one (focal length, pixel size) "
             "gives an equally good recalibrated RPC.")
+    REFERENCES = ("pi", "tao")
 
     CAMERA = "CAMERA"
     ROBUST = "ROBUST"

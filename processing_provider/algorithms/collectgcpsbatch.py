@@ -4,16 +4,12 @@ from __future__ import annotations
 from qgis.core import (
     QgsProcessing,
     QgsProcessingParameterBoolean,
-    QgsProcessingParameterEnum,
     QgsProcessingParameterRasterLayer,
 )
 
 from ..batch import BATCH_HELP, BatchAlgorithm
 from .collectgcps import add_matching_parameters, matching_options
 
-GEOIDS = ["", "egm96", "egm2008", "none"]
-GEOID_LABELS = ["As the DEM's CRS declares (ellipsoidal when it declares none)", "Heights above EGM96",
-                "Heights above EGM2008", "Ellipsoidal heights (no conversion)"]
 
 
 class CollectGcpsBatch(BatchAlgorithm):
@@ -32,7 +28,6 @@ class CollectGcpsBatch(BatchAlgorithm):
     OUTLIER_MODEL = "OUTLIER_MODEL"
     KEEP_OUTLIERS = "KEEP_OUTLIERS"
     SEED = "SEED"
-    DEM_GEOID = "GEOID"
 
     def initAlgorithm(self, config=None):
         self.add_scenes_parameter(QgsProcessing.TypeRaster, "Raw images (with RPCs)",
@@ -41,10 +36,7 @@ class CollectGcpsBatch(BatchAlgorithm):
                   "Georeferenced reference image covering the scenes (any GDAL raster, any CRS).")
         self._add(QgsProcessingParameterRasterLayer(self.DEM, self.tr("DEM")),
                   "Height model covering the scenes (any GDAL raster, any CRS).")
-        p = self._add(QgsProcessingParameterEnum(self.DEM_GEOID, self.tr("DEM heights are"), GEOID_LABELS,
-                                                 defaultValue=0),
-                      "Vertical reference of the DEM: heights above a geoid are converted with PROJ's grid.")
-        p.setFlags(p.flags() | p.FlagAdvanced)
+        self.add_geoid_parameters()
         add_matching_parameters(self)
         self._add(QgsProcessingParameterBoolean(self.KEEP_OUTLIERS, self.tr("Keep flagged outliers"),
                                                 defaultValue=False),
@@ -59,7 +51,7 @@ class CollectGcpsBatch(BatchAlgorithm):
         dem = self.parameterAsRasterLayer(parameters, self.DEM, context)
         if ref is None or dem is None:
             raise self.error("Give the reference orthophoto (REFERENCE) and the DEM (DEM).")
-        opts = dict(geoid=GEOIDS[self.parameterAsEnum(parameters, self.DEM_GEOID, context)] or None,
+        opts = dict(geoid=self.geoid_choice(parameters, context),
                     keep_outliers=self.parameterAsBool(parameters, self.KEEP_OUTLIERS, context),
                     **matching_options(self, parameters, context))
         outputs, _ = self.run_batch_job(parameters, context, feedback, progress, lambda ex, pr, ow, folder:

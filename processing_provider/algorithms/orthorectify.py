@@ -1,4 +1,4 @@
-"""``gf4cal:orthorectify`` - an orthoimage from an image, its (refined) RPC and a DEM made ellipsoidal (METHODS §2)."""
+"""``gf4cal:orthorectify`` - an orthoimage from an image, its (refined) RPC and a DEM made ellipsoidal."""
 from __future__ import annotations
 
 from qgis.core import (
@@ -14,11 +14,6 @@ from qgis.core import (
 
 from ..base import Gf4calAlgorithm
 
-#: GEOID enum index -> engine choice (stable: the indices are part of the algorithm's interface).
-GEOIDS = ["auto", "none", "egm96", "egm2008"]
-GEOID_LABELS = ["As the DEM's CRS declares (ellipsoidal when it declares none)",
-                "Ellipsoidal heights (no conversion, whatever the CRS declares)",
-                "Heights above EGM96", "Heights above EGM2008"]
 RESAMPLINGS = ["near", "bilinear", "cubic", "cubicspline", "lanczos", "average", "mode"]
 
 
@@ -36,7 +31,6 @@ class Orthorectify(Gf4calAlgorithm):
             "GeoTIFF in the chosen CRS (default the UTM zone of the scene), loaded in the project.")
 
     RPC = "RPC"
-    GEOID_GRID = "GEOID_GRID"
     CRS = "CRS"
     RESOLUTION = "RESOLUTION"
     RESAMPLING = "RESAMPLING"
@@ -54,13 +48,7 @@ class Orthorectify(Gf4calAlgorithm):
                   "geotransform without CRS): the origin is applied and the log says so.")
         self._add(QgsProcessingParameterRasterLayer(self.DEM, self.tr("DEM")),
                   "Height model covering the scene (any GDAL raster, any CRS).")
-        self._add(QgsProcessingParameterEnum(self.GEOID, self.tr("DEM heights are"), GEOID_LABELS, defaultValue=0),
-                  "What the DEM's heights are above. 'As the DEM's CRS declares' converts heights above EGM96 or "
-                  "EGM2008 when the CRS says so and uses them as they are otherwise; 'Ellipsoidal heights' never "
-                  "converts.")
-        self._add(QgsProcessingParameterFile(self.GEOID_GRID, self.tr("Geoid grid file (optional)"), optional=True,
-                                             fileFilter="Geoid grids (*.tif *.gtx)"),
-                  "A geoid grid (.tif/.gtx) to use instead of PROJ's: the DEM's heights are above this geoid.")
+        self.add_geoid_parameters()
         self._add(QgsProcessingParameterCrs(self.CRS, self.tr("Output CRS (empty: UTM zone of the scene)"),
                                             optional=True),
                   "Map projection of the orthoimage; empty: the WGS84 UTM zone of the scene centre.")
@@ -88,8 +76,7 @@ class Orthorectify(Gf4calAlgorithm):
         if image is None or dem is None:
             raise self.error("Choose the image (INPUT) and the DEM (DEM).")
         rpc = self.parameterAsFile(parameters, self.RPC, context) or None
-        grid = self.parameterAsFile(parameters, self.GEOID_GRID, context)
-        geoid = grid or GEOIDS[self.parameterAsEnum(parameters, self.GEOID, context)]
+        geoid = self.geoid_choice(parameters, context)
         crs = self.parameterAsCrs(parameters, self.CRS, context)
         crs_text = crs.authid() or crs.toWkt() if crs.isValid() else "utm"
         res = self.parameterAsDouble(parameters, self.RESOLUTION, context)
@@ -107,6 +94,7 @@ class Orthorectify(Gf4calAlgorithm):
                 raise
             raise self.error(str(exc).replace("pass --force", "tick 'Write past the size limit' (FORCE)")) from None
         self.push_warnings(feedback, rep)
+        self.name_output_layer(context, out, image.source())
         g = rep.get("geoid")
         feedback.pushInfo(f"orthoimage {rep['size_px'][0]} x {rep['size_px'][1]} px of {rep['res_m']:.3f} in "
                           f"{rep['crs']}; " + (f"DEM heights above {g['name']} made ellipsoidal" if g else

@@ -1,4 +1,4 @@
-"""``gf4cal:refinerpc`` - bias-compensate an RPC with GCPs and write the refined RPC (METHODS §4)."""
+"""``gf4cal:refinerpc`` - bias-compensate an RPC with GCPs and write the refined RPC (Grodecki & Dial 2003)."""
 from __future__ import annotations
 
 from qgis.core import (
@@ -32,6 +32,7 @@ class RefineRpc(Gf4calAlgorithm):
             "the GCPs with residuals before/after, the residual vectors (arrows coloured by magnitude, direction "
             "sample -> east, line -> south, before and after exaggerated by one factor stated in the layer names, e.g. "
             "\"residuals after (x37)\") and the footprint.")
+    REFERENCES = ("grodecki", "fraser", "huang", "tao")
 
     MODEL = "MODEL"
     ORDER = "ORDER"
@@ -46,8 +47,8 @@ class RefineRpc(Gf4calAlgorithm):
         self.add_rpc_parameter()
         self.add_gcp_parameters()
         self._add(QgsProcessingParameterEnum(self.MODEL, self.tr("Compensation model"), MODEL_LABELS,
-                                             defaultValue=5),
-                  "Image-space correction estimated from the control points (METHODS §4.1, §4.3). Automatic "
+                                             defaultValue=MODELS.index("auto")),
+                  "Image-space correction estimated from the control points (Grodecki & Dial 2003). Automatic "
                   "compares translation, shift-drift, affine and poly2 by leave-one-out error and keeps the "
                   "simplest unless more parameters are significantly better; the log and report say why.")
         p = self._add(QgsProcessingParameterNumber(self.ORDER, self.tr("Detector polynomial order (1-6)"),
@@ -71,7 +72,7 @@ class RefineRpc(Gf4calAlgorithm):
                                                    QgsProcessingParameterNumber.Double, 10.0, minValue=0.001),
                       "Refuse a correction whose propagated 1-sigma uncertainty (parameter covariance x measured "
                       "noise) exceeds this anywhere in the image: a weak GCP layout (clustered, near-collinear) "
-                      "extrapolates; above 1 px a warning (METHODS §4, §6).")
+                      "extrapolates; above 1 px a warning.")
         p.setFlags(p.flags() | p.FlagAdvanced)
         self.add_plausibility_parameter()
         self._add(QgsProcessingParameterFileDestination(
@@ -149,6 +150,7 @@ class RefineRpc(Gf4calAlgorithm):
             feedback.pushInfo(f"RPC refitted on the corrected model: max error {rep['apply']['refit_max_px']:.2e} px")
         if out_ortho:
             outputs[self.OUTPUT_ORTHO] = out_ortho          # Processing loads it: the ortho, not the VRT
+            self.name_output_layer(context, out_ortho, source)
         elif out_rpc.lower().endswith(".vrt"):
             self.load_on_completion(out_rpc, "Refined RPC (VRT)", "raster")
         self.load_gpkg_on_completion(out_gpkg)

@@ -1,4 +1,4 @@
-"""``gf4cal:refinerpcbatch`` - refine the RPCs of many scenes, each with its own GCP table (METHODS §4, issue 14)."""
+"""``gf4cal:refinerpcbatch`` - refine the RPCs of many scenes, each with its own GCP table (issue 14)."""
 from __future__ import annotations
 
 from qgis.core import QgsProcessing, QgsProcessingParameterEnum, QgsProcessingParameterFile
@@ -18,6 +18,7 @@ class RefineRpcBatch(BatchAlgorithm):
             "<scene>.gpkg from the GCP folder (what 'Collect GCPs ... (many scenes)' writes): <scene>.RPB (or "
             "_RPC.TXT, or a VRT over the untouched image) and <scene>.report.json per scene, the accuracy before "
             "and after in the summary." + BATCH_HELP)
+    REFERENCES = ("grodecki", "fraser", "huang", "tao")
 
     GCP_FOLDER = "GCP_FOLDER"
     MODEL = "MODEL"
@@ -29,8 +30,10 @@ class RefineRpcBatch(BatchAlgorithm):
         self._add(QgsProcessingParameterFile(self.GCP_FOLDER, self.tr("GCP folder"),
                                              behavior=QgsProcessingParameterFile.Folder),
                   "Folder holding one GCP table <scene>.gpkg per scene (fields sample, line, h, id, role).")
-        self._add(QgsProcessingParameterEnum(self.MODEL, self.tr("Correction model"), MODEL_LABELS, defaultValue=2),
-                  "Image-space correction estimated per scene.")
+        self._add(QgsProcessingParameterEnum(self.MODEL, self.tr("Compensation model"), MODEL_LABELS,
+                                             defaultValue=MODELS.index("auto")),
+                  "Image-space correction estimated per scene, as in 'Refine RPC with GCPs' (same models, same "
+                  "default: Automatic, the simplest model the leave-one-out error supports).")
         self._add(QgsProcessingParameterEnum(self.FORMAT, self.tr("Refined RPC format"), OUT_EXTS, defaultValue=0),
                   "RPB, _RPC.TXT or a VRT over the untouched image carrying the refined RPC.")
         self.add_plausibility_parameter()

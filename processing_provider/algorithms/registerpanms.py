@@ -1,4 +1,4 @@
-"""``gf4cal:registerpanms`` - register an MS image to its pan for halo-free pan-sharpening (METHODS §9)."""
+"""``gf4cal:registerpanms`` - register an MS image to its pan for halo-free pan-sharpening (Zhang et al. 2023)."""
 from __future__ import annotations
 
 from qgis.core import (
@@ -27,11 +27,12 @@ class RegisterPanMs(Gf4calAlgorithm):
     GROUP_ID = "calibration"
     HELP = ("Measures how the multispectral image misregisters with the panchromatic image of the same scene "
             "(through their RPCs and the DEM, dense matching averaged per cell), models it (linear + a quartic per "
-            "sub-CCD with jumps at the sub-CCD edges + jitter sines, METHODS §9 of the GF7 method) and writes, in "
+            "sub-CCD with jumps at the sub-CCD edges + jitter sines; GF-7, Zhang et al. 2023) and writes, in "
             "the output folder: ms_on_pan.tif (the MS bands resampled onto the pan's raw grid at MS resolution: "
             "give it with the pan to GDAL's pansharpening), correction.tif (delta sample / delta line at every MS "
             "pixel), model.json (reusable on cloudy scenes of the same camera), ms_approx.RPB (a smooth refitted "
             "MS RPC, its error in the report), report.json, cells.gpkg (cell residuals as arrows) and plots.")
+    REFERENCES = ("zhang",)
 
     PAN = "PAN"
     MS = "MS"

@@ -1,4 +1,4 @@
-"""``gf4cal:simulatescene`` - a simulated scene with known truth (METHODS §10): image, RPC, DEM, GCPs, truth.json."""
+"""``gf4cal:simulatescene`` - a simulated scene with known truth: image, RPC, DEM, GCPs, truth.json."""
 from __future__ import annotations
 
 from qgis.core import (
@@ -46,7 +46,7 @@ class SimulateScene(Gf4calAlgorithm):
     def initAlgorithm(self, config=None):
         Num = QgsProcessingParameterNumber
         self._add(QgsProcessingParameterEnum(self.SENSOR, self.tr("Sensor"), SENSOR_LABELS, defaultValue=0),
-                  "Sensor family to simulate (METHODS §10).")
+                  "Sensor family to simulate.")
         self._add(Num(self.SEED, self.tr("Random seed"), Num.Integer, 0, minValue=0),
                   "Seeds every random draw (errors, terrain, GCPs): same seed, same scene.")
         self._add(Num(self.WIDTH, self.tr("Crop width (px, 0 = full array)"), Num.Integer, 0, minValue=0),

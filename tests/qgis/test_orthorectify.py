@@ -112,8 +112,40 @@ def test_loaded_layers_name_one_exaggeration_label_ids_and_ortho_is_georeference
     assert {f["id"] for f in gcps.getFeatures()} == set(read_gcps(oscene / "s" / "gcps.gpkg")["id"].astype(str))
     ortho = [lyr for lyr in layers if isinstance(lyr, QgsRasterLayer)]
     assert len(ortho) == 1 and ortho[0].source() == res["OUTPUT_ORTHO"]          # the ortho, not the VRT
+    assert ortho[0].name() == "scene ortho"                                       # not the parameter's label
     assert ortho[0].isValid() and ortho[0].crs().authid().startswith("EPSG:326")
     to_utm = QgsCoordinateTransform(gcps.crs(), ortho[0].crs(), QgsProject.instance())
     ext = ortho[0].extent()
     for f in gcps.getFeatures():             # every GCP lies on the ortho
         assert ext.contains(to_utm.transform(f.geometry().asPoint()))
+
+
+def test_orthorectify_writes_nodata_mask_overviews_and_names_the_layer(qgis_app, oscene, tmp_path):
+    """Issue 24: the ortho has a no-data value, an internal per-dataset mask that is exactly the valid (non-collar)
+    area, internal overviews (bands and mask) down to <= 256 px, 512 px tiles; QGIS names it '<image stem> ortho'."""
+    import processing
+    from qgis.core import QgsProject, QgsRasterLayer
+    QgsProject.instance().removeAllMapLayers()
+    out = tmp_path / "ortho.tif"
+    res = processing.runAndLoadResults("gf4cal:orthorectify", {
+        "INPUT": str(oscene / "s" / "scene.tif"), "DEM": str(oscene / "s" / "dem.tif"), "RESOLUTION": 15.0,
+        "OUTPUT": str(out)})
+    layers = [lyr for lyr in QgsProject.instance().mapLayers().values() if isinstance(lyr, QgsRasterLayer)]
+    assert [lyr.name() for lyr in layers] == ["scene ortho"]
+    ds = gdal.Open(res["OUTPUT"])
+    band = ds.GetRasterBand(1)
+    assert band.GetNoDataValue() == 0.0
+    assert band.GetMaskFlags() == gdal.GMF_PER_DATASET                  # a real mask, not derived from no-data
+    assert not any(f.endswith(".msk") for f in ds.GetFileList())         # the mask is internal
+    assert band.GetBlockSize() == [512, 512]
+    w, h = ds.RasterXSize, ds.RasterYSize
+    n_ovr = band.GetOverviewCount()
+    assert n_ovr >= 2 and band.GetMaskBand().GetOverviewCount() == n_ovr
+    assert min(w, h) / 2 ** n_ovr <= 256 < min(w, h) / 2 ** (n_ovr - 1)
+    mask = band.GetMaskBand().ReadAsArray()
+    valid = mask > 0
+    assert 0.2 < valid.mean() < 0.95                              # a collar exists and is masked
+    assert valid[0, 0] == 0 and valid[h // 2, w // 2]
+    # the mask is the warp's own footprint: the rendered scene is non-zero where valid
+    data = band.ReadAsArray()
+    assert (data[valid] > 0).mean() > 0.99 and (data[~valid] == 0).all()
