@@ -1,9 +1,11 @@
 """``gf4cal bundle-adjust``: separate views (stereo, tri-stereo, multi-date) brought into one frame from tie points
-alone, each view's RPC corrected in image space (METHODS §11)."""
+alone, each view's RPC corrected in image space (METHODS §11; the help cites the paper, not METHODS)."""
 from __future__ import annotations
 
+from .ortho import add_geoid_argument
+
 NAME = "bundle-adjust"
-HELP = ("Bundle adjustment of separate views on their RPCs (METHODS §11): tie points from a table or matched "
+HELP = ("Bundle adjustment of separate views on their RPCs (Grodecki & Dial 2003): tie points from a table or matched "
         "raw to raw, a correction per view, the datum held by each view's RPC; corrected RPCs (<view>.RPB, and "
         "<view>.vrt over each image), report.json, residuals.gpkg and ties.png in --out.")
 
@@ -21,8 +23,7 @@ def add_parser(parser):
                              "overlapping pairs of views (every view joined first, then the largest overlaps)")
     parser.add_argument("--dem", metavar="DEM|HEIGHT", help="DEM (any GDAL raster) or a constant height in metres: "
                                                             "starting heights, matching, a weak height prior")
-    parser.add_argument("--geoid", help="the DEM's heights are above this geoid: egm96, egm2008 or a grid path "
-                                        "(default: ellipsoidal)")
+    add_geoid_argument(parser)
     parser.add_argument("--gcps", metavar="OBS", help="GCP observations (point_id,image,sample,line,lon,lat,h"
                                                       "[,role][,sigma]): tie the block to the ground")
     parser.add_argument("--model", choices=("translation", "shift-drift", "affine"), default="affine",

@@ -45,11 +45,12 @@ class BundleAdjust(Gf4calAlgorithm):
     DISPLAY = "Bundle-adjust separate views (stereo, tri-stereo, multi-date)"
     GROUP = "RPC calibration"
     GROUP_ID = "calibration"
+    REFERENCES = ("grodecki",)
     HELP = ("Brings separate views of the same ground (a stereo pair or triplet, images of several dates) into one "
             "frame from tie points alone, before making a surface model or stacking them: each view keeps its "
             "vendor RPC plus a correction in image space (translation, shift and drift, or affine), the tie points' "
             "ground is estimated with them, and each view's RPC holds the block in place where no GCPs are given "
-            "(METHODS §11). Tie points come from a table or are matched raw to raw through the RPCs and the DEM on "
+            "(Grodecki & Dial 2003). Tie points come from a table or are matched raw to raw through the RPCs and the DEM on "
             "the overlapping pairs. Writes into the output folder one corrected RPC per view (<view>.RPB and, for an "
             "image, <view>.vrt over the untouched image carrying it: gdalwarp -rpc reads it), report.json (tie "
             "reprojection before/after per view and per pair, corrections with their sigmas, each view relative "
