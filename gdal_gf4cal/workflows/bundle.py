@@ -64,6 +64,7 @@ class Views:
     inputs: List[str] = field(default_factory=list)
     notes: List[str] = field(default_factory=list)
     prior: Any = None
+    flat_height: Optional[float] = None
 
     def path(self, key: str) -> str:
         return self.paths[self.keys.index(key)]
@@ -217,24 +218,30 @@ def match_view_ties(views: Views, dem, *, max_pairs: Optional[int] = None, progr
     import pandas as pd
     from .. import progress as _progress
     _progress.report(progress, 0.0, "finding the overlapping views")
-    pairs = choose_pairs(_overlaps(views, dem), views.keys, max_pairs)
+    flat = "" if views.flat_height is None else (
+        f" (without a DEM the views were placed at a constant {views.flat_height:.0f} m: give --dem)")
+    try:
+        pairs = choose_pairs(_overlaps(views, dem), views.keys, max_pairs)
+    except GCPError as exc:
+        raise GCPError(f"{exc}{flat}") from None
     tables, infos = [], []
     for i, (a, b) in enumerate(pairs):
         sub = _progress.scaled(progress, 0.1 + 0.9 * i / len(pairs), 0.1 + 0.9 * (i + 1) / len(pairs))
         try:
             t, info = match_pair(views.path(a), views.models[a], views.path(b), views.models[b], dem, ids=(a, b),
                                  progress=sub)
-        except Gf4calError as exc:
-            infos.append({"pair": [a, b], "n_ties": 0, "error": str(exc).splitlines()[0]})
+        except Gf4calError as exc:        # the matcher's own advice names options this command does not have
+            infos.append({"pair": [a, b], "n_ties": 0, "error": str(exc).splitlines()[0].split("; check")[0]})
             continue
         tables.append(t)
         infos.append(info)
     linked = {k for inf in infos if inf["n_ties"] for k in inf["pair"]}
     missing = [k for k in views.keys if k not in linked]
     if missing:
-        why = "; ".join(f"{'-'.join(i['pair'])}: {i['error']}" for i in infos if i.get("error"))
+        why = "; ".join(f"{i['error']}" for i in infos if i.get("error"))
         raise GCPError(f"raw-to-raw matching found no tie point joining view {missing[0]} to the others"
-                       f"{' (' + why + ')' if why else ''}; check the views overlap with texture, or give --ties")
+                       f"{' (' + why + ')' if why else ''}{flat}; check the views overlap with texture, or give "
+                       "--ties")
     tab = pd.concat(tables, ignore_index=True)
     return tab.drop(columns=[c for c in ("score", "status") if c in tab.columns]), infos
 
@@ -286,7 +293,7 @@ def _prepare(images, *, ties, gcps, match_ties, dem, geoid, rpcs, prior_sigma_px
     views = load_views(images, rpcs, need_images=match_ties)
     dem_obj = DEM.from_user_input(dem, geoid=geoid) if dem is not None else None
     if dem_obj is None and match_ties:
-        h = float(np.mean([m.height_off for m in views.models.values()]))
+        h = views.flat_height = float(np.mean([m.height_off for m in views.models.values()]))
         dem_obj = DEM.constant(h)
         warns.append(f"no DEM: views matched on a constant height of {h:.0f} m (the RPCs' mean height offset); give "
                      "--dem for terrain with relief")
@@ -491,7 +498,7 @@ def _write_outputs(views: Views, est, after, rep, outs, progress) -> None:
         if len(rows):
             write_residuals_gpkg(rows, gp, layer_prefix=f"{k}_", append=True, overwrite=True,
                                  title=f"{k} tie residuals", points_title=f"{k} ties",
-                                 cancelled=cancel_check(progress))
+                                 cancelled=outs.cancelled)
     p = est.points[np.isfinite(est.points["lon"].to_numpy(float))]
     cols = {c: (p[c].astype(str).to_numpy(object) if p[c].dtype == object else p[c].to_numpy())
             for c in p.columns if c not in ("lon", "lat")}

@@ -84,3 +84,9 @@ def test_unknown_model_and_bad_max_pairs(views, tmp_path, capsys):
     with pytest.raises(SystemExit) as info:           # argparse: choices
         main(["bundle-adjust", *map(str, views), "--match-ties", "--model", "cubic", "--out", str(tmp_path / "o")])
     assert info.value.code == 2
+
+
+def test_matching_without_a_dem_names_the_dem(views, tmp_path, capsys):
+    """The Ventoux crops (B/H ~0.5, 500 px) do not overlap at the RPCs' mean height (1075 m): the refusal says the
+    views were placed at that constant height and asks for a DEM."""
+    _refused(capsys, [*views, "--match-ties"], "constant 1075 m: give --dem", tmp_path / "out")
