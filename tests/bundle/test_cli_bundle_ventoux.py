@@ -124,3 +124,25 @@ def test_sixty_pixel_bias_recovered_relative_to_the_unbiased_run(tmp_path, capsy
     assert rb["line"] - ra["line"] == pytest.approx(-V.BIAS_LINE_PX, abs=0.1)
     assert b["reprojection_px"]["before"]["all"] > 10 and b["reprojection_px"]["after"]["all"] < 0.12
     assert "right: translation correction" in cap.out
+
+
+@pytest.mark.slow
+def test_three_views_of_two_resolutions(tmp_path, capsys):
+    """The pair plus the left product's 4-band MS crop (2.8 m pixels; tests/data/panms_ventoux): the three
+    overlapping pairs matched (scale 4 between pan and MS), every view adjusted, the stereo pair as good as alone."""
+    import shutil
+    left, right = V.pair(tmp_path / "in")
+    for ext in ("tif", "geom"):
+        shutil.copyfile(V.DATA / "panms_ventoux" / f"lowres_color_image.{ext}", tmp_path / "in" / f"ms.{ext}")
+    out = tmp_path / "out"
+    rc = main(["bundle-adjust", str(left), str(right), str(tmp_path / "in" / "ms.tif"), "--match-ties",
+               *V.dem_args(), "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    with open(out / "report.json") as fh:
+        rep = json.load(fh)
+    pairs = {tuple(p["pair"]): p["n_ties"] for p in rep["ties"]["pairs_matched"]}
+    assert set(pairs) == {("left", "right"), ("left", "ms"), ("right", "ms")} and min(pairs.values()) >= 30
+    after = rep["reprojection_px"]["after"]
+    assert after["per_pair"]["left|right"] < 0.15
+    assert all(after["per_view"][k] < rep["reprojection_px"]["before"]["per_view"][k] for k in ("left", "right", "ms"))
+    assert sorted(p.name for p in out.iterdir() if p.suffix == ".vrt") == ["left.vrt", "ms.vrt", "right.vrt"]
