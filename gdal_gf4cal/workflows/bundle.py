@@ -117,8 +117,8 @@ def load_views(images: Sequence, rpcs=None, *, need_images: bool = False) -> Vie
 
 
 def _overlaps(views: Views, dem) -> List[Tuple[float, str, str]]:
-    """``(share, a, b)`` for every pair of views that see common ground: ``share`` = the overlap box's area over
-    the smaller view's (``overlap_region`` of each way round; pairs that do not overlap are left out)."""
+    """``(share, a, b)`` for every pair of views that see common ground: ``share`` = the part of ``a``'s image that
+    ``b`` also shows (``overlap_region``'s box over ``a``'s size); pairs that do not overlap are left out."""
     from ..matching.raw import overlap_region
     out = []
     for i, a in enumerate(views.keys):
@@ -127,10 +127,8 @@ def _overlaps(views: Views, dem) -> List[Tuple[float, str, str]]:
                 box, _ = overlap_region(views.path(a), views.models[a], views.path(b), views.models[b], dem)
             except Gf4calError:
                 continue
-            Wa, Ha = views.extent(a)
-            Wb, Hb = views.extent(b)
-            area = (box[2] - box[0]) * (box[3] - box[1])
-            out.append((float(area / min(Wa * Ha, Wb * Hb)), a, b))
+            W, H = views.extent(a)
+            out.append((float((box[2] - box[0]) * (box[3] - box[1]) / (W * H)), a, b))
     return out
 
 
