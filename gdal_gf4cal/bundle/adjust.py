@@ -7,14 +7,18 @@ import numpy as np
 import pandas as pd
 
 from ..dem import DEM
-from ..estimation import Estimate
+from ..estimation import Estimate, RadialHuber, robust_fit, sigma0_and_cov
+from ..estimation.indexed import block_inverse
 from .inputs import check_inputs, make_layout, make_rays, view_sizes
 from .model import Rays, ViewLayout
 from .result import BundleEstimate, datum_drift, reprojection, view_correction
-from .solve import State, Weights, gauss_newton, project_all
+from .solve import State, Weights, gauss_newton, project_all, reintersect
 from .start import base_weights, start_ground
 
-__all__ = ["adjust_views", "BundleProblem"]
+__all__ = ["adjust_views", "BundleProblem", "ROBUST_TOL_PX"]
+
+#: The robust reweighting stops when a re-solve moves no residual more than this (px) and the rejected rays stay.
+ROBUST_TOL_PX = 5e-3
 
 
 class BundleProblem:
@@ -30,6 +34,10 @@ class BundleProblem:
         self.n_points, self.n_params = rays.view.size, layout.n_params
         self.tol_px, self.max_iter, self.progress = tol_px, max_iter, progress
         self.solution = self.lin = None
+        self.sd_factor = np.ones(self.n_points)
+        self.refit_steps = 4
+        self.last_change = np.inf
+        self.point_cov = None
         self.iterations, self.converged = 0, False
 
     @property
@@ -40,55 +48,68 @@ class BundleProblem:
     def fit(self, point_weights=None) -> Estimate:
         pw = np.ones(self.n_points) if point_weights is None else np.asarray(point_weights, float)
         wts = Weights(self.base.rays * pw, self.base.ground, self.base.prior, self.base.ground_obs)
-        self.state, self.solution, self.lin, it, self.converged = gauss_newton(
-            self.models, self.layout, self.rays, self.state, wts, tol_px=self.tol_px, max_iter=self.max_iter,
+        steps = self.max_iter if self.solution is None else self.refit_steps   # reweighted: Gauss-Newton steps
+        self.state, self.solution, self.lin, it, self.converged, self.last_change = gauss_newton(
+            self.models, self.layout, self.rays, self.state, wts, tol_px=self.tol_px, max_iter=steps,
             progress=self.progress)
         self.iterations += it
+        lost = ~self.solution.ok & (np.bincount(self.rays.point, weights=(self.base.rays > 0).astype(float),
+                                                minlength=self.rays.n_points) >= 2)
+        if lost.any():                            # points the weights leave undetermined: from all their rays
+            self.state = reintersect(self.models, self.layout, self.rays, self.state, self.base, lost)
+            self.lin = project_all(self.models, self.layout, self.rays, self.state)
         return _estimate(self, wts)
 
 
+def _ray_variance(pb: BundleProblem, w_rays: np.ndarray):
+    """``j^T N_pp^-1 j`` (n_rays, 2) of each ray through its point's own block at weights ``w_rays`` (the views'
+    parameters held: the datum's uncertainty, shared by a point and the corrections, cancels in a residual), and
+    which points the block determines."""
+    rays, jac = pb.rays, pb.lin.jac_points
+    outer = np.einsum("nai,naj->nij", jac * w_rays[:, None, None], jac).reshape(-1, 9)
+    npp = np.stack([np.bincount(rays.point, weights=outer[:, c], minlength=rays.n_points) for c in range(9)],
+                   axis=1).reshape(-1, 3, 3)
+    npp[:, [0, 1, 2], [0, 1, 2]] += pb.base.ground
+    inv, ok = block_inverse(npp)
+    return np.einsum("nai,nij,naj->na", jac, np.nan_to_num(inv[rays.point]), jac), ok, inv
+
+
 def _estimate(pb: BundleProblem, wts: Weights) -> Estimate:
-    """The Estimate at the problem's current solution (sigma0 and covariance through the core)."""
-    from ..estimation import lsq
+    """The Estimate at the problem's current solution (sigma0 and covariance through the core's
+    :func:`~gdal_gf4cal.estimation.sigma0_and_cov`). Redundancy of a ray ``1 - w j^T N_pp^-1 j``; a ray left out
+    is normalised by ``sqrt(1/w + j^T N_pp^-1 j)``, or, when its point is undetermined without it, as if in
+    (:attr:`BundleProblem.sd_factor`: that standard deviation over the ray's σ)."""
     rays, sol = pb.rays, pb.solution
     v = rays.meas - pb.lin.pred
+    w0 = np.repeat(pb.base.rays[:, None], 2, axis=1)
     w2 = np.repeat(wts.rays[:, None], 2, axis=1)
-    ok_pts = sol.ok
-    red_pts = np.einsum("nai,nij,naj->na", pb.lin.jac_points, sol.cov_points[rays.point], pb.lin.jac_points)
-    red = np.where(w2 > 0, np.clip(1.0 - w2 * np.nan_to_num(red_pts, nan=1.0 / np.maximum(w2, 1e-300)), 0.0, 1.0),
-                   0.0)
+    q, ok, pb.point_cov = _ray_variance(pb, wts.rays)
+    q0, _, _ = _ray_variance(pb, pb.base.rays)
+    red = np.where(w2 > 0, np.clip(1.0 - w2 * q, 0.0, 1.0), 0.0)
+    var = np.where(w2 > 0, np.maximum(red, 0.05) / np.maximum(w2, 1e-300),
+                   np.where(ok[rays.point, None], 1.0 / np.maximum(w0, 1e-300) + q,
+                            np.maximum(1.0 / np.maximum(w0, 1e-300) - q0, 0.05 / np.maximum(w0, 1e-300))))
+    pb.sd_factor = np.sqrt(var * np.maximum(w0, 1e-300)).max(axis=1)
     vtpv = float(np.sum(w2 * v * v) + np.sum(wts.prior * pb.state.x ** 2))
     n_obs = int(np.count_nonzero(w2)) + int(np.count_nonzero(wts.ground)) + int(np.count_nonzero(wts.prior))
-    dof = n_obs - 3 * int(ok_pts.sum()) - pb.n_params
-    s_mat = np.linalg.inv(sol.cov_global)
-    sigma0, cov = lsq.sigma0_and_cov(s_mat, vtpv, dof) if hasattr(lsq, "sigma0_and_cov") else \
-        _sigma0_and_cov(sol.cov_global, vtpv, dof)
+    dof = n_obs - 3 * int(sol.ok.sum()) - pb.n_params
+    sigma0, cov = sigma0_and_cov(np.linalg.inv(sol.cov_global), vtpv, dof)
     s0 = sigma0 if np.isfinite(sigma0) else 1.0
-    sd = np.sqrt(np.where(w2 > 0, red / np.maximum(w2, 1e-300), np.nan))
     with np.errstate(invalid="ignore", divide="ignore"):
-        norm = np.where(sd > 1e-12, v / (s0 * sd), np.nan)
-    return Estimate(names=pb.layout.names, x=pb.state.x.copy(), cov=cov, sigma0=float(s0), dof=int(dof),
+        norm = v / (s0 * np.sqrt(var))
+    lay = pb.layout
+    return Estimate(names=lay.names, x=pb.state.x.copy(), cov=cov, sigma0=float(s0), dof=int(dof),
                     redundancy=red, residuals=v, normalised=norm, weights=w2,
-                    blocks={vw: slice(pb.layout.offset[vw], pb.layout.offset[vw] + pb.layout.models_used[vw].n_params)
-                            for vw in pb.layout.views}, iterations=pb.iterations)
-
-
-def _sigma0_and_cov(cov_unit, vtpv, dof):
-    """Until the core's ``sigma0_and_cov`` is merged (same formula)."""
-    sigma0 = float(np.sqrt(vtpv / dof)) if dof > 0 else float("nan")
-    return sigma0, (cov_unit if dof <= 0 else sigma0 ** 2 * cov_unit)
+                    blocks={vw: slice(lay.offset[vw], lay.offset[vw] + lay.models_used[vw].n_params)
+                            for vw in lay.views}, iterations=pb.iterations)
 
 
 def _robust(pb: BundleProblem):
-    """The core's one robust driver on whole rays (radial Huber, then rejection); plain least squares without it."""
-    try:
-        from ..estimation import RadialHuber, robust_fit
-    except ImportError:                                           # the driver is not merged yet
-        return pb.fit(), ["robust driver unavailable: plain least squares"]
-    est = robust_fit(pb, norm=RadialHuber(sigma=lambda p, e: p.sigma * np.sqrt(np.clip(
-        e.redundancy.max(axis=1) if e.redundancy.ndim == 2 else e.redundancy, 0.05, 1.0))),
-        start=None, max_iter=30, tol=1e-4)
-    return est, []
+    """The core's one robust driver on whole rays: radial Huber down-weighting, then rejection beyond 4 robust
+    sigmas (each ray's σ times its redundancy's square root); check rays are tested, never used."""
+    norm = RadialHuber(sigma=lambda p, e: p.rays.sigma * p.sd_factor, min_points=2,
+                       too_few="; the ties disagree beyond their stated sigma: check the image ids and the ties")
+    return robust_fit(pb, norm=norm, start=None, candidates=pb.rays.control, max_iter=40, tol=ROBUST_TOL_PX)
 
 
 def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: str = "affine", sizes=None,
@@ -133,8 +154,8 @@ def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: st
     state0 = State(np.zeros(layout.n_params), ground0)
     before = project_all(models, layout, rays, state0, jacobian=False)
     pb = BundleProblem(models, layout, rays, state0, wts, tol_px=tol_px, max_iter=max_iter, progress=progress)
-    est, more = _robust(pb) if robust else (pb.fit(), [])
-    return _result(est, pb, tab, before, ground0, layout.notes + notes + more)
+    est = _robust(pb) if robust else pb.fit()
+    return _result(est, pb, tab, before, ground0, layout.notes + notes)
 
 
 def _table(tab: pd.DataFrame, before, after, est: Estimate) -> pd.DataFrame:
@@ -152,9 +173,10 @@ def _table(tab: pd.DataFrame, before, after, est: Estimate) -> pd.DataFrame:
 
 
 def _points(pb: BundleProblem, ground0: np.ndarray, sigma0: float) -> pd.DataFrame:
-    """Ground of every point after and before, views seeing it, a-posteriori σ (m) east, north, up."""
+    """Ground of every point after and before, views seeing it, a-posteriori σ (m) east, north, up given the
+    corrections (the relative precision of the intersection)."""
     rays, g = pb.rays, pb.state.ground
-    cov = pb.solution.cov_points * sigma0 ** 2
+    cov = pb.point_cov * sigma0 ** 2
     sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
     return pd.DataFrame({"point_id": rays.point_ids, "kind": np.where(rays.point_is_gcp, "gcp", "tie"),
                          "lon": g[:, 0], "lat": g[:, 1], "h": g[:, 2], "lon_before": ground0[:, 0],
@@ -180,5 +202,6 @@ def _result(est: Estimate, pb: BundleProblem, tab, before, ground0, notes: List[
     out.points, out.reprojection, out.table = _points(pb, ground0, est.sigma0), rep, table
     out.datum_drift_m, out.datum_drift_enu_m = drift, drift_enu
     out.prior_px, out.sizes, out.reduced_size = layout.prior_px.copy(), dict(layout.sizes), int(layout.n_params)
-    out.converged, out.iterations = bool(pb.converged), int(pb.iterations)
+    out.converged = bool(pb.converged or pb.last_change < ROBUST_TOL_PX)
+    out.iterations = int(pb.iterations)
     return out

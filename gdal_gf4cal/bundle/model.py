@@ -123,6 +123,16 @@ class Rays:
     def rows_per_point(self) -> int:
         return 2 * self.k + 3
 
+    def subset(self, points: np.ndarray) -> "Rays":
+        """The rays of the points ``points`` (bool, n_points), points renumbered in order."""
+        new = np.full(self.n_points, -1)
+        new[points] = np.arange(int(points.sum()))
+        r = new[self.point] >= 0
+        return Rays(view=self.view[r], point=new[self.point[r]], slot=self.slot[r], meas=self.meas[r],
+                    sigma=self.sigma[r], is_gcp=self.is_gcp[r], control=self.control[r], ground=self.ground[points],
+                    point_ids=self.point_ids[points], point_is_gcp=self.point_is_gcp[points],
+                    point_control=self.point_control[points], k=self.k)
+
     def flat_rows(self, axis: int) -> np.ndarray:
         """Each ray's row (``axis`` 0: sample, 1: line) in the flattened padded layout ``(n_points * R)``."""
         return self.point * self.rows_per_point + 2 * self.slot + axis

@@ -138,19 +138,41 @@ def step(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights, cov
     return State(x, ground), change, sol, lin
 
 
+def reintersect(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights, points: np.ndarray,
+                iterations: int = 4) -> State:
+    """The ground of the points ``points`` (bool) from all their rays at the weights ``wts`` with the corrections
+    held: points the robust weights leave undetermined get residuals that mean something (METHODS §7)."""
+    if not points.any():
+        return state
+    sub = rays.subset(points)
+    keep = np.flatnonzero(points)
+    sw = Weights(wts.rays[np.isin(rays.point, keep)], wts.ground[points], wts.prior, wts.ground_obs[points])
+    g = state.ground[points].copy()
+    for _ in range(iterations):
+        jp, res, w, _, _, _ = linearise(models, layout, sub, State(state.x, g), sw)
+        sol = solve_with_points(jp, res, w, covariance=False)
+        dp = np.where(np.isfinite(sol.dx_points), sol.dx_points, 0.0)
+        mx, my = metres_per_degree(g[:, 1], g[:, 2])
+        g = g + dp / np.stack([mx, my, np.ones_like(mx)], axis=1)
+    ground = state.ground.copy()
+    ground[points] = g
+    return State(state.x, ground)
+
+
 def gauss_newton(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights, *, tol_px: float = 1e-5,
                  max_iter: int = 20, progress=None):
-    """Iterate :func:`step` until the predictions move less than ``tol_px``; then one covariance solve at the
-    solution. Returns ``(state, solution, lin, iterations, converged)``."""
+    """Iterate :func:`step` until the predictions move less than ``tol_px`` (at most ``max_iter`` steps); the
+    predictions and derivatives at the solution. Returns ``(state, solution, lin, iterations, converged)`` (the
+    solution of the last step: its ``cov_global`` is the reduced system's unit-weight inverse)."""
     converged = False
     it = 0
+    sol = None
+    change = np.inf
     for it in range(1, max_iter + 1):
-        state, change, _, _ = step(models, layout, rays, state, wts)
+        state, change, sol, _ = step(models, layout, rays, state, wts)
         if progress is not None:
             progress(min(it / max_iter, 0.99), f"bundle iteration {it}: largest change {change:.3g} px")
         if change < tol_px:
             converged = True
             break
-    jp, res, w, jg, extra, lin = linearise(models, layout, rays, state, wts)
-    sol = solve_with_points(jp, res, w, jg, extra=extra, covariance=True)
-    return state, sol, lin, it, converged
+    return state, sol, project_all(models, layout, rays, state), it, converged, change

@@ -17,6 +17,9 @@ from ..errors import DegenerateGeometryError
 
 __all__ = ["IndexedJacobian", "CHUNK_ELEMENTS"]
 
+#: A 3 x 3 point block whose determinant is below this fraction of its diagonal's product is singular (e.g. a tie
+#: with one ray left in the estimate; nearly parallel rays of B/H 0.01 stay far above it).
+REL_DET_MIN = 1e-10
 #: Elements of one chunk's dense ``(points, q, p)`` block.
 CHUNK_ELEMENTS = 4_000_000
 
@@ -89,7 +92,8 @@ def _solve_reduced(s_mat: np.ndarray, b_red: np.ndarray):
 
 def block_inverse(npp: np.ndarray, det_min: float = 1e-30):
     """Inverses of many small symmetric blocks ``(n, q, q)``: closed form for 3 x 3 (adjugate), LAPACK otherwise;
-    ``(inv, ok)`` with NaN where ``|det| <= det_min``."""
+    ``(inv, ok)`` with NaN where ``|det| <= det_min`` (3 x 3: or below :data:`REL_DET_MIN` of the diagonal's
+    product)."""
     n, q, _ = npp.shape
     inv = np.full((n, q, q), np.nan)
     if q != 3:
@@ -105,14 +109,16 @@ def block_inverse(npp: np.ndarray, det_min: float = 1e-30):
             c0, c1 = [k for k in range(3) if k != i]
             adj[:, i, j] = (-1) ** (i + j) * (a[:, r0, c0] * a[:, r1, c1] - a[:, r0, c1] * a[:, r1, c0])
     det = np.einsum("nj,nj->n", a[:, 0, :], adj[:, :, 0])
-    ok = np.abs(det) > det_min
+    scale = np.abs(a[:, 0, 0] * a[:, 1, 1] * a[:, 2, 2])
+    ok = (np.abs(det) > det_min) & (np.abs(det) > REL_DET_MIN * scale)      # rank-deficient blocks (one ray left)
     inv[ok] = adj[ok] / det[ok, None, None]
     return inv, ok
 
 
 def solve_indexed(jp, r, w, npp, bp, jac: IndexedJacobian, extra, covariance: bool, det_min: float = 1e-30):
     """The reduced system over chunks of points (module docstring); returns what ``solve_with_points`` returns:
-    ``(dx_points, cov_points, ok, dx_global, cov_global)``."""
+    ``(dx_points, cov_points, ok, dx_global, cov_global)`` (``cov_global`` = ``S^-1`` even without
+    ``covariance``: it costs a ``p x p`` solve; ``cov_points`` only with it)."""
     inv, ok = block_inverse(npp, det_min)
     n, _, q = jp.shape
     p = jac.n_params
@@ -141,4 +147,4 @@ def solve_indexed(jp, r, w, npp, bp, jac: IndexedJacobian, extra, covariance: bo
         for sl in _chunks(n, q, p):
             t = np.matmul(inv0[sl], _npg(jw[sl], jac, sl))
             cov_p[sl] = np.where(ok[sl, None, None], inv[sl] + np.matmul(t @ cov_g, t.transpose(0, 2, 1)), inv[sl])
-    return dxp, cov_p, ok, dxg, (cov_g if covariance else np.zeros((0, 0)))
+    return dxp, cov_p, ok, dxg, cov_g

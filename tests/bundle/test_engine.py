@@ -228,3 +228,24 @@ def test_refuses_views_in_groups_sharing_no_tie():
 def test_refuses_an_unknown_model(sim3):
     with pytest.raises(Exception, match="poly2|one of"):
         adjust_views(sim3.observations, sim3.models, model="poly2")
+
+
+def test_blunder_rays_rejected_through_the_robust_driver():
+    sim = simulate_views("tri-stereo", n_ties=300, noise_px=0.2, seed=11)
+    clean = adjust_views(sim.observations, sim.models, robust=False)
+    obs = sim.observations.copy()
+    rng = np.random.default_rng(5)
+    bad = rng.choice(len(obs), 20, replace=False)
+    obs.loc[obs.index[bad], "sample"] += rng.choice([-1, 1], 20) * rng.uniform(3, 15, 20)
+    plain = adjust_views(obs, sim.models, robust=False)
+    est = adjust_views(obs, sim.models)
+    flag = est.table["outlier"].to_numpy()
+    assert flag[bad].all() and set(est.table["outlier_level"][flag]) == {"reject"}
+    # besides the blunders only rays of the same tie points (a 2-ray tie cannot say which ray is wrong)
+    assert set(est.table["point_id"][flag]) == set(obs["point_id"].iloc[bad])
+    assert est.converged and 0.8 < est.sigma0 < 1.2
+    assert abs(est.reprojection["after"]["all"] - clean.reprojection["after"]["all"]) < 0.01
+    # distance to the clean fit in units of the floor: the rejected rays cost little, the blunders cost a lot
+    z_rob = np.sqrt(np.mean(_whitened(est.x - clean.x, _floor_cov(clean)) ** 2))
+    z_plain = np.sqrt(np.mean(_whitened(plain.x - clean.x, _floor_cov(clean)) ** 2))
+    assert z_rob < 0.5 < 3.0 < z_plain, (z_rob, z_plain)
