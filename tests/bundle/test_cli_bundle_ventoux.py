@@ -60,13 +60,17 @@ def test_outputs_and_numbers(unbiased):
 def test_written_rpcs_reproduce_the_adjusted_rays(unbiased):
     """The files, not the engine's memory: the tie points' adjusted ground (residuals.gpkg 'tie_points') projects
     through each written RPC (the RPB, and the VRT's RPC) onto the matched measurements (ties.csv) at the reported
-    after RMS; the VRT carries the same RPC as the RPB."""
+    after RMS (over the rays the adjustment kept: the view's layer flags the others); the VRT carries the same RPC
+    as the RPB."""
     rep, out = unbiased
     pts = _layer(out / "residuals.gpkg", "tie_points").set_index("point_id")
     ties = pd.read_csv(out / "ties.csv", dtype={"point_id": str})
     for k in ("left", "right"):
         rpb, vrt = RPCModel.from_file(out / f"{k}.RPB"), RPCModel.from_file(out / f"{k}.vrt")
-        t = ties[ties["image_id"] == k]
+        kept = _layer(out / "residuals.gpkg", f"{k}_gcps")
+        kept = set(kept.loc[~kept["outlier"].astype(bool), "id"].astype(str))
+        assert len(kept) > 0.8 * rep["ties"]["n_points"]
+        t = ties[(ties["image_id"] == k) & ties["point_id"].isin(kept)]
         g = pts.loc[t["point_id"]]
         s, l = rpb.project(g["lon"].to_numpy(), g["lat"].to_numpy(), g["h"].to_numpy())
         sv, lv = vrt.project(g["lon"].to_numpy(), g["lat"].to_numpy(), g["h"].to_numpy())
