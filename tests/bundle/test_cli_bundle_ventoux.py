@@ -79,16 +79,25 @@ def test_written_rpcs_reproduce_the_adjusted_rays(unbiased):
         assert rms == pytest.approx(rep["views"][k]["reprojection_px"]["after"], abs=2e-3)
 
 
-def test_gdalwarp_uses_the_vrt(unbiased, tmp_path):
+def test_gdalwarp_uses_the_vrt_and_the_rpb(unbiased, tmp_path):
+    """``gdalwarp -rpc`` on the VRT, and on the image with the RPB put beside it (GDAL reads it as the image's RPC):
+    both open with the new RPC and warp to the same ground."""
+    import shutil
     rep, out = unbiased
-    warped = tmp_path / "left_ortho.tif"
-    ds = gdal.Warp(str(warped), str(out / "left.vrt"), rpc=True, dstSRS="EPSG:4326",
-                   transformerOptions=[f"RPC_DEM={V.SRTM}"])
-    assert ds is not None and ds.RasterXSize > 100
-    assert np.count_nonzero(ds.GetRasterBand(1).ReadAsArray()) > 0.3 * ds.RasterXSize * ds.RasterYSize
-    src = gdal.Open(str(out / "left.vrt"))
-    assert src.GetMetadata("RPC")["LINE_OFF"] == gdal.Open(str(out / "left.vrt")).GetMetadata("RPC")["LINE_OFF"]
-    assert float(src.GetMetadata("RPC")["LINE_OFF"]) == pytest.approx(RPCModel.from_file(out / "left.RPB").line_off)
+    shutil.copyfile(V.LEFT_TIF, tmp_path / "left.tif")
+    shutil.copyfile(out / "left.RPB", tmp_path / "left.RPB")
+    new = RPCModel.from_file(out / "left.RPB")
+    warped = {}
+    for name, src in (("vrt", out / "left.vrt"), ("rpb", tmp_path / "left.tif")):
+        md = gdal.Open(str(src)).GetMetadata("RPC")
+        assert float(md["LINE_OFF"]) == pytest.approx(new.line_off) and float(md["SAMP_OFF"]) == pytest.approx(
+            new.samp_off)
+        ds = gdal.Warp(str(tmp_path / f"ortho_{name}.tif"), str(src), rpc=True, dstSRS="EPSG:4326",
+                       transformerOptions=[f"RPC_DEM={V.SRTM}"])
+        assert ds is not None and ds.RasterXSize > 100
+        assert np.count_nonzero(ds.GetRasterBand(1).ReadAsArray()) > 0.3 * ds.RasterXSize * ds.RasterYSize
+        warped[name] = ds.GetGeoTransform()
+    assert warped["vrt"] == pytest.approx(warped["rpb"])
 
 
 def test_residual_layers_are_styled(unbiased):
