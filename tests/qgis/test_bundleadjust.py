@@ -68,3 +68,29 @@ def test_bundleadjust_cancel_leaves_nothing(qgis_app, tmp_path):
                        context=ctx)
     assert not out.exists(), sorted(os.listdir(out))
     assert not [n for n in os.listdir(tmp_path / "in") if n.startswith(".")]
+
+
+def test_bundleadjust_rpc_files_alone_with_a_tie_table(run_alg, tmp_path):
+    """Views given as RPC files alone (RPC_VIEWS) with a tie table: a simulated stereo pair (seed 5, 150 ties at
+    0.2 px); the QGIS outputs are the CLI's."""
+    from gdal_gf4cal.cli import main
+    from gdal_gf4cal.rpc_io import write_rpb
+    from gdal_gf4cal.simulate.views import simulate_views
+    sim = simulate_views("stereo", n_ties=150, noise_px=0.2, seed=5)
+    paths = []
+    for v, m in sim.models.items():
+        paths.append(str(tmp_path / f"{v}.RPB"))
+        write_rpb(m, paths[-1])
+    obs = tmp_path / "ties.csv"
+    sim.observations.drop(columns=["true_sample", "true_line"]).to_csv(obs, index=False)
+    res, fb = run_alg("gf4cal:bundleadjust", {"INPUT": [], "RPC_VIEWS": paths, "TIES_FILE": str(obs), "MODEL": 0,
+                                              "OUTPUT_FOLDER": str(tmp_path / "q")})
+    assert sorted(os.path.basename(p) for p in res["OUTPUT_RPCS"]) == ["bwd.RPB", "fwd.RPB"]
+    assert res["OUTPUT_VRTS"] == [] and not res["OUTPUT_TIES"] and res["N_TIES"] == 150
+    assert res["RMS_AFTER_PX"] < 0.3 < res["RMS_BEFORE_PX"]
+    assert "bwd: translation correction; relative to fwd" in fb.text()
+    assert main(["bundle-adjust", *paths, "--ties", str(obs), "--model", "translation", "--out",
+                 str(tmp_path / "c")]) == 0
+    for v in ("fwd", "bwd"):
+        with open(tmp_path / "q" / f"{v}.RPB") as a, open(tmp_path / "c" / f"{v}.RPB") as b:
+            assert a.read() == b.read()
