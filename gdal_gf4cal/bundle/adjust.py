@@ -40,6 +40,19 @@ class BundleProblem:
         self.point_cov = None
         self.iterations, self.converged = 0, False
 
+    def change(self, old: Estimate, new: Estimate) -> float:
+        """How far a re-solve moved the corrections: the largest change of a view's ``(ds, dl)`` at the image's
+        corners and centre (px); the robust driver stops reweighting below its ``tol``."""
+        d = new.x - old.x
+        out = 0.0
+        for v in self.layout.views:
+            w, h = self.layout.sizes[v]
+            s, l = np.array([0.0, w, 0.0, w, 0.5 * w]), np.array([0.0, 0.0, h, h, 0.5 * h])
+            a_s, a_l = self.layout.design(v, s, l)
+            sl_s, sl_l = self.layout.slices(v)
+            out = max(out, float(np.abs(a_s @ d[sl_s]).max()), float(np.abs(a_l @ d[sl_l]).max()))
+        return out
+
     @property
     def sigma(self) -> np.ndarray:
         """A-priori σ of each ray (px)."""
@@ -125,7 +138,8 @@ def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: st
     models : mapping view -> RPCModel
         The vendor RPCs, keyed by the table's ``image_id``.
     dem : DEM, path, number or None
-        Starting heights where rays are nearly parallel, and a weak height prior (± ``dem_sigma_m``) on the ties.
+        Starting heights, and a weak height prior (± ``dem_sigma_m``), of the ties whose rays are nearly parallel
+        (:data:`~gdal_gf4cal.bundle.start.PARALLEL_SIGMA_M`).
     model : 'translation' | 'shift-drift' | 'affine'
         The per-view correction (METHODS §4.1); slope terms fall back to a translation, with a note, in a view whose
         ties do not span :data:`~gdal_gf4cal.bundle.model.MIN_SPAN` of the image.
@@ -149,8 +163,9 @@ def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: st
     tab = check_inputs(observations, models, sizes, dem=dem_obj)
     layout = make_layout(tab, models, sizes, model, prior_sigma_px)
     rays = make_rays(tab, layout)
-    ground0, notes = start_ground(models, layout, rays, dem_obj)
-    wts = base_weights(models, layout, rays, ground0, dem_obj, gcp_sigma_m=gcp_sigma_m, dem_sigma_m=dem_sigma_m)
+    ground0, parallel, notes = start_ground(models, layout, rays, dem_obj)
+    wts = base_weights(models, layout, rays, ground0, dem_obj, parallel, gcp_sigma_m=gcp_sigma_m,
+                       dem_sigma_m=dem_sigma_m)
     state0 = State(np.zeros(layout.n_params), ground0)
     before = project_all(models, layout, rays, state0, jacobian=False)
     pb = BundleProblem(models, layout, rays, state0, wts, tol_px=tol_px, max_iter=max_iter, progress=progress)

@@ -4,7 +4,7 @@
 correction; per ray two residuals, sample then line) plus the views' corrections as
 :class:`~gdal_gf4cal.compensation.CompensationResult` (the one correction class, folded or refitted into a new RPC
 by :func:`~gdal_gf4cal.compensation.apply_compensation`), the tie points' ground, the reprojection before and after
-(per view, per pair of views, all: RMS of the residual vectors' length over the rays in the estimate), the datum
+(per view, per pair of views, all: RMS of the residual components over the rays in the estimate), the datum
 drift and the residual table.
 """
 from __future__ import annotations
@@ -62,7 +62,8 @@ class BundleEstimate(Estimate):
 
 def reprojection(res: np.ndarray, rays: Rays, layout: ViewLayout, used: np.ndarray) -> Dict[str, Any]:
     """``{'per_view': {view: rms}, 'per_pair': {'a|b': rms}, 'all': rms}`` of residuals ``res`` (n_rays, 2) over the
-    rays ``used``; a pair's RMS is over the rays in ``a`` and ``b`` of the points both see (px)."""
+    rays ``used``: RMS over both axes' components, ``sqrt(mean(ds^2, dl^2))`` px (METHODS §6); a pair's over the
+    rays in ``a`` and ``b`` of the points both see."""
     m = len(layout.views)
     sq = np.where(used, np.sum(res * res, axis=1), 0.0)
     seen = np.zeros((rays.n_points, m))
@@ -72,12 +73,12 @@ def reprojection(res: np.ndarray, rays: Rays, layout: ViewLayout, used: np.ndarr
     n_view, s_view = seen.sum(axis=0), sqp.sum(axis=0)
     count = seen.T @ seen                                         # points seen by both views
     pair_sq = seen.T @ sqp + sqp.T @ seen                         # [a, b]: both rays' squares of those points
-    per_view = {v: (float(np.sqrt(s_view[j] / n_view[j])) if n_view[j] else None)
+    per_view = {v: (float(np.sqrt(s_view[j] / (2.0 * n_view[j]))) if n_view[j] else None)
                 for j, v in enumerate(layout.views)}
-    per_pair = {f"{layout.views[a]}|{layout.views[b]}": float(np.sqrt(pair_sq[a, b] / (2.0 * count[a, b])))
+    per_pair = {f"{layout.views[a]}|{layout.views[b]}": float(np.sqrt(pair_sq[a, b] / (4.0 * count[a, b])))
                 for a in range(m) for b in range(a + 1, m) if count[a, b] > 0}
     n = int(np.count_nonzero(used))
-    return {"per_view": per_view, "per_pair": per_pair, "all": float(np.sqrt(sq.sum() / n)) if n else None}
+    return {"per_view": per_view, "per_pair": per_pair, "all": float(np.sqrt(sq.sum() / (2.0 * n))) if n else None}
 
 
 def view_correction(layout: ViewLayout, view: str, x: np.ndarray, cov: np.ndarray, sigma0: float,

@@ -50,8 +50,9 @@ def _dem_start(models, layout: ViewLayout, rays: Rays, todo: np.ndarray, dem) ->
 
 
 def start_ground(models: Mapping[str, object], layout: ViewLayout, rays: Rays, dem=None,
-                 progress=None) -> Tuple[np.ndarray, List[str]]:
-    """``(ground (n_points, 3), notes)``: intersection, the DEM where rays are nearly parallel, GCPs as given."""
+                 progress=None) -> Tuple[np.ndarray, np.ndarray, List[str]]:
+    """``(ground (n_points, 3), parallel (n_points,) bool, notes)``: intersection, the DEM where rays are nearly
+    parallel (``parallel``: those ties), GCPs as given."""
     ground = rays.ground.copy()
     notes: List[str] = []
     ties = np.flatnonzero(~rays.point_is_gcp)
@@ -79,21 +80,23 @@ def start_ground(models: Mapping[str, object], layout: ViewLayout, rays: Rays, d
         lon, lat = models[layout.views[0]].localize(np.zeros(1), np.zeros(1), h0)
         ground[lost] = [float(np.atleast_1d(lon)[0]), float(np.atleast_1d(lat)[0]), h0]
         notes.append(f"{int(lost.sum())} tie(s) could not be intersected; started at the scene centre")
-    return ground, notes
+    return ground, bad, notes
 
 
-def base_weights(models, layout: ViewLayout, rays: Rays, ground: np.ndarray, dem=None, *,
+def base_weights(models, layout: ViewLayout, rays: Rays, ground: np.ndarray, dem=None, parallel=None, *,
                  gcp_sigma_m: float = 0.01, dem_sigma_m: float = 50.0) -> Weights:
     """A-priori weights: rays ``1 / sigma^2`` (control rows; check rows 0), control GCPs' ground ``1 /
-    gcp_sigma_m^2``, ties' DEM height ``1 / dem_sigma_m^2`` (with a DEM), the datum prior ``1 / prior^2``."""
+    gcp_sigma_m^2``, the DEM's height ``1 / dem_sigma_m^2`` on the ties with nearly ``parallel`` rays (with a
+    DEM; elsewhere the rays fix the height and the DEM would only pull the block's height datum), the datum prior
+    ``1 / prior^2``."""
     w_rays = np.where(rays.control, 1.0 / rays.sigma ** 2, 0.0)
     w_ground = np.zeros((rays.n_points, 3))
     obs = np.full((rays.n_points, 3), np.nan)
     ctrl_gcp = rays.point_is_gcp & rays.point_control
     w_ground[ctrl_gcp] = 1.0 / float(gcp_sigma_m) ** 2
     obs[rays.point_is_gcp] = rays.ground[rays.point_is_gcp]
-    if dem is not None:
-        ties = np.flatnonzero(~rays.point_is_gcp)
+    if dem is not None and parallel is not None and parallel.any():
+        ties = np.flatnonzero(parallel & ~rays.point_is_gcp)
         h = np.asarray(dem.sample(ground[ties, 0], ground[ties, 1], nodata="nan"), float)
         ok = np.isfinite(h)
         obs[ties[ok]] = np.stack([ground[ties[ok], 0], ground[ties[ok], 1], h[ok]], axis=1)
