@@ -241,8 +241,8 @@ def _residual_bars(ax, residual_rms) -> None:
 def plot_tie_residuals(table, path: PathLike, *, sizes=None, title: str = "Tie residuals per view",
                        dpi: int = 100) -> Path:
     """Tie residual vectors in each view's image space, before (top row) and after (bottom row) a bundle
-    adjustment (METHODS §11), ONE exaggeration for every panel (stated in the title), outliers in red, the RMS of
-    the rays in the estimate in each panel's title (a PNG).
+    adjustment (METHODS §11), ONE exaggeration for every panel (stated in the title), outliers in red, the RMS per
+    component (``sqrt(mean(ds^2, dl^2))``, METHODS §6) of the rays kept in each panel's title (a PNG).
 
     ``table``: the long table with ``image_id, sample, line, res_sample_before, res_line_before, res_sample_after,
     res_line_after`` and optionally ``outlier``; ``sizes``: ``{view: (W, H)}`` (dashed frame; default the ties'
@@ -269,7 +269,7 @@ def plot_tie_residuals(table, path: PathLike, *, sizes=None, title: str = "Tie r
                     ax.quiver(s[m], l[m], rs[m], rl[m], color=colour, angles="xy", scale_units="xy",
                               scale=1.0 / factor, width=0.004)
             use = ~out & np.isfinite(rs) & np.isfinite(rl)
-            rms = float(np.sqrt(np.mean(rs[use] ** 2 + rl[use] ** 2))) if use.any() else float("nan")
+            rms = float(np.sqrt(np.mean(rs[use] ** 2 + rl[use] ** 2) / 2)) if use.any() else float("nan")
             ax.set_title(f"{v} {when}: RMS {rms:.3g} px ({int(use.sum())} rays, {int(out.sum())} outliers)",
                          fontsize=8)
             ax.plot([0, W, W, 0, 0], [0, 0, H, H, 0], "--", color="#aaaaaa", lw=0.8)

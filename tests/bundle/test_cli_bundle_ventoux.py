@@ -42,9 +42,10 @@ def test_outputs_and_numbers(unbiased):
                                                       "right.RPB", "right.vrt", "ties.csv", "ties.png"]
     assert rep["ties"]["n_points"] >= 150 and rep["ties"]["source"] == "raw-to-raw matching"
     before, after = rep["reprojection_px"]["before"], rep["reprojection_px"]["after"]
-    # the vendor RPCs disagree by ~2.4 px on these ties; one translation per view leaves the matching noise
-    assert 2.0 < before["all"] < 3.0
-    assert after["all"] < 0.12 and after["per_pair"]["left|right"] < 0.12
+    # RMS per component: the vendor RPCs disagree by ~1.7 px on these ties; one translation per view leaves the
+    # matching noise
+    assert 1.4 < before["all"] < 2.2
+    assert after["all"] < 0.09 and after["per_pair"]["left|right"] < 0.09
     assert set(rep["views"]) == {"left", "right"} and all(v["model_used"] == "translation"
                                                          for v in rep["views"].values())
     assert any("translation estimated instead" in n for n in rep["notes"])     # ties span 22 % of the lines
@@ -75,7 +76,7 @@ def test_written_rpcs_reproduce_the_adjusted_rays(unbiased):
         s, l = rpb.project(g["lon"].to_numpy(), g["lat"].to_numpy(), g["h"].to_numpy())
         sv, lv = vrt.project(g["lon"].to_numpy(), g["lat"].to_numpy(), g["h"].to_numpy())
         assert np.max(np.hypot(s - sv, l - lv)) < 1e-9
-        rms = float(np.sqrt(np.mean((t["sample"].to_numpy() - s) ** 2 + (t["line"].to_numpy() - l) ** 2)))
+        rms = float(np.sqrt(np.mean((t["sample"].to_numpy() - s) ** 2 + (t["line"].to_numpy() - l) ** 2) / 2))
         assert rms == pytest.approx(rep["views"][k]["reprojection_px"]["after"], abs=2e-3)
 
 
@@ -121,9 +122,11 @@ def _layer(path, name):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="engine: the DEM height targets are sampled once at the start ground (the "
-                   "biased rays' intersection), 0.44/1.6 px off; re-sampled at the adjusted ground -0.001/-60.0003 px "
-                   "(/work/wt/notes/BUNDLEIO_TO_BUNDLE.md)")
+@pytest.mark.xfail(strict=False, reason="the bias is mostly along the epipolar lines (57.9 of its 60 px: an 87 m "
+                   "height shift of the ties); the engine (since c003459) takes no height from the DEM where rays "
+                   "intersect well, so only the across-epipolar part is recovered: measured (-14.96, -5.22) px "
+                   "instead of (0, -60); with the DEM as a height prior on every tie, re-sampled at the adjusted "
+                   "ground: (-0.001, -60.0003) px (/work/wt/notes/BUNDLEIO_TO_BUNDLE.md)")
 def test_sixty_pixel_bias_recovered_relative_to_the_unbiased_run(tmp_path, capsys):
     """shareloc's right_image_bias.geom = the right RPC with LINE_OFF + 60 px. Both runs with the same options
     (the right view's RPC may be off by 100 px, the left one is trusted to 3 px): the right view's correction
@@ -135,7 +138,7 @@ def test_sixty_pixel_bias_recovered_relative_to_the_unbiased_run(tmp_path, capsy
     rb = b["relative_to_first_view_px"]["views"]["right"]
     assert rb["sample"] - ra["sample"] == pytest.approx(0.0, abs=0.1)
     assert rb["line"] - ra["line"] == pytest.approx(-V.BIAS_LINE_PX, abs=0.1)
-    assert b["reprojection_px"]["before"]["all"] > 10 and b["reprojection_px"]["after"]["all"] < 0.12
+    assert b["reprojection_px"]["before"]["all"] > 7 and b["reprojection_px"]["after"]["all"] < 0.09
     assert "right: translation correction" in cap.out
 
 
@@ -156,6 +159,6 @@ def test_three_views_of_two_resolutions(tmp_path, capsys):
     pairs = {tuple(p["pair"]): p["n_ties"] for p in rep["ties"]["pairs_matched"]}
     assert set(pairs) == {("left", "right"), ("left", "ms"), ("right", "ms")} and min(pairs.values()) >= 30
     after = rep["reprojection_px"]["after"]
-    assert after["per_pair"]["left|right"] < 0.15
+    assert after["per_pair"]["left|right"] < 0.1
     assert all(after["per_view"][k] < rep["reprojection_px"]["before"]["per_view"][k] for k in ("left", "right", "ms"))
     assert sorted(p.name for p in out.iterdir() if p.suffix == ".vrt") == ["left.vrt", "ms.vrt", "right.vrt"]
