@@ -78,15 +78,11 @@ def _global_normals(rows: _Rows, r_used: np.ndarray, p: int):
                        minlength=p * p).reshape(p, p), bg
 
 
-def _solve_reduced(s_mat: np.ndarray, b_red: np.ndarray):
-    """Equilibrated Cholesky solve of the reduced system: ``(dx, S^-1)``; DegenerateGeometryError if singular."""
-    from scipy.linalg import LinAlgError, cho_factor, cho_solve
-    d = np.sqrt(np.abs(np.diag(s_mat)))
-    if not np.all(d > 0):
-        raise DegenerateGeometryError(f"{int(np.sum(d <= 0))} global parameter(s) have no observation; freeze "
-                                      "blocks or add observations")
-    s_eq = s_mat / np.outer(d, d)
-    try:
+def cholesky_reduced(s_eq: np.ndarray):
+    """Cholesky factor (``scipy.linalg.cho_factor``) of an equilibrated reduced system; DegenerateGeometryError
+    with the condition number when it is not (numerically) positive definite. Shared by both Schur paths."""
+    from scipy.linalg import LinAlgError, cho_factor
+    try:                                             # Cholesky: the equilibrated S is SPD when determined
         fac = cho_factor(s_eq, check_finite=False)
         piv = np.abs(np.diag(fac[0]))
         if piv.min() ** 2 <= 1e-12 * piv.max() ** 2:
@@ -96,6 +92,17 @@ def _solve_reduced(s_mat: np.ndarray, b_red: np.ndarray):
         raise DegenerateGeometryError(f"the global parameters are not determined (condition number "
                                       f"{sv[0] / max(sv[-1], 1e-300):.3g}); freeze blocks or add observations") \
             from None
+    return fac
+
+
+def _solve_reduced(s_mat: np.ndarray, b_red: np.ndarray):
+    """Equilibrated Cholesky solve of the reduced system: ``(dx, S^-1)``; DegenerateGeometryError if singular."""
+    from scipy.linalg import cho_solve
+    d = np.sqrt(np.abs(np.diag(s_mat)))
+    if not np.all(d > 0):
+        raise DegenerateGeometryError(f"{int(np.sum(d <= 0))} global parameter(s) have no observation; freeze "
+                                      "blocks or add observations")
+    fac = cholesky_reduced(s_mat / np.outer(d, d))
     dx = cho_solve(fac, b_red / d, check_finite=False) / d
     cov = cho_solve(fac, np.eye(s_mat.shape[0]), check_finite=False) / np.outer(d, d)
     return dx, cov
