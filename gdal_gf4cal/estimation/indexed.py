@@ -40,42 +40,49 @@ def _chunks(n: int, q: int, p: int):
         yield slice(a, min(n, a + step))
 
 
-def _npg(jw: np.ndarray, jac: IndexedJacobian, sl: slice) -> np.ndarray:
-    """Dense ``N_pg`` (n, q, p) of the points ``sl``: ``sum_k w jp^T a`` scattered by column index."""
-    cols, vals = jac.cols[sl], jac.vals[sl]
-    n, _, q = jw.shape
-    p = jac.n_params
-    contrib = jw[:, :, :, None] * vals[:, :, None, :]                          # (n, r, q, c)
-    idx = (np.arange(n)[:, None, None, None] * q + np.arange(q)[None, None, :, None]) * p + cols[:, :, None, :]
+@dataclass
+class _Rows:
+    """The rows with weight, point-major: their ``point``, ``jw`` (w jp, (m, q)), ``cols``/``vals`` (m, c) and
+    ``wv`` (w vals). Scattering them with ``bincount`` is faster than grouping rows by their columns (measured)."""
+
+    point: np.ndarray
+    jw: np.ndarray
+    cols: np.ndarray
+    vals: np.ndarray
+    wv: np.ndarray
+
+
+def _used_rows(jp, w, jac: IndexedJacobian, ok) -> _Rows:
+    n, r, q = jp.shape
+    c = jac.cols.shape[2]
+    wk = np.where(ok[:, None], w, 0.0).ravel()
+    used = np.flatnonzero(wk)
+    cols, vals = jac.cols.reshape(-1, c)[used], jac.vals.reshape(-1, c)[used]
+    return _Rows(used // r, jp.reshape(-1, q)[used] * wk[used][:, None], cols, vals, vals * wk[used][:, None])
+
+
+def _npg(rows: _Rows, lo: int, hi: int, q: int, p: int) -> np.ndarray:
+    """Dense ``N_pg`` (hi - lo, q, p) of the points ``lo:hi``: ``sum_k w jp^T a`` scattered by column index."""
+    a, b = np.searchsorted(rows.point, [lo, hi])
+    pts, n = rows.point[a:b] - lo, hi - lo
+    contrib = rows.jw[a:b][:, :, None] * rows.vals[a:b][:, None, :]           # (m, q, c)
+    idx = (pts[:, None, None] * q + np.arange(q)[None, :, None]) * p + rows.cols[a:b][:, None, :]
     return np.bincount(idx.ravel(), weights=contrib.ravel(), minlength=n * q * p).reshape(n, q, p)
 
 
-def _global_normals(r, w, jac: IndexedJacobian, ok):
-    """``N_gg`` (p, p) and ``b_g`` (p,) of the point rows with weight (singular points left out): one sparse
-    ``A^T W A`` of the rows' few entries."""
-    import scipy.sparse as sp
-    p = jac.n_params
-    wk = np.where(ok[:, None], w, 0.0).ravel()
-    used = np.flatnonzero(wk)
-    c = jac.cols.shape[2]
-    cols = jac.cols.reshape(-1, c)[used]
-    vals = jac.vals.reshape(-1, c)[used]
-    a = sp.csr_matrix((vals.ravel(), cols.ravel(), np.arange(0, used.size * c + 1, c)), shape=(used.size, p))
-    aw = a.multiply(wk[used][:, None]).tocsr()
-    ngg = (aw.T @ a).toarray()
-    bg = aw.T @ r.reshape(-1)[used]
-    return ngg, np.asarray(bg).ravel()
+def _global_normals(rows: _Rows, r_used: np.ndarray, p: int):
+    """``N_gg`` (p, p) and ``b_g`` (p,) of the rows with weight."""
+    bg = np.bincount(rows.cols.ravel(), weights=(rows.wv * r_used[:, None]).ravel(), minlength=p)
+    pair = (rows.cols[:, :, None] * p + rows.cols[:, None, :]).ravel()
+    return np.bincount(pair, weights=(rows.wv[:, :, None] * rows.vals[:, None, :]).ravel(),
+                       minlength=p * p).reshape(p, p), bg
 
 
-def _solve_reduced(s_mat: np.ndarray, b_red: np.ndarray):
-    """Equilibrated Cholesky solve of the reduced system: ``(dx, S^-1)``; DegenerateGeometryError if singular."""
-    from scipy.linalg import LinAlgError, cho_factor, cho_solve
-    d = np.sqrt(np.abs(np.diag(s_mat)))
-    if not np.all(d > 0):
-        raise DegenerateGeometryError(f"{int(np.sum(d <= 0))} global parameter(s) have no observation; freeze "
-                                      "blocks or add observations")
-    s_eq = s_mat / np.outer(d, d)
-    try:
+def cholesky_reduced(s_eq: np.ndarray):
+    """Cholesky factor (``scipy.linalg.cho_factor``) of an equilibrated reduced system; DegenerateGeometryError
+    with the condition number when it is not (numerically) positive definite. Shared by both Schur paths."""
+    from scipy.linalg import LinAlgError, cho_factor
+    try:                                             # Cholesky: the equilibrated S is SPD when determined
         fac = cho_factor(s_eq, check_finite=False)
         piv = np.abs(np.diag(fac[0]))
         if piv.min() ** 2 <= 1e-12 * piv.max() ** 2:
@@ -85,6 +92,17 @@ def _solve_reduced(s_mat: np.ndarray, b_red: np.ndarray):
         raise DegenerateGeometryError(f"the global parameters are not determined (condition number "
                                       f"{sv[0] / max(sv[-1], 1e-300):.3g}); freeze blocks or add observations") \
             from None
+    return fac
+
+
+def _solve_reduced(s_mat: np.ndarray, b_red: np.ndarray):
+    """Equilibrated Cholesky solve of the reduced system: ``(dx, S^-1)``; DegenerateGeometryError if singular."""
+    from scipy.linalg import cho_solve
+    d = np.sqrt(np.abs(np.diag(s_mat)))
+    if not np.all(d > 0):
+        raise DegenerateGeometryError(f"{int(np.sum(d <= 0))} global parameter(s) have no observation; freeze "
+                                      "blocks or add observations")
+    fac = cholesky_reduced(s_mat / np.outer(d, d))
     dx = cho_solve(fac, b_red / d, check_finite=False) / d
     cov = cho_solve(fac, np.eye(s_mat.shape[0]), check_finite=False) / np.outer(d, d)
     return dx, cov
@@ -122,7 +140,9 @@ def solve_indexed(jp, r, w, npp, bp, jac: IndexedJacobian, extra, covariance: bo
     inv, ok = block_inverse(npp, det_min)
     n, _, q = jp.shape
     p = jac.n_params
-    ngg, bg = _global_normals(r, w, jac, ok)
+    rows = _used_rows(jp, w, jac, ok)
+    wk = np.where(ok[:, None], w, 0.0).ravel()
+    ngg, bg = _global_normals(rows, r.reshape(-1)[wk != 0], p)
     if extra is not None:
         import scipy.sparse as sp
         je = extra[0].toarray() if sp.issparse(extra[0]) else np.asarray(extra[0], float)
@@ -133,7 +153,7 @@ def solve_indexed(jp, r, w, npp, bp, jac: IndexedJacobian, extra, covariance: bo
     jw = (jp * np.where(ok[:, None], w, 0.0)[:, :, None])
     s_mat, b_red = ngg.copy(), bg.copy()
     for sl in _chunks(n, q, p):
-        npg = _npg(jw[sl], jac, sl)
+        npg = _npg(rows, sl.start, sl.stop, q, p)
         t = np.matmul(inv0[sl], npg)                                           # N_pp^-1 N_pg
         s_mat -= npg.reshape(-1, p).T @ t.reshape(-1, p)
         b_red -= np.einsum("nqi,nq->i", t, bp[sl])
@@ -145,6 +165,6 @@ def solve_indexed(jp, r, w, npp, bp, jac: IndexedJacobian, extra, covariance: bo
     cov_p = inv.copy() if covariance else np.empty((0, q, q))
     if covariance:
         for sl in _chunks(n, q, p):
-            t = np.matmul(inv0[sl], _npg(jw[sl], jac, sl))
+            t = np.matmul(inv0[sl], _npg(rows, sl.start, sl.stop, q, p))
             cov_p[sl] = np.where(ok[sl, None, None], inv[sl] + np.matmul(t @ cov_g, t.transpose(0, 2, 1)), inv[sl])
     return dxp, cov_p, ok, dxg, cov_g

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import DegenerateGeometryError
-from .indexed import IndexedJacobian, solve_indexed
+from .indexed import IndexedJacobian, cholesky_reduced, solve_indexed
 
 #: Global parameter count above which the reduced system is assembled and solved with scipy.sparse.
 SPARSE_ABOVE = 500
@@ -187,18 +187,9 @@ def _solve_sparse(jp, r, w, npp, bp, ok, inv, jg, extra, covariance: bool) -> Po
                                           "add observations") from None
         s_dense = s_eq.toarray() if covariance else None
     else:
-        from scipy.linalg import LinAlgError, cho_factor, cho_solve
+        from scipy.linalg import cho_solve
         s_dense = s_eq.toarray()
-        try:                                         # Cholesky: the equilibrated S is SPD when determined
-            fac = cho_factor(s_dense, check_finite=False)
-            piv = np.abs(np.diag(fac[0]))
-            if piv.min() ** 2 <= 1e-12 * piv.max() ** 2:
-                raise LinAlgError("ill-conditioned")
-        except LinAlgError:
-            sv = np.linalg.svd(s_dense, compute_uv=False)
-            raise DegenerateGeometryError(f"the global parameters are not determined (condition number "
-                                          f"{sv[0] / max(sv[-1], 1e-300):.3g}); freeze blocks or add observations") \
-                from None
+        fac = cholesky_reduced(s_dense)
         z = cho_solve(fac, b_red / d, check_finite=False)
     dxg = z / d
     if not np.all(np.isfinite(dxg)):
