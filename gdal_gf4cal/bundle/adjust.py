@@ -1,7 +1,7 @@
 """``adjust_views``: bundle adjustment of separate views from their RPCs (METHODS §11, Grodecki & Dial 2003)."""
 from __future__ import annotations
 
-from typing import Any, Dict, List, Mapping, Optional
+from typing import Any, List, Mapping
 
 import numpy as np
 import pandas as pd

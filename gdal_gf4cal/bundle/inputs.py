@@ -6,7 +6,7 @@ with the others (or views falling into groups that share none).
 """
 from __future__ import annotations
 
-from typing import Dict, List, Mapping, Optional, Tuple
+from typing import Dict, List, Mapping, Tuple
 
 import numpy as np
 import pandas as pd
@@ -85,8 +85,9 @@ def _check_connected(tab: pd.DataFrame, views: List[str]) -> None:
     n, label = connected_components(inc @ inc.T, directed=False)
     if n > 1:
         groups = [[v for v in views if label[vi[v]] == g] for g in range(n)]
-        raise BundleError(f"the views fall into {n} groups that share no tie point ({'; '.join(_short(g, 3) for g in groups)}); "
-                          "add ties linking them or adjust the groups separately")
+        names = "; ".join(_short(g, 3) for g in groups)
+        raise BundleError(f"the views fall into {n} groups that share no tie point ({names}); add ties linking them "
+                          "or adjust the groups separately")
 
 
 def _span(s, l, size) -> Tuple[float, float]:
@@ -108,7 +109,7 @@ def make_layout(tab: pd.DataFrame, models: Mapping[str, object], sizes, model: s
     offset: Dict[str, int] = {}
     priors: List[np.ndarray] = []
     notes: List[str] = []
-    ctrl = tab[(tab["kind"] == "tie") & (tab["role"] == "control") | (tab["kind"] == "gcp") & (tab["role"] == "control")]
+    ctrl = tab[(tab["role"] == "control").to_numpy()]
     pos = 0
     for v in views:
         m = base

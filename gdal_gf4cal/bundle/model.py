@@ -14,18 +14,16 @@ three ground rows (east, north, up prior: a GCP's known ground, the DEM's weak h
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, List, Mapping, Optional, Tuple
+from typing import Dict, List, Tuple
 
 import numpy as np
-import pandas as pd
 
 from ..basis import monomial_derivatives, monomials, term_name
 from ..compensation import CompensationModel
 from ..errors import GCPError
-from ..observations import validate_observations
 
-__all__ = ["BundleError", "DEFAULT_PRIOR_PX", "BUNDLE_MODELS", "MIN_SPAN", "ViewLayout", "Rays", "build_problem",
-           "prior_sigma_px", "pixel_size_m"]
+__all__ = ["BundleError", "DEFAULT_PRIOR_PX", "BUNDLE_MODELS", "MIN_SPAN", "ViewLayout", "Rays", "prior_sigma_px",
+           "pixel_size_m"]
 
 #: Prior standard deviation (px) of every correction parameter when the RPC states no bias error (ERR_BIAS):
 #: vendor RPCs of current very-high-resolution satellites agree within a few pixels.

@@ -10,7 +10,7 @@ datum: one pseudo-observation per correction parameter, ``0 ± prior`` (the ``ex
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Mapping, Optional
+from typing import Any, Dict, Mapping, Optional
 
 import numpy as np
 import scipy.sparse as sp

@@ -249,3 +249,15 @@ def test_blunder_rays_rejected_through_the_robust_driver():
     z_rob = np.sqrt(np.mean(_whitened(est.x - clean.x, _floor_cov(clean)) ** 2))
     z_plain = np.sqrt(np.mean(_whitened(plain.x - clean.x, _floor_cov(clean)) ** 2))
     assert z_rob < 0.5 < 3.0 < z_plain, (z_rob, z_plain)
+
+
+def test_dem_only_where_rays_are_nearly_parallel(monkeypatch):
+    from gdal_gf4cal.bundle import start
+    sim = simulate_views("tri-stereo", n_ties=120, seed=8)
+    plain = adjust_views(sim.observations, sim.models, robust=False)
+    with_dem = adjust_views(sim.observations, sim.models, dem=sim.h0, robust=False)
+    assert np.allclose(with_dem.x, plain.x, atol=1e-9)          # 15 deg stereo: the rays fix every height
+    monkeypatch.setattr(start, "PARALLEL_SIGMA_M", 0.0)         # every tie "nearly parallel": started on the
+    est = adjust_views(sim.observations, sim.models, dem=sim.h0, robust=False, dem_sigma_m=1e6)   # flat DEM
+    assert any("120 tie(s) with nearly parallel rays started on the DEM" in n for n in est.notes)
+    assert est.converged and np.allclose(est.x, plain.x, atol=1e-5)     # 300 m of relief away: same solution
