@@ -1,4 +1,4 @@
-"""The real Pleiades Ventoux stereo crops for the bundle-adjust tests (issue 22; tests/data/bundle_ventoux/PROVENANCE.txt):
+"""The real Pleiades Ventoux stereo crops for the bundle-adjust tests (issue 22; tests/data/bundle_ventoux/PROVENANCE):
 each crop copied beside its product's OSSIM .geom (left.tif + left.geom, right.tif + right.geom), as shareloc ships
 them, so the views' RPCs are found beside the images and moved to the crops by their origins."""
 from __future__ import annotations

@@ -50,7 +50,8 @@ class BundleAdjust(Gf4calAlgorithm):
             "frame from tie points alone, before making a surface model or stacking them: each view keeps its "
             "vendor RPC plus a correction in image space (translation, shift and drift, or affine), the tie points' "
             "ground is estimated with them, and each view's RPC holds the block in place where no GCPs are given "
-            "(Grodecki & Dial 2003). Tie points come from a table or are matched raw to raw through the RPCs and the DEM on "
+            "(Grodecki & Dial 2003). Tie points come from a table or are matched raw to raw through the RPCs and "
+            "the DEM on "
             "the overlapping pairs. Writes into the output folder one corrected RPC per view (<view>.RPB and, for an "
             "image, <view>.vrt over the untouched image carrying it: gdalwarp -rpc reads it), report.json (tie "
             "reprojection before/after per view and per pair, corrections with their sigmas, each view relative "
@@ -128,8 +129,8 @@ class BundleAdjust(Gf4calAlgorithm):
 
     def run_algorithm(self, parameters, context, feedback, progress):
         from gdal_gf4cal.workflows import bundle_adjust
-        images = [p for name in (self.INPUT, self.RPC_VIEWS) for p in self.parameterAsFileList(parameters, name, context)
-                  if p]
+        images = [p for name in (self.INPUT, self.RPC_VIEWS)
+                  for p in self.parameterAsFileList(parameters, name, context) if p]
         dem, geoid = self.dem_source(parameters, context)
         max_pairs = parameters.get(self.MAX_PAIRS)
         try:
