@@ -33,6 +33,7 @@ COMMANDS = [
     "collect_gcps",
     "register_pan_ms",
     "block_adjust",
+    "bundle_adjust",
 ]
 
 

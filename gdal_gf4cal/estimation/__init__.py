@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from .result import Estimate
 from .lsq import Block, normal_solve, weighted_lsq
+from .indexed import IndexedJacobian
 from .schur import solve_with_points
 from .lsq import sigma0_and_cov, unit_weight_sigma
 from .robust import critical_value, high_breakdown_start, min_subset_points, radial_huber_weights, readmissible
@@ -19,4 +20,4 @@ from .driver import (ESTIMATE_LEVELS, Huber, IRLSSolution, LinearProblem, Radial
 __all__ = ["Estimate", "Block", "weighted_lsq", "solve_with_points", "critical_value", "high_breakdown_start",
            "robust_lsq", "normal_solve", "irls", "IRLSSolution", "radial_huber_weights", "readmissible",
            "min_subset_points", "sigma0_and_cov", "unit_weight_sigma", "robust_fit", "LinearProblem", "Snooping",
-           "RadialHuber", "Huber", "Tukey", "RobustState", "ESTIMATE_LEVELS"]
+           "RadialHuber", "Huber", "Tukey", "RobustState", "ESTIMATE_LEVELS", "IndexedJacobian"]

@@ -22,6 +22,7 @@ import scipy.sparse.linalg as spla
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
 from ..errors import DegenerateGeometryError
+from .indexed import IndexedJacobian, cholesky_reduced, solve_indexed
 
 #: Global parameter count above which the reduced system is assembled and solved with scipy.sparse.
 SPARSE_ABOVE = 500
@@ -59,7 +60,8 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
         ``observed - predicted`` and weights (0: not observed).
     jac_global : ndarray (N, r, p), optional
         Derivatives by the global parameters.
-        Or a ``scipy.sparse`` matrix ``(N * r, p)`` (rows point-major: row ``i * r + k`` is observation ``k`` of
+        Or an :class:`~gdal_gf4cal.estimation.indexed.IndexedJacobian` (each row's few global columns by index;
+        chunked dense assembly, the fast path of bundle adjustment). Or a ``scipy.sparse`` matrix ``(N * r, p)`` (rows point-major: row ``i * r + k`` is observation ``k`` of
         point ``i``): the normal equations are then assembled sparsely (each observation touching a few global
         parameters, as in block adjustment, METHODS §8), cost linear in ``N``.
     det_min : float
@@ -78,6 +80,8 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
     w = np.asarray(weights, dtype=float)
     n, _, q = jp.shape
     npp, bp, inv, ok = _point_normals(jp, r, w, det_min)
+    if isinstance(jac_global, IndexedJacobian):                               # rows touching a few globals
+        return PointSolution(*solve_indexed(jp, r, w, npp, bp, jac_global, extra, covariance, det_min))
     if jac_global is None:
         dxp = np.full((n, q), np.nan)
         if ok.any():
@@ -193,16 +197,7 @@ def _solve_sparse(jp, r, w, npp, bp, ok, inv, jg, extra, covariance: bool) -> Po
         s_dense = s_eq.toarray() if covariance else None
     else:
         s_dense = s_eq.toarray()
-        try:                                         # Cholesky: the equilibrated S is SPD when determined
-            fac = cho_factor(s_dense, check_finite=False)
-            piv = np.abs(np.diag(fac[0]))
-            if piv.min() ** 2 <= 1e-12 * piv.max() ** 2:
-                raise LinAlgError("ill-conditioned")
-        except LinAlgError:
-            sv = np.linalg.svd(s_dense, compute_uv=False)
-            raise DegenerateGeometryError(f"the global parameters are not determined (condition number "
-                                          f"{sv[0] / max(sv[-1], 1e-300):.3g}); freeze blocks or add observations") \
-                from None
+        fac = cholesky_reduced(s_dense)
         z = cho_solve(fac, b_red / d, check_finite=False)
     dxg = z / d
     if not np.all(np.isfinite(dxg)):

@@ -251,6 +251,52 @@ def _residual_bars(ax, residual_rms) -> None:
     ax.set_title("residuals per CCD and band")
 
 
+def plot_tie_residuals(table, path: PathLike, *, sizes=None, title: str = "Tie residuals per view",
+                       dpi: int = 100) -> Path:
+    """Tie residual vectors in each view's image space, before (top row) and after (bottom row) a bundle
+    adjustment (METHODS §11), ONE exaggeration for every panel (stated in the title), outliers in red, the RMS per
+    component (``sqrt(mean(ds^2, dl^2))``, METHODS §6) of the rays kept in each panel's title (a PNG).
+
+    ``table``: the long table with ``image_id, sample, line, res_sample_before, res_line_before, res_sample_after,
+    res_line_after`` and optionally ``outlier``; ``sizes``: ``{view: (W, H)}`` (dashed frame; default the ties'
+    extent). At most :data:`_MAX_ARROWS` arrows per panel (a seeded sample)."""
+    from matplotlib.figure import Figure
+    views = list(dict.fromkeys(table["image_id"].astype(str)))
+    out_all = _as_bool_array(table["outlier"]) if "outlier" in table.columns else np.zeros(len(table), bool)
+    mags = np.hypot(_column(table, "res_sample_before"), _column(table, "res_line_before"))
+    longest = float(np.nanmax(mags[~out_all])) if np.isfinite(mags[~out_all]).any() else 1.0
+    fig = Figure(figsize=(4.2 * len(views), 8.4), dpi=dpi)
+    for j, v in enumerate(views):
+        rows = (table["image_id"].astype(str) == v).to_numpy()
+        s, l, out = _column(table, "sample")[rows], _column(table, "line")[rows], out_all[rows]
+        W, H = (sizes or {}).get(v) or (float(np.nanmax(s)), float(np.nanmax(l)))
+        factor = 0.08 * max(W, H) / max(longest, 1e-9)
+        draw = np.random.default_rng(0).permutation(s.size)[:_MAX_ARROWS]
+        for i, when in enumerate(("before", "after")):
+            ax = fig.add_subplot(2, len(views), i * len(views) + j + 1)
+            rs, rl = _column(table, f"res_sample_{when}")[rows], _column(table, f"res_line_{when}")[rows]
+            keep = np.zeros(s.size, bool)
+            keep[draw] = True
+            for m, colour in ((keep & ~out, _ROLE_COLOURS["control"]), (keep & out, _OUTLIER_COLOUR)):
+                if m.any():
+                    ax.quiver(s[m], l[m], rs[m], rl[m], color=colour, angles="xy", scale_units="xy",
+                              scale=1.0 / factor, width=0.004)
+            use = ~out & np.isfinite(rs) & np.isfinite(rl)
+            rms = float(np.sqrt(np.mean(rs[use] ** 2 + rl[use] ** 2) / 2)) if use.any() else float("nan")
+            ax.set_title(f"{v} {when}: RMS {rms:.3g} px ({int(use.sum())} rays, {int(out.sum())} outliers)",
+                         fontsize=8)
+            ax.plot([0, W, W, 0, 0], [0, 0, H, H, 0], "--", color="#aaaaaa", lw=0.8)
+            ax.set_xlim(-0.05 * W, 1.05 * W)
+            ax.set_ylim(1.05 * H, -0.05 * H)
+            ax.set_aspect("equal")
+            ax.set_xlabel("sample (px)", fontsize=8)
+            ax.set_ylabel("line (px)", fontsize=8)
+    fig.suptitle(f"{title}\none exaggeration: a 1 px residual is drawn {8.0 / max(longest, 1e-9):.3g} % of the "
+                 "image's side; red: outliers")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # pan-MS registration (METHODS §9): residual maps per step, the residual along the line, the spectrum
 # ----------------------------------------------------------------------------------------------------------------

@@ -8,6 +8,7 @@ from __future__ import annotations
 from .apply import apply_block_calibration, apply_calibration
 from .assess import assess_accuracy
 from .block import block_adjust
+from .bundle import bundle_adjust
 from .calibrate import calibrate_lookangle_files
 from .collect import collect_gcps_file
 from .experiment import run_experiment
@@ -17,6 +18,6 @@ from .panms import register_pan_ms
 from .refine import output_kind, refine_rpc, write_refined_rpc
 from .simulate import simulate_scene
 
-__all__ = ["apply_block_calibration", "apply_calibration", "assess_accuracy", "block_adjust", "calibrate_lookangle_files", "collect_gcps_file",
+__all__ = ["apply_block_calibration", "apply_calibration", "assess_accuracy", "block_adjust", "bundle_adjust", "calibrate_lookangle_files", "collect_gcps_file",
            "run_experiment", "intersect_files", "read_tie_points", "orthorectify", "register_pan_ms", "output_kind", "refine_rpc",
            "write_refined_rpc", "simulate_scene"]

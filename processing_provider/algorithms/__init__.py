@@ -3,6 +3,7 @@ from .applycalibration import ApplyCalibration
 from .applycalibrationbatch import ApplyCalibrationBatch
 from .assessaccuracy import AssessAccuracy
 from .blockadjust import BlockAdjust
+from .bundleadjust import BundleAdjust
 from .calibratelookangle import CalibrateLookAngle
 from .collectgcps import CollectGcps
 from .collectgcpsbatch import CollectGcpsBatch
@@ -14,6 +15,6 @@ from .rpcinfo import RpcInfo
 from .simulatescene import SimulateScene
 
 ALGORITHMS = [RpcInfo, SimulateScene, CollectGcps, RefineRpc, Orthorectify, CalibrateLookAngle, ApplyCalibration,
-              AssessAccuracy, RegisterPanMs, BlockAdjust]
+              AssessAccuracy, RegisterPanMs, BlockAdjust, BundleAdjust]
 # Batch forms (issue 14): many scenes, resumable, threads or a Dask scheduler.
 ALGORITHMS += [CollectGcpsBatch, RefineRpcBatch, ApplyCalibrationBatch]

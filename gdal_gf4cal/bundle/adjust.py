@@ -1,0 +1,222 @@
+"""``adjust_views``: bundle adjustment of separate views from their RPCs (METHODS §11, Grodecki & Dial 2003)."""
+from __future__ import annotations
+
+from typing import Any, List, Mapping
+
+import numpy as np
+import pandas as pd
+
+from ..dem import DEM
+from ..estimation import Estimate, RadialHuber, robust_fit, sigma0_and_cov
+from ..estimation.indexed import block_inverse
+from .inputs import check_inputs, make_layout, make_rays, view_sizes
+from .model import Rays, ViewLayout
+from .result import BundleEstimate, datum_drift, reprojection, view_correction
+from .solve import State, Weights, gauss_newton, project_all, reintersect
+from .start import base_weights, start_ground
+
+__all__ = ["adjust_views", "BundleProblem", "ROBUST_TOL_PX"]
+
+#: The robust reweighting stops when a re-solve moves no residual more than this (px) and the rejected rays stay.
+ROBUST_TOL_PX = 5e-3
+
+
+class BundleProblem:
+    """The bundle as a problem of the core's robust driver: a "point" is a ray (k = 2: sample, line);
+    ``fit(point_weights)`` runs Gauss-Newton from the current state with the a-priori weights times the factors and
+    returns the :class:`~gdal_gf4cal.estimation.Estimate` (residuals (n_rays, 2))."""
+
+    k = 2
+
+    def __init__(self, models, layout: ViewLayout, rays: Rays, state: State, wts: Weights, *, tol_px: float = 1e-5,
+                 max_iter: int = 20, progress=None):
+        self.models, self.layout, self.rays, self.state, self.base = models, layout, rays, state, wts
+        self.n_points, self.n_params = rays.view.size, layout.n_params
+        self.tol_px, self.max_iter, self.progress = tol_px, max_iter, progress
+        self.solution = self.lin = None
+        self.sd_factor = np.ones(self.n_points)
+        self.refit_steps = 4
+        self.last_change = np.inf
+        self.point_cov = None
+        self.iterations, self.converged = 0, False
+
+    def change(self, old: Estimate, new: Estimate) -> float:
+        """How far a re-solve moved the corrections: the largest change of a view's ``(ds, dl)`` at the image's
+        corners and centre (px); the robust driver stops reweighting below its ``tol``."""
+        d = new.x - old.x
+        out = 0.0
+        for v in self.layout.views:
+            w, h = self.layout.sizes[v]
+            s, l = np.array([0.0, w, 0.0, w, 0.5 * w]), np.array([0.0, 0.0, h, h, 0.5 * h])
+            a_s, a_l = self.layout.design(v, s, l)
+            sl_s, sl_l = self.layout.slices(v)
+            out = max(out, float(np.abs(a_s @ d[sl_s]).max()), float(np.abs(a_l @ d[sl_l]).max()))
+        return out
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """A-priori σ of each ray (px)."""
+        return self.rays.sigma
+
+    def fit(self, point_weights=None) -> Estimate:
+        pw = np.ones(self.n_points) if point_weights is None else np.asarray(point_weights, float)
+        wts = Weights(self.base.rays * pw, self.base.ground, self.base.prior, self.base.ground_obs)
+        steps = self.max_iter if self.solution is None else self.refit_steps   # reweighted: Gauss-Newton steps
+        self.state, self.solution, self.lin, it, self.converged, self.last_change = gauss_newton(
+            self.models, self.layout, self.rays, self.state, wts, tol_px=self.tol_px, max_iter=steps,
+            progress=self.progress)
+        self.iterations += it
+        lost = ~self.solution.ok & (np.bincount(self.rays.point, weights=(self.base.rays > 0).astype(float),
+                                                minlength=self.rays.n_points) >= 2)
+        if lost.any():                            # points the weights leave undetermined: from all their rays
+            self.state = reintersect(self.models, self.layout, self.rays, self.state, self.base, lost)
+            self.lin = project_all(self.models, self.layout, self.rays, self.state)
+        return _estimate(self, wts)
+
+
+def _ray_variance(pb: BundleProblem, w_rays: np.ndarray):
+    """``j^T N_pp^-1 j`` (n_rays, 2) of each ray through its point's own block at weights ``w_rays`` (the views'
+    parameters held: the datum's uncertainty, shared by a point and the corrections, cancels in a residual), and
+    which points the block determines."""
+    rays, jac = pb.rays, pb.lin.jac_points
+    outer = np.einsum("nai,naj->nij", jac * w_rays[:, None, None], jac).reshape(-1, 9)
+    npp = np.stack([np.bincount(rays.point, weights=outer[:, c], minlength=rays.n_points) for c in range(9)],
+                   axis=1).reshape(-1, 3, 3)
+    npp[:, [0, 1, 2], [0, 1, 2]] += pb.base.ground
+    inv, ok = block_inverse(npp)
+    return np.einsum("nai,nij,naj->na", jac, np.nan_to_num(inv[rays.point]), jac), ok, inv
+
+
+def _estimate(pb: BundleProblem, wts: Weights) -> Estimate:
+    """The Estimate at the problem's current solution (sigma0 and covariance through the core's
+    :func:`~gdal_gf4cal.estimation.sigma0_and_cov`). Redundancy of a ray ``1 - w j^T N_pp^-1 j``; a ray left out
+    is normalised by ``sqrt(1/w + j^T N_pp^-1 j)``, or, when its point is undetermined without it, as if in
+    (:attr:`BundleProblem.sd_factor`: that standard deviation over the ray's σ)."""
+    rays, sol = pb.rays, pb.solution
+    v = rays.meas - pb.lin.pred
+    w0 = np.repeat(pb.base.rays[:, None], 2, axis=1)
+    w2 = np.repeat(wts.rays[:, None], 2, axis=1)
+    q, ok, pb.point_cov = _ray_variance(pb, wts.rays)
+    q0, _, _ = _ray_variance(pb, pb.base.rays)
+    red = np.where(w2 > 0, np.clip(1.0 - w2 * q, 0.0, 1.0), 0.0)
+    var = np.where(w2 > 0, np.maximum(red, 0.05) / np.maximum(w2, 1e-300),
+                   np.where(ok[rays.point, None], 1.0 / np.maximum(w0, 1e-300) + q,
+                            np.maximum(1.0 / np.maximum(w0, 1e-300) - q0, 0.05 / np.maximum(w0, 1e-300))))
+    pb.sd_factor = np.sqrt(var * np.maximum(w0, 1e-300)).max(axis=1)
+    vtpv = float(np.sum(w2 * v * v) + np.sum(wts.prior * pb.state.x ** 2))
+    n_obs = int(np.count_nonzero(w2)) + int(np.count_nonzero(wts.ground)) + int(np.count_nonzero(wts.prior))
+    dof = n_obs - 3 * int(sol.ok.sum()) - pb.n_params
+    sigma0, cov = sigma0_and_cov(np.linalg.inv(sol.cov_global), vtpv, dof)
+    s0 = sigma0 if np.isfinite(sigma0) else 1.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        norm = v / (s0 * np.sqrt(var))
+    lay = pb.layout
+    return Estimate(names=lay.names, x=pb.state.x.copy(), cov=cov, sigma0=float(s0), dof=int(dof),
+                    redundancy=red, residuals=v, normalised=norm, weights=w2,
+                    blocks={vw: slice(lay.offset[vw], lay.offset[vw] + lay.models_used[vw].n_params)
+                            for vw in lay.views}, iterations=pb.iterations)
+
+
+def _robust(pb: BundleProblem):
+    """The core's one robust driver on whole rays: radial Huber down-weighting, then rejection beyond 4 robust
+    sigmas (each ray's σ times its redundancy's square root); check rays are tested, never used."""
+    norm = RadialHuber(sigma=lambda p, e: p.rays.sigma * p.sd_factor, min_points=2,
+                       too_few="; the ties disagree beyond their stated sigma: check the image ids and the ties")
+    return robust_fit(pb, norm=norm, start=None, candidates=pb.rays.control, max_iter=40, tol=ROBUST_TOL_PX)
+
+
+def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: str = "affine", sizes=None,
+                 prior_sigma_px=None, robust: bool = True, progress=None, gcp_sigma_m: float = 0.01,
+                 dem_sigma_m: float = 50.0, tol_px: float = 1e-5, max_iter: int = 20) -> BundleEstimate:
+    """Bundle adjustment of separate views from their RPCs (METHODS §11).
+
+    Parameters
+    ----------
+    observations : DataFrame
+        The observation table (:mod:`gdal_gf4cal.observations`): ties (any number of views per point) and GCPs
+        (``role`` control or check), ``sample, line`` in GDAL's pixel convention, ``sigma`` px.
+    models : mapping view -> RPCModel
+        The vendor RPCs, keyed by the table's ``image_id``.
+    dem : DEM, path, number or None
+        Starting heights, and a weak height prior (± ``dem_sigma_m``), of the ties whose rays are nearly parallel
+        (:data:`~gdal_gf4cal.bundle.start.PARALLEL_SIGMA_M`).
+    model : 'translation' | 'shift-drift' | 'affine'
+        The per-view correction (METHODS §4.1); slope terms fall back to a translation, with a note, in a view whose
+        ties do not span :data:`~gdal_gf4cal.bundle.model.MIN_SPAN` of the image.
+    sizes : mapping view -> (width, height), optional
+        Image sizes (default: the RPC's).
+    prior_sigma_px : float or mapping view -> float, optional
+        σ of the datum pseudo-observations ``Δ-parameter = 0 ± σ`` (default: ERR_BIAS over the pixel size, else
+        :data:`~gdal_gf4cal.bundle.model.DEFAULT_PRIOR_PX`).
+    robust : bool
+        Down-weight and reject blunder rays through the core's robust driver.
+    gcp_sigma_m : float
+        σ of a control GCP's ground coordinates (m).
+
+    Raises
+    ------
+    BundleError
+        Bad input, one line (see :mod:`gdal_gf4cal.bundle.inputs`).
+    """
+    sizes = view_sizes(models, sizes)
+    dem_obj = DEM.from_user_input(dem) if dem is not None else None
+    tab = check_inputs(observations, models, sizes, dem=dem_obj)
+    layout = make_layout(tab, models, sizes, model, prior_sigma_px)
+    rays = make_rays(tab, layout)
+    ground0, parallel, notes = start_ground(models, layout, rays, dem_obj)
+    wts = base_weights(models, layout, rays, ground0, dem_obj, parallel, gcp_sigma_m=gcp_sigma_m,
+                       dem_sigma_m=dem_sigma_m)
+    state0 = State(np.zeros(layout.n_params), ground0)
+    before = project_all(models, layout, rays, state0, jacobian=False)
+    pb = BundleProblem(models, layout, rays, state0, wts, tol_px=tol_px, max_iter=max_iter, progress=progress)
+    est = _robust(pb) if robust else pb.fit()
+    return _result(est, pb, tab, before, ground0, layout.notes + notes)
+
+
+def _table(tab: pd.DataFrame, before, after, est: Estimate) -> pd.DataFrame:
+    out = tab.copy()
+    for name, lin in (("before", before), ("after", after)):
+        out[f"pred_sample_{name}"], out[f"pred_line_{name}"] = lin.pred[:, 0], lin.pred[:, 1]
+        out[f"res_sample_{name}"] = out["sample"].to_numpy(float) - lin.pred[:, 0]
+        out[f"res_line_{name}"] = out["line"].to_numpy(float) - lin.pred[:, 1]
+    out["weight"] = est.weights[:, 0]
+    flag = np.zeros(len(out), bool) if est.outlier is None else np.asarray(est.outlier, bool)
+    out["outlier"] = flag
+    lvl = est.outlier_level if est.outlier_level is not None else np.full(len(out), "")
+    out["outlier_level"] = np.where(flag, np.asarray(lvl, str), "")
+    return out
+
+
+def _points(pb: BundleProblem, ground0: np.ndarray, sigma0: float) -> pd.DataFrame:
+    """Ground of every point after and before, views seeing it, a-posteriori σ (m) east, north, up given the
+    corrections (the relative precision of the intersection)."""
+    rays, g = pb.rays, pb.state.ground
+    cov = pb.point_cov * sigma0 ** 2
+    sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
+    return pd.DataFrame({"point_id": rays.point_ids, "kind": np.where(rays.point_is_gcp, "gcp", "tie"),
+                         "lon": g[:, 0], "lat": g[:, 1], "h": g[:, 2], "lon_before": ground0[:, 0],
+                         "lat_before": ground0[:, 1], "h_before": ground0[:, 2],
+                         "n_views": np.bincount(rays.point, minlength=rays.n_points),
+                         "sigma_e_m": sd[:, 0], "sigma_n_m": sd[:, 1], "sigma_u_m": sd[:, 2]})
+
+
+def _result(est: Estimate, pb: BundleProblem, tab, before, ground0, notes: List[str]) -> BundleEstimate:
+    layout, rays = pb.layout, pb.rays
+    after = project_all(pb.models, layout, rays, pb.state, jacobian=False)
+    table = _table(tab, before, after, est)
+    used = (est.weights[:, 0] > 0) & ~table["outlier"].to_numpy(bool)
+    used_b = used if used.any() else rays.control
+    rep = {"before": reprojection(rays.meas - before.pred, rays, layout, used_b),
+           "after": reprojection(rays.meas - after.pred, rays, layout, used_b)}
+    drift, drift_enu = datum_drift(ground0, pb.state.ground, np.flatnonzero(~rays.point_is_gcp))
+    corrections = {v: view_correction(layout, v, est.x, est.cov, est.sigma0, table) for v in layout.views}
+    out = BundleEstimate(**{f: getattr(est, f) for f in Estimate.__dataclass_fields__})
+    out.notes = list(est.notes) + notes
+    out.views, out.corrections = list(layout.views), corrections
+    out.model_used = {v: layout.models_used[v].name for v in layout.views}
+    out.points, out.reprojection, out.table = _points(pb, ground0, est.sigma0), rep, table
+    out.datum_drift_m, out.datum_drift_enu_m = drift, drift_enu
+    out.prior_px, out.sizes, out.reduced_size = layout.prior_px.copy(), dict(layout.sizes), int(layout.n_params)
+    out.converged = bool(pb.converged or pb.last_change < ROBUST_TOL_PX)
+    out.iterations = int(pb.iterations)
+    return out
