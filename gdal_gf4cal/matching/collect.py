@@ -49,6 +49,7 @@ from osgeo import gdal
 from .._gdal import with_gdal_exceptions
 from ..dem import DEM
 from ..errors import Gf4calError
+from ..executors import map_ordered
 from ..gcp import make_gcps
 from ..progress import report
 from ..rpc import RPCModel
@@ -590,7 +591,6 @@ def run_tiles(specs: Sequence[TileSpec], executor: Optional[cf.Executor] = None,
             own = executor = cf.ThreadPoolExecutor(max_workers=nw)
     try:
         # Results in submission order whatever the executor (gdal_gf4cal.executors, issue 14).
-        from ..executors import map_ordered
         return map_ordered(match_tile, specs, executor, progress=progress, stop=stop, label="tile")
     finally:
         if own is not None:

@@ -133,7 +133,7 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
     kind, scene, ortho_grid, outs = _prepare(
         source, out, gcps, dem, rpc, geoid, ortho, ortho_options, max_uncertainty_px=max_uncertainty_px,
         gcp_columns=gcp_columns, residuals=residuals, plot=plot, report=report, overwrite=overwrite, progress=progress)
-    image_size = scene.size
+    image_size = scene.size                   # None for a standalone RPC file
     warns: list = []
     with outs, collect_warnings(warns):
         _progress.report(progress, 0.0, "reading the RPC and GCPs")
@@ -148,15 +148,13 @@ def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None
         _progress.report(progress, 0.2, "applying the compensation")
         applied = apply_compensation(rpc, result, image_size=image_size,
                                      progress=_progress.scaled(progress, 0.2, 0.9))
-        rep: Dict[str, Any] = {"input": source, "gcps": os.fspath(gcps) if is_path(gcps) else None, "output": out}
-        _fill_report(rep, rpc, result, applied, precision, selection, crop_note, leave_one_out)
+        rep = _refine_report(source, gcps, out, rpc, result, applied, precision, selection, crop_note, leave_one_out)
         _progress.report(progress, 0.9, "writing outputs")
         _write_rpc_as(applied.rpc, outs.tmp("rpc"), kind, source if kind == "vrt" else None)
         if ortho is not None:
             rep["ortho"] = _write_ortho(outs, source, image_size, applied.rpc, dem, ortho_grid, ortho_options,
                                         _progress.scaled(progress, 0.9, 0.98))
-        _write_residual_outputs(outs, rpc, applied.rpc, result, image_size, dem_obj, residuals=residuals,
-                                plot=plot)
+        _write_residual_outputs(outs, rpc, applied.rpc, result, image_size, dem_obj, residuals, plot)
         rep["outputs"] = outs.paths
         finish_report(rep, warns)
         if report:
@@ -248,11 +246,12 @@ def _read_table(gcps, dem_obj, image: Optional[str], *, layer, crs, columns, pix
                      image=image, **kw)
 
 
-def _fill_report(rep: Dict[str, Any], rpc, result, applied, precision, selection, crop_note,
-                 leave_one_out: bool) -> None:
-    """The refine report's figures: the compensation's, the crop note, how it was applied, its precision, the
-    model selection and the leave-one-out statistics of the control points when asked for."""
-    from ..compensation import _axis_stats
+def _refine_report(source: str, gcps, out: str, rpc, result, applied, precision, selection, crop_note,
+                   leave_one_out: bool) -> Dict[str, Any]:
+    """The refine report: its files, the compensation's figures, the crop note, how it was applied, its
+    precision, the model selection and the leave-one-out statistics of the control points when asked for."""
+    from ..compensation import _axis_stats      # private there until compensation makes it public
+    rep: Dict[str, Any] = {"input": source, "gcps": os.fspath(gcps) if is_path(gcps) else None, "output": out}
     rep.update(result.to_dict(rpc))
     if crop_note:
         rep["notes"] = [crop_note] + list(rep.get("notes", []))
@@ -266,9 +265,10 @@ def _fill_report(rep: Dict[str, Any], rpc, result, applied, precision, selection
         rep["leave_one_out"] = {"n": int(sel.sum()),
                                 "line": _axis_stats(tab["res_line_loo"].to_numpy(float)[sel]),
                                 "sample": _axis_stats(tab["res_sample_loo"].to_numpy(float)[sel])}
+    return rep
 
 
-def _write_residual_outputs(outs, rpc, new_rpc, result, image_size, dem_obj, *, residuals, plot) -> None:
+def _write_residual_outputs(outs, rpc, new_rpc, result, image_size, dem_obj, residuals, plot) -> None:
     """The residual GeoPackage (arrows as ground offsets through the original RPC, footprint of the new one on
     the DEM) and the residual plot, into the OutputSet's temporaries, when asked for."""
     title = f"GCP residuals, {result.model.label}"
