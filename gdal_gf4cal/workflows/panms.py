@@ -9,15 +9,32 @@ nothing).
 """
 from __future__ import annotations
 
+import copy
 import math
 import os
+import time
 from typing import Any, Dict, Optional
 
 import numpy as np
+import pandas as pd
+from osgeo import gdal
+from scipy import stats
 
-from ..crop import image_rpc
+from .. import panms
+from .. import progress as _progress
+from .._gdal import open_raster
+from ..crop import crop_origin, image_rpc, sidecar_rpc
+from ..dem import DEM
+from ..errors import Gf4calError
+from ..estimation import weighted_lsq
 from ..geodesy import metres_per_degree
+from ..matching import cells_from_matches, match_raw, pan_ms_cells
 from ..outputs import OutputSet, check_raster, check_vector
+from ..panms import LINEAR_ORDER, PanMSError, linear_design, residual_spectrum, row_means, step_residuals
+from ..report import write_report_json, write_residuals_gpkg
+from ..report.plot import plot_line_profiles, plot_spectrum, plot_step_residual_maps
+from ..rpc_io import write_rpb
+from ..stats import axis_stats, share_within
 from ._common import cancel_check, collect_warnings, finish_report
 
 #: Output file names in ``out``.
@@ -30,7 +47,6 @@ REUSE_MAX_MATCHES = 200
 
 
 def _size(path):
-    from .._gdal import open_raster
     ds = open_raster(os.fspath(path), what="image")
     return (ds.RasterXSize, ds.RasterYSize), ds.RasterCount
 
@@ -38,7 +54,6 @@ def _size(path):
 def _parse_breaks(breaks) -> Optional[list]:
     """``--breaks``: MS columns and/or the words ``ms`` (the MS band's equal sub-CCD edges) and ``pan`` (the pan's
     equal sub-CCD edges mapped into the MS through the RPCs and the DEM), e.g. ``2560,5120`` or ``ms,pan``."""
-    from ..panms import PanMSError
     if breaks is None:
         return None
     items = list(breaks) if isinstance(breaks, (list, tuple)) else [b for b in str(breaks).split(",") if b.strip()]
@@ -84,7 +99,6 @@ def pair_geometry(pan_rpc, ms_rpc, pan_size, ms_size, dem, n: int = 9) -> Dict[s
     the overlap) and ``ray_angle_deg`` (angle between the pan's and the MS's lines of sight: moving 500 m down the
     pan's ray moves the MS point by the parallax; < 0.5 deg for one acquisition). Refuses images that hardly
     overlap or see the ground from other directions (other acquisitions)."""
-    from ..panms import PanMSError
     W, H = ms_size
     s, l = np.meshgrid((np.arange(n) + 0.5) * W / n, (np.arange(n) + 0.5) * H / n)
     s, l = s.ravel(), l.ravel()
@@ -141,7 +155,6 @@ def pair_geometry(pan_rpc, ms_rpc, pan_size, ms_size, dem, n: int = 9) -> Dict[s
 def _product_breaks(spec, n_sub_ccds, ms_rpc, ms_size, origin, pan_rpc, dem, pan_size):
     """``--breaks`` / ``--sub-ccds`` in this image's columns: equal pieces and listed columns are of the full
     product when the crop's place in it is known (``origin``), else of the image as given."""
-    from .. import panms
     x0 = origin[0] if origin else 0.0
     width = float(ms_rpc.image_size[0]) + x0 if origin else float(ms_size[0])
     width = max(width, float(ms_size[0]))
@@ -163,7 +176,6 @@ def _product_breaks(spec, n_sub_ccds, ms_rpc, ms_size, origin, pan_rpc, dem, pan
 
 def _check_pieces(breaks, spec, ms_width, window_px) -> None:
     """Refuse sub-CCD pieces narrower than one matching window (they cannot be measured)."""
-    from ..panms import PanMSError
     if spec is not None:
         nums = [float(b) for b in spec if not isinstance(b, str)]
         dup = sorted({b for b in nums if nums.count(b) > 1})
@@ -186,7 +198,6 @@ def _spacing(ms_size, cell=None) -> int:
 
 
 def _cells(matches, ms_size, cell, spacing, breaks):
-    from ..matching import cells_from_matches
     cells = cells_from_matches(matches, ms_size[0], ms_size[1], cell_px=int(cell),
                                min_matches=int(np.clip((cell / spacing) ** 2, 1, 4)),
                                independent_fraction=min(1.0, (float(spacing) / WINDOW_PX) ** 2), breaks=breaks)
@@ -230,7 +241,6 @@ def _no_cell_message(matches, n_cells) -> str:
 def _screen(matches) -> None:
     """Flag the blunders among the accepted window matches in place (``outlier``; :func:`panms.screen_matches`:
     within each column, so that the smaller side of a sub-CCD jump is kept for the edge test)."""
-    from .. import panms
     acc = matches["status"].to_numpy() == 0
     out = np.zeros(len(matches), bool)
     out[acc] = panms.screen_matches(matches["pred_sample"].to_numpy(float)[acc],
@@ -257,7 +267,6 @@ PRODUCT_BAND_IDS = {"B0": "blue", "B1": "green", "B2": "red", "B3": "nir"}
 def _product_band_names(ms_path, rpc_path=None):
     """The product's band names in file order from its OSSIM ``.geom`` (``support_data.band_name_list``, e.g.
     ``"B2 B1 B0 B3"`` -> red, green, blue, nir), the one given or the one beside the image; ``[]`` when unknown."""
-    from ..crop import sidecar_rpc
     geom = rpc_path if isinstance(rpc_path, (str, os.PathLike)) else sidecar_rpc(ms_path)
     if geom is None or not os.fspath(geom).lower().endswith(".geom"):
         return []
@@ -274,8 +283,6 @@ def _band_names(ms_path, n_bands, rpc_path=None):
     """Per band ``(name, GDAL colour interpretation)`` from the product: band descriptions naming a colour, else
     the product's band list (:func:`_product_band_names`), else the file's colour interpretation (Alpha never: an
     MS band is a measurement, e.g. NIR -> Undefined)."""
-    from osgeo import gdal
-    from .._gdal import open_raster
     ds = open_raster(os.fspath(ms_path), what="MS image")
     words = {"red": gdal.GCI_RedBand, "green": gdal.GCI_GreenBand, "blue": gdal.GCI_BlueBand}
     product = _product_band_names(ms_path, rpc_path)
@@ -304,9 +311,6 @@ def _band_to_band(ref_cells, cells, model):
     """The band's misregistration minus the reference band's, per cell usable in both: its linear fit (6
     parameters, as the model's linear term), whether it is significant (chi-square of the fit at BAND_FAP and
     > BAND_MIN_PX somewhere), the mean offset per axis."""
-    from scipy import stats
-    from ..estimation import weighted_lsq
-    from ..panms import _LIN_ORDER, _linear_design
     u = np.asarray(ref_cells["usable"], bool) & np.asarray(cells["usable"], bool)
     d = np.stack([np.asarray(cells["d_sample"], float) - np.asarray(ref_cells["d_sample"], float),
                   np.asarray(cells["d_line"], float) - np.asarray(ref_cells["d_line"], float)], axis=1)[u]
@@ -316,11 +320,11 @@ def _band_to_band(ref_cells, cells, model):
                      for a in ("sample", "line")], axis=1)[u]
     med = np.nanmedian(sig2) if np.isfinite(sig2).any() else 1e-4
     w = 1.0 / np.where(np.isfinite(sig2) & (sig2 > 0), np.maximum(sig2, 0.25 * med), med)
-    sn, ln = model._norm(np.asarray(cells["sample"], float)[u], np.asarray(cells["line"], float)[u])
-    a = _linear_design(sn, ln)
+    sn, ln = model.normalise(np.asarray(cells["sample"], float)[u], np.asarray(cells["line"], float)[u])
+    a = linear_design(sn, ln)
     est = weighted_lsq(a.reshape(-1, 6), d.ravel(), w.ravel(), hint=" (band-to-band)")
     lin = np.zeros(6)
-    lin[_LIN_ORDER] = est.x
+    lin[LINEAR_ORDER] = est.x
     cov = est.cov
     try:
         chi2 = float(est.x @ np.linalg.solve(cov, est.x))
@@ -337,7 +341,6 @@ def _band_to_band(ref_cells, cells, model):
 def _check_options(pan, ms, breaks, n_sub_ccds, jitter, cell):
     """The options checked before anything is read: ``(breaks spec, jitter)``; :class:`PanMSError` naming the
     option."""
-    from .. import panms
     if os.path.realpath(os.fspath(pan)) == os.path.realpath(os.fspath(ms)):
         raise panms.PanMSError("the same image was given as pan and as MS: give the pan first, then the MS image "
                                "of the same acquisition")
@@ -364,8 +367,6 @@ def _match_every_band(pan, ms, pan_model, ms_model, dem_obj, ms_size, n_bands, c
     """Dense window matches of every MS band against the pan, the reference band (the best correlated), the
     sub-CCD edges (``user_breaks``, else from the data, with a note) and the cells of every band:
     ``(band_matches, ref, n_matches, breaks, cell_px, cells of ref, {band: cells})``."""
-    from .. import panms, progress as _progress
-    from ..matching import match_raw
     mw, mh = ms_size
     band_matches: Dict[int, Any] = {}
     spacing = _spacing((mw, mh), cell)
@@ -410,8 +411,6 @@ def _match_every_band(pan, ms, pan_model, ms_model, dem_obj, ms_size, n_bands, c
 def _approximate_ms_rpc(model, ms_model, notes):
     """``panms.approximate_rpc`` of the full model, else of its linear term with a note (the sub-CCD jumps and
     jitter of a small crop can defeat the refit); :class:`PanMSError` when neither fits."""
-    from .. import panms
-    from ..errors import Gf4calError
     try:
         approx, approx_err = panms.approximate_rpc(model, ms_model)
     except Gf4calError:
@@ -450,11 +449,6 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
     from <= 200 sparse matches. ``cells``: a cell table already measured (skips the matching; one band). Returns
     the report dict.
     """
-    from .. import panms, progress as _progress
-    from ..crop import crop_origin
-    from ..dem import DEM
-    from ..report import write_report_json
-    from ..rpc_io import write_rpb
 
     spec, jitter = _check_options(pan, ms, breaks, n_sub_ccds, jitter, cell)
     out = os.fspath(out)
@@ -500,7 +494,6 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
             breaks_ = br if user_breaks else []
             cell_used = int(cell) if cell else None
         elif reuse_model is not None:     # sparse: one window per cell, <= 200 cells
-            from ..matching import pan_ms_cells
             c = int(max(8, math.ceil(math.sqrt(mw * mh / REUSE_MAX_MATCHES))))
             ref = int(reuse_model.info.get("reference_band", 1))     # the band the reused model was solved on
             ref = ref if 1 <= ref <= n_bands else 1
@@ -584,8 +577,6 @@ def _every_band(band_cells, ref, model, names, notes):
     band, and its own correction (the reference model plus the linear difference) where that differs
     significantly; a band that does not resemble the pan keeps the reference correction (what remains of it is
     spectral). Returns ``(report rows, {band: model})``."""
-    import copy
-    from ..stats import axis_stats, share_within
     rows, models = [], {}
     for b in sorted(band_cells) or [ref]:
         name = names[b - 1][0] if b - 1 < len(names) else f"band {b}"
@@ -634,7 +625,6 @@ def _median_ncc_cells(band_cells, b):
 
 class _Clock:
     def __init__(self):
-        import time
         self._time = time.perf_counter
         self._t = self._time()
         self.laps: Dict[str, float] = {}
@@ -652,9 +642,6 @@ def _as_text(x):
 def _write_cells(cells, model, ms_rpc, dem, path) -> int:
     """cells.gpkg: one point per cell on the ground (MS RPC on the DEM), residuals before (nabla) and after the
     full model as the standard fields, after each step as ``res_sample_<step>``/``res_line_<step>``, arrows."""
-    import pandas as pd
-    from ..panms import step_residuals
-    from ..report import write_residuals_gpkg
     s, l = np.asarray(cells["sample"], float), np.asarray(cells["line"], float)
     lon, lat, h = ms_rpc.localize_dem(s, l, dem)
     t = pd.DataFrame({"id": [f"c{i}" for i in range(len(cells))], "lon": lon, "lat": lat, "h": h,
@@ -683,8 +670,6 @@ def _write_cells(cells, model, ms_rpc, dem, path) -> int:
 
 
 def _write_plots(cells, model, outs) -> None:
-    from ..panms import residual_spectrum, row_means, step_residuals
-    from ..report.plot import plot_line_profiles, plot_spectrum, plot_step_residual_maps
     s, l = np.asarray(cells["sample"], float), np.asarray(cells["line"], float)
     used = np.asarray(cells["usable"], bool)
     if model.cell_outlier is not None:
