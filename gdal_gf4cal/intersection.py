@@ -16,10 +16,12 @@ import numpy as np
 
 from .errors import DegenerateGeometryError, GCPError
 from .geodesy import metres_per_degree
-from .estimation import solve_with_points
+from .estimation import Estimate, solve_with_points, unit_weight_sigma
 from .progress import report as _report
+from .stats import model_jacobian as _jacobian
 
 __all__ = ["IntersectionResult", "intersect", "ground_errors_m", "intersection_accuracy"]
+
 
 def _radii(lat_deg, h):
     """Metres per degree of longitude and of latitude (:func:`gdal_gf4cal.geodesy.metres_per_degree`)."""
@@ -32,13 +34,6 @@ def ground_errors_m(lon, lat, h, lon_ref, lat_ref, h_ref):
     mx, my = _radii(lat_ref, h_ref)
     dlon = (lon - lon_ref + 180.0) % 360.0 - 180.0
     return dlon * mx, (lat - lat_ref) * my, h - h_ref
-
-
-def _jacobian(model, lon, lat, h):
-    if hasattr(model, "project_jacobian"):
-        return np.asarray(model.project_jacobian(lon, lat, h), dtype=float)
-    from .compensation import _jacobian as numeric
-    return numeric(model, lon, lat, h)
 
 
 @dataclass
@@ -85,7 +80,6 @@ class IntersectionResult:
         it); ``sigma0`` and ``dof = 2 n_images - 3`` as in :attr:`sigma0`, normalised residuals
         ``v / (sigma0 sqrt(r / w))``.
         """
-        from .estimation import Estimate
         res = self.residuals[:, i].reshape(-1)
         w = (np.zeros_like(res) if self.weights is None else self.weights[:, i].reshape(-1))
         red = np.zeros_like(res) if self.redundancy is None else self.redundancy[:, i].reshape(-1)
@@ -199,10 +193,8 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
         cov[idx] = solve_with_points(jac, r, w, det_min=-1.0).cov_points
         q = np.einsum("nri,nij,nrj->nr", jac, cov[idx], jac)
         redundancy[:, idx] = np.where(w > 0, 1.0 - w * q, 0.0).reshape(idx.size, n_img, 2).transpose(1, 0, 2)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        wr2 = np.nansum(wgt[..., None] * np.nan_to_num(res) ** 2, axis=(0, 2))
-        red = 2 * n_obs - 3
-        sigma0 = np.where((red > 0) & fin, np.sqrt(wr2 / np.maximum(red, 1)), np.nan)
+    wr2 = np.nansum(wgt[..., None] * np.nan_to_num(res) ** 2, axis=(0, 2))
+    sigma0 = np.where(fin, unit_weight_sigma(wr2, 2 * n_obs - 3), np.nan)      # redundancy 2 n_images - 3
     lon = np.where(fin, lon, np.nan)
     lat = np.where(fin, lat, np.nan)
     h = np.where(fin, h, np.nan)

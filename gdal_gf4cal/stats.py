@@ -20,11 +20,12 @@ explicit ``_before`` / ``_after`` names.
 """
 from __future__ import annotations
 
-from typing import Dict, NamedTuple, Optional
+from typing import Dict, NamedTuple, Optional, Tuple
 
 import numpy as np
 
 from .errors import DegenerateGeometryError
+from .geodesy import radii_of_curvature
 
 
 def axis_stats(residuals) -> Dict[str, float]:
@@ -92,7 +93,63 @@ def _none_if_nan(x):
     return x if np.isfinite(x) else None
 
 
-def accuracy_by_role(table, *, ground_offsets=None, ground_m_per_px: Optional[float] = None,
+def model_jacobian(model, lon, lat, h) -> np.ndarray:
+    """``d(sample, line)/d(lon, lat, h)`` (..., 2, 3) from ``model.project_jacobian`` or central differences."""
+    if hasattr(model, "project_jacobian"):
+        return np.asarray(model.project_jacobian(lon, lat, h), dtype=float)
+    steps = (1e-6, 1e-6, 1.0)
+    cols = []
+    for k, st in enumerate(steps):
+        args_p = [lon, lat, h]
+        args_m = [lon, lat, h]
+        args_p[k] = args_p[k] + st
+        args_m[k] = args_m[k] - st
+        sp, lp = model.project(*args_p)
+        sm, lm = model.project(*args_m)
+        cols.append(np.stack([(np.asarray(sp) - sm) / (2 * st), (np.asarray(lp) - lm) / (2 * st)], axis=-1))
+    return np.stack(cols, axis=-1)
+
+
+def ground_jacobian(rpc, lon, lat, h) -> np.ndarray:
+    """``d(sample, line)/d(lon, lat)`` (..., 2, 2) at fixed height, as :func:`ground_offsets_m` uses it."""
+    return model_jacobian(rpc, np.asarray(lon, float), np.asarray(lat, float), np.asarray(h, float))[..., :2]
+
+
+def ground_offsets_m(rpc, lon, lat, h, dsample, dline, *, jacobian=None) -> Tuple[np.ndarray, np.ndarray]:
+    """East/north ground offsets (m) equivalent to image offsets ``(dsample, dline)`` (px) at ``(lon, lat, h)``.
+
+    Uses the RPC ground Jacobian ``d(s, l)/d(lon, lat)`` at fixed height; for CE90 of image residuals (METHODS §6).
+    ``jacobian``: that Jacobian at these points when already known (:func:`ground_jacobian`), e.g. for the
+    before and after residuals of the same points.
+    """
+    lon, lat, h = (np.asarray(a, dtype=float) for a in (lon, lat, h))
+    jac = ground_jacobian(rpc, lon, lat, h) if jacobian is None else jacobian
+    rhs = np.stack([np.asarray(dsample, float), np.asarray(dline, float)], axis=-1)[..., None]
+    with np.errstate(all="ignore"):
+        dll = np.linalg.solve(jac, rhs)[..., 0]
+    phi = np.radians(lat)
+    rn, rm = radii_of_curvature(lat)
+    east = np.radians(dll[..., 0]) * (rn + h) * np.cos(phi)
+    north = np.radians(dll[..., 1]) * (rm + h)
+    return east, north
+
+
+def _ground_offsets_of(table, rpc):
+    """``ground_offsets(mask, res_sample, res_line)`` of :func:`accuracy_by_role` through ``rpc``'s ground Jacobian
+    at the table's ``lon, lat, h`` (computed once per row selection: before and after share it)."""
+    lon, lat, h = (table[c].to_numpy(float) for c in ("lon", "lat", "h"))
+    jac: dict = {}
+
+    def ground(sel, rs, rl):
+        key = sel.tobytes()
+        if key not in jac:
+            jac.clear()
+            jac[key] = ground_jacobian(rpc, lon[sel], lat[sel], h[sel])
+        return ground_offsets_m(rpc, lon[sel], lat[sel], h[sel], rs, rl, jacobian=jac[key])
+    return ground
+
+
+def accuracy_by_role(table, rpc=None, *, ground_offsets=None, ground_m_per_px: Optional[float] = None,
                      roles=("control", "check")) -> Dict[str, object]:
     """The one accuracy report per role, before and after an estimate (METHODS §6); see the module docstring.
 
@@ -101,12 +158,16 @@ def accuracy_by_role(table, *, ground_offsets=None, ground_m_per_px: Optional[fl
     table : DataFrame
         Columns ``role``, ``outlier`` (bool; flagged points are left out of both before and after, and counted
         in ``n_outliers``) and ``res_{sample,line}_{before,after}`` (px; a missing ``after`` pair is skipped).
+    rpc : sensor model, optional
+        ``ce90_m`` of the image residuals taken to the ground through its ground Jacobian (:func:`ground_offsets_m`)
+        at the table's ``lon, lat, h``.
     ground_offsets : callable, optional
-        ``ground_offsets(mask, res_sample, res_line) -> (east_m, north_m)`` for the rows ``mask``: gives
-        ``ce90_m`` through the sensor's ground Jacobian.
+        Or ``ground_offsets(mask, res_sample, res_line) -> (east_m, north_m)`` for the rows ``mask``.
     ground_m_per_px : float, optional
         Otherwise a ground scale (GSD) for ``ce90_m``; with neither ``ce90_m`` is None.
     """
+    if rpc is not None and ground_offsets is None:
+        ground_offsets = _ground_offsets_of(table, rpc)
     role = table["role"].astype(str).to_numpy()
     outl = table["outlier"].to_numpy(bool) if "outlier" in table.columns else np.zeros(len(table), bool)
     out: Dict[str, object] = {}

@@ -136,6 +136,29 @@ def weighted_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), fro
                     normalised=norm, weights=w, blocks=sl, frozen=tuple(frozen), condition_number=cond)
 
 
+def sigma0_and_cov(normal, vtpv: float, dof: int, *, apriori: bool = False) -> Tuple[float, np.ndarray]:
+    """``(sigma0, cov)`` from a normal matrix ``N = A^T W A``, the weighted residual square sum ``v^T W v`` and the
+    degrees of freedom (METHODS §4, §6): ``sigma0 = sqrt(v^T W v / dof)`` (NaN without redundancy) and
+    ``cov = sigma0^2 N^-1`` (``N^-1`` when ``apriori`` or without redundancy), ``N`` inverted column-scaled.
+
+    The one place besides :func:`weighted_lsq` where an a-posteriori covariance is built: every estimator that
+    solves its own normal equations (look-angle, block, bundle, intersection) reports through it.
+    """
+    n_mat = np.asarray(normal, dtype=float)
+    d = np.sqrt(np.diag(n_mat))
+    n_inv = np.linalg.inv(n_mat / d[:, None] / d[None, :]) / d[:, None] / d[None, :]
+    sigma0 = float(unit_weight_sigma(float(vtpv), dof))
+    return sigma0, (n_inv if apriori or dof <= 0 else sigma0 ** 2 * n_inv)
+
+
+def unit_weight_sigma(vtpv, dof):
+    """A-posteriori standard deviation of unit weight ``sqrt(v^T W v / dof)``, NaN without redundancy; vectorised
+    (e.g. one per intersected point)."""
+    vtpv, dof = np.asarray(vtpv, dtype=float), np.asarray(dof)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(dof > 0, np.sqrt(vtpv / np.maximum(dof, 1)), np.nan)
+
+
 def normal_solve(design, obs, weights, hint: str = "") -> Tuple[np.ndarray, np.ndarray]:
     """Fast weighted LS ``design @ x ~ obs`` by the column-scaled normal equations: ``(x, N)`` (METHODS §4, §5).
 

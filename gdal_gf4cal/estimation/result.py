@@ -39,11 +39,23 @@ class Estimate:
         Blunder flags (per point when the estimate was made per point).
     outlier_level : ndarray of str
         Why a point was flagged: ``''`` (not flagged), ``'start'`` (high-breakdown start, never re-admitted) or
-        ``'snooping'`` (data snooping, Student-t threshold).
+        ``'snooping'`` (data snooping, Student-t threshold) or ``'reject'`` (an IRLS norm's rejection).
     condition_number : float
         Condition number of the column-scaled design of the free parameters.
     iterations : int
     notes, warnings : list of str
+    axis_dof : tuple of int, optional
+        Degrees of freedom of the sigma each axis' normalised residuals were scaled with, when the axes are
+        estimated separately (e.g. compensation's sample and line); :class:`~gdal_gf4cal.estimation.Snooping`
+        then tests each axis with its own critical value.
+    point_weights : ndarray (n_points,), optional
+        Robust factor per point (0: out of the estimate), set by :func:`~gdal_gf4cal.estimation.robust_fit`.
+    normal : ndarray (p, p), optional
+        Normal matrix ``A^T W A`` of the final solve (fast solver of
+        :class:`~gdal_gf4cal.estimation.LinearProblem`).
+    norm_info : dict
+        What the robust driver found: ``start_sigma``, an IRLS norm's ``scale`` and ``z`` (normalised residual
+        per point), ``degenerate``.
     """
 
     names: List[str]
@@ -63,6 +75,10 @@ class Estimate:
     iterations: int = 0
     notes: List[str] = field(default_factory=list)
     warnings: List[str] = field(default_factory=list)
+    axis_dof: Optional[Tuple[int, ...]] = None
+    point_weights: Optional[np.ndarray] = None
+    normal: Optional[np.ndarray] = None
+    norm_info: Dict[str, Any] = field(default_factory=dict)
 
     @property
     def std(self) -> np.ndarray:

@@ -25,16 +25,13 @@ whole.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from functools import lru_cache
 from itertools import combinations
-from typing import List, Optional, Sequence, Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 
 from ..errors import DegenerateGeometryError
-from .lsq import Block, weighted_lsq
-from .result import Estimate, names_and_blocks
 
 #: Largest number of minimal subsets searched exhaustively; beyond it ``n_subsets`` random ones are drawn.
 MAX_EXHAUSTIVE = 3000
@@ -326,87 +323,6 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
     return inl, float(math.sqrt(max(s2, 0.0))), info
 
 
-def robust_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), frozen: Sequence[str] = (),
-               values=None, threshold: float = 4.0, min_points: Optional[int] = None, candidates=None,
-               n_subsets: int = 300, seed: int = 0, max_iter: int = 20, hint: str = "") -> Estimate:
-    """Robust weighted LS over points: high-breakdown start, reweighting, data snooping (module docstring).
-
-    Parameters
-    ----------
-    design : ndarray (n_points, k, p)
-    obs, weights : ndarray (n_points, k)
-    candidates : ndarray of bool (n_points,), optional
-        Points that may enter the estimate (e.g. the control points); the others (check points) are only
-        tested, with the same threshold, and flagged as blunders too.
-    threshold : float
-        Normal quantile of the w-test, turned into Student-t (:func:`critical_value`).
-
-    Returns
-    -------
-    Estimate
-        Per-point ``outlier`` flags and ``outlier_level`` (``'start'`` / ``'snooping'``); ``weights`` are per
-        observation (0 for points left out).
-    """
-    a = np.asarray(design, dtype=float)
-    n, k, p = a.shape
-    y = np.asarray(obs, dtype=float).reshape(n, k)
-    w0 = np.ones((n, k)) if weights is None else np.broadcast_to(np.asarray(weights, float), (n, k)).copy()
-    cand = np.ones(n, bool) if candidates is None else np.asarray(candidates, bool)
-    notes: List[str] = []
-    used = cand.copy()
-    start_out = np.zeros(n, bool)
-    start_sigma = 0.0
-    # The start sees only the free parameters (frozen blocks moved to the right-hand side at their values).
-    free = np.ones(p, bool)
-    if blocks and frozen:
-        _, sl = names_and_blocks(blocks, p)
-        for name in frozen:
-            if name in sl:
-                free[sl[name]] = False
-    n_free = int(free.sum())
-    m = int(min_points) if min_points else min_subset_points(a[:, :, free])
-    if int(cand.sum()) * k - n_free >= 2 and int(cand.sum()) > m:
-        idx = np.flatnonzero(cand)
-        a_s, y_s = a[idx], y[idx]
-        if not free.all():
-            x0 = np.zeros(p) if values is None else np.asarray(values, dtype=float)
-            y_s = y_s - a_s[:, :, ~free] @ x0[~free]
-            a_s = a_s[:, :, free]
-        inl, _, start_info = high_breakdown_start(a_s, y_s, w0[idx], min_points=m, n_subsets=n_subsets, seed=seed)
-        start_sigma = start_info.get("lts_scale", 0.0)
-        used = np.zeros(n, bool)
-        used[idx[inl]] = True
-        start_out = cand & ~used
-
-    def fit(sel):
-        ww = (w0 * sel[:, None]).ravel()
-        return weighted_lsq(a.reshape(n * k, p), y.ravel(), ww, blocks=blocks, frozen=frozen, values=values,
-                            prior=w0.ravel(), hint=hint)
-
-    est = fit(used)
-    it = 0
-    for it in range(1, max_iter + 1):
-        crit = critical_value(threshold, est.dof)
-        norm = np.nan_to_num(est.normalised, nan=0.0).reshape(n, k)
-        bad = np.max(np.abs(norm), axis=1) > crit
-        new = cand & ~bad & (used | readmissible(norm, est.dof, threshold=threshold, sigma=est.sigma0,
-                                                               start_sigma=start_sigma))
-        if int(new.sum()) * k - n_free < 1:
-            notes.append("too many points look like blunders for a robust estimate; all candidates kept")
-            new = cand.copy()
-        if np.array_equal(new, used):
-            break
-        used = new
-        est = fit(used)
-    crit = critical_value(threshold, est.dof)
-    bad = np.max(np.abs(np.nan_to_num(est.normalised, nan=0.0)).reshape(n, k), axis=1) > crit
-    outlier = (cand & ~used) | (~cand & bad)
-    level = np.where(outlier, np.where(start_out & outlier, "start", "snooping"), "")
-    est.outlier, est.outlier_level, est.iterations = outlier, level, it
-    est.notes.extend(notes)
-    return est
-
-
 #: Median of ``|r| / sigma`` for a 2-D normal residual (Rayleigh), the consistency factor of the radial scale.
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
 
@@ -438,74 +354,3 @@ def radial_huber_weights(res, sigma, n_params: int, *, huber_c: float = 2.5, rej
     z = radial_px / np.maximum(sigma * scale, min_scale)
     w = np.where(z <= huber_c, 1.0, huber_c / np.maximum(z, 1e-300))
     return w, z > reject_k, scale, z
-
-
-@dataclass
-class IRLSSolution:
-    """Result of :func:`irls`: parameters ``x``, normal matrix ``N`` (a-priori weights x robust factors), the robust
-    factor per point (0 = rejected), ``outlier`` flags, the robust ``scale``, ``z`` (normalised residuals of the
-    weight function) and the number of solves ``steps``."""
-
-    x: np.ndarray
-    N: np.ndarray
-    weights: np.ndarray
-    outlier: np.ndarray
-    scale: float
-    z: np.ndarray
-    steps: int
-
-
-def irls(design, obs, weights, weight_fn, *, x0=None, robust: bool = True, start_out=None, min_points: int = 1,
-         tol: float = 1e-6, max_steps: int = 100, hint: str = "", too_few: str = "") -> IRLSSolution:
-    """Iteratively reweighted LS over points with a weight function (METHODS §4, §5 step 3).
-
-    ``design`` (n, k, p), ``obs`` and ``weights`` (n, k); ``weight_fn(residuals (n, k)) -> (w, reject, scale, z)``
-    (e.g. :func:`radial_huber_weights`). Phase 1: the weight function's down-weighting without rejection (points
-    ``start_out`` of :func:`high_breakdown_start` left out) to convergence; phase 2: rejection too (start points
-    re-admitted when they fit), until the rejected set is stable and the fit moves less than ``tol``.
-    Each solve is :func:`~gdal_gf4cal.estimation.lsq.normal_solve`.
-
-    Raises
-    ------
-    GCPError
-        Fewer than ``min_points`` points left (``too_few`` is the message's hint).
-    """
-    from ..errors import GCPError
-    from .lsq import normal_solve
-    a = np.asarray(design, dtype=float)
-    n = a.shape[0]
-    a2 = a.reshape(n * a.shape[1], -1)
-    y = np.asarray(obs, dtype=float)
-    y2 = y.reshape(-1)
-    w_base = np.asarray(weights, dtype=float)
-    keep = np.ones(n) if start_out is None or not robust else np.where(start_out, 0.0, 1.0)
-    rw = keep.copy()
-    x, nmat = normal_solve(a2, y2, (w_base * rw[:, None]).reshape(-1), hint)
-    outlier = np.zeros(n, bool)
-    z = np.full(n, np.nan)
-    scale = float("nan")
-    steps = 1
-    if not robust:
-        return IRLSSolution(x, nmat, rw, outlier, scale, z, steps)
-    phase = 1
-    for _ in range(max_steps):
-        v = y - a @ x
-        fw, out, scale, z = weight_fn(v)
-        if phase == 1:
-            out = np.zeros(n, bool)
-            fw = fw * keep
-        rw_new = np.where(out, 0.0, fw)
-        if int((~out).sum()) < min_points:
-            raise GCPError(f"only {int((~out).sum())} points left after rejecting outliers{too_few}")
-        new_x, nmat = normal_solve(a2, y2, (w_base * rw_new[:, None]).reshape(-1), hint)
-        steps += 1
-        change = float(np.max(np.abs(a @ (new_x - x))))
-        stable = np.array_equal(out, outlier)
-        x, rw, outlier = new_x, rw_new, out
-        if change < tol and stable:
-            if phase == 2:
-                break
-            phase = 2
-    v = y - a @ x
-    _, _, scale, z = weight_fn(v)
-    return IRLSSolution(x, nmat, rw, outlier, scale, z, steps)

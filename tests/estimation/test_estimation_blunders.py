@@ -116,8 +116,8 @@ def test_check_point_blunder_flagged_and_worse_checks_warned(truth, tmp_path, ca
     tab = res.gcps.copy()
     for axis in ("sample", "line"):                                   # after worse than before by construction
         tab[f"res_{axis}_after"] = tab[f"res_{axis}_before"].abs() + 1.0
-    from gdal_gf4cal.compensation import _worse_check_warning
-    assert any("fit worse after compensation" in w for w in _worse_check_warning(tab))
+    from gdal_gf4cal.compensation import check_point_warnings
+    assert any("fit worse after compensation" in w for w in check_point_warnings(tab))
 
 
 def test_compensation_result_is_an_estimate(truth):

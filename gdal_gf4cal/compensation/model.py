@@ -15,29 +15,27 @@ Internally both image axes are normalised, ``u = (s - s0) / ss`` and ``v = (l - 
 taken from the RPC (``SAMP_OFF + 0.5``, ``SAMP_SCALE``, ...) unless given, so every model is a polynomial
 ``sum c_ij u^i v^j`` per axis with coefficients in pixels.
 
-Estimating (:func:`fit_compensation` -> :class:`CompensationResult`) is separate from applying
-(:func:`apply_compensation` -> :class:`AppliedCompensation`) and from writing (:func:`write_refined_rpc`).
+This module holds the model (:class:`CompensationModel`), the correction (:class:`CompensationResult`) and applying it
+(:class:`CompensatedRPC`, :func:`apply_compensation` -> :class:`AppliedCompensation`); estimating is
+:mod:`.solve` (:func:`fit_compensation`), reporting :mod:`.outputs`.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .basis import detector_terms, monomial_derivatives, monomials, term_name
-from .errors import DegenerateGeometryError, GCPError
-from .estimation import critical_value, high_breakdown_start, readmissible
-from .geodesy import radii_of_curvature
-from .sensor import GDAL_PIXEL_OFFSET, SensorModelMixin, pixel_shift
+from ..basis import detector_terms, monomial_derivatives, monomials, term_name
+from ..errors import GCPError
+from ..estimation import Estimate
+from ..rpc_fit import fit_rpc_from_model
+from ..sensor import GDAL_PIXEL_OFFSET, SensorModelMixin, pixel_shift
+from .outputs import _f, accuracy_by_role, suspected_blunders
 
-__all__ = [
-    "MODEL_NAMES", "CompensationModel", "CompensationResult", "CompensatedRPC", "AppliedCompensation",
-    "fit_compensation", "apply_compensation", "ground_offsets_m", "ground_jacobian", "accuracy_by_role",
-]
+__all__ = ["MODEL_NAMES", "CompensationModel", "CompensationResult", "CompensatedRPC", "AppliedCompensation",
+           "apply_compensation"]
 
-#: Model names accepted by :meth:`CompensationModel.from_name` (and ``gf4cal refine --model``).
 MODEL_NAMES = ("translation", "shift-drift", "affine", "poly2", "detector-poly")
 
 # Exponents (i, j) of u^i v^j per axis for the base models of METHODS §4.1 (u: sample, v: line).
@@ -304,7 +302,6 @@ class CompensationResult:
         the two axes' values (they are pooled when the redundancy is small); redundancy numbers ``1 - w a N^-1 a``
         of the points in the estimate.
         """
-        from .estimation import Estimate
         tab = self.gcps
         p_s = self.coef_sample.size
         p = p_s + self.coef_line.size
@@ -380,415 +377,6 @@ class CompensationResult:
         return out
 
 
-def _f(x) -> Optional[float]:
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# statistics helpers (METHODS §6)
-# ----------------------------------------------------------------------------------------------------------------
-def _axis_stats(x) -> Dict[str, Optional[float]]:
-    """``{mean, rms, std, max}`` (px) of one axis, :func:`gdal_gf4cal.stats.axis_stats`; None when empty."""
-    from .stats import axis_stats
-    return {k: _f(v) for k, v in axis_stats(x).items() if k != "n"}
-
-
-def ground_offsets_m(rpc, lon, lat, h, dsample, dline, *, jacobian=None) -> Tuple[np.ndarray, np.ndarray]:
-    """East/north ground offsets (m) equivalent to image offsets ``(dsample, dline)`` (px) at ``(lon, lat, h)``.
-
-    Uses the RPC ground Jacobian ``d(s, l)/d(lon, lat)`` at fixed height; for CE90 of image residuals (METHODS §6).
-    ``jacobian``: that Jacobian at these points when already known (:func:`ground_jacobian`), e.g. for the
-    before and after residuals of the same points.
-    """
-    lon, lat, h = (np.asarray(a, dtype=float) for a in (lon, lat, h))
-    jac = ground_jacobian(rpc, lon, lat, h) if jacobian is None else jacobian
-    rhs = np.stack([np.asarray(dsample, float), np.asarray(dline, float)], axis=-1)[..., None]
-    with np.errstate(all="ignore"):
-        dll = np.linalg.solve(jac, rhs)[..., 0]
-    phi = np.radians(lat)
-    rn, rm = radii_of_curvature(lat)
-    east = np.radians(dll[..., 0]) * (rn + h) * np.cos(phi)
-    north = np.radians(dll[..., 1]) * (rm + h)
-    return east, north
-
-
-def ground_jacobian(rpc, lon, lat, h) -> np.ndarray:
-    """``d(sample, line)/d(lon, lat)`` (..., 2, 2) at fixed height, as :func:`ground_offsets_m` uses it."""
-    return _jacobian(rpc, np.asarray(lon, float), np.asarray(lat, float), np.asarray(h, float))[..., :2]
-
-
-def _jacobian(model, lon, lat, h):
-    """``d(sample, line)/d(lon, lat, h)`` from ``model.project_jacobian`` or central differences."""
-    if hasattr(model, "project_jacobian"):
-        return np.asarray(model.project_jacobian(lon, lat, h), dtype=float)
-    steps = (1e-6, 1e-6, 1.0)
-    cols = []
-    for k, st in enumerate(steps):
-        args_p = [lon, lat, h]
-        args_m = [lon, lat, h]
-        args_p[k] = args_p[k] + st
-        args_m[k] = args_m[k] - st
-        sp, lp = model.project(*args_p)
-        sm, lm = model.project(*args_m)
-        cols.append(np.stack([(np.asarray(sp) - sm) / (2 * st), (np.asarray(lp) - lm) / (2 * st)], axis=-1))
-    return np.stack(cols, axis=-1)
-
-
-def accuracy_by_role(gcps, rpc=None) -> Dict[str, Any]:
-    """``{control|check: {n_outliers, before|after: {n, line|sample: {mean, rms, std, max}, planar, ce90_m}}}``.
-
-    The one report shape, :func:`gdal_gf4cal.stats.accuracy_by_role` (METHODS §6), from a table with
-    ``res_{sample,line}_{before,after}`` columns (px); flagged outliers are left out. ``ce90_m`` is the planar CE90
-    (m) of the image residuals taken to the ground through ``rpc`` (None without ``rpc``).
-    """
-    from .stats import accuracy_by_role as _by_role
-    ground = None
-    if rpc is not None:
-        lon, lat, h = (gcps[c].to_numpy(float) for c in ("lon", "lat", "h"))
-        jac = {}        # per row selection (a role): the ground Jacobian, shared by before and after
-
-        def ground(sel, rs, rl):
-            key = sel.tobytes()
-            if key not in jac:
-                jac.clear()
-                jac[key] = ground_jacobian(rpc, lon[sel], lat[sel], h[sel])
-            return ground_offsets_m(rpc, lon[sel], lat[sel], h[sel], rs, rl, jacobian=jac[key])
-    return _by_role(gcps, ground_offsets=ground)
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# estimation
-# ----------------------------------------------------------------------------------------------------------------
-def _frame_from_rpc(rpc) -> Tuple[float, float, float, float]:
-    try:
-        # RPC00B offsets are raw (first pixel centre at 0); GDAL convention adds half a pixel.
-        return (float(rpc.samp_off) + 0.5, float(abs(rpc.samp_scale)) or 1.0,
-                float(rpc.line_off) + 0.5, float(abs(rpc.line_scale)) or 1.0)
-    except AttributeError:
-        return (0.0, 1.0, 0.0, 1.0)
-
-
-def _table(gcps):
-    import pandas as pd
-    if isinstance(gcps, pd.DataFrame):
-        tab = gcps.copy()
-    elif isinstance(gcps, dict):
-        tab = pd.DataFrame(gcps)
-    else:
-        raise GCPError("GCPs must be a table (GeoDataFrame/DataFrame) with columns lon, lat, h, sample, line")
-    missing = [c for c in ("lon", "lat", "sample", "line") if c not in tab.columns]
-    if missing:
-        raise GCPError(f"GCP table lacks column(s) {', '.join(missing)}; expected id, lon, lat, h, sample, line, role")
-    tab = tab.reset_index(drop=True)
-    if "id" not in tab.columns:
-        tab["id"] = [str(i + 1) for i in range(len(tab))]
-    if "role" not in tab.columns:
-        tab["role"] = "control"
-    tab["role"] = tab["role"].fillna("control").astype(str).str.strip().str.lower()
-    bad = sorted(set(tab["role"]) - {"control", "check"})
-    if bad:
-        raise GCPError(f"GCP role must be 'control' or 'check', found {bad}")
-    if "sigma" not in tab.columns:
-        tab["sigma"] = 1.0
-    tab["sigma"] = tab["sigma"].astype(float).fillna(1.0)
-    if (tab["sigma"] <= 0).any():
-        raise GCPError("GCP sigma must be > 0 px")
-    if "h" not in tab.columns:
-        tab["h"] = np.nan
-    return tab
-
-
-def _solve_axis(a, y, w, prior=None) -> Tuple[np.ndarray, np.ndarray, Any]:
-    """Weighted LS of one axis through :func:`gdal_gf4cal.estimation.weighted_lsq` (METHODS §4): returns
-    ``(coef, N^-1, estimate)`` for weights ``w`` (zeros drop a row; their residuals are still computed and
-    normalised with the a-priori weights ``prior``)."""
-    from .estimation import weighted_lsq
-    est = weighted_lsq(a, y, w, prior=prior, apriori=True)
-    return est.x, est.cov, est
-
-def _check_rank(a_list, model: CompensationModel, n_ctrl: int, terms=None) -> float:
-    """Raise DegenerateGeometryError if the control layout does not determine the model over the image.
-
-    Two tests per axis: the column-equilibrated design is (numerically) rank deficient, or GCP noise would be
-    amplified more than ``_MAX_AMPLIFICATION`` times at the image corners (u, v = +-1), e.g. GCPs spread over one
-    pixel in line for a model with a line drift. Returns the worst condition number.
-    """
-    worst = 1.0
-    amp = 0.0
-    corners = np.array([[-1.0, -1.0], [1.0, -1.0], [-1.0, 1.0], [1.0, 1.0], [0.0, 0.0]])
-    for k, a in enumerate(a_list):
-        sv = np.linalg.svd(a / np.maximum(np.linalg.norm(a, axis=0), 1e-300), compute_uv=False)
-        cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
-        worst = max(worst, cond)
-        if terms is not None and math.isfinite(cond) and cond < 1e8:
-            q = _monomials(terms[k], corners[:, 0], corners[:, 1])
-            n_inv = np.linalg.pinv(a.T @ a, hermitian=True)
-            amp = max(amp, float(np.sqrt(np.max(np.einsum("ij,jk,ik->i", q, n_inv, q)))))
-    if worst > 1e8 or amp > _MAX_AMPLIFICATION:
-        hint = {"translation": "", "shift-drift": " (both axes need GCPs at different lines and samples)",
-                "affine": " (the GCPs are collinear or too close together)",
-                "poly2": " (the GCPs lie on one line or conic, or too close together)",
-                "detector-poly": " (too few distinct detector positions)"}[model.name]
-        raise DegenerateGeometryError(
-            f"the {n_ctrl} control GCPs do not determine model {model.label!r}{hint}; spread GCPs over the image "
-            f"or choose a simpler model")
-    return worst
-
-
-#: Largest tolerated amplification of GCP noise at the image corners before a layout counts as degenerate.
-_MAX_AMPLIFICATION = 1000.0
-
-
-def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, along: Optional[str] = None,
-                     ccd_axis: str = "sample", dem=None, frame: Optional[Sequence[float]] = None,
-                     robust: bool = True, outlier_threshold: float = 4.0, max_iter: int = 20,
-                     leave_one_out: bool = False) -> CompensationResult:
-    """Estimate an image-space correction of ``rpc`` from GCPs (METHODS §4).
-
-    Parameters
-    ----------
-    rpc : RPCModel or any object with ``project(lon, lat, h) -> (sample, line)`` (GDAL pixel convention)
-    gcps : GeoDataFrame / DataFrame
-        Columns ``lon, lat, h`` (ellipsoidal m), ``sample, line`` (GDAL convention), optional ``id``, ``role``
-        (``control`` points are estimated from, ``check`` points only evaluated; default all control) and
-        ``sigma`` (px, relative weights).
-    model : str or CompensationModel
-        ``translation`` (min 1 GCP), ``shift-drift`` (2), ``affine`` (3), ``poly2`` (6), ``detector-poly``
-        (``order`` + 1 with the default ``along='translation'``).
-    dem : DEM, optional
-        Fills missing heights (``h`` NaN) with ``dem.height(lon, lat)``.
-    frame : (s0, ss, l0, ls), optional
-        Normalisation of image coordinates; default from the RPC offsets and scales.
-    robust : bool
-        Robust estimation: Huber then Tukey reweighting on standardised residuals, then blunders are flagged
-        while their normalised residual (residual / its standard deviation, Baarda's w) exceeds
-        ``outlier_threshold`` and left out of the estimate. Needs redundancy; with none it is skipped.
-    outlier_threshold : float
-        Critical normalised residual for a large redundancy (a standard-normal quantile); with few redundant
-        observations it is raised to the Student-t quantile of the same probability, because sigma is estimated
-        from the same GCPs (the report's ``notes`` say so).
-    leave_one_out : bool
-        Also compute leave-one-out residuals of each control point (``res_*_loo``; exact for linear LS).
-
-    Returns
-    -------
-    CompensationResult
-
-    Raises
-    ------
-    GCPError
-        Fewer control GCPs than the model needs, missing columns or heights.
-    DegenerateGeometryError
-        The control layout does not determine the model (e.g. collinear GCPs for ``affine``).
-    """
-    if not isinstance(model, CompensationModel):
-        model = CompensationModel.from_name(model, order=order, along=along, ccd_axis=ccd_axis)
-    tab = _table(gcps)
-    h = tab["h"].to_numpy(float)
-    if np.isnan(h).any():
-        if dem is None:
-            raise GCPError(f"{int(np.isnan(h).sum())} GCP(s) have no height; give a DEM (--dem) to take it from")
-        fill = np.asarray(dem.height(tab["lon"].to_numpy(float)[np.isnan(h)], tab["lat"].to_numpy(float)[np.isnan(h)]),
-                          dtype=float)
-        if np.isnan(fill).any():
-            raise GCPError("the DEM has no height under some GCPs; give their height or a DEM that covers them")
-        h = h.copy()
-        h[np.isnan(h)] = fill
-        tab["h"] = h
-    lon, lat = tab["lon"].to_numpy(float), tab["lat"].to_numpy(float)
-    s_meas, l_meas = tab["sample"].to_numpy(float), tab["line"].to_numpy(float)
-    finite = np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h) & np.isfinite(s_meas) & np.isfinite(l_meas)
-    if not finite.all():
-        raise GCPError(f"{int((~finite).sum())} GCP(s) have non-numeric coordinates; fix or remove them")
-    s_pred, l_pred = (np.asarray(x, dtype=float) for x in rpc.project(lon, lat, h))
-    if not (np.isfinite(s_pred) & np.isfinite(l_pred)).all():
-        raise GCPError("the RPC cannot project some GCPs (outside its validity domain); check their coordinates")
-
-    fr = tuple(float(x) for x in (frame if frame is not None else _frame_from_rpc(rpc)))
-    u, v = (s_pred - fr[0]) / fr[1], (l_pred - fr[2]) / fr[3]
-    ts, tl = model.terms
-    a_s, a_l = _monomials(ts, u, v), _monomials(tl, u, v)
-    y_s, y_l = s_meas - s_pred, l_meas - l_pred                # residuals before = what the correction explains
-    ctrl = (tab["role"] == "control").to_numpy()
-    n_ctrl = int(ctrl.sum())
-    if n_ctrl < model.min_gcps:
-        raise GCPError(f"model {model.label!r} needs at least {model.min_gcps} control GCP(s), got {n_ctrl}; add "
-                       f"control points or choose a simpler model (translation needs 1)")
-    cond = _check_rank([a_s[ctrl], a_l[ctrl]], model, n_ctrl, (ts, tl))
-    w0 = 1.0 / tab["sigma"].to_numpy(float) ** 2
-    p_s, p_l = a_s.shape[1], a_l.shape[1]
-    notes: List[str] = []
-
-    used = ctrl.copy()
-    iterations = 0
-    redundancy_min = n_ctrl - max(p_s, p_l)
-    start_out = np.zeros(len(tab), bool)
-    if robust and redundancy_min >= 2:
-        # Phase 1: high-breakdown start (least trimmed squares from every minimal subset of the control points,
-        # or seeded random ones when there are many): several blunders, even coherent ones, cannot mask each other.
-        idx = np.flatnonzero(ctrl)
-        design = np.zeros((idx.size, 2, p_s + p_l))
-        design[:, 0, :p_s], design[:, 1, p_s:] = a_s[idx], a_l[idx]
-        inl, _, start_info = high_breakdown_start(design, np.stack([y_s[idx], y_l[idx]], axis=1),
-                                         np.repeat(w0[idx, None], 2, axis=1), min_points=model.min_gcps)
-        used = np.zeros(len(tab), bool)
-        used[idx[inl]] = True
-        if used.sum() <= model.min_gcps:
-            used = ctrl.copy()
-        start_out = ctrl & ~used
-        # Phase 2: data snooping with normalised residuals on the robust inlier set until it is stable.
-        for iterations in range(1, max_iter + 1):
-            if used.sum() < model.min_gcps:
-                used = ctrl.copy()
-                break
-            try:
-                norm_s, norm_l, *_, sig_s, sig_l, _, dof = _normalised(a_s, a_l, y_s, y_l, w0, used)
-            except DegenerateGeometryError:
-                break                                        # undetermined subset: handled below
-            # Hysteresis (estimation.readmissible): a point out of the fit comes back only when it also fits.
-            back = readmissible(np.stack([norm_s, norm_l], axis=1), min(dof), threshold=outlier_threshold,
-                                sigma=max(sig_s, sig_l), start_sigma=start_info.get("lts_scale", 0.0))
-            new_used = ctrl & ~_exceeds(norm_s, norm_l, outlier_threshold, dof) & (used | back)
-            if new_used.sum() < model.min_gcps or (new_used.sum() - max(p_s, p_l)) < 1:
-                notes.append("too many GCPs look like blunders for a robust estimate; all control points kept")
-                new_used = ctrl.copy()
-            if np.array_equal(new_used, used):
-                break
-            used = new_used
-    elif robust:
-        notes.append(f"no robust estimation: redundancy {max(redundancy_min, 0)} is too small to detect blunders")
-
-    try:
-        _check_rank([a_s[used], a_l[used]], model, int(used.sum()), (ts, tl))
-    except DegenerateGeometryError:
-        used = ctrl.copy()
-        notes.append("rejecting blunders would leave the model undetermined; all control points kept")
-    norm_s, norm_l, cs, cl, ns, nl, sig_s, sig_l, red, dof = _normalised(a_s, a_l, y_s, y_l, w0, used)
-    outlier = ~used & ctrl
-    if robust and red >= 2:
-        # Check points are never in the estimate; flag those that are blunders by the same test.
-        outlier |= (~ctrl) & _exceeds(norm_s, norm_l, outlier_threshold, dof)
-        crit = _critical_value(outlier_threshold, min(dof))
-        if crit > 1.05 * outlier_threshold:
-            notes.append(f"few redundant observations: blunder threshold raised from {outlier_threshold:g} to "
-                         f"{crit:.3g} (Student-t, {min(dof)} degrees of freedom)")
-    elif not robust:
-        outlier[:] = False
-
-    ds, dl = a_s @ cs, a_l @ cl
-    tab["pred_sample_before"], tab["pred_line_before"] = s_pred, l_pred
-    tab["res_sample_before"], tab["res_line_before"] = y_s, y_l
-    tab["pred_sample_after"], tab["pred_line_after"] = s_pred + ds, l_pred + dl
-    tab["res_sample_after"], tab["res_line_after"] = y_s - ds, y_l - dl
-    tab["norm_res_sample"], tab["norm_res_line"] = norm_s, norm_l
-    tab["outlier"] = outlier
-    tab["outlier_level"] = np.where(outlier, np.where(start_out, "start", "snooping"), "")
-    tab["used"] = used
-    warns = _worse_check_warning(tab)
-    if leave_one_out:
-        # Exact LOO residual of linear LS: v_i / (1 - h_ii) for points in the fit; others are already independent.
-        hs = w0 * np.einsum("ij,jk,ik->i", a_s, ns, a_s)
-        hl = w0 * np.einsum("ij,jk,ik->i", a_l, nl, a_l)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tab["res_sample_loo"] = np.where(used, (y_s - ds) / (1.0 - hs), y_s - ds)
-            tab["res_line_loo"] = np.where(used, (y_l - dl) / (1.0 - hl), y_l - dl)
-    return CompensationResult(model=model, frame=fr, coef_sample=cs, coef_line=cl,
-                              cov_sample=sig_s ** 2 * ns, cov_line=sig_l ** 2 * nl, sigma0_px=(sig_s, sig_l),
-                              gcps=tab, redundancy=red, iterations=iterations, condition_number=cond, notes=notes,
-                              warnings=warns)
-
-
-def suspected_blunders(tab, n: int = 3) -> List[Tuple[str, str, float]]:
-    """The control points most likely to be blunders when the check points fit worse after compensation than
-    before: ``(id, role, planar residual after compensation px)`` of the ``n`` control points in the estimate with
-    the largest normalised residuals (a blunder in the fit drags the correction and leaves residuals on its
-    fellow points too, so the list is where to look, not a verdict; check points are only its victims). Empty
-    when the check points fit as well or better."""
-    rms = _check_rms(tab)
-    if rms is None or not rms[1] > rms[0]:
-        return []
-    cand = (tab["role"] == "control").to_numpy() & ~tab["outlier"].to_numpy(bool)
-    z = np.hypot(tab["norm_res_sample"].to_numpy(float), tab["norm_res_line"].to_numpy(float))
-    z = np.where(cand, np.nan_to_num(z, nan=0.0), -np.inf)
-    order = np.lexsort((np.arange(z.size), -z))[:min(n, int(cand.sum()))]   # ties: input order
-    r = np.hypot(tab["res_sample_after"].to_numpy(float), tab["res_line_after"].to_numpy(float))
-    ids, roles = tab["id"].astype(str).to_numpy(), tab["role"].astype(str).to_numpy()
-    return [(ids[i], roles[i], float(r[i])) for i in order]
-
-
-def _check_rms(tab) -> Optional[Tuple[float, float]]:
-    """Planar rms (px) of the unflagged check points before and after compensation; None without any."""
-    sel = (tab["role"] == "check").to_numpy() & ~tab["outlier"].to_numpy(bool)
-    if not sel.any():
-        return None
-    return tuple(float(np.sqrt(np.mean(tab[f"res_sample_{w}"].to_numpy(float)[sel] ** 2
-                                       + tab[f"res_line_{w}"].to_numpy(float)[sel] ** 2)))
-                 for w in ("before", "after"))
-
-
-def describe_suspects(suspects) -> str:
-    """``g1 (control, 31.2 px), ...`` for a message."""
-    return ", ".join(f"{i} ({role}, {r:.1f} px)" for i, role, r in suspects)
-
-
-def _worse_check_warning(tab) -> List[str]:
-    """Warnings when the check points disagree with the compensation: they fit worse after it than before
-    (blunders suspected: the worst points named), or most of them are flagged as blunders."""
-    chk = (tab["role"] == "check").to_numpy()
-    if not chk.any():
-        return []
-    outl = tab["outlier"].to_numpy(bool)
-    out: List[str] = []
-    if 2 * int((chk & outl).sum()) > int(chk.sum()):
-        out.append(f"{int((chk & outl).sum())} of the {int(chk.sum())} check points are flagged as blunders: the "
-                   "check points disagree with the compensation; check the GCPs (wrong heights, other image) or the "
-                   "model")
-    rms = _check_rms(tab)
-    if rms is not None and rms[1] > rms[0]:
-        out.append(f"the {int((chk & ~outl).sum())} check points fit worse after compensation than before (planar "
-                   f"rms {rms[0]:.3g} -> {rms[1]:.3g} px): blunders are suspected among the GCPs; the worst: "
-                   f"{describe_suspects(suspected_blunders(tab))}; check or remove them, or choose a simpler model")
-    return out
-
-
-def _critical_value(threshold: float, dof: int) -> float:
-    """Critical normalised residual, :func:`gdal_gf4cal.estimation.critical_value` (METHODS §4, §6)."""
-    return critical_value(threshold, dof)
-
-
-def _exceeds(norm_s, norm_l, threshold: float, dof: Tuple[int, int]) -> np.ndarray:
-    """True where either axis' normalised residual exceeds its critical value (:func:`_critical_value`)."""
-    return (np.abs(norm_s) > _critical_value(threshold, dof[0])) | \
-        (np.abs(norm_l) > _critical_value(threshold, dof[1]))
-
-
-def _normalised(a_s, a_l, y_s, y_l, w0, used):
-    """LS on ``used``; normalised residuals of every point, a-posteriori sigma per axis, redundancy and the
-    degrees of freedom ``(sample, line)`` of the sigma estimates."""
-    wu = np.where(used, w0, 0.0)
-    cs, ns, est_s = _solve_axis(a_s, y_s, wu, w0)
-    cl, nl, est_l = _solve_axis(a_l, y_l, wu, w0)
-    vs, vl = est_s.residuals, est_l.residuals
-    red_s, red_l = est_s.dof, est_l.dof
-    # With no redundancy the a-priori sigma (weights) is all we know: sigma0 = 1 (weighted_lsq's convention).
-    sig_s, sig_l = est_s.sigma0, est_l.sigma0
-    dof = (red_s, red_l)
-    if red_s > 0 and red_l > 0 and min(red_s, red_l) < 10:
-        # Few redundant observations per axis: pool both axes for a steadier scale.
-        pooled = float(np.sqrt((np.sum(wu * vs ** 2) + np.sum(wu * vl ** 2)) / (red_s + red_l)))
-        sig_s = sig_l = pooled
-        dof = (red_s + red_l,) * 2
-    # weighted_lsq normalises with var(v) = sigma^2 (1/w - q) in the fit, sigma^2 (1/w + q) outside it; rescale
-    # from its per-axis sigma to the (possibly pooled) one.
-    norm_s = np.nan_to_num(est_s.normalised * (max(est_s.sigma0, 1e-300) / max(sig_s, 1e-12)), nan=0.0)
-    norm_l = np.nan_to_num(est_l.normalised * (max(est_l.sigma0, 1e-300) / max(sig_l, 1e-12)), nan=0.0)
-    return norm_s, norm_l, cs, cl, ns, nl, sig_s, sig_l, min(red_s, red_l), dof
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# applying
-# ----------------------------------------------------------------------------------------------------------------
 class CompensatedRPC(SensorModelMixin):
     """An RPC composed with an image-space correction: ``project = rpc.project + d(rpc.project)`` (METHODS §4).
 
@@ -891,7 +479,6 @@ def apply_compensation(rpc, result: CompensationResult, *, image_size: Optional[
     """
     if result.model.foldable:
         return AppliedCompensation(rpc=_fold(rpc, result), exact=True)
-    from .rpc_fit import fit_rpc_from_model
     comp = CompensatedRPC(rpc, result)
     size = tuple(image_size) if image_size is not None else tuple(rpc.image_size)
     fit_kw.setdefault("height_range", tuple(rpc.height_range))
