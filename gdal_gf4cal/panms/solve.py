@@ -7,7 +7,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..estimation import robust_lsq, weighted_lsq
+from ..estimation import Estimate, LinearProblem, Snooping, robust_fit, weighted_lsq
 from ..progress import report
 from ..stats import axis_stats, share_within
 from .breaks import default_breaks
@@ -70,10 +70,111 @@ def _weights(c) -> np.ndarray:
     return np.where(c["usable"][:, None], 1.0 / sig ** 2, 0.0)
 
 
-def _robust_step(a, y, w, usable, blocks, frozen, values, hint):
-    y = np.where(np.isfinite(y), y, 0.0)
-    return robust_lsq(a, y, w, blocks=blocks, frozen=frozen, values=values, candidates=usable, hint=hint,
-                      n_subsets=200)
+def _robust_step(a, y, w, usable, blocks, frozen, values, hint) -> Estimate:
+    """A robust estimate of the one robust driver (high-breakdown start + data snooping) over the usable cells;
+    NaN offsets (cells left out) enter as 0 with weight 0."""
+    problem = LinearProblem(a, np.where(np.isfinite(y), y, 0.0), w, blocks=blocks, frozen=frozen, values=values,
+                            hint=hint)
+    return robust_fit(problem, norm=Snooping(4.0), start="lts", candidates=usable, n_subsets=200)
+
+
+def _resolve_breaks(breaks, n_sub_ccds, reuse, W: int, H: int):
+    """``(reuse model or None, sorted breakpoints)``: the reuse model's when reusing (after checking it fits this
+    image), else the ones given, else equal sub-CCDs; :class:`PanMSError` for edges outside the image."""
+    if reuse is not None and not isinstance(reuse, PanMSModel):
+        reuse = PanMSModel.from_json(reuse)
+    if reuse is not None:
+        reuse.compatible_with((W, H), breaks)
+        breaks = list(reuse.breaks)
+    if breaks is None:
+        breaks = default_breaks(W, n_sub_ccds)
+    breaks = sorted(float(b) for b in breaks)
+    if any(not (0.0 < b < W) for b in breaks):
+        raise PanMSError(f"sub-CCD breakpoints {breaks} must lie inside the MS image (0..{W} px)")
+    return reuse, breaks
+
+
+def _new_model(c, W: int, H: int, breaks, reuse, times) -> PanMSModel:
+    """The empty model with its ``info`` (cells, times, noise floor); :class:`PanMSError` without a usable cell."""
+    usable = c["usable"]
+    n_use, n_all = int(usable.sum()), usable.size
+    if n_use == 0:
+        raise PanMSError(f"no usable cell: all {n_all} cells are cloud, water or texture-less; register a clearer "
+                         "scene and reuse its model with --reuse MODEL.json")
+    model = PanMSModel(ms_size=(W, H), breaks=tuple(breaks), mode="solve" if reuse is None else "reuse")
+    model.info = {"n_cells": n_all, "n_usable": n_use, "line_time_s": times[0], "look_time_s": times[1],
+                  "ifov_rad": times[2],
+                  "noise_floor_px": {"sample": _floor(c["sigma_sample"][usable]),
+                                     "line": _floor(c["sigma_line"][usable])}}
+    return model
+
+
+def _solve_reuse(model, reuse, c, a, y, w, snaps, progress) -> PanMSModel:
+    """Reuse mode (eq. 17): the reused model's piecewise term frozen, the linear term solved robustly from the
+    sparse cells; refused when it does not fit (:func:`_check_reuse_fit`)."""
+    model.piecewise = reuse.piecewise.copy()
+    est = _robust_step(a, y, w, c["usable"], _blocks(model.n_sub_ccds), ["piecewise"], _values(model),
+                       " (reuse mode: the linear term from the sparse cells)")
+    _set_values(model, est.x)
+    model.info["reused_from"] = reuse.info.get("source", "")
+    snaps.append(_snapshot(model, "linear (reuse: piecewise term of the reused model)", ("linear", "piecewise")))
+    model = _finish(model, c, snaps, est.outlier, model.info["line_time_s"], progress)
+    _check_reuse_fit(model)
+    return model
+
+
+def _blunders(a, y, w, usable, blocks, notes) -> np.ndarray:
+    """Blunders first, on the model that fits (linear + piecewise, robust: high-breakdown start + snooping), so
+    that the sub-CCD structure the linear step cannot model is not mistaken for blunders; none tested when the
+    cells are too few (a note says so)."""
+    n_use = int(usable.sum())
+    if n_use >= a.shape[2] // 2 + 3:
+        return _robust_step(a, y, w, usable, blocks, ["linear_datum"], np.zeros(a.shape[2]),
+                            " (blunder detection)").outlier
+    notes.append(f"{n_use} usable cells for {a.shape[2] // 2} parameters per axis: too few to test for blunders")
+    return np.zeros(usable.size, bool)
+
+
+def _solve_stepwise(model, c, a, y, w, sn, jitter, snaps, progress) -> PanMSModel:
+    """Eqs. 14-16: blunders, then the linear term on all cells, the piecewise term on what remains (the linear
+    datum frozen), the jitter term on what remains; the terms the usable cells cannot support are dropped
+    (:func:`_term_layout`, with notes)."""
+    usable, m, W = c["usable"], model.n_sub_ccds, model.ms_size[0]
+    keep, notes = _term_layout(c["sample"], c["line"], usable, model.breaks, W)
+    model.info["notes"] = notes
+    model.info["piece_orders"] = _piece_orders(keep, m)
+    a, blocks = a[:, :, keep], _blocks(m, keep)
+    x_full = np.zeros(keep.size)
+
+    def put(x):
+        x_full[keep] = x
+        _set_values(model, x_full)
+    outlier = _blunders(a, y, w, usable, blocks, notes)
+    yy = np.where(np.isfinite(y), y, 0.0)
+    w_in = np.where((usable & ~outlier)[:, None], w, 0.0)
+    # Step 1 (eq. 14): linear on all cells (usable, not blunders).
+    n_lin = int(keep[:6].sum())
+    est = weighted_lsq(a[:, :, :n_lin].reshape(-1, n_lin), yy.ravel(), w_in.ravel(), blocks=_blocks(0, keep[:6]),
+                       hint=" (linear term)")
+    put(np.r_[est.x, np.zeros(a.shape[2] - n_lin)])
+    snaps.append(_snapshot(model, "linear", ("linear",)))
+    report(progress, 0.3, "pan-MS: piecewise term")
+    # Step 2 (eq. 15): piecewise on what remains; the linear datum (constant, s) stays frozen (the pieces'
+    # constant and linear terms duplicate it), the l terms are refined with it.
+    if any(b.name != "linear_datum" for b in blocks):
+        est = weighted_lsq(a.reshape(-1, a.shape[2]), yy.ravel(), w_in.ravel(), blocks=blocks,
+                           frozen=["linear_datum"], values=_values(model)[keep], hint=" (piecewise term)")
+        put(est.x)
+    snaps.append(_snapshot(model, "piecewise", ("linear", "piecewise")))
+    # Step 3 (eq. 16): jitter on what remains.
+    report(progress, 0.6, "pan-MS: jitter term")
+    if str(jitter) != "none":
+        n_fixed = None if str(jitter) == "auto" else int(jitter)
+        _solve_jitter(model, c, a, y, w, usable & ~outlier, blocks, n_fixed, sn, keep)
+        info = model.info
+        _describe_jitter(model, info["line_time_s"], info["look_time_s"], info["ifov_rad"])
+        snaps.append(_snapshot(model, "jitter", ("linear", "piecewise", "jitter")))
+    return _finish(model, c, snaps, outlier, model.info["line_time_s"], progress)
 
 
 def estimate(cells, *, ms_size, breaks=None, n_sub_ccds: int = 3, jitter="auto", reuse=None,
@@ -108,88 +209,17 @@ def estimate(cells, *, ms_size, breaks=None, n_sub_ccds: int = 3, jitter="auto",
     """
     c = _cell_arrays(cells)
     W, H = int(ms_size[0]), int(ms_size[1])
-    if reuse is not None and not isinstance(reuse, PanMSModel):
-        reuse = PanMSModel.from_json(reuse)
-    if reuse is not None:
-        reuse.compatible_with((W, H), breaks)
-        breaks = list(reuse.breaks)
-    if breaks is None:
-        breaks = default_breaks(W, n_sub_ccds)
-    breaks = sorted(float(b) for b in breaks)
-    if any(not (0.0 < b < W) for b in breaks):
-        raise PanMSError(f"sub-CCD breakpoints {breaks} must lie inside the MS image (0..{W} px)")
-    usable = c["usable"]
-    n_use = int(usable.sum())
-    n_all = usable.size
-    if n_use == 0:
-        raise PanMSError(f"no usable cell: all {n_all} cells are cloud, water or texture-less; register a clearer "
-                         "scene and reuse its model with --reuse MODEL.json")
+    reuse, breaks = _resolve_breaks(breaks, n_sub_ccds, reuse, W, H)
+    model = _new_model(c, W, H, breaks, reuse, (line_time_s, look_time_s, ifov_rad))
     w = _weights(c)
-    model = PanMSModel(ms_size=(W, H), breaks=tuple(breaks), mode="solve" if reuse is None else "reuse")
-    model.info = {"n_cells": n_all, "n_usable": n_use, "line_time_s": line_time_s, "look_time_s": look_time_s,
-                  "ifov_rad": ifov_rad,
-                  "noise_floor_px": {"sample": _floor(c["sigma_sample"][usable]),
-                                     "line": _floor(c["sigma_line"][usable])}}
     y = np.stack([c["d_sample"], c["d_line"]], axis=1)
     sn, ln = model.normalise(c["sample"], c["line"])
-    m = model.n_sub_ccds
     a = np.concatenate([linear_design(sn, ln), _piecewise_design(c["sample"], breaks, W)], axis=2)
-    blocks = _blocks(m)
     snaps = [_snapshot(model, "before", ())]
     report(progress, 0.05, "pan-MS: linear term")
     if reuse is not None:
-        model.piecewise = reuse.piecewise.copy()
-        est = _robust_step(a, y, w, usable, blocks, ["piecewise"], _values(model),
-                           " (reuse mode: the linear term from the sparse cells)")
-        _set_values(model, est.x)
-        model.info["reused_from"] = reuse.info.get("source", "")
-        snaps.append(_snapshot(model, "linear (reuse: piecewise term of the reused model)", ("linear", "piecewise")))
-        model = _finish(model, c, snaps, est.outlier, line_time_s, progress)
-        _check_reuse_fit(model)
-        return model
-    keep, notes = _term_layout(c["sample"], c["line"], usable, breaks, W)
-    model.info["notes"] = notes
-    model.info["piece_orders"] = _piece_orders(keep, m)
-    a = a[:, :, keep]
-    blocks = _blocks(m, keep)
-    x_full = np.zeros(keep.size)
-
-    def put(x):
-        x_full[keep] = x
-        _set_values(model, x_full)
-    # Blunders first, on the model that fits (linear + piecewise, robust: high-breakdown start + snooping), so
-    # that the sub-CCD structure the linear step cannot model is not mistaken for blunders.
-    yy = np.where(np.isfinite(y), y, 0.0)
-    if n_use >= a.shape[2] // 2 + 3:
-        est = _robust_step(a, y, w, usable, blocks, ["linear_datum"], np.zeros(a.shape[2]), " (blunder detection)")
-        outlier = est.outlier
-    else:
-        outlier = np.zeros(n_all, bool)
-        notes.append(f"{n_use} usable cells for {a.shape[2] // 2} parameters per axis: too few to test for blunders")
-    w_in = np.where((usable & ~outlier)[:, None], w, 0.0)
-    # Step 1 (eq. 14): linear on all cells (usable, not blunders).
-    n_lin = int(keep[:6].sum())
-    est = weighted_lsq(a[:, :, :n_lin].reshape(-1, n_lin), yy.ravel(), w_in.ravel(), blocks=_blocks(0, keep[:6]),
-                       hint=" (linear term)")
-    put(np.r_[est.x, np.zeros(a.shape[2] - n_lin)])
-    snaps.append(_snapshot(model, "linear", ("linear",)))
-    report(progress, 0.3, "pan-MS: piecewise term")
-    # Step 2 (eq. 15): piecewise on what remains; the linear datum (constant, s) stays frozen (the pieces'
-    # constant and linear terms duplicate it), the l terms are refined with it.
-    if any(b.name != "linear_datum" for b in blocks):
-        est = weighted_lsq(a.reshape(-1, a.shape[2]), yy.ravel(), w_in.ravel(), blocks=blocks,
-                           frozen=["linear_datum"], values=_values(model)[keep], hint=" (piecewise term)")
-        put(est.x)
-    snaps.append(_snapshot(model, "piecewise", ("linear", "piecewise")))
-    # Step 3 (eq. 16): jitter on what remains.
-    report(progress, 0.6, "pan-MS: jitter term")
-    if str(jitter) != "none":
-        n_fixed = None if str(jitter) == "auto" else int(jitter)
-        inl = usable & ~outlier
-        _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn, keep)
-        _describe_jitter(model, line_time_s, look_time_s, ifov_rad)
-        snaps.append(_snapshot(model, "jitter", ("linear", "piecewise", "jitter")))
-    return _finish(model, c, snaps, outlier, line_time_s, progress)
+        return _solve_reuse(model, reuse, c, a, y, w, snaps, progress)
+    return _solve_stepwise(model, c, a, y, w, sn, jitter, snaps, progress)
 
 
 def _finish(model, c, snaps, outlier, line_time_s, progress):
