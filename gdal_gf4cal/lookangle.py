@@ -27,13 +27,16 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
+import pandas as pd
 
 from .basis import LOOKANGLE_POWERS, lookangle_cubic
-from .camera import CameraFormatError
+from .camera import CameraFormatError, LookAngleModel
 from .errors import ConvergenceError, DegenerateGeometryError, GCPError
-from .estimation import IRLSSolution, high_breakdown_start, irls, radial_huber_weights
+from .estimation import Estimate, LinearProblem, RadialHuber, high_breakdown_start, robust_fit, sigma0_and_cov
 from .progress import report
+from .rpc_fit import fit_rpc_from_model
 from .sensor import SensorModelMixin
+from .stats import accuracy_by_role
 
 __all__ = [
     "LookAngleCalibration", "LookAngleConditionWarning", "calibrate_lookangle", "recalibrate_rpc",
@@ -66,6 +69,10 @@ _START_MAX_GCPS = 1000
 #: observations than the 20 parameters (2 h - 20 >= 50); with fewer, fitting 20 coefficients to half the points
 #: over-fits and flags good points (seen at 40 GCPs), and the Huber start of today is kept.
 _START_MIN_GCPS = 60
+_LAYOUT_HINT = ("the control points leave the cubic look-angle model unconstrained (all on one line, in one corner "
+                "or too few); spread them over the whole image")
+_TOO_FEW = (" (control GCPs); the GCPs are inconsistent (check the camera file and the RPC belong to this "
+            "scene)")
 
 
 class LookAngleConditionWarning(UserWarning):
@@ -121,18 +128,13 @@ class _Frame:
         return _basis_change(self.s0, self.ks, self.l0, self.kl)
 
 
-def _camera_class():
-    from .camera import LookAngleModel
-    return LookAngleModel
-
-
 def _coefficients(camera) -> Tuple[np.ndarray, np.ndarray]:
     return np.asarray(camera.x, dtype=float).reshape(10), np.asarray(camera.y, dtype=float).reshape(10)
 
 
 def _with_coefficients(template, x, y, name: Optional[str] = None):
     """A LookAngleModel like ``template`` with new raw coefficients."""
-    cls = _camera_class()
+    cls = LookAngleModel
     kwargs = dict(size=tuple(template.size), x=np.asarray(x, dtype=float), y=np.asarray(y, dtype=float))
     kwargs["name"] = name if name is not None else getattr(template, "name", None)
     return cls(**kwargs)
@@ -187,48 +189,73 @@ class LookAngleCalibration:
 
     Attributes
     ----------
+    The estimate is the core's :class:`gdal_gf4cal.estimation.Estimate` (``estimate``: blocks ``x``, ``y`` of the raw
+    coefficients ``[a0..a9, b0..b9]``, their covariance ``sigma0² N^-1``, per-GCP outlier flags of control and
+    check points, residuals after, redundancy numbers); ``iterations``, ``sigma0``, ``covariance``,
+    ``condition_number`` and ``warnings`` are its fields under the names callers use. The rest is what only a
+    look-angle calibration has.
+
+    Attributes
+    ----------
     camera : the recalibrated LookAngleModel (raw detector-number coefficients, camera-file units).
     current : the camera the scene's RPC was made with.
-    iterations : Gauss-Newton / reweighting iterations used; ``converged`` whether the last correction was below
-        ``tol_px`` with a stable outlier set.
+    estimate : the :class:`~gdal_gf4cal.estimation.Estimate` above.
+    converged : whether the last correction was below ``tol_px`` with a stable outlier set.
     corrections : ``(iterations, 20)`` coefficient corrections per iteration, raw units, ``[a0..a9, b0..b9]``.
     correction_px : ``(iterations,)`` largest change of a predicted control point per iteration (px).
     history : per-iteration dicts (iteration, max_correction_px, rms_px, n_outliers).
-    covariance : ``(20, 20)`` covariance of ``[a0..a9, b0..b9]`` (raw units), ``sigma0² N^-1``.
-    covariance_normalised : the same for the coefficients of the frame-normalised basis (what is solved).
-    sigma0 : a-posteriori standard deviation of unit weight (px when GCP sigmas are in px and correct, ~1).
-    condition_number : :func:`layout_condition` of the control points.
+    covariance_normalised : the covariance of the coefficients of the frame-normalised basis (what is solved).
+    robust_sigma_px : the robust scale of the radial residuals (1: they match the GCP sigmas).
     gcps : copy of the input table with columns ``virtual_sample, virtual_line`` (``RPC(ground)``),
         ``res_sample_before, res_line_before`` (measured - RPC(ground)), ``pred_sample, pred_line``
-        (``tan_new^-1(tan_old(s', l'))``; also as ``pred_*_after``, with ``pred_*_before`` = ``virtual_*``), ``res_sample_after, res_line_after``, ``norm_residual`` (radial residual
-        / robust sigma), ``weight`` (final robust weight, 0 if rejected), ``outlier`` (bool; control and check points),
-        ``outlier_level`` (``'start'``, ``'snooping'`` or ``''``).
+        (``tan_new^-1(tan_old(s', l'))``; also as ``pred_*_after``, with ``pred_*_before`` = ``virtual_*``),
+        ``res_sample_after, res_line_after``, ``norm_residual`` (radial residual / robust sigma), ``weight``
+        (final robust weight, 0 if rejected), ``outlier`` (bool; control and check points), ``outlier_level``
+        (``'start'``, ``'snooping'`` or ``''``).
     control_stats, check_stats : one role of :func:`gdal_gf4cal.stats.accuracy_by_role` (``{n_outliers,
         before|after: {n, sample|line: {mean, rms, rmse, max}, planar, ce90_m}}``, ``ce90_m`` None) plus ``n``
         (points in the statistics); outliers excluded; ``check_stats`` is None without check points.
-    estimate : the one result class :class:`gdal_gf4cal.estimation.Estimate` (blocks ``x``, ``y``: raw
-        coefficients; per-GCP outlier flags of control and check points, residuals after, redundancy numbers).
+    n_control, n_outliers : control points used, and those flagged.
     """
 
     camera: Any
     current: Any
-    iterations: int
+    estimate: Estimate
     converged: bool
     corrections: np.ndarray
     correction_px: np.ndarray
     history: List[Dict[str, float]]
-    covariance: np.ndarray
     covariance_normalised: np.ndarray
-    sigma0: float
     robust_sigma_px: float
-    condition_number: float
     gcps: Any
     control_stats: Dict[str, Any]
     check_stats: Optional[Dict[str, Any]]
     n_control: int
     n_outliers: int
-    warnings: List[str] = field(default_factory=list)
-    estimate: Any = None
+
+    @property
+    def iterations(self) -> int:
+        """Gauss-Newton iterations used."""
+        return self.estimate.iterations
+
+    @property
+    def sigma0(self) -> float:
+        """A-posteriori standard deviation of unit weight (~1 when the GCP sigmas in px are right)."""
+        return self.estimate.sigma0
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """``(20, 20)`` covariance of ``[a0..a9, b0..b9]`` (raw units), ``sigma0² N^-1``."""
+        return self.estimate.cov
+
+    @property
+    def condition_number(self) -> float:
+        """:func:`layout_condition` of the control points."""
+        return self.estimate.condition_number
+
+    @property
+    def warnings(self) -> List[str]:
+        return self.estimate.warnings
 
     @property
     def residuals_before(self) -> np.ndarray:
@@ -306,22 +333,231 @@ def _gcp_columns(gcps):
     return cols, control, sigma
 
 
-def _robust_weights(r: np.ndarray, sigma: np.ndarray, n_params: int):
-    """Huber weights, rejection mask, radial robust scale and normalised radial residuals of control points:
-    :func:`gdal_gf4cal.estimation.radial_huber_weights` with this module's constants (METHODS §5 step 3)."""
-    return radial_huber_weights(r, sigma, n_params, huber_c=_HUBER_C, reject_k=_REJECT_K, min_scale=_MIN_SCALE_PX)
+def _base_weights(weights, sigma: np.ndarray, ctrl: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` a-priori weights: ``1 / sigma²`` per axis, or the ``weights`` given (one or two per GCP)."""
+    n = ctrl.size
+    if weights is None:
+        return np.repeat((1.0 / sigma ** 2)[:, None], 2, axis=1)
+    base_w = np.asarray(weights, dtype=float)
+    if base_w.size not in (n, 2 * n):
+        raise GCPError(f"weights must have one value per GCP ({n}) or two (sample, line; {2 * n} values), got "
+                       f"{base_w.size}; give one weight per row of the GCP table")
+    base_w = np.repeat(base_w.reshape(n, 1), 2, axis=1) if base_w.size == n else base_w.reshape(n, 2)
+    if np.any(~np.isfinite(base_w[ctrl])) or np.any(base_w[ctrl] < 0):
+        raise GCPError("weights must be finite and non-negative")
+    return base_w
 
 
-def _robust_solve(A: np.ndarray, r0: np.ndarray, w_base: np.ndarray, sigma: np.ndarray, robust: bool,
-                  hint: str, tol_px: float = 1e-6, max_steps: int = 100,
-                  start_out: Optional[np.ndarray] = None) -> IRLSSolution:
-    """Solve the linearised problem ``r(delta) = r0 + A delta`` (pixels) by the core's IRLS
-    (:func:`gdal_gf4cal.estimation.irls`, ``A delta ~ -r0``): Huber to convergence with the high-breakdown start's
-    points ``start_out`` left out, then hard rejection at 4 robust sigmas (METHODS §5 step 3). ``.x`` is delta."""
-    return irls(A, -r0, w_base, lambda v: _robust_weights(v, sigma, A.shape[-1]), robust=robust,
-                start_out=start_out, min_points=MIN_GCPS, tol=tol_px, max_steps=max_steps, hint=hint,
-                too_few=" (control GCPs); the GCPs are inconsistent (check the camera file and the RPC belong to "
-                        "this scene)")
+@dataclass
+class _Inputs:
+    """The GCPs as the calibration uses them: measured points ``obs`` (N, 2), virtual points ``sv, lv`` =
+    RPC(ground), ``usable`` (finite everywhere), ``control`` (role), a-priori weights ``base_w`` (N, 2) and the
+    effective sigma per point."""
+
+    obs: np.ndarray
+    sv: np.ndarray
+    lv: np.ndarray
+    usable: np.ndarray
+    control: np.ndarray
+    base_w: np.ndarray
+    eff_sigma: np.ndarray
+
+    @property
+    def ctrl(self) -> np.ndarray:
+        return self.control & self.usable
+
+
+def _read_inputs(rpc, gcps, weights, progress) -> _Inputs:
+    """The GCP table, its virtual points and weights (METHODS §5 step 1); :class:`GCPError` for too few control
+    points or bad weights."""
+    cols, control, sigma = _gcp_columns(gcps)
+    n = control.size
+    report(progress, 0.0, "virtual image points")
+    sv, lv = rpc.project(cols["lon"], cols["lat"], cols["h"])
+    sv = np.asarray(sv, dtype=float).reshape(n)
+    lv = np.asarray(lv, dtype=float).reshape(n)
+    obs = np.column_stack([cols["sample"], cols["line"]])
+    usable = (np.isfinite(sv) & np.isfinite(lv) & np.all(np.isfinite(obs), axis=1) & np.isfinite(cols["h"])
+              & np.isfinite(cols["lon"]) & np.isfinite(cols["lat"]))
+    ctrl = control & usable
+    n_ctrl = int(ctrl.sum())
+    if n_ctrl < MIN_GCPS:
+        raise GCPError(f"look-angle calibration needs at least {MIN_GCPS} control GCPs (20 coefficients), got "
+                       f"{n_ctrl} usable of {int(control.sum())}; add control points spread over the image")
+    base_w = _base_weights(weights, sigma, ctrl)
+    eff_sigma = 1.0 / np.sqrt(np.maximum(base_w.mean(axis=1), 1e-300))
+    return _Inputs(obs, sv, lv, usable, control, base_w, eff_sigma)
+
+
+def _check_layout(inp: _Inputs, size, max_condition: float) -> Tuple[float, List[str]]:
+    """:func:`layout_condition` of the control points: refused above ``max_condition``, warned about above
+    :data:`WARN_CONDITION` (the warning also returned, for the report)."""
+    ctrl = inp.ctrl
+    cond = layout_condition(inp.obs[ctrl, 0], inp.obs[ctrl, 1], size, inp.base_w[ctrl])
+    if not cond <= max_condition:
+        raise DegenerateGeometryError(f"condition number {cond:.3g} > {max_condition:.3g}: {_LAYOUT_HINT}")
+    msgs: List[str] = []
+    if cond > WARN_CONDITION:
+        msg = (f"condition number {cond:.3g} of the control-point layout is high (> {WARN_CONDITION:.0e}): the "
+               "look-angle model is poorly constrained away from the control points; spread them over the image")
+        msgs.append(msg)
+        warnings.warn(msg, LookAngleConditionWarning, stacklevel=3)
+    return cond, msgs
+
+
+def _start_out(A: np.ndarray, r0: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Points the high-breakdown start leaves out, on the first linearisation (blunders cannot pull it; METHODS
+    §5 step 3); none when it keeps no more than a minimal subset."""
+    inl, _, _ = high_breakdown_start(A, -r0, w, min_points=MIN_GCPS)
+    return ~inl if inl.sum() > MIN_GCPS else np.zeros(A.shape[0], bool)
+
+
+def _robust_solve(A: np.ndarray, r0: np.ndarray, w_base: np.ndarray, sigma: np.ndarray, robust: bool, *,
+                  tol_px: float = 1e-6, max_steps: int = 100, start_out: Optional[np.ndarray] = None) -> Estimate:
+    """Solve the linearised problem ``r(delta) = r0 + A delta`` (pixels, ``A delta ~ -r0``) with the one robust
+    driver: radial Huber to convergence with the start's points ``start_out`` left out, then hard rejection at
+    :data:`_REJECT_K` robust sigmas (METHODS §5 step 3); one plain solve when not ``robust``. ``.x`` is delta."""
+    problem = LinearProblem(A, -r0, w_base, hint=_LAYOUT_HINT, solver="normal")
+    norm = RadialHuber(_HUBER_C, _REJECT_K, _MIN_SCALE_PX, sigma=sigma, min_points=MIN_GCPS, too_few=_TOO_FEW)
+    return robust_fit(problem, norm=norm, start=None if start_out is None else ~start_out,
+                      max_iter=max_steps if robust else 0, tol=tol_px)
+
+
+@dataclass
+class _Solution:
+    """What the Gauss-Newton iterations leave: the camera, the last robust solve, the start's points left out and
+    the per-iteration records."""
+
+    camera: Any
+    solve: Estimate
+    start_out: Optional[np.ndarray]
+    iterations: int
+    corrections: List[np.ndarray] = field(default_factory=list)
+    correction_px: List[float] = field(default_factory=list)
+    history: List[Dict[str, float]] = field(default_factory=list)
+
+
+def _gauss_newton(current, frame: _Frame, obs_c, V, w_c, sig_c, robust: bool, *, max_iter: int, tol_px: float,
+                  progress) -> _Solution:
+    """Gauss-Newton on the pixel residuals of the control points, each linearisation solved robustly
+    (:func:`_robust_solve`; see :func:`calibrate_lookangle`'s notes); :class:`ConvergenceError` when the
+    correction stays above ``tol_px``."""
+    to_raw = frame.to_raw
+    cx, cy = _coefficients(current)
+    alpha = np.concatenate([frame.to_norm @ cx, frame.to_norm @ cy])
+    out = _Solution(current, None, None, 0)
+    n_ctrl = obs_c.shape[0]
+    for iteration in range(1, max_iter + 1):
+        report(progress, 0.05 + 0.85 * (iteration - 1) / max_iter, f"iteration {iteration}")
+        A, Jinv = _design(out.camera, frame, obs_c[:, 0], obs_c[:, 1])
+        tx, ty = out.camera.tan_angles(obs_c[:, 0], obs_c[:, 1])
+        r0 = np.einsum("nij,nj->ni", Jinv, np.column_stack([tx - V[0], ty - V[1]]))
+        if robust and out.start_out is None and _START_MIN_GCPS <= n_ctrl <= _START_MAX_GCPS:
+            out.start_out = _start_out(A, r0, w_c)
+        sol = _robust_solve(A, r0, w_c, sig_c, robust, start_out=out.start_out)
+        alpha = alpha + sol.x
+        out.camera = _with_coefficients(current, to_raw @ alpha[:10], to_raw @ alpha[10:])
+        out.solve, out.iterations = sol, iteration
+        step = float(np.max(np.abs(np.einsum("nij,j->ni", A, sol.x))))
+        r_lin = r0 + np.einsum("nij,j->ni", A, sol.x)
+        good = ~sol.outlier
+        out.corrections.append(np.concatenate([to_raw @ sol.x[:10], to_raw @ sol.x[10:]]))
+        out.correction_px.append(step)
+        out.history.append({"iteration": iteration, "max_correction_px": step,
+                            "rms_px": float(np.sqrt(np.mean(r_lin[good] ** 2))),
+                            "n_outliers": int(sol.outlier.sum()), "reweighting_steps": int(sol.iterations + 1)})
+        if step < tol_px:
+            return out
+    raise ConvergenceError(f"look-angle calibration did not converge in {max_iter} iterations (last correction "
+                           f"{out.correction_px[-1]:.3g} px); check the GCPs for gross errors or raise max_iter")
+
+
+@dataclass
+class _Precision:
+    """sigma0 and the covariance of the normalised coefficients (through the core's :func:`sigma0_and_cov`), the
+    raw-unit covariance, the final design ``A2`` (2 n, 20) and weights ``wr`` (n, 2), the exact residuals."""
+
+    sigma0: float
+    dof: int
+    cov_norm: np.ndarray
+    cov_raw: np.ndarray
+    design: np.ndarray
+    wr: np.ndarray
+    residuals: np.ndarray
+
+
+def _precision(cam, frame: _Frame, obs_c, V, w_c, point_weights) -> _Precision:
+    """sigma0 from the weighted inlier residuals through the recalibrated model (exact, not linearised) and
+    ``sigma0² N^-1`` of the final linearisation (normalised basis, then raw units)."""
+    r_c = obs_c - np.column_stack(cam.detector_of(V[0], V[1], obs_c[:, 0], obs_c[:, 1]))
+    wr = w_c * point_weights[:, None]
+    dof = int(np.count_nonzero(wr)) - 20       # observations that carry weight, minus the 20 coefficients
+    A, _ = _design(cam, frame, obs_c[:, 0], obs_c[:, 1])
+    A2 = A.reshape(-1, 20)
+    N = (A2 * wr.reshape(-1)[:, None]).T @ A2
+    sigma0, cov_norm = sigma0_and_cov(N, float(np.sum(wr * r_c ** 2)), dof)
+    T = np.zeros((20, 20))
+    T[:10, :10] = frame.to_raw
+    T[10:, 10:] = frame.to_raw
+    return _Precision(sigma0, dof, cov_norm, T @ cov_norm @ T.T, A2, wr, r_c)
+
+
+def _residual_table(gcps, inp: _Inputs, current, cam):
+    """The input table with the virtual points, the predictions through the recalibrated camera (exact:
+    ``tan_new^-1(tan_old(s', l'))``) and the residuals before / after; :class:`ConvergenceError` when the camera
+    cannot be inverted at a control point."""
+    n = inp.usable.size
+    u_idx = np.flatnonzero(inp.usable)
+    Vux, Vuy = current.tan_angles(inp.sv[u_idx], inp.lv[u_idx])
+    pred = np.column_stack(cam.detector_of(Vux, Vuy, inp.obs[u_idx, 0], inp.obs[u_idx, 1]))
+    if np.any(~np.isfinite(pred[inp.ctrl[u_idx]])):
+        raise ConvergenceError("the recalibrated camera cannot be inverted at some control points; check the GCPs "
+                               "(gross errors?) and the camera file")
+    out = gcps.copy()
+    out["virtual_sample"], out["virtual_line"] = inp.sv, inp.lv
+    out["res_sample_before"] = inp.obs[:, 0] - inp.sv
+    out["res_line_before"] = inp.obs[:, 1] - inp.lv
+    out["pred_sample"] = _scatter(n, u_idx, pred[:, 0])
+    out["pred_line"] = _scatter(n, u_idx, pred[:, 1])
+    # explicit names of the one table shape (gdal_gf4cal.stats): before = the RPC, after = the recalibrated camera
+    out["pred_sample_before"], out["pred_line_before"] = inp.sv, inp.lv
+    out["pred_sample_after"], out["pred_line_after"] = out["pred_sample"], out["pred_line"]
+    out["res_sample_after"] = inp.obs[:, 0] - out["pred_sample"].to_numpy(float)
+    out["res_line_after"] = inp.obs[:, 1] - out["pred_line"].to_numpy(float)
+    return out
+
+
+def _robust_scale(sol: Estimate, prec: _Precision, sig_c, robust: bool) -> Tuple[float, np.ndarray]:
+    """The robust scale and the control points' normalised radial residuals: the driver's, or without the robust
+    reweighting the plain scale of the exact residuals."""
+    if robust:
+        return float(sol.norm_info["scale"]), sol.norm_info["z"]
+    radial = np.hypot(prec.residuals[:, 0], prec.residuals[:, 1]) / sig_c
+    scale = float(np.sqrt(np.sum(radial ** 2) / max(prec.dof, 1)))
+    return scale, radial / max(scale, 1e-12)
+
+
+def _flag_outliers(out, inp: _Inputs, sol: Estimate, scale: float, z_c, robust: bool) -> None:
+    """``norm_residual``, ``weight``, ``outlier`` and ``outlier_level`` of the table: control points as the robust
+    solve left them (``'start'``: the high-breakdown start, never re-admitted; ``'snooping'``: rejected), check
+    points by the same rule (radial residual over :data:`_REJECT_K` robust sigmas)."""
+    n = inp.usable.size
+    c_idx = np.flatnonzero(inp.ctrl)
+    out["norm_residual"] = _scatter(n, c_idx, z_c)
+    out["weight"] = _scatter(n, c_idx, sol.point_weights, 0.0)
+    outlier = _scatter(n, c_idx, sol.outlier, False).astype(bool)
+    level = np.full(n, "", dtype=object)
+    level[c_idx] = np.where(sol.outlier_level == "start", "start", np.where(sol.outlier, "snooping", ""))
+    check = ~inp.control & inp.usable
+    if robust and check.any():
+        k_idx = np.flatnonzero(check)
+        radial_px = np.hypot(out["res_sample_after"].to_numpy(float)[k_idx],
+                             out["res_line_after"].to_numpy(float)[k_idx])
+        bad = radial_px / np.maximum(inp.eff_sigma[k_idx] * scale, _MIN_SCALE_PX) > _REJECT_K
+        outlier[k_idx[bad]] = True
+        level[k_idx[bad]] = "snooping"
+    out["outlier"] = outlier
+    out["outlier_level"] = level.astype(str)
 
 
 # ---------------------------------------------------------------------------------------------------- calibrate
@@ -366,180 +602,39 @@ def calibrate_lookangle(rpc, gcps, current, *, weights=None, max_iter: int = 10,
     DegenerateGeometryError : control points that leave the cubic unconstrained (condition number in the message).
     ConvergenceError : no convergence within ``max_iter``.
     """
-    cols, control, sigma = _gcp_columns(gcps)
-    n = control.size
-    report(progress, 0.0, "virtual image points")
-    sv, lv = rpc.project(cols["lon"], cols["lat"], cols["h"])
-    sv = np.asarray(sv, dtype=float).reshape(n)
-    lv = np.asarray(lv, dtype=float).reshape(n)
-    obs = np.column_stack([cols["sample"], cols["line"]])
-    usable = (np.isfinite(sv) & np.isfinite(lv) & np.all(np.isfinite(obs), axis=1) & np.isfinite(cols["h"])
-              & np.isfinite(cols["lon"]) & np.isfinite(cols["lat"]))
-    ctrl = control & usable
-    n_ctrl = int(ctrl.sum())
-    if n_ctrl < MIN_GCPS:
-        raise GCPError(f"look-angle calibration needs at least {MIN_GCPS} control GCPs (20 coefficients), got "
-                       f"{n_ctrl} usable of {int(control.sum())}; add control points spread over the image")
-
-    if weights is None:
-        base_w = np.repeat((1.0 / sigma ** 2)[:, None], 2, axis=1)
-    else:
-        base_w = np.asarray(weights, dtype=float)
-        if base_w.size not in (n, 2 * n):
-            raise GCPError(f"weights must have one value per GCP ({n}) or two (sample, line; {2 * n} values), got "
-                           f"{base_w.size}; give one weight per row of the GCP table")
-        base_w = np.repeat(base_w.reshape(n, 1), 2, axis=1) if base_w.size == n else base_w.reshape(n, 2)
-        if np.any(~np.isfinite(base_w[ctrl])) or np.any(base_w[ctrl] < 0):
-            raise GCPError("weights must be finite and non-negative")
-    eff_sigma = 1.0 / np.sqrt(np.maximum(base_w.mean(axis=1), 1e-300))
-
-    cond = layout_condition(obs[ctrl, 0], obs[ctrl, 1], current.size, base_w[ctrl])
-    msgs: List[str] = []
-    hint = ("the control points leave the cubic look-angle model unconstrained (all on one line, in one corner "
-            "or too few); spread them over the whole image")
-    if not cond <= max_condition:
-        raise DegenerateGeometryError(f"condition number {cond:.3g} > {max_condition:.3g}: {hint}")
-    if cond > WARN_CONDITION:
-        msg = (f"condition number {cond:.3g} of the control-point layout is high (> {WARN_CONDITION:.0e}): the "
-               "look-angle model is poorly constrained away from the control points; spread them over the image")
-        msgs.append(msg)
-        warnings.warn(msg, LookAngleConditionWarning, stacklevel=2)
-
+    inp = _read_inputs(rpc, gcps, weights, progress)
+    cond, msgs = _check_layout(inp, current.size, max_condition)
+    ctrl = inp.ctrl
     frame = _Frame.of(current)
-    to_raw, to_norm = frame.to_raw, frame.to_norm
-    cx, cy = _coefficients(current)
-    alpha = np.concatenate([to_norm @ cx, to_norm @ cy])
     # The rays of the virtual points (paper eq. 4-5: constants during the adjustment).
-    Vx, Vy = (np.asarray(v, dtype=float) for v in current.tan_angles(sv[ctrl], lv[ctrl]))
-    obs_c = obs[ctrl]
-    w_c = base_w[ctrl]
-    sig_c = eff_sigma[ctrl]
-    use_robust = robust and n_ctrl >= _MIN_ROBUST_GCPS
-    start_out: Optional[np.ndarray] = None
-
-    def camera_of(a):
-        return _with_coefficients(current, to_raw @ a[:10], to_raw @ a[10:])
-
-    cam = current
-    corrections: List[np.ndarray] = []
-    correction_px: List[float] = []
-    history: List[Dict[str, float]] = []
-    converged = False
-    sol = None
-    iteration = 0
-    for iteration in range(1, max_iter + 1):
-        report(progress, 0.05 + 0.85 * (iteration - 1) / max_iter, f"iteration {iteration}")
-        A, Jinv = _design(cam, frame, obs_c[:, 0], obs_c[:, 1])
-        tx, ty = cam.tan_angles(obs_c[:, 0], obs_c[:, 1])
-        r0 = np.einsum("nij,nj->ni", Jinv, np.column_stack([tx - Vx, ty - Vy]))
-        if use_robust and start_out is None and _START_MIN_GCPS <= n_ctrl <= _START_MAX_GCPS:
-            # High-breakdown start on the first linearisation (blunders cannot pull it; METHODS §5 step 3).
-            inl, _, _ = high_breakdown_start(A, -r0, w_c, min_points=10)
-            start_out = ~inl if inl.sum() > 10 else np.zeros(n_ctrl, bool)
-        sol = _robust_solve(A, r0, w_c, sig_c, use_robust, hint, start_out=start_out)
-        alpha = alpha + sol.x
-        cam = camera_of(alpha)
-        step = float(np.max(np.abs(np.einsum("nij,j->ni", A, sol.x))))
-        r_lin = r0 + np.einsum("nij,j->ni", A, sol.x)
-        good = ~sol.outlier
-        corrections.append(np.concatenate([to_raw @ sol.x[:10], to_raw @ sol.x[10:]]))
-        correction_px.append(step)
-        history.append({"iteration": iteration, "max_correction_px": step,
-                        "rms_px": float(np.sqrt(np.mean(r_lin[good] ** 2))),
-                        "n_outliers": int(sol.outlier.sum()), "reweighting_steps": int(sol.steps)})
-        if step < tol_px:
-            converged = True
-            break
-    if not converged:
-        raise ConvergenceError(f"look-angle calibration did not converge in {max_iter} iterations (last correction "
-                               f"{correction_px[-1]:.3g} px); check the GCPs for gross errors or raise max_iter")
-
-    # Exact residuals of every usable point through the recalibrated model: tan_new^-1(tan_old(s', l')).
-    u_idx = np.flatnonzero(usable)
-    Vux, Vuy = current.tan_angles(sv[u_idx], lv[u_idx])
-    pred = np.column_stack(cam.detector_of(Vux, Vuy, obs[u_idx, 0], obs[u_idx, 1]))
-    if np.any(~np.isfinite(pred[ctrl[u_idx]])):
-        raise ConvergenceError("the recalibrated camera cannot be inverted at some control points; check the GCPs "
-                               "(gross errors?) and the camera file")
-
-    # Precision: sigma0 from the weighted inlier residuals, covariance sigma0² N^-1 (normalised basis -> raw).
-    r_c = obs_c - np.column_stack(cam.detector_of(Vx, Vy, obs_c[:, 0], obs_c[:, 1]))
-    wr = w_c * sol.weights[:, None]
-    dof = int(np.count_nonzero(wr)) - 20       # observations that carry weight, minus the 20 coefficients
-    sigma0 = math.sqrt(float(np.sum(wr * r_c ** 2)) / dof) if dof > 0 else float("nan")
-    A, _ = _design(cam, frame, obs_c[:, 0], obs_c[:, 1])
-    A2 = A.reshape(-1, 20)
-    N = (A2 * wr.reshape(-1)[:, None]).T @ A2
-    d = np.sqrt(np.diag(N))
-    cov_norm = (sigma0 ** 2 if dof > 0 else 1.0) * (np.linalg.inv(N / d[:, None] / d[None, :]) / d[:, None]
-                                                     / d[None, :])
-    T = np.zeros((20, 20))
-    T[:10, :10] = to_raw
-    T[10:, 10:] = to_raw
-    cov_raw = T @ cov_norm @ T.T
-    scale = sol.scale
-    z_c = sol.z
-    if not use_robust:
-        radial = np.hypot(r_c[:, 0], r_c[:, 1]) / sig_c
-        scale = float(np.sqrt(np.sum(radial ** 2) / max(dof, 1)))
-        z_c = radial / max(scale, 1e-12)
-
-    # Output table.
-    out = gcps.copy()
-    out["virtual_sample"] = sv
-    out["virtual_line"] = lv
-    out["res_sample_before"] = obs[:, 0] - sv
-    out["res_line_before"] = obs[:, 1] - lv
-    out["pred_sample"] = _scatter(n, u_idx, pred[:, 0])
-    out["pred_line"] = _scatter(n, u_idx, pred[:, 1])
-    # explicit names of the one table shape (gdal_gf4cal.stats): before = the RPC, after = the recalibrated camera
-    out["pred_sample_before"], out["pred_line_before"] = sv, lv
-    out["pred_sample_after"], out["pred_line_after"] = out["pred_sample"], out["pred_line"]
-    out["res_sample_after"] = obs[:, 0] - out["pred_sample"].to_numpy(float)
-    out["res_line_after"] = obs[:, 1] - out["pred_line"].to_numpy(float)
-    c_idx = np.flatnonzero(ctrl)
-    out["norm_residual"] = _scatter(n, c_idx, z_c)
-    out["weight"] = _scatter(n, c_idx, sol.weights, 0.0)
-    outlier = _scatter(n, c_idx, sol.outlier, False).astype(bool)
-    level = np.where(outlier, "snooping", "").astype(object)
-    if start_out is not None:
-        level[c_idx[sol.outlier & start_out]] = "start"
-    check = ~control & usable
-    if use_robust and check.any():
-        # Check points are blunders by the same rule as control points: radial residual over 4 robust sigmas.
-        k_idx = np.flatnonzero(check)
-        radial_px = np.hypot(out["res_sample_after"].to_numpy(float)[k_idx],
-                             out["res_line_after"].to_numpy(float)[k_idx])
-        bad = radial_px / np.maximum(eff_sigma[k_idx] * scale, _MIN_SCALE_PX) > _REJECT_K
-        outlier[k_idx[bad]] = True
-        level[k_idx[bad]] = "snooping"
-    out["outlier"] = outlier
-    out["outlier_level"] = level.astype(str)
+    V = tuple(np.asarray(v, dtype=float) for v in current.tan_angles(inp.sv[ctrl], inp.lv[ctrl]))
+    obs_c, w_c, sig_c = inp.obs[ctrl], inp.base_w[ctrl], inp.eff_sigma[ctrl]
+    use_robust = robust and int(ctrl.sum()) >= _MIN_ROBUST_GCPS
+    gn = _gauss_newton(current, frame, obs_c, V, w_c, sig_c, use_robust, max_iter=max_iter, tol_px=tol_px,
+                       progress=progress)
+    out = _residual_table(gcps, inp, current, gn.camera)
+    prec = _precision(gn.camera, frame, obs_c, V, w_c, gn.solve.point_weights)
+    scale, z_c = _robust_scale(gn.solve, prec, sig_c, use_robust)
+    _flag_outliers(out, inp, gn.solve, scale, z_c, use_robust)
     # The one accuracy-report shape (gdal_gf4cal.stats.accuracy_by_role) over the usable points; flagged points
     # are left out of before and after. ``n`` (points in the statistics) is kept at the top for the printers.
-    by_role = _stats_by_role(out, usable, control)
-    control_stats = by_role["control"]
-    check_stats = by_role["check"] if check.any() else None
-    # The one result class: coefficients [a0..a9, b0..b9] (raw), per-observation diagnostics interleaved (s, l).
-    n_inv_norm = cov_norm / (sigma0 ** 2 if dof > 0 else 1.0)
-    q_c = np.einsum("ij,jk,ik->i", A2, n_inv_norm, A2).reshape(-1, 2)
-    estimate = _estimate(cam, cov_raw, sigma0, dof, cond, iteration, msgs, out, base_w, ctrl, c_idx, wr, q_c)
+    by_role = _stats_by_role(out, inp.usable, inp.control)
+    estimate = _estimate(gn.camera, prec, cond, gn.iterations, msgs, out, ctrl)
     report(progress, 1.0, "look-angle calibration done")
     name = getattr(current, "name", "") or ""
-    cam = _with_coefficients(current, cam.x, cam.y, name=(f"{name} recalibrated" if name else "recalibrated"))
+    cam = _with_coefficients(current, gn.camera.x, gn.camera.y,
+                             name=(f"{name} recalibrated" if name else "recalibrated"))
     return LookAngleCalibration(
-        camera=cam, current=current, iterations=iteration, converged=converged,
-        corrections=np.array(corrections), correction_px=np.array(correction_px), history=history,
-        covariance=cov_raw, covariance_normalised=cov_norm, sigma0=sigma0, robust_sigma_px=float(scale),
-        condition_number=cond, gcps=out, control_stats=control_stats, check_stats=check_stats,
-        n_control=n_ctrl, n_outliers=int(sol.outlier.sum()), warnings=msgs, estimate=estimate)
+        camera=cam, current=current, estimate=estimate, converged=True, corrections=np.array(gn.corrections),
+        correction_px=np.array(gn.correction_px), history=gn.history, covariance_normalised=prec.cov_norm,
+        robust_sigma_px=scale, gcps=out, control_stats=by_role["control"],
+        check_stats=by_role["check"] if (~inp.control & inp.usable).any() else None,
+        n_control=int(ctrl.sum()), n_outliers=int(gn.solve.outlier.sum()))
 
 
 def _stats_by_role(out, usable: np.ndarray, control: np.ndarray) -> Dict[str, Any]:
     """:func:`gdal_gf4cal.stats.accuracy_by_role` of the usable rows of the output table, with ``n`` (points in
     the statistics, outliers left out) at the top of each role for the printers (METHODS §6)."""
-    from .stats import accuracy_by_role
-    import pandas as pd
     tab = pd.DataFrame({"role": np.where(control, "control", "check")[usable],
                         "outlier": out["outlier"].to_numpy(bool)[usable]})
     for c in ("res_sample_before", "res_line_before", "res_sample_after", "res_line_after"):
@@ -550,13 +645,16 @@ def _stats_by_role(out, usable: np.ndarray, control: np.ndarray) -> Dict[str, An
     return rep
 
 
-def _estimate(cam, cov_raw, sigma0, dof, cond, iterations, msgs, out, base_w, ctrl, c_idx, wr, q_c):
+def _estimate(cam, prec: _Precision, cond, iterations, msgs, out, ctrl) -> Estimate:
     """:class:`gdal_gf4cal.estimation.Estimate` of a look-angle calibration (METHODS §4, §5): blocks ``x``
     (``a0..a9``) and ``y`` (``b0..b9``, raw units), residuals ``measured - predicted`` after, interleaved (sample,
     line) per GCP; weights ``1/sigma^2`` x robust factor (0: left out or not a control point); redundancy numbers
     ``1 - w a N^-1 a`` of the final linearisation."""
-    from .estimation import Estimate
     n = len(out)
+    c_idx = np.flatnonzero(ctrl)
+    sigma0, wr = prec.sigma0, prec.wr
+    n_inv_norm = prec.cov_norm / (sigma0 ** 2 if prec.dof > 0 else 1.0)
+    q_c = np.einsum("ij,jk,ik->i", prec.design, n_inv_norm, prec.design).reshape(-1, 2)
     res = np.stack([out["res_sample_after"].to_numpy(float), out["res_line_after"].to_numpy(float)], axis=1)
     w = np.zeros((n, 2))
     w[c_idx] = wr
@@ -567,10 +665,11 @@ def _estimate(cam, cov_raw, sigma0, dof, cond, iterations, msgs, out, base_w, ct
                         np.nan)
     names = [f"a{i}" for i in range(10)] + [f"b{i}" for i in range(10)]
     return Estimate(names=names, x=np.concatenate([np.asarray(cam.x, float), np.asarray(cam.y, float)]),
-                    cov=cov_raw, sigma0=float(sigma0), dof=int(dof), redundancy=red.ravel(), residuals=res.ravel(),
-                    normalised=norm.ravel(), weights=w.ravel(), blocks={"x": slice(0, 10), "y": slice(10, 20)},
-                    outlier=out["outlier"].to_numpy(bool), outlier_level=out["outlier_level"].to_numpy(str),
-                    condition_number=float(cond), iterations=int(iterations), warnings=list(msgs))
+                    cov=prec.cov_raw, sigma0=float(sigma0), dof=int(prec.dof), redundancy=red.ravel(),
+                    residuals=res.ravel(), normalised=norm.ravel(), weights=w.ravel(),
+                    blocks={"x": slice(0, 10), "y": slice(10, 20)}, outlier=out["outlier"].to_numpy(bool),
+                    outlier_level=out["outlier_level"].to_numpy(str), condition_number=float(cond),
+                    iterations=int(iterations), warnings=list(msgs))
 
 
 def calibrate_lookangle_rigorous(model, gcps, current=None, **kwargs) -> LookAngleCalibration:
@@ -678,7 +777,6 @@ def recalibrate_rpc(rpc, current, new, height_range=None, *, grid=(21, 21), n_la
     (RPCModel, FitReport) as from :func:`gdal_gf4cal.rpc_fit.fit_rpc_from_model`; ``FitReport.check`` is the error
     of the new RPC against the exact composition (px).
     """
-    from .rpc_fit import fit_rpc_from_model
     sensor = RecalibratedSensor(rpc, current, new)
     if height_range is None:
         height_range = rpc.height_range

@@ -9,15 +9,33 @@ nothing).
 """
 from __future__ import annotations
 
+import copy
 import math
 import os
-from typing import Any, Dict, Optional
+import time
+from dataclasses import dataclass, field
+from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
+import pandas as pd
+from osgeo import gdal
+from scipy import stats
 
-from ..crop import image_rpc
+from .. import panms
+from .. import progress as _progress
+from .._gdal import open_raster
+from ..crop import crop_origin, image_rpc, sidecar_rpc
+from ..dem import DEM
+from ..errors import Gf4calError
+from ..estimation import weighted_lsq
 from ..geodesy import metres_per_degree
+from ..matching import cells_from_matches, match_raw, pan_ms_cells
 from ..outputs import OutputSet, check_raster, check_vector
+from ..panms import LINEAR_ORDER, PanMSError, linear_design, residual_spectrum, row_means, step_residuals
+from ..report import write_report_json, write_residuals_gpkg
+from ..report.plot import plot_line_profiles, plot_spectrum, plot_step_residual_maps
+from ..rpc_io import write_rpb
+from ..stats import axis_stats, share_within
 from ._common import cancel_check, collect_warnings, finish_report
 
 #: Output file names in ``out``.
@@ -30,7 +48,6 @@ REUSE_MAX_MATCHES = 200
 
 
 def _size(path):
-    from .._gdal import open_raster
     ds = open_raster(os.fspath(path), what="image")
     return (ds.RasterXSize, ds.RasterYSize), ds.RasterCount
 
@@ -38,7 +55,6 @@ def _size(path):
 def _parse_breaks(breaks) -> Optional[list]:
     """``--breaks``: MS columns and/or the words ``ms`` (the MS band's equal sub-CCD edges) and ``pan`` (the pan's
     equal sub-CCD edges mapped into the MS through the RPCs and the DEM), e.g. ``2560,5120`` or ``ms,pan``."""
-    from ..panms import PanMSError
     if breaks is None:
         return None
     items = list(breaks) if isinstance(breaks, (list, tuple)) else [b for b in str(breaks).split(",") if b.strip()]
@@ -84,7 +100,6 @@ def pair_geometry(pan_rpc, ms_rpc, pan_size, ms_size, dem, n: int = 9) -> Dict[s
     the overlap) and ``ray_angle_deg`` (angle between the pan's and the MS's lines of sight: moving 500 m down the
     pan's ray moves the MS point by the parallax; < 0.5 deg for one acquisition). Refuses images that hardly
     overlap or see the ground from other directions (other acquisitions)."""
-    from ..panms import PanMSError
     W, H = ms_size
     s, l = np.meshgrid((np.arange(n) + 0.5) * W / n, (np.arange(n) + 0.5) * H / n)
     s, l = s.ravel(), l.ravel()
@@ -141,7 +156,6 @@ def pair_geometry(pan_rpc, ms_rpc, pan_size, ms_size, dem, n: int = 9) -> Dict[s
 def _product_breaks(spec, n_sub_ccds, ms_rpc, ms_size, origin, pan_rpc, dem, pan_size):
     """``--breaks`` / ``--sub-ccds`` in this image's columns: equal pieces and listed columns are of the full
     product when the crop's place in it is known (``origin``), else of the image as given."""
-    from .. import panms
     x0 = origin[0] if origin else 0.0
     width = float(ms_rpc.image_size[0]) + x0 if origin else float(ms_size[0])
     width = max(width, float(ms_size[0]))
@@ -163,7 +177,6 @@ def _product_breaks(spec, n_sub_ccds, ms_rpc, ms_size, origin, pan_rpc, dem, pan
 
 def _check_pieces(breaks, spec, ms_width, window_px) -> None:
     """Refuse sub-CCD pieces narrower than one matching window (they cannot be measured)."""
-    from ..panms import PanMSError
     if spec is not None:
         nums = [float(b) for b in spec if not isinstance(b, str)]
         dup = sorted({b for b in nums if nums.count(b) > 1})
@@ -186,7 +199,6 @@ def _spacing(ms_size, cell=None) -> int:
 
 
 def _cells(matches, ms_size, cell, spacing, breaks):
-    from ..matching import cells_from_matches
     cells = cells_from_matches(matches, ms_size[0], ms_size[1], cell_px=int(cell),
                                min_matches=int(np.clip((cell / spacing) ** 2, 1, 4)),
                                independent_fraction=min(1.0, (float(spacing) / WINDOW_PX) ** 2), breaks=breaks)
@@ -230,7 +242,6 @@ def _no_cell_message(matches, n_cells) -> str:
 def _screen(matches) -> None:
     """Flag the blunders among the accepted window matches in place (``outlier``; :func:`panms.screen_matches`:
     within each column, so that the smaller side of a sub-CCD jump is kept for the edge test)."""
-    from .. import panms
     acc = matches["status"].to_numpy() == 0
     out = np.zeros(len(matches), bool)
     out[acc] = panms.screen_matches(matches["pred_sample"].to_numpy(float)[acc],
@@ -257,7 +268,6 @@ PRODUCT_BAND_IDS = {"B0": "blue", "B1": "green", "B2": "red", "B3": "nir"}
 def _product_band_names(ms_path, rpc_path=None):
     """The product's band names in file order from its OSSIM ``.geom`` (``support_data.band_name_list``, e.g.
     ``"B2 B1 B0 B3"`` -> red, green, blue, nir), the one given or the one beside the image; ``[]`` when unknown."""
-    from ..crop import sidecar_rpc
     geom = rpc_path if isinstance(rpc_path, (str, os.PathLike)) else sidecar_rpc(ms_path)
     if geom is None or not os.fspath(geom).lower().endswith(".geom"):
         return []
@@ -274,8 +284,6 @@ def _band_names(ms_path, n_bands, rpc_path=None):
     """Per band ``(name, GDAL colour interpretation)`` from the product: band descriptions naming a colour, else
     the product's band list (:func:`_product_band_names`), else the file's colour interpretation (Alpha never: an
     MS band is a measurement, e.g. NIR -> Undefined)."""
-    from osgeo import gdal
-    from .._gdal import open_raster
     ds = open_raster(os.fspath(ms_path), what="MS image")
     words = {"red": gdal.GCI_RedBand, "green": gdal.GCI_GreenBand, "blue": gdal.GCI_BlueBand}
     product = _product_band_names(ms_path, rpc_path)
@@ -304,9 +312,6 @@ def _band_to_band(ref_cells, cells, model):
     """The band's misregistration minus the reference band's, per cell usable in both: its linear fit (6
     parameters, as the model's linear term), whether it is significant (chi-square of the fit at BAND_FAP and
     > BAND_MIN_PX somewhere), the mean offset per axis."""
-    from scipy import stats
-    from ..estimation import weighted_lsq
-    from ..panms import _LIN_ORDER, _linear_design
     u = np.asarray(ref_cells["usable"], bool) & np.asarray(cells["usable"], bool)
     d = np.stack([np.asarray(cells["d_sample"], float) - np.asarray(ref_cells["d_sample"], float),
                   np.asarray(cells["d_line"], float) - np.asarray(ref_cells["d_line"], float)], axis=1)[u]
@@ -316,11 +321,11 @@ def _band_to_band(ref_cells, cells, model):
                      for a in ("sample", "line")], axis=1)[u]
     med = np.nanmedian(sig2) if np.isfinite(sig2).any() else 1e-4
     w = 1.0 / np.where(np.isfinite(sig2) & (sig2 > 0), np.maximum(sig2, 0.25 * med), med)
-    sn, ln = model._norm(np.asarray(cells["sample"], float)[u], np.asarray(cells["line"], float)[u])
-    a = _linear_design(sn, ln)
+    sn, ln = model.normalise(np.asarray(cells["sample"], float)[u], np.asarray(cells["line"], float)[u])
+    a = linear_design(sn, ln)
     est = weighted_lsq(a.reshape(-1, 6), d.ravel(), w.ravel(), hint=" (band-to-band)")
     lin = np.zeros(6)
-    lin[_LIN_ORDER] = est.x
+    lin[LINEAR_ORDER] = est.x
     cov = est.cov
     try:
         chi2 = float(est.x @ np.linalg.solve(cov, est.x))
@@ -337,7 +342,6 @@ def _band_to_band(ref_cells, cells, model):
 def _check_options(pan, ms, breaks, n_sub_ccds, jitter, cell):
     """The options checked before anything is read: ``(breaks spec, jitter)``; :class:`PanMSError` naming the
     option."""
-    from .. import panms
     if os.path.realpath(os.fspath(pan)) == os.path.realpath(os.fspath(ms)):
         raise panms.PanMSError("the same image was given as pan and as MS: give the pan first, then the MS image "
                                "of the same acquisition")
@@ -364,8 +368,6 @@ def _match_every_band(pan, ms, pan_model, ms_model, dem_obj, ms_size, n_bands, c
     """Dense window matches of every MS band against the pan, the reference band (the best correlated), the
     sub-CCD edges (``user_breaks``, else from the data, with a note) and the cells of every band:
     ``(band_matches, ref, n_matches, breaks, cell_px, cells of ref, {band: cells})``."""
-    from .. import panms, progress as _progress
-    from ..matching import match_raw
     mw, mh = ms_size
     band_matches: Dict[int, Any] = {}
     spacing = _spacing((mw, mh), cell)
@@ -410,8 +412,6 @@ def _match_every_band(pan, ms, pan_model, ms_model, dem_obj, ms_size, n_bands, c
 def _approximate_ms_rpc(model, ms_model, notes):
     """``panms.approximate_rpc`` of the full model, else of its linear term with a note (the sub-CCD jumps and
     jitter of a small crop can defeat the refit); :class:`PanMSError` when neither fits."""
-    from .. import panms
-    from ..errors import Gf4calError
     try:
         approx, approx_err = panms.approximate_rpc(model, ms_model)
     except Gf4calError:
@@ -424,6 +424,167 @@ def _approximate_ms_rpc(model, ms_model, notes):
             raise panms.PanMSError(f"the approximate MS RPC could not be fitted ({exc}); the other outputs "
                                    "need it too: check the MS RPC") from None
     return approx, approx_err
+
+
+@dataclass
+class _Pair:
+    """The opened pan and MS: sizes, band count, RPCs (:func:`gdal_gf4cal.crop.image_rpc`), DEM, their geometry
+    (:func:`pair_geometry`) and the pixel ratio; ``ms_rpc`` as given (the product's band list)."""
+
+    pan: Any
+    ms: Any
+    pan_size: Tuple[int, int]
+    ms_size: Tuple[int, int]
+    n_bands: int
+    pan_model: Any
+    ms_model: Any
+    dem: Any
+    geo: Dict[str, float]
+    ratio: int
+    ms_rpc: Any
+
+
+def _open_pair(pan, ms, *, dem, geoid, pan_rpc, ms_rpc, notes) -> _Pair:
+    """Read the sizes and RPCs, relate the two images through them and the DEM (refusing other acquisitions)."""
+    pan_size, _ = _size(pan)
+    ms_size, n_bands = _size(ms)
+    pan_model, note_p = image_rpc(pan, pan_rpc)
+    ms_model, note_m = image_rpc(ms, ms_rpc)
+    notes += [n for n in (note_p, note_m) if n]
+    dem_obj = DEM.from_user_input(dem, geoid=geoid)
+    geo = pair_geometry(pan_model, ms_model, pan_size, ms_size, dem_obj)
+    ratio = int(round(geo["scale"]))
+    if abs(geo["scale"] - ratio) > 0.05 * ratio:
+        notes.append(f"pan/MS pixel ratio {geo['scale']:.3f} through the RPCs: ms_on_pan.tif at 1/{ratio} of "
+                     "the pan")
+    return _Pair(pan, ms, pan_size, ms_size, n_bands, pan_model, ms_model, dem_obj, geo, ratio, ms_rpc)
+
+
+@dataclass
+class _Measured:
+    """The cells the model is solved from (of the reference band ``ref``), the sub-CCD edges, the cell size, and
+    per band the window matches and cells (every-band mode only)."""
+
+    cells: Any
+    breaks: list
+    cell_px: Optional[int]
+    ref: int = 1
+    n_matches: int = 0
+    band_matches: Dict[int, Any] = field(default_factory=dict)
+    band_cells: Dict[int, Any] = field(default_factory=dict)
+
+
+def _measure(pair: _Pair, *, user_breaks, reuse_model, cells, cell, notes, workers, progress) -> _Measured:
+    """The cells: a table already measured (``cells``), sparse matches of the reused model's band (reuse mode:
+    one window per cell, <= :data:`REUSE_MAX_MATCHES`), or dense matches of every band (:func:`_match_every_band`);
+    refused when no cell is usable or the MS does not show what the pan shows."""
+    mw, mh = pair.ms_size
+    if cells is not None:
+        meas = _Measured(cells.reset_index(drop=True), user_breaks or [], int(cell) if cell else None)
+    elif reuse_model is not None:
+        c = int(max(8, math.ceil(math.sqrt(mw * mh / REUSE_MAX_MATCHES))))
+        ref = int(reuse_model.info.get("reference_band", 1))     # the band the reused model was solved on
+        ref = ref if 1 <= ref <= pair.n_bands else 1
+        cells = pan_ms_cells(pair.pan, pair.ms, pair.dem, pan_model=pair.pan_model, ms_model=pair.ms_model,
+                             cell_px=c, spacing_px=c, min_matches=1, workers=workers,
+                             progress=_progress.scaled(progress, 0.02, 0.5), band=ref)
+        meas = _Measured(cells, list(reuse_model.breaks), c, ref, len(cells.attrs.get("matches", ())))
+    else:
+        band_matches, ref, n_matches, breaks_, cell_used, cells, band_cells = _match_every_band(
+            pair.pan, pair.ms, pair.pan_model, pair.ms_model, pair.dem, pair.ms_size, pair.n_bands, cell,
+            user_breaks, notes, workers, progress)
+        meas = _Measured(cells, breaks_, cell_used, ref, n_matches, band_matches, band_cells)
+    meas.cells = meas.cells.reset_index(drop=True)
+    _check_cells(meas)
+    return meas
+
+
+def _check_cells(meas: _Measured) -> None:
+    """:class:`PanMSError` when the MS does not show what the pan shows or no cell is usable (why, in words)."""
+    cells, mt = meas.cells, meas.band_matches.get(meas.ref)
+    if mt is not None and _unrelated(mt):
+        raise PanMSError(_no_cell_message(mt, len(cells)))
+    if len(cells) == 0 or not np.asarray(cells["usable"], bool).any():
+        mt = mt if meas.band_matches else cells.attrs.get("matches")
+        raise PanMSError(_no_cell_message(mt, len(cells)) if mt is not None else
+                         f"no usable cell: all {len(cells)} cells are cloud, water or texture-less; register a "
+                         "clearer scene of the same camera and use --reuse MODEL.json")
+
+
+def _write_products(outs, pair: _Pair, meas: _Measured, model, band_models, bands, notes, clock, progress):
+    """model.json, correction.tif (a pair of bands more per band with its own correction), ms_on_pan.tif, the
+    approximate MS RPC, cells.gpkg and the plots into the OutputSet's temporary paths; the RPC refit's errors."""
+    n_bands = pair.n_bands
+    _progress.report(progress, 0.6, "pan-MS: writing correction.tif")
+    model.to_json(outs.tmp("model"))
+    own = {b: m for b, m in band_models.items() if m is not model}
+    panms.write_correction(model, outs.tmp("correction"), progress=_progress.scaled(progress, 0.6, 0.65),
+                           rpc=pair.ms_model, band_models={f"band {b} ({bands[b - 1]['name']})": m
+                                                           for b, m in own.items()})
+    outs.set_check("correction", check_raster(2 + 2 * len(own)))
+    panms.resample_ms_on_pan([band_models.get(b, model) for b in range(1, n_bands + 1)], pair.pan, pair.ms,
+                             outs.tmp("ms_on_pan"), pan_rpc=pair.pan_model, ms_rpc=pair.ms_model, dem=pair.dem,
+                             ratio=pair.ratio, progress=_progress.scaled(progress, 0.65, 0.9),
+                             band_names=_band_names(pair.ms, n_bands, pair.ms_rpc))
+    outs.set_check("ms_on_pan", check_raster(n_bands))
+    clock.lap("correction_and_ms_on_pan")
+    _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC")
+    approx, approx_err = _approximate_ms_rpc(model, pair.ms_model, notes)
+    write_rpb(approx, outs.tmp("ms_rpc"), overwrite=True)
+    n_cells = _write_cells(meas.cells, model, pair.ms_model, pair.dem, outs.tmp("cells"))
+    outs.set_check("cells", check_vector({"gcps": n_cells}))
+    _write_plots(meas.cells, model, outs)
+    clock.lap("rpc_cells_plots")
+    return approx_err
+
+
+def _report(inputs, pair: _Pair, meas: _Measured, model, bands, breaks_from: str, approx_err, clock, outs,
+            notes) -> Dict[str, Any]:
+    """report.json's content (before the warnings)."""
+    (pw, ph), ratio = pair.pan_size, pair.ratio
+    return {"command": "register-pan-ms", "inputs": inputs,
+            "sizes": {"pan": [pw, ph], "ms": list(pair.ms_size), "ratio": ratio,
+                      "ms_on_pan": [-(-pw // ratio), -(-ph // ratio)]},
+            "geometry": pair.geo, "overlap_share": pair.geo["overlap"], "mode": model.mode,
+            "breaks_ms_px": list(model.breaks), "breaks_from": breaks_from,
+            "cell_px": meas.cell_px, "n_cells": int(len(meas.cells)), "n_matches": int(meas.n_matches),
+            "timings_s": clock.laps, "n_usable": int(np.asarray(meas.cells["usable"], bool).sum()),
+            "n_outliers": model.info.get("n_outliers", 0), "noise_floor_px": model.info.get("noise_floor_px"),
+            "piece_orders": model.info.get("piece_orders"),
+            "steps": model.steps, "jitter": model.jitter, "linear": model.to_dict()["linear"],
+            "reference_band": meas.ref, "bands": bands,
+            "ms_approx_rpc": approx_err, "outputs": outs.paths, "notes": notes}
+
+
+def _inputs_entry(pan, ms, dem, geoid, reuse, pan_rpc, ms_rpc) -> Dict[str, Any]:
+    return {"pan": os.fspath(pan), "ms": os.fspath(ms), "dem": _as_text(dem), "geoid": _as_text(geoid),
+            "reuse": _as_text(reuse) if not isinstance(reuse, panms.PanMSModel) else "model",
+            "pan_rpc": _as_text(pan_rpc) if not hasattr(pan_rpc, "project") else "model",
+            "ms_rpc": _as_text(ms_rpc) if not hasattr(ms_rpc, "project") else "model"}
+
+
+def _output_set(inputs, out: str, overwrite: bool, progress) -> OutputSet:
+    """Every output under ``out``, declared with its check (all written together or none)."""
+    outs = OutputSet(inputs, overwrite=overwrite, cancelled=cancel_check(progress))
+    for key, name in OUTPUT_NAMES.items():
+        check = {"correction": check_raster(2), "ms_on_pan": check_raster(), "cells": check_vector()}.get(key)
+        outs.declare(key, os.path.join(out, name), check=check)
+    return outs
+
+
+def _path_or_none(x):
+    return x if isinstance(x, (str, os.PathLike)) else None
+
+
+def _user_breaks(pair: _Pair, spec, n_sub_ccds) -> Optional[list]:
+    """The sub-CCD edges the options give (in this image's columns, checked), None when they give none."""
+    if spec is None and n_sub_ccds is None:
+        return None
+    origin = crop_origin(pair.ms)        # the crop's place in the MS product, when the file states it
+    br = _product_breaks(spec, n_sub_ccds, pair.ms_model, pair.ms_size, origin, pair.pan_model, pair.dem,
+                         pair.pan_size)
+    _check_pieces(br, spec, pair.ms_size[0], WINDOW_PX)
+    return br
 
 
 def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] = None, breaks=None,
@@ -450,123 +611,36 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
     from <= 200 sparse matches. ``cells``: a cell table already measured (skips the matching; one band). Returns
     the report dict.
     """
-    from .. import panms, progress as _progress
-    from ..crop import crop_origin
-    from ..dem import DEM
-    from ..report import write_report_json
-    from ..rpc_io import write_rpb
-
     spec, jitter = _check_options(pan, ms, breaks, n_sub_ccds, jitter, cell)
-    out = os.fspath(out)
-    outs = OutputSet([pan, ms, dem if isinstance(dem, (str, os.PathLike)) else None, geoid,
-                      reuse if isinstance(reuse, (str, os.PathLike)) else None,
-                      pan_rpc if isinstance(pan_rpc, (str, os.PathLike)) else None,
-                      ms_rpc if isinstance(ms_rpc, (str, os.PathLike)) else None],
-                     overwrite=overwrite, cancelled=cancel_check(progress))
-    for key, name in OUTPUT_NAMES.items():
-        check = {"correction": check_raster(2), "ms_on_pan": check_raster(), "cells": check_vector()}.get(key)
-        outs.declare(key, os.path.join(out, name), check=check)
+    outs = _output_set([pan, ms, _path_or_none(dem), geoid, _path_or_none(reuse), _path_or_none(pan_rpc),
+                        _path_or_none(ms_rpc)], os.fspath(out), overwrite, progress)
     warns: list = []
     notes: list = []
     clock = _Clock()
     with outs, collect_warnings(warns):
-        (pw, ph), _ = _size(pan)
-        (mw, mh), n_bands = _size(ms)
-        pan_model, note_p = image_rpc(pan, pan_rpc)
-        ms_model, note_m = image_rpc(ms, ms_rpc)
-        notes += [n for n in (note_p, note_m) if n]
-        dem_obj = DEM.from_user_input(dem, geoid=geoid)
-        geo = pair_geometry(pan_model, ms_model, (pw, ph), (mw, mh), dem_obj)
-        ratio = int(round(geo["scale"]))
-        if abs(geo["scale"] - ratio) > 0.05 * ratio:
-            notes.append(f"pan/MS pixel ratio {geo['scale']:.3f} through the RPCs: ms_on_pan.tif at 1/{ratio} of "
-                         "the pan")
-        origin = crop_origin(ms)        # the crop's place in the MS product, when the file states it
-        user_breaks = spec is not None or n_sub_ccds is not None
-        if user_breaks:
-            br = _product_breaks(spec, n_sub_ccds, ms_model, (mw, mh), origin, pan_model, dem_obj, (pw, ph))
-            _check_pieces(br, spec, mw, WINDOW_PX)
+        pair = _open_pair(pan, ms, dem=dem, geoid=geoid, pan_rpc=pan_rpc, ms_rpc=ms_rpc, notes=notes)
+        user_breaks = _user_breaks(pair, spec, n_sub_ccds)
         reuse_model = None
         if reuse is not None:
             reuse_model = reuse if isinstance(reuse, panms.PanMSModel) else panms.PanMSModel.from_json(reuse)
-            reuse_model.compatible_with((mw, mh), br if user_breaks else None)
+            reuse_model.compatible_with(pair.ms_size, user_breaks)
         _progress.report(progress, 0.02, "pan-MS: matching")
-        band_cells: Dict[int, Any] = {}
-        band_matches: Dict[int, Any] = {}
-        ref = 1
-        n_matches = 0
-        if cells is not None:
-            cells = cells.reset_index(drop=True)
-            breaks_ = br if user_breaks else []
-            cell_used = int(cell) if cell else None
-        elif reuse_model is not None:     # sparse: one window per cell, <= 200 cells
-            from ..matching import pan_ms_cells
-            c = int(max(8, math.ceil(math.sqrt(mw * mh / REUSE_MAX_MATCHES))))
-            ref = int(reuse_model.info.get("reference_band", 1))     # the band the reused model was solved on
-            ref = ref if 1 <= ref <= n_bands else 1
-            cells = pan_ms_cells(pan, ms, dem_obj, pan_model=pan_model, ms_model=ms_model, cell_px=c, spacing_px=c,
-                                 min_matches=1, workers=workers, progress=_progress.scaled(progress, 0.02, 0.5),
-                                 band=ref)
-            n_matches = len(cells.attrs.get("matches", ()))
-            breaks_, cell_used = list(reuse_model.breaks), c
-        else:
-            band_matches, ref, n_matches, breaks_, cell_used, cells, band_cells = _match_every_band(
-                pan, ms, pan_model, ms_model, dem_obj, (mw, mh), n_bands, cell, br if user_breaks else None,
-                notes, workers, progress)
+        meas = _measure(pair, user_breaks=user_breaks, reuse_model=reuse_model, cells=cells, cell=cell, notes=notes,
+                        workers=workers, progress=progress)
         clock.lap("matching")
-        cells = cells.reset_index(drop=True)
-        if band_matches and _unrelated(band_matches[ref]):
-            raise panms.PanMSError(_no_cell_message(band_matches[ref], len(cells)))
-        if len(cells) == 0 or not np.asarray(cells["usable"], bool).any():
-            mt = band_matches.get(ref) if band_matches else cells.attrs.get("matches")
-            raise panms.PanMSError(_no_cell_message(mt, len(cells)) if mt is not None else
-                                   f"no usable cell: all {len(cells)} cells are cloud, water or texture-less; "
-                                   "register a clearer scene of the same camera and use --reuse MODEL.json")
-        model = panms.estimate(cells, ms_size=(mw, mh), breaks=breaks_, jitter=jitter, reuse=reuse_model,
-                               progress=_progress.scaled(progress, 0.5, 0.6))
+        model = panms.estimate(meas.cells, ms_size=pair.ms_size, breaks=meas.breaks, jitter=jitter,
+                               reuse=reuse_model, progress=_progress.scaled(progress, 0.5, 0.6))
         notes += list(model.info.get("notes", []))
-        model.info["source"] = {"pan": os.fspath(pan), "ms": os.fspath(ms)}
-        model.info["ratio"] = ratio
-        model.info["reference_band"] = ref
-        bands, band_models = _every_band(band_cells, ref, model, _band_names(ms, n_bands, ms_rpc), notes)
+        model.info.update(source={"pan": os.fspath(pan), "ms": os.fspath(ms)}, ratio=pair.ratio,
+                          reference_band=meas.ref)
+        bands, band_models = _every_band(meas.band_cells, meas.ref, model,
+                                         _band_names(ms, pair.n_bands, ms_rpc), notes)
         clock.lap("estimate")
-        _progress.report(progress, 0.6, "pan-MS: writing correction.tif")
-        model.to_json(outs.tmp("model"))
-        own = {b: m for b, m in band_models.items() if m is not model}
-        panms.write_correction(model, outs.tmp("correction"), progress=_progress.scaled(progress, 0.6, 0.65),
-                               rpc=ms_model, band_models={f"band {b} ({bands[b - 1]['name']})": m
-                                                          for b, m in own.items()})
-        outs.set_check("correction", check_raster(2 + 2 * len(own)))
-        panms.resample_ms_on_pan([band_models.get(b, model) for b in range(1, n_bands + 1)], pan, ms,
-                                 outs.tmp("ms_on_pan"), pan_rpc=pan_model, ms_rpc=ms_model, dem=dem_obj, ratio=ratio,
-                                 progress=_progress.scaled(progress, 0.65, 0.9),
-                                 band_names=_band_names(ms, n_bands, ms_rpc))
-        outs.set_check("ms_on_pan", check_raster(n_bands))
-        clock.lap("correction_and_ms_on_pan")
-        _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC")
-        approx, approx_err = _approximate_ms_rpc(model, ms_model, notes)
-        write_rpb(approx, outs.tmp("ms_rpc"), overwrite=True)
-        n_cells = _write_cells(cells, model, ms_model, dem_obj, outs.tmp("cells"))
-        outs.set_check("cells", check_vector({"gcps": n_cells}))
-        _write_plots(cells, model, outs)
-        clock.lap("rpc_cells_plots")
-        rep = {"command": "register-pan-ms",
-               "inputs": {"pan": os.fspath(pan), "ms": os.fspath(ms), "dem": _as_text(dem), "geoid": _as_text(geoid),
-                          "reuse": _as_text(reuse) if not isinstance(reuse, panms.PanMSModel) else "model",
-                          "pan_rpc": _as_text(pan_rpc) if not hasattr(pan_rpc, "project") else "model",
-                          "ms_rpc": _as_text(ms_rpc) if not hasattr(ms_rpc, "project") else "model"},
-               "sizes": {"pan": [pw, ph], "ms": [mw, mh], "ratio": ratio,
-                         "ms_on_pan": [-(-pw // ratio), -(-ph // ratio)]},
-               "geometry": geo, "overlap_share": geo["overlap"], "mode": model.mode,
-               "breaks_ms_px": list(model.breaks), "breaks_from": ("options" if user_breaks else "reuse model"
-                                                                    if reuse_model is not None else "data"),
-               "cell_px": cell_used, "n_cells": int(len(cells)), "n_matches": int(n_matches),
-               "timings_s": clock.laps, "n_usable": int(np.asarray(cells["usable"], bool).sum()),
-               "n_outliers": model.info.get("n_outliers", 0), "noise_floor_px": model.info.get("noise_floor_px"),
-               "piece_orders": model.info.get("piece_orders"),
-               "steps": model.steps, "jitter": model.jitter, "linear": model.to_dict()["linear"],
-               "reference_band": ref, "bands": bands,
-               "ms_approx_rpc": approx_err, "outputs": outs.paths, "notes": notes}
+        approx_err = _write_products(outs, pair, meas, model, band_models, bands, notes, clock, progress)
+        breaks_from = ("options" if user_breaks is not None else "reuse model" if reuse_model is not None
+                       else "data")
+        rep = _report(_inputs_entry(pan, ms, dem, geoid, reuse, pan_rpc, ms_rpc), pair, meas, model, bands,
+                      breaks_from, approx_err, clock, outs, notes)
         finish_report(rep, warns)
         write_report_json(rep, outs.tmp("report"))
     finish_report(rep, warns)
@@ -584,8 +658,6 @@ def _every_band(band_cells, ref, model, names, notes):
     band, and its own correction (the reference model plus the linear difference) where that differs
     significantly; a band that does not resemble the pan keeps the reference correction (what remains of it is
     spectral). Returns ``(report rows, {band: model})``."""
-    import copy
-    from ..stats import axis_stats, share_within
     rows, models = [], {}
     for b in sorted(band_cells) or [ref]:
         name = names[b - 1][0] if b - 1 < len(names) else f"band {b}"
@@ -634,7 +706,6 @@ def _median_ncc_cells(band_cells, b):
 
 class _Clock:
     def __init__(self):
-        import time
         self._time = time.perf_counter
         self._t = self._time()
         self.laps: Dict[str, float] = {}
@@ -652,9 +723,6 @@ def _as_text(x):
 def _write_cells(cells, model, ms_rpc, dem, path) -> int:
     """cells.gpkg: one point per cell on the ground (MS RPC on the DEM), residuals before (nabla) and after the
     full model as the standard fields, after each step as ``res_sample_<step>``/``res_line_<step>``, arrows."""
-    import pandas as pd
-    from ..panms import step_residuals
-    from ..report import write_residuals_gpkg
     s, l = np.asarray(cells["sample"], float), np.asarray(cells["line"], float)
     lon, lat, h = ms_rpc.localize_dem(s, l, dem)
     t = pd.DataFrame({"id": [f"c{i}" for i in range(len(cells))], "lon": lon, "lat": lat, "h": h,
@@ -683,8 +751,6 @@ def _write_cells(cells, model, ms_rpc, dem, path) -> int:
 
 
 def _write_plots(cells, model, outs) -> None:
-    from ..panms import residual_spectrum, row_means, step_residuals
-    from ..report.plot import plot_line_profiles, plot_spectrum, plot_step_residual_maps
     s, l = np.asarray(cells["sample"], float), np.asarray(cells["line"], float)
     used = np.asarray(cells["usable"], bool)
     if model.cell_outlier is not None:
