@@ -18,12 +18,11 @@ from __future__ import annotations
 from .model import (MODEL_NAMES, AppliedCompensation, CompensatedRPC, CompensationModel, CompensationResult,
                     apply_compensation)
 from .outputs import (accuracy_by_role, check_point_warnings, describe_suspects, ground_jacobian, ground_offsets_m,
-                      suspected_blunders)
-from .outputs import _axis_stats  # noqa: F401  (workflows/refine.py imports it; to become public there)
+                      report_axis_stats, suspected_blunders)
 from .solve import CompensationProblem, fit_compensation
 
 __all__ = [
     "MODEL_NAMES", "CompensationModel", "CompensationResult", "CompensatedRPC", "AppliedCompensation",
     "fit_compensation", "apply_compensation", "ground_offsets_m", "ground_jacobian", "accuracy_by_role",
-    "suspected_blunders", "describe_suspects", "check_point_warnings", "CompensationProblem",
+    "suspected_blunders", "describe_suspects", "check_point_warnings", "CompensationProblem", "report_axis_stats",
 ]

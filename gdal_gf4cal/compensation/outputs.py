@@ -25,7 +25,7 @@ def _f(x) -> Optional[float]:
     return x if math.isfinite(x) else None
 
 
-def _axis_stats(x) -> Dict[str, Optional[float]]:
+def report_axis_stats(x) -> Dict[str, Optional[float]]:
     """``{mean, rms, std, max}`` (px) of one axis, :func:`gdal_gf4cal.stats.axis_stats`; None when empty."""
     return {k: _f(v) for k, v in axis_stats(x).items() if k != "n"}
 

@@ -52,6 +52,9 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
                       covariance: bool = True, extra=None) -> PointSolution:
     """Solve the normal equations of point-block observations by Schur complement (module docstring).
 
+    (Long by design: the point elimination and its three reduced-system paths, dense, sparse and indexed, side by
+    side so that they visibly share one elimination.)
+
     Parameters
     ----------
     jac_points : ndarray (N, r, q)

@@ -11,7 +11,8 @@ from typing import Any, Dict, Optional, Sequence
 import numpy as np
 
 from .. import progress as _progress
-from ..compensation import apply_compensation, fit_compensation, ground_jacobian, ground_offsets_m
+from ..compensation import (apply_compensation, fit_compensation, ground_jacobian, ground_offsets_m,
+                            report_axis_stats)
 from ..dem import DEM
 from ..errors import GCPError
 from ..gcp import read_gcps, validate_gcps
@@ -250,7 +251,6 @@ def _refine_report(source: str, gcps, out: str, rpc, result, applied, precision,
                    leave_one_out: bool) -> Dict[str, Any]:
     """The refine report: its files, the compensation's figures, the crop note, how it was applied, its
     precision, the model selection and the leave-one-out statistics of the control points when asked for."""
-    from ..compensation import _axis_stats      # private there until compensation makes it public
     rep: Dict[str, Any] = {"input": source, "gcps": os.fspath(gcps) if is_path(gcps) else None, "output": out}
     rep.update(result.to_dict(rpc))
     if crop_note:
@@ -263,8 +263,8 @@ def _refine_report(source: str, gcps, out: str, rpc, result, applied, precision,
         tab = result.gcps
         sel = (tab["role"] == "control").to_numpy() & ~tab["outlier"].to_numpy(bool)
         rep["leave_one_out"] = {"n": int(sel.sum()),
-                                "line": _axis_stats(tab["res_line_loo"].to_numpy(float)[sel]),
-                                "sample": _axis_stats(tab["res_sample_loo"].to_numpy(float)[sel])}
+                                "line": report_axis_stats(tab["res_line_loo"].to_numpy(float)[sel]),
+                                "sample": report_axis_stats(tab["res_sample_loo"].to_numpy(float)[sel])}
     return rep
 
 
