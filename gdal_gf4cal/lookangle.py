@@ -211,7 +211,7 @@ class LookAngleCalibration:
         (``tan_new^-1(tan_old(s', l'))``; also as ``pred_*_after``, with ``pred_*_before`` = ``virtual_*``),
         ``res_sample_after, res_line_after``, ``norm_residual`` (radial residual / robust sigma), ``weight``
         (final robust weight, 0 if rejected), ``outlier`` (bool; control and check points), ``outlier_level``
-        (``'start'``, ``'snooping'`` or ``''``).
+        (``'start'``, ``'reject'`` or ``''``).
     control_stats, check_stats : one role of :func:`gdal_gf4cal.stats.accuracy_by_role` (``{n_outliers,
         before|after: {n, sample|line: {mean, rms, rmse, max}, planar, ce90_m}}``, ``ce90_m`` None) plus ``n``
         (points in the statistics); outliers excluded; ``check_stats`` is None without check points.
@@ -539,15 +539,15 @@ def _robust_scale(sol: Estimate, prec: _Precision, sig_c, robust: bool) -> Tuple
 
 def _flag_outliers(out, inp: _Inputs, sol: Estimate, scale: float, z_c, robust: bool) -> None:
     """``norm_residual``, ``weight``, ``outlier`` and ``outlier_level`` of the table: control points as the robust
-    solve left them (``'start'``: the high-breakdown start, never re-admitted; ``'snooping'``: rejected), check
-    points by the same rule (radial residual over :data:`_REJECT_K` robust sigmas)."""
+    solve left them (``'start'``: the high-breakdown start, never re-admitted; ``'reject'``: rejected by the radial
+    Huber norm), check points by the same rule (radial residual over :data:`_REJECT_K` robust sigmas: ``'reject'``)."""
     n = inp.usable.size
     c_idx = np.flatnonzero(inp.ctrl)
     out["norm_residual"] = _scatter(n, c_idx, z_c)
     out["weight"] = _scatter(n, c_idx, sol.point_weights, 0.0)
     outlier = _scatter(n, c_idx, sol.outlier, False).astype(bool)
     level = np.full(n, "", dtype=object)
-    level[c_idx] = np.where(sol.outlier_level == "start", "start", np.where(sol.outlier, "snooping", ""))
+    level[c_idx] = np.where(sol.outlier_level == "start", "start", np.where(sol.outlier, "reject", ""))
     check = ~inp.control & inp.usable
     if robust and check.any():
         k_idx = np.flatnonzero(check)
@@ -555,7 +555,7 @@ def _flag_outliers(out, inp: _Inputs, sol: Estimate, scale: float, z_c, robust: 
                              out["res_line_after"].to_numpy(float)[k_idx])
         bad = radial_px / np.maximum(inp.eff_sigma[k_idx] * scale, _MIN_SCALE_PX) > _REJECT_K
         outlier[k_idx[bad]] = True
-        level[k_idx[bad]] = "snooping"
+        level[k_idx[bad]] = "reject"
     out["outlier"] = outlier
     out["outlier_level"] = level.astype(str)
 

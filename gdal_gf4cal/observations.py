@@ -16,7 +16,7 @@ AROSICS's ``Tie_Point_Grid`` keeps one tie-point table with its filters in level
 =================  ========================================================================================
 
 Outlier levels (optional, absent until a filter has run): ``outlier_<level>`` (bool, one column per filter level
-that ran, e.g. ``outlier_match``, ``outlier_robust``, ``outlier_snooping``), ``outlier`` (bool, any level) and
+that ran, e.g. ``outlier_match``, ``outlier_reject``, ``outlier_snooping``), ``outlier`` (bool, any level) and
 ``outlier_level`` (str: the first level, in :data:`OUTLIER_LEVELS` order, that flagged the row; ``""`` if kept).
 Filters are cumulative: a row flagged at one level stays flagged. Use :func:`flag_outliers`. Any other column
 (truth, quality, ...) is carried through untouched.
@@ -42,6 +42,7 @@ import pandas as pd
 
 from .atomic import atomic_output
 from .errors import GCPError
+from .estimation.result import ESTIMATE_LEVELS
 from .outputs import check_output_path
 
 __all__ = ["OBS_SCHEMA", "KINDS", "OUTLIER_LEVELS", "SCHEMA", "REQUIRED", "ROLES",
@@ -196,8 +197,9 @@ def validate_gcps(gdf, *, source: str = "GCPs", dem=None, need_height: bool = Tr
 # ----------------------------------------------------------------------------------------------------------------
 OBS_SCHEMA = ("point_id", "image_id", "kind", "sample", "line", "sigma", "role", "lon", "lat", "h")
 KINDS = ("gcp", "tie")
-#: Filter levels in the order they run (cumulative): matching filters, robust estimation, data snooping.
-OUTLIER_LEVELS = ("match", "robust", "snooping")
+#: Filter levels in the order they run (cumulative): the matcher's filters, then the estimate's levels
+#: (:data:`gdal_gf4cal.estimation.ESTIMATE_LEVELS`: high-breakdown start, data snooping, IRLS rejection).
+OUTLIER_LEVELS = ("match",) + ESTIMATE_LEVELS
 _ALIASES = {"image": "image_id", "img": "image_id", "image_name": "image_id", "id": "point_id",
             "point": "point_id", "col": "sample", "row": "line", "height": "h"}
 

@@ -261,7 +261,7 @@ def _estimate(tab, layout, names, sl, x, cov, sigma0, dof, rows: _Rows, stages_o
         table[f"res_sample_{tag}"] = table["sample"].to_numpy(float) - pr[:, 0]
         table[f"res_line_{tag}"] = table["line"].to_numpy(float) - pr[:, 1]
     outl = rows.outlier
-    table = flag_outliers(table, outl, "robust")
+    table = flag_outliers(table, outl, "reject")
     v_all = tab[["sample", "line"]].to_numpy(float) - rows.pred_after
     sig = table["sigma"].to_numpy(float)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -269,7 +269,7 @@ def _estimate(tab, layout, names, sl, x, cov, sigma0, dof, rows: _Rows, stages_o
     est = BlockEstimate(names=names, x=x, cov=cov, sigma0=sigma0, dof=int(dof),
                         redundancy=np.repeat(rows.redundancy, 2), residuals=v_all.ravel(), normalised=normalised,
                         weights=rows.weights.ravel(), blocks=sl, frozen=(f"datum:{layout.reference_ccd}",),
-                        outlier=outl, outlier_level=np.where(outl, "robust", ""),
+                        outlier=outl, outlier_level=np.where(outl, "reject", ""),
                         iterations=int(sum(s["iterations"] for s in stages_out)), table=table, layout=layout,
                         stages=stages_out, cov_pending=pending)
     est.notes.append(f"datum: {', '.join(DATUM_TERMS)} of {layout.reference_ccd} fixed at 0 (they duplicate e0, e1, "

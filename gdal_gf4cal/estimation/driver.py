@@ -32,16 +32,13 @@ import numpy as np
 
 from ..errors import DegenerateGeometryError, GCPError
 from .lsq import Block, normal_solve, sigma0_and_cov, weighted_lsq
-from .result import Estimate, names_and_blocks
+from .result import ESTIMATE_LEVELS, Estimate, names_and_blocks
 from .robust import (critical_value, high_breakdown_start, min_subset_points, radial_huber_weights,
                      readmissible)
 
 __all__ = ["robust_fit", "LinearProblem", "Snooping", "RadialHuber", "Huber", "Tukey", "RobustState",
            "ESTIMATE_LEVELS"]
 
-#: Why a point was flagged by :func:`robust_fit` (``Estimate.outlier_level``; ``''`` when kept): left out by the
-#: high-breakdown start and never re-admitted, by data snooping, or rejected by an IRLS norm.
-ESTIMATE_LEVELS = ("start", "snooping", "reject")
 
 
 class LinearProblem:

@@ -7,6 +7,13 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 
+#: The one outlier vocabulary of the engine: why a point was flagged by an estimate (``Estimate.outlier_level``;
+#: ``''`` when kept): left out by the high-breakdown start and never re-admitted (``'start'``), by data snooping
+#: (``'snooping'``), or rejected by an IRLS norm (``'reject'``). The observation table's filter levels
+#: (:data:`gdal_gf4cal.observations.OUTLIER_LEVELS`) are the matcher's ``'match'`` followed by these.
+ESTIMATE_LEVELS = ("start", "snooping", "reject")
+
+
 @dataclass
 class Estimate:
     """Parameters, their covariance and the per-observation diagnostics of one (robust) least-squares estimate.

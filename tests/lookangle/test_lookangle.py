@@ -304,7 +304,7 @@ def test_many_blunders_in_a_small_set_are_all_flagged(scene, n, fraction, seed):
     clean = calibrate_lookangle(scene["rpc"], gcps[~blunder], scene["current"], robust=False)
     d = compare_lookangle(res.camera, clean.camera)
     assert max(d["sample"]["rms"], d["line"]["rms"]) < 0.02
-    assert set(res.gcps.loc[res.outliers, "outlier_level"]) <= {"start", "snooping"}
+    assert set(res.gcps.loc[res.outliers, "outlier_level"]) <= {"start", "reject"}
 
 
 def test_check_point_blunders_are_flagged_and_left_out_of_the_check_statistics(scene):

@@ -152,12 +152,12 @@ def test_kind_inferred_and_heights_from_dem():
 
 def test_outlier_levels_cumulative(tmp_path):
     t = validate_observations(_obs())
-    t = flag_outliers(t, [False, True, False, False], "robust")
+    t = flag_outliers(t, [False, True, False, False], "reject")
     t = flag_outliers(t, [False, True, True, False], "match")       # an earlier level, run later
-    t = flag_outliers(t, [False, False, False, False], "robust")    # flags are never cleared
+    t = flag_outliers(t, [False, False, False, False], "reject")    # flags are never cleared
     assert list(t["outlier"]) == [False, True, True, False]
     assert list(t["outlier_level"]) == ["", "match", "match", ""]
-    assert list(t["outlier_robust"]) == [False, True, False, False]
+    assert list(t["outlier_reject"]) == [False, True, False, False]
     for ext in (".csv", ".gpkg"):
         back = read_observations(write_observations(t, tmp_path / f"o{ext}"))
         pd.testing.assert_frame_equal(back, t, check_exact=True)
