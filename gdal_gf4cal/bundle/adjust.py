@@ -126,7 +126,8 @@ def _robust(pb: BundleProblem):
     sigmas (each ray's σ times its redundancy's square root); check rays are tested, never used."""
     norm = RadialHuber(sigma=lambda p, e: p.rays.sigma * p.sd_factor, min_points=2,
                        too_few="; the ties disagree beyond their stated sigma: check the image ids and the ties")
-    return robust_fit(pb, norm=norm, start=None, candidates=pb.rays.control, max_iter=ROBUST_MAX_FITS, tol=ROBUST_TOL_PX)
+    return robust_fit(pb, norm=norm, start=None, candidates=pb.rays.control, max_iter=ROBUST_MAX_FITS,
+                      tol=ROBUST_TOL_PX)
 
 
 def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: str = "affine", sizes=None,
