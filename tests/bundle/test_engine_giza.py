@@ -61,3 +61,5 @@ def test_giza_robust_rejects_a_few_rays_and_keeps_the_datum(giza):
     assert 0 < n_out < 0.1 * len(obs)
     assert est.reprojection["after"]["all"] < 0.16 and est.datum_drift_m < 1.0
     assert est.converged
+    # known: one ray's Huber weight cycles (0.006 px in the corrections), so the reweighting ends on its cap, said
+    assert any("did not settle" in w for w in est.warnings)
