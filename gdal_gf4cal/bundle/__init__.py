@@ -13,8 +13,9 @@ ground, a-priori weights), :mod:`.solve` (Gauss-Newton with Schur elimination), 
 and the driver's problem), :mod:`.result` (:class:`BundleEstimate`, reprojection, corrected models).
 """
 from .adjust import BundleProblem, adjust_views
-from .model import BUNDLE_MODELS, DEFAULT_PRIOR_PX, MIN_SPAN, BundleError
+from .model import BUNDLE_MODELS, DEFAULT_PRIOR_M, DEFAULT_PRIOR_PX, MIN_SPAN, BundleError
 from .result import BundleEstimate, corrected_models, reprojection
+from .start import DEFAULT_DEM_SIGMA_M
 
 __all__ = ["adjust_views", "BundleEstimate", "corrected_models", "BundleProblem", "BundleError", "BUNDLE_MODELS",
-           "DEFAULT_PRIOR_PX", "MIN_SPAN", "reprojection"]
+           "DEFAULT_PRIOR_M", "DEFAULT_PRIOR_PX", "DEFAULT_DEM_SIGMA_M", "MIN_SPAN", "reprojection"]

@@ -1,6 +1,7 @@
 """``adjust_views``: bundle adjustment of separate views from their RPCs (METHODS §11, Grodecki & Dial 2003)."""
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, List, Mapping
 
 import numpy as np
@@ -13,7 +14,7 @@ from .inputs import check_inputs, make_layout, make_rays, view_sizes
 from .model import Rays, ViewLayout
 from .result import BundleEstimate, datum_drift, reprojection, view_correction
 from .solve import State, Weights, gauss_newton, project_all, reintersect
-from .start import base_weights, start_ground
+from .start import DEFAULT_DEM_SIGMA_M, base_weights, start_ground
 
 __all__ = ["adjust_views", "BundleProblem", "ROBUST_TOL_PX"]
 
@@ -64,7 +65,7 @@ class BundleProblem:
 
     def fit(self, point_weights=None) -> Estimate:
         pw = np.ones(self.n_points) if point_weights is None else np.asarray(point_weights, float)
-        wts = Weights(self.base.rays * pw, self.base.ground, self.base.prior, self.base.ground_obs)
+        wts = replace(self.base, rays=self.base.rays * pw)
         steps = self.max_iter if self.solution is None else self.refit_steps   # reweighted: Gauss-Newton steps
         self.state, self.solution, self.lin, it, self.converged, self.last_change = gauss_newton(
             self.models, self.layout, self.rays, self.state, wts, tol_px=self.tol_px, max_iter=steps,
@@ -132,7 +133,7 @@ def _robust(pb: BundleProblem):
 
 def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: str = "affine", sizes=None,
                  prior_sigma_px=None, robust: bool = True, progress=None, gcp_sigma_m: float = 0.01,
-                 dem_sigma_m: float = 50.0, tol_px: float = 1e-5, max_iter: int = 20) -> BundleEstimate:
+                 dem_sigma_m: float = DEFAULT_DEM_SIGMA_M, tol_px: float = 1e-5, max_iter: int = 20) -> BundleEstimate:
     """Bundle adjustment of separate views from their RPCs (METHODS §11).
 
     Parameters
@@ -143,8 +144,11 @@ def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: st
     models : mapping view -> RPCModel
         The vendor RPCs, keyed by the table's ``image_id``.
     dem : DEM, path, number or None
-        Starting heights, and a weak height prior (± ``dem_sigma_m``), of the ties whose rays are nearly parallel
-        (:data:`~gdal_gf4cal.bundle.start.PARALLEL_SIGMA_M`).
+        Starting heights of the ties whose rays are nearly parallel
+        (:data:`~gdal_gf4cal.bundle.start.PARALLEL_SIGMA_M`), and every tie's height prior ``DEM(lon, lat) ±
+        dem_sigma_m``, re-sampled at the tie's current ground at each Gauss-Newton step: it fixes the
+        along-epipolar part of a relative bias (a height shift of all ties, which ties alone cannot see). Without
+        a DEM the views' priors alone hold the datum.
     model : 'translation' | 'shift-drift' | 'affine'
         The per-view correction (METHODS §4.1); slope terms fall back to a translation, with a note, in a view whose
         ties do not span :data:`~gdal_gf4cal.bundle.model.MIN_SPAN` of the image.
@@ -152,11 +156,14 @@ def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: st
         Image sizes (default: the RPC's).
     prior_sigma_px : float or mapping view -> float, optional
         σ of the datum pseudo-observations ``Δ-parameter = 0 ± σ`` (default: ERR_BIAS over the pixel size, else
-        :data:`~gdal_gf4cal.bundle.model.DEFAULT_PRIOR_PX`).
+        :data:`~gdal_gf4cal.bundle.model.DEFAULT_PRIOR_M` over the pixel size).
     robust : bool
         Down-weight and reject blunder rays through the core's robust driver.
     gcp_sigma_m : float
         σ of a control GCP's ground coordinates (m).
+    dem_sigma_m : float
+        σ of the DEM's height prior on every tie (m; default
+        :data:`~gdal_gf4cal.bundle.start.DEFAULT_DEM_SIGMA_M`, a global DEM's typical absolute accuracy).
 
     Raises
     ------
@@ -168,9 +175,8 @@ def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: st
     tab = check_inputs(observations, models, sizes, dem=dem_obj)
     layout = make_layout(tab, models, sizes, model, prior_sigma_px)
     rays = make_rays(tab, layout)
-    ground0, parallel, notes = start_ground(models, layout, rays, dem_obj)
-    wts = base_weights(models, layout, rays, ground0, dem_obj, parallel, gcp_sigma_m=gcp_sigma_m,
-                       dem_sigma_m=dem_sigma_m)
+    ground0, _, notes = start_ground(models, layout, rays, dem_obj)
+    wts = base_weights(models, layout, rays, ground0, dem_obj, gcp_sigma_m=gcp_sigma_m, dem_sigma_m=dem_sigma_m)
     state0 = State(np.zeros(layout.n_params), ground0)
     before = project_all(models, layout, rays, state0, jacobian=False)
     pb = BundleProblem(models, layout, rays, state0, wts, tol_px=tol_px, max_iter=max_iter, progress=progress)

@@ -22,11 +22,15 @@ from ..basis import monomial_derivatives, monomials, term_name
 from ..compensation import CompensationModel
 from ..errors import GCPError
 
-__all__ = ["BundleError", "DEFAULT_PRIOR_PX", "BUNDLE_MODELS", "MIN_SPAN", "ViewLayout", "Rays", "prior_sigma_px",
+__all__ = ["BundleError", "DEFAULT_PRIOR_M", "DEFAULT_PRIOR_PX", "BUNDLE_MODELS", "MIN_SPAN", "ViewLayout", "Rays", "prior_sigma_px",
            "pixel_size_m"]
 
-#: Prior standard deviation (px) of every correction parameter when the RPC states no bias error (ERR_BIAS):
-#: vendor RPCs of current very-high-resolution satellites agree within a few pixels.
+#: Prior standard deviation (m on the ground, converted to px by the view's pixel size) of every correction
+#: parameter when the RPC states no bias error (ERR_BIAS): the absolute accuracy of current very-high-resolution
+#: vendor RPCs (Pleiades: 5 m, ~7 px). Wide enough that a DEM's height prior, not the views' priors, fixes the
+#: along-epipolar part of the relative bias (which ties alone cannot see).
+DEFAULT_PRIOR_M = 5.0
+#: Prior standard deviation (px) when neither ERR_BIAS nor the pixel size is known.
 DEFAULT_PRIOR_PX = 3.0
 #: Correction models of the bundle adjustment (METHODS §11).
 BUNDLE_MODELS = ("translation", "shift-drift", "affine")
@@ -149,15 +153,17 @@ def pixel_size_m(rpc, size: Tuple[int, int]) -> float:
 
 def prior_sigma_px(rpc, size: Tuple[int, int], given=None) -> Tuple[float, str]:
     """Prior σ (px) of a view's correction parameters and where it comes from: ``given``, else the RPC's ERR_BIAS
-    (m, per horizontal axis) over the pixel size, else :data:`DEFAULT_PRIOR_PX`."""
+    (m, per horizontal axis) over the pixel size, else :data:`DEFAULT_PRIOR_M` over the pixel size, else
+    :data:`DEFAULT_PRIOR_PX`."""
     if given is not None:
         val = float(given)
         if not np.isfinite(val) or val <= 0:
             raise BundleError(f"prior sigma must be a positive number of pixels, got {given!r}")
         return val, "given"
     bias = getattr(rpc, "err_bias", None)
+    gsd = pixel_size_m(rpc, size)
+    if not (np.isfinite(gsd) and gsd > 0):
+        return DEFAULT_PRIOR_PX, f"default {DEFAULT_PRIOR_PX:g} px"
     if bias is not None and np.isfinite(bias) and bias > 0:
-        gsd = pixel_size_m(rpc, size)
-        if np.isfinite(gsd) and gsd > 0:
-            return float(bias) / gsd, f"ERR_BIAS {float(bias):g} m / {gsd:.3g} m px"
-    return DEFAULT_PRIOR_PX, f"default {DEFAULT_PRIOR_PX:g} px"
+        return float(bias) / gsd, f"ERR_BIAS {float(bias):g} m / {gsd:.3g} m px"
+    return DEFAULT_PRIOR_M / gsd, f"default {DEFAULT_PRIOR_M:g} m / {gsd:.3g} m px"

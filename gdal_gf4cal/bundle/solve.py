@@ -3,13 +3,14 @@
 Unknowns: the views' correction parameters (the reduced system: a few per view, whatever the number of points) and
 each point's ground position, stepped in local metres (east, north, up) so its 3 x 3 block is well conditioned.
 Rows per point (:mod:`~gdal_gf4cal.bundle.model`): its rays (sample, line) and three ground rows (a control GCP's
-known ground ± ``gcp_sigma_m``; a tie's height ± ``dem_sigma_m`` from the DEM, weak, where one is given). The
+known ground ± ``gcp_sigma_m``; every tie's height ± ``dem_sigma_m`` from the DEM where one is given, re-sampled
+at the tie's current ground before each step: :func:`resample_dem`). The
 datum: one pseudo-observation per correction parameter, ``0 ± prior`` (the ``extra`` rows of
 :func:`gdal_gf4cal.estimation.solve_with_points`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Dict, Mapping, Optional
 
 import numpy as np
@@ -19,7 +20,7 @@ from ..estimation import IndexedJacobian, solve_with_points
 from ..geodesy import metres_per_degree
 from .model import Rays, ViewLayout
 
-__all__ = ["State", "Linearisation", "linearise", "gauss_newton", "project_all"]
+__all__ = ["State", "Linearisation", "linearise", "gauss_newton", "project_all", "resample_dem"]
 
 
 @dataclass
@@ -87,12 +88,34 @@ def _global_jacobian(layout: ViewLayout, rays: Rays, lin: Linearisation) -> Inde
 class Weights:
     """Weights of one solve: ``rays`` (n_rays,) on both axes (0: out), ``ground`` (n_points, 3) of the ground
     rows, ``prior`` (n_params,) of the datum pseudo-observations; ``ground_obs`` (n_points, 3) what the ground rows
-    observe (lon, lat, h; NaN where unweighted)."""
+    observe (lon, lat, h; NaN where unweighted); ``dem`` and ``dem_points`` (n_points bool): the DEM whose height
+    at the current ground the height rows of those points observe (:func:`resample_dem`)."""
 
     rays: np.ndarray
     ground: np.ndarray
     prior: np.ndarray
     ground_obs: np.ndarray
+    dem: Any = None
+    dem_points: Optional[np.ndarray] = None
+
+    def subset(self, points: np.ndarray, rays: np.ndarray) -> "Weights":
+        """The weights of the points ``points`` (bool) and their rays ``rays`` (bool)."""
+        dp = None if self.dem_points is None else self.dem_points[points]
+        return Weights(self.rays[rays], self.ground[points], self.prior, self.ground_obs[points], self.dem, dp)
+
+
+def resample_dem(wts: Weights, ground: np.ndarray) -> Weights:
+    """``wts`` with the DEM height rows observing the DEM at the points' current ``ground`` (lon, lat): the height
+    a tie should have where it now is, not where the uncorrected rays put it (a biased view moves the start by tens
+    of metres). Points off the DEM keep their previous target."""
+    if wts.dem is None or wts.dem_points is None or not wts.dem_points.any():
+        return wts
+    idx = np.flatnonzero(wts.dem_points)
+    h = np.asarray(wts.dem.sample(ground[idx, 0], ground[idx, 1], nodata="nan"), float)
+    obs = wts.ground_obs.copy()
+    ok = np.isfinite(h)
+    obs[idx[ok], 0], obs[idx[ok], 1], obs[idx[ok], 2] = ground[idx[ok], 0], ground[idx[ok], 1], h[ok]
+    return replace(wts, ground_obs=obs)
 
 
 def linearise(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights):
@@ -116,6 +139,7 @@ def linearise(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights
         jp[:, k2 + c, c] = 1.0
         res[:, k2 + c] = delta[:, c]
         w[:, k2 + c] = wts.ground[:, c]
+
     jg = _global_jacobian(layout, rays, lin)
     extra = (sp.identity(layout.n_params, format="csr"), -state.x, wts.prior)
     return jp, res, w, jg, extra, lin
@@ -146,10 +170,10 @@ def reintersect(models, layout: ViewLayout, rays: Rays, state: State, wts: Weigh
         return state
     sub = rays.subset(points)
     keep = np.flatnonzero(points)
-    sw = Weights(wts.rays[np.isin(rays.point, keep)], wts.ground[points], wts.prior, wts.ground_obs[points])
+    sw = wts.subset(points, np.isin(rays.point, keep))
     g = state.ground[points].copy()
     for _ in range(iterations):
-        jp, res, w, _, _, _ = linearise(models, layout, sub, State(state.x, g), sw)
+        jp, res, w, _, _, _ = linearise(models, layout, sub, State(state.x, g), resample_dem(sw, g))
         sol = solve_with_points(jp, res, w, covariance=False)
         dp = np.where(np.isfinite(sol.dx_points), sol.dx_points, 0.0)
         mx, my = metres_per_degree(g[:, 1], g[:, 2])
@@ -162,14 +186,15 @@ def reintersect(models, layout: ViewLayout, rays: Rays, state: State, wts: Weigh
 def gauss_newton(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights, *, tol_px: float = 1e-5,
                  max_iter: int = 20, progress=None):
     """Iterate :func:`step` until the predictions move less than ``tol_px`` (at most ``max_iter`` steps); the
-    predictions and derivatives at the solution. Returns ``(state, solution, lin, iterations, converged)`` (the
+    predictions and derivatives at the solution; the DEM's height targets re-sampled at the current ground before
+    each step (:func:`resample_dem`). Returns ``(state, solution, lin, iterations, converged, change)`` (the
     solution of the last step: its ``cov_global`` is the reduced system's unit-weight inverse)."""
     converged = False
     it = 0
     sol = None
     change = np.inf
     for it in range(1, max_iter + 1):
-        state, change, sol, _ = step(models, layout, rays, state, wts)
+        state, change, sol, _ = step(models, layout, rays, state, resample_dem(wts, state.ground))
         if progress is not None:
             progress(min(it / max_iter, 0.99), f"bundle iteration {it}: largest change {change:.3g} px")
         if change < tol_px:

@@ -3,7 +3,9 @@
 Ties start at their multi-view intersection with the vendor RPCs (:func:`gdal_gf4cal.intersection.intersect`);
 where it fails or the rays are nearly parallel (height standard deviation above :data:`PARALLEL_SIGMA_M` for 1 px
 measurements) the DEM's (mean of the rays' line-of-sight intersections) when one is given. GCPs start at their
-known ground.
+known ground. With a DEM every tie's height is observed ``DEM(lon, lat) ± dem_sigma_m`` (as ASP's
+``--heights-from-dem``): along the epipolar direction a relative bias of the views is a height shift of all ties,
+which ties alone cannot see; the DEM's absolute heights fix it. Without a DEM the views' priors hold the datum.
 """
 from __future__ import annotations
 
@@ -12,10 +14,14 @@ from typing import List, Mapping, Tuple
 import numpy as np
 
 from ..intersection import intersect
-from .model import Rays, ViewLayout
-from .solve import Weights
+from .model import BundleError, Rays, ViewLayout
+from .solve import Weights, resample_dem
 
-__all__ = ["PARALLEL_SIGMA_M", "start_ground", "base_weights"]
+__all__ = ["PARALLEL_SIGMA_M", "DEFAULT_DEM_SIGMA_M", "start_ground", "base_weights"]
+
+#: σ (m) of the DEM's height prior on every tie: a global DEM's typical absolute height accuracy (SRTM, Copernicus:
+#: a few metres; ~5 m with the terrain's share).
+DEFAULT_DEM_SIGMA_M = 5.0
 
 #: Height standard deviation (m, for 1 px image noise) above which the rays of a tie are "nearly parallel": the DEM
 #: gives its start (and its weak prior matters there).
@@ -83,11 +89,11 @@ def start_ground(models: Mapping[str, object], layout: ViewLayout, rays: Rays, d
     return ground, bad, notes
 
 
-def base_weights(models, layout: ViewLayout, rays: Rays, ground: np.ndarray, dem=None, parallel=None, *,
-                 gcp_sigma_m: float = 0.01, dem_sigma_m: float = 50.0) -> Weights:
+def base_weights(models, layout: ViewLayout, rays: Rays, ground: np.ndarray, dem=None, *,
+                 gcp_sigma_m: float = 0.01, dem_sigma_m: float = DEFAULT_DEM_SIGMA_M) -> Weights:
     """A-priori weights: rays ``1 / sigma^2`` (control rows; check rows 0), control GCPs' ground ``1 /
-    gcp_sigma_m^2``, the DEM's height ``1 / dem_sigma_m^2`` on the ties with nearly ``parallel`` rays (with a
-    DEM; elsewhere the rays fix the height and the DEM would only pull the block's height datum), the datum prior
+    gcp_sigma_m^2``, with a DEM every tie's height ``1 / dem_sigma_m^2`` (the DEM's height at the tie's current
+    ground, re-sampled as it moves: :func:`~gdal_gf4cal.bundle.solve.resample_dem`), the datum prior
     ``1 / prior^2``."""
     w_rays = np.where(rays.control, 1.0 / rays.sigma ** 2, 0.0)
     w_ground = np.zeros((rays.n_points, 3))
@@ -95,10 +101,13 @@ def base_weights(models, layout: ViewLayout, rays: Rays, ground: np.ndarray, dem
     ctrl_gcp = rays.point_is_gcp & rays.point_control
     w_ground[ctrl_gcp] = 1.0 / float(gcp_sigma_m) ** 2
     obs[rays.point_is_gcp] = rays.ground[rays.point_is_gcp]
-    if dem is not None and parallel is not None and parallel.any():
-        ties = np.flatnonzero(parallel & ~rays.point_is_gcp)
-        h = np.asarray(dem.sample(ground[ties, 0], ground[ties, 1], nodata="nan"), float)
-        ok = np.isfinite(h)
-        obs[ties[ok]] = np.stack([ground[ties[ok], 0], ground[ties[ok], 1], h[ok]], axis=1)
-        w_ground[ties[ok], 2] = 1.0 / float(dem_sigma_m) ** 2
-    return Weights(rays=w_rays, ground=w_ground, prior=1.0 / layout.prior_px ** 2, ground_obs=obs)
+    wts = Weights(rays=w_rays, ground=w_ground, prior=1.0 / layout.prior_px ** 2, ground_obs=obs)
+    if dem is None:
+        return wts
+    if not (np.isfinite(dem_sigma_m) and dem_sigma_m > 0):
+        raise BundleError(f"the DEM's height sigma must be a positive number of metres, got {dem_sigma_m!r}")
+    ties = ~rays.point_is_gcp
+    wts.dem, wts.dem_points = dem, ties
+    wts = resample_dem(wts, ground)
+    wts.ground[ties & np.isfinite(wts.ground_obs[:, 2]), 2] = 1.0 / float(dem_sigma_m) ** 2
+    return wts

@@ -22,7 +22,12 @@ def add_parser(parser):
                         help="find tie points by raw-to-raw matching through the RPCs and the DEM on the "
                              "overlapping pairs of views (every view joined first, then the largest overlaps)")
     parser.add_argument("--dem", metavar="DEM|HEIGHT", help="DEM (any GDAL raster) or a constant height in metres: "
-                                                            "starting heights, matching, a weak height prior")
+                                                            "starting heights, matching, and every tie's height "
+                                                            "prior (fixes the views' relative bias along the "
+                                                            "epipolar direction)")
+    parser.add_argument("--dem-sigma", type=float, metavar="M",
+                        help="σ (m) of the DEM's height prior on the ties (default 5 m, a global DEM's typical "
+                             "absolute accuracy)")
     add_geoid_argument(parser)
     parser.add_argument("--gcps", metavar="OBS", help="GCP observations (point_id,image,sample,line,lon,lat,h"
                                                       "[,role][,sigma]): tie the block to the ground")
@@ -34,7 +39,7 @@ def add_parser(parser):
     parser.add_argument("--prior-sigma", nargs="+", metavar="[VIEW=]PX",
                         help="how far (px, 1 sigma) each view's RPC may be off: the datum prior that holds the block "
                              "without GCPs; a number for every view and/or VIEW=PX for one (default: the RPC's "
-                             "ERR_BIAS, else 3 px); widen it for a view known to be far off")
+                             "ERR_BIAS, else 5 m over the pixel size); widen it for a view known to be far off")
     from . import add_plausibility_argument, add_rpc_pairs_argument
     add_rpc_pairs_argument(parser)
     add_plausibility_argument(parser, "GCPs")
@@ -51,7 +56,7 @@ def run(args) -> int:
     from ..workflows import bundle_adjust
     rep = bundle_adjust(args.images, ties=args.ties, match_ties=args.match_ties, dem=args.dem, geoid=args.geoid,
                         gcps=args.gcps, model=args.model, max_pairs=args.max_pairs, rpcs=args.rpc,
-                        prior_sigma_px=args.prior_sigma, out=args.out,
+                        prior_sigma_px=args.prior_sigma, dem_sigma_m=args.dem_sigma, out=args.out,
                         overwrite=args.overwrite, progress=TextProgressBar(),
                         check_plausibility=not args.no_plausibility_check)
     t, est = rep["ties"], rep["estimate"]

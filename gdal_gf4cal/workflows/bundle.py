@@ -323,8 +323,8 @@ def _declare(views: Views, out, overwrite: bool, progress, matched: bool) -> Out
 
 def bundle_adjust(images: Sequence, *, out, ties=None, match_ties: bool = False, dem=None, geoid=None, gcps=None,
                   model: str = "affine", max_pairs: Optional[int] = None, rpcs=None,
-                  prior_sigma_px: Optional[float] = None, overwrite: bool = False, progress=None,
-                  check_plausibility: bool = True) -> Dict[str, Any]:
+                  prior_sigma_px: Optional[float] = None, dem_sigma_m: Optional[float] = None,
+                  overwrite: bool = False, progress=None, check_plausibility: bool = True) -> Dict[str, Any]:
     """Bundle adjustment of separate views from files (METHODS §11); see the module docstring for names, outputs
     and refusals.
 
@@ -334,8 +334,12 @@ def bundle_adjust(images: Sequence, *, out, ties=None, match_ties: bool = False,
     out : output folder.
     ties : tie-point observation file (CSV/GeoPackage, long format ``point_id, image, sample, line[, sigma]``).
     match_ties : find tie points by raw-to-raw matching (every view must then be an image).
-    dem : DEM path or constant height (m): starting heights and a weak height prior; ``geoid`` its vertical datum.
-        Without it matching uses the RPCs' mean height offset (a warning says so).
+    dem : DEM path or constant height (m): starting heights and every tie's height prior ``DEM ± dem_sigma_m``
+        (it fixes the along-epipolar part of the views' relative bias, which ties alone cannot see); ``geoid`` its
+        vertical datum. Without it matching uses the RPCs' mean height offset (a warning says so) and the ties get
+        no height prior.
+    dem_sigma_m : σ (m) of the DEM's height prior (CLI ``--dem-sigma``; default
+        :data:`gdal_gf4cal.bundle.DEFAULT_DEM_SIGMA_M`, a global DEM's typical absolute accuracy).
     gcps : GCP observation file (``point_id, image, sample, line, lon, lat, h[, role][, sigma]``), optional.
     model : per-view correction, ``translation``, ``shift-drift`` or ``affine`` (falls back where ties do not
         support it, with a note).
@@ -343,7 +347,7 @@ def bundle_adjust(images: Sequence, *, out, ties=None, match_ties: bool = False,
     rpcs : ``["IMAGE=RPC", ...]`` or ``{image: rpc}``: an image's RPC given apart (a crop's product RPC).
     prior_sigma_px : σ (px) of the datum prior on each view's correction parameters: a number for every view,
         ``{view: px}`` or ``["PX", "VIEW=PX", ...]`` (CLI ``--prior-sigma``); default the RPC's stated bias error
-        (ERR_BIAS), else a few pixels. A view known to be far off (a deliberately biased RPC) needs a wide one.
+        (ERR_BIAS), else 5 m on the ground over the view's pixel size. A view known to be far off (a deliberately biased RPC) needs a wide one.
     check_plausibility : check GCPs as ``refine`` does (``False``: experts).
 
     Returns
@@ -365,7 +369,8 @@ def bundle_adjust(images: Sequence, *, out, ties=None, match_ties: bool = False,
                                                   progress=_progress.scaled(progress, 0.0, 0.4))
             tab = _merge(tab, matched)
             write_observations(matched, outs.tmp("ties"), overwrite=True)
-        est, after = _adjust(views, tab, dem_obj, model, views.prior, _progress.scaled(progress, 0.4, 0.8))
+        est, after = _adjust(views, tab, dem_obj if dem is not None else None, model, views.prior,
+                             _progress.scaled(progress, 0.4, 0.8), dem_sigma_m)
         rep = _report(views, est, after, model, pairs_info, outs, ties_source=_tie_source(ties, match_ties))
         _write_outputs(views, est, after, rep, outs, _progress.scaled(progress, 0.8, 1.0))
         finish_report(rep, warns)
@@ -389,17 +394,18 @@ def _tie_source(ties, match_ties) -> str:
                         + (["raw-to-raw matching"] if match_ties else []))
 
 
-def _adjust(views: Views, tab, dem, model: str, prior_sigma_px, progress):
+def _adjust(views: Views, tab, dem, model: str, prior_sigma_px, progress, dem_sigma_m=None):
     """The engine (:func:`gdal_gf4cal.bundle.adjust_views`) and each view's corrected RPC
     (:func:`gdal_gf4cal.compensation.apply_compensation`: folded, or refitted over the view with its error):
     ``(estimate, {view: AppliedCompensation})``."""
-    from ..bundle import adjust_views
+    from ..bundle import DEFAULT_DEM_SIGMA_M, adjust_views
     from ..compensation import apply_compensation
     if tab is None or not (tab["kind"] == "tie").any():
         raise GCPError("no tie points: the observation files hold none; give tie rows (point_id seen in two or "
                        "more images) or --match-ties")
     est = adjust_views(tab, views.models, dem=dem, model=model, sizes={k: v for k, v in views.sizes.items() if v},
-                       prior_sigma_px=prior_sigma_px, robust=True, progress=progress)
+                       prior_sigma_px=prior_sigma_px, robust=True, progress=progress,
+                       dem_sigma_m=DEFAULT_DEM_SIGMA_M if dem_sigma_m is None else float(dem_sigma_m))
     after = {k: apply_compensation(views.models[k], est.corrections[k], image_size=views.sizes.get(k))
              for k in views.keys}
     return est, after

@@ -30,7 +30,7 @@ OBS_FILTER = "Observation tables (*.csv *.gpkg *.CSV *.GPKG);;All files (*.*)"
 #: The engine's option names in messages -> this dialog's parameters.
 WORDS = (("(--prior-sigma)", "(PRIOR_SIGMA)"), ("--prior-sigma", "PRIOR_SIGMA"), ("--ties OBS", "TIES_FILE"),
          ("--ties / --match-ties", "TIES_FILE / MATCH_TIES"), ("--match-ties", "MATCH_TIES"), ("--ties", "TIES_FILE"),
-         ("--max-pairs", "MAX_PAIRS"), ("--gcps", "GCPS_FILE"), ("--dem", "DEM"), ("--overwrite", "a new folder"))
+         ("--max-pairs", "MAX_PAIRS"), ("--gcps", "GCPS_FILE"), ("--dem-sigma", "DEM_SIGMA"), ("--dem", "DEM"), ("--overwrite", "a new folder"))
 
 
 def dialog_words(message: str) -> str:
@@ -66,6 +66,7 @@ class BundleAdjust(Gf4calAlgorithm):
     MODEL = "MODEL"
     MAX_PAIRS = "MAX_PAIRS"
     PRIOR_SIGMA = "PRIOR_SIGMA"
+    DEM_SIGMA = "DEM_SIGMA"
     OUTPUT_FOLDER = "OUTPUT_FOLDER"
 
     def initAlgorithm(self, config=None):
@@ -102,7 +103,14 @@ class BundleAdjust(Gf4calAlgorithm):
                                                     optional=True),
                        "The 1-sigma prior on each view's correction that holds the block without GCPs: a number "
                        "for every view and/or VIEW=PX items (e.g. right=100), separated by commas or spaces. Empty: "
-                       "the RPC's stated bias error (ERR_BIAS), else 3 px. Widen it for a view known to be far off.")
+                       "the RPC's stated bias error (ERR_BIAS), else 5 m over the view's pixel size. Widen it for a "
+                       "view known to be far off.")
+        self._advanced(QgsProcessingParameterNumber(self.DEM_SIGMA, self.tr("DEM height accuracy (m)"),
+                                                    QgsProcessingParameterNumber.Double, defaultValue=5.0,
+                                                    minValue=0.001),
+                       "With a DEM every tie's height is held to the DEM within this 1-sigma (m): it fixes the "
+                       "views' relative bias along the epipolar direction, which tie points alone cannot see. "
+                       "Default 5 m, a global DEM's typical absolute accuracy.")
         self.add_rpc_pairs_parameter()
         self.add_plausibility_parameter()
         self._add(QgsProcessingParameterFolderDestination(self.OUTPUT_FOLDER, self.tr("Output folder")),
@@ -144,6 +152,7 @@ class BundleAdjust(Gf4calAlgorithm):
                 max_pairs=None if max_pairs in (None, "") else self.parameterAsInt(parameters, self.MAX_PAIRS,
                                                                                   context),
                 prior_sigma_px=split_items(self.parameterAsString(parameters, self.PRIOR_SIGMA, context)) or None,
+                dem_sigma_m=self.parameterAsDouble(parameters, self.DEM_SIGMA, context),
                 rpcs=self.rpc_pairs(parameters, context), check_plausibility=self.check_plausibility(parameters,
                                                                                                     context))
         except Gf4calError as exc:
