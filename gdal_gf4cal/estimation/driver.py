@@ -300,6 +300,22 @@ def _start(problem, start, candidates, min_points, n_subsets: int, seed: int, to
     return RobustState(cand, used.astype(float), cand & ~used, start_sigma, tol)
 
 
+#: A 2-cycle of the robust weights: the new weights back within this fraction of their jump from the current ones
+#: to those of two steps ago (Giza: one ray's Huber weight jumps by 0.88 and comes back, closer by half each
+#: round, so the corrections never settle).
+CYCLE_TOL = 0.01
+
+
+def _two_cycle(new_w, current, before) -> bool:
+    """The reweighting is in a 2-cycle: the new weights are (within :data:`CYCLE_TOL` of their jump) those of two
+    steps ago, and differ from the current ones."""
+    if before is None:
+        return False
+    new_w, current, before = (np.asarray(a, float) for a in (new_w, current, before))
+    jump = np.max(np.abs(new_w - current), initial=0.0)
+    return bool(jump > 1e-6 and np.max(np.abs(new_w - before), initial=0.0) <= CYCLE_TOL * jump)
+
+
 def robust_fit(problem, *, norm: Any = None, start: Any = "lts", candidates=None, min_points: Optional[int] = None,
                n_subsets: int = 300, seed: int = 0, max_iter: int = 20, tol: float = 1e-6,
                on_degenerate: str = "raise") -> Estimate:
@@ -337,10 +353,16 @@ def robust_fit(problem, *, norm: Any = None, start: Any = "lts", candidates=None
         est = problem.fit(st.weights)
         max_iter = 0
     it = 0
+    before = None                                         # the weights two steps ago
     for it in range(1, max_iter + 1):
         new_w = norm.step(problem, est, st)
         if new_w is None:
             break
+        if _two_cycle(new_w, st.weights, before):
+            st.info["cycle"] = True
+            st.notes.append("the robust weights alternate between two sets: stopped on the current one")
+            break
+        before = st.weights
         try:
             new = problem.fit(new_w)
         except DegenerateGeometryError:

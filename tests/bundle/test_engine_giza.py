@@ -47,7 +47,7 @@ def test_giza_tri_view_against_the_best_affine_and_cars(giza, monkeypatch):
     assert set(best.model_used.values()) == {"affine"}
     assert best.reprojection["after"]["all"] <= est.reprojection["after"]["all"] \
         < 1.05 * best.reprojection["after"]["all"]                      # 0.2263 px
-    assert est.datum_drift_m < 1.0                                      # 0.007 m without control
+    assert est.datum_drift_m < 1.0                                      # 0.068 m without control
     for v in ("two", "three"):                                          # CARS's delta is minus our correction
         cars = -np.array([(t[f"delta_col_{v}"] - t["delta_col_one"]).mean(),
                           (t[f"delta_row_{v}"] - t["delta_row_one"]).mean()])
@@ -61,5 +61,6 @@ def test_giza_robust_rejects_a_few_rays_and_keeps_the_datum(giza):
     assert 0 < n_out < 0.1 * len(obs)
     assert est.reprojection["after"]["all"] < 0.16 and est.datum_drift_m < 1.0
     assert est.converged
-    # known: one ray's Huber weight cycles (0.006 px in the corrections), so the reweighting ends on its cap, said
-    assert any("did not settle" in w for w in est.warnings)
+    # known: one ray's Huber weight cycles (it jumps by 0.88 and comes back): the driver stops on the 2-cycle, said
+    assert any("alternate between two sets" in n for n in est.notes) and not est.warnings
+    assert est.norm_info.get("cycle")
