@@ -78,7 +78,7 @@ class Views:
         return tuple(float(v) for v in (size if size is not None else self.models[key].image_size))
 
 
-def _check_options(paths: Sequence[str], ties, match_ties: bool, model: str, max_pairs) -> None:
+def _check_options(paths: Sequence[str], ties, match_ties: bool, model: str, max_pairs, dem_sigma_m=None) -> None:
     if len(paths) < 2:
         raise GCPError(f"bundle adjustment needs at least two views; {len(paths)} given: give two or more images "
                        "(or, with --ties, RPC files) of the same ground")
@@ -88,6 +88,8 @@ def _check_options(paths: Sequence[str], ties, match_ties: bool, model: str, max
         raise GCPError("no tie points: give --ties OBS (the observation table) or --match-ties")
     if max_pairs is not None and int(max_pairs) < 1:
         raise GCPError(f"--max-pairs {max_pairs}: give at least 1 (pairs of views to match)")
+    if dem_sigma_m is not None and not (np.isfinite(float(dem_sigma_m)) and float(dem_sigma_m) > 0):
+        raise GCPError(f"--dem-sigma {dem_sigma_m}: give the DEM's height accuracy as a positive number of metres")
 
 
 def load_views(images: Sequence, rpcs=None, *, need_images: bool = False) -> Views:
@@ -356,7 +358,7 @@ def bundle_adjust(images: Sequence, *, out, ties=None, match_ties: bool = False,
     """
     from .. import progress as _progress
     paths = [os.fspath(p) for p in images]
-    _check_options(paths, ties, match_ties, model, max_pairs)
+    _check_options(paths, ties, match_ties, model, max_pairs, dem_sigma_m)
     warns: List[str] = []
     views, dem_obj, tab = _prepare(paths, ties=ties, gcps=gcps, match_ties=match_ties, dem=dem, geoid=geoid,
                                    rpcs=rpcs, prior_sigma_px=prior_sigma_px,

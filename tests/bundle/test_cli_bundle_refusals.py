@@ -41,6 +41,11 @@ def test_fewer_than_two_views(views, tmp_path, capsys):
     _refused(capsys, [views[0], "--match-ties", *V.dem_args()], "at least two views", tmp_path / "out")
 
 
+def test_dem_sigma_not_positive(views, tmp_path, capsys):
+    _refused(capsys, [*views, "--match-ties", *V.dem_args(), "--dem-sigma", "0"], "--dem-sigma 0.0: give the DEM's",
+             tmp_path / "out")
+
+
 def test_no_tie_source(views, tmp_path, capsys):
     _refused(capsys, [*views, *V.dem_args()], "--ties OBS", tmp_path / "out")
 
