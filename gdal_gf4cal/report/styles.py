@@ -79,14 +79,19 @@ def _class_breaks(magnitudes: np.ndarray, n: int = len(_RAMP)) -> list:
     return [i * step for i in range(n)] + [max(step * n, top) * 1e6]
 
 
+def _graduated_range(breaks, i: int):
+    """Class ``i`` of graduated ``breaks`` (px): ``(lower, upper, label, QML <range>)``; the last class is open."""
+    lo, hi = breaks[i], breaks[i + 1]
+    label = f"{lo:g} - {hi:g} px" if i < len(breaks) - 2 else f">= {lo:g} px"
+    return lo, hi, label, (f'<range lower="{lo:.10g}" upper="{hi:.10g}" symbol="{i}" label={quoteattr(label)} '
+                           'render="true"/>')
+
 def _vector_style(breaks, alpha: float = 1.0) -> Tuple[str, str]:
     """Graduated arrows on ``res_px`` (QML) and the equivalent SLD rules."""
     ranges, symbols, rules = [], [], []
     for i in range(len(breaks) - 1):
-        lo, hi = breaks[i], breaks[i + 1]
-        label = f"{lo:g} - {hi:g} px" if i < len(breaks) - 2 else f">= {lo:g} px"
-        ranges.append(f'<range lower="{lo:.10g}" upper="{hi:.10g}" symbol="{i}" label={quoteattr(label)} '
-                      'render="true"/>')
+        lo, hi, label, xml = _graduated_range(breaks, i)
+        ranges.append(xml)
         symbols.append(_arrow_symbol(str(i), _RAMP[i], alpha))
         rules.append(
             f"<se:Rule><se:Name>{escape(label)}</se:Name><ogc:Filter><ogc:And>"
@@ -197,10 +202,8 @@ def seams_style(columns: Mapping[str, Any], lon, lat) -> Tuple[str, str, str, fl
     breaks = _class_breaks(mag)
     ranges, symbols, rules = [], [], []
     for i in range(len(breaks) - 1):
-        lo, hi = breaks[i], breaks[i + 1]
-        label = f"{lo:g} - {hi:g} px" if i < len(breaks) - 2 else f">= {lo:g} px"
-        ranges.append(f'<range lower="{lo:.10g}" upper="{hi:.10g}" symbol="{i}" label={quoteattr(label)} '
-                      'render="true"/>')
+        lo, hi, label, xml = _graduated_range(breaks, i)
+        ranges.append(xml)
         arrow = _layer("GeometryGenerator", {"SymbolType": "Line", "geometryModifier": expr, "units": "MapUnit"},
                        _arrow_symbol(f"@{i}@0", _RAMP[i]))
         dot = _marker_symbol(str(i), "circle", _RAMP[i], 1.6)
