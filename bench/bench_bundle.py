@@ -5,7 +5,8 @@ every view whose image holds it, ~8 of 10), robust weights on.
 
 Prints, per tie count, the wall and CPU time of ``adjust_views`` (input checks, intersection start, Gauss-Newton with
 the points eliminated by Schur complement, robust reweighting, report), the ratio to the target (issue 22: 10 views
-x 100,000 ties < 10 s), the side of the reduced system (it must not grow with the ties: 6 per view) and the tie
+x 100,000 ties < 10 s; the machine's 1-minute load average during the run beside it), the side of the reduced
+system (it must not grow with the ties: 6 per view) and the tie
 reprojection after. The simulation is not timed.
 
 Usage: python bench/bench_bundle.py [--views 10] [--ties 10000 100000] [--no-robust]
@@ -13,6 +14,7 @@ Usage: python bench/bench_bundle.py [--views 10] [--ties 10000 100000] [--no-rob
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 from gdal_gf4cal.bundle import adjust_views
@@ -23,10 +25,12 @@ TARGET_S = 10.0
 
 def run(n_views: int, n_ties: int, robust: bool) -> dict:
     sim = simulate_views("multi-date", n_views, n_ties=n_ties, noise_px=0.2, seed=1)
+    load = os.getloadavg()[0]
     wall, cpu = time.perf_counter(), time.process_time()
     est = adjust_views(sim.observations, sim.models, robust=robust)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     return {"ties": n_ties, "rays": len(sim.observations), "wall_s": wall, "cpu_s": cpu,
+            "load": 0.5 * (load + os.getloadavg()[0]),
             "reduced": est.reduced_size, "steps": est.iterations, "after_px": est.reprojection["after"]["all"],
             "converged": est.converged}
 
@@ -41,10 +45,11 @@ def main(argv=None) -> None:
     print(f"bundle adjustment, {a.views} views, robust={'off' if a.no_robust else 'on'} "
           f"(target: 100,000 ties < {TARGET_S:g} s)")
     print(f"{'ties':>8} {'rays':>8} {'wall s':>8} {'cpu s':>8} {'ratio':>6} {'reduced':>8} {'steps':>6} "
-          f"{'after px':>9}")
+          f"{'after px':>9} {'load':>5}")
     for r in rows:
         print(f"{r['ties']:>8} {r['rays']:>8} {r['wall_s']:>8.2f} {r['cpu_s']:>8.2f} "
-              f"{r['wall_s'] / TARGET_S:>6.2f} {r['reduced']:>8} {r['steps']:>6} {r['after_px']:>9.3f}"
+              f"{r['wall_s'] / TARGET_S:>6.2f} {r['reduced']:>8} {r['steps']:>6} {r['after_px']:>9.3f} "
+              f"{r['load']:>5.1f}"
               + ("" if r["converged"] else "  (not converged)"))
     sizes = {r["reduced"] for r in rows}
     print("reduced system " + ("constant: " if len(sizes) == 1 else "GROWS: ") + ", ".join(map(str, sorted(sizes))))

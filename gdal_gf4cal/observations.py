@@ -260,14 +260,28 @@ def _renamed_observation_columns(table, source):
     return df
 
 
+def _clean_text(col: pd.Series, lower: bool = False) -> pd.Series:
+    """``col`` as stripped (and lower-cased) text, NaN kept: each distinct value cleaned once (a table of a
+    million rows has a few images and kinds), the rows then taken from the cleaned values."""
+    if pd.api.types.infer_dtype(col, skipna=True) != "string":
+        col = col.where(col.isna(), col.astype(str))           # numbers as their text, as before (1 and 1.0 differ)
+    codes, uniq = pd.factorize(col.to_numpy(), use_na_sentinel=True)
+    clean = pd.Index(uniq).astype(str).str.strip()
+    if lower:
+        clean = clean.str.lower()
+    out = np.append(clean.to_numpy(object), np.nan)[codes]     # code -1 (missing): the NaN appended
+    return pd.Series(out, index=col.index, name=col.name)
+
+
 def _check_ids_and_numbers(df, source) -> None:
     """Ids as stripped text, never empty; coordinates numeric (in place), image positions finite."""
     for c in ("point_id", "image_id"):
-        bad = df[c].isna() | (df[c].astype(str).str.strip() == "")
+        text = _clean_text(df[c])
+        bad = text.isna() | (text == "")
         if bad.any():
             raise GCPError(f"{source}: column {c} is empty on row {int(np.flatnonzero(bad.to_numpy())[0]) + 1}; "
                            "give every observation a point id and an image")
-        df[c] = df[c].astype(str).str.strip()
+        df[c] = text
     for c in ("sample", "line", "lon", "lat", "h"):
         if c not in df.columns:
             df[c] = np.nan
@@ -287,7 +301,7 @@ def _checked_kinds(df, source) -> np.ndarray:
     inferred = np.where(has_ground, "gcp", "tie")
     if "kind" not in df.columns:
         df["kind"] = inferred
-    df["kind"] = df["kind"].fillna("").astype(str).str.strip().str.lower()
+    df["kind"] = _clean_text(df["kind"], lower=True).fillna("")
     df["kind"] = df["kind"].where(df["kind"] != "", inferred)          # blank kind: inferred as when absent
     bad = ~df["kind"].isin(KINDS)
     if bad.any():
@@ -304,17 +318,25 @@ def _checked_kinds(df, source) -> np.ndarray:
 
 def _check_points(df, gcp, source) -> None:
     """One observation per point and image, one kind per point, tie points seen by two images or more."""
-    dup = df.duplicated(["point_id", "image_id"])
-    if dup.any():
-        r = df[dup].iloc[0]
+    point, _ = pd.factorize(df["point_id"])
+    image, images = pd.factorize(df["image_id"])
+    key = point.astype(np.int64) * max(len(images), 1) + image
+    _, first, count = np.unique(key, return_index=True, return_counts=True)
+    if (count > 1).any():
+        dup = np.ones(len(df), bool)
+        dup[first] = False
+        r = df.iloc[int(np.flatnonzero(dup)[0])]
         raise GCPError(f"{source}: point {r['point_id']!r} is measured twice in image {r['image_id']!r}; "
                        "keep one observation per point and image")
-    kinds_per_point = df.groupby("point_id", sort=False)["kind"].nunique()
-    if (kinds_per_point > 1).any():
-        raise GCPError(f"{source}: point {kinds_per_point.index[kinds_per_point.to_numpy() > 1][0]!r} is both a GCP "
+    n_pts = int(point.max()) + 1
+    n_gcp = np.bincount(point, weights=gcp.astype(float), minlength=n_pts)
+    n_images = np.bincount(point, minlength=n_pts)
+    mixed = (n_gcp > 0) & (n_gcp < n_images)
+    if mixed.any():
+        row = int(np.flatnonzero(mixed[point])[0])
+        raise GCPError(f"{source}: point {df['point_id'].iloc[row]!r} is both a GCP "
                        "and a tie point; give it lon/lat on every row or on none")
-    n_images = df.groupby("point_id", sort=False)["image_id"].transform("size").to_numpy()
-    lone_tie = (~gcp) & (n_images < 2)
+    lone_tie = (~gcp) & (n_images[point] < 2)
     if lone_tie.any():
         raise GCPError(f"{source}: tie point {df['point_id'].iloc[int(np.flatnonzero(lone_tie)[0])]!r} is seen by "
                        "only one image; a tie point needs two or more (drop it or give its lon/lat to make it a GCP)")
@@ -344,7 +366,7 @@ def _check_roles_sigma_flags(df, source) -> None:
     """Roles (filled ``control``), positive sigmas (filled 1 px) and the outlier flags as booleans, in place."""
     if "role" not in df.columns:
         df["role"] = "control"
-    df["role"] = df["role"].fillna("control").astype(str).str.strip().str.lower().replace("", "control")
+    df["role"] = _clean_text(df["role"], lower=True).fillna("control").replace("", "control")
     bad = ~df["role"].isin(ROLES)
     if bad.any():
         raise GCPError(f"{source}: role {df['role'][bad].iloc[0]!r} is not 'control' or 'check'")

@@ -40,7 +40,7 @@ class BundleProblem:
         self.tol_px, self.max_iter, self.progress = tol_px, max_iter, progress
         self.solution = self.lin = None
         self.sd_factor = np.ones(self.n_points)
-        self.refit_steps = 4
+        self.refit_steps = 1                      # reweighted: one Gauss-Newton step per reweighting
         self.last_change = np.inf
         self.point_cov = None
         self.iterations, self.converged = 0, False
@@ -69,7 +69,7 @@ class BundleProblem:
         steps = self.max_iter if self.solution is None else self.refit_steps   # reweighted: Gauss-Newton steps
         self.state, self.solution, self.lin, it, self.converged, self.last_change = gauss_newton(
             self.models, self.layout, self.rays, self.state, wts, tol_px=self.tol_px, max_iter=steps,
-            progress=self.progress)
+            progress=self.progress, lin=self.lin, warm=self.solution is not None)
         self.iterations += it
         lost = ~self.solution.ok & (np.bincount(self.rays.point, weights=(self.base.rays > 0).astype(float),
                                                 minlength=self.rays.n_points) >= 2)
@@ -79,17 +79,24 @@ class BundleProblem:
         return _estimate(self, wts)
 
 
-def _ray_variance(pb: BundleProblem, w_rays: np.ndarray):
+def _ray_variance(pb: BundleProblem, w_rays: np.ndarray, rows=None):
     """``j^T N_pp^-1 j`` (n_rays, 2) of each ray through its point's own block at weights ``w_rays`` (the views'
     parameters held: the datum's uncertainty, shared by a point and the corrections, cancels in a residual), and
-    which points the block determines."""
+    which points the block determines; ``rows`` (bool, n_rays): only those rays' (the others 0)."""
     rays, jac = pb.rays, pb.lin.jac_points
-    outer = np.einsum("nai,naj->nij", jac * w_rays[:, None, None], jac).reshape(-1, 9)
-    npp = np.stack([np.bincount(rays.point, weights=outer[:, c], minlength=rays.n_points) for c in range(9)],
-                   axis=1).reshape(-1, 3, 3)
+    jw = jac * w_rays[:, None, None]
+    npp = np.empty((rays.n_points, 3, 3))
+    for a in range(3):                                   # the 6 distinct entries, one bincount each
+        for b in range(a, 3):
+            npp[:, a, b] = npp[:, b, a] = np.bincount(rays.point, weights=jw[:, 0, a] * jac[:, 0, b]
+                                                      + jw[:, 1, a] * jac[:, 1, b], minlength=rays.n_points)
     npp[:, [0, 1, 2], [0, 1, 2]] += pb.base.ground
     inv, ok = block_inverse(npp)
-    return np.einsum("nai,nij,naj->na", jac, np.nan_to_num(inv[rays.point]), jac), ok, inv
+    out = np.zeros((rays.view.size, 2))
+    sel = slice(None) if rows is None else np.flatnonzero(rows)
+    j = jac[sel]
+    out[sel] = np.einsum("nai,nai->na", np.matmul(j, np.nan_to_num(inv)[rays.point[sel]]), j)
+    return out, ok, inv
 
 
 def _estimate(pb: BundleProblem, wts: Weights) -> Estimate:
@@ -102,7 +109,8 @@ def _estimate(pb: BundleProblem, wts: Weights) -> Estimate:
     w0 = np.repeat(pb.base.rays[:, None], 2, axis=1)
     w2 = np.repeat(wts.rays[:, None], 2, axis=1)
     q, ok, pb.point_cov = _ray_variance(pb, wts.rays)
-    q0, _, _ = _ray_variance(pb, pb.base.rays)
+    lone = (wts.rays == 0) & ~ok[rays.point]              # rays left out whose point is undetermined without them
+    q0 = _ray_variance(pb, pb.base.rays, lone)[0] if lone.any() else np.zeros_like(q)
     red = np.where(w2 > 0, np.clip(1.0 - w2 * q, 0.0, 1.0), 0.0)
     var = np.where(w2 > 0, np.maximum(red, 0.05) / np.maximum(w2, 1e-300),
                    np.where(ok[rays.point, None], 1.0 / np.maximum(w0, 1e-300) + q,
@@ -220,7 +228,10 @@ def _result(est: Estimate, pb: BundleProblem, tab, before, ground0, notes: List[
     rep = {"before": reprojection(rays.meas - before.pred, rays, layout, used_b),
            "after": reprojection(rays.meas - after.pred, rays, layout, used_b)}
     drift, drift_enu = datum_drift(ground0, pb.state.ground, np.flatnonzero(~rays.point_is_gcp))
-    corrections = {v: view_correction(layout, v, est.x, est.cov, est.sigma0, table) for v in layout.views}
+    by_view = np.argsort(rays.view, kind="stable")                      # each view's rows in table order
+    cut = np.searchsorted(rays.view[by_view], np.arange(len(layout.views) + 1))
+    corrections = {v: view_correction(layout, v, est.x, est.cov, est.sigma0, table, by_view[cut[j]:cut[j + 1]])
+                   for j, v in enumerate(layout.views)}
     out = BundleEstimate(**{f: getattr(est, f) for f in Estimate.__dataclass_fields__})
     out.notes = list(est.notes) + notes
     out.views, out.corrections = list(layout.views), corrections

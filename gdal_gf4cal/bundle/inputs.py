@@ -109,13 +109,17 @@ def make_layout(tab: pd.DataFrame, models: Mapping[str, object], sizes, model: s
     offset: Dict[str, int] = {}
     priors: List[np.ndarray] = []
     notes: List[str] = []
-    ctrl = tab[(tab["role"] == "control").to_numpy()]
+    ctrl = (tab["role"] == "control").to_numpy()
+    code = pd.Categorical(tab["image_id"], categories=views).codes       # one pass, not one per view
+    order = np.argsort(np.where(ctrl, code, -1), kind="stable")
+    bounds = np.searchsorted(np.where(ctrl, code, -1)[order], np.arange(len(views) + 1))
+    s_all, l_all = tab["sample"].to_numpy(float), tab["line"].to_numpy(float)
     pos = 0
-    for v in views:
+    for j, v in enumerate(views):
         m = base
         if base.name != "translation":
-            rows = ctrl[ctrl["image_id"] == v]
-            su, sv = _span(rows["sample"].to_numpy(float), rows["line"].to_numpy(float), sizes[v])
+            rows = order[bounds[j]:bounds[j + 1]]
+            su, sv = _span(s_all[rows], l_all[rows], sizes[v])
             if min(su, sv) < MIN_SPAN:
                 m = CompensationModel.from_name("translation")
                 notes.append(f"{v}: {base.name} needs ties over {MIN_SPAN:.0%} of the image on both axes, they span "

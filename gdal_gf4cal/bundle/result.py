@@ -82,14 +82,15 @@ def reprojection(res: np.ndarray, rays: Rays, layout: ViewLayout, used: np.ndarr
 
 
 def view_correction(layout: ViewLayout, view: str, x: np.ndarray, cov: np.ndarray, sigma0: float,
-                    table: pd.DataFrame) -> CompensationResult:
-    """The view's correction as the one correction class (coefficients, covariance per axis, its rows)."""
+                    table: pd.DataFrame, rows: Optional[np.ndarray] = None) -> CompensationResult:
+    """The view's correction as the one correction class (coefficients, covariance per axis, its rows: ``rows``
+    (positions in ``table``) when known, else the table's rows of the view)."""
     sl_s, sl_l = layout.slices(view)
     res = CompensationResult.from_coefficients(layout.models_used[view], layout.frame(view), x[sl_s], x[sl_l])
     res.cov_sample, res.cov_line = cov[sl_s, sl_s].copy(), cov[sl_l, sl_l].copy()
     res.sigma0_px = (float(sigma0), float(sigma0))
-    rows = table[table["image_id"] == view].rename(columns={"point_id": "id"})
-    res.gcps = rows.reset_index(drop=True)
+    sub = table[table["image_id"] == view] if rows is None else table.iloc[rows]
+    res.gcps = sub.rename(columns={"point_id": "id"}).reset_index(drop=True)
     return res
 
 

@@ -10,17 +10,18 @@ datum: one pseudo-observation per correction parameter, ``0 ± prior`` (the ``ex
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
-from typing import Any, Dict, Mapping, Optional
+from dataclasses import dataclass, replace
+from typing import Any, Mapping, Optional
 
 import numpy as np
 import scipy.sparse as sp
 
-from ..estimation import IndexedJacobian, solve_with_points
+from ..estimation.indexed import solve_rows
+from ..estimation.schur import PointSolution
 from ..geodesy import metres_per_degree
 from .model import Rays, ViewLayout
 
-__all__ = ["State", "Linearisation", "linearise", "gauss_newton", "project_all", "resample_dem"]
+__all__ = ["State", "Linearisation", "System", "linearise", "gauss_newton", "project_all", "resample_dem"]
 
 
 @dataclass
@@ -34,12 +35,22 @@ class State:
 @dataclass
 class Linearisation:
     """Predictions and derivatives at one state: ``pred`` (n_rays, 2) corrected positions, ``rpc_pred`` (the RPC's
-    own), ``jac_points`` (n_rays, 2, 3) px per metre (east, north, up), ``design`` (view -> rows, A_s, A_l)."""
+    own), ``jac_points`` (n_rays, 2, 3) px per metre (east, north, up), ``cols`` / ``vals`` (2, n_rays, c): the
+    parameters each ray's sample (0) and line (1) correction uses and their derivatives (padded with 0)."""
 
     pred: np.ndarray
     rpc_pred: np.ndarray
     jac_points: Optional[np.ndarray]
-    design: Dict[int, Any] = field(default_factory=dict)
+    cols: Optional[np.ndarray] = None
+    vals: Optional[np.ndarray] = None
+
+
+def _to_metres(jac: np.ndarray, lat: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """``d(s, l)/d(lon, lat, h)`` (n, 2, 3) to px per metre east, north, up, in place."""
+    mx, my = metres_per_degree(lat, h)
+    jac[:, :, 0] /= mx[:, None]
+    jac[:, :, 1] /= my[:, None]
+    return jac
 
 
 def project_all(models: Mapping[str, Any], layout: ViewLayout, rays: Rays, state: State,
@@ -47,8 +58,9 @@ def project_all(models: Mapping[str, Any], layout: ViewLayout, rays: Rays, state
     """Corrected predictions of every ray (and their derivatives): one vectorised call per view."""
     n = rays.view.size
     pred, rpc_pred = np.empty((n, 2)), np.empty((n, 2))
+    c = max(max(len(t) for t in layout.models_used[v].terms) for v in layout.views)
     jp = np.empty((n, 2, 3)) if jacobian else None
-    design: Dict[int, Any] = {}
+    cols, vals = (np.zeros((2, n, c), int), np.zeros((2, n, c))) if jacobian else (None, None)
     g = state.ground[rays.point]
     for j, v in enumerate(layout.views):
         rows = np.flatnonzero(rays.view == j)
@@ -60,28 +72,15 @@ def project_all(models: Mapping[str, Any], layout: ViewLayout, rays: Rays, state
         ds, dl, dj = layout.correction(v, state.x, s, l)
         rpc_pred[rows, 0], rpc_pred[rows, 1] = s, l
         pred[rows, 0], pred[rows, 1] = s + ds, l + dl
-        if jacobian:
-            mx, my = metres_per_degree(lat, h)
-            jac = np.asarray(models[v].project_jacobian(lon, lat, h), float).reshape(-1, 2, 3)
-            jac = jac / np.stack([mx, my, np.ones_like(mx)], axis=1)[:, None, :]
-            jp[rows] = jac + np.matmul(dj, jac)
-            design[j] = (rows,) + layout.design(v, s, l)
-    return Linearisation(pred, rpc_pred, jp, design)
-
-
-def _global_jacobian(layout: ViewLayout, rays: Rays, lin: Linearisation) -> IndexedJacobian:
-    """``d(pred)/d(x)`` of every padded point row by column index (rows ``2 slot + axis`` of each point): a ray
-    touches its view's sample (or line) terms only."""
-    c = max(max(len(t) for t in layout.models_used[v].terms) for v in layout.views)
-    n_rows = rays.n_points * rays.rows_per_point
-    cols, vals = np.zeros((n_rows, c), int), np.zeros((n_rows, c))
-    for j, (rows, a_s, a_l) in lin.design.items():
-        for axis, a, sl in zip((0, 1), (a_s, a_l), layout.slices(layout.views[j])):
-            flat = rays.flat_rows(axis)[rows]
-            cols[flat, :sl.stop - sl.start] = np.arange(sl.start, sl.stop)
-            vals[flat, :sl.stop - sl.start] = a
-    shape = (rays.n_points, rays.rows_per_point, c)
-    return IndexedJacobian(cols.reshape(shape), vals.reshape(shape), layout.n_params)
+        if not jacobian:
+            continue
+        jac = _to_metres(np.array(models[v].project_jacobian(lon, lat, h), float).reshape(-1, 2, 3), lat, h)
+        for a in range(2):                             # (I + d corr / d(s, l)) @ jac, without a batched matmul
+            jp[rows, a, :] = jac[:, a, :] + dj[:, a, 0, None] * jac[:, 0, :] + dj[:, a, 1, None] * jac[:, 1, :]
+        for axis, des, sl in zip((0, 1), layout.design(v, s, l), layout.slices(v)):
+            cols[axis, rows, :sl.stop - sl.start] = np.arange(sl.start, sl.stop)
+            vals[axis, rows, :sl.stop - sl.start] = des
+    return Linearisation(pred, rpc_pred, jp, cols, vals)
 
 
 @dataclass
@@ -118,48 +117,73 @@ def resample_dem(wts: Weights, ground: np.ndarray) -> Weights:
     return replace(wts, ground_obs=obs)
 
 
-def linearise(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights):
-    """The padded point-block system at ``state``: ``(jac_points, residuals, weights, jac_global, extra, lin)``."""
-    lin = project_all(models, layout, rays, state)
-    n_pts, r_pp, k2 = rays.n_points, rays.rows_per_point, 2 * rays.k
-    jp = np.zeros((n_pts * r_pp, 3))
-    res = np.zeros(n_pts * r_pp)
-    w = np.zeros(n_pts * r_pp)
+@dataclass
+class System:
+    """The linearised rows at one state for :func:`~gdal_gf4cal.estimation.indexed.solve_rows`: every ray's
+    sample row then every ray's line row (``point``, ``jac_points`` (2 n, 3) px per metre, ``residuals``,
+    ``weights``, ``cols``/``vals`` the view's terms), ``prior`` (the ground rows: weights and residuals in metres,
+    (n_points, 3)), ``extra`` (the datum pseudo-observations), ``lin`` and ``groups`` (each view's sample rows
+    and line rows with their parameters: a point has one ray per view)."""
+
+    point: np.ndarray
+    jac_points: np.ndarray
+    residuals: np.ndarray
+    weights: np.ndarray
+    cols: np.ndarray
+    vals: np.ndarray
+    prior: Any
+    extra: Any
+    lin: Linearisation
+    groups: Any = None
+
+    def solve(self, n_points: int, n_params: int, covariance: bool = False) -> PointSolution:
+        dxp, cov_p, ok, dxg, cov_g = solve_rows(self.point, self.jac_points, self.residuals, self.weights,
+                                                self.cols, self.vals, n_points, n_params, prior=self.prior,
+                                                extra=self.extra, covariance=covariance, groups=self.groups)
+        return PointSolution(dxp, cov_p, ok, dxg, cov_g)
+
+
+def _ground_rows(state: State, wts: Weights):
+    """Weights and residuals (m, east north up) of the points' ground rows (a GCP's ground, the DEM height)."""
+    mx, my = metres_per_degree(state.ground[:, 1], state.ground[:, 2])
+    delta = np.nan_to_num((wts.ground_obs - state.ground) * np.stack([mx, my, np.ones_like(mx)], axis=1))
+    return wts.ground, delta
+
+
+def linearise(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights,
+              lin: Optional[Linearisation] = None) -> System:
+    """The rows of the system at ``state`` (``lin``: the predictions and derivatives there, when known)."""
+    lin = project_all(models, layout, rays, state) if lin is None else lin
     v = rays.meas - lin.pred
-    for axis in (0, 1):
-        flat = rays.flat_rows(axis)
-        jp[flat] = lin.jac_points[:, axis, :]
-        res[flat] = v[:, axis]
-        w[flat] = wts.rays
-    jp, res, w = jp.reshape(n_pts, r_pp, 3), res.reshape(n_pts, r_pp), w.reshape(n_pts, r_pp)
-    mx, my = metres_per_degree(state.ground[:, 1], state.ground[:, 2])
-    to_m = np.stack([mx, my, np.ones_like(mx)], axis=1)
-    delta = np.nan_to_num((wts.ground_obs - state.ground) * to_m)
-    for c in range(3):
-        jp[:, k2 + c, c] = 1.0
-        res[:, k2 + c] = delta[:, c]
-        w[:, k2 + c] = wts.ground[:, c]
-
-    jg = _global_jacobian(layout, rays, lin)
-    extra = (sp.identity(layout.n_params, format="csr"), -state.x, wts.prior)
-    return jp, res, w, jg, extra, lin
+    n_par, n = layout.n_params, rays.view.size
+    groups = []
+    for j, name in enumerate(layout.views):
+        rows = np.flatnonzero(rays.view == j)
+        groups += [(rows + axis * n, sl) for axis, sl in enumerate(layout.slices(name))]
+    return System(np.concatenate([rays.point, rays.point]), lin.jac_points.transpose(1, 0, 2).reshape(-1, 3),
+                  v.T.ravel(), np.concatenate([wts.rays, wts.rays]), lin.cols.reshape(-1, lin.cols.shape[2]),
+                  lin.vals.reshape(-1, lin.vals.shape[2]), _ground_rows(state, wts),
+                  (sp.identity(n_par, format="csr"), -state.x, wts.prior) if n_par else None, lin, groups)
 
 
-def step(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights, covariance: bool = False):
-    """One Gauss-Newton step: ``(new_state, change_px, solution, lin)`` (``change_px``: the largest move of a
-    ray's prediction)."""
-    jp, res, w, jg, extra, lin = linearise(models, layout, rays, state, wts)
-    sol = solve_with_points(jp, res, w, jg, extra=extra, covariance=covariance)
+def _moved(ground: np.ndarray, dp: np.ndarray) -> np.ndarray:
+    mx, my = metres_per_degree(ground[:, 1], ground[:, 2])
+    return ground + np.where(np.isfinite(dp), dp, 0.0) / np.stack([mx, my, np.ones_like(mx)], axis=1)
+
+
+def step(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights, covariance: bool = False,
+         lin: Optional[Linearisation] = None):
+    """One Gauss-Newton step: ``(new_state, change_px, solution, lin, move)`` (``move`` (n_rays, 2): each ray's
+    predicted move, linear in the step; ``change_px``: its largest size over the rays in the estimate; ``lin``:
+    the linearisation at ``state``, when known)."""
+    sys_ = linearise(models, layout, rays, state, wts, lin)
+    sol = sys_.solve(rays.n_points, layout.n_params, covariance)
     dp = np.where(np.isfinite(sol.dx_points), sol.dx_points, 0.0)
-    mx, my = metres_per_degree(state.ground[:, 1], state.ground[:, 2])
-    ground = state.ground + dp / np.stack([mx, my, np.ones_like(mx)], axis=1)
-    x = state.x + sol.dx_global
-    gm = np.einsum("nkc,nkc->nk", jg.vals, sol.dx_global[jg.cols])
-    ray_g = np.stack([gm[rays.point, 2 * rays.slot], gm[rays.point, 2 * rays.slot + 1]], axis=1)
-    move = np.abs(np.einsum("nrq,nq->nr", lin.jac_points, dp[rays.point]) + ray_g)
+    a_dx = np.einsum("mc,mc->m", sys_.vals, sol.dx_global[sys_.cols]).reshape(2, -1).T
+    move = np.einsum("nrq,nq->nr", sys_.lin.jac_points, dp[rays.point]) + a_dx
     used = wts.rays > 0
-    change = float(move[used].max()) if used.any() else 0.0
-    return State(x, ground), change, sol, lin
+    change = float(np.abs(move[used]).max()) if used.any() else 0.0
+    return State(state.x + sol.dx_global, _moved(state.ground, dp)), change, sol, sys_.lin, move
 
 
 def reintersect(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights, points: np.ndarray,
@@ -173,31 +197,36 @@ def reintersect(models, layout: ViewLayout, rays: Rays, state: State, wts: Weigh
     sw = wts.subset(points, np.isin(rays.point, keep))
     g = state.ground[points].copy()
     for _ in range(iterations):
-        jp, res, w, _, _, _ = linearise(models, layout, sub, State(state.x, g), resample_dem(sw, g))
-        sol = solve_with_points(jp, res, w, covariance=False)
-        dp = np.where(np.isfinite(sol.dx_points), sol.dx_points, 0.0)
-        mx, my = metres_per_degree(g[:, 1], g[:, 2])
-        g = g + dp / np.stack([mx, my, np.ones_like(mx)], axis=1)
+        sys_ = linearise(models, layout, sub, State(state.x, g), resample_dem(sw, g))
+        dxp, _, _, _, _ = solve_rows(sys_.point, sys_.jac_points, sys_.residuals, sys_.weights,
+                                     sys_.cols[:, :0], sys_.vals[:, :0], sub.n_points, 0, prior=sys_.prior)
+        g = _moved(g, dxp)
     ground = state.ground.copy()
     ground[points] = g
     return State(state.x, ground)
 
 
 def gauss_newton(models, layout: ViewLayout, rays: Rays, state: State, wts: Weights, *, tol_px: float = 1e-5,
-                 max_iter: int = 20, progress=None):
+                 max_iter: int = 20, progress=None, lin: Optional[Linearisation] = None, warm: bool = False):
     """Iterate :func:`step` until the predictions move less than ``tol_px`` (at most ``max_iter`` steps); the
     predictions and derivatives at the solution; the DEM's height targets re-sampled at the current ground before
-    each step (:func:`resample_dem`). Returns ``(state, solution, lin, iterations, converged, change)`` (the
-    solution of the last step: its ``cov_global`` is the reduced system's unit-weight inverse)."""
+    each step (:func:`resample_dem`). ``lin``: the linearisation at ``state`` when known (one projection per
+    step). ``warm``: ``state`` is the solution at other weights (a robust reweighting): a step whose predictions
+    land where its linear model said (within ``tol_px``) is converged too, however far the reweighting moved them
+    (its error is second order in that move). Returns ``(state, solution, lin, iterations, converged, change)`` (the solution of the
+    last step: its ``cov_global`` is the reduced system's unit-weight inverse)."""
     converged = False
     it = 0
     sol = None
     change = np.inf
+    used = wts.rays > 0
     for it in range(1, max_iter + 1):
-        state, change, sol, _ = step(models, layout, rays, state, resample_dem(wts, state.ground))
+        state, change, sol, old, move = step(models, layout, rays, state, resample_dem(wts, state.ground), lin=lin)
+        lin = project_all(models, layout, rays, state)
+        off = float(np.abs(lin.pred - old.pred - move)[used].max()) if used.any() and warm else np.inf
         if progress is not None:
             progress(min(it / max_iter, 0.99), f"bundle iteration {it}: largest change {change:.3g} px")
-        if change < tol_px:
+        if change < tol_px or (wts.dem is None and off < tol_px):
             converged = True
             break
-    return state, sol, project_all(models, layout, rays, state), it, converged, change
+    return state, sol, lin if lin is not None else project_all(models, layout, rays, state), it, converged, change

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import DegenerateGeometryError
 
-__all__ = ["IndexedJacobian", "CHUNK_ELEMENTS"]
+__all__ = ["IndexedJacobian", "CHUNK_ELEMENTS", "solve_rows", "block_inverse"]
 
 #: A 3 x 3 point block whose determinant is below this fraction of its diagonal's product is singular (e.g. a tie
 #: with one ray left in the estimate; nearly parallel rays of B/H 0.01 stay far above it).
@@ -42,37 +42,38 @@ def _chunks(n: int, q: int, p: int):
 
 @dataclass
 class _Rows:
-    """The rows with weight, point-major: their ``point``, ``jw`` (w jp, (m, q)), ``cols``/``vals`` (m, c) and
-    ``wv`` (w vals). Scattering them with ``bincount`` is faster than grouping rows by their columns (measured)."""
+    """The rows with weight: their ``point``, ``jw`` (w jp, (m, q)), ``cols``/``vals`` (m, c), ``wv`` (w vals),
+    ``r`` (residuals) and whether ``point`` is sorted. Scattering them with ``bincount`` is faster than grouping
+    rows by their columns (measured)."""
 
     point: np.ndarray
     jw: np.ndarray
     cols: np.ndarray
     vals: np.ndarray
     wv: np.ndarray
+    r: np.ndarray
+    sorted: bool
 
-
-def _used_rows(jp, w, jac: IndexedJacobian, ok) -> _Rows:
-    n, r, q = jp.shape
-    c = jac.cols.shape[2]
-    wk = np.where(ok[:, None], w, 0.0).ravel()
-    used = np.flatnonzero(wk)
-    cols, vals = jac.cols.reshape(-1, c)[used], jac.vals.reshape(-1, c)[used]
-    return _Rows(used // r, jp.reshape(-1, q)[used] * wk[used][:, None], cols, vals, vals * wk[used][:, None])
+    def take(self, lo: int, hi: int):
+        """The rows of the points ``lo:hi`` (a slice when sorted)."""
+        if self.sorted:
+            a, b = np.searchsorted(self.point, [lo, hi])
+            return slice(a, b)
+        return np.flatnonzero((self.point >= lo) & (self.point < hi))
 
 
 def _npg(rows: _Rows, lo: int, hi: int, q: int, p: int) -> np.ndarray:
     """Dense ``N_pg`` (hi - lo, q, p) of the points ``lo:hi``: ``sum_k w jp^T a`` scattered by column index."""
-    a, b = np.searchsorted(rows.point, [lo, hi])
-    pts, n = rows.point[a:b] - lo, hi - lo
-    contrib = rows.jw[a:b][:, :, None] * rows.vals[a:b][:, None, :]           # (m, q, c)
-    idx = (pts[:, None, None] * q + np.arange(q)[None, :, None]) * p + rows.cols[a:b][:, None, :]
+    sel = rows.take(lo, hi)
+    pts, n = rows.point[sel] - lo, hi - lo
+    contrib = rows.jw[sel][:, :, None] * rows.vals[sel][:, None, :]           # (m, q, c)
+    idx = (pts[:, None, None] * q + np.arange(q)[None, :, None]) * p + rows.cols[sel][:, None, :]
     return np.bincount(idx.ravel(), weights=contrib.ravel(), minlength=n * q * p).reshape(n, q, p)
 
 
-def _global_normals(rows: _Rows, r_used: np.ndarray, p: int):
+def _global_normals(rows: _Rows, p: int):
     """``N_gg`` (p, p) and ``b_g`` (p,) of the rows with weight."""
-    bg = np.bincount(rows.cols.ravel(), weights=(rows.wv * r_used[:, None]).ravel(), minlength=p)
+    bg = np.bincount(rows.cols.ravel(), weights=(rows.wv * rows.r[:, None]).ravel(), minlength=p)
     pair = (rows.cols[:, :, None] * p + rows.cols[:, None, :]).ravel()
     return np.bincount(pair, weights=(rows.wv[:, :, None] * rows.vals[:, None, :]).ravel(),
                        minlength=p * p).reshape(p, p), bg
@@ -108,49 +109,196 @@ def _solve_reduced(s_mat: np.ndarray, b_red: np.ndarray):
     return dx, cov
 
 
-def block_inverse(npp: np.ndarray, det_min: float = 1e-30):
+def block_inverse(npp: np.ndarray, det_min: float = 1e-30, rel_det_min: float = REL_DET_MIN):
     """Inverses of many small symmetric blocks ``(n, q, q)``: closed form for 3 x 3 (adjugate), LAPACK otherwise;
-    ``(inv, ok)`` with NaN where ``|det| <= det_min`` (3 x 3: or below :data:`REL_DET_MIN` of the diagonal's
+    ``(inv, ok)`` with NaN where ``|det| <= det_min`` (3 x 3: or below ``rel_det_min`` of the diagonal's
     product)."""
     n, q, _ = npp.shape
-    inv = np.full((n, q, q), np.nan)
     if q != 3:
+        inv = np.full((n, q, q), np.nan)
         ok = np.abs(np.linalg.det(npp)) > det_min
         if ok.any():
             inv[ok] = np.linalg.inv(npp[ok])
         return inv, ok
-    a = npp
-    adj = np.empty_like(a)
+    a = [[npp[:, i, j] for j in range(3)] for i in range(3)]
+    adj = np.empty_like(npp)
     for i in range(3):
         for j in range(3):
             r0, r1 = [k for k in range(3) if k != j]
             c0, c1 = [k for k in range(3) if k != i]
-            adj[:, i, j] = (-1) ** (i + j) * (a[:, r0, c0] * a[:, r1, c1] - a[:, r0, c1] * a[:, r1, c0])
-    det = np.einsum("nj,nj->n", a[:, 0, :], adj[:, :, 0])
-    scale = np.abs(a[:, 0, 0] * a[:, 1, 1] * a[:, 2, 2])
-    ok = (np.abs(det) > det_min) & (np.abs(det) > REL_DET_MIN * scale)      # rank-deficient blocks (one ray left)
-    inv[ok] = adj[ok] / det[ok, None, None]
+            np.subtract(a[r0][c0] * a[r1][c1], a[r0][c1] * a[r1][c0], out=adj[:, i, j])
+            if (i + j) % 2:
+                np.negative(adj[:, i, j], out=adj[:, i, j])
+    det = a[0][0] * adj[:, 0, 0] + a[0][1] * adj[:, 1, 0] + a[0][2] * adj[:, 2, 0]
+    scale = np.abs(a[0][0] * a[1][1] * a[2][2])
+    ok = (np.abs(det) > det_min) & (np.abs(det) > rel_det_min * scale)      # rank-deficient blocks (one ray left)
+    ok &= np.isfinite(det) & np.isfinite(scale)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv = adj / np.where(ok, det, np.nan)[:, None, None]
     return inv, ok
 
 
 def solve_indexed(jp, r, w, npp, bp, jac: IndexedJacobian, extra, covariance: bool, det_min: float = 1e-30):
-    """The reduced system over chunks of points (module docstring); returns what ``solve_with_points`` returns:
-    ``(dx_points, cov_points, ok, dx_global, cov_global)`` (``cov_global`` = ``S^-1`` even without
-    ``covariance``: it costs a ``p x p`` solve; ``cov_points`` only with it)."""
+    """The reduced system over chunks of points (module docstring) of the padded layout of
+    :func:`~gdal_gf4cal.estimation.solve_with_points`; returns what it returns: ``(dx_points, cov_points, ok,
+    dx_global, cov_global)`` (``cov_global`` = ``S^-1`` even without ``covariance``: it costs a ``p x p`` solve;
+    ``cov_points`` only with it)."""
     inv, ok = block_inverse(npp, det_min)
-    n, _, q = jp.shape
-    p = jac.n_params
-    rows = _used_rows(jp, w, jac, ok)
+    n, rp, q = jp.shape
+    c = jac.cols.shape[2]
     wk = np.where(ok[:, None], w, 0.0).ravel()
-    ngg, bg = _global_normals(rows, r.reshape(-1)[wk != 0], p)
-    if extra is not None:
-        import scipy.sparse as sp
-        je = extra[0].toarray() if sp.issparse(extra[0]) else np.asarray(extra[0], float)
-        re_, we = np.nan_to_num(np.asarray(extra[1], float)), np.asarray(extra[2], float)
-        ngg = ngg + (je * we[:, None]).T @ je
-        bg = bg + je.T @ (we * re_)
+    used = np.flatnonzero(wk)
+    vals = jac.vals.reshape(-1, c)[used]
+    rows = _Rows(used // rp, jp.reshape(-1, q)[used] * wk[used][:, None], jac.cols.reshape(-1, c)[used], vals,
+                 vals * wk[used][:, None], r.reshape(-1)[used], True)
+    return _eliminate(rows, npp, bp, inv, ok, jac.n_params, extra, covariance)
+
+
+def solve_rows(point, jac_points, residuals, weights, cols, vals, n_points: int, n_params: int, *, prior=None,
+               extra=None, covariance: bool = False, det_min: float = 1e-30, groups=None):
+    """Schur elimination of observation rows given one by one (no padding): row ``k`` observes point
+    ``point[k]``'s ``q`` parameters (``jac_points`` (m, q)) and the global columns ``cols[k]`` (``vals`` (m, c)),
+    ``residuals``, ``weights`` (m,); ``prior``: ``(weights (n, q), residuals (n, q))`` direct observations of each
+    point's parameters (e.g. a DEM's height); ``extra`` as in :func:`~gdal_gf4cal.estimation.solve_with_points`.
+    ``groups``: optional ``[(rows, cols slice), ...]``, every row in one group, a group's rows using the same
+    contiguous columns (``vals[rows, :width]``) and seeing each point at most once (a bundle's view and axis): the
+    normals are then assembled by slices and matrix products instead of index scatters (several times faster).
+    Returns ``(dx_points, cov_points, ok, dx_global, cov_global)`` as it does; the reduced system is ``n_params``
+    square whatever the rows (a bundle adjustment's rays: 2 rows each)."""
+    point = np.asarray(point)
+    jp, w = np.asarray(jac_points, float), np.asarray(weights, float)
+    r = np.nan_to_num(np.asarray(residuals, float))
+    q = jp.shape[1]
+    jw = jp * w[:, None]
+    npp = np.empty((n_points, q, q))
+    for a in range(q):                                                          # symmetric: q (q + 1) / 2 sums
+        for b in range(a, q):
+            npp[:, a, b] = npp[:, b, a] = np.bincount(point, weights=jw[:, a] * jp[:, b], minlength=n_points)
+    bp = np.stack([np.bincount(point, weights=jw[:, a] * r, minlength=n_points) for a in range(q)], axis=1)
+    if prior is not None:
+        pw, pr = np.asarray(prior[0], float), np.nan_to_num(np.asarray(prior[1], float))
+        npp[:, np.arange(q), np.arange(q)] += pw
+        bp += pw * pr
+    inv, ok = block_inverse(npp, det_min)
+    if groups is not None and n_params:
+        if not ok.all():                                                         # singular points leave
+            w = np.where(ok[point], w, 0.0)
+            jw = jp * w[:, None]
+        return _eliminate_groups(point, jw, r, w, np.asarray(vals, float), groups, npp, bp, inv, ok, n_params,
+                                 extra, covariance)
+    used = np.flatnonzero((w != 0) & ok[point])
+    v = np.asarray(vals, float)[used]
+    rows = _Rows(point[used], jw[used], np.asarray(cols)[used], v, v * w[used][:, None], r[used],
+                 bool(np.all(point[used][1:] >= point[used][:-1])))
+    return _eliminate(rows, npp, bp, inv, ok, n_params, extra, covariance)
+
+
+def _add_extra(ngg, bg, extra):
+    """The observations of the global parameters alone (``extra``) added to ``N_gg``, ``b_g``."""
+    if extra is None:
+        return ngg, bg
+    import scipy.sparse as sp
+    je = extra[0].toarray() if sp.issparse(extra[0]) else np.asarray(extra[0], float)
+    re_, we = np.nan_to_num(np.asarray(extra[1], float)), np.asarray(extra[2], float)
+    return ngg + (je * we[:, None]).T @ je, bg + je.T @ (we * re_)
+
+
+def _group_parts(point, vals, groups):
+    """Each group's rows sorted by point: ``(points, rows, cols slice, vals (n_g, width))``."""
+    out = []
+    for rows, cols in groups:
+        rows = np.asarray(rows)
+        pts = point[rows]
+        if pts.size > 1 and np.any(pts[1:] < pts[:-1]):
+            o = np.argsort(pts, kind="stable")
+            rows, pts = rows[o], pts[o]
+        out.append((pts, rows, cols, vals[rows, :cols.stop - cols.start]))
+    return out
+
+
+def _npg_groups(parts, jw, lo: int, hi: int, q: int, p: int) -> np.ndarray:
+    """``N_pg`` of the points ``lo:hi`` transposed, ``(p, q, hi - lo)``: each group sets its columns of the points it
+    sees (once each) by 1-D scatters."""
+    npg = np.zeros((p, q, hi - lo))
+    for pts, rows, cols, a in parts:
+        i, j = np.searchsorted(pts, [lo, hi])
+        if j > i:
+            at, jwr, ar = pts[i:j] - lo, jw[rows[i:j]], a[i:j]
+            for c in range(cols.stop - cols.start):
+                for k in range(q):
+                    npg[cols.start + c, k, at] = jwr[:, k] * ar[:, c]
+    return npg
+
+
+def _cholesky_t(inv0: np.ndarray) -> np.ndarray:
+    """``L`` (q, q, n) with ``L L^T = inv0`` per point (closed-form Cholesky; 0 for a zero block); NaN where a
+    block is not positive definite."""
+    n, q, _ = inv0.shape
+    a = inv0.transpose(1, 2, 0)
+    low = np.zeros((q, q, n))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for j in range(q):
+            d = a[j, j] - np.sum(low[j, :j] ** 2, axis=0)
+            low[j, j] = np.where(d == 0, 0.0, np.sqrt(np.where(d >= 0, d, np.nan)))
+            for i in range(j + 1, q):
+                low[i, j] = np.where(low[j, j] > 0, (a[i, j] - np.sum(low[i, :j] * low[j, :j], axis=0))
+                                     / low[j, j], 0.0)
+    return low
+
+
+def _eliminate_groups(point, jw, r, w, vals, groups, npp, bp, inv, ok, p: int, extra, covariance: bool):
+    """:func:`_eliminate` for rows in groups (:func:`solve_rows`): the same reduced system, by slices; the
+    points' share ``N_gp N_pp^-1 N_pg = Y^T Y`` with ``Y = L^T N_pg`` (``L L^T = N_pp^-1``), one symmetric
+    product per chunk."""
+    n, q = bp.shape
+    parts = _group_parts(point, vals, groups)
+    ngg, bg = np.zeros((p, p)), np.zeros(p)
+    for _, rows, cols, a in parts:
+        wa = a * w[rows][:, None]
+        ngg[cols, cols] += wa.T @ a
+        bg[cols] += wa.T @ r[rows]
+    s_mat, b_red = _add_extra(ngg, bg, extra)
     inv0 = np.where(ok[:, None, None], np.nan_to_num(inv), 0.0)
-    jw = (jp * np.where(ok[:, None], w, 0.0)[:, :, None])
+    u = np.matmul(inv0, bp[:, :, None])[:, :, 0]                               # N_pp^-1 b_p
+    for sl in _chunks(n, q, p):
+        npg = _npg_groups(parts, jw, sl.start, sl.stop, q, p)
+        low = _cholesky_t(inv0[sl])
+        if np.all(np.isfinite(low)):
+            y = np.empty((p, q, sl.stop - sl.start))
+            for k in range(q):
+                y[:, k, :] = sum(low[j, k] * npg[:, j, :] for j in range(k, q))
+            y = y.reshape(p, -1)
+            s_mat = s_mat - y @ y.T                                            # symmetric: BLAS syrk
+        else:                                                                  # a block not quite PD: N_pp^-1 N_pg
+            blk = inv0[sl]
+            for k in range(q):
+                t_k = sum(blk[:, k, j] * npg[:, j, :] for j in range(q))
+                s_mat = s_mat - npg[:, k, :] @ t_k.T
+        b_red = b_red - np.einsum("pkn,nk->p", npg, u[sl])
+    dxg, cov_g = _solve_reduced(s_mat, b_red)
+    rhs = bp.copy()
+    for pts, rows, cols, a in parts:
+        rhs[pts] -= jw[rows] * (a @ dxg[cols])[:, None]
+    dxp = np.full((n, q), np.nan)
+    dxp[ok] = np.matmul(inv[ok], rhs[ok][:, :, None])[:, :, 0]
+    cov_p = inv.copy() if covariance else np.empty((0, q, q))
+    if covariance:
+        for sl in _chunks(n, q, p):
+            t = np.matmul(inv0[sl], _npg_groups(parts, jw, sl.start, sl.stop, q, p).transpose(2, 1, 0))
+            cov_p[sl] = np.where(ok[sl, None, None], inv[sl] + np.matmul(t @ cov_g, t.transpose(0, 2, 1)), inv[sl])
+    return dxp, cov_p, ok, dxg, cov_g
+
+
+def _eliminate(rows: _Rows, npp, bp, inv, ok, p: int, extra, covariance: bool):
+    """The one elimination of both entries: ``S = N_gg - sum N_gp N_pp^-1 N_pg`` over chunks of points, its
+    solve, the points' back-substitution (and their covariance)."""
+    n, q = bp.shape
+    if p == 0:                                                                  # points alone
+        dxp = np.full((n, q), np.nan)
+        dxp[ok] = np.matmul(inv[ok], bp[ok][:, :, None])[:, :, 0]
+        return dxp, inv.copy() if covariance else np.empty((0, q, q)), ok, np.zeros(0), np.zeros((0, 0))
+    ngg, bg = _add_extra(*_global_normals(rows, p), extra)
+    inv0 = np.where(ok[:, None, None], np.nan_to_num(inv), 0.0)
     s_mat, b_red = ngg.copy(), bg.copy()
     for sl in _chunks(n, q, p):
         npg = _npg(rows, sl.start, sl.stop, q, p)
@@ -158,10 +306,11 @@ def solve_indexed(jp, r, w, npp, bp, jac: IndexedJacobian, extra, covariance: bo
         s_mat -= npg.reshape(-1, p).T @ t.reshape(-1, p)
         b_red -= np.einsum("nqi,nq->i", t, bp[sl])
     dxg, cov_g = _solve_reduced(s_mat, b_red)
-    a_dx = np.einsum("nkc,nkc->nk", jac.vals, dxg[jac.cols])                  # each row's global move
-    rhs = bp - np.einsum("nkq,nk->nq", jw, a_dx)
+    a_dx = np.einsum("mc,mc->m", rows.vals, dxg[rows.cols])                   # each row's global move
+    rhs = bp - np.stack([np.bincount(rows.point, weights=rows.jw[:, a] * a_dx, minlength=n) for a in range(q)],
+                        axis=1)
     dxp = np.full((n, q), np.nan)
-    dxp[ok] = np.einsum("nij,nj->ni", inv[ok], rhs[ok])
+    dxp[ok] = np.matmul(inv[ok], rhs[ok][:, :, None])[:, :, 0]
     cov_p = inv.copy() if covariance else np.empty((0, q, q))
     if covariance:
         for sl in _chunks(n, q, p):

@@ -22,8 +22,11 @@ import scipy.sparse.linalg as spla
 from scipy.linalg import cho_solve
 
 from ..errors import DegenerateGeometryError
-from .indexed import IndexedJacobian, cholesky_reduced, solve_indexed
+from .indexed import IndexedJacobian, block_inverse, cholesky_reduced, solve_indexed
 
+#: A 3 x 3 point block whose determinant is below this fraction of its diagonal's product is rank-deficient up to
+#: rounding (e.g. a point seen by one image): singular, as LAPACK's LU would find it.
+RANK_DEFICIENT = 1e-13
 #: Global parameter count above which the reduced system is assembled and solved with scipy.sparse.
 SPARSE_ABOVE = 500
 
@@ -82,13 +85,14 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
     r = np.nan_to_num(np.asarray(residuals, dtype=float))
     w = np.asarray(weights, dtype=float)
     n, _, q = jp.shape
-    npp, bp, inv, ok = _point_normals(jp, r, w, det_min)
     if isinstance(jac_global, IndexedJacobian):                               # rows touching a few globals
+        npp, bp, _, _ = _point_normals(jp, r, w, det_min, invert=False)        # solve_indexed inverts them
         return PointSolution(*solve_indexed(jp, r, w, npp, bp, jac_global, extra, covariance, det_min))
+    npp, bp, inv, ok = _point_normals(jp, r, w, det_min)
     if jac_global is None:
         dxp = np.full((n, q), np.nan)
         if ok.any():
-            dxp[ok] = np.linalg.solve(npp[ok], bp[ok][..., None])[..., 0]
+            dxp[ok] = np.matmul(inv[ok], bp[ok][..., None])[..., 0]
         return PointSolution(dxp, inv if covariance else np.empty((0, q, q)), ok, np.zeros(0), np.zeros((0, 0)))
     if sp.issparse(jac_global):
         return _solve_sparse(jp, r, w, npp, bp, ok, inv, sp.csr_matrix(jac_global), extra, covariance)
@@ -135,12 +139,18 @@ def solve_with_points(jac_points, residuals, weights, jac_global=None, *, det_mi
     return PointSolution(dxp, cov_p, ok, dxg, cov_g, s_dense if covariance else None)
 
 
-def _point_normals(jp, r, w, det_min: float):
-    """Per point ``N_pp`` (n, q, q), ``b_p`` (n, q), ``N_pp^-1`` (NaN where singular) and ``ok`` (regular)."""
+def _point_normals(jp, r, w, det_min: float, invert: bool = True):
+    """Per point ``N_pp`` (n, q, q), ``b_p`` (n, q), ``N_pp^-1`` (NaN where singular) and ``ok`` (regular);
+    without ``invert`` the last two are None."""
     n, _, q = jp.shape
     jw = (jp * w[:, :, None]).transpose(0, 2, 1)                              # (n, q, r): matmul, not 3-way einsum
     npp = np.matmul(jw, jp)
     bp = np.matmul(jw, r[:, :, None])[:, :, 0]
+    if not invert:
+        return npp, bp, None, None
+    if q == 3:                                                                # closed form (LAPACK's batched inv
+        inv, ok = block_inverse(npp, det_min, rel_det_min=RANK_DEFICIENT)      # is ~50x slower on many 3x3)
+        return npp, bp, inv, ok
     inv = np.full((n, q, q), np.nan)
     if q == 2:                                                                # closed form (many 2x2 blocks)
         det = npp[:, 0, 0] * npp[:, 1, 1] - npp[:, 0, 1] * npp[:, 1, 0]
