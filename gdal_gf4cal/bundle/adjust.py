@@ -22,6 +22,8 @@ __all__ = ["adjust_views", "BundleProblem", "ROBUST_TOL_PX"]
 #: the rejected rays stay: far below the corrections' floor (a few hundredths to tenths of a pixel); Huber weights can
 #: cycle at a few thousandths of a pixel (Giza: 0.0056 px).
 ROBUST_TOL_PX = 0.01
+#: The down-weighting phase ends below this move (px): the rejection phase reweights on to ROBUST_TOL_PX.
+ROBUST_PHASE1_TOL_PX = 0.05
 #: Reweighted re-solves at most; an estimate that has not settled by then is reported as not converged.
 ROBUST_MAX_FITS = 40
 
@@ -94,8 +96,11 @@ def _ray_variance(pb: BundleProblem, w_rays: np.ndarray, rows=None):
     inv, ok = block_inverse(npp)
     out = np.zeros((rays.view.size, 2))
     sel = slice(None) if rows is None else np.flatnonzero(rows)
-    j = jac[sel]
-    out[sel] = np.einsum("nai,nai->na", np.matmul(j, np.nan_to_num(inv)[rays.point[sel]]), j)
+    j, pt = jac[sel], rays.point[sel]
+    for a in range(3):                                   # j^T inv j from the 6 distinct entries of each inverse
+        for b in range(a, 3):
+            f = np.nan_to_num(inv[:, a, b])[pt] * (1.0 if a == b else 2.0)
+            out[sel] += j[:, :, a] * j[:, :, b] * f[:, None]
     return out, ok, inv
 
 
@@ -136,7 +141,7 @@ def _robust(pb: BundleProblem):
     norm = RadialHuber(sigma=lambda p, e: p.rays.sigma * p.sd_factor, min_points=2,
                        too_few="; the ties disagree beyond their stated sigma: check the image ids and the ties")
     return robust_fit(pb, norm=norm, start=None, candidates=pb.rays.control, max_iter=ROBUST_MAX_FITS,
-                      tol=ROBUST_TOL_PX)
+                      tol=ROBUST_TOL_PX, phase1_tol=ROBUST_PHASE1_TOL_PX)
 
 
 def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: str = "affine", sizes=None,

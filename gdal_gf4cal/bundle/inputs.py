@@ -72,16 +72,16 @@ def _check_connected(tab: pd.DataFrame, views: List[str]) -> None:
     """Every view shares ties with the others, and the views form one group through their ties."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
-    ties = tab[tab["kind"] == "tie"]
-    counts = ties.groupby("image_id").size()
-    lonely = [v for v in views if int(counts.get(v, 0)) == 0]
+    tie = (tab["kind"] == "tie").to_numpy()
+    img = pd.Categorical(tab["image_id"], categories=views).codes[tie]         # arrays, not a copied table
+    counts = np.bincount(img[img >= 0], minlength=len(views))
+    lonely = [v for j, v in enumerate(views) if counts[j] == 0]
     if lonely:
         raise BundleError(f"view(s) {_short(lonely)} share no tie point with the others; give ties in them "
                           "(--ties / --match-ties) or leave them out")
     vi = {v: i for i, v in enumerate(views)}
-    pinv, pid = pd.factorize(ties["point_id"])
-    inc = sp.csr_matrix((np.ones(len(ties)), (ties["image_id"].map(vi).to_numpy(int), pinv)),
-                        shape=(len(views), len(pid)))
+    pinv, pid = pd.factorize(tab["point_id"].to_numpy()[tie])
+    inc = sp.csr_matrix((np.ones(pinv.size), (img, pinv)), shape=(len(views), len(pid)))
     n, label = connected_components(inc @ inc.T, directed=False)
     if n > 1:
         groups = [[v for v in views if label[vi[v]] == g] for g in range(n)]

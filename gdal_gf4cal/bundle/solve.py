@@ -213,8 +213,8 @@ def gauss_newton(models, layout: ViewLayout, rays: Rays, state: State, wts: Weig
     each step (:func:`resample_dem`). ``lin``: the linearisation at ``state`` when known (one projection per
     step). ``warm``: ``state`` is the solution at other weights (a robust reweighting): a step whose predictions
     land where its linear model said (within ``tol_px``) is converged too, however far the reweighting moved them
-    (its error is second order in that move). Returns ``(state, solution, lin, iterations, converged, change)`` (the solution of the
-    last step: its ``cov_global`` is the reduced system's unit-weight inverse)."""
+    (its error is second order in that move). Returns ``(state, solution, lin, iterations, converged, change)``
+    (the solution of the last step: its ``cov_global`` is the reduced system's unit-weight inverse)."""
     converged = False
     it = 0
     sol = None

@@ -110,9 +110,11 @@ class RobustState:
     factors), ``start_out`` (left out by the start), ``start_sigma`` (the start's LTS scale), ``outlier``,
     ``phase``, ``tol``, ``notes`` and ``info`` (copied to ``Estimate.norm_info``)."""
 
-    def __init__(self, candidates, weights, start_out, start_sigma: float, tol: float):
+    def __init__(self, candidates, weights, start_out, start_sigma: float, tol: float,
+                 phase1_tol: Optional[float] = None):
         self.candidates, self.weights, self.start_out = candidates, weights, start_out
         self.start_sigma, self.tol = start_sigma, tol
+        self.phase1_tol = tol if phase1_tol is None else max(float(phase1_tol), tol)
         self.outlier = np.zeros(candidates.size, bool)
         self.phase = 1
         self.notes: List[str] = []
@@ -205,10 +207,11 @@ class _IRLSNorm:
         out = st.info.pop("pending")
         stable = np.array_equal(out, st.outlier)
         st.outlier = out
-        if _change(problem, old, new) < st.tol and stable:
-            if st.phase == 2 or not self.two_phase:
-                return True
-            st.phase = 2
+        change = _change(problem, old, new)
+        if stable and self.two_phase and st.phase == 1 and change < st.phase1_tol:
+            st.phase = 2                                      # the rejection phase reweights on to tol
+        elif change < st.tol and stable:
+            return True
         return False
 
     def finish(self, problem, est: Estimate, st: RobustState) -> None:
@@ -278,7 +281,8 @@ class Tukey(Huber):
         return np.where(out, 0.0, (1.0 - (z / self.c) ** 2) ** 2), out, scale, z
 
 
-def _start(problem, start, candidates, min_points, n_subsets: int, seed: int, tol: float) -> RobustState:
+def _start(problem, start, candidates, min_points, n_subsets: int, seed: int, tol: float,
+           phase1_tol: Optional[float] = None) -> RobustState:
     n = problem.n_points
     cand = np.ones(n, bool) if candidates is None else np.asarray(candidates, bool).copy()
     used, start_sigma = cand.copy(), 0.0
@@ -297,7 +301,7 @@ def _start(problem, start, candidates, min_points, n_subsets: int, seed: int, to
         used = cand & np.asarray(start, bool)
     elif start is not None:
         raise ValueError(f"start must be 'lts', None or a mask, not {start!r}")
-    return RobustState(cand, used.astype(float), cand & ~used, start_sigma, tol)
+    return RobustState(cand, used.astype(float), cand & ~used, start_sigma, tol, phase1_tol)
 
 
 #: A 2-cycle of the robust weights: the new weights back within this fraction of their jump from the current ones
@@ -318,7 +322,7 @@ def _two_cycle(new_w, current, before) -> bool:
 
 def robust_fit(problem, *, norm: Any = None, start: Any = "lts", candidates=None, min_points: Optional[int] = None,
                n_subsets: int = 300, seed: int = 0, max_iter: int = 20, tol: float = 1e-6,
-               on_degenerate: str = "raise") -> Estimate:
+               on_degenerate: str = "raise", phase1_tol: Optional[float] = None) -> Estimate:
     """Robust estimate of ``problem`` (module docstring): start, reweighted solves with ``norm``, one Estimate.
 
     Parameters
@@ -330,6 +334,10 @@ def robust_fit(problem, *, norm: Any = None, start: Any = "lts", candidates=None
         Points that may enter the estimate; the others (check points) are only tested.
     max_iter : int
         Reweighted solves after the first; ``tol``: how little the fit must move for an IRLS norm to stop.
+    phase1_tol : float, optional
+        A two-phase norm (:class:`RadialHuber`) leaves its down-weighting phase when the fit moves less than this
+        (default ``tol``): the rejection phase goes on reweighting to ``tol`` with the same weights, so a looser
+        first phase saves re-solves (IRLS halves its move per re-solve) without a looser result.
     on_degenerate : ``'raise'`` or ``'stop'``
         A reweighted solve raising :class:`DegenerateGeometryError`: re-raise, or stop with the last estimate
         (``norm_info['degenerate'] = True``).
@@ -342,7 +350,7 @@ def robust_fit(problem, *, norm: Any = None, start: Any = "lts", candidates=None
         ``scale`` / ``z`` of an IRLS norm).
     """
     norm = Snooping() if norm is None else norm
-    st = _start(problem, start, candidates, min_points, n_subsets, seed, tol)
+    st = _start(problem, start, candidates, min_points, n_subsets, seed, tol, phase1_tol)
     try:
         est = problem.fit(st.weights)
     except DegenerateGeometryError:
