@@ -226,7 +226,7 @@ def _points(pb: BundleProblem, ground0: np.ndarray, sigma0: float) -> pd.DataFra
 
 def _result(est: Estimate, pb: BundleProblem, tab, before, ground0, notes: List[str]) -> BundleEstimate:
     layout, rays = pb.layout, pb.rays
-    after = project_all(pb.models, layout, rays, pb.state, jacobian=False)
+    after = pb.lin                                    # the predictions at the final state (one projection fewer)
     table = _table(tab, before, after, est)
     used = (est.weights[:, 0] > 0) & ~table["outlier"].to_numpy(bool)
     used_b = used if used.any() else rays.control

@@ -61,12 +61,12 @@ def project_all(models: Mapping[str, Any], layout: ViewLayout, rays: Rays, state
     c = max(max(len(t) for t in layout.models_used[v].terms) for v in layout.views)
     jp = np.empty((n, 2, 3)) if jacobian else None
     cols, vals = (np.zeros((2, n, c), int), np.zeros((2, n, c))) if jacobian else (None, None)
-    g = state.ground[rays.point]
     for j, v in enumerate(layout.views):
         rows = np.flatnonzero(rays.view == j)
         if rows.size == 0:
             continue
-        lon, lat, h = g[rows, 0], g[rows, 1], g[rows, 2]
+        g = state.ground[rays.point[rows]]
+        lon, lat, h = g[:, 0], g[:, 1], g[:, 2]
         s, l = models[v].project(lon, lat, h)
         s, l = np.asarray(s, float), np.asarray(l, float)
         ds, dl, dj = layout.correction(v, state.x, s, l)

@@ -27,6 +27,10 @@ DEFAULT_DEM_SIGMA_M = 5.0
 #: gives its start (and its weak prior matters there).
 PARALLEL_SIGMA_M = 100.0
 
+#: The intersection start stops a point when its step is below this (m): the bundle's Gauss-Newton moves every tie
+#: anyway (a vendor bias moves them by metres), a finer start costs one more projection of every ray.
+START_TOL_M = 0.01
+
 
 def _image_points(layout: ViewLayout, rays: Rays, sel: np.ndarray) -> np.ndarray:
     """(n_views, n_sel, 2) measurements of the points ``sel`` (NaN where a view does not see one)."""
@@ -70,7 +74,7 @@ def start_ground(models: Mapping[str, object], layout: ViewLayout, rays: Rays, d
         except Exception:                                        # any failure: the RPC's mid height
             pass
     res = intersect([models[v] for v in layout.views], _image_points(layout, rays, ties), sigma_px=1.0,
-                    h0=h0, progress=progress)
+                    h0=h0, progress=progress, tol_m=START_TOL_M)
     g = np.stack([res.lon, res.lat, res.h], axis=1)
     weak = ~np.all(np.isfinite(g), axis=1) | ~(res.sigma_height_m <= PARALLEL_SIGMA_M)
     ground[ties] = g
