@@ -68,10 +68,12 @@ class BundleProblem:
     def fit(self, point_weights=None) -> Estimate:
         pw = np.ones(self.n_points) if point_weights is None else np.asarray(point_weights, float)
         wts = replace(self.base, rays=self.base.rays * pw)
-        steps = self.max_iter if self.solution is None else self.refit_steps   # reweighted: Gauss-Newton steps
+        # reweighted: one Gauss-Newton step each; the robust driver's first fit (given weights) may stop once a
+        # step lands where its linear model said: every reweighting steps on from there
+        steps = self.max_iter if self.solution is None else self.refit_steps
         self.state, self.solution, self.lin, it, self.converged, self.last_change = gauss_newton(
             self.models, self.layout, self.rays, self.state, wts, tol_px=self.tol_px, max_iter=steps,
-            progress=self.progress, lin=self.lin, warm=self.solution is not None)
+            progress=self.progress, lin=self.lin, warm=self.solution is not None or point_weights is not None)
         self.iterations += it
         lost = ~self.solution.ok & (np.bincount(self.rays.point, weights=(self.base.rays > 0).astype(float),
                                                 minlength=self.rays.n_points) >= 2)

@@ -211,9 +211,9 @@ def gauss_newton(models, layout: ViewLayout, rays: Rays, state: State, wts: Weig
     """Iterate :func:`step` until the predictions move less than ``tol_px`` (at most ``max_iter`` steps); the
     predictions and derivatives at the solution; the DEM's height targets re-sampled at the current ground before
     each step (:func:`resample_dem`). ``lin``: the linearisation at ``state`` when known (one projection per
-    step). ``warm``: ``state`` is the solution at other weights (a robust reweighting): a step whose predictions
-    land where its linear model said (within ``tol_px``) is converged too, however far the reweighting moved them
-    (its error is second order in that move). Returns ``(state, solution, lin, iterations, converged, change)``
+    step). ``warm``: ``state`` is the solution at other weights (a robust reweighting; or reweighted steps follow):
+    a step whose predictions land where its linear model said (within ``tol_px``) is converged too, however far
+    the reweighting moved them (its error is second order in that move). Returns ``(state, solution, lin, iterations, converged, change)``
     (the solution of the last step: its ``cov_global`` is the reduced system's unit-weight inverse)."""
     converged = False
     it = 0
