@@ -193,8 +193,9 @@ def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: st
     ground0, _, notes = start_ground(models, layout, rays, dem_obj)
     wts = base_weights(models, layout, rays, ground0, dem_obj, gcp_sigma_m=gcp_sigma_m, dem_sigma_m=dem_sigma_m)
     state0 = State(np.zeros(layout.n_params), ground0)
-    before = project_all(models, layout, rays, state0, jacobian=False)
+    before = project_all(models, layout, rays, state0)
     pb = BundleProblem(models, layout, rays, state0, wts, tol_px=tol_px, max_iter=max_iter, progress=progress)
+    pb.lin = before                                   # the first Gauss-Newton step's linearisation too
     est = _robust(pb) if robust else pb.fit()
     return _result(est, pb, tab, before, ground0, layout.notes + notes)
 
