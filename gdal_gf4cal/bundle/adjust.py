@@ -16,12 +16,16 @@ from .result import BundleEstimate, datum_drift, reprojection, view_correction
 from .solve import State, Weights, gauss_newton, project_all, reintersect
 from .start import DEFAULT_DEM_SIGMA_M, base_weights, start_ground
 
-__all__ = ["adjust_views", "BundleProblem", "ROBUST_TOL_PX"]
+__all__ = ["adjust_views", "BundleProblem", "ROBUST_TOL_PX", "PRIOR_EXCESS_SIGMAS"]
 
 #: The robust reweighting stops when a re-solve moves the corrections less than this (px, at the image corners) and
 #: the rejected rays stay: far below the corrections' floor (a few hundredths to tenths of a pixel); Huber weights can
 #: cycle at a few thousandths of a pixel (Giza: 0.0056 px).
 ROBUST_TOL_PX = 0.01
+#: A view whose correction at its image centre exceeds this many prior sigmas is reported (a warning): the views
+#: disagree beyond their priors, as when one RPC carries a blunder-sized bias, and the priors then split it between
+#: the views (with 2 views nothing in the ties or a DEM says which one is off; METHODS §11).
+PRIOR_EXCESS_SIGMAS = 3.0
 #: Reweighted re-solves at most; an estimate that has not settled by then is reported as not converged.
 ROBUST_MAX_FITS = 40
 
@@ -235,4 +239,28 @@ def _result(est: Estimate, pb: BundleProblem, tab, before, ground0, notes: List[
         out.warnings.append(f"the robust reweighting did not settle in {ROBUST_MAX_FITS} re-solves (the corrections "
                             f"kept moving by more than {ROBUST_TOL_PX:g} px)")
     out.iterations = int(pb.iterations)
+    excess = prior_excess(layout, est.x)
+    if excess:
+        out.warnings.append(excess)
     return out
+
+
+def prior_excess(layout: ViewLayout, x: np.ndarray) -> str:
+    """A warning (or ``""``) naming the views whose correction at the image centre exceeds
+    :data:`PRIOR_EXCESS_SIGMAS` times their prior: the split of such a bias between the views is set by the priors
+    alone; it moves the block (with a DEM on sloping terrain, also the along-epipolar relative correction)."""
+    over = []
+    for v in layout.views:
+        w, h = layout.sizes[v]
+        a_s, a_l = layout.design(v, [0.5 * w], [0.5 * h])
+        sl_s, sl_l = layout.slices(v)
+        ds, dl = float(a_s[0] @ x[sl_s]), float(a_l[0] @ x[sl_l])
+        sig = float(layout.prior_px[layout.offset[v]])
+        if np.hypot(ds, dl) > PRIOR_EXCESS_SIGMAS * sig:
+            over.append(f"{v} ({ds:+.1f}, {dl:+.1f}) px against {sig:.3g} px")
+    if not over:
+        return ""
+    return (f"corrections beyond {PRIOR_EXCESS_SIGMAS:g} prior sigmas: {'; '.join(over)}: the views disagree more "
+            "than their priors allow (one RPC with a blunder-sized bias?) and the priors split that between the views, "
+            "which moves the block; give the RPCs you trust a small prior and the suspect one a large one "
+            "(--prior-sigma VIEW=PX, prior_sigma_px={view: px})")

@@ -121,24 +121,53 @@ def _layer(path, name):
     return pd.DataFrame(rows)
 
 
+def _delta(a, b):
+    """Biased run minus unbiased run: each view's correction at its image centre and the right one's relative to
+    the left (px, (sample, line))."""
+    per = {k: np.array([b["views"][k]["correction"]["parameters_px"][f"{c}_1"]
+                        - a["views"][k]["correction"]["parameters_px"][f"{c}_1"] for c in ("sample", "line")])
+           for k in ("left", "right")}
+    ra, rb = (r["relative_to_first_view_px"]["views"]["right"] for r in (a, b))
+    return per, np.array([rb["sample"] - ra["sample"], rb["line"] - ra["line"]])
+
+
 @pytest.mark.slow
 def test_sixty_pixel_bias_recovered_relative_to_the_unbiased_run(tmp_path, capsys):
     """shareloc's right_image_bias.geom = the right RPC with LINE_OFF + 60 px: between an unbiased and a biased run
-    the right view's correction relative to the left must move by (0, -60) px. Tie points fix the part across the
-    epipolar lines; along them (57.9 of the 60 px here) a relative bias is a height shift of the ties, fixed by
-    the DEM's height prior on every tie (± 5 m, re-sampled where the ties move). The user says which RPC is off
-    (left 3 px, right 100 px): with equal default priors (5 m, 9.9 px each) the bias is split between the views,
-    the block moves ~15 m horizontally, and on Ventoux's slopes the DEM then gives heights ~3 m off: measured
-    (+0.48, -62.39) px instead of (0, -60)."""
+    (the same options) the right view's correction must move by (0, -60) px and the left's not at all, relative
+    and per view. Tie points fix the part across the epipolar lines; along them (57.9 of the 60 px here) a relative
+    bias is a height shift of the ties, fixed by the DEM's height prior on every tie (± 5 m, re-sampled where the
+    ties move). The user says which RPC is off (left 3 px, right 100 px): measured relative (+0.013, -60.038) px,
+    left (-0.008, +0.051), right (+0.005, -59.988)."""
     opts = ("--prior-sigma", "left=3", "right=100")
     a, _ = _run(capsys, tmp_path / "a", tmp_path / "oa", *opts)
     b, cap = _run(capsys, tmp_path / "b", tmp_path / "ob", *opts, biased=True)
-    ra = a["relative_to_first_view_px"]["views"]["right"]
-    rb = b["relative_to_first_view_px"]["views"]["right"]
-    delta = np.array([rb["sample"] - ra["sample"], rb["line"] - ra["line"]])
-    assert delta == pytest.approx([0.0, -V.BIAS_LINE_PX], abs=0.1), delta
+    per, rel = _delta(a, b)
+    assert rel == pytest.approx([0.0, -V.BIAS_LINE_PX], abs=0.1), rel
+    assert per["left"] == pytest.approx([0.0, 0.0], abs=0.1), per
+    assert per["right"] == pytest.approx([0.0, -V.BIAS_LINE_PX], abs=0.1), per
     assert b["reprojection_px"]["before"]["all"] > 7 and b["reprojection_px"]["after"]["all"] < 0.09
     assert "right: translation correction" in cap.out
+    assert not [w for r in (a, b) for w in r["warnings"] if "prior sigmas" in w]
+
+
+@pytest.mark.slow
+def test_default_options_split_a_one_view_bias_and_say_so(unbiased, tmp_path, capsys):
+    """With default options both views get the same prior (5 m, 9.9 px), so nothing says which RPC carries the
+    60 px: the priors split it (+31, -31 lines), the block moves ~15 m along track and, on Ventoux's slopes, the
+    DEM's heights there move the relative correction to -62.4 lines. No datum rule can do better with two views:
+    holding the left view exactly (prior 1e4 px on the right) gives a relative (-0.007, -59.898) px but the left's
+    correction still moves by 2.1 px (the unbiased run's datum is the mean of two views 3.9 px apart), and the DEM's
+    misfit has no minimum within 40 m of the block (SRTM3 over a 250 m crop) to pick a view. The run says so: the
+    views' corrections beyond 3 prior sigmas, and how to say which RPC to trust."""
+    a, _ = unbiased
+    b, _ = _run(capsys, tmp_path / "b", tmp_path / "ob", biased=True)
+    per, rel = _delta(a, b)
+    assert not [w for w in a["warnings"] if "prior sigmas" in w]
+    warn = [w for w in b["warnings"] if "beyond 3 prior sigmas" in w]
+    assert len(warn) == 1 and "left (" in warn[0] and "right (" in warn[0] and "--prior-sigma" in warn[0]
+    assert per["left"][1] == pytest.approx(-per["right"][1], abs=1.0) and per["left"][1] > 25     # split
+    assert rel == pytest.approx([0.0, -V.BIAS_LINE_PX], abs=3.0), rel
 
 
 @pytest.mark.slow
