@@ -26,6 +26,12 @@ ROBUST_TOL_PX = 0.01
 #: disagree beyond their priors, as when one RPC carries a blunder-sized bias, and the priors then split it between
 #: the views (with 2 views nothing in the ties or a DEM says which one is off; METHODS §11).
 PRIOR_EXCESS_SIGMAS = 3.0
+#: With 3 views or more and a view beyond :data:`PRIOR_EXCESS_SIGMAS`: every view's prior weight times Tukey's
+#: biweight ``(1 - (z/c)^2)^2`` of its correction's size ``z`` (in its own prior sigmas), at least
+#: :data:`PRIOR_WEIGHT_FLOOR` (the datum never goes singular), re-solved until the weights settle.
+PRIOR_TUKEY_C = 4.685
+PRIOR_WEIGHT_FLOOR = 1e-4
+PRIOR_MAX_REWEIGHT = 10
 #: Reweighted re-solves at most; an estimate that has not settled by then is reported as not converged.
 ROBUST_MAX_FITS = 40
 
@@ -185,7 +191,38 @@ def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: st
     before = project_all(models, layout, rays, state0, jacobian=False)
     pb = BundleProblem(models, layout, rays, state0, wts, tol_px=tol_px, max_iter=max_iter, progress=progress)
     est = _robust(pb) if robust else pb.fit()
+    est = _robust_priors(pb, est, robust)
     return _result(est, pb, tab, before, ground0, layout.notes + notes)
+
+
+def _robust_priors(pb: BundleProblem, est: Estimate, robust: bool) -> Estimate:
+    """Views' priors that do not follow one view's blunder-sized bias (METHODS §11): with 3 views or more and a
+    view whose correction exceeds :data:`PRIOR_EXCESS_SIGMAS` of its prior, the priors re-weighted by Tukey's
+    biweight of each view's correction (:data:`PRIOR_TUKEY_C`, floor :data:`PRIOR_WEIGHT_FLOOR`) and the block
+    re-solved until the weights settle: the agreeing views hold the datum, the odd one takes its bias whole (a
+    warning names it). With 2 views nothing tells which one is off: the equal priors split it (and
+    :func:`prior_excess` says so)."""
+    lay = pb.layout
+    if len(lay.views) < 3 or not prior_excess(lay, est.x):
+        return est
+    given, w_old = lay.prior_px.copy(), np.ones(lay.n_params)
+    for _ in range(PRIOR_MAX_REWEIGHT):
+        w = np.ones(lay.n_params)
+        for v, (_, _, z) in view_excess(lay, est.x, given).items():
+            w[lay.offset[v]:lay.offset[v] + lay.models_used[v].n_params] = max(
+                (1.0 - min(z / PRIOR_TUKEY_C, 1.0) ** 2) ** 2, PRIOR_WEIGHT_FLOOR)
+        if np.max(np.abs(w - w_old)) < 1e-3:
+            break
+        w_old = w
+        lay.prior_px = given / np.sqrt(w)
+        pb.base = replace(pb.base, prior=1.0 / lay.prior_px ** 2)
+        est = _robust(pb) if robust else pb.fit()
+    odd = [f"{v} ({ds:+.1f}, {dl:+.1f}) px, {z:.1f} sigmas of its {given[lay.offset[v]]:.3g} px prior"
+           for v, (ds, dl, z) in view_excess(lay, est.x, given).items() if z > PRIOR_EXCESS_SIGMAS]
+    if odd:
+        est.warnings.append(f"view(s) {'; '.join(odd)}: beyond what the other views agree on (a blunder-sized RPC "
+                            "bias?): their prior down-weighted (Tukey), the block held by the agreeing views")
+    return est
 
 
 def _table(tab: pd.DataFrame, before, after, est: Estimate) -> pd.DataFrame:
@@ -245,19 +282,26 @@ def _result(est: Estimate, pb: BundleProblem, tab, before, ground0, notes: List[
     return out
 
 
-def prior_excess(layout: ViewLayout, x: np.ndarray) -> str:
-    """A warning (or ``""``) naming the views whose correction at the image centre exceeds
-    :data:`PRIOR_EXCESS_SIGMAS` times their prior: the split of such a bias between the views is set by the priors
-    alone; it moves the block (with a DEM on sloping terrain, also the along-epipolar relative correction)."""
-    over = []
+def view_excess(layout: ViewLayout, x: np.ndarray, prior_px=None):
+    """``{view: (ds, dl, z)}``: each view's correction at its image centre (px) and its size in units of the view's
+    prior σ (``prior_px`` per parameter, default :attr:`ViewLayout.prior_px`)."""
+    prior_px = layout.prior_px if prior_px is None else prior_px
+    out = {}
     for v in layout.views:
         w, h = layout.sizes[v]
         a_s, a_l = layout.design(v, [0.5 * w], [0.5 * h])
         sl_s, sl_l = layout.slices(v)
         ds, dl = float(a_s[0] @ x[sl_s]), float(a_l[0] @ x[sl_l])
-        sig = float(layout.prior_px[layout.offset[v]])
-        if np.hypot(ds, dl) > PRIOR_EXCESS_SIGMAS * sig:
-            over.append(f"{v} ({ds:+.1f}, {dl:+.1f}) px against {sig:.3g} px")
+        out[v] = (ds, dl, float(np.hypot(ds, dl) / prior_px[layout.offset[v]]))
+    return out
+
+
+def prior_excess(layout: ViewLayout, x: np.ndarray) -> str:
+    """A warning (or ``""``) naming the views whose correction at the image centre exceeds
+    :data:`PRIOR_EXCESS_SIGMAS` times their prior: the split of such a bias between the views is set by the priors
+    alone; it moves the block (with a DEM on sloping terrain, also the along-epipolar relative correction)."""
+    over = [f"{v} ({ds:+.1f}, {dl:+.1f}) px against {layout.prior_px[layout.offset[v]]:.3g} px"
+            for v, (ds, dl, z) in view_excess(layout, x).items() if z > PRIOR_EXCESS_SIGMAS]
     if not over:
         return ""
     return (f"corrections beyond {PRIOR_EXCESS_SIGMAS:g} prior sigmas: {'; '.join(over)}: the views disagree more "
