@@ -170,23 +170,39 @@ def test_default_options_split_a_one_view_bias_and_say_so(unbiased, tmp_path, ca
     assert rel == pytest.approx([0.0, -V.BIAS_LINE_PX], abs=3.0), rel
 
 
-@pytest.mark.slow
-def test_three_views_of_two_resolutions(tmp_path, capsys):
-    """The pair plus the left product's 4-band MS crop (2.8 m pixels; tests/data/panms_ventoux): the three
-    overlapping pairs matched (scale 4 between pan and MS), every view adjusted, the stereo pair as good as alone."""
+def _three(capsys, folder, *, biased=False):
+    """The pair plus the left product's 4-band MS crop (2.8 m pixels; tests/data/panms_ventoux), matched, default
+    options: the report."""
     import shutil
-    left, right = V.pair(tmp_path / "in")
+    left, right = V.pair(folder / "in", biased=biased)
     for ext in ("tif", "geom"):
-        shutil.copyfile(V.DATA / "panms_ventoux" / f"lowres_color_image.{ext}", tmp_path / "in" / f"ms.{ext}")
-    out = tmp_path / "out"
-    rc = main(["bundle-adjust", str(left), str(right), str(tmp_path / "in" / "ms.tif"), "--match-ties",
+        shutil.copyfile(V.DATA / "panms_ventoux" / f"lowres_color_image.{ext}", folder / "in" / f"ms.{ext}")
+    out = folder / "out"
+    rc = main(["bundle-adjust", str(left), str(right), str(folder / "in" / "ms.tif"), "--match-ties",
                *V.dem_args(), "--out", str(out)])
     assert rc == 0, capsys.readouterr().err
     with open(out / "report.json") as fh:
-        rep = json.load(fh)
+        return json.load(fh), out
+
+
+@pytest.mark.slow
+def test_three_views_of_two_resolutions(tmp_path, capsys):
+    """The pair plus the left product's MS crop: the three overlapping pairs matched (scale 4 between pan and MS),
+    every view adjusted, the stereo pair as good as alone. Then the right RPC 60 lines off, default options: with
+    three views the odd one is known (left and MS agree): its prior is down-weighted (Tukey, a warning names it)
+    and the right view's correction relative to the left moves by (-0.03, -59.92) px between the runs (the block
+    held by two views instead of three: the left's own correction moves by 1.3 px)."""
+    rep, out = _three(capsys, tmp_path / "a")
     pairs = {tuple(p["pair"]): p["n_ties"] for p in rep["ties"]["pairs_matched"]}
     assert set(pairs) == {("left", "right"), ("left", "ms"), ("right", "ms")} and min(pairs.values()) >= 30
     after = rep["reprojection_px"]["after"]
     assert after["per_pair"]["left|right"] < 0.1
     assert all(after["per_view"][k] < rep["reprojection_px"]["before"]["per_view"][k] for k in ("left", "right", "ms"))
     assert sorted(p.name for p in out.iterdir() if p.suffix == ".vrt") == ["left.vrt", "ms.vrt", "right.vrt"]
+    assert not [w for w in rep["warnings"] if "sigmas" in w]
+    b, _ = _three(capsys, tmp_path / "b", biased=True)
+    odd = [w for w in b["warnings"] if "beyond what the other views agree on" in w]
+    assert len(odd) == 1 and odd[0].startswith("view(s) right (")
+    ra, rb = (r["relative_to_first_view_px"]["views"]["right"] for r in (rep, b))
+    rel = np.array([rb["sample"] - ra["sample"], rb["line"] - ra["line"]])
+    assert rel == pytest.approx([0.0, -V.BIAS_LINE_PX], abs=0.1), rel
