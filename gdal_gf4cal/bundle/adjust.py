@@ -16,7 +16,7 @@ from .result import BundleEstimate, datum_drift, reprojection, view_correction
 from .solve import State, Weights, gauss_newton, project_all, reintersect
 from .start import DEFAULT_DEM_SIGMA_M, base_weights, start_ground
 
-__all__ = ["adjust_views", "BundleProblem", "ROBUST_TOL_PX"]
+__all__ = ["adjust_views", "BundleProblem", "ROBUST_TOL_PX", "PRIOR_EXCESS_SIGMAS"]
 
 #: The robust reweighting stops when a re-solve moves the corrections less than this (px, at the image corners) and
 #: the rejected rays stay: far below the corrections' floor (a few hundredths to tenths of a pixel); Huber weights can
@@ -24,6 +24,16 @@ __all__ = ["adjust_views", "BundleProblem", "ROBUST_TOL_PX"]
 ROBUST_TOL_PX = 0.01
 #: The down-weighting phase ends below this move (px): the rejection phase reweights on to ROBUST_TOL_PX.
 ROBUST_PHASE1_TOL_PX = 0.05
+#: A view whose correction at its image centre exceeds this many prior sigmas is reported (a warning): the views
+#: disagree beyond their priors, as when one RPC carries a blunder-sized bias, and the priors then split it between
+#: the views (with 2 views nothing in the ties or a DEM says which one is off; METHODS §11).
+PRIOR_EXCESS_SIGMAS = 3.0
+#: With 3 views or more and a view beyond :data:`PRIOR_EXCESS_SIGMAS`: every view's prior weight times Tukey's
+#: biweight ``(1 - (z/c)^2)^2`` of its correction's size ``z`` (in its own prior sigmas), at least
+#: :data:`PRIOR_WEIGHT_FLOOR` (the datum never goes singular), re-solved until the weights settle.
+PRIOR_TUKEY_C = 4.685
+PRIOR_WEIGHT_FLOOR = 1e-4
+PRIOR_MAX_REWEIGHT = 10
 #: Reweighted re-solves at most; an estimate that has not settled by then is reported as not converged.
 ROBUST_MAX_FITS = 40
 
@@ -42,7 +52,7 @@ class BundleProblem:
         self.tol_px, self.max_iter, self.progress = tol_px, max_iter, progress
         self.solution = self.lin = None
         self.sd_factor = np.ones(self.n_points)
-        self.refit_steps = 1                      # reweighted: one Gauss-Newton step per reweighting
+        self.refit_steps = 4                      # reweighted: usually one step lands (gauss_newton's warm)
         self.last_change = np.inf
         self.point_cov = None
         self.iterations, self.converged = 0, False
@@ -68,8 +78,8 @@ class BundleProblem:
     def fit(self, point_weights=None) -> Estimate:
         pw = np.ones(self.n_points) if point_weights is None else np.asarray(point_weights, float)
         wts = replace(self.base, rays=self.base.rays * pw)
-        # reweighted: one Gauss-Newton step each; the robust driver's first fit (given weights) may stop once a
-        # step lands where its linear model said: every reweighting steps on from there
+        # reweighted: a step that lands where its linear model said ends the fit (usually the first); so may the
+        # robust driver's first fit (given weights): every reweighting steps on from there
         steps = self.max_iter if self.solution is None else self.refit_steps
         self.state, self.solution, self.lin, it, self.converged, self.last_change = gauss_newton(
             self.models, self.layout, self.rays, self.state, wts, tol_px=self.tol_px, max_iter=steps,
@@ -197,7 +207,38 @@ def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: st
     pb = BundleProblem(models, layout, rays, state0, wts, tol_px=tol_px, max_iter=max_iter, progress=progress)
     pb.lin = before                                   # the first Gauss-Newton step's linearisation too
     est = _robust(pb) if robust else pb.fit()
+    est = _robust_priors(pb, est, robust)
     return _result(est, pb, tab, before, ground0, layout.notes + notes)
+
+
+def _robust_priors(pb: BundleProblem, est: Estimate, robust: bool) -> Estimate:
+    """Views' priors that do not follow one view's blunder-sized bias (METHODS §11): with 3 views or more and a
+    view whose correction exceeds :data:`PRIOR_EXCESS_SIGMAS` of its prior, the priors re-weighted by Tukey's
+    biweight of each view's correction (:data:`PRIOR_TUKEY_C`, floor :data:`PRIOR_WEIGHT_FLOOR`) and the block
+    re-solved until the weights settle: the agreeing views hold the datum, the odd one takes its bias whole (a
+    warning names it). With 2 views nothing tells which one is off: the equal priors split it (and
+    :func:`prior_excess` says so)."""
+    lay = pb.layout
+    if len(lay.views) < 3 or not prior_excess(lay, est.x):
+        return est
+    given, w_old = lay.prior_px.copy(), np.ones(lay.n_params)
+    for _ in range(PRIOR_MAX_REWEIGHT):
+        w = np.ones(lay.n_params)
+        for v, (_, _, z) in view_excess(lay, est.x, given).items():
+            w[lay.offset[v]:lay.offset[v] + lay.models_used[v].n_params] = max(
+                (1.0 - min(z / PRIOR_TUKEY_C, 1.0) ** 2) ** 2, PRIOR_WEIGHT_FLOOR)
+        if np.max(np.abs(w - w_old)) < 1e-3:
+            break
+        w_old = w
+        lay.prior_px = given / np.sqrt(w)
+        pb.base = replace(pb.base, prior=1.0 / lay.prior_px ** 2)
+        est = _robust(pb) if robust else pb.fit()
+    odd = [f"{v} ({ds:+.1f}, {dl:+.1f}) px, {z:.1f} sigmas of its {given[lay.offset[v]]:.3g} px prior"
+           for v, (ds, dl, z) in view_excess(lay, est.x, given).items() if z > PRIOR_EXCESS_SIGMAS]
+    if odd:
+        est.warnings.append(f"view(s) {'; '.join(odd)}: beyond what the other views agree on (a blunder-sized RPC "
+                            "bias?): their prior down-weighted (Tukey), the block held by the agreeing views")
+    return est
 
 
 def _table(tab: pd.DataFrame, before, after, est: Estimate) -> pd.DataFrame:
@@ -254,4 +295,35 @@ def _result(est: Estimate, pb: BundleProblem, tab, before, ground0, notes: List[
         out.warnings.append(f"the robust reweighting did not settle in {ROBUST_MAX_FITS} re-solves (the corrections "
                             f"kept moving by more than {ROBUST_TOL_PX:g} px)")
     out.iterations = int(pb.iterations)
+    excess = prior_excess(layout, est.x)
+    if excess:
+        out.warnings.append(excess)
     return out
+
+
+def view_excess(layout: ViewLayout, x: np.ndarray, prior_px=None):
+    """``{view: (ds, dl, z)}``: each view's correction at its image centre (px) and its size in units of the view's
+    prior σ (``prior_px`` per parameter, default :attr:`ViewLayout.prior_px`)."""
+    prior_px = layout.prior_px if prior_px is None else prior_px
+    out = {}
+    for v in layout.views:
+        w, h = layout.sizes[v]
+        a_s, a_l = layout.design(v, [0.5 * w], [0.5 * h])
+        sl_s, sl_l = layout.slices(v)
+        ds, dl = float(a_s[0] @ x[sl_s]), float(a_l[0] @ x[sl_l])
+        out[v] = (ds, dl, float(np.hypot(ds, dl) / prior_px[layout.offset[v]]))
+    return out
+
+
+def prior_excess(layout: ViewLayout, x: np.ndarray) -> str:
+    """A warning (or ``""``) naming the views whose correction at the image centre exceeds
+    :data:`PRIOR_EXCESS_SIGMAS` times their prior: the split of such a bias between the views is set by the priors
+    alone; it moves the block (with a DEM on sloping terrain, also the along-epipolar relative correction)."""
+    over = [f"{v} ({ds:+.1f}, {dl:+.1f}) px against {layout.prior_px[layout.offset[v]]:.3g} px"
+            for v, (ds, dl, z) in view_excess(layout, x).items() if z > PRIOR_EXCESS_SIGMAS]
+    if not over:
+        return ""
+    return (f"corrections beyond {PRIOR_EXCESS_SIGMAS:g} prior sigmas: {'; '.join(over)}: the views disagree more "
+            "than their priors allow (one RPC with a blunder-sized bias?) and the priors split that between the views, "
+            "which moves the block; give the RPCs you trust a small prior and the suspect one a large one "
+            "(--prior-sigma VIEW=PX, prior_sigma_px={view: px})")

@@ -13,7 +13,7 @@ import pandas as pd
 
 from ..compensation import CompensationModel
 from ..observations import validate_observations
-from .model import BUNDLE_MODELS, MIN_SPAN, BundleError, Rays, ViewLayout, prior_sigma_px
+from .model import BUNDLE_MODELS, MIN_SPAN, PAIR_FOLLOWER_FACTOR, BundleError, Rays, ViewLayout, prior_sigma_px
 
 __all__ = ["check_inputs", "make_layout", "make_rays", "view_sizes"]
 
@@ -126,6 +126,9 @@ def make_layout(tab: pd.DataFrame, models: Mapping[str, object], sizes, model: s
                              f"{su:.0%} x {sv:.0%}: translation estimated instead")
         given = prior.get(v) if isinstance(prior, Mapping) else prior
         sig, source = prior_sigma_px(models[v], sizes[v], given)
+        if len(views) == 2 and v == views[1] and given is None:
+            sig *= PAIR_FOLLOWER_FACTOR
+            source = f"{source}, x {PAIR_FOLLOWER_FACTOR:g}: the pair follows its first view, {views[0]}"
         notes.append(f"{v}: prior sigma {sig:.3g} px ({source})")
         used[v], offset[v] = m, pos
         priors.append(np.full(m.n_params, sig))

@@ -22,7 +22,7 @@ from ..basis import monomial_derivatives, monomials, term_name
 from ..compensation import CompensationModel
 from ..errors import GCPError
 
-__all__ = ["BundleError", "DEFAULT_PRIOR_M", "DEFAULT_PRIOR_PX", "BUNDLE_MODELS", "MIN_SPAN", "ViewLayout", "Rays", "prior_sigma_px",
+__all__ = ["BundleError", "DEFAULT_PRIOR_M", "DEFAULT_PRIOR_PX", "BUNDLE_MODELS", "MIN_SPAN", "PAIR_FOLLOWER_FACTOR", "ViewLayout", "Rays", "prior_sigma_px",
            "pixel_size_m"]
 
 #: Prior standard deviation (m on the ground, converted to px by the view's pixel size) of every correction
@@ -30,6 +30,11 @@ __all__ = ["BundleError", "DEFAULT_PRIOR_M", "DEFAULT_PRIOR_PX", "BUNDLE_MODELS"
 #: vendor RPCs (Pleiades: 5 m, ~7 px). Wide enough that a DEM's height prior, not the views' priors, fixes the
 #: along-epipolar part of the relative bias (which ties alone cannot see).
 DEFAULT_PRIOR_M = 5.0
+#: A pair of views is adjusted relative to its first view (the reference, as CARS corrects the right image of a
+#: stereo pair): the second view's default prior is this many times wider. With two views nothing in the ties or a
+#: DEM says which RPC is off, so equal priors would split one view's bias between both and move the block; the
+#: first view named holds it instead (``--prior-sigma`` for both views, or per view, overrides this).
+PAIR_FOLLOWER_FACTOR = 1000.0
 #: Prior standard deviation (px) when neither ERR_BIAS nor the pixel size is known.
 DEFAULT_PRIOR_PX = 3.0
 #: Correction models of the bundle adjustment (METHODS §11).

@@ -39,7 +39,8 @@ def add_parser(parser):
     parser.add_argument("--prior-sigma", nargs="+", metavar="[VIEW=]PX",
                         help="how far (px, 1 sigma) each view's RPC may be off: the datum prior that holds the block "
                              "without GCPs; a number for every view and/or VIEW=PX for one (default: the RPC's "
-                             "ERR_BIAS, else 5 m over the pixel size); widen it for a view known to be far off")
+                             "ERR_BIAS, else 5 m over the pixel size; a pair follows its first view: the second's 1000x wider); "
+                             "widen it for a view known to be far off")
     from . import add_plausibility_argument, add_rpc_pairs_argument
     add_rpc_pairs_argument(parser)
     add_plausibility_argument(parser, "GCPs")

@@ -279,7 +279,7 @@ def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
         return out
     m = idx.size
     ref_f = reference_on_grids(rpc, dem, ref, wx0[idx], wy0[idx], w, spacing=1.0, geometry_step=step,
-                               shared=isinstance(ref, RawReference))
+                               shared=True)
     fine = _FinePasses(spec, ds, ref_f, wx0[idx], wy0[idx], shift_x[idx], shift_y[idx], lim, sigma)
     if f == 1 and m >= 16:
         # Without a coarse level every window would start at offset 0 and most would need a second pass once

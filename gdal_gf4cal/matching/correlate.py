@@ -368,9 +368,16 @@ def _noise_sigma(a: np.ndarray) -> np.ndarray:
     The 3 x 3 kernel ``[[1, -2, 1], [-2, 4, -2], [1, -2, 1]]`` is the outer product of ``[1, -2, 1]`` with
     itself: two 1-D second differences instead of nine shifted copies.
     """
-    d2 = a[..., :, :-2] - 2 * a[..., :, 1:-1] + a[..., :, 2:]
-    lap = d2[..., :-2, :] - 2 * d2[..., 1:-1, :] + d2[..., 2:, :]
-    return np.sqrt(np.pi / 2.0) / 6.0 * np.asarray(np.mean(np.abs(lap), axis=(-1, -2)), dtype=np.float64)
+    # In place, in the same order as ``a0 - 2 a1 + a2`` (same bits): two temporaries instead of eight, which
+    # halves the time on 256-px stacks.
+    d2 = 2 * a[..., :, 1:-1]
+    np.subtract(a[..., :, :-2], d2, out=d2)
+    np.add(d2, a[..., :, 2:], out=d2)
+    lap = 2 * d2[..., 1:-1, :]
+    np.subtract(d2[..., :-2, :], lap, out=lap)
+    np.add(lap, d2[..., 2:, :], out=lap)
+    np.abs(lap, out=lap)
+    return np.sqrt(np.pi / 2.0) / 6.0 * np.asarray(np.mean(lap, axis=(-1, -2)), dtype=np.float64)
 
 
 def flat_fraction(windows: np.ndarray, region=None, box: int = 5, ratio: float = 0.05,

@@ -103,8 +103,8 @@ class BundleAdjust(Gf4calAlgorithm):
                                                     optional=True),
                        "The 1-sigma prior on each view's correction that holds the block without GCPs: a number "
                        "for every view and/or VIEW=PX items (e.g. right=100), separated by commas or spaces. Empty: "
-                       "the RPC's stated bias error (ERR_BIAS), else 5 m over the view's pixel size. Widen it for a "
-                       "view known to be far off.")
+                       "the RPC's stated bias error (ERR_BIAS), else 5 m over the view's pixel size; a pair follows its "
+                       "first view (the second's prior 1000x wider). Widen it for a view known to be far off.")
         self._advanced(QgsProcessingParameterNumber(self.DEM_SIGMA, self.tr("DEM height accuracy (m)"),
                                                     QgsProcessingParameterNumber.Double, defaultValue=5.0,
                                                     minValue=0.001),

@@ -121,43 +121,85 @@ def _layer(path, name):
     return pd.DataFrame(rows)
 
 
+def _delta(a, b):
+    """Biased run minus unbiased run: each view's correction at its image centre and the right one's relative to
+    the left (px, (sample, line))."""
+    per = {k: np.array([b["views"][k]["correction"]["parameters_px"][f"{c}_1"]
+                        - a["views"][k]["correction"]["parameters_px"][f"{c}_1"] for c in ("sample", "line")])
+           for k in ("left", "right")}
+    ra, rb = (r["relative_to_first_view_px"]["views"]["right"] for r in (a, b))
+    return per, np.array([rb["sample"] - ra["sample"], rb["line"] - ra["line"]])
+
+
 @pytest.mark.slow
 def test_sixty_pixel_bias_recovered_relative_to_the_unbiased_run(tmp_path, capsys):
     """shareloc's right_image_bias.geom = the right RPC with LINE_OFF + 60 px: between an unbiased and a biased run
-    the right view's correction relative to the left must move by (0, -60) px. Tie points fix the part across the
-    epipolar lines; along them (57.9 of the 60 px here) a relative bias is a height shift of the ties, fixed by
-    the DEM's height prior on every tie (± 5 m, re-sampled where the ties move). The user says which RPC is off
-    (left 3 px, right 100 px): with equal default priors (5 m, 9.9 px each) the bias is split between the views,
-    the block moves ~15 m horizontally, and on Ventoux's slopes the DEM then gives heights ~3 m off: measured
-    (+0.48, -62.39) px instead of (0, -60)."""
+    (the same options) the right view's correction must move by (0, -60) px and the left's not at all, relative
+    and per view. Tie points fix the part across the epipolar lines; along them (57.9 of the 60 px here) a relative
+    bias is a height shift of the ties, fixed by the DEM's height prior on every tie (± 5 m, re-sampled where the
+    ties move). The user says which RPC is off (left 3 px, right 100 px): measured relative (+0.013, -60.038) px,
+    left (-0.008, +0.051), right (+0.005, -59.988)."""
     opts = ("--prior-sigma", "left=3", "right=100")
     a, _ = _run(capsys, tmp_path / "a", tmp_path / "oa", *opts)
     b, cap = _run(capsys, tmp_path / "b", tmp_path / "ob", *opts, biased=True)
-    ra = a["relative_to_first_view_px"]["views"]["right"]
-    rb = b["relative_to_first_view_px"]["views"]["right"]
-    delta = np.array([rb["sample"] - ra["sample"], rb["line"] - ra["line"]])
-    assert delta == pytest.approx([0.0, -V.BIAS_LINE_PX], abs=0.1), delta
+    per, rel = _delta(a, b)
+    assert rel == pytest.approx([0.0, -V.BIAS_LINE_PX], abs=0.1), rel
+    assert per["left"] == pytest.approx([0.0, 0.0], abs=0.1), per
+    assert per["right"] == pytest.approx([0.0, -V.BIAS_LINE_PX], abs=0.1), per
     assert b["reprojection_px"]["before"]["all"] > 7 and b["reprojection_px"]["after"]["all"] < 0.09
     assert "right: translation correction" in cap.out
+    assert not [w for r in (a, b) for w in r["warnings"] if "prior sigmas" in w]
+
+
+@pytest.mark.slow
+def test_default_options_recover_the_bias_relative_to_the_first_view(unbiased, tmp_path, capsys):
+    """Default options, as a user runs it: a pair is adjusted relative to its first view (the second view's prior
+    1000x wider), so the 60 lines of the right RPC go to the right view whole, per view and relative, within 0.1 px
+    of the unbiased run. (Equal priors split them, +31/-31 lines: the block moved ~15 m along track and, on Ventoux's
+    slopes, the DEM's heights there moved the relative correction to -62.4 lines.)"""
+    a, _ = unbiased
+    b, cap = _run(capsys, tmp_path / "b", tmp_path / "ob", biased=True)
+    per, rel = _delta(a, b)
+    assert rel == pytest.approx([0.0, -V.BIAS_LINE_PX], abs=0.1), rel
+    assert per["left"] == pytest.approx([0.0, 0.0], abs=0.1), per
+    assert per["right"] == pytest.approx([0.0, -V.BIAS_LINE_PX], abs=0.1), per
+    assert "the pair follows its first view, left" in cap.err
+    assert not [w for r in (a, b) for w in r["warnings"] if "prior sigmas" in w]
+
+
+def _three(capsys, folder, *, biased=False):
+    """The pair plus the left product's 4-band MS crop (2.8 m pixels; tests/data/panms_ventoux), matched, default
+    options: the report."""
+    import shutil
+    left, right = V.pair(folder / "in", biased=biased)
+    for ext in ("tif", "geom"):
+        shutil.copyfile(V.DATA / "panms_ventoux" / f"lowres_color_image.{ext}", folder / "in" / f"ms.{ext}")
+    out = folder / "out"
+    rc = main(["bundle-adjust", str(left), str(right), str(folder / "in" / "ms.tif"), "--match-ties",
+               *V.dem_args(), "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    with open(out / "report.json") as fh:
+        return json.load(fh), out
 
 
 @pytest.mark.slow
 def test_three_views_of_two_resolutions(tmp_path, capsys):
-    """The pair plus the left product's 4-band MS crop (2.8 m pixels; tests/data/panms_ventoux): the three
-    overlapping pairs matched (scale 4 between pan and MS), every view adjusted, the stereo pair as good as alone."""
-    import shutil
-    left, right = V.pair(tmp_path / "in")
-    for ext in ("tif", "geom"):
-        shutil.copyfile(V.DATA / "panms_ventoux" / f"lowres_color_image.{ext}", tmp_path / "in" / f"ms.{ext}")
-    out = tmp_path / "out"
-    rc = main(["bundle-adjust", str(left), str(right), str(tmp_path / "in" / "ms.tif"), "--match-ties",
-               *V.dem_args(), "--out", str(out)])
-    assert rc == 0, capsys.readouterr().err
-    with open(out / "report.json") as fh:
-        rep = json.load(fh)
+    """The pair plus the left product's MS crop: the three overlapping pairs matched (scale 4 between pan and MS),
+    every view adjusted, the stereo pair as good as alone. Then the right RPC 60 lines off, default options: with
+    three views the odd one is known (left and MS agree): its prior is down-weighted (Tukey, a warning names it)
+    and the right view's correction relative to the left moves by (-0.03, -59.92) px between the runs (the block
+    held by two views instead of three: the left's own correction moves by 1.3 px)."""
+    rep, out = _three(capsys, tmp_path / "a")
     pairs = {tuple(p["pair"]): p["n_ties"] for p in rep["ties"]["pairs_matched"]}
     assert set(pairs) == {("left", "right"), ("left", "ms"), ("right", "ms")} and min(pairs.values()) >= 30
     after = rep["reprojection_px"]["after"]
     assert after["per_pair"]["left|right"] < 0.1
     assert all(after["per_view"][k] < rep["reprojection_px"]["before"]["per_view"][k] for k in ("left", "right", "ms"))
     assert sorted(p.name for p in out.iterdir() if p.suffix == ".vrt") == ["left.vrt", "ms.vrt", "right.vrt"]
+    assert not [w for w in rep["warnings"] if "sigmas" in w]
+    b, _ = _three(capsys, tmp_path / "b", biased=True)
+    odd = [w for w in b["warnings"] if "beyond what the other views agree on" in w]
+    assert len(odd) == 1 and odd[0].startswith("view(s) right (")
+    ra, rb = (r["relative_to_first_view_px"]["views"]["right"] for r in (rep, b))
+    rel = np.array([rb["sample"] - ra["sample"], rb["line"] - ra["line"]])
+    assert rel == pytest.approx([0.0, -V.BIAS_LINE_PX], abs=0.1), rel

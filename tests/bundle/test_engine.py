@@ -2,8 +2,11 @@
 
 The least-squares floor is computed honestly: the estimator's covariance for the known tie noise, the sandwich
 ``Q - Q P Q`` (``Q`` = the unit-weight inverse of the reduced normal matrix, ``P`` the datum prior's weights, which
-carry no noise), checked against a Monte Carlo over seeds. Relative corrections are compared with the noise-free
-adjustment of the same views (the truth expressed in the prior's datum: its ties reproject to 1e-5 px).
+carry no noise), checked against a Monte Carlo over seeds, with the default datum prior. Relative corrections are
+compared with the noise-free adjustment of the same views (the truth expressed in the prior's datum: its ties
+reproject to 1e-5 px). The datum directions (7 for views without control: the block's shift, rotation, scale
+and the like, held by the prior alone) have a floor of ~1e-8 px^2, round-off, not information: they are left out of
+the whitening (:func:`_whitened`), else their nonlinear 1e-4 px differences count as several sigmas.
 """
 from __future__ import annotations
 
@@ -16,9 +19,10 @@ from gdal_gf4cal.bundle.model import pixel_size_m
 from gdal_gf4cal.simulate.views import simulate_views
 
 GRID = np.linspace(-0.9, 0.9, 7)
-#: The floor tests' datum prior (px): the value they were built on (the default is now 5 m, 7.1 px here; with it
-#: the whitened ratio of the relative corrections is ~1.45 instead of ~0.9, not yet understood).
-FLOOR_PRIOR_PX = 3.0
+#: A direction of the corrections is determined by the ties when its floor variance exceeds this fraction of the
+#: prior's variance; the prior-only (datum) directions sit at ~1e-9 of it (round-off), the weakest tie-determined
+#: ones at ~2e-6 (tri-stereo, default 7.1 px prior).
+DETERMINED = 1e-7
 
 
 def _noise_free(sim):
@@ -45,10 +49,11 @@ def _floor_cov(est):
     return q - q @ np.diag(1.0 / est.prior_px ** 2) @ q
 
 
-def _whitened(d, cov):
-    """``d`` in units of its predicted standard deviation along the covariance's determined directions."""
+def _whitened(d, cov, prior_px):
+    """``d`` in units of its predicted standard deviation along the directions the ties determine (floor variance
+    above :data:`DETERMINED` times the prior's: not the datum's, which the prior alone holds)."""
     lam, vec = np.linalg.eigh(cov)
-    keep = lam > 1e-9 * lam.max()
+    keep = lam > DETERMINED * float(np.max(prior_px)) ** 2
     return (vec[:, keep].T @ d) / np.sqrt(lam[keep])
 
 
@@ -68,7 +73,7 @@ def _relative_error_and_floor(est, ref, views):
 @pytest.mark.parametrize("kind,n_views", [("tri-stereo", 3), ("multi-date", 5)])
 def test_relative_corrections_within_the_least_squares_floor(kind, n_views):
     sim = simulate_views(kind, n_views, n_ties=250, noise_px=(0.1, 0.2, 0.3, 0.2, 0.15)[:n_views], seed=0)
-    ref = adjust_views(_noise_free(sim), sim.models, robust=False, prior_sigma_px=FLOOR_PRIOR_PX)
+    ref = adjust_views(_noise_free(sim), sim.models, robust=False)
     assert ref.reprojection["after"]["all"] < 2e-3            # the truth is in the model: ~exact fit
     assert ref.reprojection["before"]["all"] > 1.0            # and the vendor RPCs disagree by pixels
     errs, vars_, z = [], [], []
@@ -78,12 +83,12 @@ def test_relative_corrections_within_the_least_squares_floor(kind, n_views):
         sig = obs["sigma"].to_numpy()
         obs["sample"] = obs["true_sample"] + rng.normal(0, 1, len(obs)) * sig
         obs["line"] = obs["true_line"] + rng.normal(0, 1, len(obs)) * sig
-        est = adjust_views(obs, sim.models, prior_sigma_px=FLOOR_PRIOR_PX)
+        est = adjust_views(obs, sim.models)
         assert est.converged and 0.8 < est.sigma0 < 1.2
         e, v = _relative_error_and_floor(est, ref, est.views)
         errs.append(e)
         vars_.append(v)
-        z.append(_whitened(est.x - ref.x, _floor_cov(est)))
+        z.append(_whitened(est.x - ref.x, _floor_cov(est), est.prior_px))
     # every determined direction of the corrections, in units of its least-squares floor: 16 x ~25 values
     ratio = float(np.sqrt(np.mean(np.concatenate(z) ** 2)))
     assert 0.8 < ratio < 1.2, ratio
@@ -92,7 +97,7 @@ def test_relative_corrections_within_the_least_squares_floor(kind, n_views):
     # RMS over the grid rests on those few directions (few degrees of freedom: a looser band)
     err_rms, floor = np.sqrt(np.mean(np.concatenate(errs))), np.sqrt(np.mean(np.concatenate(vars_)))
     assert 0.6 * floor < err_rms < 1.5 * floor, (err_rms, floor)
-    assert floor < 1.0
+    assert floor < 1.3        # 1.16 px (tri-stereo): the block tilt, weakly seen by the ties, held by the 7.1 px prior
 
 
 def test_datum_without_control_moves_less_than_one_prior_sigma():
@@ -116,13 +121,13 @@ def test_three_gcps_give_the_absolute_corrections_within_the_floor():
     errs, floors, z = [], [], []
     for seed in range(12):
         sim = simulate_views("tri-stereo", n_ties=250, n_gcps=3, noise_px=0.2, seed=seed)
-        est = adjust_views(sim.observations, sim.models, prior_sigma_px=FLOOR_PRIOR_PX)
+        est = adjust_views(sim.observations, sim.models)
         assert (est.table.drop_duplicates("point_id")["kind"] == "gcp").sum() == 3
         truth = np.concatenate([np.concatenate([sim.truth[v].coef_sample, sim.truth[v].coef_line])
                                 for v in est.views])
         c = _floor_cov(est)
         pull = -(est.cov / est.sigma0 ** 2) @ (truth / est.prior_px ** 2)
-        z.append(_whitened(est.x - truth - pull, c))
+        z.append(_whitened(est.x - truth - pull, c, est.prior_px))
         for v in est.views:
             a = _grid_design(est, v)
             errs.append(np.einsum("nkp,p->nk", a, est.x - truth).ravel() ** 2)
@@ -131,7 +136,7 @@ def test_three_gcps_give_the_absolute_corrections_within_the_floor():
     assert 0.6 * floor < err_rms < 1.2 * floor, (err_rms, floor)
     ratio = float(np.sqrt(np.mean(np.concatenate(z) ** 2)))
     assert 0.8 < ratio < 1.2, ratio
-    assert floor < 0.6
+    assert floor < 0.9        # 0.80 px with the default 7.1 px prior (weak directions less held than at 3 px)
 
 
 def test_reduced_system_does_not_grow_with_the_ties():
@@ -249,8 +254,8 @@ def test_blunder_rays_rejected_through_the_robust_driver():
     assert est.converged and 0.8 < est.sigma0 < 1.2
     assert abs(est.reprojection["after"]["all"] - clean.reprojection["after"]["all"]) < 0.01
     # distance to the clean fit in units of the floor: the rejected rays cost little, the blunders cost a lot
-    z_rob = np.sqrt(np.mean(_whitened(est.x - clean.x, _floor_cov(clean)) ** 2))
-    z_plain = np.sqrt(np.mean(_whitened(plain.x - clean.x, _floor_cov(clean)) ** 2))
+    z_rob = np.sqrt(np.mean(_whitened(est.x - clean.x, _floor_cov(clean), clean.prior_px) ** 2))
+    z_plain = np.sqrt(np.mean(_whitened(plain.x - clean.x, _floor_cov(clean), clean.prior_px) ** 2))
     assert z_rob < 0.5 < 3.0 < z_plain, (z_rob, z_plain)
 
 
@@ -275,3 +280,34 @@ def test_dem_height_prior_on_every_tie(monkeypatch):
     est2 = adjust_views(sim.observations, sim.models, dem=sim.h0, robust=False)
     assert any("120 tie(s) with nearly parallel rays started on the DEM" in n for n in est2.notes)
     assert est2.converged and np.allclose(est2.x, est.x, atol=1e-5)
+
+
+@pytest.mark.parametrize("kind,n_views", [("tri-stereo", 3), ("multi-date", 5)])
+def test_one_view_with_a_blunder_bias_does_not_move_the_block(kind, n_views, monkeypatch):
+    """One view's RPC 60 lines off (as shareloc's biased Ventoux RPC), default priors (5 m, 7.1 px): equal
+    least-squares priors split it between the views and the block follows (7.8-13.8 m along the lines, beyond the
+    5 m prior); the robust view priors (Tukey on each view's correction in its prior sigmas, from 3 views on) leave
+    it to the odd view: the block within half a prior sigma of the truth (0.6-1.6 m measured: where the agreeing
+    views' own 2 px biases put it), the view named in a warning."""
+    from gdal_gf4cal.bundle import adjust as adjust_mod
+    for seed in (0, 1):
+        sim = simulate_views(kind, n_views, n_ties=300, seed=seed)
+        bad = list(sim.models)[1]
+        obs = sim.observations.copy()
+        obs.loc[obs["image_id"] == bad, "line"] += 60.0
+        obs = obs[obs["line"] < sim.sizes[bad][1] - 1]
+        obs = obs[obs.groupby("point_id")["image_id"].transform("size") >= 2]
+        shift = {}
+        for label, thr in (("least squares", np.inf), ("robust", adjust_mod.PRIOR_EXCESS_SIGMAS)):
+            monkeypatch.setattr(adjust_mod, "PRIOR_EXCESS_SIGMAS", thr)
+            est = adjust_views(obs, sim.models)
+            pts = est.points[est.points["kind"] == "tie"].merge(sim.points, on="point_id", suffixes=("", "_true"))
+            de = float(np.mean(pts["lon"] - pts["lon_true"])) * np.cos(np.radians(pts["lat"].mean())) * 111320.0
+            dn = float(np.mean(pts["lat"] - pts["lat_true"])) * 110950.0
+            shift[label] = np.hypot(de, dn)
+            assert est.converged and est.reprojection["after"]["all"] < 0.3
+        prior_m = 5.0
+        assert shift["robust"] < 0.5 * prior_m < prior_m < shift["least squares"], shift
+        odd = [w for w in est.warnings if "beyond what the other views agree on" in w]
+        assert len(odd) == 1 and odd[0].startswith(f"view(s) {bad} (") and ";" not in odd[0].split(":")[0]
+        assert est.prior_px[est.blocks[bad].start] > 99 * est.prior_px[est.blocks[list(sim.models)[0]].start]
