@@ -4,7 +4,9 @@
 (:func:`num_threads`). The point kernels (:meth:`RPCModel.project <gdal_gf4cal.rpc.RPCModel.project>`,
 ``localize``, :func:`~gdal_gf4cal.localization.localize_dem` and the sensor-model mixin paths) split an input of
 more than :data:`BLOCK` points into fixed blocks (:func:`block_slices`) and run them over one shared
-:class:`~concurrent.futures.ThreadPoolExecutor` (:func:`map_blocks`; NumPy, GDAL and PROJ release the GIL).
+:class:`~concurrent.futures.ThreadPoolExecutor` (:func:`map_blocks`; NumPy, GDAL and PROJ release the GIL);
+:func:`~gdal_gf4cal.localization.localize_dem` in blocks of :data:`DEM_BLOCK`. Matching tiles and batch scenes run
+on pools of :func:`num_threads` threads too (:func:`pool_workers`), each unit with serial kernels (:func:`serial`).
 
 Results are bit-identical whatever the thread count: the blocks depend on the number of points only, never on the
 threads, each block is computed exactly as the serial path computes it (no reduction spans blocks, and a kernel
@@ -25,15 +27,22 @@ import numpy as np
 
 from .errors import Gf4calError
 
-__all__ = ["ENV", "BLOCK", "ThreadSettingError", "machine_cores", "num_threads", "limit", "block_slices",
-           "map_blocks", "split_points", "matmul", "BLAS_SERIAL_SIZE"]
+__all__ = ["ENV", "BLOCK", "DEM_BLOCK", "ThreadSettingError", "machine_cores", "num_threads", "limit",
+           "block_slices", "map_blocks", "split_points", "serial", "pool_workers", "matmul", "BLAS_SERIAL_SIZE"]
 
 #: The environment variable of the thread setting.
 ENV = "GF4CAL_NUM_THREADS"
 
 #: Points per block of a split kernel: larger inputs are split (below it a pool does not pay). A multiple of the
-#: kernels' own cache chunks (16384 and 8192 points), so a block evaluates exactly the chunks the serial path does.
-BLOCK = 65536
+#: kernels' own cache chunks (16384 and 8192 points), so a block evaluates exactly the chunks the serial path does
+#: (project and localize give the same bits for any such block size: each point is computed on its own). 32768
+#: points keep a block's working set (the (16, n) Jacobian rows, the Newton state: ~8 MB) small enough that the
+#: blocks of two threads share the last-level cache instead of streaming from memory.
+BLOCK = 32768
+
+#: Points per block of :func:`~gdal_gf4cal.localization.localize_dem`: there a block is a whole intersection (its
+#: own choice of Newton or march), so its numbers depend on the blocks: kept at the size they were pinned with.
+DEM_BLOCK = 65536
 
 T = TypeVar("T")
 
@@ -87,6 +96,26 @@ def limit(n: Optional[int]) -> Iterator[None]:
         yield
     finally:
         _local.limit = previous
+
+
+@contextmanager
+def serial() -> Iterator[None]:
+    """Within the ``with`` block, the calling thread's kernels run serially (:func:`num_threads` is 1): how a unit of
+    work that already runs on a pool thread (a tile of matching windows, a scene of a batch) keeps the kernels it
+    calls from splitting over the pool again (no threads x threads oversubscription)."""
+    previous = getattr(_local, "in_block", False)
+    _local.in_block = True
+    try:
+        yield
+    finally:
+        _local.in_block = previous
+
+
+def pool_workers(workers: Optional[int], tasks: int) -> int:
+    """Threads for ``tasks`` units of work: ``workers`` when given (>= 1), else :func:`num_threads`, never more than
+    the tasks (1: run them in the calling thread)."""
+    n = int(workers) if workers is not None and int(workers) >= 1 else num_threads()
+    return max(1, min(n, int(tasks)))
 
 
 def block_slices(n: int, block: Optional[int] = None) -> List[slice]:
@@ -175,12 +204,8 @@ def _run_serially(fn, slices):
 
 def _in_block(fn, s):
     """``fn(s)`` with the kernels it calls kept serial (no nested split over the pool)."""
-    previous = getattr(_local, "in_block", False)
-    _local.in_block = True
-    try:
+    with serial():
         return fn(s)
-    finally:
-        _local.in_block = previous
 
 
 def _submit(work: Callable[[], None], count: int) -> list:
