@@ -166,12 +166,32 @@ def map_blocks(fn: Callable[[slice], T], n: int, block: Optional[int] = None) ->
 def split_points(fn: Callable[..., tuple], *arrays, block: Optional[int] = None) -> tuple:
     """``fn(*arrays)`` for flat arrays of the same ``n`` points, ``fn`` returning a tuple of flat per-point arrays:
     up to ``block`` points one call (the serial path as it always was), above it one call per block
-    (:func:`map_blocks`) and each item concatenated in block order."""
+    (:func:`map_blocks`), each item joined in block order: copied into its place by the thread that computed the
+    block (the copy runs in parallel too), or concatenated when the blocks' items differ in type."""
     n = arrays[0].size
     if n <= (BLOCK if block is None else block):
         return fn(*arrays)
-    parts = map_blocks(lambda s: fn(*(a[s] for a in arrays)), n, block)
-    return tuple(np.concatenate([np.asarray(p[k]).ravel() for p in parts]) for k in range(len(parts[0])))
+    out: list = []
+    placed = []
+    lock = threading.Lock()
+
+    def run(sl):
+        part = [np.asarray(p).ravel() for p in fn(*(a[sl] for a in arrays))]
+        with lock:
+            if not out:
+                out.extend(np.empty(n, dtype=p.dtype) for p in part)
+        fits = len(part) == len(out) and all(p.dtype == o.dtype and p.size == sl.stop - sl.start
+                                             for p, o in zip(part, out))
+        if fits:
+            for o, p in zip(out, part):
+                o[sl] = p
+        placed.append(fits)
+        return part
+
+    parts = map_blocks(run, n, block)
+    if all(placed):
+        return tuple(out)
+    return tuple(np.concatenate([p[k] for p in parts]) for k in range(len(parts[0])))
 
 
 #: Largest product m x n x k that OpenBLAS computes on the calling thread (its GEMM_MULTITHREAD_THRESHOLD x
