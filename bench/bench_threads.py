@@ -144,8 +144,9 @@ def main():
         found.update(collect_case(workdir))
     if "panms" in wanted:
         found.update(panms_case(workdir))
-    print(f"{args.points:,} points ({args.points // 4:,} for localize_dem), blocks of {threads.BLOCK:,}; "
-          f"{threads.machine_cores()} cores; load average {os.getloadavg()[0]:.1f}")
+    print(f"{args.points:,} points ({args.points // 4:,} for localize_dem), blocks of {threads.BLOCK:,} "
+          f"({threads.DEM_BLOCK:,} for localize_dem); {threads.machine_cores()} cores; load average "
+          f"{os.getloadavg()[0]:.1f}")
     _compare(args.threads, [found[c] for c in wanted if c in found], args.repeat)
 
 
