@@ -1,16 +1,28 @@
-"""GF4CAL_NUM_THREADS (issue 23): localise + project of 2e6 points with 1 thread and with 2, ratios in one run.
+"""GF4CAL_NUM_THREADS (issue 23): 1 thread against 2, ratios in one run, interleaved repeats.
 
-The real Pleiades Ventoux RPC; points uniform over the image at heights over the RPC's range: ``localize`` at those
-heights, then ``project`` of the result (the round trip), and ``localize_dem`` on the real SRTM tile (EGM96). The
-same blocks run in both settings (bit-identical results, checked here too); only the threads differ. The goal of
-issue 23 is >= 1.6x on 2 cores: on a shared machine measure when it is idle (the load is printed).
+- localize + project: 2e6 points on the real Pleiades Ventoux RPC, uniform over the image at heights over the RPC's
+  range: ``localize`` at those heights, then ``project`` of the result (the round trip); goal >= 1.6x;
+- localize_dem: a quarter of them on the real SRTM tile (EGM96);
+- collect-gcps: ``collect_gcps`` on a rendered 1024 x 1024 scene (tests/matchscene.py, 10 m GSD: the real Pleiades
+  texture as reference ortho, the real SRTM crop, a raw image rendered through a true RPC, a biased RPC ~63 px off),
+  window 64 px every 32 px (~900 windows); goal >= 1.5x;
+- register-pan-ms: the whole workflow (``register_pan_ms``: matching of every band, model, correction.tif,
+  ms_on_pan.tif, ms_approx.RPB, report) on a simulated GF7 crop (pan 1024 x 1024, MS 256 x 256, across the first
+  MS sub-CCD edge; rendered once into --workdir, ~1 min); goal >= 1.5x.
 
-Run: .venv/bin/python bench/bench_threads.py [--points N] [--repeat R] [--threads 2]
+Each case runs under ``threads.limit(1)`` and ``threads.limit(k)`` alternately (--repeat times, median); results
+must be the same bits in both (printed). On a shared machine the ratios are low: measure when it is idle (the
+load average is printed before and after each case).
+
+Run: .venv/bin/python bench/bench_threads.py [--points N] [--repeat R] [--threads 2] [--workdir DIR]
+     [--cases round_trip,localize_dem,collect,panms]
 """
 from __future__ import annotations
 
 import argparse
 import os
+import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -18,27 +30,39 @@ import numpy as np
 
 from gdal_gf4cal import DEM, RPCModel, threads
 
-from _timing import timed
-
-DATA = Path(__file__).resolve().parent.parent / "tests" / "data"
-
-
-def _run(k, fn, repeat):
-    """Median wall time of ``fn`` under ``k`` threads, the CPU time it used (all threads) and its result."""
-    with threads.limit(k):
-        cpu = time.process_time()
-        wall, out = timed(fn, repeat)
-        cpu = (time.process_time() - cpu) / repeat
-    return wall, cpu, out
+ROOT = Path(__file__).resolve().parent.parent
+DATA = ROOT / "tests" / "data"
+CASES = ("round_trip", "localize_dem", "collect", "panms")
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--points", type=int, default=2_000_000)
-    ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--threads", type=int, default=2)
-    args = ap.parse_args()
-    n, k = args.points, args.threads
+def _compare(k, cases, repeat):
+    """Every case under 1 thread and under ``k``, alternately ``repeat`` times: one line each."""
+    for name, fn, same in cases:
+        fn(1)                                            # warm caches (inverse fit, DEM in memory, GDAL cache)
+        load0 = os.getloadavg()[0]
+        times = {1: [], k: []}
+        cpus = {1: [], k: []}
+        outs = {}
+        for _ in range(repeat):
+            for t in (1, k):
+                with threads.limit(t):
+                    c, w = time.process_time(), time.perf_counter()
+                    outs[t] = fn(t)
+                    times[t].append(time.perf_counter() - w)
+                    cpus[t].append(time.process_time() - c)
+        w1, wk = statistics.median(times[1]), statistics.median(times[k])
+        c1, ck = statistics.median(cpus[1]), statistics.median(cpus[k])
+        print(f"{name:22s} 1 thread {w1:6.2f} s (cpu {c1:5.2f})   {k} threads {wk:6.2f} s (cpu {ck:5.2f})   "
+              f"ratio {w1 / wk:4.2f}x   same bits: {same(outs[1], outs[k])}   load {load0:.1f} -> "
+              f"{os.getloadavg()[0]:.1f}", flush=True)
+
+
+def _arrays_equal(a, b):
+    return all(np.array_equal(x, y, equal_nan=True) for x, y in zip(a, b))
+
+
+def point_cases(n):
+    """localize + project of ``n`` points and localize_dem of ``n / 4`` on the real Ventoux RPC and SRTM."""
     rpc = RPCModel.from_file(DATA / "rpc" / "RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML")
     dem = DEM.from_file(DATA / "dem" / "N44E005.hgt", geoid="egm96", nodata="nan")
     w, h = rpc.image_size
@@ -46,22 +70,84 @@ def main():
     s, l = rng.uniform(0, w, n), rng.uniform(0, h, n)
     hh = rng.uniform(*rpc.height_range, n)
 
-    def round_trip():
+    def round_trip(_):
         lon, lat = rpc.localize(s, l, hh)
         return (lon, lat) + tuple(rpc.project(lon, lat, hh))
 
-    cases = [("localize + project", round_trip),
-             ("localize_dem (SRTM)", lambda: rpc.localize_dem(s[: n // 4], l[: n // 4], dem))]
-    print(f"{n:,} points ({n // 4:,} for localize_dem), blocks of {threads.BLOCK:,}; load average "
-          f"{os.getloadavg()[0]:.1f} on {threads.machine_cores()} cores")
-    for name, fn in cases:
-        fn()                                             # warm caches (inverse fit, DEM in memory)
-        w1, c1, r1 = _run(1, fn, args.repeat)
-        wk, ck, rk = _run(k, fn, args.repeat)
-        same = all(np.array_equal(a, b, equal_nan=True) for a, b in zip(r1, rk))
-        print(f"{name:22s} 1 thread {w1:6.2f} s (cpu {c1:5.2f} s)   {k} threads {wk:6.2f} s (cpu {ck:5.2f} s)   "
-              f"ratio {w1 / wk:4.2f}x   bit-identical: {same}")
-    print(f"load average after: {os.getloadavg()[0]:.1f}")
+    return {"round_trip": ("localize + project", round_trip, _arrays_equal),
+            "localize_dem": ("localize_dem (SRTM)", lambda _: rpc.localize_dem(s[: n // 4], l[: n // 4], dem),
+                             _arrays_equal)}
+
+
+def collect_case(workdir: Path):
+    """collect_gcps on the rendered 1024 x 1024 matching scene (built once in ``workdir``)."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from matchscene import affine_rpc, build_scene, error_affine, synthetic_rpc
+    from gdal_gf4cal.matching import collect_gcps
+    size, folder = (1024, 1024), workdir / "collect"
+    error = error_affine(shift=(-50.3, 37.6), rotation_rad=0.002, scale=1.001, center=(512, 512))
+    if not (folder / "raw.tif").exists():
+        t = time.perf_counter()
+        build_scene(folder, texture="pleiades", size=size, gsd_m=10.0, ref_px_m=9.0, error=error, seed=1)
+        print(f"(collect scene rendered in {time.perf_counter() - t:.0f} s)")
+    rpc = affine_rpc(synthetic_rpc(size, 10.0), error)
+    dem = DEM.from_file(ROOT / "tests" / "data" / "matching" / "srtm_ventoux_crop.tif")
+
+    def run(_):
+        g = collect_gcps(str(folder / "raw.tif"), rpc, str(folder / "reference.tif"), dem, spacing_px=32,
+                         window_px=64)
+        return g
+
+    def same(a, b):
+        cols = [c for c in a.columns if c not in ("geometry", "id", "role")]
+        return len(a) == len(b) and all(np.array_equal(a[c].to_numpy(), b[c].to_numpy()) for c in cols)
+
+    return {"collect": ("collect-gcps", run, same)}
+
+
+def panms_case(workdir: Path):
+    """register_pan_ms on a simulated GF7 crop, pan 1024 x 1024 (rendered once in ``workdir``)."""
+    from osgeo import gdal
+    from gdal_gf4cal.simulate.gf7 import write_gf7_scene
+    from gdal_gf4cal.workflows.panms import register_pan_ms
+    folder = workdir / "gf7_1024"
+    if not (folder / "ms" / "misregistration_truth.tif").exists():
+        t = time.perf_counter()
+        write_gf7_scene(str(folder), seed=0, size=(1024, 1024), crop_center_ms_px=2560, n_gcps=10)
+        print(f"(GF7 crop rendered in {time.perf_counter() - t:.0f} s)")
+    gdal.UseExceptions()                      # a script: process-wide GDAL state is ours
+
+    def run(k):
+        out = folder / f"out_{k}"
+        register_pan_ms(str(folder / "pan" / "scene.tif"), str(folder / "ms" / "scene.tif"),
+                        dem=str(folder / "dem.tif"), out=str(out), overwrite=True)
+        return [gdal.Open(str(out / f)).ReadAsArray() for f in ("correction.tif", "ms_on_pan.tif")]
+
+    return {"panms": ("register-pan-ms (GF7)", run, _arrays_equal)}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, default=2_000_000)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--workdir", default="/tmp/gf4cal_bench_threads")
+    ap.add_argument("--cases", default=",".join(CASES))
+    args = ap.parse_args()
+    wanted = [c.strip() for c in args.cases.split(",") if c.strip()]
+    workdir = Path(args.workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    found = {}
+    if {"round_trip", "localize_dem"} & set(wanted):
+        found.update(point_cases(args.points))
+    if "collect" in wanted:
+        found.update(collect_case(workdir))
+    if "panms" in wanted:
+        found.update(panms_case(workdir))
+    print(f"{args.points:,} points ({args.points // 4:,} for localize_dem), blocks of {threads.BLOCK:,} "
+          f"({threads.DEM_BLOCK:,} for localize_dem); {threads.machine_cores()} cores; load average "
+          f"{os.getloadavg()[0]:.1f}")
+    _compare(args.threads, [found[c] for c in wanted if c in found], args.repeat)
 
 
 if __name__ == "__main__":

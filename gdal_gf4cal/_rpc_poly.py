@@ -29,8 +29,10 @@ def _derivative_matrix(axis: int) -> np.ndarray:
 #: d/dL, d/dP, d/dH as (20, 20) basis maps: coefficients of the derivative polynomial = coeffs @ D.
 DERIVATIVE_MATRICES = tuple(_derivative_matrix(a) for a in range(3))
 
-#: Chunk of points processed at once: keeps the (20, chunk) monomial block in cache.
-_CHUNK = 16384
+#: Chunk of points processed at once: keeps the (20, chunk) monomial block (640 KB) and the products made of it in a
+#: core's own 1 MB L2 cache, so threads evaluating their blocks at once do not compete for the shared cache and
+#: memory (each point is evaluated on its own: the chunk size never changes a bit of the result).
+_CHUNK = 4096
 
 
 def monomials(L: np.ndarray, P: np.ndarray, H: np.ndarray) -> np.ndarray:

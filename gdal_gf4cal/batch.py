@@ -27,6 +27,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import numpy as np
 
+from . import threads
 from .camera import LookAngleModel
 from .errors import CancelledError, GCPError, Gf4calError
 from .executors import SerialExecutor, dask_client, map_ordered
@@ -96,6 +97,7 @@ class SceneTask:
     outputs: Dict[str, str]
     params: Dict[str, Any]
     progress: Any = None
+    threads: Optional[int] = None         # the scene's thread budget on a thread pool (None: unchanged)
 
 
 class _Tracker:
@@ -189,6 +191,12 @@ def _run_scene(task: SceneTask) -> Dict[str, Any]:
     if task.progress is not None and _takes_progress(fn):
         params["progress"] = task.progress
     t0 = time.perf_counter()
+    with threads.limit(task.threads):
+        return _scene_row(fn, scene, outputs, params, t0)
+
+
+def _scene_row(fn, scene, outputs, params, t0) -> Dict[str, Any]:
+    """:func:`_run_scene`'s row, under the scene's thread budget."""
     row: Dict[str, Any] = {"scene": scene, "status": "ok", "seconds": 0.0,
                            "outputs": ";".join(outputs.values()), "error": ""}
     try:
@@ -275,7 +283,8 @@ def run_batch(fn: Callable[..., Dict[str, Any]], scenes: Sequence, out_dir, outp
             raise
 
     prog = _scene_progress(executor, client, tracker, topic, len(todo), batch_progress)
-    tasks = [SceneTask(fn, plans[i][0], plans[i][1], dict(params or {}, overwrite=overwrite), prog[k])
+    budget = _scene_threads(executor, len(todo))
+    tasks = [SceneTask(fn, plans[i][0], plans[i][1], dict(params or {}, overwrite=overwrite), prog[k], budget)
              for k, i in enumerate(todo)]
     meta: Dict[str, Any] = {"command": command}
     done = [False] * len(tasks)
@@ -353,6 +362,18 @@ def _row(plan, status: str, error: str) -> Dict[str, Any]:
             "error": error}
 
 
+def _scene_threads(executor, n: int) -> Optional[int]:
+    """Threads each scene may use (its tiles, point kernels): on a thread pool the process's
+    :func:`gdal_gf4cal.threads.num_threads` shared among the scenes running at once (1 at least), so scenes x
+    tiles never exceed it; on Dask or another executor 1 (the executor parallelises); serially None (all)."""
+    if executor is None or isinstance(executor, SerialExecutor):
+        return None
+    if not isinstance(executor, cf.ThreadPoolExecutor):
+        return 1
+    running = max(1, min(int(getattr(executor, "_max_workers", 1)), n))
+    return max(1, threads.num_threads() // running)
+
+
 def _scene_progress(executor, client, tracker: _Tracker, topic: str, n: int, batch_progress) -> List[Any]:
     """Each scene's own progress callback: Dask worker events on ``topic``, the tracker on threads (serially
     straight to the batch's bar), none on another executor (a process pool)."""
@@ -426,10 +447,10 @@ def apply_calibration_batch(current, new, scenes: Sequence, out_dir, *, executor
 def collect_gcps_scene(scene: str, outputs: Dict[str, str], *, reference, dem, overwrite: bool = False,
                        progress=None, **options) -> Dict[str, Any]:
     """Scene function of batch ``collect-gcps`` (issue 7): match ``scene`` against ``reference`` + ``dem`` and
-    write ``outputs['gcps']``; tiles run serially inside the task (the batch is the parallel unit).
+    write ``outputs['gcps']``; its tiles on the scene's share of the threads (:func:`run_batch`: all of them
+    serially, 1 on Dask, the process's threads over the scenes running at once on a thread pool).
 
     Returns ``n_gcps, n_outliers, windows, median_precision_px, offset_sample_px, offset_line_px``."""
-    options.setdefault("workers", 1)
     rep = collect_gcps_file(scene, reference, dem, outputs["gcps"], overwrite=overwrite, progress=progress,
                             **options)
     g = rep["gcps"]

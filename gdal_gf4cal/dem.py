@@ -68,10 +68,12 @@ class DEM:
         self._tile = int(tile_size)
         self._cache: "OrderedDict[Tuple[int, int], np.ndarray]" = OrderedDict()
         self._cache_tiles = int(cache_tiles)
-        # Every read of the raster and every cache update holds this lock: a GDAL dataset must not be used by two
-        # threads at once (the point kernels sample one DEM from the thread pool, gdal_gf4cal.threads). Shared by
-        # the copies of with_nodata, which share the dataset and the caches.
+        # The caches and the whole-raster reads hold this lock; windowed tile reads go through one dataset handle
+        # per thread (self._handles: a GDAL dataset must not be used by two threads at once; the point kernels
+        # sample one DEM from the thread pool, gdal_gf4cal.threads). Shared by the copies of with_nodata, which
+        # share the dataset and the caches.
         self._lock = threading.RLock()
+        self._handles = threading.local()
         if isinstance(nodata, str) and nodata not in ("error", "nan"):
             raise ValueError("nodata must be 'error', 'nan' or a height in metres")
         if path is None:
@@ -85,6 +87,8 @@ class DEM:
         if band < 1 or band > self._ds.RasterCount:
             raise DEMError(f"DEM {path} has no band {band}")
         self._band = self._ds.GetRasterBand(band)
+        self._band_index = band
+        self._handles.ds, self._handles.band = self._ds, self._band
         self.width, self.height_px = self._ds.RasterXSize, self._ds.RasterYSize
         gt = self._ds.GetGeoTransform(can_return_null=True)
         if gt is None:
@@ -244,7 +248,7 @@ class DEM:
         """GDAL's (approximate, else exact) min and max of a large raster, band scale/offset applied."""
         for approx in (True, False):       # approximate statistics may sample only voids: then scan it all
             try:
-                lo_hi = self._band.ComputeRasterMinMax(approx)
+                lo_hi = self._thread_band().ComputeRasterMinMax(approx)
             except RuntimeError:
                 lo_hi = None
             if lo_hi is not None and all(np.isfinite(lo_hi)):
@@ -623,7 +627,7 @@ class DEM:
         with self._lock:
             if self._whole is not None:        # read by another thread meanwhile
                 return
-            block = self._band.ReadAsArray().astype(float)
+            block = self._thread_band().ReadAsArray().astype(float)
             if self._nodata_value is not None:
                 block[block == self._nodata_value] = np.nan
             if self._scale != 1.0 or self._offset != 0.0:
@@ -668,26 +672,42 @@ class DEM:
 
     @with_gdal_exceptions
     def _read_tile(self, tile_x: int, tile_y: int) -> np.ndarray:
-        """Read tile (tile_x, tile_y) with a one-pixel overlap to the right and below (LRU cached)."""
+        """Read tile (tile_x, tile_y) with a one-pixel overlap to the right and below (LRU cached).
+
+        The lock guards only the cache: the read itself goes through this thread's own dataset handle
+        (:meth:`_thread_band`), so threads sampling one DEM read their tiles in parallel. Two threads missing the
+        same tile both read it (the same values); the first one stored is kept."""
         key = (tile_x, tile_y)
         with self._lock:
             block = self._cache.get(key)
             if block is not None:
                 self._cache.move_to_end(key)
                 return block
-            T = self._tile
-            xoff, yoff = tile_x * T, tile_y * T
-            xsize = min(T + 1, self.width - xoff)
-            ysize = min(T + 1, self.height_px - yoff)
-            block = self._band.ReadAsArray(xoff, yoff, xsize, ysize).astype(float)
-            if self._nodata_value is not None:
-                block[block == self._nodata_value] = np.nan
-            if self._scale != 1.0 or self._offset != 0.0:
-                block = block * self._scale + self._offset
-            self._cache[key] = block
+        T = self._tile
+        xoff, yoff = tile_x * T, tile_y * T
+        xsize = min(T + 1, self.width - xoff)
+        ysize = min(T + 1, self.height_px - yoff)
+        block = self._thread_band().ReadAsArray(xoff, yoff, xsize, ysize).astype(float)
+        if self._nodata_value is not None:
+            block[block == self._nodata_value] = np.nan
+        if self._scale != 1.0 or self._offset != 0.0:
+            block = block * self._scale + self._offset
+        with self._lock:
+            block = self._cache.setdefault(key, block)
+            self._cache.move_to_end(key)
             if len(self._cache) > self._cache_tiles:
                 self._cache.popitem(last=False)
-            return block
+        return block
+
+    def _thread_band(self):
+        """The raster band through a dataset handle of the calling thread's own (a GDAL dataset must not be used
+        by two threads at once): the DEM's own handle in the thread that opened it, a new one in any other."""
+        band = getattr(self._handles, "band", None)
+        if band is None:
+            ds = gdal.Open(str(self.path))
+            band = ds.GetRasterBand(self._band_index)
+            self._handles.ds, self._handles.band = ds, band
+        return band
 
     def __repr__(self) -> str:
         if self.is_constant:

@@ -22,6 +22,7 @@ import time
 import warnings
 from typing import Any, Callable, Iterator, List, Optional, Sequence
 
+from . import threads
 from .errors import CancelledError, Gf4calError
 from .progress import report
 
@@ -79,7 +80,8 @@ def get_executor(spec: Any = None, *, workers: Optional[int] = None,
     spec : ``None``/``"threads[:N]"``, ``"serial"``, ``"local[:N]"``, ``"tcp://HOST:PORT"`` (or any Dask
         scheduler address), a ``distributed.Client``, or a :class:`concurrent.futures.Executor` (used as is,
         not shut down).
-    workers : thread/process count when ``spec`` gives none (default: CPU count).
+    workers : thread/process count when ``spec`` gives none (default: ``GF4CAL_NUM_THREADS``, else the machine's
+        cores, :func:`gdal_gf4cal.threads.num_threads`).
     connect_timeout_s : how long to wait for a remote scheduler.
 
     Raises
@@ -95,7 +97,7 @@ def get_executor(spec: Any = None, *, workers: Optional[int] = None,
     s = "threads" if spec is None else str(spec).strip()
     kind, _, n = s.partition(":") if "://" not in s else (s, "", "")
     try:
-        count = int(n) if n else (workers or os.cpu_count() or 1)
+        count = int(n) if n else (workers or threads.num_threads())
     except ValueError:
         raise ExecutorError(f"executor {s!r}: the worker count must be a whole number, e.g. local:2") from None
     if count < 1:

@@ -20,7 +20,7 @@ model of the line of sight, Newton steps for the height on it with DEM samples a
 once) or the march on it (the others), then an exact polish (see :func:`_rpc_localize_dem_fast`); the points it
 does not settle take the generic path.
 
-More than :data:`gdal_gf4cal.threads.BLOCK` points are intersected in fixed blocks over the thread pool
+More than :data:`gdal_gf4cal.threads.DEM_BLOCK` points are intersected in fixed blocks over the thread pool
 (``GF4CAL_NUM_THREADS``), each block a whole intersection: results are bit-identical whatever the thread count.
 """
 from __future__ import annotations
@@ -33,6 +33,7 @@ import numpy as np
 
 from ._rpc_poly import _EXPONENTS, monomials
 from .dem import DEM
+from . import threads
 from .threads import matmul, split_points
 
 log = logging.getLogger(__name__)
@@ -114,7 +115,7 @@ def localize_dem(model, sample, line, dem, *, pixel_convention: str = "gdal", to
 
     # Blocks of points over the thread pool: each block is a whole intersection (its own start height, marches
     # and fallbacks), so the result depends on the blocks (fixed by the number of points), never on the threads.
-    lon, lat, hgt = split_points(block, s, l)
+    lon, lat, hgt = split_points(block, s, l, block=threads.DEM_BLOCK)
     iters = max(iterations)
     _warn_implausible_heights(model, dem, hgt)
     out = (_shape_out(lon, shape), _shape_out(lat, shape), _shape_out(hgt, shape))

@@ -4,7 +4,9 @@
 (:func:`num_threads`). The point kernels (:meth:`RPCModel.project <gdal_gf4cal.rpc.RPCModel.project>`,
 ``localize``, :func:`~gdal_gf4cal.localization.localize_dem` and the sensor-model mixin paths) split an input of
 more than :data:`BLOCK` points into fixed blocks (:func:`block_slices`) and run them over one shared
-:class:`~concurrent.futures.ThreadPoolExecutor` (:func:`map_blocks`; NumPy, GDAL and PROJ release the GIL).
+:class:`~concurrent.futures.ThreadPoolExecutor` (:func:`map_blocks`; NumPy, GDAL and PROJ release the GIL);
+:func:`~gdal_gf4cal.localization.localize_dem` in blocks of :data:`DEM_BLOCK`. Matching tiles and batch scenes run
+on pools of :func:`num_threads` threads too (:func:`pool_workers`), each unit with serial kernels (:func:`serial`).
 
 Results are bit-identical whatever the thread count: the blocks depend on the number of points only, never on the
 threads, each block is computed exactly as the serial path computes it (no reduction spans blocks, and a kernel
@@ -25,15 +27,22 @@ import numpy as np
 
 from .errors import Gf4calError
 
-__all__ = ["ENV", "BLOCK", "ThreadSettingError", "machine_cores", "num_threads", "limit", "block_slices",
-           "map_blocks", "split_points", "matmul", "BLAS_SERIAL_SIZE"]
+__all__ = ["ENV", "BLOCK", "DEM_BLOCK", "ThreadSettingError", "machine_cores", "num_threads", "limit",
+           "block_slices", "map_blocks", "split_points", "serial", "pool_workers", "matmul", "BLAS_SERIAL_SIZE"]
 
 #: The environment variable of the thread setting.
 ENV = "GF4CAL_NUM_THREADS"
 
 #: Points per block of a split kernel: larger inputs are split (below it a pool does not pay). A multiple of the
-#: kernels' own cache chunks (16384 and 8192 points), so a block evaluates exactly the chunks the serial path does.
-BLOCK = 65536
+#: kernels' own cache chunks (4096, 8192 and 16384 points), so a block evaluates exactly the chunks the serial path does
+#: (project and localize give the same bits for any such block size: each point is computed on its own). 32768
+#: points keep a block's working set (the (16, n) Jacobian rows, the Newton state: ~8 MB) small enough that the
+#: blocks of two threads share the last-level cache instead of streaming from memory.
+BLOCK = 32768
+
+#: Points per block of :func:`~gdal_gf4cal.localization.localize_dem`: there a block is a whole intersection (its
+#: own choice of Newton or march), so its numbers depend on the blocks: kept at the size they were pinned with.
+DEM_BLOCK = 65536
 
 T = TypeVar("T")
 
@@ -89,6 +98,26 @@ def limit(n: Optional[int]) -> Iterator[None]:
         _local.limit = previous
 
 
+@contextmanager
+def serial() -> Iterator[None]:
+    """Within the ``with`` block, the calling thread's kernels run serially (:func:`num_threads` is 1): how a unit of
+    work that already runs on a pool thread (a tile of matching windows, a scene of a batch) keeps the kernels it
+    calls from splitting over the pool again (no threads x threads oversubscription)."""
+    previous = getattr(_local, "in_block", False)
+    _local.in_block = True
+    try:
+        yield
+    finally:
+        _local.in_block = previous
+
+
+def pool_workers(workers: Optional[int], tasks: int) -> int:
+    """Threads for ``tasks`` units of work: ``workers`` when given (>= 1), else :func:`num_threads`, never more than
+    the tasks (1: run them in the calling thread)."""
+    n = int(workers) if workers is not None and int(workers) >= 1 else num_threads()
+    return max(1, min(n, int(tasks)))
+
+
 def block_slices(n: int, block: Optional[int] = None) -> List[slice]:
     """The fixed blocks of ``n`` points: ``[0, block), [block, 2 block), ...`` (one slice for ``n <= block``;
     ``block`` defaults to :data:`BLOCK`)."""
@@ -137,12 +166,32 @@ def map_blocks(fn: Callable[[slice], T], n: int, block: Optional[int] = None) ->
 def split_points(fn: Callable[..., tuple], *arrays, block: Optional[int] = None) -> tuple:
     """``fn(*arrays)`` for flat arrays of the same ``n`` points, ``fn`` returning a tuple of flat per-point arrays:
     up to ``block`` points one call (the serial path as it always was), above it one call per block
-    (:func:`map_blocks`) and each item concatenated in block order."""
+    (:func:`map_blocks`), each item joined in block order: copied into its place by the thread that computed the
+    block (the copy runs in parallel too), or concatenated when the blocks' items differ in type."""
     n = arrays[0].size
     if n <= (BLOCK if block is None else block):
         return fn(*arrays)
-    parts = map_blocks(lambda s: fn(*(a[s] for a in arrays)), n, block)
-    return tuple(np.concatenate([np.asarray(p[k]).ravel() for p in parts]) for k in range(len(parts[0])))
+    out: list = []
+    placed = []
+    lock = threading.Lock()
+
+    def run(sl):
+        part = [np.asarray(p).ravel() for p in fn(*(a[sl] for a in arrays))]
+        with lock:
+            if not out:
+                out.extend(np.empty(n, dtype=p.dtype) for p in part)
+        fits = len(part) == len(out) and all(p.dtype == o.dtype and p.size == sl.stop - sl.start
+                                             for p, o in zip(part, out))
+        if fits:
+            for o, p in zip(out, part):
+                o[sl] = p
+        placed.append(fits)
+        return part
+
+    parts = map_blocks(run, n, block)
+    if all(placed):
+        return tuple(out)
+    return tuple(np.concatenate([p[k] for p in parts]) for k in range(len(parts[0])))
 
 
 #: Largest product m x n x k that OpenBLAS computes on the calling thread (its GEMM_MULTITHREAD_THRESHOLD x
@@ -175,12 +224,8 @@ def _run_serially(fn, slices):
 
 def _in_block(fn, s):
     """``fn(s)`` with the kernels it calls kept serial (no nested split over the pool)."""
-    previous = getattr(_local, "in_block", False)
-    _local.in_block = True
-    try:
+    with serial():
         return fn(s)
-    finally:
-        _local.in_block = previous
 
 
 def _submit(work: Callable[[], None], count: int) -> list:

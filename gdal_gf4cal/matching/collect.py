@@ -46,6 +46,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 from osgeo import gdal
 
+from .. import threads
 from .._gdal import with_gdal_exceptions
 from ..dem import DEM
 from ..errors import Gf4calError
@@ -579,22 +580,34 @@ def run_tiles(specs: Sequence[TileSpec], executor: Optional[cf.Executor] = None,
               progress=None, stop: float = 0.95) -> List[Dict[str, np.ndarray]]:
     """:func:`match_tile` on every spec, results in submission order (deterministic whatever the executor).
 
-    Without ``executor``: a thread pool of ``workers`` threads (default: CPU count; 1 runs in the calling thread).
+    Without ``executor``: a thread pool of ``workers`` threads (default: ``GF4CAL_NUM_THREADS``, or the caller's
+    :func:`gdal_gf4cal.threads.limit`, else the machine's cores; 1 runs in the calling thread), each tile with
+    serial point kernels (:func:`gdal_gf4cal.threads.serial`: the tiles are the parallel unit, no threads within
+    threads). Tiles are fixed by the window grid, never by the threads: the GCPs are bit-identical whatever
+    ``workers``.
     """
     own = None
-    if executor is None and (workers is None or workers > 1) and len(specs) > 1:
-        nw = min(workers or os.cpu_count() or 1, len(specs))
+    fn = match_tile
+    if executor is None:
+        nw = threads.pool_workers(workers, len(specs))
         if nw > 1:
             # Threads: every heavy step of match_tile (GDAL reads, FFTs, spline interpolation, NumPy on whole
             # stacks) releases the GIL, and threads share the datasets' block caches and start at once; a
             # process pool paid ~0.3 s of start-up and pickling on a 10240^2 scene for no gain in throughput.
-            own = executor = cf.ThreadPoolExecutor(max_workers=nw)
+            own = executor = cf.ThreadPoolExecutor(max_workers=nw, thread_name_prefix="gf4cal-tile")
+            fn = _match_tile_serial
     try:
         # Results in submission order whatever the executor (gdal_gf4cal.executors, issue 14).
-        return map_ordered(match_tile, specs, executor, progress=progress, stop=stop, label="tile")
+        return map_ordered(fn, specs, executor, progress=progress, stop=stop, label="tile")
     finally:
         if own is not None:
             own.shutdown(wait=True, cancel_futures=True)
+
+
+def _match_tile_serial(spec: TileSpec) -> Dict[str, np.ndarray]:
+    """:func:`match_tile` with serial point kernels (a tile on a pool thread of :func:`run_tiles`)."""
+    with threads.serial():
+        return match_tile(spec)
 
 
 def collect_gcps(image, rpc, reference, dem, spacing_px: int = 256, window_px: int = 64, *,
@@ -615,7 +628,8 @@ def collect_gcps(image, rpc, reference, dem, spacing_px: int = 256, window_px: i
     dem : :class:`gdal_gf4cal.DEM`, DEM path (ellipsoidal heights; give a ``DEM(geoid=...)`` otherwise) or a
         constant height in metres.
     spacing_px, window_px : grid step and (even) window size, raw pixels.
-    workers : parallel threads (default: CPU count; 1 runs in the calling thread). ``executor`` : any
+    workers : parallel threads (default: ``GF4CAL_NUM_THREADS``, else the machine's cores; 1 runs in the calling
+        thread). ``executor`` : any
         :class:`concurrent.futures.Executor` (process pool, ``distributed.Client.get_executor()``...) instead.
     min_peak, min_peak_ratio, min_ncc : correlation check (peak of the phase-correlation surface in [0, 1],
         peak over second peak, correlation coefficient at the sub-pixel shift).

@@ -1,9 +1,9 @@
 """GF4CAL_NUM_THREADS (issue 23): the point kernels give bit-identical results with 1, 2 and 3 threads.
 
-2e5 points (four blocks of :data:`gdal_gf4cal.threads.BLOCK`) on the real Pleiades Ventoux RPC, with NaN inputs and
-points that have no solution, on the real SRTM tile and on a 0.5 m urban DSM with holes; the sensor-model mixin paths
-on every model kind of the engine; and the thread pool itself (limits, nesting, errors), and a tiled DEM sampled from
-several threads at once.
+2e5 points (several blocks of :data:`gdal_gf4cal.threads.BLOCK` and :data:`~gdal_gf4cal.threads.DEM_BLOCK`) on the
+real Pleiades Ventoux RPC, with NaN inputs and points that have no solution, on the real SRTM tile and on a 0.5 m
+urban DSM with holes; the sensor-model mixin paths on every model kind of the engine; the thread pool itself (limits,
+nesting, errors); a tiled DEM sampled from several threads at once; blocks that leave project/localize unchanged.
 """
 from __future__ import annotations
 
@@ -114,6 +114,7 @@ def test_generic_dsm_intersection_bit_identical(ventoux, dsm, monkeypatch):
     """The generic path (any model: march, Illinois, bridged holes) in smaller blocks (fixed by the number of points
     whatever the block size; a smaller one keeps the test short)."""
     monkeypatch.setattr(threads, "BLOCK", 4096)
+    monkeypatch.setattr(threads, "DEM_BLOCK", 4096)
     s, l = _dsm_points(ventoux, dsm, 3 * 4096 + 77, seed=8)
     res = _per_thread_count(monkeypatch, lambda: localize_dem(ventoux, s, l, dsm, fast_path=False))
     _assert_bit_identical(res)
@@ -125,6 +126,7 @@ def test_sensor_model_mixin_paths_bit_identical(sensor_model, monkeypatch):
     simulator's models quick; the blocks are fixed by the number of points whatever the block size)."""
     name, model, dem, (w, h) = sensor_model
     monkeypatch.setattr(threads, "BLOCK", 4096)
+    monkeypatch.setattr(threads, "DEM_BLOCK", 4096)
     n = 3 * 4096 + 123                                   # four blocks
     rng = np.random.default_rng(6)
     s, l = rng.uniform(0, w, n), rng.uniform(0, h, n)
@@ -280,3 +282,17 @@ def test_ortho_ellipsoidal_dem_bit_identical(srtm_path, tmp_path, monkeypatch):
     assert valid.mean() > 0.99
     undulation = out[0][valid] - H[valid]
     assert 49.0 < undulation.min() and undulation.max() < 53.0      # EGM96 over Mont Ventoux: N ~ 50-52 m
+
+
+def test_block_size_does_not_change_project_and_localize(ventoux, monkeypatch):
+    """project and localize compute every point on its own: 1.5 BLOCK points split into blocks (any thread count) give
+    the bits of one unsplit call, the serial path as it was before blocks existed."""
+    n = threads.BLOCK * 3 // 2 + 5
+    s, l = _image_points(ventoux, n, seed=11)
+    h = np.random.default_rng(12).uniform(*ventoux.height_range, n)
+    monkeypatch.setenv(threads.ENV, "2")
+    split = ventoux.localize(s, l, h) + ventoux.project(s * 1e-5 + 5.2, l * 1e-5 + 44.1, h)
+    monkeypatch.setattr(threads, "BLOCK", 10 ** 9)
+    whole = ventoux.localize(s, l, h) + ventoux.project(s * 1e-5 + 5.2, l * 1e-5 + 44.1, h)
+    _assert_bit_identical([tuple(split), tuple(whole)])
+    assert np.isfinite(whole[0]).mean() > 0.9
