@@ -68,7 +68,7 @@ def solve_normal_scaled(a: np.ndarray, y: np.ndarray, w: np.ndarray, hint: str =
 
     ``solver="normal"``: through the eigen-decomposition of its ``p x p`` normal matrix instead of the SVD of the
     ``n x p`` design, the same numbers to rounding (for the iterations of a robust loop over many points); a
-    condition number above :data:`_NORMAL_CONDITION`, where the normal matrix loses the small singular values,
+    condition number above :data:`NORMAL_CONDITION`, where the normal matrix loses the small singular values,
     goes back to the SVD, so both solvers refuse the same layouts.
     Raises :class:`DegenerateGeometryError` (with the condition number) when the layout does not determine ``x``.
     """
@@ -77,7 +77,7 @@ def solve_normal_scaled(a: np.ndarray, y: np.ndarray, w: np.ndarray, hint: str =
     s = np.zeros(0)
     if solver == "normal":
         s, vt, rhs, scale = _scaled_normal_eig(a, y, np.where(w > 0, w, 0.0))
-    if not (s.size and s[-1] > 0 and s[0] / s[-1] <= _NORMAL_CONDITION):
+    if not (s.size and s[-1] > 0 and s[0] / s[-1] <= NORMAL_CONDITION):
         sw = np.sqrt(np.maximum(w, 0.0))
         aw = a * sw[:, None]
         scale = np.linalg.norm(aw, axis=0)
@@ -98,7 +98,7 @@ def solve_normal_scaled(a: np.ndarray, y: np.ndarray, w: np.ndarray, hint: str =
 
 #: Largest condition number (of the column-scaled design) solved through the normal matrix by
 #: ``solver="normal"``; above it the SVD (the normal matrix squares it).
-_NORMAL_CONDITION = 1e4
+NORMAL_CONDITION = 1e4
 
 
 def _scaled_normal_eig(a: np.ndarray, y: np.ndarray, w: np.ndarray):
