@@ -53,9 +53,9 @@ BENCHES = {
         _rows(rf"\(gdalwarp \+ refine\): {NUM} \(min wall\)", "refine --ortho / (gdalwarp + refine), wall",
               "<= 1.1x", lambda r: r <= 1.1),
         _rows(rf"{NUM} \(min CPU", "refine --ortho / (gdalwarp + refine), CPU", "<= 1.1x", lambda r: r <= 1.1)]),
-    "bundle": ("bench_bundle.py", [], ["--ties", "10000"], [
+    "bundle": ("bench_bundle.py", [], ["--ties", "2000"], [
         _rows(rf"^\s*100000\s+\d+\s+{NUM}\s", "bundle 10 views x 100k ties, s", "< 10 s", lambda r: r < 10.0),
-        _rows(rf"^\s*10000\s+\d+\s+{NUM}\s", "bundle 10 views x 10k ties, s", "(indication)", lambda r: True)]),
+        _rows(rf"^\s*2000\s+\d+\s+{NUM}\s", "bundle 10 views x 2k ties, s", "(indication)", None)]),
     "arosics": ("bench_arosics.py", [], ["--windows", "64", "--repeat", "1"], [
         _rows(rf"^window 64.*ratio\s+{NUM}x", "collect-gcps / AROSICS per valid tie, window 64", ">= 10x",
               lambda r: r >= 10.0)]),
@@ -114,7 +114,7 @@ def summarise(results: dict) -> list:
                 continue
             last = found[-1]
             value = float(last[-1] if isinstance(last, tuple) else last)
-            rows.append((label, f"{value:.2f}", goal, "met" if ok(value) else "NOT met"))
+            rows.append((label, f"{value:.2f}", goal, "-" if ok is None else ("met" if ok(value) else "NOT met")))
     return rows
 
 

@@ -14,7 +14,7 @@ from typing import Dict, Sequence, Tuple
 import numpy as np
 
 from ..errors import DegenerateGeometryError
-from ..threads import BLAS_SERIAL_SIZE, matmul
+from ..threads import BLAS_SERIAL_SIZE
 from .result import Estimate, names_and_blocks
 
 #: Largest condition number of the column-scaled design accepted as a determined layout.
@@ -178,7 +178,7 @@ def weighted_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), fro
     v = y - a @ x
     dof = n_used - pf
     sigma0 = float(math.sqrt(np.sum(w * v * v) / dof)) if dof > 0 else 1.0
-    q = np.einsum("ij,ji->i", af, matmul(n_inv, af.T))
+    q = np.sum((af @ n_inv) * af, axis=1)
     red = np.where(used, 1.0 - w * q, 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         w_out = np.ones(n) if prior is None else np.broadcast_to(np.asarray(prior, dtype=float), (n,))

@@ -33,8 +33,6 @@ from typing import Optional, Tuple
 import numpy as np
 
 from ..errors import DegenerateGeometryError
-from ..threads import matmul
-from .lsq import gram
 
 #: Largest number of minimal subsets searched exhaustively; beyond it ``n_subsets`` random ones are drawn.
 MAX_EXHAUSTIVE = 3000
@@ -114,6 +112,43 @@ def _subsets(n: int, m: int, n_subsets: int, seed: int) -> np.ndarray:
     return np.argpartition(rng.random((n_subsets, n)), m - 1, axis=1)[:, :m]
 
 
+def _normal_parts(a: np.ndarray, y: np.ndarray, w: np.ndarray, scale: np.ndarray):
+    """Per-point outer products (n, p*p) and right-hand sides (n, p) of the column-scaled normal equations: computed
+    once per point set, shared by every :func:`_batched_fit` on it."""
+    n, k, p = a.shape
+    aw = a / scale                                                   # (n, k, p) column-scaled
+    wa = aw * w[:, :, None]
+    outer = np.matmul(wa.transpose(0, 2, 1), aw).reshape(n, p * p)   # sum_k w a a^T per point
+    rhs = np.sum(wa * y[:, :, None], axis=1)                         # sum_k w a y per point
+    return outer, rhs
+
+
+def _batched_fit(a: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray, scale: np.ndarray, parts=None):
+    """Weighted LS for each row of ``mask`` (K, n) over the points it selects; returns (x (K, p), ok (K,)).
+
+    The K normal matrices are one matrix product ``mask @ (per-point outer products)`` (BLAS), not a loop;
+    ``parts`` (:func:`_normal_parts`) avoids recomputing the per-point products.
+    """
+    n, k, p = a.shape
+    outer, rhs_pt = _normal_parts(a, y, w, scale) if parts is None else parts
+    nmat = (mask @ outer).reshape(-1, p, p)
+    rhs = mask @ rhs_pt
+    # Regular subsets: the column-scaled normal matrix (diagonal <= 1) has a determinant well above zero.
+    sign, logdet = np.linalg.slogdet(nmat)
+    ok = (sign > 0) & (logdet > p * math.log(1e-10))
+    nmat = np.where(ok[:, None, None], nmat, np.eye(p))
+    try:
+        x = np.linalg.solve(nmat, rhs[:, :, None])[:, :, 0] / scale
+    except np.linalg.LinAlgError:          # a subset singular despite its determinant (e.g. an empty piece)
+        x = np.zeros((len(nmat), p))
+        for i in np.flatnonzero(ok):
+            try:
+                x[i] = np.linalg.solve(nmat[i], rhs[i]) / scale
+            except np.linalg.LinAlgError:
+                ok[i] = False
+    return x, ok
+
+
 @lru_cache(maxsize=256)
 def _lts_consistency(h: int, n: int, k: int) -> float:
     from scipy import stats     # ~1 s to import: only when first needed (CLI, QGIS start-up)
@@ -133,119 +168,33 @@ def _f_ppf(p: float, d1: int, d2: int) -> float:
     return float(stats.f.ppf(p, d1, d2))
 
 
-class _PointSet:
-    """The points' observations for the start's fits (METHODS §4), column-scaled and split into independent
-    parameter blocks: when no column is shared between observation axes (a compensation: sample terms and line
-    terms), each axis is a block with its own normal matrix (two 6 x 6 for poly2, not one 12 x 12 of half zeros),
-    else one block of all axes. Fits of many point sets at once (:meth:`batched`: the subsets) or of one
-    (:meth:`fit`: concentration, reweighting; one ``A^T W A`` BLAS product per axis,
-    :func:`~gdal_gf4cal.estimation.lsq.gram`)."""
+def _inflation(a: np.ndarray, w: np.ndarray, fit_set: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Per point, the factor of sigma^2 in the expected squared residual norm over ``k``: ``1 - lev`` inside
+    ``fit_set``, ``1 + lev`` outside it (``lev`` the mean leverage of the point's observations)."""
+    n, k, p = a.shape
+    aw = a / scale
+    rows = (aw * np.sqrt(w * fit_set[:, None])[:, :, None]).reshape(n * k, p)
+    nmat = rows.T @ rows
+    try:
+        ninv = np.linalg.inv(nmat)
+    except np.linalg.LinAlgError:
+        return np.ones(n)
+    lev = np.sum(w * np.sum((aw @ ninv) * aw, axis=2), axis=1) / k
+    return np.maximum(np.where(fit_set, 1.0 - lev, 1.0 + lev), 1e-6)
 
-    def __init__(self, a: np.ndarray, y: np.ndarray, w: np.ndarray, scale: np.ndarray):
-        n, k, p = a.shape
-        self.n, self.k, self.p, self.scale = n, k, p, scale
-        on = np.any(a != 0, axis=0)                                         # (k, p) columns each axis uses
-        axes = [j for j in range(k) if on[j].any()]
-        groups = [[j] for j in axes] if on.sum(axis=0).max(initial=0) <= 1 else [axes]
-        self.covered = bool(on.any(axis=0).all())                          # else no set determines x
-        self.blocks = []
-        for g in groups:
-            c = np.flatnonzero(on[g].any(axis=0))
-            self.blocks.append((c, [(np.ascontiguousarray(a[:, j, c] / scale[c]), np.ascontiguousarray(y[:, j]),
-                                     np.ascontiguousarray(w[:, j])) for j in g]))
-        self.rest = [(y[:, j], w[:, j]) for j in range(k) if j not in axes]    # axes on no column
-        self._outer = None
 
-    def _regular(self, logdet: np.ndarray) -> np.ndarray:
-        # Regular sets: the column-scaled normal matrix (diagonal <= 1) has a determinant well above zero.
-        return (logdet > self.p * math.log(1e-10)) & self.covered
+def _point_sq(a, y, w, x):
+    """Weighted squared residual norm per point for each parameter row of ``x`` (K, p): (K, n).
 
-    def fit(self, mask: np.ndarray):
-        """``(x, [N_b^-1 per block])`` of the weighted LS over the points of ``mask`` (bool (n,)), ``N^-1``
-        column-scaled; ``(None, None)`` when they do not determine the parameters."""
-        x, ninv, logdet = np.zeros(self.p), [], 0.0
-        for c, obs in self.blocks:
-            nmat, rhs = np.zeros((c.size, c.size)), np.zeros(c.size)
-            for rows, y, w in obs:
-                wa = rows * np.where(mask, w, 0.0)[:, None]
-                nmat += gram(wa, rows)
-                rhs += wa.T @ y
-            sign, ld = np.linalg.slogdet(nmat)
-            logdet += ld if sign > 0 else -math.inf
-            if not self._regular(np.array(logdet)):
-                return None, None
-            try:
-                ninv.append(np.linalg.inv(nmat))
-            except np.linalg.LinAlgError:
-                return None, None
-            x[c] = (ninv[-1] @ rhs) / self.scale[c]
-        return (x, ninv) if self._regular(np.array(logdet)) else (None, None)
-
-    def batched(self, mask: np.ndarray):
-        """Weighted LS for each row of ``mask`` (K, n) over the points it selects: ``(x (K, p), ok (K,))``. The K
-        normal matrices of a block are one matrix product ``mask @ (per-point outer products)`` (BLAS on the
-        calling thread, :func:`~gdal_gf4cal.threads.matmul`), not a loop."""
-        K = mask.shape[0]
-        parts, logdet = [], np.zeros(K)
-        for (c, _), (outer, rhs_pt) in zip(self.blocks, self._outer_products()):
-            nmat = matmul(mask, outer).reshape(K, c.size, c.size)
-            sign, ld = np.linalg.slogdet(nmat)
-            logdet += np.where(sign > 0, ld, -np.inf)
-            parts.append((c, nmat, matmul(mask, rhs_pt)))
-        ok, x = self._regular(logdet), np.zeros((K, self.p))
-        for c, nmat, rhs in parts:
-            nmat = np.where(ok[:, None, None], nmat, np.eye(c.size))
-            try:
-                x[:, c] = np.linalg.solve(nmat, rhs[:, :, None])[:, :, 0] / self.scale[c]
-            except np.linalg.LinAlgError:          # a subset singular despite its determinant
-                for i in np.flatnonzero(ok):
-                    try:
-                        x[i, c] = np.linalg.solve(nmat[i], rhs[i]) / self.scale[c]
-                    except np.linalg.LinAlgError:
-                        ok[i] = False
-        return x, ok
-
-    def _outer_products(self):
-        """Per block, the per-point outer products (n, p_b^2) and right-hand sides (n, p_b) of its normal
-        equations: computed once, shared by every :meth:`batched` fit."""
-        if self._outer is None:
-            self._outer = []
-            for c, obs in self.blocks:
-                outer, rhs = np.zeros((self.n, c.size * c.size)), np.zeros((self.n, c.size))
-                for rows, y, w in obs:
-                    wa = rows * w[:, None]
-                    outer += (wa[:, :, None] * rows[:, None, :]).reshape(self.n, -1)
-                    rhs += wa * y[:, None]
-                self._outer.append((outer, rhs))
-        return self._outer
-
-    def sq(self, x: np.ndarray) -> np.ndarray:
-        """Weighted squared residual norm per point (K, n) for each parameter row of ``x`` (K, p); (n,) for one
-        parameter vector (p,)."""
-        xs = np.atleast_2d(x) * self.scale                                 # (K, p)
-        out = np.zeros((self.n, xs.shape[0]))
-        for c, obs in self.blocks:
-            for rows, y, w in obs:
-                r = y[:, None] - rows @ xs[:, c].T                         # (n, K)
-                r *= r
-                r *= w[:, None]
-                out += r
-        for y, w in self.rest:
-            out += (w * y * y)[:, None]
-        return out[:, 0] if np.ndim(x) == 1 else out.T
-
-    def inflation(self, fit_set: np.ndarray, ninv) -> np.ndarray:
-        """Per point, the factor of sigma^2 in the expected squared residual norm over ``k``: ``1 - lev`` inside
-        ``fit_set``, ``1 + lev`` outside it (``lev`` the mean leverage of the point's observations; ``ninv`` the
-        blocks' column-scaled ``N^-1`` of the fit on ``fit_set``, None when it is singular: factor 1)."""
-        if ninv is None:
-            return np.ones(self.n)
-        lev = np.zeros(self.n)
-        for (c, obs), nb in zip(self.blocks, ninv):
-            for rows, _, w in obs:
-                lev += w * np.einsum("ij,ji->i", rows, matmul(nb, rows.T))
-        lev /= self.k
-        return np.maximum(np.where(fit_set, 1.0 - lev, 1.0 + lev), 1e-6)
+    One (K, n) matrix product per observation axis (k is 1 or 2): no (n, k, K) temporaries."""
+    xt = np.asarray(x).T                                             # (p, K)
+    out = None
+    for j in range(a.shape[1]):
+        r = y[:, j, None] - a[:, j, :] @ xt                          # (n, K)
+        r *= r
+        r *= w[:, j, None]
+        out = r if out is None else out + r
+    return out.T
 
 
 def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int] = None, n_subsets: int = 300,
@@ -296,25 +245,25 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
     a_full, y_full, w_full, n_full, h_full = a, y, w, n, h
     a, y, w, n = a[search], y[search], w[search], search.size
     h = min(n, max((n + m + 1) // 2, m + 1))
-    pts = _PointSet(a, y, w, scale)
+    parts = _normal_parts(a, y, w, scale)
     subs = _subsets(n, m, n_subsets, seed)
     best_crit, best_x = math.inf, None
     for c0 in range(0, len(subs), chunk):
         sub = subs[c0:c0 + chunk]
         mask = np.zeros((len(sub), n))
         np.put_along_axis(mask, sub, 1.0, axis=1)
-        x, ok = pts.batched(mask)
+        x, ok = _batched_fit(a, y, w, mask, scale, parts)
         if not ok.any():
             continue
         x = x[ok]
         # one concentration step: refit on the h points that fit best
-        r2 = pts.sq(x)
+        r2 = _point_sq(a, y, w, x)
         keep = np.argpartition(r2, h - 1, axis=1)[:, :h]
         mask = np.zeros((len(x), n))
         np.put_along_axis(mask, keep, 1.0, axis=1)
-        x2, ok2 = pts.batched(mask)
+        x2, ok2 = _batched_fit(a, y, w, mask, scale, parts)
         x = np.where(ok2[:, None], x2, x)
-        r2 = pts.sq(x)
+        r2 = _point_sq(a, y, w, x)
         crit = np.sum(np.partition(r2, h - 1, axis=1)[:, :h], axis=1)
         i = int(np.argmin(crit))
         if crit[i] < best_crit:
@@ -325,17 +274,18 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
         raise DegenerateGeometryError("no subset of the points determines the parameters; spread the points over "
                                       "the image or estimate fewer parameters")
     a, y, w, n, h = a_full, y_full, w_full, n_full, h_full
-    pts = _PointSet(a, y, w, scale) if search.size < n else pts
-    r2 = pts.sq(best_x)
+    parts = _normal_parts(a, y, w, scale) if search.size < n else parts
     if search.size < n:
         for _ in range(2):                                           # concentration steps on all points
-            keep = np.zeros(n, bool)
-            keep[np.argpartition(r2, h - 1)[:h]] = True
-            x, _ = pts.fit(keep)
-            if x is not None:
-                best_x = x
-                r2 = pts.sq(best_x)
+            r2 = _point_sq(a, y, w, best_x[None])[0]
+            keep = np.zeros((1, n))
+            keep[0, np.argpartition(r2, h - 1)[:h]] = 1.0
+            x, ok = _batched_fit(a, y, w, keep, scale, parts)
+            if ok[0]:
+                best_x = x[0]
+        r2 = _point_sq(a, y, w, best_x[None])[0]
         best_crit = float(np.sum(np.partition(r2, h - 1)[:h]))
+    r2 = _point_sq(a, y, w, best_x[None])[0]
     # LTS scale: E[chi2_k | chi2_k <= q] = k F_{k+2}(q) / F_k(q), q the h/n quantile.
     corr = _lts_consistency(h, n, k)
     dof_h = max(h * k - p, 1)
@@ -345,19 +295,19 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
     tiny = 1e-18 * max(float(np.median(np.sum(w * y * y, axis=1))), 1e-300)
     fit_set = np.zeros(n, bool)
     fit_set[np.argpartition(r2, h - 1)[:h]] = True
-    inl = r2 / pts.inflation(fit_set, pts.fit(fit_set)[1]) <= cut * max(s2, tiny)
+    inl = r2 / _inflation(a, w, fit_set, scale) <= cut * max(s2, tiny)
     # Reweighting: LS on the inliers, plain scale; residuals normalised by their own variance (a point outside the
     # fit has variance sigma^2 (1 + leverage), inside sigma^2 (1 - leverage)), until the inlier set is stable.
     def settle(inl, s2):
         for _ in range(10):
             if inl.sum() <= m:
                 break
-            x, ninv = pts.fit(inl)
-            if x is None:
+            x, ok = _batched_fit(a, y, w, inl[None].astype(float), scale, parts)
+            if not ok[0]:
                 break
-            r2 = pts.sq(x)
+            r2 = _point_sq(a, y, w, x)[0]
             s2 = float(np.sum(r2[inl]) / max(int(inl.sum()) * k - p, 1))
-            new = r2 / pts.inflation(inl, ninv) <= cut * max(s2, tiny)
+            new = r2 / _inflation(a, w, inl, scale) <= cut * max(s2, tiny)
             if np.array_equal(new, inl):
                 break
             inl = new
