@@ -17,7 +17,7 @@ export PROJ_DATA := /usr/share/proj
 export PYTHONWARNINGS :=
 DEMO_OUT ?= demo_out
 
-.PHONY: help system venv install demo test test-fast test-engine test-qgis lint plugin bench fuzz clean
+.PHONY: help system venv install demo test test-fast test-engine test-qgis lint plugin bench bench-all fuzz clean
 
 help:
 	@echo "make demo   - install what is missing, then run the GF4 look-angle calibration demo"
@@ -25,7 +25,8 @@ help:
 	@echo "make test-fast - the inner loop: lint (ruff), then engine tests not marked slow (no QGIS)"
 	@echo "make lint   - ruff (pinned, installed into .venv) with the rules of pyproject.toml"
 	@echo "make plugin - build dist/gdal_gf4cal_plugin.zip and build/plugin/gdal_gf4cal_plugin/"
-	@echo "make bench  - run the benchmarks under bench/"
+	@echo "make bench  - every ratio of issue 23 in one run (quick; BENCH_ARGS= for full sizes)"
+	@echo "make bench-all - run every benchmark under bench/ at its defaults"
 	@echo "make fuzz   - fuzz the RPC readers for long (FUZZ_CASES=200000 FUZZ_SEED=... to change)"
 
 # System packages: installed only when one is missing (dpkg-query is fast when all are there).
@@ -86,7 +87,15 @@ plugin: install
 # The benchmarks also compare against skimage's phase_cross_correlation (Debian's python3-skimage).
 BENCH_APT_PACKAGES := python3-skimage
 
+# make bench: every ratio of issue 23 in one run and one table (quick sizes, a few minutes; BENCH_ARGS= for the
+# issue's full sizes). Optional tools (rpcm on PYTHONPATH, AROSICS) are used when present, never required.
+# make bench-all: every bench/bench_*.py at its defaults (long).
+BENCH_ARGS ?= --quick
+
 bench: install
+	$(PY) bench/bench_issue23.py $(BENCH_ARGS)
+
+bench-all: install
 	$(call apt_install_missing,$(BENCH_APT_PACKAGES))
 	@for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 

@@ -6,7 +6,8 @@ The pre-core tree is ``git archive``d from the parent of the commit that introdu
 child processes, one per tree, each import its own ``gdal_gf4cal`` and time ``fit_compensation`` on the cases of
 ``bench_compensation.make_case`` (WorldView-3 RPC, affine truth, 0.5 px noise, 5 % blunders of 20-60 px); the
 parent interleaves the calls (old, new, old, new, ...) so that the load of a shared machine falls on both alike,
-and prints per case the minimum and median of each tree, their ratio and whether both flagged the same GCPs.
+and prints per case the minimum and median of each tree, their ratio, the ratio of the minimum CPU times (the
+steadiest on a loaded machine; BLAS threads count in both) and whether both flagged the same GCPs.
 
 Usage: python bench/bench_compensation_core.py [--repeat N] [--old COMMIT]
 """
@@ -59,10 +60,11 @@ def child() -> None:
             cases[key] = make_case(int(n))
             fit_compensation(cases[key][0], cases[key][1], model)           # warm-up (imports, caches)
         rpc, gcps, _ = cases[key]
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         res = fit_compensation(rpc, gcps, model)
-        dt = time.perf_counter() - t
-        print(json.dumps({"t": dt, "outliers": [int(i) for i in res.gcps.index[res.gcps["outlier"]]]}), flush=True)
+        dt, dc = time.perf_counter() - t, time.process_time() - c
+        print(json.dumps({"t": dt, "cpu": dc, "outliers": [int(i) for i in res.gcps.index[res.gcps["outlier"]]]}),
+              flush=True)
 
 
 def start(tree: str) -> subprocess.Popen:
@@ -95,24 +97,28 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         procs = {"old": start(extract(old, tmp)), "new": start(ROOT)}
         times = {(k, c): [] for k in procs for c in CASES}
+        cpu = {(k, c): [] for k in procs for c in CASES}
         flagged = {}
         for r in range(a.repeat):
             for case in CASES:
                 for k in (("old", "new") if r % 2 == 0 else ("new", "old")):
                     ans = ask(procs[k], *case)
                     times[(k, case)].append(ans["t"])
+                    cpu[(k, case)].append(ans["cpu"])
                     flagged[(k, case)] = ans["outliers"]
         for p in procs.values():
             p.stdin.close()
             p.wait()
     print(f"{'model':>8} {'GCPs':>6} {'old min s':>10} {'new min s':>10} {'old med s':>10} {'new med s':>10} "
-          f"{'new/old (min)':>14} {'(median)':>9}  same outliers")
+          f"{'new/old (min)':>14} {'(median)':>9} {'(min CPU)':>10}  same outliers")
     for case in CASES:
         to, tn = times[("old", case)], times[("new", case)]
         same = flagged[("old", case)] == flagged[("new", case)]
         print(f"{case[0]:>8} {case[1]:>6} {min(to):>10.4f} {min(tn):>10.4f} {statistics.median(to):>10.4f} "
               f"{statistics.median(tn):>10.4f} {min(tn) / min(to):>14.2f} "
-              f"{statistics.median(tn) / statistics.median(to):>9.2f}  {same} ({len(flagged[('new', case)])})")
+              f"{statistics.median(tn) / statistics.median(to):>9.2f} "
+              f"{min(cpu[('new', case)]) / max(min(cpu[('old', case)]), 1e-9):>10.2f}  {same} "
+              f"({len(flagged[('new', case)])})")
 
 
 if __name__ == "__main__":

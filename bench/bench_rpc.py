@@ -1,98 +1,141 @@
-"""RPC throughput against GDAL's RPC transformer (and rpcm when installed), measured in the same run.
+"""RPC throughput against GDAL's RPC transformer and rpcm, measured in the same run, single-threaded.
 
-Same 200,000 points for everyone, on the real Pleiades Ventoux RPC and the real SRTM tile:
-  project       ground -> image           vs GDAL TransformPoints(bDstToSrc=1)
+Same points for everyone, on the real Pleiades Ventoux RPC and the real SRTM tile, our kernels on one thread
+(``GF4CAL_NUM_THREADS=1`` through :func:`gdal_gf4cal.threads.limit`: the threaded speed-up is bench_threads.py's):
+  project       ground -> image           vs GDAL TransformPoints(bDstToSrc=1) and rpcm's ``projection``
   localize      image -> ground at h      vs GDAL at its default 0.1 px tolerance (we converge to 1e-8 px)
   localize_dem  image -> ground on a DEM  vs GDAL with RPC_DEM at RPC_PIXEL_ERROR_THRESHOLD=1e-6 (we converge to
                 1e-8 px / 1e-4 m)
-Best of 5 runs each: the machine is shared, compare the ratios (same run), not absolute rates.
-Goals (issue 2): project >= rpcm's speed; localize >= 2x rpcm's at <= 1e-6 px; localize_dem >= 1.5x GDAL's.
+Each timing is the best of ``--repeat`` interleaved runs (ours, GDAL, rpcm, ours, ...): the machine is shared,
+compare the ratios (same run), not absolute rates; the load average is printed.
+Goals: issue 2: project >= rpcm's speed; localize_dem >= 1.5x GDAL's; issue 23: project >= 6x rpcm single-threaded.
 
-Run: .venv/bin/python bench/bench_rpc.py [--points N]
+rpcm: its ``rpc_model.py`` (NumPy only for projection) is loaded from wherever ``import rpcm`` would find it, e.g.
+``pip download rpcm --no-deps`` unpacked into a folder on PYTHONPATH outside the repository; its package
+``__init__`` (rasterio, srtm4, geojson) is not needed. Without it the table says "rpcm not installed".
+
+Run: .venv/bin/python bench/bench_rpc.py [--points N] [--repeat N] [--quick]
 """
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import os
+import sys
 import time
+import types
 from pathlib import Path
 
 import numpy as np
 from osgeo import gdal
 
 from gdal_gf4cal import DEM, RPCModel
+from gdal_gf4cal.threads import limit
 
 gdal.UseExceptions()
 DATA = Path(__file__).resolve().parent.parent / "tests" / "data"
-# Quoted in issue 2 (measured on this project's machines with rpcm on a Pleiades RPC), used when rpcm is absent.
-RPCM_QUOTED = {"project": 13.7e6, "localize": 0.41e6}
+GOAL_RPCM = 6.0
 
 
-def best_of(fn, repeat=5):
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return min(times), out
+def load_rpcm():
+    """rpcm's ``rpc_model`` module (its projection needs NumPy only), or None when rpcm is not on the path."""
+    try:
+        spec = importlib.util.find_spec("rpcm")
+    except (ImportError, ValueError):
+        spec = None
+    if spec is None or not spec.origin:
+        return None
+    path = Path(spec.origin).parent / "rpc_model.py"
+    stubs = [name for name in ("pyproj", "rasterio", "rpcm", "rpcm.geo", "rpcm.rpc_file_readers")
+             if name not in sys.modules]
+    for name in stubs:                       # imported at its top, unused by projection / localization
+        sys.modules[name] = types.ModuleType(name)
+    sys.modules["rpcm.rpc_file_readers"].read_rpc_file = None
+    mod = types.ModuleType("rpcm_rpc_model")
+    try:
+        exec(compile(path.read_text(), str(path), "exec"), mod.__dict__)
+    finally:
+        for name in stubs:
+            sys.modules.pop(name, None)
+    return mod
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--points", type=int, default=200_000)
-    args = ap.parse_args()
-    n = args.points
+def best_of(fns: dict, repeat: int) -> dict:
+    """Best wall time of each function over ``repeat`` interleaved rounds, and its last result."""
+    times = {k: [] for k in fns}
+    out = {}
+    for r in range(repeat):
+        for k in (list(fns) if r % 2 == 0 else list(fns)[::-1]):
+            t = time.perf_counter()
+            out[k] = fns[k]()
+            times[k].append(time.perf_counter() - t)
+    return {k: (min(v), out[k]) for k, v in times.items()}
+
+
+def measure(n: int = 200_000, repeat: int = 5) -> dict:
+    """Rates and round-trip errors per operation: ``{op: {"ours": s, "gdal": s, "rpcm": s or None, "err": px}}``."""
     rpc = RPCModel.from_file(DATA / "rpc" / "RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML")
     dem_path = str(DATA / "dem" / "N44E005.hgt")
     dem = DEM.from_file(dem_path, nodata="nan")
+    rm = load_rpcm()
     w, h = rpc.image_size
     rng = np.random.default_rng(0)
     s, l = rng.uniform(0, w, n), rng.uniform(0, h, n)
     hh = rng.uniform(*rpc.height_range, n)
-    lon, lat = rpc.localize(s, l, hh)
     ds = gdal.GetDriverByName("MEM").Create("", w, h)
     ds.SetMetadata(rpc.to_gdal_metadata(), "RPC")
     tr = gdal.Transformer(ds, None, ["METHOD=RPC"])
     tr_dem = gdal.Transformer(ds, None, ["METHOD=RPC", f"RPC_DEM={dem_path}", "RPC_PIXEL_ERROR_THRESHOLD=1e-6",
                                          "RPC_DEM_APPLY_VDATUM_SHIFT=FALSE"])
-    ground = np.column_stack([lon, lat, hh])
-    image = np.column_stack([s, l, hh])
-    image0 = np.column_stack([s, l, np.zeros(n)])
+    rows = {}
+    with limit(1):
+        lon, lat = rpc.localize(s, l, hh)
+        ground, image = np.column_stack([lon, lat, hh]), np.column_stack([s, l, hh])
+        fns = {"ours": lambda: rpc.project(lon, lat, hh), "gdal": lambda: tr.TransformPoints(1, ground)}
+        if rm is not None:
+            r2 = rm.RPCModel(rpc.to_gdal_metadata())
+            fns["rpcm"] = lambda: r2.projection(lon, lat, hh)
+        t = best_of(fns, repeat)
+        ps, pl = t["ours"][1]
+        rows["project"] = {"ours": t["ours"][0], "gdal": t["gdal"][0], "rpcm": t["rpcm"][0] if rm else None,
+                           "err": float(np.max(np.hypot(ps - s, pl - l)))}
+        t = best_of({"ours": lambda: rpc.localize(s, l, hh), "gdal": lambda: tr.TransformPoints(0, image)}, repeat)
+        ps, pl = rpc.project(*t["ours"][1], hh)
+        rows["localize"] = {"ours": t["ours"][0], "gdal": t["gdal"][0], "rpcm": None,
+                            "err": float(np.nanmax(np.hypot(ps - s, pl - l)))}
+        image0 = np.column_stack([s, l, np.zeros(n)])
+        rpc.localize_dem(s[:10], l[:10], dem)      # warm the DEM tile cache like GDAL's first call does
+        tr_dem.TransformPoints(0, image0[:10])
+        t = best_of({"ours": lambda: rpc.localize_dem(s, l, dem), "gdal": lambda: tr_dem.TransformPoints(0, image0)},
+                    repeat)
+        lo, la, hd = t["ours"][1]
+        ok = np.isfinite(hd)
+        ps, pl = rpc.project(lo[ok], la[ok], hd[ok])
+        rows["localize_dem"] = {"ours": t["ours"][0], "gdal": t["gdal"][0], "rpcm": None,
+                                "err": float(np.max(np.hypot(ps - s[ok], pl - l[ok])))}
+    return {"n": n, "rows": rows, "rpcm": rm is not None}
 
-    rows = []
-    t_ours, (ps, pl) = best_of(lambda: rpc.project(lon, lat, hh))
-    t_gdal, _ = best_of(lambda: tr.TransformPoints(1, ground))
-    rows.append(("project", t_ours, t_gdal, np.max(np.hypot(ps - s, pl - l))))
 
-    t_ours, (lo, la) = best_of(lambda: rpc.localize(s, l, hh))
-    t_gdal, _ = best_of(lambda: tr.TransformPoints(0, image))
-    ps, pl = rpc.project(lo, la, hh)
-    rows.append(("localize", t_ours, t_gdal, np.nanmax(np.hypot(ps - s, pl - l))))
-
-    rpc.localize_dem(s[:10], l[:10], dem)      # warm the DEM tile cache like GDAL's first call does
-    tr_dem.TransformPoints(0, image0[:10])
-    t_ours, (lo, la, hd) = best_of(lambda: rpc.localize_dem(s, l, dem))
-    t_gdal, _ = best_of(lambda: tr_dem.TransformPoints(0, image0))
-    ok = np.isfinite(hd)
-    ps, pl = rpc.project(lo[ok], la[ok], hd[ok])
-    rows.append(("localize_dem", t_ours, t_gdal, np.max(np.hypot(ps - s[ok], pl - l[ok]))))
-
-    try:
-        import rpcm  # noqa: F401
-        have_rpcm = True
-    except ImportError:
-        have_rpcm = False
-
-    print(f"{n} points, Pleiades Ventoux RPC, SRTM N44E005 (GDAL {gdal.__version__})")
-    print(f"{'operation':<13} {'ours Mpt/s':>10} {'GDAL Mpt/s':>10} {'ours/GDAL':>9} {'rpcm Mpt/s':>11} "
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, default=200_000)
+    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--quick", action="store_true", help="3 rounds")
+    args = ap.parse_args()
+    n, repeat = (args.points, 3) if args.quick else (args.points, args.repeat)
+    res = measure(n, repeat)
+    print(f"{n} points, Pleiades Ventoux RPC, SRTM N44E005, one thread (GDAL {gdal.__version__}); load average "
+          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    print(f"{'operation':<13} {'ours Mpt/s':>10} {'GDAL Mpt/s':>10} {'ours/GDAL':>9} {'rpcm Mpt/s':>10} "
           f"{'ours/rpcm':>9} {'round trip px':>13}")
-    for name, t_o, t_g, err in rows:
-        rpcm_rate = RPCM_QUOTED.get(name)
-        rpcm_txt = (f"{rpcm_rate / 1e6:>10.2f}q" if rpcm_rate else f"{'-':>11}")
-        ratio_rpcm = f"{n / t_o / rpcm_rate:>9.2f}" if rpcm_rate else f"{'-':>9}"
-        print(f"{name:<13} {n / t_o / 1e6:>10.2f} {n / t_g / 1e6:>10.2f} {t_g / t_o:>9.2f} {rpcm_txt} {ratio_rpcm} "
-              f"{err:>13.2e}")
-    if not have_rpcm:
-        print("q = rpcm not installed here: its rate quoted from issue 2 (same machine type, Pleiades RPC)")
+    for name, r in res["rows"].items():
+        rp = (f"{n / r['rpcm'] / 1e6:>10.2f} {r['rpcm'] / r['ours']:>9.2f}" if r["rpcm"] else f"{'-':>10} {'-':>9}")
+        print(f"{name:<13} {n / r['ours'] / 1e6:>10.2f} {n / r['gdal'] / 1e6:>10.2f} {r['gdal'] / r['ours']:>9.2f} "
+              f"{rp} {r['err']:>13.2e}")
+    if not res["rpcm"]:
+        print("rpcm not installed (pip download rpcm --no-deps, unpack it on PYTHONPATH outside the repository)")
+    else:
+        print(f"issue 23 goal: project >= {GOAL_RPCM:g}x rpcm single-threaded")
 
 
 if __name__ == "__main__":

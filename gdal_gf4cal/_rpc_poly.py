@@ -49,22 +49,22 @@ def monomials(L: np.ndarray, P: np.ndarray, H: np.ndarray) -> np.ndarray:
     m[1] = L
     m[2] = P
     m[3] = H
-    np.multiply(L, P, out=m[4])
-    np.multiply(L, H, out=m[5])
-    np.multiply(P, H, out=m[6])
-    np.multiply(L, L, out=m[7])
-    np.multiply(P, P, out=m[8])
-    np.multiply(H, H, out=m[9])
-    np.multiply(m[4], H, out=m[10])      # PLH
-    np.multiply(m[7], L, out=m[11])      # L3
-    np.multiply(m[8], L, out=m[12])      # LP2
-    np.multiply(m[9], L, out=m[13])      # LH2
-    np.multiply(m[7], P, out=m[14])      # L2P
-    np.multiply(m[8], P, out=m[15])      # P3
-    np.multiply(m[9], P, out=m[16])      # PH2
-    np.multiply(m[7], H, out=m[17])      # L2H
-    np.multiply(m[8], H, out=m[18])      # P2H
-    np.multiply(m[9], H, out=m[19])      # H3
+    fill_monomials(m)
+    return m
+
+
+def fill_monomials(m: np.ndarray) -> np.ndarray:
+    """Rows 4..19 of the monomial matrix ``m`` (20, N) from its rows 1..3 (L, P, H), in place (row 0 is the
+    caller's: 1), in 7 broadcast products (one per group of terms sharing a factor: few calls for a small chunk):
+    a kernel can keep one buffer per chunk instead of allocating one."""
+    lph = m[1:4]                                         # L, P, H
+    np.multiply(m[1], m[2:4], out=m[4:6])                # LP, LH
+    np.multiply(m[2], m[3], out=m[6])                    # PH
+    np.multiply(lph, lph, out=m[7:10])                   # L2, P2, H2
+    np.multiply(m[4], m[3], out=m[10])                   # PLH
+    np.multiply(m[7:10], m[1], out=m[11:14])             # L3, LP2, LH2
+    np.multiply(m[7:10], m[2], out=m[14:17])             # L2P, P3, PH2
+    np.multiply(m[7:10], m[3], out=m[17:20])             # L2H, P2H, H3
     return m
 
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import DegenerateGeometryError, GCPError
 from ..estimation import Estimate, Snooping, robust_fit, weighted_lsq
+from ..estimation.lsq import NORMAL_CONDITION, gram
 from .model import CompensationModel, CompensationResult, _monomials
 from .outputs import check_point_warnings
 
@@ -48,7 +49,7 @@ def _table(gcps):
         tab["id"] = [str(i + 1) for i in range(len(tab))]
     if "role" not in tab.columns:
         tab["role"] = "control"
-    tab["role"] = tab["role"].fillna("control").astype(str).str.strip().str.lower()
+    tab["role"] = _normalised_labels(tab["role"].fillna("control").astype(str))
     bad = sorted(set(tab["role"]) - {"control", "check"})
     if bad:
         raise GCPError(f"GCP role must be 'control' or 'check', found {bad}")
@@ -60,6 +61,15 @@ def _table(gcps):
     if "h" not in tab.columns:
         tab["h"] = np.nan
     return tab
+
+
+def _normalised_labels(col):
+    """``col.str.strip().str.lower()`` computed once per distinct value (a role column of 10,000 GCPs holds one or
+    two): pandas' string methods cost more than the robust fit."""
+    import pandas as pd              # ~1 s to import: only when first needed (CLI, QGIS start-up)
+    codes, uniques = pd.factorize(col)
+    labels = np.array([str(u).strip().lower() for u in uniques] + [""], dtype=object)
+    return pd.Series(labels[codes], index=col.index, dtype=object)
 
 
 def _solve_axis(a, y, w, prior=None, solver: str = "svd") -> Tuple[np.ndarray, np.ndarray, Any]:
@@ -80,12 +90,10 @@ def _check_rank(a_list, model: CompensationModel, n_ctrl: int, terms=None) -> fl
     amp = 0.0
     corners = np.array([[-1.0, -1.0], [1.0, -1.0], [-1.0, 1.0], [1.0, 1.0], [0.0, 0.0]])
     for k, a in enumerate(a_list):
-        sv = np.linalg.svd(a / np.maximum(np.linalg.norm(a, axis=0), 1e-300), compute_uv=False)
-        cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+        cond, n_inv = _condition(a)
         worst = max(worst, cond)
         if terms is not None and math.isfinite(cond) and cond < 1e8:
             q = _monomials(terms[k], corners[:, 0], corners[:, 1])
-            n_inv = np.linalg.pinv(a.T @ a, hermitian=True)
             amp = max(amp, float(np.sqrt(np.max(np.einsum("ij,jk,ik->i", q, n_inv, q)))))
     if worst > 1e8 or amp > _MAX_AMPLIFICATION:
         hint = {"translation": "", "shift-drift": " (both axes need GCPs at different lines and samples)",
@@ -96,6 +104,22 @@ def _check_rank(a_list, model: CompensationModel, n_ctrl: int, terms=None) -> fl
             f"the {n_ctrl} control GCPs do not determine model {model.label!r}{hint}; spread GCPs over the image "
             f"or choose a simpler model")
     return worst
+
+
+def _condition(a) -> Tuple[float, np.ndarray]:
+    """``(condition number of the column-equilibrated a, pinv(a^T a))``: from the eigenvalues of the small normal
+    matrix when that is clearly well conditioned (below :data:`~gdal_gf4cal.estimation.lsq.NORMAL_CONDITION`,
+    where its squared condition loses nothing; one ``A^T A`` instead of an SVD of the n x p design), else from the
+    SVD of the design."""
+    n_mat = gram(a, a)
+    d = np.sqrt(np.diag(n_mat))
+    if np.all(d > 0):
+        ev = np.linalg.eigvalsh(n_mat / np.outer(d, d))
+        if ev[0] > 0 and math.sqrt(ev[-1] / ev[0]) <= NORMAL_CONDITION:
+            return math.sqrt(ev[-1] / ev[0]), np.linalg.pinv(n_mat, hermitian=True)
+    sv = np.linalg.svd(a / np.maximum(np.linalg.norm(a, axis=0), 1e-300), compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+    return cond, np.linalg.pinv(n_mat, hermitian=True)
 
 
 #: Largest tolerated amplification of GCP noise at the image corners before a layout counts as degenerate.
@@ -207,12 +231,14 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
         if crit > 1.05 * outlier_threshold:
             notes.append(f"few redundant observations: blunder threshold raised from {outlier_threshold:g} to "
                          f"{crit:.3g} (Student-t, {min(dof)} degrees of freedom)")
-    _fill_table(tab, pred, (problem.y_s, problem.y_l), (problem.a_s @ cs, problem.a_l @ cl), (norm_s, norm_l))
-    tab["outlier"] = outlier
-    tab["outlier_level"] = np.where(outlier, np.where(start_out, "start", "snooping"), "")
-    tab["used"] = used
+    cols = _residual_columns(pred, (problem.y_s, problem.y_l), (problem.a_s @ cs, problem.a_l @ cl),
+                             (norm_s, norm_l))
+    cols["outlier"] = outlier
+    cols["outlier_level"] = np.where(outlier, np.where(start_out, "start", "snooping"), "")
+    cols["used"] = used
     if leave_one_out:
-        _leave_one_out(tab, (problem.a_s, problem.a_l), (ns, nl), problem.w0, used)
+        _leave_one_out(cols, (problem.a_s, problem.a_l), (ns, nl), problem.w0, used)
+    tab = _set_columns(tab, cols)
     return CompensationResult(model=model, frame=fr, coef_sample=cs, coef_line=cl,
                               cov_sample=sig_s ** 2 * ns, cov_line=sig_l ** 2 * nl, sigma0_px=(sig_s, sig_l),
                               gcps=tab, redundancy=red, iterations=iterations, condition_number=cond, notes=notes,
@@ -289,23 +315,34 @@ def _predict(rpc, tab) -> Tuple[np.ndarray, np.ndarray]:
     return s_pred, l_pred
 
 
-def _fill_table(tab, pred, before, corr, norm) -> None:
+def _residual_columns(pred, before, corr, norm) -> dict:
     """The residual columns of the one table shape (gdal_gf4cal.stats): before = the RPC, after = corrected."""
-    tab["pred_sample_before"], tab["pred_line_before"] = pred
-    tab["res_sample_before"], tab["res_line_before"] = before
-    tab["pred_sample_after"], tab["pred_line_after"] = pred[0] + corr[0], pred[1] + corr[1]
-    tab["res_sample_after"], tab["res_line_after"] = before[0] - corr[0], before[1] - corr[1]
-    tab["norm_res_sample"], tab["norm_res_line"] = norm
+    return {"pred_sample_before": pred[0], "pred_line_before": pred[1],
+            "res_sample_before": before[0], "res_line_before": before[1],
+            "pred_sample_after": pred[0] + corr[0], "pred_line_after": pred[1] + corr[1],
+            "res_sample_after": before[0] - corr[0], "res_line_after": before[1] - corr[1],
+            "norm_res_sample": norm[0], "norm_res_line": norm[1]}
 
 
-def _leave_one_out(tab, designs, n_invs, w0, used) -> None:
+def _set_columns(tab, cols: dict):
+    """``tab`` with ``cols`` set: the columns it has replaced in place, the new ones appended in order by one
+    concatenation (one pandas insertion per column cost more than the robust fit at 10,000 GCPs)."""
+    import pandas as pd              # ~1 s to import: only when first needed (CLI, QGIS start-up)
+    for k in [k for k in cols if k in tab.columns]:
+        tab[k] = cols.pop(k)
+    if not cols:
+        return tab
+    return pd.concat([tab, pd.DataFrame(cols, index=tab.index)], axis=1)
+
+
+def _leave_one_out(cols: dict, designs, n_invs, w0, used) -> None:
     """Exact LOO residuals of linear LS: ``v_i / (1 - h_ii)`` for points in the fit; others are already
-    independent (``res_sample_loo``, ``res_line_loo``)."""
+    independent (``res_sample_loo``, ``res_line_loo`` added to ``cols``)."""
     for axis, a, n_inv in zip(("sample", "line"), designs, n_invs):
         hat = w0 * np.einsum("ij,jk,ik->i", a, n_inv, a)
-        v = tab[f"res_{axis}_after"].to_numpy(float)
+        v = cols[f"res_{axis}_after"]
         with np.errstate(divide="ignore", invalid="ignore"):
-            tab[f"res_{axis}_loo"] = np.where(used, v / (1.0 - hat), v)
+            cols[f"res_{axis}_loo"] = np.where(used, v / (1.0 - hat), v)
 
 
 def _normalised(a_s, a_l, y_s, y_l, w0, used, solver: str = "svd"):

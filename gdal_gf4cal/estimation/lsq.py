@@ -14,6 +14,7 @@ from typing import Dict, Sequence, Tuple
 import numpy as np
 
 from ..errors import DegenerateGeometryError
+from ..threads import BLAS_SERIAL_SIZE
 from .result import Estimate, names_and_blocks
 
 #: Largest condition number of the column-scaled design accepted as a determined layout.
@@ -35,6 +36,21 @@ class Block:
         return len(self.names)
 
 
+def gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a.T @ b`` of two tall matrices with few columns (e.g. ``A^T W A`` of 20,000 observation rows) summed over
+    row chunks that BLAS computes on the calling thread (:data:`~gdal_gf4cal.threads.BLAS_SERIAL_SIZE`): on a
+    loaded machine OpenBLAS's threads made the one product 5-7x slower; the chunks depend on the shapes only, so
+    the numbers do not depend on the cores."""
+    n = a.shape[0]
+    step = max(1, BLAS_SERIAL_SIZE // max(a.shape[1] * b.shape[1], 1))
+    if n <= step:
+        return a.T @ b
+    out = a[:step].T @ b[:step]
+    for i in range(step, n, step):
+        out += a[i:i + step].T @ b[i:i + step]
+    return out
+
+
 def _free_mask(blocks: Dict[str, slice], frozen: Sequence[str], p: int) -> np.ndarray:
     free = np.ones(p, bool)
     for name in frozen:
@@ -52,20 +68,20 @@ def solve_normal_scaled(a: np.ndarray, y: np.ndarray, w: np.ndarray, hint: str =
 
     ``solver="normal"``: through the eigen-decomposition of its ``p x p`` normal matrix instead of the SVD of the
     ``n x p`` design, the same numbers to rounding (for the iterations of a robust loop over many points); a
-    condition number above :data:`_NORMAL_CONDITION`, where the normal matrix loses the small singular values,
+    condition number above :data:`NORMAL_CONDITION`, where the normal matrix loses the small singular values,
     goes back to the SVD, so both solvers refuse the same layouts.
     Raises :class:`DegenerateGeometryError` (with the condition number) when the layout does not determine ``x``.
     """
     if solver not in ("svd", "normal"):
         raise ValueError(f"solver must be 'svd' or 'normal', not {solver!r}")
-    sw = np.sqrt(np.maximum(w, 0.0))
-    aw = a * sw[:, None]
-    scale = np.linalg.norm(aw, axis=0)
-    scale = np.where(scale > 0, scale, 1.0)
     s = np.zeros(0)
     if solver == "normal":
-        s, vt, rhs = _scaled_normal_eig(aw / scale, y * sw)
-    if not (s.size and s[-1] > 0 and s[0] / s[-1] <= _NORMAL_CONDITION):
+        s, vt, rhs, scale = _scaled_normal_eig(a, y, np.where(w > 0, w, 0.0))
+    if not (s.size and s[-1] > 0 and s[0] / s[-1] <= NORMAL_CONDITION):
+        sw = np.sqrt(np.maximum(w, 0.0))
+        aw = a * sw[:, None]
+        scale = np.linalg.norm(aw, axis=0)
+        scale = np.where(scale > 0, scale, 1.0)
         u, s, vt = np.linalg.svd(aw / scale, full_matrices=False)
         rhs = u.T @ (y * sw)
     cond = float(s[0] / s[-1]) if s.size and s[-1] > 0 else math.inf
@@ -82,18 +98,23 @@ def solve_normal_scaled(a: np.ndarray, y: np.ndarray, w: np.ndarray, hint: str =
 
 #: Largest condition number (of the column-scaled design) solved through the normal matrix by
 #: ``solver="normal"``; above it the SVD (the normal matrix squares it).
-_NORMAL_CONDITION = 1e4
+NORMAL_CONDITION = 1e4
 
 
-def _scaled_normal_eig(a: np.ndarray, y: np.ndarray):
-    """``(s, vt, u^T y)`` of the thin SVD ``a = u diag(s) vt`` from the eigen-decomposition of ``a^T a``
-    (singular values in decreasing order)."""
-    ev, v = np.linalg.eigh(a.T @ a)
+def _scaled_normal_eig(a: np.ndarray, y: np.ndarray, w: np.ndarray):
+    """``(s, vt, u^T sqrt(w) y, scale)`` of the thin SVD ``sqrt(w) a / scale = u diag(s) vt`` (columns scaled to
+    unit weighted norm, singular values in decreasing order) from the eigen-decomposition of its normal matrix
+    ``A^T W A`` (:func:`gram`: rows of weight 0 drop out, no copy of the rows in the fit)."""
+    wa = a * w[:, None]
+    nmat = gram(wa, a)
+    scale = np.sqrt(np.maximum(np.diag(nmat), 0.0))
+    scale = np.where(scale > 0, scale, 1.0)
+    ev, v = np.linalg.eigh(nmat / np.outer(scale, scale))
     ev, v = ev[::-1], v[:, ::-1]
     s = np.sqrt(np.maximum(ev, 0.0))
     with np.errstate(divide="ignore", invalid="ignore"):
-        rhs = np.where(s > 0, (v.T @ (a.T @ y)) / s, 0.0)
-    return s, v.T, rhs
+        rhs = np.where(s > 0, (v.T @ ((wa.T @ y) / scale)) / s, 0.0)
+    return s, v.T, rhs, scale
 
 
 def weighted_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), frozen: Sequence[str] = (),
@@ -142,14 +163,17 @@ def weighted_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), fro
     free = _free_mask(sl, frozen, p)
     x = np.zeros(p) if values is None else np.asarray(values, dtype=float).copy()
     y_free = y - a[:, ~free] @ x[~free] if (~free).any() else y
-    af = a[:, free]
+    af = a if free.all() else a[:, free]
     used = w > 0
     n_used = int(np.count_nonzero(used))
     pf = int(free.sum())
     if n_used < pf:
         raise DegenerateGeometryError(f"{n_used} observations cannot determine {pf} parameters{hint}; add "
                                       "observations or freeze/estimate fewer parameters")
-    xf, n_inv, cond = solve_normal_scaled(af[used], y_free[used], w[used], hint, max_condition, solver)
+    if solver == "normal":          # the rows out of the fit (weight 0) drop out of its normal matrix: no copies
+        xf, n_inv, cond = solve_normal_scaled(af, y_free, w, hint, max_condition, solver)
+    else:
+        xf, n_inv, cond = solve_normal_scaled(af[used], y_free[used], w[used], hint, max_condition, solver)
     x[free] = xf
     v = y - a @ x
     dof = n_used - pf

@@ -6,7 +6,7 @@ import pytest
 from osgeo import gdal
 
 from gdal_gf4cal import RPCFormatError, RPCModel
-from gdal_gf4cal.rpc import DERIVATIVE_MATRICES, monomial_derivatives, monomials
+from gdal_gf4cal.rpc import DERIVATIVE_MATRICES, PROJECT_CHUNK, monomial_derivatives, monomials
 
 gdal.UseExceptions()
 
@@ -219,3 +219,32 @@ def test_with_image_affine_folds_shift_and_scale_exactly(real_rpc, convention):
     s1, l1 = new.project(lon, lat, real_rpc.height_off, pixel_convention=convention)
     np.testing.assert_allclose(s1, 3.25 + 1.0002 * s0, atol=1e-8)
     np.testing.assert_allclose(l1, -7.5 + 0.9997 * l0, atol=1e-8)
+
+
+def test_project_kernel_chunks_and_antimeridian(data_dir):
+    """RPCModel.project's fused per-chunk kernel (issue 23): a point gives the same pixel alone, at a chunk
+    boundary and in a long array; a longitude past the antimeridian (RPC at 179.99 E) the same as its value -360."""
+    rpc = RPCModel.from_file(data_dir / "rpc" / "RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML")
+    rng = np.random.default_rng(1)
+    n = PROJECT_CHUNK + 3
+    lon = rpc.long_off + rng.uniform(-1, 1, n) * rpc.long_scale
+    lat = rpc.lat_off + rng.uniform(-1, 1, n) * rpc.lat_scale
+    h = rpc.height_off + rng.uniform(-1, 1, n) * rpc.height_scale
+    s, l = rpc.project(lon, lat, h)
+    for i in (0, PROJECT_CHUNK - 1, PROJECT_CHUNK, n - 1):
+        si, li = rpc.project(lon[i], lat[i], h[i])
+        assert abs(si - s[i]) < 1e-9 and abs(li - l[i]) < 1e-9
+    # the polynomial in the RPC's own normalisation (the definition) gives the same pixels to 1e-9 px
+    L, P = (lon - rpc.long_off) / rpc.long_scale, (lat - rpc.lat_off) / rpc.lat_scale
+    v = rpc._coeffs @ monomials(L, P, (h - rpc.height_off) / rpc.height_scale)
+    np.testing.assert_allclose(s, v[0] / v[1] * rpc.samp_scale + rpc.samp_off + 0.5, atol=1e-9, rtol=0)
+    np.testing.assert_allclose(l, v[2] / v[3] * rpc.line_scale + rpc.line_off + 0.5, atol=1e-9, rtol=0)
+    far = rpc.replace(long_off=179.99)
+    east = 179.99 + rng.uniform(0.0, 0.009, 50)
+    s1, l1 = far.project(np.concatenate([east, east]), np.concatenate([lat[:50]] * 2),
+                         np.concatenate([h[:50]] * 2))
+    s2, l2 = far.project(np.concatenate([east, east - 360.0]), np.concatenate([lat[:50]] * 2),
+                         np.concatenate([h[:50]] * 2))
+    np.testing.assert_allclose(s2, s1, atol=1e-6)
+    np.testing.assert_allclose(l2, l1, atol=1e-6)
+    assert rpc.project(np.zeros(0), np.zeros(0), np.zeros(0))[0].shape == (0,)
