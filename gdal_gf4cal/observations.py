@@ -210,8 +210,10 @@ def _basename_key(name) -> str:
     return os.path.splitext(base)[0].casefold()
 
 
-def validate_observations(table, *, source: str = "observations", dem=None, need_height: bool = True):
-    """Check and complete an observation table (module docstring); returns a new DataFrame.
+def validate_observations(table, *, source: str = "observations", dem=None, need_height: bool = True,
+                          return_codes: bool = False):
+    """Check and complete an observation table (module docstring); returns a new DataFrame (with
+    ``return_codes``: and ``{"point_id": codes, "image_id": codes}``, the ids' ``pd.factorize`` codes).
 
     Parameters
     ----------
@@ -237,7 +239,7 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
         _check_gcp_ground(df, gcp, dem, need_height, source)
     _check_roles_sigma_flags(df, source)
     df.index = pd.RangeIndex(len(df))                          # columns already in schema order: no copy
-    return df
+    return (df, codes) if return_codes else df
 
 
 def _renamed_observation_columns(table, source):
