@@ -104,7 +104,7 @@ class IntersectionResult:
 
 
 def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional[float] = None,
-              max_iter: int = 30, tol_m: float = 1e-4, progress=None) -> IntersectionResult:
+              max_iter: int = 30, tol_m: float = 1e-4, progress=None, final_pass: bool = True) -> IntersectionResult:
     """Least-squares forward intersection from ``>= 2`` images (METHODS §7).
 
     Parameters
@@ -117,6 +117,10 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
         Image measurement standard deviation (px) -> weights and the a-priori covariance.
     h0 : float, optional
         Starting height (default: the first model's height offset, else 0).
+    final_pass : bool
+        False: no last linearisation at the solution (one projection of every ray fewer): the covariance is
+        that of each point's last step (linearised within ``tol_m`` of the solution), residuals NaN, redundancy
+        and ``sigma0`` not computed (zeros, NaN).
 
     Returns
     -------
@@ -141,6 +145,7 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
     lon, lat, h = _start(models, pts, obs, float(h0))
     active = (n_obs >= 2) & np.isfinite(lon) & np.isfinite(lat)
     converged = np.zeros(n_pts, bool)
+    cov = np.full((n_pts, 3, 3), np.nan)
 
     for it in range(max_iter):
         _report(progress, it / max_iter, "intersecting")
@@ -149,30 +154,25 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
             break
         r, w, jac, mx, my = _linearise(models, pts, obs, wgt, (lon, lat, h), idx)
         # The ground point of each tie point is a point block: solved (eliminated) per point (estimation.schur).
-        sol = solve_with_points(jac, r, w, det_min=1e-30, covariance=False)
+        sol = solve_with_points(jac, r, w, det_min=1e-30, covariance=not final_pass)
         step = sol.dx_points
         bad = ~sol.ok | ~np.all(np.isfinite(step), axis=1)
         active[idx[bad]] = False
         good = ~bad
         g = idx[good]
+        if not final_pass:
+            cov[g] = sol.cov_points[good]
         lon[g] += step[good, 0] / mx[good]
         lat[g] += step[good, 1] / my[good]
         h[g] += step[good, 2]
         converged[g] = np.linalg.norm(step[good], axis=1) < tol_m
-    # Final residuals and covariance at the solution.
-    res = np.full((n_img, n_pts, 2), np.nan)
     fin = active & converged
-    idx = np.flatnonzero(fin)
-    cov = np.full((n_pts, 3, 3), np.nan)
+    cov[~fin] = np.nan
+    res = np.full((n_img, n_pts, 2), np.nan)
     redundancy = np.zeros((n_img, n_pts, 2))
-    if idx.size:
-        r, w, jac, _, _ = _linearise(models, pts, obs, wgt, (lon, lat, h), idx)
-        res[:, idx] = r.reshape(idx.size, n_img, 2).transpose(1, 0, 2)
-        cov[idx] = solve_with_points(jac, r, w, det_min=-1.0).cov_points
-        q = np.einsum("nri,nij,nrj->nr", jac, cov[idx], jac)
-        redundancy[:, idx] = np.where(w > 0, 1.0 - w * q, 0.0).reshape(idx.size, n_img, 2).transpose(1, 0, 2)
-    wr2 = np.nansum(wgt[..., None] * np.nan_to_num(res) ** 2, axis=(0, 2))
-    sigma0 = np.where(fin, unit_weight_sigma(wr2, 2 * n_obs - 3), np.nan)      # redundancy 2 n_images - 3
+    sigma0 = np.full(n_pts, np.nan)
+    if final_pass:
+        sigma0 = _final_pass(models, pts, obs, wgt, (lon, lat, h), fin, res, cov, redundancy)
     lon = np.where(fin, lon, np.nan)
     lat = np.where(fin, lat, np.nan)
     h = np.where(fin, h, np.nan)
@@ -180,6 +180,20 @@ def intersect(models: Sequence[Any], image_points, *, sigma_px=1.0, h0: Optional
     return IntersectionResult(lon=lon, lat=lat, h=h, residuals=res, n_images=n_obs.astype(int),
                               cov_enu_m2=cov, sigma0=sigma0, converged=fin, redundancy=redundancy,
                               weights=np.repeat(wgt[..., None], 2, axis=2))
+
+
+def _final_pass(models, pts, obs, wgt, llh, fin, res, cov, redundancy) -> np.ndarray:
+    """Residuals, covariance and redundancy at the solution of the points ``fin`` (in place); returns ``sigma0``."""
+    n_img = len(models)
+    idx = np.flatnonzero(fin)
+    if idx.size:
+        r, w, jac, _, _ = _linearise(models, pts, obs, wgt, llh, idx)
+        res[:, idx] = r.reshape(idx.size, n_img, 2).transpose(1, 0, 2)
+        cov[idx] = solve_with_points(jac, r, w, det_min=-1.0).cov_points
+        q = np.einsum("nri,nij,nrj->nr", jac, cov[idx], jac)
+        redundancy[:, idx] = np.where(w > 0, 1.0 - w * q, 0.0).reshape(idx.size, n_img, 2).transpose(1, 0, 2)
+    wr2 = np.nansum(wgt[..., None] * np.nan_to_num(res) ** 2, axis=(0, 2))
+    return np.where(fin, unit_weight_sigma(wr2, 2 * obs.sum(axis=0) - 3), np.nan)   # redundancy 2 n_images - 3
 
 
 def _start(models, pts, obs, h0: float):
@@ -203,14 +217,16 @@ def _linearise(models, pts, obs, wgt, llh, idx):
     n_img = len(models)
     mx, my = _radii(lat, h)
     to_m = np.stack([mx, my, np.ones_like(mx)], -1)
-    res_k = np.zeros((idx.size, n_img, 2))
+    res_k = np.full((idx.size, n_img, 2), np.nan)                # NaN / 0 where an image does not see a point
     jac_k = np.zeros((idx.size, n_img, 2, 3))
     for k in range(n_img):
-        s, l = models[k].project(lon, lat, h)
-        r = np.stack([pts[k, idx, 0] - s, pts[k, idx, 1] - l], axis=-1)
-        jac = _jacobian(models[k], lon, lat, h) / to_m[:, None, :]
-        res_k[:, k] = np.where(obs[k, idx, None], r, np.nan)
-        jac_k[:, k] = np.where(obs[k, idx, None, None], jac, 0.0)
+        sel = np.flatnonzero(obs[k, idx])                          # only the rays that exist are projected
+        if sel.size == 0:
+            continue
+        s, l = models[k].project(lon[sel], lat[sel], h[sel])
+        res_k[sel, k, 0] = pts[k, idx[sel], 0] - s
+        res_k[sel, k, 1] = pts[k, idx[sel], 1] - l
+        jac_k[sel, k] = _jacobian(models[k], lon[sel], lat[sel], h[sel]) / to_m[sel, None, :]
     w = np.repeat(wgt[:, idx].T, 2, axis=1)
     return res_k.reshape(idx.size, 2 * n_img), w, jac_k.reshape(idx.size, 2 * n_img, 3), mx, my
 

@@ -210,8 +210,10 @@ def _basename_key(name) -> str:
     return os.path.splitext(base)[0].casefold()
 
 
-def validate_observations(table, *, source: str = "observations", dem=None, need_height: bool = True):
-    """Check and complete an observation table (module docstring); returns a new DataFrame.
+def validate_observations(table, *, source: str = "observations", dem=None, need_height: bool = True,
+                          return_codes: bool = False):
+    """Check and complete an observation table (module docstring); returns a new DataFrame (with
+    ``return_codes``: and ``{"point_id": codes, "image_id": codes}``, the ids' ``pd.factorize`` codes).
 
     Parameters
     ----------
@@ -230,23 +232,23 @@ def validate_observations(table, *, source: str = "observations", dem=None, need
     df = _renamed_observation_columns(table, source)
     if len(df) == 0:
         raise GCPError(f"{source}: no observations")
-    _check_ids_and_numbers(df, source)
+    codes = _check_ids_and_numbers(df, source)
     gcp = _checked_kinds(df, source)
-    _check_points(df, gcp, source)
+    _check_points(df, gcp, source, codes)
     if gcp.any():
         _check_gcp_ground(df, gcp, dem, need_height, source)
     _check_roles_sigma_flags(df, source)
-    ordered = list(OBS_SCHEMA) + [c for c in df.columns if c not in OBS_SCHEMA]
-    return df[ordered].reset_index(drop=True)
+    df.index = pd.RangeIndex(len(df))                          # columns already in schema order: no copy
+    return (df, codes) if return_codes else df
 
 
 def _renamed_observation_columns(table, source):
     """A copy of the table without geometry, its column names stripped and brought to the schema's (any case,
     aliases such as ``image``, ``id``, ``col``/``row``), the required columns checked."""
-    df = pd.DataFrame(table).copy()
+    df = pd.DataFrame(table)
     if "geometry" in df.columns:
         df = df.drop(columns="geometry")
-    df.columns = [str(c).strip() for c in df.columns]
+    df = df.set_axis([str(c).strip() for c in df.columns], axis=1, copy=False)
     lower = {c.lower(): c for c in df.columns}
     rename = {lower[k]: k for k in OBS_SCHEMA + ("outlier", "outlier_level") if k in lower and lower[k] != k}
     for alias, name in _ALIASES.items():
@@ -257,12 +259,19 @@ def _renamed_observation_columns(table, source):
     if missing:
         raise GCPError(f"{source}: missing column(s) {', '.join(missing)}; expected "
                        "point_id,image,sample,line[,lon,lat,h][,role][,sigma]")
-    return df
+    extra = [c for c in df.columns if c not in OBS_SCHEMA]
+    return df.reindex(columns=list(OBS_SCHEMA) + extra, copy=True)  # the one copy; absent columns NaN, filled below
 
 
 def _clean_text(col: pd.Series, lower: bool = False) -> pd.Series:
     """``col`` as stripped (and lower-cased) text, NaN kept: each distinct value cleaned once (a table of a
     million rows has a few images and kinds), the rows then taken from the cleaned values."""
+    return _clean_text_codes(col, lower)[0]
+
+
+def _clean_text_codes(col: pd.Series, lower: bool = False):
+    """``(text, codes)``: :func:`_clean_text` and the rows' codes of the cleaned values in order of first
+    appearance (``pd.factorize`` of the text; -1 where missing), from the distinct values, not the rows."""
     if pd.api.types.infer_dtype(col, skipna=True) != "string":
         col = col.where(col.isna(), col.astype(str))           # numbers as their text, as before (1 and 1.0 differ)
     codes, uniq = pd.factorize(col.to_numpy(), use_na_sentinel=True)
@@ -270,13 +279,16 @@ def _clean_text(col: pd.Series, lower: bool = False) -> pd.Series:
     if lower:
         clean = clean.str.lower()
     out = np.append(clean.to_numpy(object), np.nan)[codes]     # code -1 (missing): the NaN appended
-    return pd.Series(out, index=col.index, name=col.name)
+    merged = np.append(pd.factorize(clean.to_numpy(object))[0], -1)[codes]  # values equal once cleaned: one code
+    return pd.Series(out, index=col.index, name=col.name), merged
 
 
-def _check_ids_and_numbers(df, source) -> None:
-    """Ids as stripped text, never empty; coordinates numeric (in place), image positions finite."""
+def _check_ids_and_numbers(df, source) -> dict:
+    """Ids as stripped text, never empty; coordinates numeric (in place), image positions finite. Returns the ids'
+    codes (``{column: pd.factorize codes}``)."""
+    codes = {}
     for c in ("point_id", "image_id"):
-        text = _clean_text(df[c])
+        text, codes[c] = _clean_text_codes(df[c])
         bad = text.isna() | (text == "")
         if bad.any():
             raise GCPError(f"{source}: column {c} is empty on row {int(np.flatnonzero(bad.to_numpy())[0]) + 1}; "
@@ -292,6 +304,7 @@ def _check_ids_and_numbers(df, source) -> None:
                 raise GCPError(f"{source}: column {c} has a missing, non-numeric or infinite value "
                                f"(row {int(np.flatnonzero(bad)[0]) + 1})")
         df[c] = values
+    return codes
 
 
 def _checked_kinds(df, source) -> np.ndarray:
@@ -316,11 +329,11 @@ def _checked_kinds(df, source) -> np.ndarray:
     return gcp
 
 
-def _check_points(df, gcp, source) -> None:
-    """One observation per point and image, one kind per point, tie points seen by two images or more."""
-    point, _ = pd.factorize(df["point_id"])
-    image, images = pd.factorize(df["image_id"])
-    key = point.astype(np.int64) * max(len(images), 1) + image
+def _check_points(df, gcp, source, codes) -> None:
+    """One observation per point and image, one kind per point, tie points seen by two images or more (``codes``:
+    the ids' from :func:`_check_ids_and_numbers`)."""
+    point, image = codes["point_id"], codes["image_id"]
+    key = point.astype(np.int64) * max(int(image.max()) + 1, 1) + image
     _, first, count = np.unique(key, return_index=True, return_counts=True)
     if (count > 1).any():
         dup = np.ones(len(df), bool)

@@ -35,12 +35,15 @@ def view_sizes(models: Mapping[str, object], sizes=None) -> Dict[str, Tuple[int,
     return out
 
 
-def check_inputs(observations, models: Mapping[str, object], sizes, dem=None) -> pd.DataFrame:
-    """The validated observation table restricted to nothing: refuses bad input (module docstring)."""
+def check_inputs(observations, models: Mapping[str, object], sizes, dem=None, return_codes: bool = False):
+    """The validated observation table restricted to nothing: refuses bad input (module docstring). With
+    ``return_codes``: ``(table, codes)``, ``codes`` the ids' (:func:`~gdal_gf4cal.observations.validate_observations`)
+    for :func:`make_rays`."""
     if models is None or len(models) < 2:
         raise BundleError(f"a bundle adjustment needs 2 or more views; got {0 if models is None else len(models)}")
     try:
-        tab = validate_observations(observations, source="ties", dem=dem, need_height=True)
+        tab, codes = validate_observations(observations, source="ties", dem=dem, need_height=True,
+                                           return_codes=True)
     except BundleError:
         raise
     except Exception as exc:                                   # GCPError: one line already; re-raise as ours
@@ -50,8 +53,16 @@ def check_inputs(observations, models: Mapping[str, object], sizes, dem=None) ->
         raise BundleError(f"the ties name {len(unknown)} image(s) that are not among the views: {_short(unknown)}; "
                           f"views are {_short(models)} (give their RPCs or drop those rows)")
     _check_inside(tab, sizes)
-    _check_connected(tab, list(models))
-    return tab
+    _check_connected(tab, list(models), codes)
+    return (tab, codes) if return_codes else tab
+
+
+def _view_codes(tab: pd.DataFrame, views: List[str], codes) -> np.ndarray:
+    """Each row's view index (-1: not a view) from the image ids' codes (one look-up per image, not per row)."""
+    img = codes["image_id"]
+    names = tab["image_id"].to_numpy()[np.unique(img, return_index=True)[1]]    # code k's name
+    vi = {v: i for i, v in enumerate(views)}
+    return np.array([vi.get(n, -1) for n in names], int)[img]
 
 
 def _check_inside(tab: pd.DataFrame, sizes) -> None:
@@ -68,20 +79,20 @@ def _check_inside(tab: pd.DataFrame, sizes) -> None:
                           "check the image ids and the pixel convention (GDAL: first pixel centre at 0.5)")
 
 
-def _check_connected(tab: pd.DataFrame, views: List[str]) -> None:
+def _check_connected(tab: pd.DataFrame, views: List[str], codes) -> None:
     """Every view shares ties with the others, and the views form one group through their ties."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
     tie = (tab["kind"] == "tie").to_numpy()
-    img = pd.Categorical(tab["image_id"], categories=views).codes[tie]         # arrays, not a copied table
+    img = _view_codes(tab, views, codes)[tie]                                 # arrays, not a copied table
     counts = np.bincount(img[img >= 0], minlength=len(views))
     lonely = [v for j, v in enumerate(views) if counts[j] == 0]
     if lonely:
         raise BundleError(f"view(s) {_short(lonely)} share no tie point with the others; give ties in them "
                           "(--ties / --match-ties) or leave them out")
     vi = {v: i for i, v in enumerate(views)}
-    pinv, pid = pd.factorize(tab["point_id"].to_numpy()[tie])
-    inc = sp.csr_matrix((np.ones(pinv.size), (img, pinv)), shape=(len(views), len(pid)))
+    pinv = codes["point_id"][tie]                            # GCPs' columns stay empty: no link
+    inc = sp.csr_matrix((np.ones(pinv.size), (img, pinv)), shape=(len(views), int(codes["point_id"].max()) + 1))
     n, label = connected_components(inc @ inc.T, directed=False)
     if n > 1:
         groups = [[v for v in views if label[vi[v]] == g] for g in range(n)]
@@ -136,26 +147,28 @@ def make_layout(tab: pd.DataFrame, models: Mapping[str, object], sizes, model: s
     return ViewLayout(views, dict(sizes), used, offset, pos, np.concatenate(priors), notes)
 
 
-def make_rays(tab: pd.DataFrame, layout: ViewLayout) -> Rays:
-    """The table's rows as :class:`Rays` (points in order of first appearance)."""
-    vi = {v: i for i, v in enumerate(layout.views)}
-    point, pids = pd.factorize(tab["point_id"])
-    pids = np.asarray(pids, dtype=object)
-    counts = np.bincount(point, minlength=pids.size)
+def make_rays(tab: pd.DataFrame, layout: ViewLayout, codes=None) -> Rays:
+    """The table's rows as :class:`Rays` (points in order of first appearance); ``codes``: the ids' codes
+    (:func:`check_inputs` ``return_codes``), else factorised here."""
+    if codes is None:
+        codes = {c: pd.factorize(tab[c])[0] for c in ("point_id", "image_id")}
+    point = codes["point_id"]
+    counts = np.bincount(point)
     order = np.argsort(point, kind="stable")
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(int)
     slot = np.empty(len(tab), int)
     slot[order] = np.arange(len(tab)) - np.repeat(starts, counts)
     is_gcp = (tab["kind"] == "gcp").to_numpy()
     control = (tab["role"] == "control").to_numpy()
-    ground = np.full((pids.size, 3), np.nan)
     first = order[starts]
+    pids = tab["point_id"].to_numpy(object)[first]
+    ground = np.full((pids.size, 3), np.nan)
     g = np.stack([tab[c].to_numpy(float) for c in ("lon", "lat", "h")], axis=1)
     ground[:] = g[first]
     p_gcp = is_gcp[first]
     p_ctrl = np.ones(pids.size, bool)
     p_ctrl[p_gcp] = control[first][p_gcp]
-    return Rays(view=tab["image_id"].map(vi).to_numpy(int), point=point, slot=slot,
+    return Rays(view=_view_codes(tab, layout.views, codes), point=point, slot=slot,
                 meas=np.stack([tab["sample"].to_numpy(float), tab["line"].to_numpy(float)], axis=1),
                 sigma=tab["sigma"].to_numpy(float), is_gcp=is_gcp, control=control, ground=ground,
                 point_ids=pids, point_is_gcp=p_gcp, point_control=p_ctrl, k=int(counts.max()))

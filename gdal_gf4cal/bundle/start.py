@@ -74,7 +74,7 @@ def start_ground(models: Mapping[str, object], layout: ViewLayout, rays: Rays, d
         except Exception:                                        # any failure: the RPC's mid height
             pass
     res = intersect([models[v] for v in layout.views], _image_points(layout, rays, ties), sigma_px=1.0,
-                    h0=h0, progress=progress, tol_m=START_TOL_M)
+                    h0=h0, progress=progress, tol_m=START_TOL_M, final_pass=False)   # σ_h: last step's
     g = np.stack([res.lon, res.lat, res.h], axis=1)
     weak = ~np.all(np.isfinite(g), axis=1) | ~(res.sigma_height_m <= PARALLEL_SIGMA_M)
     ground[ties] = g

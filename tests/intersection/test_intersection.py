@@ -143,3 +143,22 @@ def test_estimate_view_of_a_point(pair):
     np.testing.assert_allclose(res.redundancy.sum(axis=(0, 2)), 1.0, atol=1e-9)
     # one redundant observation: every normalised residual has the same magnitude, 1 (w-test with dof 1)
     np.testing.assert_allclose(np.abs(est.normalised), 1.0, rtol=1e-6)
+
+
+def test_without_final_pass_same_points_and_last_step_covariance(pair):
+    """``final_pass=False`` (the bundle's start): the same solution, the covariance of each point's last step
+    (within ``tol_m`` of the solution, so equal to a few parts per million), residuals not computed."""
+    rng = np.random.default_rng(5)
+    lon, lat, h = ground_points(pair[0], 200, rng)
+    pts = np.stack([np.column_stack(m.project(lon, lat, h)) for m in pair]) + rng.normal(0, 0.5, (2, 200, 2))
+    pts[1, 3] = np.nan                                         # one point seen once: not intersected either way
+    full = intersect(pair, pts, sigma_px=0.5)
+    fast = intersect(pair, pts, sigma_px=0.5, final_pass=False)
+    np.testing.assert_array_equal(fast.converged, full.converged)
+    assert not fast.converged[3] and np.isnan(fast.cov_enu_m2[3]).all()
+    ok = full.converged
+    np.testing.assert_array_equal(np.stack([fast.lon, fast.lat, fast.h])[:, ok],
+                                  np.stack([full.lon, full.lat, full.h])[:, ok])
+    np.testing.assert_allclose(fast.cov_enu_m2[ok], full.cov_enu_m2[ok], rtol=1e-4)
+    assert 0.5 < np.median(fast.sigma_height_m[ok]) < 2.0               # ~1 m for 0.5 px on this pair
+    assert np.isnan(fast.residuals).all() and np.isnan(fast.sigma0).all()
