@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
-import os
 import time
 import warnings
 from typing import Any, Callable, Iterator, List, Optional, Sequence

@@ -67,14 +67,19 @@ def project_all(models: Mapping[str, Any], layout: ViewLayout, rays: Rays, state
             continue
         g = state.ground[rays.point[rows]]
         lon, lat, h = g[:, 0], g[:, 1], g[:, 2]
-        s, l = models[v].project(lon, lat, h)
+        both = getattr(models[v], "project_with_jacobian", None) if jacobian else None
+        if both is not None:                           # RPCs: values and derivatives from one evaluation
+            s, l, jac_deg = both(lon, lat, h)
+        else:
+            s, l = models[v].project(lon, lat, h)
+            jac_deg = models[v].project_jacobian(lon, lat, h) if jacobian else None
         s, l = np.asarray(s, float), np.asarray(l, float)
         ds, dl, dj = layout.correction(v, state.x, s, l)
         rpc_pred[rows, 0], rpc_pred[rows, 1] = s, l
         pred[rows, 0], pred[rows, 1] = s + ds, l + dl
         if not jacobian:
             continue
-        jac = _to_metres(np.array(models[v].project_jacobian(lon, lat, h), float).reshape(-1, 2, 3), lat, h)
+        jac = _to_metres(np.asarray(jac_deg, float).reshape(-1, 2, 3), lat, h)
         for a in range(2):                             # (I + d corr / d(s, l)) @ jac, without a batched matmul
             jp[rows, a, :] = jac[:, a, :] + dj[:, a, 0, None] * jac[:, 0, :] + dj[:, a, 1, None] * jac[:, 1, :]
         for axis, des, sl in zip((0, 1), layout.design(v, s, l), layout.slices(v)):

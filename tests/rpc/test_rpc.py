@@ -138,6 +138,26 @@ def test_jacobian_matches_finite_differences(real_rpc):
         np.testing.assert_allclose(J[:, 1, k], (lp - lm) / (2 * step), rtol=1e-5, atol=1e-6 * np.abs(J).max())
 
 
+@pytest.mark.parametrize("convention", ["gdal", "rpc"])
+def test_project_with_jacobian_is_project_and_its_jacobian(real_rpc, convention):
+    """One evaluation gives both: the pixels of ``project`` (to 1e-9 px) and the Jacobian of ``project_jacobian``
+    (the same bits), over several thread blocks and in the input's shape."""
+    from gdal_gf4cal import threads
+    rng = np.random.default_rng(3)
+    n = 3 * threads.BLOCK + 17
+    g = [o + sc * rng.uniform(-0.9, 0.9, n) for o, sc in ((real_rpc.long_off, real_rpc.long_scale),
+                                                           (real_rpc.lat_off, real_rpc.lat_scale),
+                                                           (real_rpc.height_off, real_rpc.height_scale))]
+    s, l, J = real_rpc.project_with_jacobian(*g, pixel_convention=convention)
+    s0, l0 = real_rpc.project(*g, pixel_convention=convention)
+    assert np.abs(s - s0).max() < 1e-9 and np.abs(l - l0).max() < 1e-9
+    with threads.limit(1):
+        J1 = real_rpc.project_jacobian(*g)
+    assert J.shape == (n, 2, 3) and np.array_equal(J, J1)
+    s2, l2, J2 = real_rpc.project_with_jacobian(*(a.reshape(-1, 1)[:10] for a in g), pixel_convention=convention)
+    assert s2.shape == (10, 1) and J2.shape == (10, 1, 2, 3) and np.array_equal(J2[:, 0], J[:10])
+
+
 # ---------------------------------------------------------------------------------------------- localisation
 def test_localize_round_trip_below_1e6_px(real_rpc):
     s, l = _image_grid(real_rpc, 30)
