@@ -696,8 +696,10 @@ def render_gf7_image(scene, name: str, path, *, reference=None, mask_path=None, 
             for done, (x0, y0, arr, mask) in enumerate(results, start=1):
                 for k in range(nb):
                     ds.GetRasterBand(k + 1).WriteArray(arr[k], x0, y0)
+                ds.FlushCache()       # the tile to disk, out of GDAL's block cache (memory at a few tiles)
                 if mds is not None:
                     mds.GetRasterBand(1).WriteArray(mask, x0, y0)
+                    mds.FlushCache()
                 report(progress, done / len(tiles), f"{name}: rendering tile {done}/{len(tiles)}")
         ds.SetMetadataItem("GF4CAL_RENDERED", f"gf7 {name} true model; " + (
             f"reference {reference}" if reference else f"built-in texture seed {scene.seed}"))

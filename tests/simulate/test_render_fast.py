@@ -96,3 +96,16 @@ def test_line_of_sight_node_grid_within_a_hundredth_of_a_pixel(scenes):
     lon, lat, hh = m.localize_dem(s[::7, ::7].ravel(), l[::7, ::7].ravel(), plain.dem)
     es, el = m.project(lon, lat, hh)
     assert np.max(np.hypot(cs[::7, ::7].ravel() - es, cl[::7, ::7].ravel() - el)) < 0.015
+
+
+def test_gf7_render_keeps_gdal_block_cache_at_a_few_tiles(scenes, tmp_path):
+    """As render_image (issue 14): each 4-band tile is flushed out of GDAL's block cache once written (the full
+    MS is 236 MB of blocks, the pan 944 MB)."""
+    _, cover = scenes
+    used, tile = [], 64
+    base = gdal.GetCacheUsed()
+    render_gf7_image(cover, "ms", tmp_path / "ms.tif", window=(3500, 2520, 512, 256), tile=tile, workers=2,
+                     mask_path=tmp_path / "mask.tif", progress=lambda f, m="": used.append(gdal.GetCacheUsed()))
+    assert len(used) == (512 // tile) * (256 // tile)
+    # growth after the first tile (the DEM copy's reads come before): without the flush ~635 kB here
+    assert max(used) - used[0] < 12 * 5 * tile * tile, (max(used), used[0], base)
