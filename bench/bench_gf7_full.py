@@ -77,7 +77,8 @@ def main(argv=None) -> int:
     if "wall_s" not in row:
         print(f"register-pan-ms failed: {row['error']}")
         return 1
-    print(f"full GF7 scene (pan 30720², MS 7680²): register-pan-ms {row['wall_s']:.0f} s (goal 600), peak "
+    print(f"full GF7 scene (pan 30720², MS 7680²): register-pan-ms {row['wall_s']:.0f} s wall (goal 600), "
+          f"{row['cpu_s']:.0f} s CPU, peak "
           f"{row['peak_memory_gb']:.2f} GB (goal 3), correction vs truth RMS {row['correction_vs_truth_rms_px']} px; "
           f"{_load()}")
     return 0
