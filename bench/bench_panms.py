@@ -8,7 +8,8 @@ ms_on_pan.tif has (GDAL's own RPC resampler), against our ms_on_pan stage (which
 
 Default run (short): pan crops 512, 1024, 2048 px square (MS 128..512) across the first MS sub-CCD edge.
 ``--full``: 2048, 8192 and 16384 (MS 4096², the largest crop that renders here in under 10 minutes: rendering
-the whole 30720² product takes 1.5-2 h on 2 cores). ``--sizes`` picks any. Crops are simulated once per size in
+the whole 30720² product took 1.5-2 h on 2 cores before issue 23; bench_gf7_full.py renders and registers
+it). ``--sizes`` picks any. Crops are simulated once per size in
 --workdir (the rendering time is reported, not counted in the registration's).
 
 ``--appliers-only``: at full size without rendering (the RPCs, DEM and truth of the full scene; a synthetic
