@@ -8,7 +8,8 @@ ms_on_pan.tif has (GDAL's own RPC resampler), against our ms_on_pan stage (which
 
 Default run (short): pan crops 512, 1024, 2048 px square (MS 128..512) across the first MS sub-CCD edge.
 ``--full``: 2048, 8192 and 16384 (MS 4096², the largest crop that renders here in under 10 minutes: rendering
-the whole 30720² product takes 1.5-2 h on 2 cores). ``--sizes`` picks any. Crops are simulated once per size in
+the whole 30720² product took 1.5-2 h on 2 cores before issue 23; bench_gf7_full.py renders and registers
+it). ``--sizes`` picks any. Crops are simulated once per size in
 --workdir (the rendering time is reported, not counted in the registration's).
 
 ``--appliers-only``: at full size without rendering (the RPCs, DEM and truth of the full scene; a synthetic
@@ -151,8 +152,9 @@ import json, resource, subprocess, sys, time
 t = time.perf_counter()
 p = subprocess.run([sys.executable, "-m", "gdal_gf4cal.cli", "register-pan-ms", *sys.argv[1:]], capture_output=True,
                    text=True)
+r = resource.getrusage(resource.RUSAGE_CHILDREN)
 print(json.dumps({"rc": p.returncode, "stderr": p.stderr[-2000:], "wall_s": time.perf_counter() - t,
-                  "peak_gb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024 ** 2}))
+                  "peak_gb": r.ru_maxrss / 1024 ** 2, "cpu_s": r.ru_utime + r.ru_stime}))
 """
 
 
@@ -182,7 +184,8 @@ def run_size(workdir, size, workers, options=()) -> dict:
     e = (gdal.Open(os.path.join(out, "correction.tif")).ReadAsArray()[:2].astype(float)      # the reference band's
          - gdal.Open(os.path.join(workdir, "ms", "misregistration_truth.tif")).ReadAsArray())
     return {"pan_size": size, "ms_size": [mw, mh], "ms_pixels": mw * mh, "render_s": round(render_s, 1),
-            "wall_s": round(res["wall_s"], 1), "peak_memory_gb": round(res["peak_gb"], 3), "stages_s": tm,
+            "wall_s": round(res["wall_s"], 1), "cpu_s": round(res["cpu_s"], 1),
+            "peak_memory_gb": round(res["peak_gb"], 3), "stages_s": tm,
             "matches": rep["n_matches"], "matches_per_s": round(rep["n_matches"] / max(tm["matching"], 1e-9)),
             "breaks_ms_px": rep["breaks_ms_px"],
             "correction_vs_truth_rms_px": [round(float(np.sqrt(np.mean(e[k] ** 2))), 4) for k in (0, 1)],
@@ -210,7 +213,7 @@ def scaling(rows) -> dict:
         return {}
     px = np.array([r["ms_pixels"] for r in ok], float)
     out = {"sizes": len(ok)}
-    for key in ("wall_s", "render_s"):
+    for key in ("wall_s", "cpu_s", "render_s"):
         t = np.array([r[key] for r in ok], float)
         if not np.all(np.isfinite(t)):
             continue

@@ -48,7 +48,8 @@ from .building import _center_time, _probe, SimulationError
 from .cameras import write_json_atomic
 from .geodesy import geodetic_to_ecef
 from .models import CAMERA_TO_BODY, Attitude
-from .render import _bounded_map, _DemGrid, _Reference, ground_of_pixels, model_bounds, texture_value, value_noise
+from .render import BAND_ROWS, _bounded_map, _DemGrid, _Reference, ground_of_pixels, mercator_xy, model_bounds
+from .render import texture_of_mercator, value_noise_salts
 from .scene import set_crop_origin, write_placeholder_tif, write_scene
 from .sensors import make_scene
 
@@ -394,18 +395,15 @@ def _gf7_image(name: str, full, gsd: float, ty0: float, ifov: float, att_true, a
 
 
 # ---------------------------------------------------------------------------------------------------- cover
-def _merc(lon, lat):
-    x = np.radians(np.asarray(lon, dtype=float)) * 6378137.0
-    y = np.log(np.tan(np.pi / 4 + np.radians(np.clip(np.asarray(lat, dtype=float), -85, 85)) / 2)) * 6378137.0
-    return x, y
+_merc = mercator_xy
 
 
-def _cover_fields(lon, lat, p):
-    x, y = _merc(lon, lat)
+def _cover_fields(lon, lat, p, xy=None):
+    x, y = _merc(lon, lat) if xy is None else xy
     wl = p["wavelength_m"]
-    cloud = 0.7 * value_noise(x, y, wl, p["salt"]) + 0.3 * value_noise(x, y, wl / 3.3, p["salt"] + 1)
-    water = 0.7 * value_noise(x, y, wl, p["salt"] + 2) + 0.3 * value_noise(x, y, wl / 3.3, p["salt"] + 3)
-    return cloud, water
+    c0, w0 = value_noise_salts(x, y, wl, (p["salt"], p["salt"] + 2))
+    c1, w1 = value_noise_salts(x, y, wl / 3.3, (p["salt"] + 1, p["salt"] + 3))
+    return 0.7 * c0 + 0.3 * c1, 0.7 * w0 + 0.3 * w1
 
 
 def _cover_params(opt, ms_true, h, seed_salt):
@@ -425,13 +423,21 @@ def _cover_params(opt, ms_true, h, seed_salt):
     return p
 
 
-def cover_weights(scene, lon, lat):
-    """Soft cloud and water weights in [0, 1] at ground points (METHODS §9's cloudy cells)."""
+def cover_weights(scene, lon, lat, xy=None):
+    """Soft cloud and water weights in [0, 1] at ground points (METHODS §9's cloudy cells); ``xy``: their
+    :func:`~.render.mercator_xy` if already computed."""
     p = scene.image("ms").errors["cover"]
-    cloud, water = _cover_fields(lon, lat, p)
+    cloud, water = _cover_fields(lon, lat, p, xy)
     wc = np.clip((cloud - p["cloud_threshold"]) / p["edge"] + 0.5, 0.0, 1.0)
     ww = np.clip((water - p["water_threshold"]) / p["edge"] + 0.5, 0.0, 1.0) * (1.0 - wc)
     return wc, ww
+
+
+def _no_cover(scene) -> bool:
+    """True if no point can get a cloud or water weight: both fields are < 1 and both thresholds (2.0 without
+    clouds / water) are more than half an edge above 1, so :func:`cover_weights` would be exactly 0 everywhere."""
+    p = scene.image("ms").errors["cover"]
+    return min(p["cloud_threshold"], p["water_threshold"]) - 0.5 * p["edge"] > 1.01
 
 
 def cover_class(scene, lon, lat):
@@ -598,18 +604,22 @@ def ground_reflectance(scene, lon, lat, *, edge_m: float, reference=None):
     of the four bands, so pan and MS show the same ground."""
     lon, lat = np.asarray(lon, dtype=float), np.asarray(lat, dtype=float)
     seed = int(scene.seed)
+    x, y = _merc(lon, lat)
     if reference is None:
-        v = texture_value(lon, lat, seed, 3.0 * MS_GSD_M, edge_m=edge_m)
+        v = texture_of_mercator(x, y, seed, 3.0 * MS_GSD_M, edge_m=edge_m)
     else:
         v = np.clip(reference.sample(lon, lat) / 255.0, 0.0, 1.0)
-    x, y = _merc(lon, lat)
-    wc, ww = cover_weights(scene, lon, lat)
-    clear = 1.0 - wc - ww
+    # Without clouds and water every cover weight is exactly 0 (b * 1 + 0 + 0 = b): skip the cover fields.
+    cover = None if _no_cover(scene) else cover_weights(scene, lon, lat, (x, y))
     out = np.empty((len(MS_BANDS),) + lon.shape)
+    slows = value_noise_salts(x, y, 80.0 * MS_GSD_M, [seed * 1000 + 700 + k for k in range(len(MS_BANDS))])
     for k in range(len(MS_BANDS)):
-        slow = value_noise(x, y, 80.0 * MS_GSD_M, seed * 1000 + 700 + k) - 0.5
-        b = np.clip(_BAND_GAIN[k] * v + _BAND_OFFSET[k] + 0.1 * slow, 0.0, 1.0)
-        out[k] = b * clear + _CLOUD * wc + _WATER[k] * ww
+        b = np.clip(_BAND_GAIN[k] * v + _BAND_OFFSET[k] + 0.1 * (slows[k] - 0.5), 0.0, 1.0)
+        if cover is None:
+            out[k] = b
+        else:
+            wc, ww = cover
+            out[k] = b * (1.0 - wc - ww) + _CLOUD * wc + _WATER[k] * ww
     return out
 
 
@@ -651,9 +661,17 @@ def render_gf7_image(scene, name: str, path, *, reference=None, mask_path=None, 
             if hi > lo:
                 lo_, la_, _ = ground_of_pixels(m, demgrid, wx + lo, wy + y0, hi - lo, h)
                 lon[:, lo - x0:hi - x0], lat[:, lo - x0:hi - x0] = lo_, la_
-        r = ground_reflectance(scene, lon, lat, edge_m=im.gsd_m, reference=ref)
-        arr = _to_byte(r) if nb > 1 else _to_byte(r.mean(axis=0))[None]
-        mask = cover_class(scene, lon, lat) if mask_path else None
+        arr = np.empty((nb, h, w), np.uint8)
+        mask = np.empty((h, w), np.uint8) if mask_path else None
+        # Per pixel: in row bands that stay in the CPU cache; a reference is read (and averaged) per window,
+        # so from one window per tile.
+        band_rows = h if ref is not None else BAND_ROWS
+        for r0 in range(0, h, band_rows):
+            rows = slice(r0, r0 + band_rows)
+            r = ground_reflectance(scene, lon[rows], lat[rows], edge_m=im.gsd_m, reference=ref)
+            arr[:, rows] = _to_byte(r) if nb > 1 else _to_byte(r.mean(axis=0))[None]
+            if mask is not None:
+                mask[rows] = cover_class(scene, lon[rows], lat[rows])
         return x0, y0, arr, mask
 
     opts = ["TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"]
@@ -678,8 +696,10 @@ def render_gf7_image(scene, name: str, path, *, reference=None, mask_path=None, 
             for done, (x0, y0, arr, mask) in enumerate(results, start=1):
                 for k in range(nb):
                     ds.GetRasterBand(k + 1).WriteArray(arr[k], x0, y0)
+                ds.FlushCache()       # the tile to disk, out of GDAL's block cache (memory at a few tiles)
                 if mds is not None:
                     mds.GetRasterBand(1).WriteArray(mask, x0, y0)
+                    mds.FlushCache()
                 report(progress, done / len(tiles), f"{name}: rendering tile {done}/{len(tiles)}")
         ds.SetMetadataItem("GF4CAL_RENDERED", f"gf7 {name} true model; " + (
             f"reference {reference}" if reference else f"built-in texture seed {scene.seed}"))
