@@ -140,6 +140,23 @@ def _correlation_length(e, *, max_lag: int) -> float:
     return out
 
 
+def _supported(x, found, cand, ramp: float) -> np.ndarray:
+    """Candidate edges the model can resolve: their two new intervals (between the neighbouring edges ``found``)
+    each hold at least ``JUMP_SMOOTH_ORDER + 2`` columns ``x`` and a column lies inside their ramp (``|x - b| <
+    ramp / 2``): else the ramp is a step, the same as the intervals' constants, or the side's polynomial fits its
+    columns exactly and absorbs the ramp (a singular fit). On a sparse profile, e.g. columns every 32 px of a full
+    scene, neither holds everywhere."""
+    xs = np.sort(np.asarray(x, float))
+    bounds = np.concatenate([[-np.inf], np.sort(np.asarray(found, float)), [np.inf]])
+    k = np.searchsorted(bounds, cand, side="right")
+    at = np.searchsorted(xs, cand, side="left")
+    left = at - np.searchsorted(xs, bounds[k - 1], side="left")
+    right = np.searchsorted(xs, bounds[k], side="left") - at
+    in_ramp = np.searchsorted(xs, cand + 0.5 * ramp, side="left") > np.searchsorted(xs, cand - 0.5 * ramp,
+                                                                                     side="right")
+    return (left >= JUMP_SMOOTH_ORDER + 2) & (right >= JUMP_SMOOTH_ORDER + 2) & in_ramp
+
+
 def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: float, spacing_px: float,
                   max_breaks: int = 8) -> Tuple[List[float], List[dict]]:
     """Sub-CCD edges found in the data (METHODS §9): jumps of the per-column residual (:func:`column_profile` of
@@ -164,11 +181,14 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
     while len(found) < max_breaks:
         cand = np.arange(lo, hi, 1.0)
         cand = cand[np.all(np.abs(cand[:, None] - np.asarray(found + [-1e9])[None, :]) > window_px, axis=1)]
+        cand = cand[_supported(x, found, cand, ramp)]
         if cand.size == 0:
             break
         gain, rss, p = _jump_gain(x, y, w, found, cand, ramp, span)
         b0 = float(cand[int(np.argmax(gain))])
         fine = np.arange(b0 - 1.0, b0 + 1.0001, 0.25)
+        ok = _supported(x, found, fine, ramp)
+        fine = fine[ok] if ok.any() else np.array([b0])
         g2, _, _ = _jump_gain(x, y, w, found, fine, ramp, span)
         b = float(fine[int(np.argmax(g2))])
         if x.size - p - 1 < 4:

@@ -96,3 +96,21 @@ def test_detect_breaks_finds_both_edges_and_no_jump_in_correlated_noise():
     found, info = panms.detect_breaks(S[ok], L[ok], d[ok, 0], d[ok, 1], width=2816, window_px=32, spacing_px=4)
     assert len(found) == 2 and np.allclose(found, [128.0, 2688.0], atol=2.0), found
     assert abs(info[0]["jump_line_px"] - 0.70) < 0.3 and abs(info[1]["jump_sample_px"] + 0.157) < 0.05, info
+
+
+def test_detect_breaks_on_a_sparse_profile_never_fits_an_interval_it_cannot_determine():
+    """A full GF7 scene matched every 32 MS px (window 32): two edges a window apart can enclose one column, where
+    the smooth cubic on that interval is undetermined (the full scene's register-pan-ms failed on a singular
+    normal matrix), and a ramp 16 px wide between two columns is a step, as the intervals' constants. Candidates
+    need 5 columns on each side between their neighbouring edges and one inside their ramp: both edges found."""
+    rng = np.random.default_rng(11)
+    cols = np.arange(31.25, 7680.0, 32.0)
+    x = np.repeat(cols, 40)
+    line = np.tile(20.0 + 190.0 * np.arange(40), cols.size)           # 40 rows of windows
+    d_s = 0.02 * np.sin(x / 300.0) + np.where(x > 2560.0, 0.4, 0.0) + rng.normal(0.0, 0.05, x.size)
+    d_l = np.where(x > 5120.0, -0.3, 0.0) + rng.normal(0.0, 0.05, x.size)
+    found, info = panms.detect_breaks(x, line, d_s, d_l, width=7680, window_px=32, spacing_px=32)
+    assert len(found) >= 2 and min(abs(f - 2560.0) for f in found) < 32 and min(abs(f - 5120.0) for f in found) < 32
+    from gdal_gf4cal.panms.breaks import _supported
+    ok = _supported(cols, [5111.7], np.array([5147.0, 4000.0, cols[3] + 1.0, cols[4] + 1.0, 4000.0 + 16.0]), 16.0)
+    assert ok.tolist() == [False, True, False, True, False]
