@@ -60,6 +60,9 @@ JUMP_FAP = 1e-3
 RAMP_SHARE = 0.5
 #: Order of the smooth part of the per-column residual on each side of the edges found (detect_breaks).
 JUMP_SMOOTH_ORDER = 3
+#: What a singular fit of the per-column profile tells the user.
+HINT = ("the sub-CCD edge model of the per-column misregistration profile; give the edges (--breaks) or "
+        "a denser matching (smaller --cell)")
 
 
 def column_profile(sample, line, d_sample, d_line):
@@ -116,7 +119,7 @@ def _smooth_residual(x, y, w, edges, width, span):
     base = piecewise_polynomial(x, edges, JUMP_SMOOTH_ORDER, domain=span)
     if edges:
         base = np.concatenate([base, _ramp(x, edges, width)], axis=1)
-    return np.stack([y[:, k] - base @ normal_solve(base, y[:, k], w)[0] for k in range(2)], axis=1)
+    return np.stack([y[:, k] - base @ normal_solve(base, y[:, k], w, HINT)[0] for k in range(2)], axis=1)
 
 
 def _correlation_length(e, *, max_lag: int) -> float:
@@ -211,7 +214,7 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
         base = np.concatenate([piecewise_polynomial(x, found, JUMP_SMOOTH_ORDER, domain=span),
                                _ramp(x, found, ramp)], axis=1)
         for k, ax in enumerate(AXES):
-            coef = normal_solve(base, y[:, k], w)[0][-len(found):]
+            coef = normal_solve(base, y[:, k], w, HINT)[0][-len(found):]
             for it in info:
                 it[f"jump_{ax}_px"] = float(coef[found.index(it["edge_ms_px"])])
     info.sort(key=lambda d: d["edge_ms_px"])

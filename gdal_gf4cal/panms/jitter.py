@@ -13,8 +13,11 @@ from ..errors import DegenerateGeometryError
 from ..estimation import Block, normal_solve, weighted_lsq
 from .design import _set_values, _values
 from .model import AXES
+
 from .spectrum import _freq_grid, _row_series, _sine_power, _within_row_variance
 
+#: What a singular fit of the jitter series tells the user.
+JITTER_HINT = "the jitter sines of the row series; fix their number (--jitter N) or leave them out (--jitter none)"
 #: False-alarm probability below which a jitter component is accepted (``jitter="auto"``).
 JITTER_FAP = 1e-3
 MAX_JITTER_COMPONENTS = 8
@@ -38,7 +41,7 @@ def _select_frequencies(lines, r, w, n_fixed):
 
     def rss(fs):
         A = design(fs)
-        v = (y - A @ normal_solve(A, y, sw)[0]) * np.sqrt(sw)
+        v = (y - A @ normal_solve(A, y, sw, JITTER_HINT)[0]) * np.sqrt(sw)
         return float(v @ v)
 
     while len(chosen) < limit:
@@ -47,7 +50,7 @@ def _select_frequencies(lines, r, w, n_fixed):
             break
         base = rss(chosen)
         A = design(chosen)
-        resid = y - A @ normal_solve(A, y, sw)[0]
+        resid = y - A @ normal_solve(A, y, sw, JITTER_HINT)[0]
         gain, _, _ = _sine_power(lc, resid, sw, freqs)
         f0 = float(freqs[int(np.argmax(gain))])
         opt = optimize.minimize_scalar(lambda f: rss(chosen + [f]), bounds=(max(freqs[0], f0 - 2 * df),
