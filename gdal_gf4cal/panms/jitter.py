@@ -13,7 +13,6 @@ from ..errors import DegenerateGeometryError
 from ..estimation import Block, normal_solve, weighted_lsq
 from .design import _set_values, _values
 from .model import AXES
-
 from .spectrum import _freq_grid, _row_series, _sine_power, _within_row_variance
 
 #: What a singular fit of the jitter series tells the user.
