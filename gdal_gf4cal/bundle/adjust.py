@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 
 from ..dem import DEM
-from ..estimation import Estimate, RadialHuber, robust_fit, sigma0_and_cov
+from ..estimation import Estimate, RadialHuber, robust_fit, sigma0_and_cov, tukey_weights
 from ..estimation.indexed import block_inverse
 from .inputs import check_inputs, make_layout, make_rays, view_sizes
 from .model import Rays, ViewLayout
@@ -226,7 +226,7 @@ def _robust_priors(pb: BundleProblem, est: Estimate, robust: bool) -> Estimate:
         w = np.ones(lay.n_params)
         for v, (_, _, z) in view_excess(lay, est.x, given).items():
             w[lay.offset[v]:lay.offset[v] + lay.models_used[v].n_params] = max(
-                (1.0 - min(z / PRIOR_TUKEY_C, 1.0) ** 2) ** 2, PRIOR_WEIGHT_FLOOR)
+                float(tukey_weights(z, PRIOR_TUKEY_C)), PRIOR_WEIGHT_FLOOR)
         if np.max(np.abs(w - w_old)) < 1e-3:
             break
         w_old = w

@@ -33,7 +33,7 @@ import numpy as np
 from ..errors import DegenerateGeometryError, GCPError
 from .lsq import Block, normal_solve, sigma0_and_cov, weighted_lsq
 from .result import ESTIMATE_LEVELS, Estimate, names_and_blocks
-from .robust import (critical_value, high_breakdown_start, min_subset_points, radial_huber_weights,
+from .robust import (critical_value, high_breakdown_start, min_subset_points, radial_huber_weights, tukey_weights,
                      readmissible)
 
 __all__ = ["robust_fit", "LinearProblem", "Snooping", "RadialHuber", "Huber", "Tukey", "RobustState",
@@ -277,8 +277,7 @@ class Tukey(Huber):
 
     def weights(self, res, problem, est):
         z, scale = self._z(res, problem)
-        out = z >= self.c
-        return np.where(out, 0.0, (1.0 - (z / self.c) ** 2) ** 2), out, scale, z
+        return tukey_weights(z, self.c), z >= self.c, scale, z
 
 
 def _start(problem, start, candidates, min_points, n_subsets: int, seed: int, tol: float,

@@ -332,6 +332,13 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
 
 
+def tukey_weights(z, c: float = 4.685) -> np.ndarray:
+    """Tukey's biweight ``(1 - (z/c)^2)^2`` of standardised sizes ``z >= 0``, 0 at and beyond ``c`` (the robust
+    driver's :class:`~gdal_gf4cal.estimation.driver.Tukey` and the bundle's view priors)."""
+    z = np.asarray(z, dtype=float)
+    return np.where(z >= c, 0.0, (1.0 - (z / c) ** 2) ** 2)
+
+
 def radial_huber_weights(res, sigma, n_params: int, *, huber_c: float = 2.5, reject_k: float = 4.0,
                          min_scale: float = 0.01):
     """Radial (2-D) robust scale and Huber weights of per-point residual pairs (METHODS §5 step 3, §6).
