@@ -26,7 +26,7 @@ ROBUST_TOL_PX = 0.01
 ROBUST_PHASE1_TOL_PX = 0.05
 #: A view whose correction at its image centre exceeds this many prior sigmas is reported (a warning): the views
 #: disagree beyond their priors, as when one RPC carries a blunder-sized bias, and the priors then split it between
-#: the views (with 2 views nothing in the ties or a DEM says which one is off; METHODS §11).
+#: the views (a pair follows its first view by default: ``model.PAIR_FOLLOWER_FACTOR``; METHODS §11).
 PRIOR_EXCESS_SIGMAS = 3.0
 #: With 3 views or more and a view beyond :data:`PRIOR_EXCESS_SIGMAS`: every view's prior weight times Tukey's
 #: biweight ``(1 - (z/c)^2)^2`` of its correction's size ``z`` (in its own prior sigmas), at least
@@ -216,8 +216,8 @@ def _robust_priors(pb: BundleProblem, est: Estimate, robust: bool) -> Estimate:
     view whose correction exceeds :data:`PRIOR_EXCESS_SIGMAS` of its prior, the priors re-weighted by Tukey's
     biweight of each view's correction (:data:`PRIOR_TUKEY_C`, floor :data:`PRIOR_WEIGHT_FLOOR`) and the block
     re-solved until the weights settle: the agreeing views hold the datum, the odd one takes its bias whole (a
-    warning names it). With 2 views nothing tells which one is off: the equal priors split it (and
-    :func:`prior_excess` says so)."""
+    warning names it). With 2 views nothing tells which one is off: by default the pair follows its first view
+    (``model.PAIR_FOLLOWER_FACTOR``); priors the user made equal split it, and :func:`prior_excess` says so."""
     lay = pb.layout
     if len(lay.views) < 3 or not prior_excess(lay, est.x):
         return est
