@@ -55,16 +55,16 @@ def monomials(L: np.ndarray, P: np.ndarray, H: np.ndarray) -> np.ndarray:
 
 def fill_monomials(m: np.ndarray) -> np.ndarray:
     """Rows 4..19 of the monomial matrix ``m`` (20, N) from its rows 1..3 (L, P, H), in place (row 0 is the
-    caller's: 1), in 7 broadcast products (one per group of terms sharing a factor: few calls for a small chunk):
-    a kernel can keep one buffer per chunk instead of allocating one."""
+    caller's: 1), in 5 broadcast products (NumPy's per-call cost dominates a cache-sized chunk): a kernel can keep
+    one buffer per chunk instead of allocating one. Each monomial is the same product of the same factors whatever
+    the call grouping (``L3 = L * L2``, ``L2P = P * L2``, ``PLH = LP * H``...): the same bits."""
     lph = m[1:4]                                         # L, P, H
     np.multiply(m[1], m[2:4], out=m[4:6])                # LP, LH
     np.multiply(m[2], m[3], out=m[6])                    # PH
     np.multiply(lph, lph, out=m[7:10])                   # L2, P2, H2
     np.multiply(m[4], m[3], out=m[10])                   # PLH
-    np.multiply(m[7:10], m[1], out=m[11:14])             # L3, LP2, LH2
-    np.multiply(m[7:10], m[2], out=m[14:17])             # L2P, P3, PH2
-    np.multiply(m[7:10], m[3], out=m[17:20])             # L2H, P2H, H3
+    # [L, P, H] x [L2, P2, H2]: L3, LP2, LH2, L2P, P3, PH2, L2H, P2H, H3 (splitting an axis: a view, never a copy)
+    np.multiply(lph[:, None], m[7:10], out=m[11:20].reshape(3, 3, m.shape[1]))
     return m
 
 
