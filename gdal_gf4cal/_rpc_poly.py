@@ -68,6 +68,24 @@ def fill_monomials(m: np.ndarray) -> np.ndarray:
     return m
 
 
+def monomial_chunks(L: np.ndarray, P: np.ndarray, H: np.ndarray, chunk: int = _CHUNK):
+    """``(i, j, m)`` for the points ``i:j`` of flat L, P, H, chunk by chunk: ``m`` their (20, j - i) monomials (the
+    bits of :func:`monomials`) in one buffer reused for every chunk (valid until the next one): no allocation per
+    chunk in the kernels' loops."""
+    n = L.size
+    c = max(1, min(n, chunk))
+    m = np.empty((20, c))
+    m[0] = 1.0
+    for i in range(0, n, c):
+        j = min(i + c, n)
+        if j - i < c:
+            m = m[:, :j - i]
+        m[1] = L[i:j]
+        m[2] = P[i:j]
+        m[3] = H[i:j]
+        yield i, j, fill_monomials(m)
+
+
 def monomial_derivatives(L: np.ndarray, P: np.ndarray, H: np.ndarray, with_h: bool = True):
     """Partial derivatives of :func:`monomials` with respect to L, P and H, each ``(20, N)``.
 

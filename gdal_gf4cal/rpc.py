@@ -23,7 +23,7 @@ from typing import Dict, Optional, Tuple, Union
 import numpy as np
 
 from ._rpc_poly import (_CHUNK, _EXPONENTS, DERIVATIVE_MATRICES, TERMS, fill_monomials,  # noqa: F401
-                        monomial_derivatives, monomials)
+                        monomial_chunks, monomial_derivatives, monomials)
 from .errors import RPCFormatError
 from .rpc_io import read_rpc_metadata, write_rpb, write_rpc_txt
 from .sensor import GDAL_PIXEL_OFFSET, LocalizationStats, SensorModelMixin, pixel_shift  # noqa: F401
@@ -229,11 +229,10 @@ class RPCModel(SensorModelMixin):
         x = np.empty(n)
         y = np.empty(n)
         C = self._coeffs
-        for i in range(0, n, _CHUNK):
-            sl = slice(i, i + _CHUNK)
-            v = matmul(C, monomials(L[sl], P[sl], H[sl]))
-            np.divide(v[0], v[1], out=x[sl])
-            np.divide(v[2], v[3], out=y[sl])
+        for i, j, m in monomial_chunks(L, P, H):
+            v = matmul(C, m)
+            np.divide(v[0], v[1], out=x[i:j])
+            np.divide(v[2], v[3], out=y[i:j])
         return x, y
 
     def project(self, lon: ArrayLike, lat: ArrayLike, h: ArrayLike, *, pixel_convention: str = "gdal"):
@@ -313,9 +312,8 @@ class RPCModel(SensorModelMixin):
         Cx = self._coeffs_with_derivatives if with_h else self._coeffs_with_derivatives[:12]
         n = L.size
         V = np.empty((Cx.shape[0], n))
-        for i in range(0, n, _CHUNK):
-            sl = slice(i, i + _CHUNK)
-            V[:, sl] = matmul(Cx, monomials(L[sl], P[sl], H[sl]))
+        for i, j, m in monomial_chunks(L, P, H):
+            V[:, i:j] = matmul(Cx, m)
         v, vL, vP = V[0:4], V[4:8], V[8:12]
         x = v[0] / v[1]
         y = v[2] / v[3]
@@ -417,10 +415,9 @@ class RPCModel(SensorModelMixin):
         n = x.size
         L, P = np.empty(n), np.empty(n)
         x_lo, x_hi, y_lo, y_hi = cx - 1.25 * sx, cx + 1.25 * sx, cy - 1.25 * sy, cy + 1.25 * sy
-        for i in range(0, n, _CHUNK):
-            sl = slice(i, i + _CHUNK)
-            xs, ys, hs = x[sl], y[sl], H[sl]
-            L[sl], P[sl] = matmul(A, monomials(xs, ys, hs))
+        for i, j, m in monomial_chunks(x, y, H):
+            xs, ys, hs = x[i:j], y[i:j], H[i:j]
+            L[i:j], P[i:j] = matmul(A, m)
             # Chunk-wise bounds first: the common case (every point inside) costs six reductions.
             if (xs.min(initial=x_lo) >= x_lo and xs.max(initial=x_hi) <= x_hi and ys.min(initial=y_lo) >= y_lo
                     and ys.max(initial=y_hi) <= y_hi and np.abs(hs).max(initial=0.0) <= 1.5):
@@ -455,18 +452,22 @@ class RPCModel(SensorModelMixin):
             cx, cy = d["x"], d["y"]
             a, b, c, e = d["x_L"], d["x_P"], d["y_L"], d["y_P"]
             for iterations in range(1, max_iter + 1):
-                rx = x[active] - cx
-                ry = y[active] - cy
+                full = active.size == n              # every point still active: plain arrays, no gather/scatter
+                rx = (x if full else x[active]) - cx
+                ry = (y if full else y[active]) - cy
                 done = (np.abs(rx) <= tol_x) & (np.abs(ry) <= tol_y)
                 converged[active[done]] = True
                 if iterations > 2:
                     det_sign[active[done]] = np.sign(a[done] * e[done] - b[done] * c[done])
                 keep = ~done & np.isfinite(rx) & np.isfinite(ry)
-                if not np.any(keep):
+                kept = np.count_nonzero(keep)
+                if not kept:
                     active = active[:0]
                     break
-                active, rx, ry = active[keep], rx[keep], ry[keep]
-                a, b, c, e = a[keep], b[keep], c[keep], e[keep]
+                if kept < keep.size:
+                    active, rx, ry = active[keep], rx[keep], ry[keep]
+                    a, b, c, e = a[keep], b[keep], c[keep], e[keep]
+                    full = False
                 det = a * e - b * c
                 dL_ = (e * rx - b * ry) / det
                 dP_ = (a * ry - c * rx) / det
@@ -478,14 +479,20 @@ class RPCModel(SensorModelMixin):
                     f = np.minimum(1.0, limit / step[big])
                     dL_[big] *= f
                     dP_[big] *= f
-                L[active] += dL_
-                P[active] += dP_
+                if full:
+                    L += dL_
+                    P += dP_
+                    La, Pa, Ha = L, P, H
+                else:
+                    L[active] += dL_
+                    P[active] += dP_
+                    La, Pa, Ha = L[active], P[active], H[active]
                 if iterations % 3 == 0 or iterations > 3:
-                    d = self._normalised_jacobian(L[active], P[active], H[active], with_h=False)
+                    d = self._normalised_jacobian(La, Pa, Ha, with_h=False)
                     cx, cy = d["x"], d["y"]
                     a, b, c, e = d["x_L"], d["x_P"], d["y_L"], d["y_P"]
                 else:
-                    cx, cy = self._project_normalised(L[active], P[active], H[active])
+                    cx, cy = self._project_normalised(La, Pa, Ha)
         converged &= (np.abs(L) <= _MAX_EXTRAPOLATION) & (np.abs(P) <= _MAX_EXTRAPOLATION)
         converged &= det_sign == self._orientation
         return L, P, converged, iterations
