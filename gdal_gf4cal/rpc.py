@@ -47,6 +47,12 @@ ArrayLike = Union[float, np.ndarray]
 _MAX_EXTRAPOLATION = 100.0
 
 
+#: Points per Newton solve of :meth:`RPCModel.localize` (a block of the thread pool is solved in such chunks): the
+#: solver's state (~30 arrays) stays within the cache: 1.5x less CPU per point than solving 32768 points at once
+#: (230 against 360 ns per point, one run on the loaded machine), while its per-solve cost (~0.2 ms of NumPy calls,
+#: which hold the GIL) stays a twentieth of the solve. Every point is solved on its own: the same bits for any size.
+LOCALIZE_CHUNK = 16384
+
 #: Columns of one (4, 20) x (20, k) product of the projection kernel: the most OpenBLAS computes on the calling thread
 #: (:data:`~gdal_gf4cal.threads.BLAS_SERIAL_SIZE`: 80 k <= 4 x 65536).
 _PROJECT_GEMM = BLAS_SERIAL_SIZE // 80
@@ -519,13 +525,17 @@ class RPCModel(SensorModelMixin):
         iterations = []
 
         def block(s, l, hh):
-            x = (s - shift - self.samp_off) / self.samp_scale
-            y = (l - shift - self.line_off) / self.line_scale
-            H = (hh - self.height_off) / self.height_scale
-            L, P, ok, iters = self._localize_normalised(x, y, H, tol_px, max_iter)
-            iterations.append(iters)
-            lon = L * self.long_scale + self.long_off
-            lat = P * self.lat_scale + self.lat_off
+            n = s.size
+            lon, lat, ok = np.empty(n), np.empty(n), np.empty(n, dtype=bool)
+            for i in range(0, max(n, 1), LOCALIZE_CHUNK):
+                sl = slice(i, i + LOCALIZE_CHUNK)
+                x = (s[sl] - shift - self.samp_off) / self.samp_scale
+                y = (l[sl] - shift - self.line_off) / self.line_scale
+                H = (hh[sl] - self.height_off) / self.height_scale
+                L, P, ok[sl], iters = self._localize_normalised(x, y, H, tol_px, max_iter)
+                iterations.append(iters)
+                lon[sl] = L * self.long_scale + self.long_off
+                lat[sl] = P * self.lat_scale + self.lat_off
             lon[~ok] = np.nan
             lat[~ok] = np.nan
             return lon, lat, ok

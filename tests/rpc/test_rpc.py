@@ -268,3 +268,34 @@ def test_project_kernel_chunks_and_antimeridian(data_dir):
     np.testing.assert_allclose(s2, s1, atol=1e-6)
     np.testing.assert_allclose(l2, l1, atol=1e-6)
     assert rpc.project(np.zeros(0), np.zeros(0), np.zeros(0))[0].shape == (0,)
+
+
+def test_monomial_buffers_and_localize_chunks_keep_the_bits(data_dir, monkeypatch):
+    """The kernels' reused buffers change no bit (issue 23): fill_monomials' grouped products and the chunks of
+    monomial_chunks are the products of monomials() term by term; localize solved in chunks of LOCALIZE_CHUNK
+    (points off the image, NaN, a last partial chunk) gives the bits of one solve of the whole array, with the same
+    iteration count."""
+    from gdal_gf4cal import rpc as rpc_module
+    from gdal_gf4cal._rpc_poly import monomial_chunks
+    rng = np.random.default_rng(4)
+    L, P, H = (rng.uniform(-1.3, 1.3, 5000) for _ in range(3))
+    ref = np.stack([np.ones_like(L), L, P, H, L * P, L * H, P * H, L * L, P * P, H * H, (L * P) * H, (L * L) * L,
+                    (P * P) * L, (H * H) * L, (L * L) * P, (P * P) * P, (H * H) * P, (L * L) * H, (P * P) * H,
+                    (H * H) * H])
+    assert np.array_equal(monomials(L, P, H), ref)
+    parts = [(i, j, m.copy()) for i, j, m in monomial_chunks(L, P, H, chunk=1024)]
+    assert [(i, j) for i, j, _ in parts][-1] == (4096, 5000)
+    assert np.array_equal(np.hstack([m for _, _, m in parts]), ref)
+    rpc = RPCModel.from_file(data_dir / "rpc" / "RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML")
+    w, h = rpc.image_size
+    n = 3 * 1000 + 17
+    s, l = rng.uniform(-0.5 * w, 1.5 * w, n), rng.uniform(-0.5 * h, 1.5 * h, n)
+    s[::97] = np.nan
+    hh = rng.uniform(*rpc.height_range, n)
+    monkeypatch.setattr(rpc_module, "LOCALIZE_CHUNK", 1000)
+    chunked = rpc.localize(s, l, hh, full_output=True)
+    monkeypatch.setattr(rpc_module, "LOCALIZE_CHUNK", 10 ** 9)
+    whole = rpc.localize(s, l, hh, full_output=True)
+    assert np.array_equal(chunked[0], whole[0], equal_nan=True) and np.array_equal(chunked[1], whole[1], equal_nan=True)
+    assert chunked[2].max_iterations == whole[2].max_iterations and chunked[2].n_failed == whole[2].n_failed > 0
+    assert 0.3 < np.isfinite(whole[0]).mean() < 0.99
