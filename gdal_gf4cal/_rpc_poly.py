@@ -32,9 +32,9 @@ def _derivative_matrix(axis: int) -> np.ndarray:
 DERIVATIVE_MATRICES = tuple(_derivative_matrix(a) for a in range(3))
 
 #: Chunk of points processed at once by the kernels' polynomial evaluations (each point is evaluated on its own: the
-#: chunk size never changes a bit of the result). 8192 points (a 1.3 MB monomial block) against 4096 and 16384: half
-#: the NumPy calls of 4096 (calls hold the GIL: what threads cannot share) and 1.1x less CPU per localised point,
-#: 16384 2x more (one run on the loaded 2-core machine, chunks of 16384 points solved by RPCModel.localize).
+#: chunk size never changes a bit of the result). 8192 points (a 1.3 MB monomial block): as fast as 4096 per localised
+#: point with half the NumPy calls (calls hold the GIL: what threads cannot share); 16384 was 2x slower (runs on the
+#: loaded 2-core machine, RPCModel.localize solving chunks of 16384 points).
 _CHUNK = 8192
 
 
