@@ -23,7 +23,7 @@ from typing import Dict, Optional, Tuple, Union
 import numpy as np
 
 from ._rpc_poly import (_CHUNK, _EXPONENTS, DERIVATIVE_MATRICES, TERMS, fill_monomials,  # noqa: F401
-                        monomial_chunks, monomial_derivatives, monomials)
+                        monomial_chunks, monomial_derivatives, monomials, scratch)
 from .errors import RPCFormatError
 from .rpc_io import read_rpc_metadata, write_rpb, write_rpc_txt
 from .sensor import GDAL_PIXEL_OFFSET, LocalizationStats, SensorModelMixin, pixel_shift  # noqa: F401
@@ -235,10 +235,11 @@ class RPCModel(SensorModelMixin):
         x = np.empty(n)
         y = np.empty(n)
         C = self._coeffs
-        for i, j, m in monomial_chunks(L, P, H):
-            v = matmul(C, m)
-            np.divide(v[0], v[1], out=x[i:j])
-            np.divide(v[2], v[3], out=y[i:j])
+        with scratch(4, min(n, _CHUNK)) as buf:
+            for i, j, m in monomial_chunks(L, P, H):
+                v = matmul(C, m, out=buf[:, :j - i])
+                np.divide(v[0], v[1], out=x[i:j])
+                np.divide(v[2], v[3], out=y[i:j])
         return x, y
 
     def project(self, lon: ArrayLike, lat: ArrayLike, h: ArrayLike, *, pixel_convention: str = "gdal"):
@@ -316,10 +317,14 @@ class RPCModel(SensorModelMixin):
         One monomial evaluation per chunk: the derivative polynomials are expressed in the same basis.
         """
         Cx = self._coeffs_with_derivatives if with_h else self._coeffs_with_derivatives[:12]
-        n = L.size
-        V = np.empty((Cx.shape[0], n))
-        for i, j, m in monomial_chunks(L, P, H):
-            V[:, i:j] = matmul(Cx, m)
+        with scratch(Cx.shape[0], L.size) as V:
+            for i, j, m in monomial_chunks(L, P, H):
+                matmul(Cx, m, out=V[:, i:j])
+            return self._jacobian_from_values(V, with_h)
+
+    @staticmethod
+    def _jacobian_from_values(V, with_h):
+        """The quotients and their derivatives from the 12 or 16 polynomial rows of :meth:`_normalised_jacobian`."""
         v, vL, vP = V[0:4], V[4:8], V[8:12]
         x = v[0] / v[1]
         y = v[2] / v[3]

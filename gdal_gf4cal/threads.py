@@ -200,16 +200,17 @@ def split_points(fn: Callable[..., tuple], *arrays, block: Optional[int] = None)
 BLAS_SERIAL_SIZE = 4 * 65536
 
 
-def matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def matmul(a: np.ndarray, b: np.ndarray, out: Optional[np.ndarray] = None) -> np.ndarray:
     """``a @ b`` (2-D, ``a`` small) in column slices of ``b`` that BLAS computes on the calling thread: the same
     numbers on any number of cores and with any BLAS thread setting, and no BLAS threads competing with the pool's
-    (the point kernels' polynomial evaluations)."""
+    (the point kernels' polynomial evaluations). ``out``: a (rows, n) array to write into (a reused buffer)."""
     rows, k = a.shape
     n = b.shape[1]
     step = max(2, BLAS_SERIAL_SIZE // max(rows * k, 1))
     if n <= step:
-        return a @ b
-    out = np.empty((rows, n), dtype=np.result_type(a, b))
+        return a @ b if out is None else np.matmul(a, b, out=out)
+    if out is None:
+        out = np.empty((rows, n), dtype=np.result_type(a, b))
     for i in range(0, n, step):
         j = min(i + step, n)
         if j - i == 1:                  # never a one-column product (BLAS takes another kernel for a vector)

@@ -299,3 +299,22 @@ def test_monomial_buffers_and_localize_chunks_keep_the_bits(data_dir, monkeypatc
     assert np.array_equal(chunked[0], whole[0], equal_nan=True) and np.array_equal(chunked[1], whole[1], equal_nan=True)
     assert chunked[2].max_iterations == whole[2].max_iterations and chunked[2].n_failed == whole[2].n_failed > 0
     assert 0.3 < np.isfinite(whole[0]).mean() < 0.99
+
+
+def test_scratch_buffers_are_per_thread_and_never_shared_while_in_use():
+    """_rpc_poly.scratch (issue 23): a thread gets its buffer back on the next call (no fresh memory to fault in),
+    a nested request for the same rows while it is in use gets another one, and another thread never gets it."""
+    import threading
+
+    from gdal_gf4cal._rpc_poly import scratch
+    with scratch(7, 100) as a:
+        a[:] = 1.0
+        with scratch(7, 50) as b:
+            assert b.shape == (7, 50) and not np.shares_memory(a, b)
+    with scratch(7, 80) as c:
+        assert c.shape == (7, 80) and np.shares_memory(a, c)
+    seen = []
+    t = threading.Thread(target=lambda: seen.append(scratch(7, 80).__enter__()))
+    t.start()
+    t.join()
+    assert not np.shares_memory(seen[0], a)
