@@ -56,10 +56,11 @@ LOCALIZE_CHUNK = 16384
 #: Columns of one (4, 20) x (20, k) product of the projection kernel: the most OpenBLAS computes on the calling thread
 #: (:data:`~gdal_gf4cal.threads.BLAS_SERIAL_SIZE`: 80 k <= 4 x 65536).
 _PROJECT_GEMM = BLAS_SERIAL_SIZE // 80
-#: Points per chunk of the projection kernel (three products): larger than L2 (the (20, chunk) monomials take 1.3 MB)
+#: Points per chunk of the projection kernel (five products): larger than L2 (the (20, chunk) monomials take 2.6 MB)
 #: but ~2x faster than 3276-point chunks on the loaded 2-core machine (NumPy's per-call cost, ~1.5 us there, weighs on
-#: small chunks). A divisor of :data:`~gdal_gf4cal.threads.BLOCK`: split or not, a point lies in the same product.
-PROJECT_CHUNK = 8192
+#: small chunks), as fast as 8192 with half the calls per block (calls hold the GIL). A divisor of
+#: :data:`~gdal_gf4cal.threads.BLOCK`: split or not, a point lies in the same product.
+PROJECT_CHUNK = 16384
 
 
 def _as_float_array(x) -> np.ndarray:
@@ -264,8 +265,8 @@ class RPCModel(SensorModelMixin):
         chunk of :data:`PROJECT_CHUNK` points, in one reused (20, chunk) monomial buffer, the ground offsets
         subtracted into its rows 1-3, the monomials in place (:func:`fill_monomials`), the (4, 20) x (20, chunk)
         product into a reused (4, chunk) buffer in slices of :data:`_PROJECT_GEMM` columns (on the calling thread),
-        one division: 12 NumPy calls per chunk in two buffers the thread keeps (:func:`scratch`): 2.2x faster than the
-        16384-point chunks of fresh products before, the same bits (the same pixels as normalising whole arrays to
+        one division: 14 NumPy calls per chunk in two buffers the thread keeps (:func:`scratch`): 1.5-1.7x faster than
+        the chunks of fresh products before, the same bits (the same pixels as normalising whole arrays to
         1e-11 px)."""
         n = lon.size
         c = max(1, min(n, PROJECT_CHUNK))
