@@ -60,6 +60,9 @@ JUMP_FAP = 1e-3
 RAMP_SHARE = 0.5
 #: Order of the smooth part of the per-column residual on each side of the edges found (detect_breaks).
 JUMP_SMOOTH_ORDER = 3
+#: Order of the sub-CCD pieces themselves (METHODS §9: quartics): the order an edge is confirmed, placed and its
+#: jump read with (a cubic leaves their bending, which a jump test takes for small jumps: detect_breaks).
+PIECE_ORDER = 4
 #: What a singular fit of the per-column profile tells the user.
 HINT = ("the sub-CCD edge model of the per-column misregistration profile; give the edges (--breaks) or "
         "a denser matching (smaller --cell)")
@@ -92,12 +95,12 @@ def _ramp(x, b, width):
     return np.clip((np.asarray(x, float)[:, None] - np.asarray(b, float)[None, :]) / float(width) + 0.5, 0.0, 1.0)
 
 
-def _jump_gain(x, y, w, found, cand, width, span):
+def _jump_gain(x, y, w, found, cand, width, span, order=JUMP_SMOOTH_ORDER):
     """RSS reduction of both axes from adding a ramp at each candidate in ``cand`` to the smooth model (a
     polynomial of order JUMP_SMOOTH_ORDER per piece between the edges ``found``, plus their ramps), weights ``w``
     per column; and the RSS of the smooth model. Vectorised over the candidates (projection on the orthonormal
     basis of the weighted smooth design)."""
-    base = piecewise_polynomial(x, found, JUMP_SMOOTH_ORDER, domain=span)
+    base = piecewise_polynomial(x, found, order, domain=span)
     if found:
         base = np.concatenate([base, _ramp(x, found, width)], axis=1)
     sw = np.sqrt(w)
@@ -114,9 +117,9 @@ def _jump_gain(x, y, w, found, cand, width, span):
     return gain, rss, base.shape[1]
 
 
-def _smooth_residual(x, y, w, edges, width, span):
+def _smooth_residual(x, y, w, edges, width, span, order=JUMP_SMOOTH_ORDER):
     """Residual (columns, 2) of the per-column profile ``y`` after the smooth model with ramps at ``edges``."""
-    base = piecewise_polynomial(x, edges, JUMP_SMOOTH_ORDER, domain=span)
+    base = piecewise_polynomial(x, edges, order, domain=span)
     if edges:
         base = np.concatenate([base, _ramp(x, edges, width)], axis=1)
     return np.stack([y[:, k] - base @ normal_solve(base, y[:, k], w, HINT)[0] for k in range(2)], axis=1)
@@ -160,14 +163,81 @@ def _supported(x, found, cand, ramp: float) -> np.ndarray:
     return (left >= JUMP_SMOOTH_ORDER + 2) & (right >= JUMP_SMOOTH_ORDER + 2) & in_ramp
 
 
+def _edge_fit(x, y, w, b, lo, hi, ramp):
+    """The edge model at ``b`` on the columns strictly between ``lo`` and ``hi``: a polynomial of order
+    PIECE_ORDER on each side, mixed over the ramp as a window straddling the edge sees it (``(1 - r) P_left
+    + r P_right``, ``r`` = :func:`_ramp`; the jump is tied to the sides, not a free column). Returns ``(weighted RSS
+    of both axes, jump per axis P_right(b) - P_left(b))``, or ``(inf, None)`` when a side has too few columns."""
+    sel = (x > lo) & (x < hi)
+    xs, ys, ws = x[sel], y[sel], w[sel]
+    k = PIECE_ORDER + 1
+    if np.count_nonzero(xs < b) < k + 1 or np.count_nonzero(xs > b) < k + 1:
+        return np.inf, None
+    r = _ramp(xs, [b], ramp)[:, 0]
+    u = (xs - b) / max(float(np.ptp(xs)), 1.0)
+    powers = u[:, None] ** np.arange(k)[None, :]
+    design = np.concatenate([(1.0 - r)[:, None] * powers, r[:, None] * powers], axis=1)
+    rss, jump = 0.0, []
+    for a in range(ys.shape[1]):
+        coef = normal_solve(design, ys[:, a], ws, HINT)[0]
+        e = ys[:, a] - design @ coef
+        rss += float(ws @ (e * e))
+        jump.append(float(coef[k] - coef[0]))
+    return rss, jump
+
+
+def _place(x, y, w, others, b, ramp, reach, min_gap):
+    """Where the edge found near ``b`` lies on a sparse profile (at most one column inside a ramp): the place
+    within ``reach`` px (0.25 px steps, more than ``min_gap`` from the ``others`` edges, a column inside the ramp)
+    whose :func:`_edge_fit` between the neighbouring edges fits best. The test's place is set there by one column's
+    value and by the misfit of one smooth polynomial across the edge, which can favour the next column gap (the
+    full GF7 scene: 5147 for 5120). Returns ``b`` itself when no place can be fitted."""
+    others = np.asarray(others, float)
+    lo, hi = _between(others, b, ramp)
+    cand = np.arange(b - reach, b + reach + 1e-9, 0.25)
+    cand = cand[np.all(np.abs(cand[:, None] - np.append(others, -1e9)[None, :]) > min_gap, axis=1)]
+    cand = cand[_supported(x, others, cand, ramp)]
+    rss = np.array([_edge_fit(x, y, w, c, lo, hi, ramp)[0] for c in cand])
+    if not np.isfinite(rss).any():
+        return b
+    return float(cand[int(np.argmin(rss))])
+
+
+def _between(others, b, ramp):
+    """The span an edge at ``b`` is fitted on: from the ramp's end of the nearest other edge on each side."""
+    others = np.asarray(others, float)
+    return (float(others[others < b].max(initial=-np.inf)) + 0.5 * ramp,
+            float(others[others > b].min(initial=np.inf)) - 0.5 * ramp)
+
+
+def _jump_fap(x, y, w, found, b, ramp, span, spacing_px, n_indep, order=JUMP_SMOOTH_ORDER) -> float:
+    """False-alarm probability of a jump at ``b`` over the smooth model of ``order`` (edges ``found``): its F
+    statistic, residual variance per column from every column, degrees of freedom from the independent ones, as
+    many as the residual's correlation length (at least the window's effective width ``2 ramp``) leaves; times the
+    ``n_indep`` places searched. Neighbouring columns share pixels: the statistic is deflated by that length."""
+    gain, rss, p = _jump_gain(x, y, w, found, np.array([b]), ramp, span, order)
+    if x.size - p - 1 < 4:
+        return 1.0
+    s2 = (rss - float(gain[0])) / (2.0 * (x.size - p - 1))
+    e = _smooth_residual(x, y, w, sorted(found + [b]), ramp, span, order)
+    corr = max(1.0, ramp / float(spacing_px), _correlation_length(e, max_lag=int(round(8.0 * ramp / spacing_px))))
+    dof = 2.0 * max(x.size / corr - p - 1, 2.0)
+    F = (float(gain[0]) / 2.0) / max(s2, 1e-300) / corr
+    return min(1.0, float(stats.f.sf(F, 2, dof)) * n_indep)
+
+
 def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: float, spacing_px: float,
                   max_breaks: int = 8) -> Tuple[List[float], List[dict]]:
     """Sub-CCD edges found in the data (METHODS §9): jumps of the per-column residual (:func:`column_profile` of
     the window matches) that pass a test. Greedy: the strongest ramp (a jump as ``window_px`` windows see it) over
-    the smooth model, placed to 0.25 px then on the nearest pixel boundary, kept while its F statistic's false-alarm probability over the
-    independent places searched is below :data:`JUMP_FAP` (neighbouring columns share pixels: the statistic is
-    deflated, and its degrees of freedom counted, by the window's effective width over ``spacing_px``). Returns ``(edges in MS columns, [{edge, jump_sample_px,
-    jump_line_px, fap}])``."""
+    the smooth model, kept while its F statistic's false-alarm probability over the independent places searched is
+    below :data:`JUMP_FAP` (neighbouring columns share pixels: the statistic is deflated, and its degrees of
+    freedom counted, by the residual's correlation length, at least the window's effective width over
+    ``spacing_px``), and confirmed over pieces of their own order (:data:`PIECE_ORDER`). Placed to 0.25 px by the
+    test, or on a sparse profile (at most one column inside a ramp) by :func:`_place` (a polynomial on each side
+    mixed over the ramp, within a window and a column gap; again between the final neighbours), then on the
+    nearest pixel boundary; the jumps from :func:`_edge_fit`. Returns ``(edges in MS columns, [{edge_ms_px,
+    jump_sample_px, jump_line_px, fap}])``."""
     x, y, n = column_profile(sample, line, d_sample, d_line)
     keep = n >= 3
     x, y, n = x[keep], y[keep], n[keep]
@@ -178,9 +248,10 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
         return found, info
     span = (0.0, float(width))
     w = n.astype(float)
-    corr0 = max(1.0, ramp / float(spacing_px))      # columns per independent one (the window's effective width)
     lo, hi = float(x.min()) + window_px / 2.0, float(x.max()) - window_px / 2.0
     n_indep = max(1.0, (hi - lo) / float(window_px))
+    reach = float(window_px) + float(spacing_px)       # the test's place may be a column gap off (_place)
+    sparse = float(spacing_px) >= ramp                  # at most one column inside a ramp
     while len(found) < max_breaks:
         cand = np.arange(lo, hi, 1.0)
         cand = cand[np.all(np.abs(cand[:, None] - np.asarray(found + [-1e9])[None, :]) > window_px, axis=1)]
@@ -196,26 +267,23 @@ def detect_breaks(sample, line, d_sample, d_line, *, width: float, window_px: fl
         b = float(fine[int(np.argmax(g2))])
         if x.size - p - 1 < 4:
             break
-        # residual variance per column from every column; its degrees of freedom from the independent ones, as
-        # many as the residual's correlation length (at least the window's effective width) leaves
-        s2 = (rss - float(g2.max())) / (2.0 * (x.size - p - 1))
-        e = _smooth_residual(x, y, w, sorted(found + [b]), ramp, span)
-        corr = max(corr0, _correlation_length(e, max_lag=int(round(4.0 * window_px / float(spacing_px)))))
-        dof = 2.0 * max(x.size / corr - p - 1, 2.0)
-        F = (float(g2.max()) / 2.0) / max(s2, 1e-300) / corr
-        fap = min(1.0, float(stats.f.sf(F, 2, dof)) * n_indep)
+        fap = _jump_fap(x, y, w, found, b, ramp, span, spacing_px, n_indep)
+        if fap < JUMP_FAP:              # confirmed over the pieces' own order (else a bend, not a jump)
+            fap = max(fap, _jump_fap(x, y, w, found, b, ramp, span, spacing_px, n_indep, PIECE_ORDER))
         if not np.isfinite(fap) or fap >= JUMP_FAP:
             break
+        if sparse:
+            b = _place(x, y, w, found, b, ramp, reach, window_px)
         b = float(round(b))             # an edge between two detectors lies between two pixel columns
         found = sorted(found + [b])
         info.append({"edge_ms_px": b, "fap": fap})
-    # the jump of each edge found, from the final model
-    if found:
-        base = np.concatenate([piecewise_polynomial(x, found, JUMP_SMOOTH_ORDER, domain=span),
-                               _ramp(x, found, ramp)], axis=1)
-        for k, ax in enumerate(AXES):
-            coef = normal_solve(base, y[:, k], w, HINT)[0][-len(found):]
-            for it in info:
-                it[f"jump_{ax}_px"] = float(coef[found.index(it["edge_ms_px"])])
+    # on a sparse profile each edge placed again between its final neighbours; the jumps from the two sides
+    for it in info:
+        others = [e for e in found if e != it["edge_ms_px"]]
+        if sparse:
+            it["edge_ms_px"] = float(round(_place(x, y, w, others, it["edge_ms_px"], ramp, reach, window_px)))
+            found = sorted(others + [it["edge_ms_px"]])
+        jump = _edge_fit(x, y, w, it["edge_ms_px"], *_between(others, it["edge_ms_px"], ramp), ramp)[1]
+        it.update({f"jump_{ax}_px": float(j) for ax, j in zip(AXES, jump or [np.nan, np.nan])})
     info.sort(key=lambda d: d["edge_ms_px"])
     return found, info

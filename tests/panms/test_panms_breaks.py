@@ -100,9 +100,10 @@ def test_detect_breaks_finds_both_edges_and_no_jump_in_correlated_noise():
 
 def test_detect_breaks_on_a_sparse_profile_never_fits_an_interval_it_cannot_determine():
     """A full GF7 scene matched every 32 MS px (window 32): two edges a window apart can enclose one column, where
-    the smooth cubic on that interval is undetermined (the full scene's register-pan-ms failed on a singular
+    the smooth polynomial on that interval is undetermined (the full scene's register-pan-ms failed on a singular
     normal matrix), and a ramp 16 px wide between two columns is a step, as the intervals' constants. Candidates
-    need 5 columns on each side between their neighbouring edges and one inside their ramp: both edges found."""
+    need JUMP_SMOOTH_ORDER + 2 columns on each side between their neighbouring edges and one inside their ramp: both
+    edges found."""
     rng = np.random.default_rng(11)
     cols = np.arange(31.25, 7680.0, 32.0)
     x = np.repeat(cols, 40)
@@ -112,5 +113,31 @@ def test_detect_breaks_on_a_sparse_profile_never_fits_an_interval_it_cannot_dete
     found, info = panms.detect_breaks(x, line, d_s, d_l, width=7680, window_px=32, spacing_px=32)
     assert len(found) >= 2 and min(abs(f - 2560.0) for f in found) < 32 and min(abs(f - 5120.0) for f in found) < 32
     from gdal_gf4cal.panms.breaks import _supported
-    ok = _supported(cols, [5111.7], np.array([5147.0, 4000.0, cols[3] + 1.0, cols[4] + 1.0, 4000.0 + 16.0]), 16.0)
+    k = panms.JUMP_SMOOTH_ORDER + 2                                     # columns needed on each side
+    ok = _supported(cols, [5111.7], np.array([5147.0, 4000.0, cols[k - 2] + 1.0, cols[k - 1] + 1.0, 4000.0 + 16.0]),
+                    16.0)
     assert ok.tolist() == [False, True, False, True, False]
+
+
+def test_detect_breaks_places_the_edges_and_jumps_of_the_full_scene_profile():
+    """The full GF7 scene (seed 0) matched every 32 MS px: the window offsets are the simulator's true field of
+    each sub-CCD (a window straddling an edge mixes both sides over its central 16 px) plus 0.03 px noise. The edge
+    test's own place comes from one smooth polynomial across the edge: its misfit put the second edge a column gap
+    off (5148 for 5120, as register-pan-ms did on the rendered scene: 5147), found jumps in the pieces' quartic
+    bending (192, 1564 MS px) and read the jump off one column (-0.05 and -0.28 px for -0.157). Both true edges
+    within 2 px, no other, and their jumps within 0.03 px of the truth."""
+    from gdal_gf4cal.simulate.gf7 import make_gf7_scene, true_misregistration
+    scene = make_gf7_scene(seed=0)
+    W, H = scene.image("ms").size
+    S, L = (v.ravel() for v in np.meshgrid(np.arange(32.0, W - 16.0, 32.0), np.linspace(100.0, H - 100.0, 24)))
+    P = np.stack([np.stack(true_misregistration(scene, S, L, piece=k), axis=1) for k in range(3)])
+    true_jumps = [np.mean(P[k + 1][S == e] - P[k][S == e], axis=0) for k, e in enumerate((2560.0, 5120.0))]
+    r = np.clip((S[:, None] - np.array([2560.0, 5120.0])[None, :]) / 16.0 + 0.5, 0.0, 1.0)
+    share = np.stack([1.0 - r[:, 0], r[:, 0] * (1.0 - r[:, 1]), r[:, 1]], axis=1)
+    d0 = np.einsum("nk,knc->nc", share, P)
+    for seed in (2, 3, 5):
+        d = d0 + np.random.default_rng(seed).normal(0.0, 0.03, d0.shape)
+        found, info = panms.detect_breaks(S, L, d[:, 0], d[:, 1], width=W, window_px=32, spacing_px=32)
+        assert len(found) == 2 and np.allclose(found, [2560.0, 5120.0], atol=2.0), (seed, found)
+        for it, tj in zip(info, true_jumps):
+            assert np.allclose([it["jump_sample_px"], it["jump_line_px"]], tj, atol=0.03), (seed, info, true_jumps)
