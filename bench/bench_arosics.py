@@ -128,9 +128,10 @@ def _ours(args):
     W, H = ds.RasterXSize, ds.RasterYSize
     rpc = _target_rpc(tgt)
     gx, gy = np.meshgrid(np.arange(0, W + args.grid, args.grid), np.arange(0, H + args.grid, args.grid))
+    # Every tie point of AROSICS's grid: windows are shrunk about their centre where they cross an edge (or
+    # no-data) of either image, as AROSICS does; points outside the overlap are flagged before any read.
     c = np.column_stack([gx.ravel(), gy.ravel()]).astype(float)
-    half = args.window / 2
-    c = c[(c[:, 0] >= half) & (c[:, 1] >= half) & (c[:, 0] <= W - half) & (c[:, 1] <= H - half)]
+    c = c[(c[:, 0] <= W) & (c[:, 1] <= H)]
     _our_run(args, rpc, c[:64])  # warm-up: imports, caches
     dt, g = _our_run(args, rpc, c)
     ok = ~g["outlier"].to_numpy(bool)
