@@ -261,7 +261,7 @@ def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int
     cut = ((iy0 - uy0)[:, None, None] + r[None, :, None], (ix0 - ux0)[:, None, None] + r[None, None, :])
     t = _whole_pixel_shift(rx - S, ry - L)
     if t is not None:
-        return reference.read(ux0 + t[0], uy0 + t[1], Wu, Hu).astype(np.float64)[cut]
+        return reference.read(ux0 + t[0], uy0 + t[1], Wu, Hu)[cut].astype(np.float64)
     fin = np.isfinite(rx) & np.isfinite(ry)
     if not fin.any():
         return np.full((x0.size, size, size), np.nan)
