@@ -314,8 +314,8 @@ def speed(args):
             line += (f"; AROSICS {a['valid']}/{a['points']} valid, {best_a * 1e3:.2f} ms per valid point; ratio "
                      f"{best_a / best_o:.1f}x (counting every AROSICS point with a shift, its outliers too: "
                      f"{a['shifted']} points, {best_s / best_o:.1f}x); CPU time per valid point: ours "
-                     f"{cpu_o * 1e3:.2f} ms, AROSICS {cpu_a * 1e3:.2f} ms, ratio {cpu_a / cpu_o:.1f}x (less "
-                     f"sensitive to the other users' load); {_compare(o, a)}")
+                     f"{cpu_o * 1e3:.2f} ms, AROSICS {cpu_a * 1e3:.2f} ms: {cpu_a / cpu_o:.1f}x (less sensitive to "
+                     f"the other users' load); {_compare(o, a)}")
         print(line, flush=True)
     print(f"load average after {os.getloadavg()[0]:.2f}")
 
