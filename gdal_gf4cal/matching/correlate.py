@@ -258,7 +258,8 @@ def correlate_spectra(F: Spectra, G: Spectra, sigma_px: float = 1.0) -> Peaks:
     n = F.S.shape[0]
     h, w = F.shape
     _, _, wnorm, _, _ = _quality_weights(h, w, float(sigma_px))
-    cross = G.S * F.S.conj()
+    cross = np.conj(F.S)
+    cross *= G.S  # G F*, without a temporary
     inv = np.abs(cross)
     # Relative floor: frequencies with (numerically) no energy get no vote instead of a random phase.
     floor = np.maximum(np.float32(1e-12) * inv.reshape(n, -1).max(axis=1), _TINY)[:, None, None]
@@ -404,7 +405,10 @@ def flat_fraction(windows: np.ndarray, region=None, box: int = 5, ratio: float =
 def _flat(a, gx, gy, sigma, region=None, box: int = 5, ratio: float = 0.05, noise_factor: float = 3.0, std=None):
     """:func:`flat_fraction` from precomputed gradients and noise estimate (shared with the texture test)."""
     g2 = np.zeros_like(a)
-    g2[..., 1:-1, 1:-1] = (gx * gx + gy * gy) / 4.0
+    e = gx * gx
+    e += gy * gy
+    e /= 4.0
+    g2[..., 1:-1, 1:-1] = e
     local = ndimage.uniform_filter(g2, size=(1,) * (a.ndim - 2) + (box, box), mode="nearest")
     # The 90th percentile ('linear' interpolation, as np.percentile) from a partial sort: two order statistics,
     # on every other pixel of each axis (the 5 x 5 box mean is smooth: neighbours carry the same information).

@@ -36,6 +36,11 @@ __all__ = ["ReferenceImage", "RawReference", "grid_nodes", "read_block", "refere
 #: Gaussian equivalent of a pixel's box integration (1/sqrt(12) ~= 0.29) plus optics.
 ANTIALIAS_SIGMA = 0.45
 
+#: Largest deviation (px) of the reference positions from one whole-pixel translation of the grid below which the
+#: reference is read as it is instead of being resampled (a reference on the raw image's own pixel grid, as two
+#: orthos of one tiling: interpolating at whole pixels returns the pixels, to this fraction of their gradient).
+IDENTITY_TOL = 1e-4
+
 #: Extra cells read around each block of the batched path so that the spline prefilter's (mirror) boundary stays
 #: away from the samples: its influence decays as 0.27^k.
 _PAD = 4
@@ -120,6 +125,12 @@ class ReferenceImage:
         band = self._open().GetRasterBand(self.band)
         return read_block(band, self.width, self.height, self.nodata, x0, y0, nx, ny, decimation)
 
+    def inside(self, sample, line, margin: float = 0.0) -> np.ndarray:
+        """Pixel positions at least ``margin`` px inside the raster (NaN is outside)."""
+        s, l = np.asarray(sample, dtype=float), np.asarray(line, dtype=float)
+        with np.errstate(invalid="ignore"):
+            return (s >= margin) & (s <= self.width - margin) & (l >= margin) & (l <= self.height - margin)
+
 
 class RawReference(ReferenceImage):
     """A raw (not orthorectified) image as the matching reference: ground -> pixel through its sensor model.
@@ -156,12 +167,6 @@ class RawReference(ReferenceImage):
         """Pixel (GDAL convention) of the reference raw image imaging the ground point (``model.project``)."""
         s, l = self.model.project(lon, lat, h)
         return np.asarray(s, dtype=float), np.asarray(l, dtype=float)
-
-    def inside(self, sample, line, margin: float = 0.0) -> np.ndarray:
-        """Pixel positions at least ``margin`` px inside the raster (NaN is outside)."""
-        s, l = np.asarray(sample, dtype=float), np.asarray(line, dtype=float)
-        with np.errstate(invalid="ignore"):
-            return (s >= margin) & (s <= self.width - margin) & (l >= margin) & (l <= self.height - margin)
 
 
 def read_block(band, width: int, height: int, nodata, x0: int, y0: int, nx: int, ny: int,
@@ -226,6 +231,17 @@ def _lowpass(ratio: float, oversample: float):
     return dec, sigma, margin
 
 
+def _whole_pixel_shift(dx: np.ndarray, dy: np.ndarray):
+    """``(tx, ty)`` when every offset ``dx, dy`` (reference position minus grid position at the exact nodes) is
+    one whole-pixel translation to within :data:`IDENTITY_TOL`; else None."""
+    if dx.size == 0 or not (np.all(np.isfinite(dx)) and np.all(np.isfinite(dy))):
+        return None
+    tx, ty = np.rint(dx.flat[0]), np.rint(dy.flat[0])
+    if max(float(np.abs(dx - tx).max()), float(np.abs(dy - ty).max())) > IDENTITY_TOL:
+        return None
+    return int(tx), int(ty)
+
+
 def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int, oversample: float):
     """:func:`reference_on_grids` of dense, overlapping windows (pixel spacing, whole-pixel corners) as one grid
     over their union, resampled once and cut into the windows; None when the windows are not dense."""
@@ -241,6 +257,11 @@ def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int
     L = np.broadcast_to(uy0 + ny[:, None] + 0.5, (ny.size, nx.size))
     lon, lat, h = rpc.localize_dem(S, L, dem)
     rx, ry = (np.asarray(v, dtype=float).reshape(S.shape) for v in reference.ground_to_pixel(lon, lat, h))
+    r = np.arange(size)
+    cut = ((iy0 - uy0)[:, None, None] + r[None, :, None], (ix0 - ux0)[:, None, None] + r[None, None, :])
+    t = _whole_pixel_shift(rx - S, ry - L)
+    if t is not None:
+        return reference.read(ux0 + t[0], uy0 + t[1], Wu, Hu)[cut].astype(np.float64)
     fin = np.isfinite(rx) & np.isfinite(ry)
     if not fin.any():
         return np.full((x0.size, size, size), np.nan)
@@ -255,8 +276,7 @@ def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int
         fx[bad], fy[bad] = float(np.mean(fx[~bad])), float(np.mean(fy[~bad]))
     vals = _sample_reference(reference, fx, fy, dec, sigma, margin, order)
     vals[bad] = np.nan
-    r = np.arange(size)
-    return vals[(iy0 - uy0)[:, None, None] + r[None, :, None], (ix0 - ux0)[:, None, None] + r[None, None, :]]
+    return vals[cut]
 
 
 def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, spacing: float = 1.0, *,
@@ -298,6 +318,15 @@ def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, s
     rx, ry = reference.ground_to_pixel(lon, lat, h)
     rx = np.asarray(rx, dtype=float).reshape(n, nodes.size, nodes.size)
     ry = np.asarray(ry, dtype=float).reshape(n, nodes.size, nodes.size)
+    t = _whole_pixel_shift(rx - S, ry - L) if spacing == 1.0 and np.all(x0 == np.round(x0)) and \
+        np.all(y0 == np.round(y0)) else None
+    if t is not None:
+        band = reference._open().GetRasterBand(reference.band)
+        out = np.empty((n, size, size))
+        for k in range(n):  # one windowed read per window: I/O, not arithmetic
+            out[k] = read_block(band, reference.width, reference.height, reference.nodata, int(x0[k]) + t[0],
+                                int(y0[k]) + t[1], size, size)
+        return out
     ok_win = np.all(np.isfinite(rx) & np.isfinite(ry), axis=(1, 2))
     if not ok_win.any():
         return np.full((n, size, size), np.nan)

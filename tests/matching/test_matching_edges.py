@@ -1,0 +1,129 @@
+"""collect-gcps against an ortho whose pixel grid is the raw image's (two orthos of one tiling, as AROSICS's
+Sentinel-2 pair, bench/bench_arosics.py): the reference is read, not resampled; windows cut by the reference's edge
+or its no-data collar are matched on the largest centred square inside them (as AROSICS shrinks its windows),
+windows whose centre it does not cover are ``outside_image``; a changed quarter of a window is judged by the
+window's correlation, a covered one (cloud) is rejected.
+
+The raw image is a crop of the reference texture moved by a known sub-pixel amount (exact Fourier shift of a larger
+block), with an RPC fitted to its geotransform at one height: the truth of every offset is that amount.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pyproj
+import pytest
+from osgeo import gdal
+from scipy import ndimage
+
+from gdal_gf4cal.matching import ReferenceImage, assemble_gcps, plan_tiles, reference_on_grids, run_tiles
+from gdal_gf4cal.matching import resample
+from gdal_gf4cal.rpc_fit import fit_rpc
+
+from matchscene import UTM31, builtin_texture
+from rasters import write_tif
+
+HEIGHT = 300.0
+GT = (650000.0, 10.0, 0.0, 4900000.0, 0.0, -10.0)
+SHIFT = (0.3, -0.2)   # the raw image's content moved by (x, y) px: the offset every GCP must measure
+
+
+def _grid_rpc(gt, W, H):
+    """RPC of an ortho of ``W x H`` px with geotransform ``gt`` (UTM 31N), fitted at one height."""
+    s, l = (v.ravel() for v in np.meshgrid(np.linspace(0, W, 21), np.linspace(0, H, 21)))
+    lon, lat = pyproj.Transformer.from_crs(UTM31, 4326, always_xy=True).transform(gt[0] + s * gt[1],
+                                                                                gt[3] + l * gt[5])
+    return fit_rpc(np.asarray(lon), np.asarray(lat), np.full(s.size, HEIGHT), s, l)[0]
+
+
+def _pair(folder, x0, y0, W, H, size=(640, 640), edit=None, reference=None):
+    """A reference texture ``size`` (UTM 31N, 10 m) and the raw ``W x H`` crop at reference pixel ``(x0, y0)``
+    moved by ``SHIFT``; ``edit(raw)`` changes the raw pixels, ``reference(tex)`` the reference's."""
+    tex = builtin_texture(size[::-1], seed=11)
+    tex = 1000 + 150 * (tex - tex.mean()) / tex.std()
+    moved = np.fft.ifft2(ndimage.fourier_shift(np.fft.fft2(tex), SHIFT[::-1])).real
+    raw = moved[y0:y0 + H, x0:x0 + W].copy()
+    if edit is not None:
+        edit(raw)
+    gt = (GT[0] + x0 * GT[1], GT[1], 0.0, GT[3] + y0 * GT[5], 0.0, GT[5])
+    image = write_tif(folder / "raw.tif", np.clip(raw, 1, 65535).astype(np.float32), gt=gt, epsg=UTM31)
+    ref = tex if reference is None else reference(tex.copy())
+    ref_path = write_tif(folder / "ref.tif", ref.astype(np.float32), gt=GT, epsg=UTM31, nodata=0)
+    return image, ref_path, _grid_rpc(gt, W, H)
+
+
+def _collect(image, rpc, ref, spacing, window):
+    specs, ctx = plan_tiles(image, rpc, ref, HEIGHT, spacing, window, search_px=8, margin_px=0)
+    res = run_tiles(specs, workers=1)
+    cat = {k: np.concatenate([r[k] for r in res]) for k in ("status", "center_sample", "center_line", "dsample",
+                                                            "dline")}
+    return cat, assemble_gcps(res, ctx)
+
+
+def test_reference_on_the_raw_grid_is_read_not_resampled(tmp_path, monkeypatch):
+    image, ref, rpc = _pair(tmp_path, 100, 80, 320, 256)
+    x0 = np.array([0.0, 64.0, 200.0])
+    y0 = np.array([0.0, 100.0, 150.0])
+    pix = gdal.Open(ref).ReadAsArray().astype(np.float64)
+    read = reference_on_grids(rpc, HEIGHT, ReferenceImage(ref), x0, y0, 64)
+    for k in range(3):
+        np.testing.assert_array_equal(read[k], pix[int(y0[k]) + 80:int(y0[k]) + 144, int(x0[k]) + 100:
+                                                  int(x0[k]) + 164])
+    # The shared grid of dense windows too.
+    dense = reference_on_grids(rpc, HEIGHT, ReferenceImage(ref), [0, 32], [0, 0], 64, shared=True)
+    np.testing.assert_array_equal(dense[1], pix[80:144, 132:196])
+    # The cubic spline at whole pixels returns the pixels: the read is what resampling gives, to rounding.
+    monkeypatch.setattr(resample, "IDENTITY_TOL", -1.0)
+    np.testing.assert_allclose(reference_on_grids(rpc, HEIGHT, ReferenceImage(ref), x0, y0, 64), read, atol=1e-3)
+    np.testing.assert_allclose(reference_on_grids(rpc, HEIGHT, ReferenceImage(ref), [0, 32], [0, 0], 64,
+                                                  shared=True), dense, atol=1e-3)
+
+
+def test_windows_cut_by_the_reference_edge_or_nodata_shrink(tmp_path):
+    """Raw crop at reference pixel (300, 200), 320 x 320: the reference ends at raw x = 240 (no data beyond its
+    column 540) and has a no-data triangle over the crop's top-left corner (raw x + y < 90)."""
+    def cut(tex):
+        yy, xx = np.mgrid[0:tex.shape[0], 0:tex.shape[1]]
+        tex[(xx - 300) + (yy - 200) < 90] = 0             # a no-data collar across the raw's top-left corner
+        return tex[:, :540]                               # the reference raster ends at raw x = 240
+    image, ref, rpc = _pair(tmp_path, 300, 200, 320, 320, reference=cut)
+    cat, g = _collect(image, rpc, ref, 32, 64)
+    cs, cl, st = cat["center_sample"], cat["center_line"], cat["status"]
+    # Distance (raw px, chessboard) from each window centre to the reference's edge or no-data.
+    free = np.minimum(240 - cs, (cs + cl - 90) / 2.0)
+    assert np.all(st[cs > 240] == 5) and not np.any(st[free < 0] == 0)
+    cut_windows = (free >= 16) & (free < 32) & (cs >= 32) & (cl >= 32) & (cs <= 288) & (cl <= 288)
+    assert cut_windows.sum() >= 8
+    assert np.mean(st[cut_windows] == 0) >= 0.9, st[cut_windows]
+    ok = st == 0
+    err = np.hypot(cat["dsample"][ok] - SHIFT[0], cat["dline"][ok] - SHIFT[1])
+    assert np.max(err[cut_windows[ok]]) < 0.05, err[cut_windows[ok]]
+    assert np.sqrt(np.mean(err ** 2)) < 0.02
+    assert len(g) == ok.sum() and not g["outlier"].any()
+
+
+def test_changed_quarter_is_judged_by_the_window_a_covered_one_is_rejected(tmp_path):
+    """Four 256-px windows; in the raw image one window's top-left quarter shows other ground (a change: the
+    texture of another place), another's is under a cloud (haze at the ground's brightness, faint structure)."""
+    rng = np.random.default_rng(3)
+
+    def edit(raw):
+        raw[:128, :128] = raw[300:428, 300:428][::-1].copy()          # window (128, 128): changed quarter
+        cloud = raw[256:384, 256:384].mean() + 10 * ndimage.gaussian_filter(rng.standard_normal((128, 128)), 3)
+        raw[256:384, 256:384] = cloud                                    # window (384, 384): covered quarter
+    image, ref, rpc = _pair(tmp_path, 60, 60, 512, 512, edit=edit)
+    cat, _ = _collect(image, rpc, ref, 256, 256)
+    st = dict(zip(zip(cat["center_sample"], cat["center_line"]), cat["status"]))
+    d = dict(zip(zip(cat["center_sample"], cat["center_line"]), zip(cat["dsample"], cat["dline"])))
+    assert st[(128.0, 128.0)] == 0 and np.hypot(d[(128.0, 128.0)][0] - SHIFT[0], d[(128.0, 128.0)][1] - SHIFT[1]) < 0.05
+    assert st[(384.0, 384.0)] == 4
+    assert st[(384.0, 128.0)] == 0 and st[(128.0, 384.0)] == 0
+
+
+@pytest.mark.parametrize("window", [64, 256])
+def test_every_window_measures_the_shift(tmp_path, window):
+    image, ref, rpc = _pair(tmp_path, 64, 64, 512, 512)
+    cat, g = _collect(image, rpc, ref, 128, window)
+    ok = cat["status"] == 0
+    assert ok.sum() >= 4
+    np.testing.assert_allclose(cat["dsample"][ok], SHIFT[0], atol=0.02)
+    np.testing.assert_allclose(cat["dline"][ok], SHIFT[1], atol=0.02)
