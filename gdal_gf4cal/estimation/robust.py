@@ -33,6 +33,8 @@ from typing import Optional, Tuple
 import numpy as np
 
 from ..errors import DegenerateGeometryError
+from ..threads import matmul
+from .lsq import gram
 
 #: Largest number of minimal subsets searched exhaustively; beyond it ``n_subsets`` random ones are drawn.
 MAX_EXHAUSTIVE = 3000
@@ -131,8 +133,8 @@ def _batched_fit(a: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray, 
     """
     n, k, p = a.shape
     outer, rhs_pt = _normal_parts(a, y, w, scale) if parts is None else parts
-    nmat = (mask @ outer).reshape(-1, p, p)
-    rhs = mask @ rhs_pt
+    nmat = matmul(mask, outer).reshape(-1, p, p)
+    rhs = matmul(mask, rhs_pt)
     # Regular subsets: the column-scaled normal matrix (diagonal <= 1) has a determinant well above zero.
     sign, logdet = np.linalg.slogdet(nmat)
     ok = (sign > 0) & (logdet > p * math.log(1e-10))
@@ -168,19 +170,51 @@ def _f_ppf(p: float, d1: int, d2: int) -> float:
     return float(stats.f.ppf(p, d1, d2))
 
 
-def _inflation(a: np.ndarray, w: np.ndarray, fit_set: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """Per point, the factor of sigma^2 in the expected squared residual norm over ``k``: ``1 - lev`` inside
-    ``fit_set``, ``1 + lev`` outside it (``lev`` the mean leverage of the point's observations)."""
-    n, k, p = a.shape
-    aw = a / scale
-    rows = (aw * np.sqrt(w * fit_set[:, None])[:, :, None]).reshape(n * k, p)
-    nmat = rows.T @ rows
-    try:
-        ninv = np.linalg.inv(nmat)
-    except np.linalg.LinAlgError:
-        return np.ones(n)
-    lev = np.sum(w * np.sum((aw @ ninv) * aw, axis=2), axis=1) / k
-    return np.maximum(np.where(fit_set, 1.0 - lev, 1.0 + lev), 1e-6)
+class _AllPoints:
+    """Every point's observations as column-scaled rows ``(n * k, p)`` for the start's fits of one point set
+    (concentration, reweighting): one ``A^T W A`` (:func:`~gdal_gf4cal.estimation.lsq.gram`, BLAS on the calling
+    thread) per fit, its inverse shared with the leverages of the same set (:meth:`inflation`); no per-point
+    outer products."""
+
+    def __init__(self, a: np.ndarray, y: np.ndarray, w: np.ndarray, scale: np.ndarray):
+        n, k, p = a.shape
+        self.n, self.k, self.p, self.scale = n, k, p, scale
+        self.rows = (a / scale).reshape(n * k, p)
+        self.y, self.w = y.reshape(-1), np.ascontiguousarray(w).reshape(-1)
+
+    def fit(self, mask: np.ndarray):
+        """``(x or None, column-scaled N^-1 or None)`` of the weighted LS over the points of ``mask`` (bool (n,)):
+        ``x`` None when the set does not determine the parameters (the determinant test of :func:`_batched_fit`),
+        ``N^-1`` None when ``N`` cannot be inverted."""
+        wa = self.rows * (self.w * np.repeat(mask, self.k))[:, None]
+        nmat = gram(wa, self.rows)
+        rhs = gram(wa, self.y[:, None])[:, 0]
+        try:
+            ninv = np.linalg.inv(nmat)
+        except np.linalg.LinAlgError:
+            ninv = None
+        sign, logdet = np.linalg.slogdet(nmat)
+        if ninv is None or not (sign > 0 and logdet > self.p * math.log(1e-10)):
+            return None, ninv
+        try:
+            return np.linalg.solve(nmat, rhs) / self.scale, ninv
+        except np.linalg.LinAlgError:
+            return None, ninv
+
+    def sq(self, x: np.ndarray) -> np.ndarray:
+        """Weighted squared residual norm per point (n,) of the parameters ``x`` (p,)."""
+        r = self.y - self.rows @ (x * self.scale)
+        return np.sum((self.w * r * r).reshape(self.n, self.k), axis=1)
+
+    def inflation(self, fit_set: np.ndarray, ninv) -> np.ndarray:
+        """Per point, the factor of sigma^2 in the expected squared residual norm over ``k``: ``1 - lev`` inside
+        ``fit_set``, ``1 + lev`` outside it (``lev`` the mean leverage of the point's observations; ``ninv`` from
+        :meth:`fit` on ``fit_set``; None: factor 1)."""
+        if ninv is None:
+            return np.ones(self.n)
+        lev = np.sum((self.w * np.sum((self.rows @ ninv) * self.rows, axis=1)).reshape(self.n, self.k),
+                     axis=1) / self.k
+        return np.maximum(np.where(fit_set, 1.0 - lev, 1.0 + lev), 1e-6)
 
 
 def _point_sq(a, y, w, x):
@@ -190,7 +224,7 @@ def _point_sq(a, y, w, x):
     xt = np.asarray(x).T                                             # (p, K)
     out = None
     for j in range(a.shape[1]):
-        r = y[:, j, None] - a[:, j, :] @ xt                          # (n, K)
+        r = y[:, j, None] - matmul(a[:, j, :], xt)                   # (n, K)
         r *= r
         r *= w[:, j, None]
         out = r if out is None else out + r
@@ -274,18 +308,17 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
         raise DegenerateGeometryError("no subset of the points determines the parameters; spread the points over "
                                       "the image or estimate fewer parameters")
     a, y, w, n, h = a_full, y_full, w_full, n_full, h_full
-    parts = _normal_parts(a, y, w, scale) if search.size < n else parts
+    pts = _AllPoints(a, y, w, scale)
+    r2 = pts.sq(best_x)
     if search.size < n:
         for _ in range(2):                                           # concentration steps on all points
-            r2 = _point_sq(a, y, w, best_x[None])[0]
-            keep = np.zeros((1, n))
-            keep[0, np.argpartition(r2, h - 1)[:h]] = 1.0
-            x, ok = _batched_fit(a, y, w, keep, scale, parts)
-            if ok[0]:
-                best_x = x[0]
-        r2 = _point_sq(a, y, w, best_x[None])[0]
+            keep = np.zeros(n, bool)
+            keep[np.argpartition(r2, h - 1)[:h]] = True
+            x, _ = pts.fit(keep)
+            if x is not None:
+                best_x = x
+                r2 = pts.sq(best_x)
         best_crit = float(np.sum(np.partition(r2, h - 1)[:h]))
-    r2 = _point_sq(a, y, w, best_x[None])[0]
     # LTS scale: E[chi2_k | chi2_k <= q] = k F_{k+2}(q) / F_k(q), q the h/n quantile.
     corr = _lts_consistency(h, n, k)
     dof_h = max(h * k - p, 1)
@@ -295,19 +328,19 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
     tiny = 1e-18 * max(float(np.median(np.sum(w * y * y, axis=1))), 1e-300)
     fit_set = np.zeros(n, bool)
     fit_set[np.argpartition(r2, h - 1)[:h]] = True
-    inl = r2 / _inflation(a, w, fit_set, scale) <= cut * max(s2, tiny)
+    inl = r2 / pts.inflation(fit_set, pts.fit(fit_set)[1]) <= cut * max(s2, tiny)
     # Reweighting: LS on the inliers, plain scale; residuals normalised by their own variance (a point outside the
     # fit has variance sigma^2 (1 + leverage), inside sigma^2 (1 - leverage)), until the inlier set is stable.
     def settle(inl, s2):
         for _ in range(10):
             if inl.sum() <= m:
                 break
-            x, ok = _batched_fit(a, y, w, inl[None].astype(float), scale, parts)
-            if not ok[0]:
+            x, ninv = pts.fit(inl)
+            if x is None:
                 break
-            r2 = _point_sq(a, y, w, x)[0]
+            r2 = pts.sq(x)
             s2 = float(np.sum(r2[inl]) / max(int(inl.sum()) * k - p, 1))
-            new = r2 / _inflation(a, w, inl, scale) <= cut * max(s2, tiny)
+            new = r2 / pts.inflation(inl, ninv) <= cut * max(s2, tiny)
             if np.array_equal(new, inl):
                 break
             inl = new
