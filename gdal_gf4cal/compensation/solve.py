@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import DegenerateGeometryError, GCPError
 from ..estimation import Estimate, Snooping, robust_fit, weighted_lsq
-from ..estimation.lsq import NORMAL_CONDITION, gram
+from ..estimation.lsq import NORMAL_CONDITION, gram, weighted_lsq_many
 from .model import CompensationModel, CompensationResult, _monomials
 from .outputs import check_point_warnings
 
@@ -82,7 +82,7 @@ def _solve_axis(a, y, w, prior=None, solver: str = "svd") -> Tuple[np.ndarray, n
     est = weighted_lsq(a, y, w, prior=prior, apriori=True, solver=solver)
     return est.x, est.cov, est
 
-def _check_rank(a_list, model: CompensationModel, n_ctrl: int, terms=None) -> float:
+def _check_rank(a_list, terms, model: CompensationModel, n_ctrl: int) -> float:
     """Raise DegenerateGeometryError if the control layout does not determine the model over the image.
 
     Two tests per axis: the column-equilibrated design is (numerically) rank deficient, or GCP noise would be
@@ -123,6 +123,14 @@ def _condition(a) -> Tuple[float, np.ndarray]:
     sv = np.linalg.svd(a / np.maximum(np.linalg.norm(a, axis=0), 1e-300), compute_uv=False)
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
     return cond, np.linalg.pinv(n_mat, hermitian=True)
+
+
+def _axis_designs(a_s, a_l, mask, terms):
+    """``(designs, terms)`` of the axes on the rows of ``mask`` for :func:`_check_rank`: one when both axes have the
+    same design (the same terms: the same condition and amplification)."""
+    if a_l is a_s:
+        return [a_s[mask]], terms[:1]
+    return [a_s[mask], a_l[mask]], terms
 
 
 #: Largest tolerated amplification of GCP noise at the image corners before a layout counts as degenerate.
@@ -225,7 +233,7 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
     used, start_out, iterations, notes = _robust_set(problem, ctrl, robust, snoop, max_iter)
     try:
         if not np.array_equal(used, ctrl):       # else the check of _problem
-            _check_rank([problem.a_s[used], problem.a_l[used]], model, int(used.sum()), model.terms)
+            _check_rank(*_axis_designs(problem.a_s, problem.a_l, used, model.terms), model, int(used.sum()))
     except DegenerateGeometryError:
         used = ctrl.copy()
         notes.append("rejecting blunders would leave the model undetermined; all control points kept")
@@ -259,13 +267,14 @@ def _problem(tab, model: CompensationModel, fr, pred):
     points cannot determine ``model``."""
     u, v = (pred[0] - fr[0]) / fr[1], (pred[1] - fr[2]) / fr[3]
     ts, tl = model.terms
-    a_s, a_l = _monomials(ts, u, v), _monomials(tl, u, v)
+    a_s = _monomials(ts, u, v)
+    a_l = a_s if tl == ts else _monomials(tl, u, v)     # one array: one decomposition per fit
     ctrl = tab["role"].to_numpy() == "control"
     n_ctrl = int(ctrl.sum())
     if n_ctrl < model.min_gcps:
         raise GCPError(f"model {model.label!r} needs at least {model.min_gcps} control GCP(s), got {n_ctrl}; add "
                        f"control points or choose a simpler model (translation needs 1)")
-    cond = _check_rank([a_s[ctrl], a_l[ctrl]], model, n_ctrl, (ts, tl))
+    cond = _check_rank(*_axis_designs(a_s, a_l, ctrl, (ts, tl)), model, n_ctrl)
     # residuals before = what the correction explains
     y_s, y_l = tab["sample"].to_numpy(float) - pred[0], tab["line"].to_numpy(float) - pred[1]
     w0 = 1.0 / tab["sigma"].to_numpy(float) ** 2
@@ -358,8 +367,12 @@ def _normalised(a_s, a_l, y_s, y_l, w0, used, solver: str = "svd"):
     per axis, redundancy, the degrees of freedom ``(sample, line)`` of the sigma estimates and the residuals
     ``(y - a x)`` per axis."""
     wu = np.where(used, w0, 0.0)
-    cs, ns, est_s = _solve_axis(a_s, y_s, wu, w0, solver)
-    cl, nl, est_l = _solve_axis(a_l, y_l, wu, w0, solver)
+    if a_l is a_s:                   # the same terms on both axes: one decomposition (the same numbers)
+        est_s, est_l = weighted_lsq_many(a_s, [y_s, y_l], wu, prior=w0, apriori=True, solver=solver)
+        cs, ns, cl, nl = est_s.x, est_s.cov, est_l.x, est_l.cov
+    else:
+        cs, ns, est_s = _solve_axis(a_s, y_s, wu, w0, solver)
+        cl, nl, est_l = _solve_axis(a_l, y_l, wu, w0, solver)
     vs, vl = est_s.residuals, est_l.residuals
     red_s, red_l = est_s.dof, est_l.dof
     # With no redundancy the a-priori sigma (weights) is all we know: sigma0 = 1 (weighted_lsq's convention).
