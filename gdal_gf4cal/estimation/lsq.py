@@ -51,6 +51,27 @@ def gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+#: Largest ``m x n`` matrix-vector product OpenBLAS computes on the calling thread (2304 x its
+#: GEMM_MULTITHREAD_THRESHOLD).
+GEMV_SERIAL_SIZE = 2304 * 4
+
+
+def rows_times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` of a tall ``a`` (n, p) and a small ``b`` (p,) or (p, q) in row blocks that BLAS computes on the
+    calling thread (:data:`GEMV_SERIAL_SIZE`, :data:`~gdal_gf4cal.threads.BLAS_SERIAL_SIZE`): each row of the
+    result is its own short dot product, so the blocks give the numbers of the one product (whose BLAS threads,
+    on a loaded machine, cost more CPU than the product)."""
+    n, p = a.shape
+    size = GEMV_SERIAL_SIZE if b.ndim == 1 else BLAS_SERIAL_SIZE // max(b.shape[1], 1)
+    step = max(1, size // max(p, 1) - 1)
+    if n <= step:
+        return a @ b
+    out = np.empty((n,) + b.shape[1:], dtype=np.result_type(a, b))
+    for i in range(0, n, step):
+        out[i:i + step] = a[i:i + step] @ b
+    return out
+
+
 def _free_mask(blocks: Dict[str, slice], frozen: Sequence[str], p: int) -> np.ndarray:
     free = np.ones(p, bool)
     for name in frozen:
@@ -197,7 +218,7 @@ def weighted_lsq_many(design, obs_seq, weights=None, *, blocks: Sequence[Block] 
         xfs, n_inv, cond = _solve_scaled_many(af[used], [y[used] for y in ys_free], w[used], hint, max_condition,
                                               solver)
     dof = n_used - pf
-    q = np.sum((af @ n_inv) * af, axis=1)
+    q = np.sum(rows_times(af, n_inv) * af, axis=1)
     red = np.where(used, 1.0 - w * q, 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         w_out = np.ones(n) if prior is None else np.broadcast_to(np.asarray(prior, dtype=float), (n,))
@@ -207,7 +228,7 @@ def weighted_lsq_many(design, obs_seq, weights=None, *, blocks: Sequence[Block] 
     for y, xf in zip(ys, xfs):
         x = x0.copy()
         x[free] = xf
-        v = y - a @ x
+        v = y - rows_times(a, x)
         sigma0 = float(math.sqrt(np.sum(w * v * v) / dof)) if dof > 0 else 1.0
         with np.errstate(divide="ignore", invalid="ignore"):
             norm = np.where(qv > 1e-12, v / (max(sigma0, 1e-300) * sq), np.nan)

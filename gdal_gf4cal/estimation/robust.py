@@ -34,7 +34,7 @@ import numpy as np
 
 from ..errors import DegenerateGeometryError
 from ..threads import matmul
-from .lsq import gram
+from .lsq import gram, rows_times
 
 #: Largest number of minimal subsets searched exhaustively; beyond it ``n_subsets`` random ones are drawn.
 MAX_EXHAUSTIVE = 3000
@@ -243,7 +243,7 @@ class _AllPoints:
 
     def sq(self, x: np.ndarray) -> np.ndarray:
         """Weighted squared residual norm per point (n,) of the parameters ``x`` (p,)."""
-        r = self.y - self.rows @ (x * self.scale)
+        r = self.y - rows_times(self.rows, x * self.scale)
         return np.sum((self.w * r * r).reshape(self.n, self.k), axis=1)
 
     def inflation(self, fit_set: np.ndarray, ninv=_FIT) -> np.ndarray:
@@ -254,7 +254,7 @@ class _AllPoints:
             ninv = self.fit(fit_set)[1]
         if ninv is None:
             return np.ones(self.n)
-        lev = np.sum((self.w * np.sum((self.rows @ ninv) * self.rows, axis=1)).reshape(self.n, self.k),
+        lev = np.sum((self.w * np.sum(rows_times(self.rows, ninv) * self.rows, axis=1)).reshape(self.n, self.k),
                      axis=1) / self.k
         return np.maximum(np.where(fit_set, 1.0 - lev, 1.0 + lev), 1e-6)
 
