@@ -126,17 +126,19 @@ def _normal_parts(a: np.ndarray, y: np.ndarray, w: np.ndarray, scale: np.ndarray
 
 
 def _batched_fit(a: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray, scale: np.ndarray, parts=None,
-                 mm=np.matmul):
+                 mm=np.matmul, sums=None):
     """Weighted LS for each row of ``mask`` (K, n) over the points it selects; returns (x (K, p), ok (K,)).
 
     The K normal matrices are one matrix product ``mask @ (per-point outer products)`` (BLAS), not a loop;
     ``parts`` (:func:`_normal_parts`) avoids recomputing the per-point products; ``mm``: the matrix product
-    (:func:`~gdal_gf4cal.threads.matmul`: on the calling thread).
+    (:func:`~gdal_gf4cal.threads.matmul`: on the calling thread); ``sums``: the products already summed
+    (``(K, p*p)``, ``(K, p)``).
     """
     n, k, p = a.shape
     outer, rhs_pt = _normal_parts(a, y, w, scale) if parts is None else parts
-    nmat = mm(mask, outer).reshape(-1, p, p)
-    rhs = mm(mask, rhs_pt)
+    if sums is None:
+        sums = mm(mask, outer), mm(mask, rhs_pt)
+    nmat, rhs = sums[0].reshape(-1, p, p), sums[1]
     # Regular subsets: the column-scaled normal matrix (diagonal <= 1) has a determinant well above zero.
     sign, logdet = np.linalg.slogdet(nmat)
     ok = (sign > 0) & (logdet > p * math.log(1e-10))
@@ -337,7 +339,10 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
         sub = subs[c0:c0 + chunk]
         mask = np.zeros((len(sub), n))
         np.put_along_axis(mask, sub, 1.0, axis=1)
-        x, ok = _batched_fit(a, y, w, mask, scale, parts, mm)
+        # normal: a minimal subset's normal equations as the sum of its few points' products (no product with a
+        # mask of mostly zeros)
+        sums = (parts[0][sub].sum(axis=1), parts[1][sub].sum(axis=1)) if normal else None
+        x, ok = _batched_fit(a, y, w, mask, scale, parts, mm, sums)
         if not ok.any():
             continue
         x = x[ok]
