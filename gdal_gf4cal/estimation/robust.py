@@ -298,12 +298,9 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
         subset is near-certain up to 40 % blunders (P(miss) ~ 1e-32 for 3-point subsets, ~ 1e-6 for 6-point ones),
         and 120 searched points keep the start's cost near the M-estimator start it replaced.
     normal : bool
-        The fits of one point set (concentration on all points, reweighting) through one column-scaled ``A^T W A``
-        (:func:`~gdal_gf4cal.estimation.lsq.gram`) whose inverse also gives the leverages, and the subset search's
-        products on the calling thread (:func:`~gdal_gf4cal.threads.matmul`): 3x less CPU on 10,000 points, the
-        same sets to rounding (compensation: identical results on 165 seeded cases). Default: the per-point outer
-        products, whose rounding the pan-MS crops' degenerate-looking designs depend on (one crop's start
-        changed with the other rounding).
+        One-set fits through :class:`_AllPoints`, subsets' sums of their points' products, BLAS on the calling
+        thread: 3x less CPU on 10,000 points, the same sets to rounding. Default: the per-point outer products
+        (the pan-MS crops' start depends on their rounding).
 
     Returns
     -------
@@ -339,9 +336,7 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
         sub = subs[c0:c0 + chunk]
         mask = np.zeros((len(sub), n))
         np.put_along_axis(mask, sub, 1.0, axis=1)
-        # normal: a minimal subset's normal equations as the sum of its few points' products (no product with a
-        # mask of mostly zeros)
-        sums = (parts[0][sub].sum(axis=1), parts[1][sub].sum(axis=1)) if normal else None
+        sums = (parts[0][sub].sum(axis=1), parts[1][sub].sum(axis=1)) if normal else None  # its points only
         x, ok = _batched_fit(a, y, w, mask, scale, parts, mm, sums)
         if not ok.any():
             continue
