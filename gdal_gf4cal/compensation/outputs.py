@@ -50,7 +50,7 @@ def suspected_blunders(tab, n: int = 3) -> List[Tuple[str, str, float]]:
 
 def _check_rms(tab) -> Optional[Tuple[float, float]]:
     """Planar rms (px) of the unflagged check points before and after compensation; None without any."""
-    sel = (tab["role"] == "check").to_numpy() & ~tab["outlier"].to_numpy(bool)
+    sel = (tab["role"].to_numpy() == "check") & ~tab["outlier"].to_numpy(bool)
     if not sel.any():
         return None
     return tuple(float(np.sqrt(np.mean(tab[f"res_sample_{w}"].to_numpy(float)[sel] ** 2
@@ -66,7 +66,7 @@ def describe_suspects(suspects) -> str:
 def check_point_warnings(tab) -> List[str]:
     """Warnings when the check points disagree with the compensation: they fit worse after it than before
     (blunders suspected: the worst points named), or most of them are flagged as blunders."""
-    chk = (tab["role"] == "check").to_numpy()
+    chk = tab["role"].to_numpy() == "check"
     if not chk.any():
         return []
     outl = tab["outlier"].to_numpy(bool)

@@ -15,7 +15,8 @@ with :func:`~gdal_gf4cal.estimation.solve_with_points`):
   estimated separately);
 - optional: ``redundancy(mask) -> int`` (observations minus parameters of a point set; default
   ``mask.sum() * k - n_params``), ``start_design(idx) -> (design (m, k, p), obs (m, k), weights (m, k))`` (the
-  linear(ised) design of the points ``idx`` for ``start="lts"``), ``min_points`` (points of a minimal subset),
+  linear(ised) design of the points ``idx`` for ``start="lts"``; ``start_normal``: its ``normal`` evaluation,
+  :func:`~gdal_gf4cal.estimation.high_breakdown_start`), ``min_points`` (points of a minimal subset),
   ``change(old, new) -> float`` (how far the fit moved, default the largest residual change).
 
 Norms: :class:`Snooping` (data snooping with Student-t critical values and the readmission hysteresis),
@@ -290,7 +291,8 @@ def _start(problem, start, candidates, min_points, n_subsets: int, seed: int, to
         if _redundancy(problem, cand) >= 2 and int(cand.sum()) > m:
             idx = np.flatnonzero(cand)
             a, y, w = problem.start_design(idx)
-            inl, _, info = high_breakdown_start(a, y, w, min_points=m, n_subsets=n_subsets, seed=seed)
+            inl, _, info = high_breakdown_start(a, y, w, min_points=m, n_subsets=n_subsets, seed=seed,
+                                                normal=bool(getattr(problem, "start_normal", False)))
             start_sigma = info.get("lts_scale", 0.0)
             used = np.zeros(n, bool)
             used[idx[inl]] = True

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, Sequence, Tuple
+from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
@@ -51,6 +51,27 @@ def gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+#: Largest ``m x n`` matrix-vector product OpenBLAS computes on the calling thread (2304 x its
+#: GEMM_MULTITHREAD_THRESHOLD).
+GEMV_SERIAL_SIZE = 2304 * 4
+
+
+def rows_times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` of a tall ``a`` (n, p) and a small ``b`` (p,) or (p, q) in row blocks that BLAS computes on the
+    calling thread (:data:`GEMV_SERIAL_SIZE`, :data:`~gdal_gf4cal.threads.BLAS_SERIAL_SIZE`): each row of the
+    result is its own short dot product, so the blocks give the numbers of the one product (whose BLAS threads,
+    on a loaded machine, cost more CPU than the product)."""
+    n, p = a.shape
+    size = GEMV_SERIAL_SIZE if b.ndim == 1 else BLAS_SERIAL_SIZE // max(b.shape[1], 1)
+    step = max(1, size // max(p, 1) - 1)
+    if n <= step:
+        return a @ b
+    out = np.empty((n,) + b.shape[1:], dtype=np.result_type(a, b))
+    for i in range(0, n, step):
+        out[i:i + step] = a[i:i + step] @ b
+    return out
+
+
 def _free_mask(blocks: Dict[str, slice], frozen: Sequence[str], p: int) -> np.ndarray:
     free = np.ones(p, bool)
     for name in frozen:
@@ -72,28 +93,36 @@ def solve_normal_scaled(a: np.ndarray, y: np.ndarray, w: np.ndarray, hint: str =
     goes back to the SVD, so both solvers refuse the same layouts.
     Raises :class:`DegenerateGeometryError` (with the condition number) when the layout does not determine ``x``.
     """
+    (x,), n_inv, cond = _solve_scaled_many(a, [y], w, hint, max_condition, solver)
+    return x, n_inv, cond
+
+
+def _solve_scaled_many(a: np.ndarray, ys, w: np.ndarray, hint: str, max_condition: float, solver: str):
+    """:func:`solve_normal_scaled` of several right-hand sides ``ys`` on one decomposition of ``a`` and ``w``:
+    ``([x per y], N^-1, cond)``, each ``x`` bit for bit the one of its own call."""
     if solver not in ("svd", "normal"):
         raise ValueError(f"solver must be 'svd' or 'normal', not {solver!r}")
     s = np.zeros(0)
     if solver == "normal":
-        s, vt, rhs, scale = _scaled_normal_eig(a, y, np.where(w > 0, w, 0.0))
+        s, vt, project, scale = _scaled_normal_eig(a, np.where(w > 0, w, 0.0))
     if not (s.size and s[-1] > 0 and s[0] / s[-1] <= NORMAL_CONDITION):
         sw = np.sqrt(np.maximum(w, 0.0))
         aw = a * sw[:, None]
         scale = np.linalg.norm(aw, axis=0)
         scale = np.where(scale > 0, scale, 1.0)
         u, s, vt = np.linalg.svd(aw / scale, full_matrices=False)
-        rhs = u.T @ (y * sw)
+
+        def project(y):
+            return u.T @ (y * sw)
     cond = float(s[0] / s[-1]) if s.size and s[-1] > 0 else math.inf
     if not s.size or cond > max_condition:
         raise DegenerateGeometryError(
             f"the observations do not determine the parameters (condition number {cond:.3g}){hint}; add "
             "observations spread over the image or estimate fewer parameters")
-    z = (vt.T / s) @ rhs
-    x = z / scale
+    xs = [((vt.T / s) @ project(y)) / scale for y in ys]
     vs = vt.T / s
     n_inv = (vs @ vs.T) / np.outer(scale, scale)
-    return x, n_inv, cond
+    return xs, n_inv, cond
 
 
 #: Largest condition number (of the column-scaled design) solved through the normal matrix by
@@ -101,10 +130,11 @@ def solve_normal_scaled(a: np.ndarray, y: np.ndarray, w: np.ndarray, hint: str =
 NORMAL_CONDITION = 1e4
 
 
-def _scaled_normal_eig(a: np.ndarray, y: np.ndarray, w: np.ndarray):
-    """``(s, vt, u^T sqrt(w) y, scale)`` of the thin SVD ``sqrt(w) a / scale = u diag(s) vt`` (columns scaled to
-    unit weighted norm, singular values in decreasing order) from the eigen-decomposition of its normal matrix
-    ``A^T W A`` (:func:`gram`: rows of weight 0 drop out, no copy of the rows in the fit)."""
+def _scaled_normal_eig(a: np.ndarray, w: np.ndarray):
+    """``(s, vt, project, scale)`` of the thin SVD ``sqrt(w) a / scale = u diag(s) vt`` (columns scaled to unit
+    weighted norm, singular values in decreasing order) from the eigen-decomposition of its normal matrix
+    ``A^T W A`` (:func:`gram`: rows of weight 0 drop out, no copy of the rows in the fit); ``project(y)`` is
+    ``u^T sqrt(w) y``."""
     wa = a * w[:, None]
     nmat = gram(wa, a)
     scale = np.sqrt(np.maximum(np.diag(nmat), 0.0))
@@ -112,9 +142,11 @@ def _scaled_normal_eig(a: np.ndarray, y: np.ndarray, w: np.ndarray):
     ev, v = np.linalg.eigh(nmat / np.outer(scale, scale))
     ev, v = ev[::-1], v[:, ::-1]
     s = np.sqrt(np.maximum(ev, 0.0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rhs = np.where(s > 0, (v.T @ ((wa.T @ y) / scale)) / s, 0.0)
-    return s, v.T, rhs, scale
+
+    def project(y):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(s > 0, (v.T @ ((wa.T @ y) / scale)) / s, 0.0)
+    return s, v.T, project, scale
 
 
 def weighted_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), frozen: Sequence[str] = (),
@@ -153,16 +185,26 @@ def weighted_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), fro
     DegenerateGeometryError
         The layout does not determine the free parameters (the message gives the condition number).
     """
+    return weighted_lsq_many(design, [obs], weights, blocks=blocks, frozen=frozen, values=values, prior=prior,
+                             apriori=apriori, hint=hint, max_condition=max_condition, solver=solver)[0]
+
+
+def weighted_lsq_many(design, obs_seq, weights=None, *, blocks: Sequence[Block] = (), frozen: Sequence[str] = (),
+                      values=None, prior=None, apriori: bool = False, hint: str = "",
+                      max_condition: float = MAX_CONDITION, solver: str = "svd") -> List[Estimate]:
+    """:func:`weighted_lsq` of one design and weights with several observation vectors (e.g. the sample and the
+    line axis of a compensation on the same terms): one decomposition, one set of redundancy numbers; each
+    Estimate bit for bit the one of its own :func:`weighted_lsq` call."""
     a = np.asarray(design, dtype=float)
-    y = np.asarray(obs, dtype=float).ravel()
+    ys = [np.asarray(obs, dtype=float).ravel() for obs in obs_seq]
     n, p = a.shape
     w = np.ones(n) if weights is None else np.broadcast_to(np.asarray(weights, dtype=float), (n,)).copy()
     names, sl = names_and_blocks(blocks, p)
     if len(names) != p:
         raise DegenerateGeometryError(f"blocks name {len(names)} parameters but the design has {p} columns")
     free = _free_mask(sl, frozen, p)
-    x = np.zeros(p) if values is None else np.asarray(values, dtype=float).copy()
-    y_free = y - a[:, ~free] @ x[~free] if (~free).any() else y
+    x0 = np.zeros(p) if values is None else np.asarray(values, dtype=float).copy()
+    ys_free = [y - a[:, ~free] @ x0[~free] if (~free).any() else y for y in ys]
     af = a if free.all() else a[:, free]
     used = w > 0
     n_used = int(np.count_nonzero(used))
@@ -171,23 +213,31 @@ def weighted_lsq(design, obs, weights=None, *, blocks: Sequence[Block] = (), fro
         raise DegenerateGeometryError(f"{n_used} observations cannot determine {pf} parameters{hint}; add "
                                       "observations or freeze/estimate fewer parameters")
     if solver == "normal":          # the rows out of the fit (weight 0) drop out of its normal matrix: no copies
-        xf, n_inv, cond = solve_normal_scaled(af, y_free, w, hint, max_condition, solver)
+        xfs, n_inv, cond = _solve_scaled_many(af, ys_free, w, hint, max_condition, solver)
     else:
-        xf, n_inv, cond = solve_normal_scaled(af[used], y_free[used], w[used], hint, max_condition, solver)
-    x[free] = xf
-    v = y - a @ x
+        xfs, n_inv, cond = _solve_scaled_many(af[used], [y[used] for y in ys_free], w[used], hint, max_condition,
+                                              solver)
     dof = n_used - pf
-    sigma0 = float(math.sqrt(np.sum(w * v * v) / dof)) if dof > 0 else 1.0
-    q = np.sum((af @ n_inv) * af, axis=1)
+    q = np.sum(rows_times(af, n_inv) * af, axis=1)
     red = np.where(used, 1.0 - w * q, 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         w_out = np.ones(n) if prior is None else np.broadcast_to(np.asarray(prior, dtype=float), (n,))
         qv = np.where(used, red / np.where(used, w, 1.0), 1.0 / np.where(used, 1.0, w_out) + q)
-        norm = np.where(qv > 1e-12, v / (max(sigma0, 1e-300) * np.sqrt(np.abs(qv))), np.nan)
-    cov = np.zeros((p, p))
-    cov[np.ix_(free, free)] = n_inv if apriori else sigma0 ** 2 * n_inv
-    return Estimate(names=names, x=x, cov=cov, sigma0=sigma0, dof=dof, redundancy=red, residuals=v,
-                    normalised=norm, weights=w, blocks=sl, frozen=tuple(frozen), condition_number=cond)
+        sq = np.sqrt(np.abs(qv))
+    out = []
+    for y, xf in zip(ys, xfs):
+        x = x0.copy()
+        x[free] = xf
+        v = y - rows_times(a, x)
+        sigma0 = float(math.sqrt(np.sum(w * v * v) / dof)) if dof > 0 else 1.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            norm = np.where(qv > 1e-12, v / (max(sigma0, 1e-300) * sq), np.nan)
+        cov = np.zeros((p, p))
+        cov[np.ix_(free, free)] = n_inv if apriori else sigma0 ** 2 * n_inv
+        out.append(Estimate(names=list(names), x=x, cov=cov, sigma0=sigma0, dof=dof, redundancy=red, residuals=v,
+                            normalised=norm, weights=w, blocks=dict(sl), frozen=tuple(frozen),
+                            condition_number=cond))
+    return out
 
 
 def sigma0_and_cov(normal, vtpv: float, dof: int, *, apriori: bool = False) -> Tuple[float, np.ndarray]:

@@ -1,14 +1,15 @@
 """The fast paths of the normal equations (issue 23) give the numbers of the plain ones: ``lsq.gram`` (A^T B in
 row chunks on the calling thread) equals ``A.T @ B``; the LTS start (the reference for a faster one) finds the
 planted blunders whether the observation axes share no parameter (a compensation) or share one, and keeps the
-good points but the 0.1 % beyond its chi-square bound."""
+good points but the 0.1 % beyond its chi-square bound; its ``normal`` evaluation keeps its start;
+``weighted_lsq_many`` is each vector's own ``weighted_lsq``; ``lsq.rows_times`` is the plain product."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from gdal_gf4cal.estimation import high_breakdown_start
-from gdal_gf4cal.estimation.lsq import gram
+from gdal_gf4cal.estimation import Block, high_breakdown_start, weighted_lsq
+from gdal_gf4cal.estimation.lsq import gram, rows_times, weighted_lsq_many
 from gdal_gf4cal.threads import BLAS_SERIAL_SIZE
 
 
@@ -49,3 +50,43 @@ def test_lts_start_flags_the_planted_blunders(n, shared):
     assert int(np.sum(~inliers & ~bad)) <= 1 + 0.003 * n
     assert 0.4 < scale < 0.6                       # the 0.5 px noise
     assert info["searched_points"] == min(n, 120)
+
+
+@pytest.mark.parametrize("shared", [False, True])
+@pytest.mark.parametrize("n", [40, 3000])
+def test_lts_start_normal_evaluation_keeps_the_start(n, shared):
+    """``normal=True`` (compensation's: one A^T W A per point set) keeps the default's start set and scale."""
+    a, y, bad = _design(n, shared, seed=5)
+    w = np.random.default_rng(1).uniform(0.5, 2.0, y.shape)
+    inl, scale, info = high_breakdown_start(a, y, w)
+    inl_n, scale_n, info_n = high_breakdown_start(a, y, w, normal=True)
+    np.testing.assert_array_equal(inl_n, inl)
+    assert not np.any(inl_n & bad)
+    assert scale_n == pytest.approx(scale, rel=1e-12)
+    assert info_n.pop("lts_scale") == pytest.approx(info.pop("lts_scale"), rel=1e-12)
+    assert info_n == info
+
+
+@pytest.mark.parametrize("solver", ["svd", "normal"])
+def test_weighted_lsq_many_is_each_vectors_own_fit(solver):
+    """One decomposition for several observation vectors gives each vector's own weighted_lsq bit for bit (both
+    solvers, a frozen block, points left out)."""
+    rng = np.random.default_rng(4)
+    n = 3000                                                     # above the serial row blocks of rows_times
+    a = np.column_stack([np.ones(n), rng.uniform(-1, 1, (n, 3))])
+    ys = [a @ rng.normal(0, 3, 4) + rng.normal(0, 0.5, n) for _ in range(2)]
+    w = np.where(rng.random(n) < 0.1, 0.0, rng.uniform(0.5, 2.0, n))
+    kw = dict(blocks=[Block("b", ("c",)), Block("s", ("u", "v", "uv"))], frozen=["b"], values=[0.3, 0, 0, 0],
+              prior=np.ones(n), apriori=True, solver=solver)
+    for one, many in zip([weighted_lsq(a, y, w, **kw) for y in ys], weighted_lsq_many(a, ys, w, **kw)):
+        for name in ("x", "cov", "residuals", "normalised", "redundancy", "weights"):
+            np.testing.assert_array_equal(getattr(many, name), getattr(one, name))
+        assert (many.sigma0, many.dof, many.condition_number) == (one.sigma0, one.dof, one.condition_number)
+
+
+@pytest.mark.parametrize("q", [None, 1, 6])
+def test_rows_times_is_the_product(q):
+    rng = np.random.default_rng(6)
+    a = rng.normal(size=(50_000, 6))
+    b = rng.normal(size=6) if q is None else rng.normal(size=(6, q))
+    np.testing.assert_allclose(rows_times(a, b), a @ b, rtol=1e-13, atol=1e-13)
