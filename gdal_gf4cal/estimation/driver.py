@@ -355,12 +355,17 @@ def robust_fit(problem, *, norm: Any = None, start: Any = "lts", candidates=None
     try:
         est = problem.fit(st.weights)
     except DegenerateGeometryError:
-        if on_degenerate != "stop" or np.array_equal(st.weights > 0, st.candidates):
+        if np.array_equal(st.weights > 0, st.candidates):
             raise
-        st.info["degenerate"] = True                          # the start's set does not determine the model
+        # The start's set does not determine the model (a short piece of a piecewise model trimmed away; which
+        # near-equal set the start keeps can depend on rounding): start again from every candidate. "stop" keeps
+        # that estimate; "raise" goes on reweighting from it.
+        st.info["degenerate_start"] = True
         st.weights, st.start_out = st.candidates.astype(float), np.zeros(st.candidates.size, bool)
         est = problem.fit(st.weights)
-        max_iter = 0
+        if on_degenerate == "stop":
+            st.info["degenerate"] = True
+            max_iter = 0
     it = 0
     before = None                                         # the weights two steps ago
     for it in range(1, max_iter + 1):
