@@ -148,8 +148,10 @@ def make_layout(tab: pd.DataFrame, models: Mapping[str, object], sizes, model: s
 
 
 def make_rays(tab: pd.DataFrame, layout: ViewLayout, codes=None) -> Rays:
-    """The table's rows as :class:`Rays` (points in order of first appearance); ``codes``: the ids' codes
-    (:func:`check_inputs` ``return_codes``), else factorised here."""
+    """The table's rows as :class:`Rays` (points in order of first appearance), sorted by view then point
+    (``Rays.row``: each ray's table row): a view's rays are one slice, its sample and line rows each a group of the
+    grouped elimination in point order; ``codes``: the ids' codes (:func:`check_inputs` ``return_codes``), else
+    factorised here."""
     if codes is None:
         codes = {c: pd.factorize(tab[c])[0] for c in ("point_id", "image_id")}
     point = codes["point_id"]
@@ -168,7 +170,9 @@ def make_rays(tab: pd.DataFrame, layout: ViewLayout, codes=None) -> Rays:
     p_gcp = is_gcp[first]
     p_ctrl = np.ones(pids.size, bool)
     p_ctrl[p_gcp] = control[first][p_gcp]
-    return Rays(view=_view_codes(tab, layout.views, codes), point=point, slot=slot,
-                meas=np.stack([tab["sample"].to_numpy(float), tab["line"].to_numpy(float)], axis=1),
-                sigma=tab["sigma"].to_numpy(float), is_gcp=is_gcp, control=control, ground=ground,
-                point_ids=pids, point_is_gcp=p_gcp, point_control=p_ctrl, k=int(counts.max()))
+    view = _view_codes(tab, layout.views, codes)
+    by = np.lexsort((point, view))                          # by view, then point
+    return Rays(view=view[by], point=point[by], slot=slot[by],
+                meas=np.stack([tab["sample"].to_numpy(float)[by], tab["line"].to_numpy(float)[by]], axis=1),
+                sigma=tab["sigma"].to_numpy(float)[by], is_gcp=is_gcp[by], control=control[by], ground=ground,
+                point_ids=pids, point_is_gcp=p_gcp, point_control=p_ctrl, k=int(counts.max()), row=by)
