@@ -243,9 +243,9 @@ def _robust_priors(pb: BundleProblem, est: Estimate, robust: bool) -> Estimate:
 
 def _table(tab: pd.DataFrame, preds, est: Estimate) -> pd.DataFrame:
     """The observations with ``pred_/res_{sample,line}_{before,after}`` (``preds``: name -> (n, 2), table order),
-    ``weight``, ``outlier``, ``outlier_level``: the new columns joined at once (one block each kind, no copy per
-    column)."""
-    new = {}
+    ``weight``, ``outlier``, ``outlier_level``: one new frame, its columns consolidated once (the views' rows are
+    taken from it next: a frame of many blocks would consolidate then, a copy of the whole table)."""
+    new = {c: tab[c] for c in tab.columns}
     s, l = tab["sample"].to_numpy(float), tab["line"].to_numpy(float)
     for name, pred in preds.items():
         new[f"pred_sample_{name}"], new[f"pred_line_{name}"] = pred[:, 0], pred[:, 1]
@@ -255,7 +255,7 @@ def _table(tab: pd.DataFrame, preds, est: Estimate) -> pd.DataFrame:
     new["outlier"] = flag
     lvl = est.outlier_level if est.outlier_level is not None else np.full(len(tab), "")
     new["outlier_level"] = np.where(flag, np.asarray(lvl, str), "")
-    return pd.concat([tab, pd.DataFrame(new, index=tab.index)], axis=1)
+    return pd.DataFrame(new, index=tab.index)
 
 
 #: The Estimate's per-ray arrays, in the rays' order (by view, then point) during the fits, returned in the table's.

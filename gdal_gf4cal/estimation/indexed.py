@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import DegenerateGeometryError
+from ..threads import map_blocks
 
 __all__ = ["IndexedJacobian", "CHUNK_ELEMENTS", "solve_rows", "block_inverse"]
 
@@ -218,6 +219,11 @@ def _group_parts(point, vals, groups):
     return out
 
 
+def _sub(rows, i: int, j: int):
+    """Rows ``i:j`` of a group's ``rows`` (a slice or indices)."""
+    return slice(rows.start + i, rows.start + j) if isinstance(rows, slice) else rows[i:j]
+
+
 def _npg_groups(parts, jw, lo: int, hi: int, q: int, p: int) -> np.ndarray:
     """``N_pg`` of the points ``lo:hi`` transposed, ``(p, q, hi - lo)``: each group sets its columns of the points it
     sees (once each) by 1-D scatters."""
@@ -225,7 +231,7 @@ def _npg_groups(parts, jw, lo: int, hi: int, q: int, p: int) -> np.ndarray:
     for pts, rows, cols, a in parts:
         i, j = np.searchsorted(pts, [lo, hi])
         if j > i:
-            at, jwr, ar = pts[i:j] - lo, jw[rows[i:j]], a[i:j]
+            at, jwr, ar = pts[i:j] - lo, jw[_sub(rows, i, j)], a[i:j]
             for c in range(cols.stop - cols.start):
                 for k in range(q):
                     npg[cols.start + c, k, at] = jwr[:, k] * ar[:, c]
@@ -266,7 +272,7 @@ def _y_groups(parts, jw, low, lo: int, hi: int) -> np.ndarray:
     for g, (pts, rows, cols, a) in enumerate(parts):
         i, j = np.searchsorted(pts, [lo, hi])
         if j > i:
-            at, jr, ar = pts[i:j] - lo, jw[rows][i:j], a[i:j]
+            at, jr, ar = pts[i:j] - lo, jw[_sub(rows, i, j)], a[i:j]
             for k in range(q):
                 jwd[g, k, at] = jr[:, k]
             for k in range(cols.stop - cols.start):
@@ -274,6 +280,20 @@ def _y_groups(parts, jw, low, lo: int, hi: int) -> np.ndarray:
     lt = low[:, :, lo:hi]
     ld = np.stack([sum(lt[j, k] * jwd[:, j, :] for j in range(k, q)) for k in range(q)], axis=1)   # (G, q, m)
     return (ad[:, :, None, :] * ld[:, None, :, :]).reshape(len(parts) * c, q * m)
+
+
+def _points_share(parts, jw, low, inv0, pd_ok, sl: slice, p: int):
+    """The points ``sl``'s share of the reduced system: ``(Y Y^T, None)`` in the padded columns, or, with a block
+    not quite positive definite among them, ``(None, N_gp N_pp^-1 N_pg)``."""
+    if pd_ok[sl].all():
+        y = _y_groups(parts, jw, low, sl.start, sl.stop)
+        return y @ y.T, None                                                   # symmetric: BLAS syrk
+    q = jw.shape[1]
+    npg, blk = _npg_groups(parts, jw, sl.start, sl.stop, q, p), inv0[sl]
+    out = np.zeros((p, p))
+    for k in range(q):
+        out += npg[:, k, :] @ sum(blk[:, k, j] * npg[:, j, :] for j in range(q)).T
+    return None, out
 
 
 def _eliminate_groups(point, jw, r, w, vals, groups, npp, bp, inv, ok, p: int, extra, covariance: bool):
@@ -295,17 +315,16 @@ def _eliminate_groups(point, jw, r, w, vals, groups, npp, bp, inv, ok, p: int, e
         b_red[cols] -= a.T @ ju[rows]
     low = _cholesky_t(inv0)
     pd_ok = np.all(np.isfinite(low), axis=(0, 1))
-    s_pad = np.zeros((len(parts) * max(cols.stop - cols.start for _, _, cols, _ in parts),) * 2)
-    for sl in _chunks(n, q, p):
-        if pd_ok[sl].all():
-            y = _y_groups(parts, jw, low, sl.start, sl.stop)
-            s_pad += y @ y.T                                                   # symmetric: BLAS syrk
-        else:                                                                  # a block not quite PD: N_pp^-1 N_pg
-            npg, blk = _npg_groups(parts, jw, sl.start, sl.stop, q, p), inv0[sl]
-            for k in range(q):
-                t_k = sum(blk[:, k, j] * npg[:, j, :] for j in range(q))
-                s_mat = s_mat - npg[:, k, :] @ t_k.T
+    chunks = list(_chunks(n, q, p))
+    shares = map_blocks(lambda b: [_points_share(parts, jw, low, inv0, pd_ok, chunks[i], p)
+                                   for i in range(b.start, b.stop)], len(chunks), block=1)
     pad = _padded_columns(parts, p)
+    s_pad = np.zeros((pad.shape[0],) * 2)
+    for padded, direct in (share for blk in shares for share in blk):          # in chunk order, whatever threads
+        if padded is not None:
+            s_pad += padded
+        else:
+            s_mat = s_mat - direct
     dxg, cov_g = _solve_reduced(s_mat - pad.T @ s_pad @ pad, b_red)
     a_dx = np.zeros(point.size)                                                # each row's global move
     for _, rows, cols, a in parts:
