@@ -198,7 +198,7 @@ def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: st
     sizes = view_sizes(models, sizes)
     dem_obj = DEM.from_user_input(dem) if dem is not None else None
     tab, codes = check_inputs(observations, models, sizes, dem=dem_obj, return_codes=True)
-    layout = make_layout(tab, models, sizes, model, prior_sigma_px)
+    layout = make_layout(tab, models, sizes, model, prior_sigma_px, codes)
     rays = make_rays(tab, layout, codes)
     ground0, _, notes = start_ground(models, layout, rays, dem_obj)
     wts = base_weights(models, layout, rays, ground0, dem_obj, gcp_sigma_m=gcp_sigma_m, dem_sigma_m=dem_sigma_m)

@@ -48,25 +48,33 @@ def check_inputs(observations, models: Mapping[str, object], sizes, dem=None, re
         raise
     except Exception as exc:                                   # GCPError: one line already; re-raise as ours
         raise BundleError(str(exc)) from None
-    unknown = sorted(set(tab["image_id"]) - set(models))
+    img = codes["image_id"]
+    unknown = sorted(set(tab["image_id"].to_numpy()[_first_rows(img)]) - set(models))   # per image, not per row
     if unknown:
         raise BundleError(f"the ties name {len(unknown)} image(s) that are not among the views: {_short(unknown)}; "
                           f"views are {_short(models)} (give their RPCs or drop those rows)")
-    _check_inside(tab, sizes)
+    _check_inside(tab, sizes, img)
     _check_connected(tab, list(models), codes)
     return (tab, codes) if return_codes else tab
+
+
+def _first_rows(codes: np.ndarray) -> np.ndarray:
+    """The first row of each code ``0..max`` (codes in order of first appearance, as ``pd.factorize`` gives)."""
+    first = np.empty(int(codes.max()) + 1 if codes.size else 0, int)
+    first[codes[::-1]] = np.arange(codes.size - 1, -1, -1)                      # the first row written last
+    return first
 
 
 def _view_codes(tab: pd.DataFrame, views: List[str], codes) -> np.ndarray:
     """Each row's view index (-1: not a view) from the image ids' codes (one look-up per image, not per row)."""
     img = codes["image_id"]
-    names = tab["image_id"].to_numpy()[np.unique(img, return_index=True)[1]]    # code k's name
+    names = tab["image_id"].to_numpy()[_first_rows(img)]                         # code k's name
     vi = {v: i for i, v in enumerate(views)}
     return np.array([vi.get(n, -1) for n in names], int)[img]
 
 
-def _check_inside(tab: pd.DataFrame, sizes) -> None:
-    codes, names = pd.factorize(tab["image_id"])
+def _check_inside(tab: pd.DataFrame, sizes, codes: np.ndarray) -> None:
+    names = tab["image_id"].to_numpy()[_first_rows(codes)]
     wh = np.array([sizes[v] for v in names], float)
     w, h = wh[codes, 0], wh[codes, 1]
     s, l = tab["sample"].to_numpy(float), tab["line"].to_numpy(float)
@@ -109,9 +117,10 @@ def _span(s, l, size) -> Tuple[float, float]:
 
 
 def make_layout(tab: pd.DataFrame, models: Mapping[str, object], sizes, model: str = "affine",
-                prior=None) -> ViewLayout:
+                prior=None, codes=None) -> ViewLayout:
     """Views, the correction model each can support (affine/shift-drift fall back to translation where the ties do
-    not span :data:`MIN_SPAN` of the image on both axes) and the prior σ of each parameter."""
+    not span :data:`MIN_SPAN` of the image on both axes) and the prior σ of each parameter; ``codes``: the ids'
+    codes (:func:`check_inputs` ``return_codes``), else the image ids are looked up here."""
     base = CompensationModel.from_name(model)
     if base.name not in BUNDLE_MODELS:
         raise BundleError(f"bundle adjustment model must be one of {', '.join(BUNDLE_MODELS)}, not {model!r}")
@@ -121,7 +130,8 @@ def make_layout(tab: pd.DataFrame, models: Mapping[str, object], sizes, model: s
     priors: List[np.ndarray] = []
     notes: List[str] = []
     ctrl = (tab["role"] == "control").to_numpy()
-    code = pd.Categorical(tab["image_id"], categories=views).codes       # one pass, not one per view
+    code = (pd.Categorical(tab["image_id"], categories=views).codes if codes is None    # one pass, not per view
+            else _view_codes(tab, views, codes))
     order = np.argsort(np.where(ctrl, code, -1), kind="stable")
     bounds = np.searchsorted(np.where(ctrl, code, -1)[order], np.arange(len(views) + 1))
     s_all, l_all = tab["sample"].to_numpy(float), tab["line"].to_numpy(float)
