@@ -123,8 +123,8 @@ def _estimate(pb: BundleProblem, wts: Weights) -> Estimate:
     (:attr:`BundleProblem.sd_factor`: that standard deviation over the ray's σ)."""
     rays, sol = pb.rays, pb.solution
     v = rays.meas - pb.lin.pred
-    w0 = np.repeat(pb.base.rays[:, None], 2, axis=1)
-    w2 = np.repeat(wts.rays[:, None], 2, axis=1)
+    w0 = np.stack([pb.base.rays, pb.base.rays], axis=1)                # (n, 2): both axes
+    w2 = np.stack([wts.rays, wts.rays], axis=1)
     q, ok, pb.point_cov = _ray_variance(pb, wts.rays)
     lone = (wts.rays == 0) & ~ok[rays.point]              # rays left out whose point is undetermined without them
     q0 = _ray_variance(pb, pb.base.rays, lone)[0] if lone.any() else np.zeros_like(q)

@@ -121,22 +121,22 @@ def block_inverse(npp: np.ndarray, det_min: float = 1e-30, rel_det_min: float = 
         if ok.any():
             inv[ok] = np.linalg.inv(npp[ok])
         return inv, ok
-    a = [[npp[:, i, j] for j in range(3)] for i in range(3)]
-    adj = np.empty_like(npp)
+    a = np.ascontiguousarray(npp.transpose(1, 2, 0))          # (3, 3, n): the arithmetic runs along the blocks
+    adj = np.empty_like(a)
     for i in range(3):
         for j in range(3):
             r0, r1 = [k for k in range(3) if k != j]
             c0, c1 = [k for k in range(3) if k != i]
-            np.subtract(a[r0][c0] * a[r1][c1], a[r0][c1] * a[r1][c0], out=adj[:, i, j])
+            np.subtract(a[r0, c0] * a[r1, c1], a[r0, c1] * a[r1, c0], out=adj[i, j])
             if (i + j) % 2:
-                np.negative(adj[:, i, j], out=adj[:, i, j])
-    det = a[0][0] * adj[:, 0, 0] + a[0][1] * adj[:, 1, 0] + a[0][2] * adj[:, 2, 0]
-    scale = np.abs(a[0][0] * a[1][1] * a[2][2])
+                np.negative(adj[i, j], out=adj[i, j])
+    det = a[0, 0] * adj[0, 0] + a[0, 1] * adj[1, 0] + a[0, 2] * adj[2, 0]
+    scale = np.abs(a[0, 0] * a[1, 1] * a[2, 2])
     ok = (np.abs(det) > det_min) & (np.abs(det) > rel_det_min * scale)      # rank-deficient blocks (one ray left)
     ok &= np.isfinite(det) & np.isfinite(scale)
     with np.errstate(invalid="ignore", divide="ignore"):
-        inv = adj / np.where(ok, det, np.nan)[:, None, None]
-    return inv, ok
+        inv = adj / np.where(ok, det, np.nan)
+    return np.ascontiguousarray(inv.transpose(2, 0, 1)), ok
 
 
 def solve_indexed(jp, r, w, npp, bp, jac: IndexedJacobian, extra, covariance: bool, det_min: float = 1e-30):
