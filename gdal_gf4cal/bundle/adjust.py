@@ -97,23 +97,23 @@ def _ray_variance(pb: BundleProblem, w_rays: np.ndarray, rows=None):
     """``j^T N_pp^-1 j`` (n_rays, 2) of each ray through its point's own block at weights ``w_rays`` (the views'
     parameters held: the datum's uncertainty, shared by a point and the corrections, cancels in a residual), and
     which points the block determines; ``rows`` (bool, n_rays): only those rays' (the others 0)."""
-    rays, jac = pb.rays, pb.lin.jac_points
-    jw = jac * w_rays[:, None, None]
+    rays, jac = pb.rays, pb.lin.jac_points.transpose(2, 1, 0)          # (3, 2, n): the rays last
+    jw = jac * w_rays
     npp = np.empty((rays.n_points, 3, 3))
     for a in range(3):                                   # the 6 distinct entries, one bincount each
         for b in range(a, 3):
-            npp[:, a, b] = npp[:, b, a] = np.bincount(rays.point, weights=jw[:, 0, a] * jac[:, 0, b]
-                                                      + jw[:, 1, a] * jac[:, 1, b], minlength=rays.n_points)
+            npp[:, a, b] = npp[:, b, a] = np.bincount(rays.point, weights=jw[a, 0] * jac[b, 0]
+                                                      + jw[a, 1] * jac[b, 1], minlength=rays.n_points)
     npp[:, [0, 1, 2], [0, 1, 2]] += pb.base.ground
     inv, ok = block_inverse(npp)
-    out = np.zeros((rays.view.size, 2))
+    out = np.zeros((2, rays.view.size))
     sel = slice(None) if rows is None else np.flatnonzero(rows)
-    j, pt = jac[sel], rays.point[sel]
+    j, pt = jac[:, :, sel], rays.point[sel]
     for a in range(3):                                   # j^T inv j from the 6 distinct entries of each inverse
         for b in range(a, 3):
             f = np.nan_to_num(inv[:, a, b])[pt] * (1.0 if a == b else 2.0)
-            out[sel] += j[:, :, a] * j[:, :, b] * f[:, None]
-    return out, ok, inv
+            out[:, sel] += j[a] * j[b] * f
+    return np.ascontiguousarray(out.T), ok, inv
 
 
 def _estimate(pb: BundleProblem, wts: Weights) -> Estimate:
@@ -123,8 +123,8 @@ def _estimate(pb: BundleProblem, wts: Weights) -> Estimate:
     (:attr:`BundleProblem.sd_factor`: that standard deviation over the ray's σ)."""
     rays, sol = pb.rays, pb.solution
     v = rays.meas - pb.lin.pred
-    w0 = np.repeat(pb.base.rays[:, None], 2, axis=1)
-    w2 = np.repeat(wts.rays[:, None], 2, axis=1)
+    w0 = np.stack([pb.base.rays, pb.base.rays], axis=1)                # (n, 2): both axes
+    w2 = np.stack([wts.rays, wts.rays], axis=1)
     q, ok, pb.point_cov = _ray_variance(pb, wts.rays)
     lone = (wts.rays == 0) & ~ok[rays.point]              # rays left out whose point is undetermined without them
     q0 = _ray_variance(pb, pb.base.rays, lone)[0] if lone.any() else np.zeros_like(q)
@@ -198,7 +198,7 @@ def adjust_views(observations, models: Mapping[str, Any], *, dem=None, model: st
     sizes = view_sizes(models, sizes)
     dem_obj = DEM.from_user_input(dem) if dem is not None else None
     tab, codes = check_inputs(observations, models, sizes, dem=dem_obj, return_codes=True)
-    layout = make_layout(tab, models, sizes, model, prior_sigma_px)
+    layout = make_layout(tab, models, sizes, model, prior_sigma_px, codes)
     rays = make_rays(tab, layout, codes)
     ground0, _, notes = start_ground(models, layout, rays, dem_obj)
     wts = base_weights(models, layout, rays, ground0, dem_obj, gcp_sigma_m=gcp_sigma_m, dem_sigma_m=dem_sigma_m)
@@ -241,18 +241,37 @@ def _robust_priors(pb: BundleProblem, est: Estimate, robust: bool) -> Estimate:
     return est
 
 
-def _table(tab: pd.DataFrame, before, after, est: Estimate) -> pd.DataFrame:
-    out = tab.copy()
-    for name, lin in (("before", before), ("after", after)):
-        out[f"pred_sample_{name}"], out[f"pred_line_{name}"] = lin.pred[:, 0], lin.pred[:, 1]
-        out[f"res_sample_{name}"] = out["sample"].to_numpy(float) - lin.pred[:, 0]
-        out[f"res_line_{name}"] = out["line"].to_numpy(float) - lin.pred[:, 1]
-    out["weight"] = est.weights[:, 0]
-    flag = np.zeros(len(out), bool) if est.outlier is None else np.asarray(est.outlier, bool)
-    out["outlier"] = flag
-    lvl = est.outlier_level if est.outlier_level is not None else np.full(len(out), "")
-    out["outlier_level"] = np.where(flag, np.asarray(lvl, str), "")
-    return out
+def _table(tab: pd.DataFrame, preds, est: Estimate) -> pd.DataFrame:
+    """The observations with ``pred_/res_{sample,line}_{before,after}`` (``preds``: name -> (n, 2), table order),
+    ``weight``, ``outlier``, ``outlier_level``: one new frame, its columns consolidated once (the views' rows are
+    taken from it next: a frame of many blocks would consolidate then, a copy of the whole table)."""
+    new = {c: tab[c] for c in tab.columns}
+    s, l = tab["sample"].to_numpy(float), tab["line"].to_numpy(float)
+    for name, pred in preds.items():
+        new[f"pred_sample_{name}"], new[f"pred_line_{name}"] = pred[:, 0], pred[:, 1]
+        new[f"res_sample_{name}"], new[f"res_line_{name}"] = s - pred[:, 0], l - pred[:, 1]
+    new["weight"] = est.weights[:, 0]
+    flag = np.zeros(len(tab), bool) if est.outlier is None else np.asarray(est.outlier, bool)
+    new["outlier"] = flag
+    lvl = est.outlier_level if est.outlier_level is not None else np.full(len(tab), "")
+    new["outlier_level"] = np.where(flag, np.asarray(lvl, str), "")
+    return pd.DataFrame(new, index=tab.index)
+
+
+#: The Estimate's per-ray arrays, in the rays' order (by view, then point) during the fits, returned in the table's.
+_PER_RAY = ("redundancy", "residuals", "normalised", "weights", "outlier", "outlier_level", "point_weights")
+
+
+def _in_table_order(est: Estimate, rays) -> Estimate:
+    n = rays.view.size
+    for f in _PER_RAY:
+        a = getattr(est, f)
+        if a is not None and np.ndim(a) >= 1 and len(a) == n:
+            setattr(est, f, rays.to_table_order(np.asarray(a)))
+    z = est.norm_info.get("z")
+    if z is not None and np.ndim(z) == 1 and len(z) == n:
+        est.norm_info["z"] = rays.to_table_order(np.asarray(z))
+    return est
 
 
 def _points(pb: BundleProblem, ground0: np.ndarray, sigma0: float) -> pd.DataFrame:
@@ -271,14 +290,17 @@ def _points(pb: BundleProblem, ground0: np.ndarray, sigma0: float) -> pd.DataFra
 def _result(est: Estimate, pb: BundleProblem, tab, before, ground0, notes: List[str]) -> BundleEstimate:
     layout, rays = pb.layout, pb.rays
     after = pb.lin                                    # the predictions at the final state (one projection fewer)
-    table = _table(tab, before, after, est)
-    used = (est.weights[:, 0] > 0) & ~table["outlier"].to_numpy(bool)
+    used = (est.weights[:, 0] > 0) & ~(np.zeros(rays.view.size, bool) if est.outlier is None
+                                       else np.asarray(est.outlier, bool))
     used_b = used if used.any() else rays.control
     rep = {"before": reprojection(rays.meas - before.pred, rays, layout, used_b),
            "after": reprojection(rays.meas - after.pred, rays, layout, used_b)}
     drift, drift_enu = datum_drift(ground0, pb.state.ground, np.flatnonzero(~rays.point_is_gcp))
-    by_view = np.argsort(rays.view, kind="stable")                      # each view's rows in table order
-    cut = np.searchsorted(rays.view[by_view], np.arange(len(layout.views) + 1))
+    est = _in_table_order(est, rays)
+    table = _table(tab, {"before": rays.to_table_order(before.pred), "after": rays.to_table_order(after.pred)}, est)
+    view = rays.to_table_order(rays.view)
+    by_view = np.argsort(view, kind="stable")                           # each view's rows in table order
+    cut = np.searchsorted(view[by_view], np.arange(len(layout.views) + 1))
     corrections = {v: view_correction(layout, v, est.x, est.cov, est.sigma0, table, by_view[cut[j]:cut[j + 1]])
                    for j, v in enumerate(layout.views)}
     out = BundleEstimate(**{f: getattr(est, f) for f in Estimate.__dataclass_fields__})

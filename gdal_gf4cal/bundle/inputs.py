@@ -48,25 +48,33 @@ def check_inputs(observations, models: Mapping[str, object], sizes, dem=None, re
         raise
     except Exception as exc:                                   # GCPError: one line already; re-raise as ours
         raise BundleError(str(exc)) from None
-    unknown = sorted(set(tab["image_id"]) - set(models))
+    img = codes["image_id"]
+    unknown = sorted(set(tab["image_id"].to_numpy()[_first_rows(img)]) - set(models))   # per image, not per row
     if unknown:
         raise BundleError(f"the ties name {len(unknown)} image(s) that are not among the views: {_short(unknown)}; "
                           f"views are {_short(models)} (give their RPCs or drop those rows)")
-    _check_inside(tab, sizes)
+    _check_inside(tab, sizes, img)
     _check_connected(tab, list(models), codes)
     return (tab, codes) if return_codes else tab
+
+
+def _first_rows(codes: np.ndarray) -> np.ndarray:
+    """The first row of each code ``0..max`` (codes in order of first appearance, as ``pd.factorize`` gives)."""
+    first = np.empty(int(codes.max()) + 1 if codes.size else 0, int)
+    first[codes[::-1]] = np.arange(codes.size - 1, -1, -1)                      # the first row written last
+    return first
 
 
 def _view_codes(tab: pd.DataFrame, views: List[str], codes) -> np.ndarray:
     """Each row's view index (-1: not a view) from the image ids' codes (one look-up per image, not per row)."""
     img = codes["image_id"]
-    names = tab["image_id"].to_numpy()[np.unique(img, return_index=True)[1]]    # code k's name
+    names = tab["image_id"].to_numpy()[_first_rows(img)]                         # code k's name
     vi = {v: i for i, v in enumerate(views)}
     return np.array([vi.get(n, -1) for n in names], int)[img]
 
 
-def _check_inside(tab: pd.DataFrame, sizes) -> None:
-    codes, names = pd.factorize(tab["image_id"])
+def _check_inside(tab: pd.DataFrame, sizes, codes: np.ndarray) -> None:
+    names = tab["image_id"].to_numpy()[_first_rows(codes)]
     wh = np.array([sizes[v] for v in names], float)
     w, h = wh[codes, 0], wh[codes, 1]
     s, l = tab["sample"].to_numpy(float), tab["line"].to_numpy(float)
@@ -109,9 +117,10 @@ def _span(s, l, size) -> Tuple[float, float]:
 
 
 def make_layout(tab: pd.DataFrame, models: Mapping[str, object], sizes, model: str = "affine",
-                prior=None) -> ViewLayout:
+                prior=None, codes=None) -> ViewLayout:
     """Views, the correction model each can support (affine/shift-drift fall back to translation where the ties do
-    not span :data:`MIN_SPAN` of the image on both axes) and the prior σ of each parameter."""
+    not span :data:`MIN_SPAN` of the image on both axes) and the prior σ of each parameter; ``codes``: the ids'
+    codes (:func:`check_inputs` ``return_codes``), else the image ids are looked up here."""
     base = CompensationModel.from_name(model)
     if base.name not in BUNDLE_MODELS:
         raise BundleError(f"bundle adjustment model must be one of {', '.join(BUNDLE_MODELS)}, not {model!r}")
@@ -121,7 +130,8 @@ def make_layout(tab: pd.DataFrame, models: Mapping[str, object], sizes, model: s
     priors: List[np.ndarray] = []
     notes: List[str] = []
     ctrl = (tab["role"] == "control").to_numpy()
-    code = pd.Categorical(tab["image_id"], categories=views).codes       # one pass, not one per view
+    code = (pd.Categorical(tab["image_id"], categories=views).codes if codes is None    # one pass, not per view
+            else _view_codes(tab, views, codes))
     order = np.argsort(np.where(ctrl, code, -1), kind="stable")
     bounds = np.searchsorted(np.where(ctrl, code, -1)[order], np.arange(len(views) + 1))
     s_all, l_all = tab["sample"].to_numpy(float), tab["line"].to_numpy(float)
@@ -148,8 +158,10 @@ def make_layout(tab: pd.DataFrame, models: Mapping[str, object], sizes, model: s
 
 
 def make_rays(tab: pd.DataFrame, layout: ViewLayout, codes=None) -> Rays:
-    """The table's rows as :class:`Rays` (points in order of first appearance); ``codes``: the ids' codes
-    (:func:`check_inputs` ``return_codes``), else factorised here."""
+    """The table's rows as :class:`Rays` (points in order of first appearance), sorted by view then point
+    (``Rays.row``: each ray's table row): a view's rays are one slice, its sample and line rows each a group of the
+    grouped elimination in point order; ``codes``: the ids' codes (:func:`check_inputs` ``return_codes``), else
+    factorised here."""
     if codes is None:
         codes = {c: pd.factorize(tab[c])[0] for c in ("point_id", "image_id")}
     point = codes["point_id"]
@@ -168,7 +180,9 @@ def make_rays(tab: pd.DataFrame, layout: ViewLayout, codes=None) -> Rays:
     p_gcp = is_gcp[first]
     p_ctrl = np.ones(pids.size, bool)
     p_ctrl[p_gcp] = control[first][p_gcp]
-    return Rays(view=_view_codes(tab, layout.views, codes), point=point, slot=slot,
-                meas=np.stack([tab["sample"].to_numpy(float), tab["line"].to_numpy(float)], axis=1),
-                sigma=tab["sigma"].to_numpy(float), is_gcp=is_gcp, control=control, ground=ground,
-                point_ids=pids, point_is_gcp=p_gcp, point_control=p_ctrl, k=int(counts.max()))
+    view = _view_codes(tab, layout.views, codes)
+    by = np.lexsort((point, view))                          # by view, then point
+    return Rays(view=view[by], point=point[by], slot=slot[by],
+                meas=np.stack([tab["sample"].to_numpy(float)[by], tab["line"].to_numpy(float)[by]], axis=1),
+                sigma=tab["sigma"].to_numpy(float)[by], is_gcp=is_gcp[by], control=control[by], ground=ground,
+                point_ids=pids, point_is_gcp=p_gcp, point_control=p_ctrl, k=int(counts.max()), row=by)

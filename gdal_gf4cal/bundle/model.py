@@ -14,7 +14,8 @@ three ground rows (east, north, up prior: a GCP's known ground, the DEM's weak h
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, List, Tuple
+from functools import cached_property
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -87,8 +88,9 @@ class ViewLayout:
         ts, tl = self.models_used[view].terms
         return monomials(ts, u, v), monomials(tl, u, v)
 
-    def correction(self, view: str, x, s, l):
-        """``(ds, dl)`` and ``d(ds, dl)/d(s, l)`` (..., 2, 2) of the view's correction at predicted ``(s, l)``."""
+    def correction(self, view: str, x, s, l, design: bool = False):
+        """``(ds, dl)`` and ``d(ds, dl)/d(s, l)`` (..., 2, 2) of the view's correction at predicted ``(s, l)``;
+        with ``design`` also :meth:`design` there (the same monomials)."""
         s0, ss, l0, ls = self.frame(view)
         u, v = (np.asarray(s, float) - s0) / ss, (np.asarray(l, float) - l0) / ls
         ts, tl = self.models_used[view].terms
@@ -99,7 +101,8 @@ class ViewLayout:
         jac = np.empty(np.shape(u) + (2, 2))
         jac[..., 0, 0], jac[..., 0, 1] = dsu @ cs / ss, dsv @ cs / ls
         jac[..., 1, 0], jac[..., 1, 1] = dlu @ cl / ss, dlv @ cl / ls
-        return monomials(ts, u, v) @ cs, monomials(tl, u, v) @ cl, jac
+        a_s, a_l = monomials(ts, u, v), monomials(tl, u, v)
+        return (a_s @ cs, a_l @ cl, jac) + (((a_s, a_l),) if design else ())
 
 
 @dataclass
@@ -107,7 +110,10 @@ class Rays:
     """The observation rows as arrays: ``view`` (index into the layout's views), ``point`` (index into
     ``point_ids``), ``slot`` (the ray's place in its point's padded rows), ``meas`` (n, 2), ``sigma``,
     ``is_gcp``, ``control`` (enters the estimate), ``ground`` (n_points, 3: GCPs' lon, lat, h; NaN for ties),
-    ``point_ids``, ``point_is_gcp``, ``point_control``, ``k`` (largest number of rays of one point)."""
+    ``point_ids``, ``point_is_gcp``, ``point_control``, ``k`` (largest number of rays of one point), ``row`` (each
+    ray's row in the observation table; None: the same order). :func:`~gdal_gf4cal.bundle.inputs.make_rays` sorts
+    the rays by view, then point: a view's rays are then one slice (:meth:`view_rows`), in the order of its
+    points."""
 
     view: np.ndarray
     point: np.ndarray
@@ -121,6 +127,26 @@ class Rays:
     point_is_gcp: np.ndarray
     point_control: np.ndarray
     k: int
+    row: Optional[np.ndarray] = None
+
+    @cached_property
+    def _by_view(self) -> bool:
+        return not (self.view.size > 1 and bool(np.any(self.view[1:] < self.view[:-1])))
+
+    def view_rows(self, j: int):
+        """The rays of view ``j``: a slice when the rays are sorted by view, else their indices."""
+        if not self._by_view:
+            return np.flatnonzero(self.view == j)
+        a, b = np.searchsorted(self.view, [j, j + 1])
+        return slice(int(a), int(b))
+
+    def to_table_order(self, a: np.ndarray) -> np.ndarray:
+        """Per-ray values ``a`` (first axis: the rays) in the observation table's row order."""
+        if self.row is None:
+            return a
+        out = np.empty_like(a)
+        out[self.row] = a
+        return out
 
     @property
     def n_points(self) -> int:
@@ -138,7 +164,8 @@ class Rays:
         return Rays(view=self.view[r], point=new[self.point[r]], slot=self.slot[r], meas=self.meas[r],
                     sigma=self.sigma[r], is_gcp=self.is_gcp[r], control=self.control[r], ground=self.ground[points],
                     point_ids=self.point_ids[points], point_is_gcp=self.point_is_gcp[points],
-                    point_control=self.point_control[points], k=self.k)
+                    point_control=self.point_control[points], k=self.k,
+                    row=None if self.row is None else self.row[r])
 
     def flat_rows(self, axis: int) -> np.ndarray:
         """Each ray's row (``axis`` 0: sample, 1: line) in the flattened padded layout ``(n_points * R)``."""

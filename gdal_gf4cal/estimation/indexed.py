@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import DegenerateGeometryError
+from ..threads import map_blocks
 
 __all__ = ["IndexedJacobian", "CHUNK_ELEMENTS", "solve_rows", "block_inverse"]
 
@@ -120,22 +121,22 @@ def block_inverse(npp: np.ndarray, det_min: float = 1e-30, rel_det_min: float = 
         if ok.any():
             inv[ok] = np.linalg.inv(npp[ok])
         return inv, ok
-    a = [[npp[:, i, j] for j in range(3)] for i in range(3)]
-    adj = np.empty_like(npp)
+    a = np.ascontiguousarray(npp.transpose(1, 2, 0))          # (3, 3, n): the arithmetic runs along the blocks
+    adj = np.empty_like(a)
     for i in range(3):
         for j in range(3):
             r0, r1 = [k for k in range(3) if k != j]
             c0, c1 = [k for k in range(3) if k != i]
-            np.subtract(a[r0][c0] * a[r1][c1], a[r0][c1] * a[r1][c0], out=adj[:, i, j])
+            np.subtract(a[r0, c0] * a[r1, c1], a[r0, c1] * a[r1, c0], out=adj[i, j])
             if (i + j) % 2:
-                np.negative(adj[:, i, j], out=adj[:, i, j])
-    det = a[0][0] * adj[:, 0, 0] + a[0][1] * adj[:, 1, 0] + a[0][2] * adj[:, 2, 0]
-    scale = np.abs(a[0][0] * a[1][1] * a[2][2])
+                np.negative(adj[i, j], out=adj[i, j])
+    det = a[0, 0] * adj[0, 0] + a[0, 1] * adj[1, 0] + a[0, 2] * adj[2, 0]
+    scale = np.abs(a[0, 0] * a[1, 1] * a[2, 2])
     ok = (np.abs(det) > det_min) & (np.abs(det) > rel_det_min * scale)      # rank-deficient blocks (one ray left)
     ok &= np.isfinite(det) & np.isfinite(scale)
     with np.errstate(invalid="ignore", divide="ignore"):
-        inv = adj / np.where(ok, det, np.nan)[:, None, None]
-    return inv, ok
+        inv = adj / np.where(ok, det, np.nan)
+    return np.ascontiguousarray(inv.transpose(2, 0, 1)), ok
 
 
 def solve_indexed(jp, r, w, npp, bp, jac: IndexedJacobian, extra, covariance: bool, det_min: float = 1e-30):
@@ -204,16 +205,23 @@ def _add_extra(ngg, bg, extra):
 
 
 def _group_parts(point, vals, groups):
-    """Each group's rows sorted by point: ``(points, rows, cols slice, vals (n_g, width))``."""
+    """Each group's rows sorted by point: ``(points, rows, cols slice, vals (n_g, width))`` (``rows`` a slice, and
+    the rest views, when the group's rows are one slice already in point order)."""
     out = []
     for rows, cols in groups:
-        rows = np.asarray(rows)
+        rows = rows if isinstance(rows, slice) else np.asarray(rows)
         pts = point[rows]
         if pts.size > 1 and np.any(pts[1:] < pts[:-1]):
+            rows = np.arange(rows.start, rows.stop) if isinstance(rows, slice) else rows
             o = np.argsort(pts, kind="stable")
             rows, pts = rows[o], pts[o]
         out.append((pts, rows, cols, vals[rows, :cols.stop - cols.start]))
     return out
+
+
+def _sub(rows, i: int, j: int):
+    """Rows ``i:j`` of a group's ``rows`` (a slice or indices)."""
+    return slice(rows.start + i, rows.start + j) if isinstance(rows, slice) else rows[i:j]
 
 
 def _npg_groups(parts, jw, lo: int, hi: int, q: int, p: int) -> np.ndarray:
@@ -223,7 +231,7 @@ def _npg_groups(parts, jw, lo: int, hi: int, q: int, p: int) -> np.ndarray:
     for pts, rows, cols, a in parts:
         i, j = np.searchsorted(pts, [lo, hi])
         if j > i:
-            at, jwr, ar = pts[i:j] - lo, jw[rows[i:j]], a[i:j]
+            at, jwr, ar = pts[i:j] - lo, jw[_sub(rows, i, j)], a[i:j]
             for c in range(cols.stop - cols.start):
                 for k in range(q):
                     npg[cols.start + c, k, at] = jwr[:, k] * ar[:, c]
@@ -246,10 +254,52 @@ def _cholesky_t(inv0: np.ndarray) -> np.ndarray:
     return low
 
 
+def _padded_columns(parts, p: int) -> np.ndarray:
+    """``M`` (G c, p): column ``c`` of group ``g`` in the padded layout (``c`` the widest group) -> its parameter."""
+    c = max(cols.stop - cols.start for _, _, cols, _ in parts)
+    m = np.zeros((len(parts) * c, p))
+    for g, (_, _, cols, _) in enumerate(parts):
+        m[g * c + np.arange(cols.stop - cols.start), np.arange(cols.start, cols.stop)] = 1.0
+    return m
+
+
+def _y_groups(parts, jw, low, lo: int, hi: int) -> np.ndarray:
+    """``Y^T = (L^T N_pg)^T`` of the points ``lo:hi`` in the padded columns (:func:`_padded_columns`), ``(G c,
+    q (hi - lo))``: each group's ``w jp`` and ``a`` placed densely by point (1-D scatters), ``L^T w jp`` then
+    ``(L^T w jp) a^T`` per point and group, dense."""
+    m, q, c = hi - lo, jw.shape[1], max(cols.stop - cols.start for _, _, cols, _ in parts)
+    jwd, ad = np.zeros((len(parts), q, m)), np.zeros((len(parts), c, m))
+    for g, (pts, rows, cols, a) in enumerate(parts):
+        i, j = np.searchsorted(pts, [lo, hi])
+        if j > i:
+            at, jr, ar = pts[i:j] - lo, jw[_sub(rows, i, j)], a[i:j]
+            for k in range(q):
+                jwd[g, k, at] = jr[:, k]
+            for k in range(cols.stop - cols.start):
+                ad[g, k, at] = ar[:, k]
+    lt = low[:, :, lo:hi]
+    ld = np.stack([sum(lt[j, k] * jwd[:, j, :] for j in range(k, q)) for k in range(q)], axis=1)   # (G, q, m)
+    return (ad[:, :, None, :] * ld[:, None, :, :]).reshape(len(parts) * c, q * m)
+
+
+def _points_share(parts, jw, low, inv0, pd_ok, sl: slice, p: int):
+    """The points ``sl``'s share of the reduced system: ``(Y Y^T, None)`` in the padded columns, or, with a block
+    not quite positive definite among them, ``(None, N_gp N_pp^-1 N_pg)``."""
+    if pd_ok[sl].all():
+        y = _y_groups(parts, jw, low, sl.start, sl.stop)
+        return y @ y.T, None                                                   # symmetric: BLAS syrk
+    q = jw.shape[1]
+    npg, blk = _npg_groups(parts, jw, sl.start, sl.stop, q, p), inv0[sl]
+    out = np.zeros((p, p))
+    for k in range(q):
+        out += npg[:, k, :] @ sum(blk[:, k, j] * npg[:, j, :] for j in range(q)).T
+    return None, out
+
+
 def _eliminate_groups(point, jw, r, w, vals, groups, npp, bp, inv, ok, p: int, extra, covariance: bool):
     """:func:`_eliminate` for rows in groups (:func:`solve_rows`): the same reduced system, by slices; the
     points' share ``N_gp N_pp^-1 N_pg = Y^T Y`` with ``Y = L^T N_pg`` (``L L^T = N_pp^-1``), one symmetric
-    product per chunk."""
+    product per chunk (a chunk with a block not quite positive definite: ``N_gp N_pp^-1 N_pg`` as it is)."""
     n, q = bp.shape
     parts = _group_parts(point, vals, groups)
     ngg, bg = np.zeros((p, p)), np.zeros(p)
@@ -260,25 +310,26 @@ def _eliminate_groups(point, jw, r, w, vals, groups, npp, bp, inv, ok, p: int, e
     s_mat, b_red = _add_extra(ngg, bg, extra)
     inv0 = np.where(ok[:, None, None], np.nan_to_num(inv), 0.0)
     u = np.matmul(inv0, bp[:, :, None])[:, :, 0]                               # N_pp^-1 b_p
-    for sl in _chunks(n, q, p):
-        npg = _npg_groups(parts, jw, sl.start, sl.stop, q, p)
-        low = _cholesky_t(inv0[sl])
-        if np.all(np.isfinite(low)):
-            y = np.empty((p, q, sl.stop - sl.start))
-            for k in range(q):
-                y[:, k, :] = sum(low[j, k] * npg[:, j, :] for j in range(k, q))
-            y = y.reshape(p, -1)
-            s_mat = s_mat - y @ y.T                                            # symmetric: BLAS syrk
-        else:                                                                  # a block not quite PD: N_pp^-1 N_pg
-            blk = inv0[sl]
-            for k in range(q):
-                t_k = sum(blk[:, k, j] * npg[:, j, :] for j in range(q))
-                s_mat = s_mat - npg[:, k, :] @ t_k.T
-        b_red = b_red - np.einsum("pkn,nk->p", npg, u[sl])
-    dxg, cov_g = _solve_reduced(s_mat, b_red)
-    rhs = bp.copy()
-    for pts, rows, cols, a in parts:
-        rhs[pts] -= jw[rows] * (a @ dxg[cols])[:, None]
+    ju = sum(jw[:, k] * u[:, k][point] for k in range(q))                     # (w jp) . N_pp^-1 b_p per row
+    for _, rows, cols, a in parts:                                             # N_gp N_pp^-1 b_p
+        b_red[cols] -= a.T @ ju[rows]
+    low = _cholesky_t(inv0)
+    pd_ok = np.all(np.isfinite(low), axis=(0, 1))
+    chunks = list(_chunks(n, q, p))
+    shares = map_blocks(lambda b: [_points_share(parts, jw, low, inv0, pd_ok, chunks[i], p)
+                                   for i in range(b.start, b.stop)], len(chunks), block=1)
+    pad = _padded_columns(parts, p)
+    s_pad = np.zeros((pad.shape[0],) * 2)
+    for padded, direct in (share for blk in shares for share in blk):          # in chunk order, whatever threads
+        if padded is not None:
+            s_pad += padded
+        else:
+            s_mat = s_mat - direct
+    dxg, cov_g = _solve_reduced(s_mat - pad.T @ s_pad @ pad, b_red)
+    a_dx = np.zeros(point.size)                                                # each row's global move
+    for _, rows, cols, a in parts:
+        a_dx[rows] = a @ dxg[cols]
+    rhs = bp - np.stack([np.bincount(point, weights=jw[:, k] * a_dx, minlength=n) for k in range(q)], axis=1)
     dxp = np.full((n, q), np.nan)
     dxp[ok] = np.matmul(inv[ok], rhs[ok][:, :, None])[:, :, 0]
     cov_p = inv.copy() if covariance else np.empty((0, q, q))
