@@ -99,6 +99,14 @@ def taper(shape: Tuple[int, int], kind: str = "hann", alpha: float = 0.5) -> np.
     return np.outer(_taper_1d(int(shape[0]), kind, alpha), _taper_1d(int(shape[1]), kind, alpha))
 
 
+def _dot(a, v):
+    """``a @ v`` for a stack ``a (n, k)`` and ``v (k,)`` or ``(k, m)`` without BLAS: the same rounding whatever the
+    OpenBLAS kernel or thread count (a float32 ``sgemv`` differs by ~1e-7 px between them)."""
+    if v.ndim == 1:
+        return np.einsum("nk,k->n", a, v)
+    return np.stack([np.einsum("nk,k->n", a, np.ascontiguousarray(v[:, j])) for j in range(v.shape[1])], axis=1)
+
+
 @lru_cache(maxsize=16)
 def _taper32(h: int, w: int, kind: str):
     """The taper in float32, flattened, and its sum (cached: built once per window size)."""
@@ -129,7 +137,7 @@ def spectra(a: np.ndarray, window: str = "hann") -> Spectra:
     a = np.asarray(a, dtype=np.float32)
     n, h, w = a.shape
     win, wflat, wsum = _taper32(h, w, window)
-    mean = (a.reshape(n, h * w) @ wflat) / wsum
+    mean = _dot(a.reshape(n, h * w), wflat) / wsum
     p = (a - mean[:, None, None]) * win
     energy = np.einsum("nij,nij->n", p, p, dtype=np.float64)
     return Spectra(sfft.rfft2(p, workers=1), energy, (h, w))
@@ -236,9 +244,9 @@ class Peaks:
         zc = zr * inv                        # cos(res)
         zs = np.ascontiguousarray(z.imag).reshape(n, K) * inv  # sin(res)
         # |cross| cos(res) summed with the multiplicity: the cross term of Parseval.
-        num = (zr @ K1[:, 0]).astype(np.float64)
-        c1 = (zc @ K1[:, 1:]).astype(np.float64)              # sum W (2 pi f)^2 m cos(res), per axis
-        s2 = ((zs * zs) @ K2).astype(np.float64)              # sum W^2 (2 pi f)^2 m sin^2(res), per axis
+        num = _dot(zr, K1[:, 0]).astype(np.float64)
+        c1 = _dot(zc, K1[:, 1:]).astype(np.float64)            # sum W (2 pi f)^2 m cos(res), per axis
+        s2 = _dot(zs * zs, K2).astype(np.float64)            # sum W^2 (2 pi f)^2 m sin^2(res), per axis
         # Parseval: the full spectrum's energy is h w times the window's sum of squares.
         ef = F.energy[idx] * (h * w)
         eg = G.energy[idx] * (h * w)
