@@ -7,6 +7,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..errors import DegenerateGeometryError
 from ..estimation import Estimate, LinearProblem, Snooping, robust_fit, weighted_lsq
 from ..progress import report
 from ..stats import axis_stats, share_within
@@ -72,10 +73,15 @@ def _weights(c) -> np.ndarray:
 
 def _robust_step(a, y, w, usable, blocks, frozen, values, hint) -> Estimate:
     """A robust estimate of the one robust driver (high-breakdown start + data snooping) over the usable cells;
-    NaN offsets (cells left out) enter as 0 with weight 0."""
+    NaN offsets (cells left out) enter as 0 with weight 0. When the start's half of the cells does not determine
+    the model (a sub-CCD piece a few cells wide, left with too few columns: whether it is depends on the last bits
+    of the cells), snooping starts from all of them."""
     problem = LinearProblem(a, np.where(np.isfinite(y), y, 0.0), w, blocks=blocks, frozen=frozen, values=values,
                             hint=hint)
-    return robust_fit(problem, norm=Snooping(4.0), start="lts", candidates=usable, n_subsets=200)
+    try:
+        return robust_fit(problem, norm=Snooping(4.0), start="lts", candidates=usable, n_subsets=200)
+    except DegenerateGeometryError:
+        return robust_fit(problem, norm=Snooping(4.0), start=None, candidates=usable)
 
 
 def _resolve_breaks(breaks, n_sub_ccds, reuse, W: int, H: int):
