@@ -265,8 +265,9 @@ def map_blocks(fn: Callable[[slice], T], n: int, block: Optional[int] = None) ->
 def run_tasks(tasks: Sequence[Callable[[], T]]) -> List[T]:
     """``[task() for task in tasks]``: independent pieces of work (the outputs of a job, the bands of a tile) run
     over the shared pool by up to :func:`num_threads` threads (:func:`map_blocks`, one task a block: serial
-    kernels inside, results in order, the first failing task's exception raised). Put the longest first."""
-    return map_blocks(lambda sl: tasks[sl.start](), len(tasks), block=1) if len(tasks) else []
+    kernels and BLAS inside, a lone task too: the same numbers for any count; results in order, the first failing
+    task's exception raised). Put the longest first."""
+    return map_blocks(lambda sl: _in_block(lambda _: tasks[sl.start](), sl), len(tasks), block=1) if tasks else []
 
 
 class PerThread:

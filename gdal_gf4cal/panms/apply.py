@@ -36,7 +36,7 @@ def write_correction(model: PanMSModel, path, *, tile: int = 512, progress=None,
     with gdal_exceptions():
         ds = gdal.GetDriverByName("GTiff").Create(path, W, H, 2 * len(pairs), gdal.GDT_Float32, [
             "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "PREDICTOR=3",
-            "BIGTIFF=IF_SAFER", "INTERLEAVE=BAND"])
+            "BIGTIFF=IF_SAFER", "INTERLEAVE=BAND", f"NUM_THREADS={threads.num_threads()}"])   # blocks compressed in parallel
         for i, (label, _) in enumerate(pairs):
             ds.GetRasterBand(2 * i + 1).SetDescription(f"delta_sample_ms_px{label}")
             ds.GetRasterBand(2 * i + 2).SetDescription(f"delta_line_ms_px{label}")
@@ -97,7 +97,7 @@ def resample_ms_on_pan(model, pan_path, ms_path, path, *, pan_rpc, ms_rpc, dem, 
         dt = ms.GetRasterBand(1).DataType
         out = gdal.GetDriverByName("GTiff").Create(path, W, H, nb, dt, [
             "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "INTERLEAVE=BAND",
-            "BIGTIFF=IF_SAFER"])
+            "BIGTIFF=IF_SAFER", f"NUM_THREADS={threads.num_threads()}"])     # blocks compressed in parallel
         nodata = ms.GetRasterBand(1).GetNoDataValue()
         fill = 0.0 if nodata is None else nodata
         for b in range(nb):

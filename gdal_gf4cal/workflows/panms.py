@@ -10,6 +10,7 @@ nothing).
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import os
 import time
@@ -381,7 +382,7 @@ def _match_every_band(pan, ms, pan_model, ms_model, dem_obj, ms_size, n_bands, c
                                     workers=workers, margin_px=4, outlier_model=None,
                                     progress=_progress.scaled(progress, 0.02 + share * (b - 1),
                                                               0.02 + share * b))
-        _screen(band_matches[b])
+    threads.run_tasks([functools.partial(_screen, t) for t in band_matches.values()])    # each band's in place
     # the reference band: the one whose matches correlate best with the pan
     nccs = {b: _median_ncc(t) for b, t in band_matches.items()}
     ref = max(nccs, key=lambda b: (nccs[b], -b))
@@ -403,9 +404,11 @@ def _match_every_band(pan, ms, pan_model, ms_model, dem_obj, ms_size, n_bands, c
         cells = _cells(t, (mw, mh), cell_used, t.attrs["spacing_px"], breaks_)
     else:
         cell_used, cells = choose_cell(t, (mw, mh), t.attrs["spacing_px"], breaks_)
-    band_cells = {b: (cells if b == ref else _cells(band_matches[b], (mw, mh), cell_used,
-                                                     band_matches[b].attrs["spacing_px"], breaks_))
-                  for b in band_matches}
+    others = [b for b in band_matches if b != ref]
+    band_cells = dict(zip(others, threads.run_tasks([functools.partial(
+        _cells, band_matches[b], (mw, mh), cell_used, band_matches[b].attrs["spacing_px"], breaks_) for b in others])))
+    band_cells[ref] = cells
+    band_cells = {b: band_cells[b] for b in band_matches}
     return band_matches, ref, n_matches, breaks_, cell_used, cells, band_cells
 
 
