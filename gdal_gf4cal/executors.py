@@ -34,9 +34,8 @@ CONNECT_TIMEOUT_S = 5.0
 #: ~1.5x slower in a worker than in a thread (4x the minor faults, bench/bench_scale.py). Explicit thresholds at
 #: glibc's own adaptive maxima keep tile-sized arrays on the heap; memory stays bounded by the tile. For workers
 #: you start yourself, set the same in ``distributed.nanny.pre-spawn-environ`` (README). One thread per worker for
-#: BLAS and for the point kernels (``GF4CAL_NUM_THREADS``, :mod:`gdal_gf4cal.threads`): the cluster parallelises.
-WORKER_ENV = {"MALLOC_MMAP_THRESHOLD_": 32 * 2 ** 20, "MALLOC_TRIM_THRESHOLD_": 64 * 2 ** 20,
-              "OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1, "GF4CAL_NUM_THREADS": 1}
+#: BLAS and for the point kernels (:data:`gdal_gf4cal.threads.SERIAL_ENV`): the cluster parallelises.
+WORKER_ENV = {"MALLOC_MMAP_THRESHOLD_": 32 * 2 ** 20, "MALLOC_TRIM_THRESHOLD_": 64 * 2 ** 20, **threads.SERIAL_ENV}
 
 
 class ExecutorError(Gf4calError, ConnectionError):

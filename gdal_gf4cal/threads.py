@@ -13,22 +13,32 @@ threads, each block is computed exactly as the serial path computes it (no reduc
 called inside a block never splits again), and the serial path (``1``) walks the same blocks in order.
 
 The QGIS algorithms run under QGIS's own thread setting (:func:`limit`, per calling thread); Dask workers get
-``GF4CAL_NUM_THREADS=1`` (:data:`gdal_gf4cal.executors.WORKER_ENV`): one thread each, the executor parallelises.
+``GF4CAL_NUM_THREADS=1`` and one BLAS thread (:data:`SERIAL_ENV` in :data:`gdal_gf4cal.executors.WORKER_ENV`): one
+thread each, the executor parallelises.
+
+BLAS is bounded by the same setting: inside :func:`limit`, :func:`serial` (every block and tile on the pool) and
+a ``gf4cal`` command, BLAS computes on the calling thread (:func:`blas_serial`: OpenBLAS's own thread count set to
+1 through its C API in this process, restored when the last such scope ends). The parallelism is this module's
+pool, of :func:`num_threads` threads: ``GF4CAL_NUM_THREADS=1`` uses one core, BLAS's threads do not compete with
+the pool's for the cores, and no number depends on how many threads OpenBLAS would have split a product over.
 """
 from __future__ import annotations
 
+import ctypes
 import os
+import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from typing import Callable, Iterator, List, Optional, TypeVar
+from typing import Callable, Iterator, List, Optional, Sequence, TypeVar
 
 import numpy as np
 
 from .errors import Gf4calError
 
 __all__ = ["ENV", "BLOCK", "DEM_BLOCK", "ThreadSettingError", "machine_cores", "num_threads", "limit",
-           "block_slices", "map_blocks", "split_points", "serial", "pool_workers", "matmul", "BLAS_SERIAL_SIZE"]
+           "block_slices", "map_blocks", "split_points", "serial", "pool_workers", "matmul", "BLAS_SERIAL_SIZE",
+           "SERIAL_ENV", "blas_serial", "blas_threads", "run_tasks", "PerThread"]
 
 #: The environment variable of the thread setting.
 ENV = "GF4CAL_NUM_THREADS"
@@ -43,6 +53,10 @@ BLOCK = 32768
 #: Points per block of :func:`~gdal_gf4cal.localization.localize_dem`: there a block is a whole intersection (its
 #: own choice of Newton or march), so its numbers depend on the blocks: kept at the size they were pinned with.
 DEM_BLOCK = 65536
+
+#: Environment of a process that runs one thread (a Dask worker, :data:`gdal_gf4cal.executors.WORKER_ENV`): the
+#: BLAS libraries read these when they load, before any :func:`blas_serial` could act.
+SERIAL_ENV = {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1, ENV: 1}
 
 T = TypeVar("T")
 
@@ -93,7 +107,8 @@ def limit(n: Optional[int]) -> Iterator[None]:
     if n is not None and int(n) >= 1:
         _local.limit = int(n)
     try:
-        yield
+        with blas_serial():
+            yield
     finally:
         _local.limit = previous
 
@@ -106,9 +121,93 @@ def serial() -> Iterator[None]:
     previous = getattr(_local, "in_block", False)
     _local.in_block = True
     try:
-        yield
+        with blas_serial():
+            yield
     finally:
         _local.in_block = previous
+
+
+_blas_lock = threading.Lock()
+_blas_scopes = 0                    # blas_serial scopes open in this process (any thread)
+_blas_saved: list = []              # [(set_num_threads, count before the first scope)] per OpenBLAS library
+
+
+@contextmanager
+def blas_serial() -> Iterator[None]:
+    """Within the ``with`` block BLAS computes on the calling thread: OpenBLAS's thread count (process-wide: its
+    C API has no per-thread setting) is 1 while any such block is open in any thread, and what it was before is
+    restored when the last one ends. Entered by :func:`limit` and :func:`serial`; a no-op where no OpenBLAS is
+    loaded (another BLAS: set its variables of :data:`SERIAL_ENV` before starting Python)."""
+    global _blas_scopes, _blas_saved
+    with _blas_lock:
+        if _blas_scopes == 0:
+            _blas_saved = [(set_fn, get_fn()) for set_fn, get_fn in _openblas_api()]
+            for set_fn, n in _blas_saved:
+                if n != 1:
+                    set_fn(1)
+        _blas_scopes += 1
+    try:
+        yield
+    finally:
+        with _blas_lock:
+            _blas_scopes -= 1
+            if _blas_scopes == 0:
+                for set_fn, n in _blas_saved:
+                    if n != 1:
+                        set_fn(n)
+                _blas_saved = []
+
+
+def blas_threads() -> Optional[int]:
+    """OpenBLAS's thread count in this process now (the largest over its loaded libraries; None: no OpenBLAS
+    with its C API loaded)."""
+    counts = [int(get_fn()) for _, get_fn in _openblas_api()]
+    return max(counts) if counts else None
+
+
+#: The C API of OpenBLAS under the names its builds export: Debian / conda (``openblas_*``), NumPy's and SciPy's
+#: wheels (64-bit integers: ``*64_``; since 2024 the ``scipy_openblas*`` libraries).
+_OPENBLAS_NAMES = [(f"{p}_set_num_threads{s}", f"{p}_get_num_threads{s}")
+                   for p in ("openblas", "scipy_openblas") for s in ("", "64_")]
+_openblas_found: dict = {}          # path -> [(set, get)] (an empty list: no OpenBLAS API in that library)
+_openblas_seen = (-1, [])           # (len(sys.modules) at the last look, what it found)
+
+
+def _openblas_api() -> list:
+    """``[(set_num_threads, get_num_threads)]`` of every OpenBLAS library this process has loaded (NumPy's and
+    SciPy's wheels each bring one), from the process's memory map (Linux; elsewhere none is found), looked at
+    again only after a Python module was imported (what loads a library: SciPy's after NumPy's). Libraries are
+    looked up, never loaded (``RTLD_NOLOAD``)."""
+    global _openblas_seen
+    if _openblas_seen[0] == len(sys.modules):
+        return _openblas_seen[1]
+    try:
+        with open("/proc/self/maps", encoding="utf-8", errors="replace") as f:
+            paths = sorted({line.split(None, 5)[5].strip() for line in f if "blas" in line.lower()
+                            and len(line.split(None, 5)) == 6})
+    except OSError:
+        paths = []
+    api = []
+    for path in paths:
+        if path not in _openblas_found:
+            _openblas_found[path] = _openblas_functions(path)
+        api += _openblas_found[path]
+    _openblas_seen = (len(sys.modules), api)
+    return api
+
+
+def _openblas_functions(path: str) -> list:
+    try:
+        lib = ctypes.CDLL(path, mode=getattr(os, "RTLD_NOLOAD", 0) | ctypes.RTLD_LOCAL)
+    except OSError:
+        return []
+    for set_name, get_name in _OPENBLAS_NAMES:
+        set_fn, get_fn = getattr(lib, set_name, None), getattr(lib, get_name, None)
+        if set_fn is not None and get_fn is not None:
+            set_fn.restype, set_fn.argtypes = None, [ctypes.c_int]
+            get_fn.restype, get_fn.argtypes = ctypes.c_int, []
+            return [(set_fn, get_fn)]
+    return []
 
 
 def pool_workers(workers: Optional[int], tasks: int) -> int:
@@ -161,6 +260,29 @@ def map_blocks(fn: Callable[[slice], T], n: int, block: Optional[int] = None) ->
     if errors:
         raise errors[min(errors)]
     return results  # type: ignore[return-value]
+
+
+def run_tasks(tasks: Sequence[Callable[[], T]]) -> List[T]:
+    """``[task() for task in tasks]``: independent pieces of work (the outputs of a job, the bands of a tile) run
+    over the shared pool by up to :func:`num_threads` threads (:func:`map_blocks`, one task a block: serial
+    kernels and BLAS inside, a lone task too: the same numbers for any count; results in order, the first failing
+    task's exception raised). Put the longest first."""
+    return map_blocks(lambda sl: _in_block(lambda _: tasks[sl.start](), sl), len(tasks), block=1) if tasks else []
+
+
+class PerThread:
+    """One object per thread, made by ``make()`` on first use in that thread (:meth:`get`), e.g. a GDAL dataset
+    (a handle must not be used by two threads at once); released when this object is."""
+
+    def __init__(self, make: Callable[[], T]):
+        self._make = make
+        self._local = threading.local()
+
+    def get(self):
+        obj = getattr(self._local, "obj", None)
+        if obj is None:
+            obj = self._local.obj = self._make()
+        return obj
 
 
 def split_points(fn: Callable[..., tuple], *arrays, block: Optional[int] = None) -> tuple:

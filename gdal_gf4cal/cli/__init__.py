@@ -18,6 +18,7 @@ import sys
 import warnings
 from typing import List, Optional
 
+from .. import threads
 from ..errors import CancelledError, Gf4calError
 
 # Sub-command modules, in help order. Each defines NAME, HELP, add_parser(parser) and run(args) -> int.
@@ -145,7 +146,8 @@ def _main(args) -> int:
     except ValueError:                                       # not the main thread: leave signals alone
         pass
     try:
-        return int(args._run(args) or 0)
+        with threads.blas_serial():       # GF4CAL_NUM_THREADS bounds BLAS too: the pool parallelises
+            return int(args._run(args) or 0)
     except CancelledError:
         print("gf4cal: cancelled", file=sys.stderr)
         return 130

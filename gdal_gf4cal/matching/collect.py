@@ -681,7 +681,8 @@ def run_tiles(specs: Sequence[TileSpec], executor: Optional[cf.Executor] = None,
     ``workers``.
     """
     own = None
-    fn = match_tile
+    # Every tile with serial kernels and BLAS on its thread, on any executor (its numbers depend on BLAS's threads)
+    fn = _match_tile_serial
     if executor is None:
         nw = threads.pool_workers(workers, len(specs))
         if nw > 1:
@@ -689,7 +690,6 @@ def run_tiles(specs: Sequence[TileSpec], executor: Optional[cf.Executor] = None,
             # stacks) releases the GIL, and threads share the datasets' block caches and start at once; a
             # process pool paid ~0.3 s of start-up and pickling on a 10240^2 scene for no gain in throughput.
             own = executor = cf.ThreadPoolExecutor(max_workers=nw, thread_name_prefix="gf4cal-tile")
-            fn = _match_tile_serial
     try:
         # Results in submission order whatever the executor (gdal_gf4cal.executors, issue 14).
         return map_ordered(fn, specs, executor, progress=progress, stop=stop, label="tile")
@@ -699,7 +699,8 @@ def run_tiles(specs: Sequence[TileSpec], executor: Optional[cf.Executor] = None,
 
 
 def _match_tile_serial(spec: TileSpec) -> Dict[str, np.ndarray]:
-    """:func:`match_tile` with serial point kernels (a tile on a pool thread of :func:`run_tiles`)."""
+    """:func:`match_tile` with serial point kernels and BLAS on the calling thread (:func:`threads.serial`: a tile of
+    :func:`run_tiles`, on a pool thread or not)."""
     with threads.serial():
         return match_tile(spec)
 

@@ -3,6 +3,7 @@ raw grid (``ms_on_pan.tif``), the MS RPC refitted to the model, and the measured
 against the pan's edges."""
 from __future__ import annotations
 
+import functools
 import math
 import os
 from typing import Dict, List, Optional, Sequence, Tuple
@@ -11,7 +12,8 @@ import numpy as np
 from osgeo import gdal, gdal_array
 from scipy import ndimage
 
-from .._gdal import gdal_exceptions
+from .. import threads
+from .._gdal import gdal_exceptions, with_gdal_exceptions
 from ..matching.correlate import block_reduce, phase_correlate
 from ..progress import report
 from ..rpc_fit import fit_rpc
@@ -34,7 +36,7 @@ def write_correction(model: PanMSModel, path, *, tile: int = 512, progress=None,
     with gdal_exceptions():
         ds = gdal.GetDriverByName("GTiff").Create(path, W, H, 2 * len(pairs), gdal.GDT_Float32, [
             "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "PREDICTOR=3",
-            "BIGTIFF=IF_SAFER", "INTERLEAVE=BAND"])
+            "BIGTIFF=IF_SAFER", "INTERLEAVE=BAND", f"NUM_THREADS={threads.num_threads()}"])   # blocks compressed in parallel
         for i, (label, _) in enumerate(pairs):
             ds.GetRasterBand(2 * i + 1).SetDescription(f"delta_sample_ms_px{label}")
             ds.GetRasterBand(2 * i + 2).SetDescription(f"delta_line_ms_px{label}")
@@ -95,7 +97,7 @@ def resample_ms_on_pan(model, pan_path, ms_path, path, *, pan_rpc, ms_rpc, dem, 
         dt = ms.GetRasterBand(1).DataType
         out = gdal.GetDriverByName("GTiff").Create(path, W, H, nb, dt, [
             "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "INTERLEAVE=BAND",
-            "BIGTIFF=IF_SAFER"])
+            "BIGTIFF=IF_SAFER", f"NUM_THREADS={threads.num_threads()}"])     # blocks compressed in parallel
         nodata = ms.GetRasterBand(1).GetNoDataValue()
         fill = 0.0 if nodata is None else nodata
         for b in range(nb):
@@ -112,23 +114,18 @@ def resample_ms_on_pan(model, pan_path, ms_path, path, *, pan_rpc, ms_rpc, dem, 
                             f"({'pan-MS registration model applied' if models[0] else 'RPCs only'}; METHODS §9)")
         _set_ms_on_pan_rpc(out, pan, ratio, pan_rpc)
         tiles = _tiles(W, H, tile)
+        ms_here = threads.PerThread(lambda: gdal.Open(os.fspath(ms_path)))   # a handle per pool thread
         for done, (x0, y0, w, h) in enumerate(tiles, start=1):
             s2, l2 = _predicted_grid(pan_rpc, ms_rpc, dem, ratio, x0, y0, w, h, node_step)
-            arrs = [np.full((h, w), fill, dtype=np.float64) for _ in range(nb)]
-            done_models: dict = {}
-            for b in range(nb):
-                key = id(models[b])
-                if key not in done_models:
-                    done_models[key] = _apply_model(models[b], s2, l2)
-                sp, lp = done_models[key]
-                _sample_band(ms, b, sp, lp, MW, MH, arrs[b])
-            for b in range(nb):
-                a = arrs[b]
-                if np.issubdtype(_np_dtype(dt), np.integer):
-                    info = np.iinfo(_np_dtype(dt))
-                    a = np.clip(np.round(a), max(info.min, 1 if nodata == 0 else info.min), info.max)
-                    a = np.where(np.isfinite(arrs[b]) & (arrs[b] != fill), a, fill)
-                out.GetRasterBand(b + 1).WriteArray(a.astype(_np_dtype(dt)), x0, y0)
+            where: dict = {}
+            for m in models:
+                if id(m) not in where:
+                    where[id(m)] = _apply_model(m, s2, l2)
+            # the bands of the tile over the pool (each reads its own MS window, GDAL and SciPy release the GIL)
+            bands = threads.run_tasks([functools.partial(_band_tile, ms_here, b, where[id(models[b])], (MW, MH),
+                                                         fill, nodata, dt) for b in range(nb)])
+            for b, a in enumerate(bands):
+                out.GetRasterBand(b + 1).WriteArray(a, x0, y0)
             # the written tile to disk, out of GDAL's block cache (the full GF7 ms_on_pan.tif is 236 MB of
             # blocks); the MS blocks read stay cached (a strip-organised MS is read again by the next tile)
             out.FlushCache()
@@ -136,6 +133,21 @@ def resample_ms_on_pan(model, pan_path, ms_path, path, *, pan_rpc, ms_rpc, dem, 
         out.FlushCache()
         out = None
     return path
+
+
+@with_gdal_exceptions            # on a pool thread: GDAL's error handler is per thread
+def _band_tile(ms_here, b, where, ms_size, fill, nodata, dt) -> np.ndarray:
+    """MS band ``b`` (0-based) of one ms_on_pan tile, sampled at ``where = (sp, lp)`` (:func:`_sample_band`), in the
+    output's data type (integers rounded and clipped, 0 kept for nodata when that is the MS's nodata)."""
+    sp, lp = where
+    arr = np.full(sp.shape, fill, dtype=np.float64)
+    _sample_band(ms_here.get(), b, sp, lp, ms_size[0], ms_size[1], arr)
+    a = arr
+    if np.issubdtype(_np_dtype(dt), np.integer):
+        info = np.iinfo(_np_dtype(dt))
+        a = np.clip(np.round(arr), max(info.min, 1 if nodata == 0 else info.min), info.max)
+        a = np.where(np.isfinite(arr) & (arr != fill), a, fill)
+    return a.astype(_np_dtype(dt))
 
 
 def _np_dtype(gdal_type):

@@ -10,6 +10,7 @@ nothing).
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import os
 import time
@@ -21,7 +22,7 @@ import pandas as pd
 from osgeo import gdal
 from scipy import stats
 
-from .. import panms
+from .. import panms, threads
 from .. import progress as _progress
 from .._gdal import open_raster
 from ..crop import crop_origin, image_rpc, sidecar_rpc
@@ -381,7 +382,7 @@ def _match_every_band(pan, ms, pan_model, ms_model, dem_obj, ms_size, n_bands, c
                                     workers=workers, margin_px=4, outlier_model=None,
                                     progress=_progress.scaled(progress, 0.02 + share * (b - 1),
                                                               0.02 + share * b))
-        _screen(band_matches[b])
+    threads.run_tasks([functools.partial(_screen, t) for t in band_matches.values()])    # each band's in place
     # the reference band: the one whose matches correlate best with the pan
     nccs = {b: _median_ncc(t) for b, t in band_matches.items()}
     ref = max(nccs, key=lambda b: (nccs[b], -b))
@@ -403,9 +404,11 @@ def _match_every_band(pan, ms, pan_model, ms_model, dem_obj, ms_size, n_bands, c
         cells = _cells(t, (mw, mh), cell_used, t.attrs["spacing_px"], breaks_)
     else:
         cell_used, cells = choose_cell(t, (mw, mh), t.attrs["spacing_px"], breaks_)
-    band_cells = {b: (cells if b == ref else _cells(band_matches[b], (mw, mh), cell_used,
-                                                     band_matches[b].attrs["spacing_px"], breaks_))
-                  for b in band_matches}
+    others = [b for b in band_matches if b != ref]
+    band_cells = dict(zip(others, threads.run_tasks([functools.partial(
+        _cells, band_matches[b], (mw, mh), cell_used, band_matches[b].attrs["spacing_px"], breaks_) for b in others])))
+    band_cells[ref] = cells
+    band_cells = {b: band_cells[b] for b in band_matches}
     return band_matches, ref, n_matches, breaks_, cell_used, cells, band_cells
 
 
@@ -528,13 +531,21 @@ def _write_products(outs, pair: _Pair, meas: _Measured, model, band_models, band
                              band_names=_band_names(pair.ms, n_bands, pair.ms_rpc))
     outs.set_check("ms_on_pan", check_raster(n_bands))
     clock.lap("correction_and_ms_on_pan")
-    _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC")
-    approx, approx_err = _approximate_ms_rpc(model, pair.ms_model, notes)
-    write_rpb(approx, outs.tmp("ms_rpc"), overwrite=True)
-    n_cells = _write_cells(meas.cells, model, pair.ms_model, pair.dem, outs.tmp("cells"))
+    _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC, cells and plots")
+    # independent outputs over the thread pool (threads.run_tasks), the longest first
+    approx_err, n_cells, *_ = threads.run_tasks(
+        [lambda: _write_ms_rpc(model, pair.ms_model, notes, outs.tmp("ms_rpc")),
+         lambda: _write_cells(meas.cells, model, pair.ms_model, pair.dem, outs.tmp("cells"))]
+        + _plot_tasks(meas.cells, model, outs))
     outs.set_check("cells", check_vector({"gcps": n_cells}))
-    _write_plots(meas.cells, model, outs)
     clock.lap("rpc_cells_plots")
+    return approx_err
+
+
+def _write_ms_rpc(model, ms_model, notes, path):
+    """ms_approx.RPB (:func:`_approximate_ms_rpc`); its errors against the full model."""
+    approx, approx_err = _approximate_ms_rpc(model, ms_model, notes)
+    write_rpb(approx, path, overwrite=True)
     return approx_err
 
 
@@ -750,7 +761,9 @@ def _write_cells(cells, model, ms_rpc, dem, path) -> int:
     return len(t)
 
 
-def _write_plots(cells, model, outs) -> None:
+def _plot_tasks(cells, model, outs) -> list:
+    """The three plots (residual maps per step, row means along the line, spectrum) as tasks for
+    :func:`gdal_gf4cal.threads.run_tasks` (each its own matplotlib Figure); the residuals computed here."""
     s, l = np.asarray(cells["sample"], float), np.asarray(cells["line"], float)
     used = np.asarray(cells["usable"], bool)
     if model.cell_outlier is not None:
@@ -761,13 +774,18 @@ def _write_plots(cells, model, outs) -> None:
         rs, rl = (np.asarray(v, float) for v in step_residuals(model, snap, s, l, cells["d_sample"], cells["d_line"]))
         res[snap["name"]] = (rs, rl)
         panels.append((snap["name"], rs, rl, st["rms_sample_px"], st["rms_line_px"], st["p_le_0.25"]))
-    plot_step_residual_maps(s, l, panels, outs.tmp("residual_maps"), image_size=model.ms_size, used=used,
-                            title="pan-MS residuals per step (MS px)")
     names = [sn["name"] for sn in model.snapshots]
     pre = "piecewise" if "piecewise" in names else names[-1]
     pick = {f"after {pre}": res[pre]}
     if "jitter" in res:
         pick["after jitter"] = res["jitter"]
+    return [lambda: plot_step_residual_maps(s, l, panels, outs.tmp("residual_maps"), image_size=model.ms_size,
+                                            used=used, title="pan-MS residuals per step (MS px)"),
+            lambda: _plot_line_profile(l, used, pick, outs.tmp("line_profile")),
+            lambda: _plot_spectrum(l, used, res[pre], pre, model, outs.tmp("spectrum"))]
+
+
+def _plot_line_profile(l, used, pick, path) -> None:
     series = {}
     for label, (rs, rl) in pick.items():
         rs_m, rl_m = np.where(used, rs, np.nan), np.where(used, rl, np.nan)
@@ -775,13 +793,15 @@ def _write_plots(cells, model, outs) -> None:
         lc2, yl = row_means(l, rl_m)
         if lc.size == lc2.size:
             series[label] = (lc, ys, yl)
-    plot_line_profiles(series, outs.tmp("line_profile"), title="pan-MS residual along the MS line (row means)")
+    plot_line_profiles(series, path, title="pan-MS residual along the MS line (row means)")
+
+
+def _plot_spectrum(l, used, residual, pre, model, path) -> None:
     lt = model.info.get("line_time_s")
-    rs, rl = res[pre]
+    rs, rl = residual
     amps = {ax: residual_spectrum(l, np.where(used, r, np.nan), line_time_s=lt) for ax, r in (("sample", rs),
                                                                                             ("line", rl))}
     chosen = {ax: [c.get("frequency_hz", c["frequency_cycles_per_line"]) for c in model.jitter[ax]["components"]]
               for ax in ("sample", "line")}
-    plot_spectrum(amps, outs.tmp("spectrum"), chosen=chosen, unit="Hz" if lt else "cycles per MS line",
+    plot_spectrum(amps, path, chosen=chosen, unit="Hz" if lt else "cycles per MS line",
                   title=f"spectrum of the residual after the {pre} term")
-

@@ -1,0 +1,81 @@
+"""register-pan-ms gives the same outputs, to the bit, with 1 and 2 threads (issue 23): its bands, outputs and plots
+run over the thread pool (``GF4CAL_NUM_THREADS``), never changing a number.
+
+The real Pleiades-1B pair over Mont Ventoux as delivered (tests/data: a 500 x 500 pan crop and a 145 x 145 x 4 MS
+crop, each with its product's .geom; the real SRTM tile above EGM96), registered by the ``gf4cal`` command with no
+option but the DEM, once with ``GF4CAL_NUM_THREADS=1`` and once with 2: every raster, the model, the refitted RPC,
+the cells and the plots are the same bytes or values; the report differs only in its timings.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from osgeo import gdal, ogr
+
+from gdal_gf4cal import threads
+
+DATA = os.path.join(os.path.dirname(__file__), "..", "data")
+ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ventoux_threads")
+    shutil.copy(os.path.join(DATA, "matching", "pleiades_ventoux_left.tif"), d / "left_image.tif")
+    shutil.copy(os.path.join(DATA, "rpc", "ventoux_left_image.geom"), d / "left_image.geom")
+    for name in ("lowres_color_image.tif", "lowres_color_image.geom"):
+        shutil.copy(os.path.join(DATA, "panms_ventoux", name), d / name)
+    dem = os.path.join(DATA, "dem", "N44E005.hgt")
+    out = {}
+    for k in ("1", "2"):
+        env = dict(os.environ, PYTHONPATH=ROOT, **{threads.ENV: k})
+        proc = subprocess.run([sys.executable, "-m", "gdal_gf4cal.cli", "register-pan-ms", "left_image.tif",
+                               "lowres_color_image.tif", "--dem", dem, "--geoid", "egm96", "--out", f"out{k}"],
+                              capture_output=True, text=True, cwd=d, env=env)
+        assert proc.returncode == 0, proc.stderr
+        out[k] = d / f"out{k}"
+    return out
+
+
+def _raster(path):
+    ds = gdal.Open(str(path))
+    return ds.ReadAsArray(), ds.GetMetadata("RPC"), [ds.GetRasterBand(b + 1).GetDescription()
+                                                     for b in range(ds.RasterCount)]
+
+
+def _features(path):
+    ds = ogr.Open(str(path))
+    layers = {}
+    for i in range(ds.GetLayerCount()):
+        lyr = ds.GetLayerByIndex(i)
+        layers[lyr.GetName()] = [({k: v for k, v in f.items().items() if k != "update_time"},    # the styles'
+                                  f.GetGeometryRef().ExportToWkb() if f.GetGeometryRef() else None) for f in lyr]
+    return layers
+
+
+def test_outputs_are_the_same_with_1_and_2_threads(runs):
+    one, two = runs["1"], runs["2"]
+    for name in ("correction.tif", "ms_on_pan.tif"):
+        a1, rpc1, d1 = _raster(one / name)
+        a2, rpc2, d2 = _raster(two / name)
+        assert np.array_equal(a1, a2, equal_nan=True), name
+        assert (rpc1, d1) == (rpc2, d2), name
+    for name in ("model.json", "ms_approx.RPB", "residual_maps.png", "residual_along_line.png", "spectrum.png"):
+        assert (one / name).read_bytes() == (two / name).read_bytes(), name
+    f1, f2 = _features(one / "cells.gpkg"), _features(two / "cells.gpkg")
+    assert f1.keys() == f2.keys() and len(f1["gcps"]) > 300      # one point per cell
+    for layer in f1:
+        assert f1[layer] == f2[layer], layer
+    r1, r2 = (json.loads((o / "report.json").read_text()) for o in (one, two))
+    for r in (r1, r2):
+        assert set(r.pop("timings_s")) >= {"matching", "estimate", "correction_and_ms_on_pan", "rpc_cells_plots"}
+        r.pop("outputs")
+    assert r1 == r2
+    # and the registration is the one the accuracy test pins (tests/panms/test_panms_ventoux.py)
+    assert r1["steps"][-1]["rms_sample_px"] < 0.1 and r1["steps"][-1]["rms_line_px"] < 0.1
