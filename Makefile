@@ -6,7 +6,7 @@ SHELL := /bin/bash
 
 APT_PACKAGES := gdal-bin python3-gdal python3-numpy python3-scipy python3-pyproj python3-shapely \
                 python3-geopandas python3-matplotlib python3-pytest proj-bin qgis python3-qgis qgis-providers python3-venv \
-                python3-dask python3-distributed python3-tqdm
+                python3-dask python3-distributed python3-tqdm python3-threadpoolctl
 VENV   := .venv
 PY     := $(VENV)/bin/python
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)

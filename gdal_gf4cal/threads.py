@@ -17,14 +17,13 @@ The QGIS algorithms run under QGIS's own thread setting (:func:`limit`, per call
 thread each, the executor parallelises.
 
 BLAS is bounded by the same setting: inside :func:`limit`, :func:`serial` (every block and tile on the pool) and
-a ``gf4cal`` command, BLAS computes on the calling thread (:func:`blas_serial`: OpenBLAS's own thread count set to
-1 through its C API in this process, restored when the last such scope ends). The parallelism is this module's
+a ``gf4cal`` command, BLAS computes on the calling thread (:func:`blas_serial`: the BLAS libraries' thread count set to 1
+through threadpoolctl in this process, restored when the last such scope ends). The parallelism is this module's
 pool, of :func:`num_threads` threads: ``GF4CAL_NUM_THREADS=1`` uses one core, BLAS's threads do not compete with
 the pool's for the cores, and no number depends on how many threads OpenBLAS would have split a product over.
 """
 from __future__ import annotations
 
-import ctypes
 import os
 import sys
 import threading
@@ -33,6 +32,11 @@ from contextlib import contextmanager
 from typing import Callable, Iterator, List, Optional, Sequence, TypeVar
 
 import numpy as np
+
+try:
+    from threadpoolctl import ThreadpoolController
+except ImportError:                 # a host Python without it (Debian: python3-threadpoolctl): BLAS keeps its threads
+    ThreadpoolController = None
 
 from .errors import Gf4calError
 
@@ -129,85 +133,49 @@ def serial() -> Iterator[None]:
 
 _blas_lock = threading.Lock()
 _blas_scopes = 0                    # blas_serial scopes open in this process (any thread)
-_blas_saved: list = []              # [(set_num_threads, count before the first scope)] per OpenBLAS library
+_blas_limiter = None                # threadpoolctl's limiter of the first open scope (restores the counts)
+_blas_seen = (-1, None)             # (len(sys.modules) at the last look, the BLAS libraries' controller)
+
+
+def _blas_controller():
+    """threadpoolctl's controller of the BLAS libraries this process has loaded (NumPy's, SciPy's), looked for
+    again only after a Python module was imported (what loads a library); None without threadpoolctl."""
+    global _blas_seen
+    if ThreadpoolController is None:
+        return None
+    if _blas_seen[0] != len(sys.modules):
+        _blas_seen = (len(sys.modules), ThreadpoolController().select(user_api="blas"))
+    return _blas_seen[1]
 
 
 @contextmanager
 def blas_serial() -> Iterator[None]:
-    """Within the ``with`` block BLAS computes on the calling thread: OpenBLAS's thread count (process-wide: its
-    C API has no per-thread setting) is 1 while any such block is open in any thread, and what it was before is
-    restored when the last one ends. Entered by :func:`limit` and :func:`serial`; a no-op where no OpenBLAS is
-    loaded (another BLAS: set its variables of :data:`SERIAL_ENV` before starting Python)."""
-    global _blas_scopes, _blas_saved
+    """Within the ``with`` block BLAS computes on the calling thread: the BLAS libraries' thread count
+    (process-wide: their C APIs have no per-thread setting; set through threadpoolctl) is 1 while any such block
+    is open in any thread, and what it was before is restored when the last one ends. Entered by :func:`limit`
+    and :func:`serial`; a no-op without threadpoolctl (then set :data:`SERIAL_ENV` before starting Python)."""
+    global _blas_scopes, _blas_limiter
     with _blas_lock:
         if _blas_scopes == 0:
-            _blas_saved = [(set_fn, get_fn()) for set_fn, get_fn in _openblas_api()]
-            for set_fn, n in _blas_saved:
-                if n != 1:
-                    set_fn(1)
+            ctl = _blas_controller()
+            _blas_limiter = ctl.limit(limits=1) if ctl is not None and len(ctl.lib_controllers) else None
         _blas_scopes += 1
     try:
         yield
     finally:
         with _blas_lock:
             _blas_scopes -= 1
-            if _blas_scopes == 0:
-                for set_fn, n in _blas_saved:
-                    if n != 1:
-                        set_fn(n)
-                _blas_saved = []
+            if _blas_scopes == 0 and _blas_limiter is not None:
+                _blas_limiter.restore_original_limits()
+                _blas_limiter = None
 
 
 def blas_threads() -> Optional[int]:
-    """OpenBLAS's thread count in this process now (the largest over its loaded libraries; None: no OpenBLAS
-    with its C API loaded)."""
-    counts = [int(get_fn()) for _, get_fn in _openblas_api()]
+    """The BLAS libraries' thread count in this process now (the largest over the loaded ones; None: none found,
+    or no threadpoolctl)."""
+    ctl = _blas_controller()
+    counts = [int(c.num_threads) for c in ctl.lib_controllers] if ctl is not None else []
     return max(counts) if counts else None
-
-
-#: The C API of OpenBLAS under the names its builds export: Debian / conda (``openblas_*``), NumPy's and SciPy's
-#: wheels (64-bit integers: ``*64_``; since 2024 the ``scipy_openblas*`` libraries).
-_OPENBLAS_NAMES = [(f"{p}_set_num_threads{s}", f"{p}_get_num_threads{s}")
-                   for p in ("openblas", "scipy_openblas") for s in ("", "64_")]
-_openblas_found: dict = {}          # path -> [(set, get)] (an empty list: no OpenBLAS API in that library)
-_openblas_seen = (-1, [])           # (len(sys.modules) at the last look, what it found)
-
-
-def _openblas_api() -> list:
-    """``[(set_num_threads, get_num_threads)]`` of every OpenBLAS library this process has loaded (NumPy's and
-    SciPy's wheels each bring one), from the process's memory map (Linux; elsewhere none is found), looked at
-    again only after a Python module was imported (what loads a library: SciPy's after NumPy's). Libraries are
-    looked up, never loaded (``RTLD_NOLOAD``)."""
-    global _openblas_seen
-    if _openblas_seen[0] == len(sys.modules):
-        return _openblas_seen[1]
-    try:
-        with open("/proc/self/maps", encoding="utf-8", errors="replace") as f:
-            paths = sorted({line.split(None, 5)[5].strip() for line in f if "blas" in line.lower()
-                            and len(line.split(None, 5)) == 6})
-    except OSError:
-        paths = []
-    api = []
-    for path in paths:
-        if path not in _openblas_found:
-            _openblas_found[path] = _openblas_functions(path)
-        api += _openblas_found[path]
-    _openblas_seen = (len(sys.modules), api)
-    return api
-
-
-def _openblas_functions(path: str) -> list:
-    try:
-        lib = ctypes.CDLL(path, mode=getattr(os, "RTLD_NOLOAD", 0) | ctypes.RTLD_LOCAL)
-    except OSError:
-        return []
-    for set_name, get_name in _OPENBLAS_NAMES:
-        set_fn, get_fn = getattr(lib, set_name, None), getattr(lib, get_name, None)
-        if set_fn is not None and get_fn is not None:
-            set_fn.restype, set_fn.argtypes = None, [ctypes.c_int]
-            get_fn.restype, get_fn.argtypes = ctypes.c_int, []
-            return [(set_fn, get_fn)]
-    return []
 
 
 def pool_workers(workers: Optional[int], tasks: int) -> int:
