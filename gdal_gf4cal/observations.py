@@ -263,24 +263,24 @@ def _renamed_observation_columns(table, source):
     return df.reindex(columns=list(OBS_SCHEMA) + extra, copy=True)  # the one copy; absent columns NaN, filled below
 
 
-def _clean_text(col: pd.Series, lower: bool = False) -> pd.Series:
-    """``col`` as stripped (and lower-cased) text, NaN kept: each distinct value cleaned once (a table of a
-    million rows has a few images and kinds), the rows then taken from the cleaned values."""
-    return _clean_text_codes(col, lower)[0]
-
-
-def _clean_text_codes(col: pd.Series, lower: bool = False):
-    """``(text, codes)``: :func:`_clean_text` and the rows' codes of the cleaned values in order of first
-    appearance (``pd.factorize`` of the text; -1 where missing), from the distinct values, not the rows."""
+def _clean_uniques(col: pd.Series, lower: bool = False):
+    """``(codes, clean)``: the rows' ``pd.factorize`` codes (-1 where missing) and the distinct values as stripped
+    (and lower-cased) text: every check of a text column made once per distinct value, not per row."""
     if pd.api.types.infer_dtype(col, skipna=True) != "string":
         col = col.where(col.isna(), col.astype(str))           # numbers as their text, as before (1 and 1.0 differ)
     codes, uniq = pd.factorize(col.to_numpy(), use_na_sentinel=True)
     clean = pd.Index(uniq).astype(str).str.strip()
-    if lower:
-        clean = clean.str.lower()
-    out = np.append(clean.to_numpy(object), np.nan)[codes]     # code -1 (missing): the NaN appended
-    merged = np.append(pd.factorize(clean.to_numpy(object))[0], -1)[codes]  # values equal once cleaned: one code
-    return pd.Series(out, index=col.index, name=col.name), merged
+    return codes, (clean.str.lower() if lower else clean).to_numpy(object)
+
+
+def _clean_text_codes(col: pd.Series, lower: bool = False):
+    """``(text, codes, blank)``: the column as stripped (and lower-cased) text, NaN kept; the rows' codes of the
+    cleaned values in order of first appearance (-1 where missing); the rows missing or blank once cleaned."""
+    codes, clean = _clean_uniques(col, lower)
+    out = np.append(clean, np.nan)[codes]                      # code -1 (missing): the NaN appended
+    merged = np.append(pd.factorize(clean)[0], -1)[codes]      # values equal once cleaned: one code
+    blank = np.append(clean == "", True)[codes]
+    return pd.Series(out, index=col.index, name=col.name), merged, blank
 
 
 def _check_ids_and_numbers(df, source) -> dict:
@@ -288,10 +288,9 @@ def _check_ids_and_numbers(df, source) -> dict:
     codes (``{column: pd.factorize codes}``)."""
     codes = {}
     for c in ("point_id", "image_id"):
-        text, codes[c] = _clean_text_codes(df[c])
-        bad = text.isna() | (text == "")
+        text, codes[c], bad = _clean_text_codes(df[c])
         if bad.any():
-            raise GCPError(f"{source}: column {c} is empty on row {int(np.flatnonzero(bad.to_numpy())[0]) + 1}; "
+            raise GCPError(f"{source}: column {c} is empty on row {int(np.flatnonzero(bad)[0]) + 1}; "
                            "give every observation a point id and an image")
         df[c] = text
     for c in ("sample", "line", "lon", "lat", "h"):
@@ -311,15 +310,15 @@ def _checked_kinds(df, source) -> np.ndarray:
     """The ``kind`` column filled (in place; blank or absent: ``gcp`` where lon/lat are given, else ``tie``) and
     checked; returns the GCP rows' mask."""
     has_ground = np.isfinite(df["lon"].to_numpy()) & np.isfinite(df["lat"].to_numpy())
-    inferred = np.where(has_ground, "gcp", "tie")
-    if "kind" not in df.columns:
-        df["kind"] = inferred
-    df["kind"] = _clean_text(df["kind"], lower=True).fillna("")
-    df["kind"] = df["kind"].where(df["kind"] != "", inferred)          # blank kind: inferred as when absent
-    bad = ~df["kind"].isin(KINDS)
-    if bad.any():
-        raise GCPError(f"{source}: kind {df['kind'][bad].iloc[0]!r} is not 'gcp' or 'tie'")
-    gcp = (df["kind"] == "gcp").to_numpy()
+    gcp = has_ground.copy()                                     # absent or blank kind: inferred
+    if "kind" in df.columns:
+        codes, clean = _clean_uniques(df["kind"], lower=True)
+        bad = np.append(~np.isin(clean, KINDS + ("",)), False)[codes]
+        if bad.any():
+            raise GCPError(f"{source}: kind {clean[codes[np.flatnonzero(bad)[0]]]!r} is not 'gcp' or 'tie'")
+        given = np.append(clean != "", False)[codes]
+        gcp[given] = np.append(clean == "gcp", False)[codes][given]
+    df["kind"] = np.where(gcp, "gcp", "tie").astype(object)
     if (gcp & ~has_ground).any():
         row = int(np.flatnonzero(gcp & ~has_ground)[0])
         raise GCPError(f"{source}: GCP {df['point_id'].iloc[row]!r} has no lon/lat (row {row + 1}); give its ground "
@@ -379,10 +378,12 @@ def _check_roles_sigma_flags(df, source) -> None:
     """Roles (filled ``control``), positive sigmas (filled 1 px) and the outlier flags as booleans, in place."""
     if "role" not in df.columns:
         df["role"] = "control"
-    df["role"] = _clean_text(df["role"], lower=True).fillna("control").replace("", "control")
-    bad = ~df["role"].isin(ROLES)
+    codes, clean = _clean_uniques(df["role"], lower=True)
+    clean = np.append(np.where(clean == "", "control", clean).astype(object), "control")   # missing: control
+    bad = ~np.isin(clean, ROLES)
     if bad.any():
-        raise GCPError(f"{source}: role {df['role'][bad].iloc[0]!r} is not 'control' or 'check'")
+        raise GCPError(f"{source}: role {clean[np.flatnonzero(bad)[0]]!r} is not 'control' or 'check'")
+    df["role"] = clean[codes]
     if "sigma" not in df.columns:
         df["sigma"] = 1.0
     df["sigma"] = pd.to_numeric(df["sigma"], errors="coerce").fillna(1.0).astype(float)
