@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 
@@ -25,12 +24,8 @@ ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    d = tmp_path_factory.mktemp("ventoux_threads")
-    shutil.copy(os.path.join(DATA, "matching", "pleiades_ventoux_left.tif"), d / "left_image.tif")
-    shutil.copy(os.path.join(DATA, "rpc", "ventoux_left_image.geom"), d / "left_image.geom")
-    for name in ("lowres_color_image.tif", "lowres_color_image.geom"):
-        shutil.copy(os.path.join(DATA, "panms_ventoux", name), d / name)
+def runs(ventoux_pair):
+    d = ventoux_pair
     dem = os.path.join(DATA, "dem", "N44E005.hgt")
     out = {}
     for k in ("1", "2"):

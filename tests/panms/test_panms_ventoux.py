@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 
@@ -23,14 +22,9 @@ DATA = os.path.join(os.path.dirname(__file__), "..", "data")
 
 
 @pytest.fixture(scope="module")
-def pair(tmp_path_factory):
+def pair(ventoux_pair):
     """The crops under their shareloc names, each .geom beside its image."""
-    d = tmp_path_factory.mktemp("ventoux")
-    shutil.copy(os.path.join(DATA, "matching", "pleiades_ventoux_left.tif"), d / "left_image.tif")
-    shutil.copy(os.path.join(DATA, "rpc", "ventoux_left_image.geom"), d / "left_image.geom")
-    for name in ("lowres_color_image.tif", "lowres_color_image.geom"):
-        shutil.copy(os.path.join(DATA, "panms_ventoux", name), d / name)
-    return d
+    return ventoux_pair
 
 
 @pytest.fixture(scope="module")
