@@ -42,7 +42,7 @@ from .errors import Gf4calError
 
 __all__ = ["ENV", "BLOCK", "DEM_BLOCK", "ThreadSettingError", "machine_cores", "num_threads", "limit",
            "block_slices", "map_blocks", "split_points", "serial", "pool_workers", "matmul", "BLAS_SERIAL_SIZE",
-           "SERIAL_ENV", "blas_serial", "blas_threads", "run_tasks", "PerThread"]
+           "SERIAL_ENV", "blas_serial", "blas_threads", "run_tasks", "PerThread", "rows_times"]
 
 #: The environment variable of the thread setting.
 ENV = "GF4CAL_NUM_THREADS"
@@ -306,6 +306,27 @@ def matmul(a: np.ndarray, b: np.ndarray, out: Optional[np.ndarray] = None) -> np
         if j - i == 1:                  # never a one-column product (BLAS takes another kernel for a vector)
             i -= 1
         np.matmul(a, b[:, i:j], out=out[:, i:j])
+    return out
+
+
+#: Largest ``m x n`` matrix-vector product OpenBLAS computes on the calling thread (2304 x its
+#: GEMM_MULTITHREAD_THRESHOLD).
+GEMV_SERIAL_SIZE = 2304 * 4
+
+
+def rows_times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` of a tall ``a`` (n, p) and a small ``b`` (p,) or (p, q) in row blocks that BLAS computes on the
+    calling thread (:data:`GEMV_SERIAL_SIZE`, :data:`BLAS_SERIAL_SIZE`; :func:`matmul` sliced the other way): each
+    row of the result is its own short dot product, so the blocks give the numbers of the one product (whose BLAS threads,
+    on a loaded machine, cost more CPU than the product)."""
+    n, p = a.shape
+    size = GEMV_SERIAL_SIZE if b.ndim == 1 else BLAS_SERIAL_SIZE // max(b.shape[1], 1)
+    step = max(1, size // max(p, 1) - 1)
+    if n <= step:
+        return a @ b
+    out = np.empty((n,) + b.shape[1:], dtype=np.result_type(a, b))
+    for i in range(0, n, step):
+        out[i:i + step] = a[i:i + step] @ b
     return out
 
 

@@ -14,7 +14,7 @@ from typing import Dict, List, Sequence, Tuple
 import numpy as np
 
 from ..errors import DegenerateGeometryError
-from ..threads import BLAS_SERIAL_SIZE
+from ..threads import BLAS_SERIAL_SIZE, rows_times
 from .result import Estimate, names_and_blocks
 
 #: Largest condition number of the column-scaled design accepted as a determined layout.
@@ -48,27 +48,6 @@ def gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     out = a[:step].T @ b[:step]
     for i in range(step, n, step):
         out += a[i:i + step].T @ b[i:i + step]
-    return out
-
-
-#: Largest ``m x n`` matrix-vector product OpenBLAS computes on the calling thread (2304 x its
-#: GEMM_MULTITHREAD_THRESHOLD).
-GEMV_SERIAL_SIZE = 2304 * 4
-
-
-def rows_times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a @ b`` of a tall ``a`` (n, p) and a small ``b`` (p,) or (p, q) in row blocks that BLAS computes on the
-    calling thread (:data:`GEMV_SERIAL_SIZE`, :data:`~gdal_gf4cal.threads.BLAS_SERIAL_SIZE`): each row of the
-    result is its own short dot product, so the blocks give the numbers of the one product (whose BLAS threads,
-    on a loaded machine, cost more CPU than the product)."""
-    n, p = a.shape
-    size = GEMV_SERIAL_SIZE if b.ndim == 1 else BLAS_SERIAL_SIZE // max(b.shape[1], 1)
-    step = max(1, size // max(p, 1) - 1)
-    if n <= step:
-        return a @ b
-    out = np.empty((n,) + b.shape[1:], dtype=np.result_type(a, b))
-    for i in range(0, n, step):
-        out[i:i + step] = a[i:i + step] @ b
     return out
 
 

@@ -33,8 +33,8 @@ from typing import Optional, Tuple
 import numpy as np
 
 from ..errors import DegenerateGeometryError
-from ..threads import matmul
-from .lsq import gram, rows_times
+from ..threads import matmul, rows_times
+from .lsq import gram
 
 #: Largest number of minimal subsets searched exhaustively; beyond it ``n_subsets`` random ones are drawn.
 MAX_EXHAUSTIVE = 3000

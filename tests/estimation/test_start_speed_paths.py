@@ -2,14 +2,15 @@
 row chunks on the calling thread) equals ``A.T @ B``; the LTS start (the reference for a faster one) finds the
 planted blunders whether the observation axes share no parameter (a compensation) or share one, and keeps the
 good points but the 0.1 % beyond its chi-square bound; its ``normal`` evaluation keeps its start;
-``weighted_lsq_many`` is each vector's own ``weighted_lsq``; ``lsq.rows_times`` is the plain product."""
+``weighted_lsq_many`` is each vector's own ``weighted_lsq``; ``threads.rows_times`` is the plain product."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from gdal_gf4cal.estimation import Block, high_breakdown_start, weighted_lsq
-from gdal_gf4cal.estimation.lsq import gram, rows_times, weighted_lsq_many
+from gdal_gf4cal.estimation.lsq import gram, weighted_lsq_many
+from gdal_gf4cal.threads import rows_times
 from gdal_gf4cal.threads import BLAS_SERIAL_SIZE
 
 
