@@ -50,6 +50,9 @@ _FLOOR = 0.005
 #: Windows per batch inside phase_correlate.
 _CHUNK = 64
 
+#: Bytes of float32 windows per chunk of :func:`window_measures` (their temporaries stay in a 1 MB L2 cache).
+_MEASURE_BYTES = 1 << 21
+
 #: Smallest magnitude kept in the cross-power normalisation (float32 spectra): a zero window stays zero, and its
 #: reciprocal times the low-pass weights stays far from float32 overflow.
 _TINY = np.float32(1e-30)
@@ -209,6 +212,23 @@ class Peaks:
     peak: np.ndarray
     sigma: float
 
+    def _second_peak(self, idx, exclude_px=None) -> np.ndarray:
+        """The surface maximum outside the main lobe (a box of half-size r around the peak, wrap-around aware) of
+        windows ``idx``: the maximum of every row, then of the lobe's rows outside the lobe's columns (no masked
+        copy of the surfaces)."""
+        n = idx.size
+        h, w = self.surf.shape[-2:]
+        r = int(np.ceil((3.0 * self.sigma + 1.0) if exclude_px is None else float(exclude_px)))
+        off = np.arange(-r, r + 1)
+        surf = self.surf if idx.size == self.dx.size and np.array_equal(idx, np.arange(n)) else self.surf[idx]
+        rows = np.arange(n)[:, None]
+        rowmax = surf.max(axis=-1)
+        ly = (self.iy[idx][:, None] + off[None, :]) % h
+        band = surf[rows, ly]  # (n, 2r + 1, w): the lobe's rows
+        band[rows[:, :, None], np.arange(off.size)[None, :, None], (self.ix[idx][:, None, None] + off) % w] = -np.inf
+        rowmax[rows, ly] = band.max(axis=-1)
+        return rowmax.max(axis=1).astype(np.float64)
+
     def quality(self, F: Spectra, G: Spectra, idx=None, exclude_px: float = None) -> CorrelationResult:
         """Full :class:`CorrelationResult` for windows ``idx`` (all by default); ``F, G`` the same spectra
         (full stacks) the peaks were measured from."""
@@ -222,14 +242,7 @@ class Peaks:
         if n == 0:
             e = np.zeros(0)
             return CorrelationResult(dx, dy, self.peak[idx], e, e, e)
-        # Second peak: the maximum outside the main lobe (a box of half-size r around the peak, wrap-around aware).
-        r = int(np.ceil((3.0 * sigma + 1.0) if exclude_px is None else float(exclude_px)))
-        off = np.arange(-r, r + 1)
-        ly = (iy[:, None, None] + off[None, :, None]) % h
-        lx = (ix[:, None, None] + off[None, None, :]) % w
-        masked = self.surf[idx]  # a copy (fancy indexing)
-        masked[np.arange(n)[:, None, None], ly, lx] = -np.inf
-        second = masked.reshape(n, -1).max(axis=1).astype(np.float64)
+        second = self._second_peak(idx, exclude_px)
         with np.errstate(divide="ignore", invalid="ignore"):
             peak_ratio = np.where(second > 0, c0 / np.maximum(second, 1e-12), np.inf)
         # NCC of the tapered windows at the sub-pixel shift, by Parseval on the half spectrum, and the precision
@@ -353,9 +366,10 @@ def _gradients(a: np.ndarray):
 
 def _texture(a, gx, gy, sigma, floor=None, std=None):
     """:func:`texture_strength` from precomputed gradients and noise estimate (shared with the flat test)."""
-    sxx = np.einsum("...ij,...ij->...", gx, gx) / (gx.shape[-1] * gx.shape[-2])
-    syy = np.einsum("...ij,...ij->...", gy, gy) / (gx.shape[-1] * gx.shape[-2])
-    sxy = np.einsum("...ij,...ij->...", gx, gy) / (gx.shape[-1] * gx.shape[-2])
+    # Row sums, then their sum: the same bits whatever the stack's length (a whole-window einsum takes another
+    # path for a single window).
+    sxx, syy, sxy = (np.einsum("...ij,...ij->...i", u, v).sum(axis=-1) / (gx.shape[-1] * gx.shape[-2])
+                     for u, v in ((gx, gx), (gy, gy), (gx, gy)))
     sxx, syy, sxy = (np.asarray(v, dtype=np.float64) for v in (sxx, syy, sxy))
     lam_min = 0.5 * (sxx + syy) - np.sqrt(0.25 * (sxx - syy) ** 2 + sxy ** 2)
     if floor is None:
@@ -410,14 +424,17 @@ def flat_fraction(windows: np.ndarray, region=None, box: int = 5, ratio: float =
     return _flat(a, gx, gy, _noise_sigma(a), region, box, ratio, noise_factor)
 
 
-def _flat(a, gx, gy, sigma, region=None, box: int = 5, ratio: float = 0.05, noise_factor: float = 3.0, std=None):
-    """:func:`flat_fraction` from precomputed gradients and noise estimate (shared with the texture test)."""
-    g2 = np.zeros_like(a)
-    e = gx * gx
-    e += gy * gy
-    e /= 4.0
-    g2[..., 1:-1, 1:-1] = e
-    local = ndimage.uniform_filter(g2, size=(1,) * (a.ndim - 2) + (box, box), mode="nearest")
+def _flat(a, gx, gy, sigma, region=None, box: int = 5, ratio: float = 0.05, noise_factor: float = 3.0, std=None,
+          local=None):
+    """:func:`flat_fraction` from precomputed gradients and noise estimate (shared with the texture test);
+    ``local``: the local energy, when already computed (:func:`_box_energy`)."""
+    if local is None:
+        g2 = np.zeros_like(a)
+        e = gx * gx
+        e += gy * gy
+        e /= 4.0
+        g2[..., 1:-1, 1:-1] = e
+        local = ndimage.uniform_filter(g2, size=(1,) * (a.ndim - 2) + (box, box), mode="nearest")
     # The 90th percentile ('linear' interpolation, as np.percentile) from a partial sort: two order statistics,
     # on every other pixel of each axis (the 5 x 5 box mean is smooth: neighbours carry the same information).
     inner = np.ascontiguousarray(local[..., 1:-1:2, 1:-1:2]).reshape(local.shape[:-2] + (-1,))
@@ -432,18 +449,53 @@ def _flat(a, gx, gy, sigma, region=None, box: int = 5, ratio: float = 0.05, nois
     if region is not None:
         r0, r1 = region
         local = local[..., r0:r1, r0:r1]
-    return np.mean(local <= thresh[..., None, None].astype(local.dtype), axis=(-1, -2))
+    below = np.count_nonzero(local <= thresh[..., None, None].astype(local.dtype), axis=(-1, -2))
+    return below / float(local.shape[-1] * local.shape[-2])
 
 
 def window_measures(windows: np.ndarray, region=None):
     """``(texture_strength(windows), flat_fraction(windows, region))`` sharing the gradients and the noise
     estimate, computed in float32 (the thresholds they feed are coarse; the ratio of two gradient energies
-    does not need double precision)."""
+    does not need double precision), a few windows at a time: each chunk's temporaries (gradients, the local
+    energy, the Laplacian) stay in the CPU cache instead of streaming stacks of them through memory (1.5 times
+    faster on 256-px windows). Every window's measures depend on that window alone, so the chunk size does
+    not change them."""
     a = np.asarray(windows, dtype=np.float32)
-    gx, gy = _gradients(a)
-    sigma = _noise_sigma(a)
-    std = _std(a)
-    return _texture(a, gx, gy, sigma, std=std), _flat(a, gx, gy, sigma, region, std=std)
+    lead, (h, w) = a.shape[:-2], a.shape[-2:]
+    a = a.reshape((-1, h, w))
+    tex = np.empty(a.shape[0])
+    flat = np.empty(a.shape[0])
+    step = max(1, _MEASURE_BYTES // (4 * h * w))
+    for k in range(0, a.shape[0], step):
+        c = a[k:k + step]
+        gx, gy = _gradients(c)
+        sigma = _noise_sigma(c)
+        std = _std(c)
+        tex[k:k + step] = _texture(c, gx, gy, sigma, std=std)
+        flat[k:k + step] = _flat(c, gx, gy, sigma, region, std=std, local=_box_energy(gx, gy))
+    return tex.reshape(lead), flat.reshape(lead)
+
+
+def _box_energy(gx, gy):
+    """The local gradient energy of :func:`_flat` (5 x 5 box mean of ``(gx^2 + gy^2) / 4``, zero on the border
+    pixels, 'nearest' edges) of a float32 stack, as shifted sums in float32 (to ~3e-7 relative of
+    ``ndimage.uniform_filter``, which works in float64 lines, at a third of its time). The zero border padded by
+    two more zeros is the 'nearest' extension of the zero border."""
+    h, w = gx.shape[-2] + 2, gx.shape[-1] + 2
+    P = np.zeros(gx.shape[:-2] + (h + 4, w + 4), dtype=gx.dtype)
+    e = P[..., 3:h + 1, 3:w + 1]
+    np.multiply(gx, gx, out=e)
+    e += gy * gy
+    e *= np.float32(0.25)
+    # Box sum of 5 along each axis as (x0 + x1) + (x2 + x3) + x4: three additions per axis.
+    r2 = P[..., :, :-1] + P[..., :, 1:]
+    r = r2[..., :, 0:w] + r2[..., :, 2:w + 2]
+    r += P[..., :, 4:w + 4]
+    c2 = r[..., :-1, :] + r[..., 1:, :]
+    out = c2[..., 0:h, :] + c2[..., 2:h + 2, :]
+    out += r[..., 4:h + 4, :]
+    out *= np.float32(1.0 / 25.0)
+    return out
 
 
 def block_reduce(a: np.ndarray, factor: int) -> np.ndarray:
