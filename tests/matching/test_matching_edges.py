@@ -127,3 +127,20 @@ def test_every_window_measures_the_shift(tmp_path, window):
     assert ok.sum() >= 4
     np.testing.assert_allclose(cat["dsample"][ok], SHIFT[0], atol=0.02)
     np.testing.assert_allclose(cat["dline"][ok], SHIFT[1], atol=0.02)
+
+
+def test_large_windows_keep_ground_whose_brightness_changed(tmp_path):
+    """Fields whose reflectance changed between the dates (a strong smooth brightness pattern added to the raw
+    image only) drop the NCC of 256-px windows below ``min_ncc``; their phase-correlation peak stays unambiguous,
+    so they are kept (collect.LARGE_WINDOW_PX), with the right offset."""
+    def edit(raw):
+        fields = ndimage.gaussian_filter(np.random.default_rng(5).standard_normal(raw.shape), 12)
+        raw += 700 * fields / fields.std()
+    image, ref, rpc = _pair(tmp_path, 60, 60, 512, 512, edit=edit)
+    specs, ctx = plan_tiles(image, rpc, ref, HEIGHT, 256, 256, search_px=8, margin_px=0)
+    res = run_tiles(specs, workers=1)
+    cat = {k: np.concatenate([r[k] for r in res]) for k in ("status", "ncc", "peak_ratio", "dsample", "dline")}
+    assert np.all(cat["status"] == 0), cat
+    assert np.sum(cat["ncc"] < 0.3) >= 3, cat["ncc"]
+    err = np.hypot(cat["dsample"] - SHIFT[0], cat["dline"] - SHIFT[1])
+    assert np.max(err) < 0.05, err
