@@ -144,3 +144,19 @@ def test_large_windows_keep_ground_whose_brightness_changed(tmp_path):
     assert np.sum(cat["ncc"] < 0.3) >= 3, cat["ncc"]
     err = np.hypot(cat["dsample"] - SHIFT[0], cat["dline"] - SHIFT[1])
     assert np.max(err) < 0.05, err
+
+
+def test_a_quarter_that_gained_texture_does_not_make_the_others_covered(tmp_path):
+    """One 256-px window: new strong structure in its top-left quarter (twice the ground's contrast added)
+    and other ground in its bottom-right one (a changed field, as textured as before). Neither is a cover: the
+    window is judged by its correlation and measures the shift."""
+    def edit(raw):
+        raw[:128, :128] += 2 * (raw[384:512, 0:128] - raw[384:512, 0:128].mean())
+        raw[128:256, 128:256] = raw[300:428, 300:428][:, ::-1].copy()
+    image, ref, rpc = _pair(tmp_path, 60, 60, 512, 512, edit=edit)
+    cat, _ = _collect(image, rpc, ref, 256, 256)
+    st = dict(zip(zip(cat["center_sample"], cat["center_line"]), cat["status"]))
+    d = dict(zip(zip(cat["center_sample"], cat["center_line"]), zip(cat["dsample"], cat["dline"])))
+    assert st[(128.0, 128.0)] == 0
+    # Half of the window is other ground: its error is larger than the unchanged windows' (< 0.005 px).
+    assert np.hypot(d[(128.0, 128.0)][0] - SHIFT[0], d[(128.0, 128.0)][1] - SHIFT[1]) < 0.06
