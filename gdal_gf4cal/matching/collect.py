@@ -492,15 +492,41 @@ class _FinePasses:
         m = wx0.size
         w = ref_f.shape[-1]
         self.spec, self.ds, self.wx0, self.wy0, self.lim, self.sigma, self.w = spec, ds, wx0, wy0, lim, sigma, w
-        self.nan_ref = np.isnan(ref_f).any(axis=(1, 2))
-        self.a = np.where(self.nan_ref[:, None, None], 0.0, ref_f).astype(np.float32)
+        self.a = ref_f.astype(np.float32)
+        self.nan_ref = np.isnan(self.a).any(axis=(1, 2))
+        self.a[self.nan_ref] = 0.0
         self.Fs = spectra(self.a)
         self.ox = np.round(shift_x).astype(int)
         self.oy = np.round(shift_y).astype(int)
+        self.block = self._union_block(m, w)
         self.b = np.zeros((m, w, w), dtype=np.float32)
         self.nan_raw = np.zeros(m, dtype=bool)
         self.outside = np.zeros(m, dtype=bool)
         self.res = {k: np.full(m, np.nan) for k in self.FIELDS}
+
+    def _union_block(self, m: int, w: int):
+        """``(x0, y0, pixels)`` of the raw block holding every window at every offset it may take (within
+        ``lim``), read once when the windows are dense (overlapping windows of a tile: each strip or tile of the
+        raw file decoded once instead of once per window and pass), else None."""
+        lim = self.lim
+        x0, y0 = int(self.wx0.min()) - lim, int(self.wy0.min()) - lim
+        nx, ny = int(self.wx0.max()) + w + lim - x0, int(self.wy0.max()) + w + lim - y0
+        if m < 2 or nx * ny > 0.8 * m * w * w:
+            return None
+        ds = self.ds
+        return x0, y0, read_block(ds.GetRasterBand(self.spec.band), ds.RasterXSize, ds.RasterYSize,
+                                  self.spec.image_nodata, x0, y0, nx, ny)
+
+    def _read(self, x0, y0):
+        """The raw windows with top-left corners ``x0, y0`` (:func:`_read_boxes`, or cut from the union block)."""
+        w = self.w
+        if self.block is None:
+            return _read_boxes(self.ds, self.spec.band, self.spec.image_nodata, x0, y0, w)
+        bx, by, pix = self.block
+        out = np.empty((x0.size, w, w), dtype=np.float32)
+        for i in range(x0.size):  # slices of one block: a copy each
+            out[i] = pix[y0[i] - by:y0[i] - by + w, x0[i] - bx:x0[i] - bx + w]
+        return out
 
     def passes(self, active):
         """Up to three passes over windows ``active``: read the raw window at the current offset, correlate,
@@ -509,9 +535,7 @@ class _FinePasses:
         for it in range(3):
             axo, ayo = ox[active], oy[active]
             out_a = (np.abs(axo) > lim) | (np.abs(ayo) > lim)
-            raw_a = _read_boxes(self.ds, self.spec.band, self.spec.image_nodata,
-                                self.wx0[active] + np.clip(axo, -lim, lim), self.wy0[active] + np.clip(ayo, -lim, lim),
-                                w)
+            raw_a = self._read(self.wx0[active] + np.clip(axo, -lim, lim), self.wy0[active] + np.clip(ayo, -lim, lim))
             nan_a = np.isnan(raw_a).any(axis=(1, 2)) | out_a
             okw = ~(self.nan_ref[active] | nan_a)
             raw_a[~okw] = 0.0
