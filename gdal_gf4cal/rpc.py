@@ -27,7 +27,7 @@ from ._rpc_poly import (_CHUNK, _EXPONENTS, DERIVATIVE_MATRICES, TERMS, fill_mon
 from .errors import RPCFormatError
 from .rpc_io import read_rpc_metadata, write_rpb, write_rpc_txt
 from .sensor import GDAL_PIXEL_OFFSET, LocalizationStats, SensorModelMixin, pixel_shift  # noqa: F401
-from .threads import BLAS_SERIAL_SIZE, map_blocks, matmul, split_points
+from .threads import BLAS_SERIAL_SIZE, blas_is_serial, map_blocks, matmul, split_points
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +53,9 @@ _MAX_EXTRAPOLATION = 100.0
 #: which hold the GIL) stays a twentieth of the solve. Every point is solved on its own: the same bits for any size.
 LOCALIZE_CHUNK = 16384
 
-#: Columns of one (4, 20) x (20, k) product of the projection kernel: the most OpenBLAS computes on the calling thread
-#: (:data:`~gdal_gf4cal.threads.BLAS_SERIAL_SIZE`: 80 k <= 4 x 65536).
+#: Columns of one (4, 20) x (20, k) product of the projection kernel outside a BLAS-serial scope: the most OpenBLAS
+#: computes on the calling thread (:data:`~gdal_gf4cal.threads.BLAS_SERIAL_SIZE`: 80 k <= 4 x 65536); inside one
+#: (:func:`~gdal_gf4cal.threads.blas_is_serial`) a chunk is one product: the same bits, fewer calls.
 _PROJECT_GEMM = BLAS_SERIAL_SIZE // 80
 #: Points per chunk of the projection kernel (five products): larger than L2 (the (20, chunk) monomials take 2.6 MB)
 #: but ~2x faster than 3276-point chunks on the loaded 2-core machine (NumPy's per-call cost, ~1.5 us there, weighs on
@@ -263,18 +264,13 @@ class RPCModel(SensorModelMixin):
     def _project_into(self, lon, lat, h, C, out) -> None:
         """:meth:`project` of flat arrays into ``out`` (2, n) with the coefficients of :meth:`_project_coeffs`: per
         chunk of :data:`PROJECT_CHUNK` points, in one reused (20, chunk) monomial buffer, the ground offsets
-        subtracted into its rows 1-3, the monomials in place (:func:`fill_monomials`), the (4, 20) x (20, chunk)
-        product into a reused (4, chunk) buffer in slices of :data:`_PROJECT_GEMM` columns (on the calling thread),
-        one division: 14 NumPy calls per chunk in two buffers the thread keeps (:func:`scratch`): 1.5-1.7x faster than
-        the chunks of fresh products before, the same bits (the same pixels as normalising whole arrays to
-        1e-11 px)."""
-        n = lon.size
-        c = max(1, min(n, PROJECT_CHUNK))
-        off = [self.long_off, self.lat_off, self.height_off]
-        if n and (lon.min() - off[0] < -180.0 or lon.max() - off[0] > 180.0):
-            dlon = lon - off[0]                          # across the antimeridian: longitudes modulo 360
-            lon = np.where(np.abs(dlon) > 180.0, (dlon + 180.0) % 360.0 - 180.0, dlon)
-            off[0] = 0.0
+        subtracted into its rows 1-3 (longitudes modulo 360 when a chunk spans the antimeridian), the monomials in
+        place (:func:`fill_monomials`), the (4, 20) x (20, chunk) product into a reused (4, chunk) buffer (in
+        slices of :data:`_PROJECT_GEMM` columns unless BLAS is held on the calling thread, :func:`blas_is_serial`),
+        one division: 12 NumPy calls per chunk in two buffers the thread keeps (:func:`scratch`), the same bits
+        (the same pixels as normalising whole arrays to 1e-11 px)."""
+        c = max(1, min(lon.size, PROJECT_CHUNK))
+        off = (self.long_off, self.lat_off, self.height_off)
         with scratch(20, c) as m, scratch(4, c) as v:
             m[0] = 1.0
             self._project_chunks(lon, lat, h, off, C, m, v, out)
@@ -283,16 +279,19 @@ class RPCModel(SensorModelMixin):
     def _project_chunks(lon, lat, h, off, C, m, v, out) -> None:
         """The chunk loop of :meth:`_project_into` in the buffers ``m`` (20, chunk) and ``v`` (4, chunk)."""
         n, c = lon.size, m.shape[1]
+        step = c if blas_is_serial() else _PROJECT_GEMM
         for i in range(0, n, c):
             j = min(i + c, n)
             if j - i < c:
                 m, v = m[:, :j - i], v[:, :j - i]
-            np.subtract(lon[i:j], off[0], out=m[1])
+            dlon = np.subtract(lon[i:j], off[0], out=m[1])
+            if dlon.min() < -180.0 or dlon.max() > 180.0:    # across the antimeridian: longitudes modulo 360
+                np.copyto(dlon, np.where(np.abs(dlon) > 180.0, (dlon + 180.0) % 360.0 - 180.0, dlon))
             np.subtract(lat[i:j], off[1], out=m[2])
             np.subtract(h[i:j], off[2], out=m[3])
             fill_monomials(m)
-            for a in range(0, j - i, _PROJECT_GEMM):
-                b = min(a + _PROJECT_GEMM, j - i)
+            for a in range(0, j - i, step):
+                b = min(a + step, j - i)
                 a = max(0, min(a, b - 2))                # never a one-column product (BLAS takes another kernel)
                 np.matmul(C, m[:, a:b], out=v[:, a:b])
             np.divide(v[0::2], v[1::2], out=out[:, i:j])
