@@ -81,20 +81,20 @@ def best_of(fns: dict, repeat: int) -> dict:
 
 def numpy_floor(rpc: RPCModel, lon, lat, hh):
     """The least NumPy work of a projection, as two functions to time beside ours: ``product``, the (4, 20) x (20,
-    chunk) products of the four polynomials on monomials computed beforehand (cache-sized chunks, one product
-    each: what any BLAS evaluation of the polynomials must do) and the divisions; ``minimal``, the whole
-    evaluation without our wrapper: offsets, the 16 monomial products (5 NumPy calls), one product and one division
-    per chunk in reused buffers."""
+    chunk) product of the four polynomials and the division, chunk after chunk on the monomials of the first chunk
+    computed beforehand (in cache: what any BLAS evaluation of the polynomials must do at least, the monomials
+    free); ``minimal``, the whole evaluation without our wrapper: offsets, the 16 monomial products (5 NumPy calls),
+    one product and one division per chunk in reused buffers."""
     C = rpc._project_coeffs(0.5)                     # ours: the pixel affine and ground scales folded in
     off = (rpc.long_off, rpc.lat_off, rpc.height_off)
     n, c = lon.size, PROJECT_CHUNK
-    mono = monomials(lon - off[0], lat - off[1], hh - off[2])
+    mono = monomials(lon[:c] - off[0], lat[:c] - off[1], hh[:c] - off[2])
     v, out, m = np.empty((4, c)), np.empty((2, n)), np.empty((20, c))
     m[0] = 1.0
 
     def product():
         for i in range(0, n - c + 1, c):
-            np.matmul(C, mono[:, i:i + c], out=v)
+            np.matmul(C, mono, out=v)
             np.divide(v[0::2], v[1::2], out=out[:, i:i + c])
         return out
 
