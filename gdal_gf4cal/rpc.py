@@ -533,34 +533,36 @@ class RPCModel(SensorModelMixin):
         sample, line, h = np.broadcast_arrays(_as_float_array(sample), _as_float_array(line), _as_float_array(h))
         shape = sample.shape
         shift = self._pixel_shift(pixel_convention)
+        s_, l_, h_ = sample.ravel(), line.ravel(), h.ravel()
+        lon, lat, ok = np.empty(s_.size), np.empty(s_.size), np.empty(s_.size, dtype=bool)
         iterations = []
 
-        def block(s, l, hh):
-            n = s.size
-            lon, lat, ok = np.empty(n), np.empty(n), np.empty(n, dtype=bool)
-            for i in range(0, max(n, 1), LOCALIZE_CHUNK):
-                sl = slice(i, i + LOCALIZE_CHUNK)
-                x = (s[sl] - shift - self.samp_off) / self.samp_scale
-                y = (l[sl] - shift - self.line_off) / self.line_scale
-                H = (hh[sl] - self.height_off) / self.height_scale
-                L, P, ok[sl], iters = self._localize_normalised(x, y, H, tol_px, max_iter)
+        def block(sl):
+            """Solve the points ``sl`` chunk by chunk, into their places in lon, lat, ok (no per-block arrays:
+            fresh ones faulted in 1,700 pages per 200k points here, 12 % of the CPU)."""
+            for i in range(sl.start, max(sl.stop, 1), LOCALIZE_CHUNK):
+                c = slice(i, min(i + LOCALIZE_CHUNK, sl.stop))
+                x = (s_[c] - shift - self.samp_off) / self.samp_scale
+                y = (l_[c] - shift - self.line_off) / self.line_scale
+                H = (h_[c] - self.height_off) / self.height_scale
+                L, P, ok[c], iters = self._localize_normalised(x, y, H, tol_px, max_iter)
                 iterations.append(iters)
-                lon[sl] = L * self.long_scale + self.long_off
-                lat[sl] = P * self.lat_scale + self.lat_off
-            lon[~ok] = np.nan
-            lat[~ok] = np.nan
-            return lon, lat, ok
+                np.add(np.multiply(L, self.long_scale, out=L), self.long_off, out=lon[c])
+                np.add(np.multiply(P, self.lat_scale, out=P), self.lat_off, out=lat[c])
+                if not ok[c].all():
+                    lon[c][~ok[c]] = np.nan
+                    lat[c][~ok[c]] = np.nan
 
-        lon, lat, ok = split_points(block, sample.ravel(), line.ravel(), h.ravel())
+        map_blocks(block, s_.size)
         iters = max(iterations)
         n_failed = int(np.count_nonzero(~ok))
         if n_failed:
             log.info("RPC localisation: %d of %d points did not converge (NaN)", n_failed, ok.size)
         out = (_shape_out(lon, shape), _shape_out(lat, shape))
         if full_output:
-            s_g = sample.ravel() - shift + GDAL_PIXEL_OFFSET
-            l_g = line.ravel() - shift + GDAL_PIXEL_OFFSET
-            return out + (self._localization_stats(s_g, l_g, h.ravel(), lon, lat, iters),)
+            s_g = s_ - shift + GDAL_PIXEL_OFFSET
+            l_g = l_ - shift + GDAL_PIXEL_OFFSET
+            return out + (self._localization_stats(s_g, l_g, h_, lon, lat, iters),)
         return out
 
     # ------------------------------------------------------------------ SensorModelMixin hooks (flat, GDAL px)

@@ -205,10 +205,10 @@ def map_blocks(fn: Callable[[slice], T], n: int, block: Optional[int] = None) ->
     :func:`num_threads` threads (the caller is one of them). Inside ``fn`` the kernels run serially. The first
     failing block's exception (in block order among those run) is raised once every running block has ended."""
     slices = block_slices(n, block)
+    if len(slices) == 1:                # one block: the calling thread, as it is (the setting not even read)
+        return [fn(slices[0])]
     threads = min(num_threads(), len(slices))
     if threads <= 1:
-        if len(slices) == 1:
-            return [fn(slices[0])]
         return _run_serially(fn, slices)
     results: List[Optional[T]] = [None] * len(slices)
     errors: dict = {}
