@@ -555,7 +555,7 @@ class RPCModel(SensorModelMixin):
 
         map_blocks(block, s_.size)
         iters = max(iterations)
-        n_failed = int(np.count_nonzero(~ok))
+        n_failed = ok.size - int(np.count_nonzero(ok))
         if n_failed:
             log.info("RPC localisation: %d of %d points did not converge (NaN)", n_failed, ok.size)
         out = (_shape_out(lon, shape), _shape_out(lat, shape))
