@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._rpc_poly import _EXPONENTS, monomials
+from ._rpc_poly import _EXPONENTS, monomials, poly_product
 from .dem import DEM
 from . import threads
 from .threads import matmul, split_points
@@ -300,7 +300,7 @@ def _track_ends(G, u0: float, u1: float) -> np.ndarray:
     E = np.zeros((4, 8))
     for row, u in ((0, u0), (2, u1)):
         E[row, 0:4] = E[row + 1, 4:8] = (1.0, u, u * u, u * u * u)
-    return matmul(E, G)
+    return poly_product(E, G)
 
 
 def _view_tangent(loc, n, h_lo, h_hi) -> float:
@@ -796,7 +796,7 @@ def _dem_start_height(rpc, x, y, dem) -> float:
     step = max(1, x.size // 512)
     xs, ys = x[::step], y[::step]
     A = rpc._approximate_inverse
-    L, P = matmul(A, monomials(xs, ys, np.full(xs.size, (mid - rpc.height_off) / rpc.height_scale)))
+    L, P = poly_product(A, monomials(xs, ys, np.full(xs.size, (mid - rpc.height_off) / rpc.height_scale)))
     z = _dem_height_nan(dem, L * rpc.long_scale + rpc.long_off, P * rpc.lat_scale + rpc.lat_off)
     z = z[np.isfinite(z)]
     return 0.5 * (float(z.min()) + float(z.max())) if z.size else mid
@@ -810,9 +810,9 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
     hs = rpc.height_scale
     Hm = (h0 - rpc.height_off) / hs
     # 1. Ray: cubic in t = H - Hm from the approximate inverse, value and slope corrected by one exact Newton step.
-    R = matmul(basis, _xy_monomials(x, y))                # rows L0..L3, P0..P3
+    R = poly_product(basis, _xy_monomials(x, y))                # rows L0..L3, P0..P3
     L0, P0 = R[0], R[4]
-    V = matmul(rpc._coeffs_with_derivatives, monomials(L0, P0, np.full(m, Hm)))
+    V = poly_product(rpc._coeffs_with_derivatives, monomials(L0, P0, np.full(m, Hm)))
     xe, ye = V[0] / V[1], V[2] / V[3]
     xL, xP, xH = (V[4] - xe * V[5]) / V[1], (V[8] - xe * V[9]) / V[1], (V[12] - xe * V[13]) / V[1]
     yL, yP, yH = (V[6] - ye * V[7]) / V[3], (V[10] - ye * V[11]) / V[3], (V[14] - ye * V[15]) / V[3]

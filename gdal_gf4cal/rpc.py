@@ -23,11 +23,11 @@ from typing import Dict, Optional, Tuple, Union
 import numpy as np
 
 from ._rpc_poly import (_CHUNK, _EXPONENTS, DERIVATIVE_MATRICES, TERMS, fill_monomials,  # noqa: F401
-                        monomial_chunks, monomial_derivatives, monomials, scratch)
+                        monomial_chunks, monomial_derivatives, monomials, poly_product, scratch)
 from .errors import RPCFormatError
 from .rpc_io import read_rpc_metadata, write_rpb, write_rpc_txt
 from .sensor import GDAL_PIXEL_OFFSET, LocalizationStats, SensorModelMixin, pixel_shift  # noqa: F401
-from .threads import BLAS_SERIAL_SIZE, blas_is_serial, map_blocks, matmul, split_points
+from .threads import BLAS_SERIAL_SIZE, blas_is_serial, map_blocks, split_points
 
 log = logging.getLogger(__name__)
 
@@ -239,7 +239,7 @@ class RPCModel(SensorModelMixin):
         C = self._coeffs
         with scratch(4, min(n, _CHUNK)) as buf:
             for i, j, m in monomial_chunks(L, P, H):
-                v = matmul(C, m, out=buf[:, :j - i])
+                v = poly_product(C, m, out=buf[:, :j - i])
                 np.divide(v[0], v[1], out=x[i:j])
                 np.divide(v[2], v[3], out=y[i:j])
         return x, y
@@ -325,7 +325,7 @@ class RPCModel(SensorModelMixin):
         Cx = self._coeffs_with_derivatives if with_h else self._coeffs_with_derivatives[:12]
         with scratch(Cx.shape[0], L.size) as V:
             for i, j, m in monomial_chunks(L, P, H):
-                matmul(Cx, m, out=V[:, i:j])
+                poly_product(Cx, m, out=V[:, i:j])
             return self._jacobian_from_values(V, with_h)
 
     @staticmethod
@@ -434,7 +434,7 @@ class RPCModel(SensorModelMixin):
         x_lo, x_hi, y_lo, y_hi = cx - 1.25 * sx, cx + 1.25 * sx, cy - 1.25 * sy, cy + 1.25 * sy
         for i, j, m in monomial_chunks(x, y, H):
             xs, ys, hs = x[i:j], y[i:j], H[i:j]
-            L[i:j], P[i:j] = matmul(A, m)
+            L[i:j], P[i:j] = poly_product(A, m)
             # Chunk-wise bounds first: the common case (every point inside) costs six reductions.
             if (xs.min(initial=x_lo) >= x_lo and xs.max(initial=x_hi) <= x_hi and ys.min(initial=y_lo) >= y_lo
                     and ys.max(initial=y_hi) <= y_hi and np.abs(hs).max(initial=0.0) <= 1.5):

@@ -299,13 +299,11 @@ BLAS_SERIAL_SIZE = 4 * 65536
 def matmul(a: np.ndarray, b: np.ndarray, out: Optional[np.ndarray] = None) -> np.ndarray:
     """``a @ b`` (2-D, ``a`` small) in column slices of ``b`` that BLAS computes on the calling thread: the same
     numbers on any number of cores and with any BLAS thread setting, and no BLAS threads competing with the pool's
-    (the point kernels' polynomial evaluations). One product when BLAS is held on one thread (:func:`blas_is_serial`:
-    each column is the same dot product, the same bits, a tenth of the calls of a (12, 20) Jacobian, 8 % less CPU
-    per localised point). ``out``: a (rows, n) array to write into (a reused buffer)."""
+    (the point kernels' polynomial evaluations). ``out``: a (rows, n) array to write into (a reused buffer)."""
     rows, k = a.shape
     n = b.shape[1]
     step = max(2, BLAS_SERIAL_SIZE // max(rows * k, 1))
-    if n <= step or blas_is_serial():
+    if n <= step:
         return a @ b if out is None else np.matmul(a, b, out=out)
     if out is None:
         out = np.empty((rows, n), dtype=np.result_type(a, b))

@@ -110,7 +110,7 @@ def test_dask_workers_run_one_blas_thread(monkeypatch):
 WHOLE_OR_SLICED = r"""
 import json, os
 import numpy as np
-from gdal_gf4cal import RPCModel, rpc as rpc_module, threads
+from gdal_gf4cal import RPCModel, _rpc_poly, rpc as rpc_module, threads
 rpc = RPCModel.from_file(os.path.join("tests", "data", "rpc", "RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML"))
 rng = np.random.default_rng(3)
 n = 40000
@@ -122,7 +122,7 @@ with threads.limit(1):
     whole = rpc.localize(s, l, h)
     whole += rpc.project(whole[0], whole[1], h)
 seen["after"] = threads.blas_is_serial()
-rpc_module.blas_is_serial = threads.blas_is_serial = lambda: False     # as without threadpoolctl: sliced
+rpc_module.blas_is_serial = _rpc_poly.blas_is_serial = lambda: False     # as without threadpoolctl: sliced
 with threads.limit(1):
     sliced = rpc.localize(s, l, h)
     sliced += rpc.project(sliced[0], sliced[1], h)
@@ -132,8 +132,8 @@ print(json.dumps(seen))
 
 
 def test_products_whole_or_sliced_give_the_same_bits():
-    """Inside a BLAS-serial scope the kernels' (k, 20) x (20, chunk) products run whole (blas_is_serial: fewer
-    BLAS calls, ~8 % less CPU per localised point); outside it in slices BLAS keeps on the calling thread: each
-    column is the same dot product either way, so localize and project give the same bits."""
+    """Inside a BLAS-serial scope the kernels' (k, 20) x (20, chunk) products run whole (_rpc_poly.poly_product,
+    project: fewer BLAS calls, ~8 % less CPU per localised point); outside it in slices BLAS keeps on the calling
+    thread: each column is the same dot product either way, so localize and project give the same bits."""
     seen = _run(WHOLE_OR_SLICED)
     assert seen == {"outside": False, "inside": True, "after": False, "same": True}
