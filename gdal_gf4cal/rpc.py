@@ -473,9 +473,15 @@ class RPCModel(SensorModelMixin):
                 rx = (x if full else x[active]) - cx
                 ry = (y if full else y[active]) - cy
                 done = (np.abs(rx) <= tol_x) & (np.abs(ry) <= tol_y)
-                converged[active[done]] = True
+                if full:                             # no gather and scatter of the indices
+                    np.logical_or(converged, done, out=converged)
+                else:
+                    converged[active[done]] = True
                 if iterations > 2:
                     det_sign[active[done]] = np.sign(a[done] * e[done] - b[done] * c[done])
+                if full and done.all():              # the common end: every point settled at once
+                    active = active[:0]
+                    break
                 keep = ~done & np.isfinite(rx) & np.isfinite(ry)
                 kept = np.count_nonzero(keep)
                 if not kept:
