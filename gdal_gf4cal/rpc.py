@@ -459,7 +459,7 @@ class RPCModel(SensorModelMixin):
         L, P = self._start_normalised(x, y, H)
         n = x.size
         converged = np.zeros(n, dtype=bool)
-        det_sign = np.full(n, self._orientation)   # checked for the points that need more than two steps
+        det_sign = None             # the orientation, checked for the points that need more than two steps
         tol_x = tol / abs(self.samp_scale)   # tolerances in pixels -> normalised units per axis
         tol_y = tol / abs(self.line_scale)
         active = np.arange(n)
@@ -478,6 +478,8 @@ class RPCModel(SensorModelMixin):
                 else:
                     converged[active[done]] = True
                 if iterations > 2:
+                    if det_sign is None:
+                        det_sign = np.full(n, self._orientation)
                     det_sign[active[done]] = np.sign(a[done] * e[done] - b[done] * c[done])
                 if full and done.all():              # the common end: every point settled at once
                     active = active[:0]
@@ -517,7 +519,8 @@ class RPCModel(SensorModelMixin):
                 else:
                     cx, cy = self._project_normalised(La, Pa, Ha)
         converged &= (np.abs(L) <= _MAX_EXTRAPOLATION) & (np.abs(P) <= _MAX_EXTRAPOLATION)
-        converged &= det_sign == self._orientation
+        if det_sign is not None:
+            converged &= det_sign == self._orientation
         return L, P, converged, iterations
 
     @cached_property
