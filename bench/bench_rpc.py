@@ -6,8 +6,12 @@ Same points for everyone, on the real Pleiades Ventoux RPC and the real SRTM til
   localize      image -> ground at h      vs GDAL at its default 0.1 px tolerance (we converge to 1e-8 px)
   localize_dem  image -> ground on a DEM  vs GDAL with RPC_DEM at RPC_PIXEL_ERROR_THRESHOLD=1e-6 (we converge to
                 1e-8 px / 1e-4 m)
-Each timing is the best of ``--repeat`` interleaved runs (ours, GDAL, rpcm, ours, ...): the machine is shared,
-compare the ratios (same run), not absolute rates; the load average is printed.
+Each timing is the least CPU time of ``--repeat`` interleaved runs (ours, GDAL, rpcm, ours, ...; everything runs
+on the calling thread): the machine is shared, compare the ratios (same run), not absolute rates; the load average
+is printed. Two rows time the NumPy floor of a projection in the same run (:func:`numpy_floor`): ``floor:
+product``, the four polynomials' products and divisions alone on monomials computed beforehand, and ``floor:
+minimal``, the whole evaluation without our wrapper; ``ours/rpcm`` of these rows is the most a NumPy projection can
+reach over rpcm here.
 Goals: issue 2: project >= rpcm's speed; localize_dem >= 1.5x GDAL's; issue 23: project >= 6x rpcm single-threaded.
 
 rpcm: its ``rpc_model.py`` (NumPy only for projection) is loaded from wherever ``import rpcm`` would find it, e.g.
@@ -30,6 +34,7 @@ import numpy as np
 from osgeo import gdal
 
 from gdal_gf4cal import DEM, RPCModel
+from gdal_gf4cal.rpc import PROJECT_CHUNK, fill_monomials, monomials
 from gdal_gf4cal.threads import limit
 
 gdal.UseExceptions()
@@ -61,15 +66,49 @@ def load_rpcm():
 
 
 def best_of(fns: dict, repeat: int) -> dict:
-    """Best wall time of each function over ``repeat`` interleaved rounds, and its last result."""
+    """Least CPU time (``time.process_time``: everything here runs on the calling thread, and on a shared machine
+    the CPU seconds of a single-threaded call are what survives the load) of each function over ``repeat``
+    interleaved rounds, and its last result."""
     times = {k: [] for k in fns}
     out = {}
     for r in range(repeat):
         for k in (list(fns) if r % 2 == 0 else list(fns)[::-1]):
-            t = time.perf_counter()
+            t = time.process_time()
             out[k] = fns[k]()
-            times[k].append(time.perf_counter() - t)
+            times[k].append(time.process_time() - t)
     return {k: (min(v), out[k]) for k, v in times.items()}
+
+
+def numpy_floor(rpc: RPCModel, lon, lat, hh):
+    """The least NumPy work of a projection, as two functions to time beside ours: ``product``, the (4, 20) x (20,
+    chunk) product of the four polynomials and the division, chunk after chunk on the monomials of the first chunk
+    computed beforehand (in cache: what any BLAS evaluation of the polynomials must do at least, the monomials
+    free); ``minimal``, the whole evaluation without our wrapper: offsets, the 16 monomial products (5 NumPy calls),
+    one product and one division per chunk in reused buffers."""
+    C = rpc._project_coeffs(0.5)                     # ours: the pixel affine and ground scales folded in
+    off = (rpc.long_off, rpc.lat_off, rpc.height_off)
+    n, c = lon.size, PROJECT_CHUNK
+    mono = monomials(lon[:c] - off[0], lat[:c] - off[1], hh[:c] - off[2])
+    v, out, m = np.empty((4, c)), np.empty((2, n)), np.empty((20, c))
+    m[0] = 1.0
+
+    def product():
+        for i in range(0, n - c + 1, c):
+            np.matmul(C, mono, out=v)
+            np.divide(v[0::2], v[1::2], out=out[:, i:i + c])
+        return out
+
+    def minimal():
+        for i in range(0, n - c + 1, c):
+            np.subtract(lon[i:i + c], off[0], out=m[1])
+            np.subtract(lat[i:i + c], off[1], out=m[2])
+            np.subtract(hh[i:i + c], off[2], out=m[3])
+            fill_monomials(m)
+            np.matmul(C, m, out=v)
+            np.divide(v[0::2], v[1::2], out=out[:, i:i + c])
+        return out
+
+    return product, minimal
 
 
 def measure(n: int = 200_000, repeat: int = 5) -> dict:
@@ -95,10 +134,16 @@ def measure(n: int = 200_000, repeat: int = 5) -> dict:
         if rm is not None:
             r2 = rm.RPCModel(rpc.to_gdal_metadata())
             fns["rpcm"] = lambda: r2.projection(lon, lat, hh)
+        product, minimal = numpy_floor(rpc, lon, lat, hh)
+        fns.update({"floor_product": product, "floor_minimal": minimal})
         t = best_of(fns, repeat)
         ps, pl = t["ours"][1]
         rows["project"] = {"ours": t["ours"][0], "gdal": t["gdal"][0], "rpcm": t["rpcm"][0] if rm else None,
                            "err": float(np.max(np.hypot(ps - s, pl - l)))}
+        m = n - n % PROJECT_CHUNK                          # the floors evaluate whole chunks only
+        for key, label in (("floor_minimal", "floor: minimal"), ("floor_product", "floor: product")):
+            rows[label] = {"ours": t[key][0] * n / m, "gdal": t["gdal"][0], "rpcm": t["rpcm"][0] if rm else None,
+                           "err": float("nan")}
         t = best_of({"ours": lambda: rpc.localize(s, l, hh), "gdal": lambda: tr.TransformPoints(0, image)}, repeat)
         ps, pl = rpc.project(*t["ours"][1], hh)
         rows["localize"] = {"ours": t["ours"][0], "gdal": t["gdal"][0], "rpcm": None,
@@ -126,11 +171,11 @@ def main():
     res = measure(n, repeat)
     print(f"{n} points, Pleiades Ventoux RPC, SRTM N44E005, one thread (GDAL {gdal.__version__}); load average "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
-    print(f"{'operation':<13} {'ours Mpt/s':>10} {'GDAL Mpt/s':>10} {'ours/GDAL':>9} {'rpcm Mpt/s':>10} "
+    print(f"{'operation':<15} {'ours Mpt/s':>10} {'GDAL Mpt/s':>10} {'ours/GDAL':>9} {'rpcm Mpt/s':>10} "
           f"{'ours/rpcm':>9} {'round trip px':>13}")
     for name, r in res["rows"].items():
         rp = (f"{n / r['rpcm'] / 1e6:>10.2f} {r['rpcm'] / r['ours']:>9.2f}" if r["rpcm"] else f"{'-':>10} {'-':>9}")
-        print(f"{name:<13} {n / r['ours'] / 1e6:>10.2f} {n / r['gdal'] / 1e6:>10.2f} {r['gdal'] / r['ours']:>9.2f} "
+        print(f"{name:<15} {n / r['ours'] / 1e6:>10.2f} {n / r['gdal'] / 1e6:>10.2f} {r['gdal'] / r['ours']:>9.2f} "
               f"{rp} {r['err']:>13.2e}")
     if not res["rpcm"]:
         print("rpcm not installed (pip download rpcm --no-deps, unpack it on PYTHONPATH outside the repository)")

@@ -11,7 +11,9 @@
   MS sub-CCD edge; rendered once into --workdir, ~1 min); goal >= 1.5x.
 
 Each case runs under ``threads.limit(1)`` and ``threads.limit(k)`` alternately (--repeat times, median); results
-must be the same bits in both (printed). On a shared machine the ratios are low: measure when it is idle (the
+must be the same bits in both (printed). With the round trip, one more line: the share of a block's CPU spent in
+Python dispatching NumPy calls (a 16-point round trip against a block's: what holds the GIL, the serial part) and the
+2-thread bound it sets. On a shared machine the ratios are low: measure when it is idle (the
 load average is printed before and after each case).
 
 Run: .venv/bin/python bench/bench_threads.py [--points N] [--repeat R] [--threads 2] [--workdir DIR]
@@ -61,18 +63,50 @@ def _arrays_equal(a, b):
     return all(np.array_equal(x, y, equal_nan=True) for x, y in zip(a, b))
 
 
-def point_cases(n):
-    """localize + project of ``n`` points and localize_dem of ``n / 4`` on the real Ventoux RPC and SRTM."""
+def _points(n):
+    """The real Ventoux RPC and ``n`` image points uniform over its image, at heights over its range."""
     rpc = RPCModel.from_file(DATA / "rpc" / "RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML")
-    dem = DEM.from_file(DATA / "dem" / "N44E005.hgt", geoid="egm96", nodata="nan")
     w, h = rpc.image_size
     rng = np.random.default_rng(0)
-    s, l = rng.uniform(0, w, n), rng.uniform(0, h, n)
-    hh = rng.uniform(*rpc.height_range, n)
+    return rpc, rng.uniform(0, w, n), rng.uniform(0, h, n), rng.uniform(*rpc.height_range, n)
+
+
+def _round_trip(rpc, s, l, hh):
+    lon, lat = rpc.localize(s, l, hh)
+    return (lon, lat) + tuple(rpc.project(lon, lat, hh))
+
+
+def _least_cpu(fn, repeat):
+    """Least CPU seconds of ``repeat`` calls of ``fn``."""
+    best = float("inf")
+    for _ in range(repeat):
+        t = time.process_time()
+        fn()
+        best = min(best, time.process_time() - t)
+    return best
+
+
+def serial_share():
+    """The Python share of a round-trip block (what holds the GIL: the NumPy calls dispatched, without arithmetic):
+    the least CPU of the round trip of 16 points (one chunk of every kernel) against one of a block, one thread."""
+    b = threads.BLOCK
+    rpc, s, l, hh = _points(b)
+    with threads.limit(1):
+        small = _least_cpu(lambda: _round_trip(rpc, s[:16], l[:16], hh[:16]), 100)
+        block = _least_cpu(lambda: _round_trip(rpc, s, l, hh), 5)
+    share = small / block
+    print(f"round trip: {small * 1e6:.0f} us of NumPy calls per block against {block * 1e6:.0f} us CPU for {b:,} "
+          f"points: {100 * share:.0f} % in Python (Amdahl: 2 threads <= {2 / (1 + share):.2f}x); load "
+          f"{os.getloadavg()[0]:.1f}", flush=True)
+
+
+def point_cases(n):
+    """localize + project of ``n`` points and localize_dem of ``n / 4`` on the real Ventoux RPC and SRTM."""
+    rpc, s, l, hh = _points(n)
+    dem = DEM.from_file(DATA / "dem" / "N44E005.hgt", geoid="egm96", nodata="nan")
 
     def round_trip(_):
-        lon, lat = rpc.localize(s, l, hh)
-        return (lon, lat) + tuple(rpc.project(lon, lat, hh))
+        return _round_trip(rpc, s, l, hh)
 
     return {"round_trip": ("localize + project", round_trip, _arrays_equal),
             "localize_dem": ("localize_dem (SRTM)", lambda _: rpc.localize_dem(s[: n // 4], l[: n // 4], dem),
@@ -148,6 +182,8 @@ def main():
           f"({threads.DEM_BLOCK:,} for localize_dem); {threads.machine_cores()} cores; load average "
           f"{os.getloadavg()[0]:.1f}")
     _compare(args.threads, [found[c] for c in wanted if c in found], args.repeat)
+    if "round_trip" in wanted:
+        serial_share()
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._rpc_poly import _EXPONENTS, monomials
+from ._rpc_poly import _EXPONENTS, monomials, poly_product
 from .dem import DEM
 from . import threads
 from .threads import matmul, split_points
@@ -287,12 +287,20 @@ def _one_crossing_near(dem: DEM, G, h0) -> np.ndarray:
     if not np.isfinite(radius) or radius > 512 or dem.local_max_slope(np.zeros(1), np.zeros(1), 1) is None:
         return _one_crossing(dem, tan_view)
     # Rays that never fly over the DEM: to the march, which drops them at once.
-    near = np.flatnonzero(_near_footprint(dem, _horner(G[0:4], h_lo - h0), _horner(G[4:8], h_lo - h0),
-                                          _horner(G[0:4], h_hi - h0), _horner(G[4:8], h_hi - h0)))
+    near = np.flatnonzero(_near_footprint(dem, *_track_ends(G, h_lo - h0, h_hi - h0)))
     px, py = dem.to_pixel(G[0, near], G[4, near])
     once = np.zeros(G.shape[1], dtype=bool)
     once[near] = dem.local_max_slope(px, py, int(np.ceil(radius))) * np.sqrt(2.0) * tan_view[near] < 0.9
     return once
+
+
+def _track_ends(G, u0: float, u1: float) -> np.ndarray:
+    """(4, n) lon, lat at ``u0``, then at ``u1`` of the cubic rays ``G`` (lon, lat in u = h - h0): one (4, 8) x
+    (8, n) product instead of four Horner evaluations (24 NumPy calls)."""
+    E = np.zeros((4, 8))
+    for row, u in ((0, u0), (2, u1)):
+        E[row, 0:4] = E[row + 1, 4:8] = (1.0, u, u * u, u * u * u)
+    return poly_product(E, G)
 
 
 def _view_tangent(loc, n, h_lo, h_hi) -> float:
@@ -788,7 +796,7 @@ def _dem_start_height(rpc, x, y, dem) -> float:
     step = max(1, x.size // 512)
     xs, ys = x[::step], y[::step]
     A = rpc._approximate_inverse
-    L, P = matmul(A, monomials(xs, ys, np.full(xs.size, (mid - rpc.height_off) / rpc.height_scale)))
+    L, P = poly_product(A, monomials(xs, ys, np.full(xs.size, (mid - rpc.height_off) / rpc.height_scale)))
     z = _dem_height_nan(dem, L * rpc.long_scale + rpc.long_off, P * rpc.lat_scale + rpc.lat_off)
     z = z[np.isfinite(z)]
     return 0.5 * (float(z.min()) + float(z.max())) if z.size else mid
@@ -802,9 +810,9 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
     hs = rpc.height_scale
     Hm = (h0 - rpc.height_off) / hs
     # 1. Ray: cubic in t = H - Hm from the approximate inverse, value and slope corrected by one exact Newton step.
-    R = matmul(basis, _xy_monomials(x, y))                # rows L0..L3, P0..P3
+    R = poly_product(basis, _xy_monomials(x, y))                # rows L0..L3, P0..P3
     L0, P0 = R[0], R[4]
-    V = matmul(rpc._coeffs_with_derivatives, monomials(L0, P0, np.full(m, Hm)))
+    V = poly_product(rpc._coeffs_with_derivatives, monomials(L0, P0, np.full(m, Hm)))
     xe, ye = V[0] / V[1], V[2] / V[3]
     xL, xP, xH = (V[4] - xe * V[5]) / V[1], (V[8] - xe * V[9]) / V[1], (V[12] - xe * V[13]) / V[1]
     yL, yP, yH = (V[6] - ye * V[7]) / V[3], (V[10] - ye * V[11]) / V[3], (V[14] - ye * V[15]) / V[3]
@@ -963,7 +971,8 @@ def _near_footprint(dem, lon0, lat0, lon1, lat1) -> np.ndarray:
     mx, my = 0.1 * (e - w) + 1e-6, 0.1 * (n - s_) + 1e-6
     if not dem.is_geographic and (e - w > 5.0 or n - s_ > 5.0 or max(abs(s_), abs(n)) > 80.0):
         return np.ones(np.shape(lon0), dtype=bool)     # a projected footprint its corners may not bound
-    if dem.is_geographic:              # longitudes compared modulo 360, as the DEM samples them
+    if dem.is_geographic and not all(w <= np.min(v, initial=np.inf) and np.max(v, initial=-np.inf) < w + 360.0
+                                     for v in (lon0, lon1)):  # compared modulo 360 (as sampled), when needed
         lon0, lon1 = w + np.mod(lon0 - w, 360.0), w + np.mod(lon1 - w, 360.0)
     with np.errstate(invalid="ignore"):
         beyond = ((lon0 < w - mx) & (lon1 < w - mx)) | ((lon0 > e + mx) & (lon1 > e + mx)) | \

@@ -23,11 +23,11 @@ from typing import Dict, Optional, Tuple, Union
 import numpy as np
 
 from ._rpc_poly import (_CHUNK, _EXPONENTS, DERIVATIVE_MATRICES, TERMS, fill_monomials,  # noqa: F401
-                        monomial_chunks, monomial_derivatives, monomials, scratch)
+                        monomial_chunks, monomial_derivatives, monomials, poly_product, scratch)
 from .errors import RPCFormatError
 from .rpc_io import read_rpc_metadata, write_rpb, write_rpc_txt
 from .sensor import GDAL_PIXEL_OFFSET, LocalizationStats, SensorModelMixin, pixel_shift  # noqa: F401
-from .threads import BLAS_SERIAL_SIZE, map_blocks, matmul, split_points
+from .threads import BLAS_SERIAL_SIZE, blas_is_serial, map_blocks, split_points
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +53,9 @@ _MAX_EXTRAPOLATION = 100.0
 #: which hold the GIL) stays a twentieth of the solve. Every point is solved on its own: the same bits for any size.
 LOCALIZE_CHUNK = 16384
 
-#: Columns of one (4, 20) x (20, k) product of the projection kernel: the most OpenBLAS computes on the calling thread
-#: (:data:`~gdal_gf4cal.threads.BLAS_SERIAL_SIZE`: 80 k <= 4 x 65536).
+#: Columns of one (4, 20) x (20, k) product of the projection kernel outside a BLAS-serial scope: the most OpenBLAS
+#: computes on the calling thread (:data:`~gdal_gf4cal.threads.BLAS_SERIAL_SIZE`: 80 k <= 4 x 65536); inside one
+#: (:func:`~gdal_gf4cal.threads.blas_is_serial`) a chunk is one product: the same bits, fewer calls.
 _PROJECT_GEMM = BLAS_SERIAL_SIZE // 80
 #: Points per chunk of the projection kernel (five products): larger than L2 (the (20, chunk) monomials take 2.6 MB)
 #: but ~2x faster than 3276-point chunks on the loaded 2-core machine (NumPy's per-call cost, ~1.5 us there, weighs on
@@ -238,7 +239,7 @@ class RPCModel(SensorModelMixin):
         C = self._coeffs
         with scratch(4, min(n, _CHUNK)) as buf:
             for i, j, m in monomial_chunks(L, P, H):
-                v = matmul(C, m, out=buf[:, :j - i])
+                v = poly_product(C, m, out=buf[:, :j - i])
                 np.divide(v[0], v[1], out=x[i:j])
                 np.divide(v[2], v[3], out=y[i:j])
         return x, y
@@ -263,18 +264,13 @@ class RPCModel(SensorModelMixin):
     def _project_into(self, lon, lat, h, C, out) -> None:
         """:meth:`project` of flat arrays into ``out`` (2, n) with the coefficients of :meth:`_project_coeffs`: per
         chunk of :data:`PROJECT_CHUNK` points, in one reused (20, chunk) monomial buffer, the ground offsets
-        subtracted into its rows 1-3, the monomials in place (:func:`fill_monomials`), the (4, 20) x (20, chunk)
-        product into a reused (4, chunk) buffer in slices of :data:`_PROJECT_GEMM` columns (on the calling thread),
-        one division: 14 NumPy calls per chunk in two buffers the thread keeps (:func:`scratch`): 1.5-1.7x faster than
-        the chunks of fresh products before, the same bits (the same pixels as normalising whole arrays to
-        1e-11 px)."""
-        n = lon.size
-        c = max(1, min(n, PROJECT_CHUNK))
-        off = [self.long_off, self.lat_off, self.height_off]
-        if n and (lon.min() - off[0] < -180.0 or lon.max() - off[0] > 180.0):
-            dlon = lon - off[0]                          # across the antimeridian: longitudes modulo 360
-            lon = np.where(np.abs(dlon) > 180.0, (dlon + 180.0) % 360.0 - 180.0, dlon)
-            off[0] = 0.0
+        subtracted into its rows 1-3 (longitudes modulo 360 when a chunk spans the antimeridian), the monomials in
+        place (:func:`fill_monomials`), the (4, 20) x (20, chunk) product into a reused (4, chunk) buffer (in
+        slices of :data:`_PROJECT_GEMM` columns unless BLAS is held on the calling thread, :func:`blas_is_serial`),
+        one division: 12 NumPy calls per chunk in two buffers the thread keeps (:func:`scratch`), the same bits
+        (the same pixels as normalising whole arrays to 1e-11 px)."""
+        c = max(1, min(lon.size, PROJECT_CHUNK))
+        off = (self.long_off, self.lat_off, self.height_off)
         with scratch(20, c) as m, scratch(4, c) as v:
             m[0] = 1.0
             self._project_chunks(lon, lat, h, off, C, m, v, out)
@@ -283,16 +279,19 @@ class RPCModel(SensorModelMixin):
     def _project_chunks(lon, lat, h, off, C, m, v, out) -> None:
         """The chunk loop of :meth:`_project_into` in the buffers ``m`` (20, chunk) and ``v`` (4, chunk)."""
         n, c = lon.size, m.shape[1]
+        step = c if blas_is_serial() else _PROJECT_GEMM
         for i in range(0, n, c):
             j = min(i + c, n)
             if j - i < c:
                 m, v = m[:, :j - i], v[:, :j - i]
-            np.subtract(lon[i:j], off[0], out=m[1])
+            dlon = np.subtract(lon[i:j], off[0], out=m[1])
+            if dlon.min() < -180.0 or dlon.max() > 180.0:    # across the antimeridian: longitudes modulo 360
+                np.copyto(dlon, np.where(np.abs(dlon) > 180.0, (dlon + 180.0) % 360.0 - 180.0, dlon))
             np.subtract(lat[i:j], off[1], out=m[2])
             np.subtract(h[i:j], off[2], out=m[3])
             fill_monomials(m)
-            for a in range(0, j - i, _PROJECT_GEMM):
-                b = min(a + _PROJECT_GEMM, j - i)
+            for a in range(0, j - i, step):
+                b = min(a + step, j - i)
                 a = max(0, min(a, b - 2))                # never a one-column product (BLAS takes another kernel)
                 np.matmul(C, m[:, a:b], out=v[:, a:b])
             np.divide(v[0::2], v[1::2], out=out[:, i:j])
@@ -326,7 +325,7 @@ class RPCModel(SensorModelMixin):
         Cx = self._coeffs_with_derivatives if with_h else self._coeffs_with_derivatives[:12]
         with scratch(Cx.shape[0], L.size) as V:
             for i, j, m in monomial_chunks(L, P, H):
-                matmul(Cx, m, out=V[:, i:j])
+                poly_product(Cx, m, out=V[:, i:j])
             return self._jacobian_from_values(V, with_h)
 
     @staticmethod
@@ -435,7 +434,7 @@ class RPCModel(SensorModelMixin):
         x_lo, x_hi, y_lo, y_hi = cx - 1.25 * sx, cx + 1.25 * sx, cy - 1.25 * sy, cy + 1.25 * sy
         for i, j, m in monomial_chunks(x, y, H):
             xs, ys, hs = x[i:j], y[i:j], H[i:j]
-            L[i:j], P[i:j] = matmul(A, m)
+            L[i:j], P[i:j] = poly_product(A, m)
             # Chunk-wise bounds first: the common case (every point inside) costs six reductions.
             if (xs.min(initial=x_lo) >= x_lo and xs.max(initial=x_hi) <= x_hi and ys.min(initial=y_lo) >= y_lo
                     and ys.max(initial=y_hi) <= y_hi and np.abs(hs).max(initial=0.0) <= 1.5):
@@ -460,7 +459,7 @@ class RPCModel(SensorModelMixin):
         L, P = self._start_normalised(x, y, H)
         n = x.size
         converged = np.zeros(n, dtype=bool)
-        det_sign = np.full(n, self._orientation)   # checked for the points that need more than two steps
+        det_sign = None             # the orientation, checked for the points that need more than two steps
         tol_x = tol / abs(self.samp_scale)   # tolerances in pixels -> normalised units per axis
         tol_y = tol / abs(self.line_scale)
         active = np.arange(n)
@@ -474,9 +473,17 @@ class RPCModel(SensorModelMixin):
                 rx = (x if full else x[active]) - cx
                 ry = (y if full else y[active]) - cy
                 done = (np.abs(rx) <= tol_x) & (np.abs(ry) <= tol_y)
-                converged[active[done]] = True
+                if full:                             # no gather and scatter of the indices
+                    np.logical_or(converged, done, out=converged)
+                else:
+                    converged[active[done]] = True
                 if iterations > 2:
+                    if det_sign is None:
+                        det_sign = np.full(n, self._orientation)
                     det_sign[active[done]] = np.sign(a[done] * e[done] - b[done] * c[done])
+                if full and done.all():              # the common end: every point settled at once
+                    active = active[:0]
+                    break
                 keep = ~done & np.isfinite(rx) & np.isfinite(ry)
                 kept = np.count_nonzero(keep)
                 if not kept:
@@ -512,7 +519,8 @@ class RPCModel(SensorModelMixin):
                 else:
                     cx, cy = self._project_normalised(La, Pa, Ha)
         converged &= (np.abs(L) <= _MAX_EXTRAPOLATION) & (np.abs(P) <= _MAX_EXTRAPOLATION)
-        converged &= det_sign == self._orientation
+        if det_sign is not None:
+            converged &= det_sign == self._orientation
         return L, P, converged, iterations
 
     @cached_property
@@ -534,34 +542,36 @@ class RPCModel(SensorModelMixin):
         sample, line, h = np.broadcast_arrays(_as_float_array(sample), _as_float_array(line), _as_float_array(h))
         shape = sample.shape
         shift = self._pixel_shift(pixel_convention)
+        s_, l_, h_ = sample.ravel(), line.ravel(), h.ravel()
+        lon, lat, ok = np.empty(s_.size), np.empty(s_.size), np.empty(s_.size, dtype=bool)
         iterations = []
 
-        def block(s, l, hh):
-            n = s.size
-            lon, lat, ok = np.empty(n), np.empty(n), np.empty(n, dtype=bool)
-            for i in range(0, max(n, 1), LOCALIZE_CHUNK):
-                sl = slice(i, i + LOCALIZE_CHUNK)
-                x = (s[sl] - shift - self.samp_off) / self.samp_scale
-                y = (l[sl] - shift - self.line_off) / self.line_scale
-                H = (hh[sl] - self.height_off) / self.height_scale
-                L, P, ok[sl], iters = self._localize_normalised(x, y, H, tol_px, max_iter)
+        def block(sl):
+            """Solve the points ``sl`` chunk by chunk, into their places in lon, lat, ok (no per-block arrays:
+            fresh ones faulted in 1,700 pages per 200k points here, 12 % of the CPU)."""
+            for i in range(sl.start, max(sl.stop, 1), LOCALIZE_CHUNK):
+                c = slice(i, min(i + LOCALIZE_CHUNK, sl.stop))
+                x = (s_[c] - shift - self.samp_off) / self.samp_scale
+                y = (l_[c] - shift - self.line_off) / self.line_scale
+                H = (h_[c] - self.height_off) / self.height_scale
+                L, P, ok[c], iters = self._localize_normalised(x, y, H, tol_px, max_iter)
                 iterations.append(iters)
-                lon[sl] = L * self.long_scale + self.long_off
-                lat[sl] = P * self.lat_scale + self.lat_off
-            lon[~ok] = np.nan
-            lat[~ok] = np.nan
-            return lon, lat, ok
+                np.add(np.multiply(L, self.long_scale, out=L), self.long_off, out=lon[c])
+                np.add(np.multiply(P, self.lat_scale, out=P), self.lat_off, out=lat[c])
+                if not ok[c].all():
+                    lon[c][~ok[c]] = np.nan
+                    lat[c][~ok[c]] = np.nan
 
-        lon, lat, ok = split_points(block, sample.ravel(), line.ravel(), h.ravel())
+        map_blocks(block, s_.size)
         iters = max(iterations)
-        n_failed = int(np.count_nonzero(~ok))
+        n_failed = ok.size - int(np.count_nonzero(ok))
         if n_failed:
             log.info("RPC localisation: %d of %d points did not converge (NaN)", n_failed, ok.size)
         out = (_shape_out(lon, shape), _shape_out(lat, shape))
         if full_output:
-            s_g = sample.ravel() - shift + GDAL_PIXEL_OFFSET
-            l_g = line.ravel() - shift + GDAL_PIXEL_OFFSET
-            return out + (self._localization_stats(s_g, l_g, h.ravel(), lon, lat, iters),)
+            s_g = s_ - shift + GDAL_PIXEL_OFFSET
+            l_g = l_ - shift + GDAL_PIXEL_OFFSET
+            return out + (self._localization_stats(s_g, l_g, h_, lon, lat, iters),)
         return out
 
     # ------------------------------------------------------------------ SensorModelMixin hooks (flat, GDAL px)

@@ -42,7 +42,7 @@ from .errors import Gf4calError
 
 __all__ = ["ENV", "BLOCK", "DEM_BLOCK", "ThreadSettingError", "machine_cores", "num_threads", "limit",
            "block_slices", "map_blocks", "split_points", "serial", "pool_workers", "matmul", "BLAS_SERIAL_SIZE",
-           "SERIAL_ENV", "blas_serial", "blas_threads", "run_tasks", "PerThread", "rows_times"]
+           "SERIAL_ENV", "blas_serial", "blas_is_serial", "blas_threads", "run_tasks", "PerThread", "rows_times"]
 
 #: The environment variable of the thread setting.
 ENV = "GF4CAL_NUM_THREADS"
@@ -170,6 +170,12 @@ def blas_serial() -> Iterator[None]:
                 _blas_limiter = None
 
 
+def blas_is_serial() -> bool:
+    """True while a :func:`blas_serial` scope holds the BLAS libraries at one thread (in any thread of the
+    process): then a product of any size is computed on the calling thread, and need not be sliced."""
+    return _blas_scopes > 0 and _blas_limiter is not None
+
+
 def blas_threads() -> Optional[int]:
     """The BLAS libraries' thread count in this process now (the largest over the loaded ones; None: none found,
     or no threadpoolctl)."""
@@ -199,10 +205,10 @@ def map_blocks(fn: Callable[[slice], T], n: int, block: Optional[int] = None) ->
     :func:`num_threads` threads (the caller is one of them). Inside ``fn`` the kernels run serially. The first
     failing block's exception (in block order among those run) is raised once every running block has ended."""
     slices = block_slices(n, block)
+    if len(slices) == 1:                # one block: the calling thread, as it is (the setting not even read)
+        return [fn(slices[0])]
     threads = min(num_threads(), len(slices))
     if threads <= 1:
-        if len(slices) == 1:
-            return [fn(slices[0])]
         return _run_serially(fn, slices)
     results: List[Optional[T]] = [None] * len(slices)
     errors: dict = {}
