@@ -15,6 +15,7 @@ import numpy as np
 from ..errors import DegenerateGeometryError, GCPError
 from ..estimation import Estimate, Snooping, robust_fit, weighted_lsq
 from ..estimation.lsq import NORMAL_CONDITION, gram, weighted_lsq_many
+from ..threads import blas_serial
 from .model import CompensationModel, CompensationResult, _monomials
 from .outputs import check_point_warnings
 
@@ -144,7 +145,8 @@ class CompensationProblem:
     ``solver``: ``"normal"`` for the robust iterations (:func:`_robust_set`), ``"svd"`` for the final estimate
     and its covariance (:func:`~gdal_gf4cal.estimation.solve_normal_scaled`). The LTS start takes its ``normal``
     evaluation (:func:`~gdal_gf4cal.estimation.high_breakdown_start`; the same results, 3x less CPU at 10,000
-    GCPs)."""
+    GCPs), on the shared design ``(n, q)`` when both axes have the same terms (the same start as the
+    block-diagonal one, at the cost of one axis)."""
 
     start_normal = True
 
@@ -159,6 +161,8 @@ class CompensationProblem:
         return int(np.count_nonzero(mask)) - max(self.a_s.shape[1], self.a_l.shape[1])
 
     def start_design(self, idx):
+        if self.a_l is self.a_s:         # the same terms on both axes: the start's shared design (one axis' cost)
+            return self.a_s[idx], np.stack([self.y_s[idx], self.y_l[idx]], axis=1), self.w0[idx]
         p_s = self.a_s.shape[1]
         design = np.zeros((idx.size, 2, self.n_params))
         design[:, 0, :p_s], design[:, 1, p_s:] = self.a_s[idx], self.a_l[idx]
@@ -230,14 +234,7 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
     pred = _predict(rpc, tab)
     problem, ctrl, cond = _problem(tab, model, fr, pred)
     snoop = Snooping(outlier_threshold, too_many=_TOO_MANY)
-    used, start_out, iterations, notes = _robust_set(problem, ctrl, robust, snoop, max_iter)
-    try:
-        if not np.array_equal(used, ctrl):       # else the check of _problem
-            _check_rank(*_axis_designs(problem.a_s, problem.a_l, used, model.terms), model, int(used.sum()))
-    except DegenerateGeometryError:
-        used = ctrl.copy()
-        notes.append("rejecting blunders would leave the model undetermined; all control points kept")
-    est = problem.fit(used)
+    est, used, start_out, iterations, notes = _estimate(problem, ctrl, model, robust, snoop, max_iter)
     norm_s, norm_l, cs, cl, ns, nl, sig_s, sig_l, red, dof = problem.parts
     outlier = ~used & ctrl
     if robust and red >= 2:
@@ -279,6 +276,24 @@ def _problem(tab, model: CompensationModel, fr, pred):
     y_s, y_l = tab["sample"].to_numpy(float) - pred[0], tab["line"].to_numpy(float) - pred[1]
     w0 = 1.0 / tab["sigma"].to_numpy(float) ** 2
     return CompensationProblem(a_s, a_l, y_s, y_l, w0, model.min_gcps), ctrl, cond
+
+
+def _estimate(problem: CompensationProblem, ctrl, model: CompensationModel, robust: bool, snoop: Snooping,
+              max_iter: int):
+    """``(final Estimate, used, start_out, iterations, notes)``: :func:`_robust_set`, then the estimate on the
+    points it keeps (all control points when rejecting would leave the model undetermined). BLAS on the calling
+    thread (:func:`~gdal_gf4cal.threads.blas_serial`, as the CLI): hundreds of small LAPACK calls (the start's
+    subset solves) and a few tall products, where OpenBLAS's threads cost more in synchronisation than they
+    compute (10 us per 3 x 3 solve with 2 right-hand sides instead of 0.3)."""
+    with blas_serial():
+        used, start_out, iterations, notes = _robust_set(problem, ctrl, robust, snoop, max_iter)
+        try:
+            if not np.array_equal(used, ctrl):       # else the check of _problem
+                _check_rank(*_axis_designs(problem.a_s, problem.a_l, used, model.terms), model, int(used.sum()))
+        except DegenerateGeometryError:
+            used = ctrl.copy()
+            notes.append("rejecting blunders would leave the model undetermined; all control points kept")
+        return problem.fit(used), used, start_out, iterations, notes
 
 
 def _robust_set(problem: CompensationProblem, ctrl, robust: bool, snoop: Snooping, max_iter: int):

@@ -1,7 +1,7 @@
 """The fast paths of the normal equations (issue 23) give the numbers of the plain ones: ``lsq.gram`` (A^T B in
 row chunks on the calling thread) equals ``A.T @ B``; the LTS start (the reference for a faster one) finds the
 planted blunders whether the observation axes share no parameter (a compensation) or share one, and keeps the
-good points but the 0.1 % beyond its chi-square bound; its ``normal`` evaluation keeps its start;
+good points but the 0.1 % beyond its chi-square bound; its ``normal`` evaluation and a shared design (one axis' rows for all axes) keep its start;
 ``weighted_lsq_many`` is each vector's own ``weighted_lsq``; ``threads.rows_times`` is the plain product."""
 from __future__ import annotations
 
@@ -66,6 +66,22 @@ def test_lts_start_normal_evaluation_keeps_the_start(n, shared):
     assert scale_n == pytest.approx(scale, rel=1e-12)
     assert info_n.pop("lts_scale") == pytest.approx(info.pop("lts_scale"), rel=1e-12)
     assert info_n == info
+
+
+@pytest.mark.parametrize("normal", [False, True])
+@pytest.mark.parametrize("n", [40, 3000])
+def test_lts_start_shared_design_is_its_block_diagonal_one(n, normal):
+    """A shared design ``(n, q)`` with ``obs`` (n, 2) (compensation's start when both axes have the same terms) keeps
+    the start set, scale and info of its block-diagonal ``(n, 2, 2 q)`` design, at the cost of one axis."""
+    a, y, bad = _design(n, False, seed=7)
+    w = np.random.default_rng(2).uniform(0.5, 2.0, n)
+    inl, scale, info = high_breakdown_start(a, y, np.repeat(w[:, None], 2, axis=1), normal=normal)
+    inl_s, scale_s, info_s = high_breakdown_start(a[:, 0, :6], y, w, normal=normal)
+    np.testing.assert_array_equal(inl_s, inl)
+    assert not np.any(inl_s & bad)
+    assert scale_s == pytest.approx(scale, rel=1e-12)
+    assert info_s.pop("lts_scale") == pytest.approx(info.pop("lts_scale"), rel=1e-12)
+    assert info_s == info
 
 
 @pytest.mark.parametrize("solver", ["svd", "normal"])
