@@ -357,14 +357,17 @@ def _residual_columns(pred, before, corr, norm) -> dict:
 
 
 def _set_columns(tab, cols: dict):
-    """``tab`` with ``cols`` set: the columns it has replaced in place, the new ones appended in order by one
-    concatenation (one pandas insertion per column cost more than the robust fit at 10,000 GCPs)."""
+    """``tab`` with ``cols`` set: the columns it has replaced in place, the new ones appended in order, as one
+    DataFrame built from the columns (one pandas insertion per column, or a concatenation, cost more than the
+    robust fit at 10,000 GCPs)."""
     import pandas as pd              # ~1 s to import: only when first needed (CLI, QGIS start-up)
-    for k in [k for k in cols if k in tab.columns]:
-        tab[k] = cols.pop(k)
-    if not cols:
+    if not tab.columns.is_unique:                   # repeated names in the caller's table: column by column
+        for k, v in cols.items():
+            tab[k] = v
         return tab
-    return pd.concat([tab, pd.DataFrame(cols, index=tab.index)], axis=1)
+    out = {k: tab[k] for k in tab.columns}
+    out.update(cols)
+    return pd.DataFrame(out, index=tab.index, copy=False)
 
 
 def _leave_one_out(cols: dict, designs, n_invs, w0, used) -> None:
