@@ -13,7 +13,7 @@ from typing import Any, Optional, Sequence, Tuple
 import numpy as np
 
 from ..errors import DegenerateGeometryError, GCPError
-from ..estimation import Estimate, Snooping, robust_fit, weighted_lsq
+from ..estimation import Estimate, Snooping, robust_fit, subset_count, weighted_lsq
 from ..estimation.lsq import NORMAL_CONDITION, gram, weighted_lsq_many
 from ..threads import blas_serial
 from .model import CompensationModel, CompensationResult, _monomials
@@ -308,7 +308,7 @@ def _robust_set(problem: CompensationProblem, ctrl, robust: bool, snoop: Snoopin
     problem.solver = "normal"        # the iterations: normal equations; the final estimate (the caller's): SVD
     try:
         est = robust_fit(problem, norm=snoop, start="lts", candidates=ctrl, min_points=problem.min_points,
-                         max_iter=max_iter, on_degenerate="stop")
+                         n_subsets=subset_count(problem.min_points), max_iter=max_iter, on_degenerate="stop")
     finally:
         problem.solver = "svd"
     notes = list(est.notes)

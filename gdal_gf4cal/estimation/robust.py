@@ -106,6 +106,21 @@ def min_subset_points(design) -> int:
     return int(max(math.ceil(p / k), int(own.sum(axis=1).max()) if k > 1 else p))
 
 
+#: Chance that every random subset of the search holds a blunder which :func:`subset_count` allows: that of the
+#: default 300 subsets of 6 points (poly2) at 40 % blunders, 6e-7.
+SEARCH_MISS = (1.0 - 0.6 ** 6) ** 300
+
+
+def subset_count(m: int, blunders: float = 0.4, most: int = 300) -> int:
+    """Random minimal subsets of ``m`` points that hold a clean one but with probability :data:`SEARCH_MISS` when
+    a share ``blunders`` of the points are blunders (``log(miss) / log(1 - (1 - blunders)^m)``, at most
+    ``most``): 59 for 3-point subsets (affine), 300 for 6 (poly2), the same guarantee at a fifth of the search."""
+    clean = (1.0 - blunders) ** int(m)
+    if clean >= 1.0:
+        return 1
+    return int(min(most, max(1, math.ceil(math.log(SEARCH_MISS) / math.log1p(-clean) - 1e-9))))
+
+
 def _subsets(n: int, m: int, n_subsets: int, seed: int) -> np.ndarray:
     if math.comb(n, m) <= MAX_EXHAUSTIVE:
         return np.array(list(combinations(range(n), m)), dtype=np.intp).reshape(-1, m)

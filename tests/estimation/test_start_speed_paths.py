@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gdal_gf4cal.estimation import Block, high_breakdown_start, weighted_lsq
+from gdal_gf4cal.estimation import Block, high_breakdown_start, subset_count, weighted_lsq
+from gdal_gf4cal.estimation.robust import SEARCH_MISS
 from gdal_gf4cal.estimation.lsq import gram, weighted_lsq_many
 from gdal_gf4cal.threads import rows_times
 from gdal_gf4cal.threads import BLAS_SERIAL_SIZE
@@ -82,6 +83,30 @@ def test_lts_start_shared_design_is_its_block_diagonal_one(n, normal):
     assert scale_s == pytest.approx(scale, rel=1e-12)
     assert info_s.pop("lts_scale") == pytest.approx(info.pop("lts_scale"), rel=1e-12)
     assert info_s == info
+
+
+def test_subset_count_keeps_the_default_searchs_miss_probability():
+    """Compensation's subset count (issue 23): the chance of no clean subset at 40 % blunders is at most that of the
+    default 300 six-point subsets, and one subset fewer would exceed it."""
+    assert [subset_count(m) for m in range(1, 8)] == [16, 33, 59, 104, 178, 300, 300]
+    for m in range(1, 6):
+        n = subset_count(m)
+        assert (1 - 0.6 ** m) ** n <= SEARCH_MISS * (1 + 1e-9) < (1 - 0.6 ** m) ** (n - 1)
+
+
+@pytest.mark.parametrize("n", [40, 3000])
+def test_lts_start_with_the_counted_subsets_flags_the_planted_blunders(n):
+    """59 subsets of 3 points (a shared affine design, 20 % blunders of 5-60 px) keep the start of 300."""
+    rng = np.random.default_rng(11)
+    aff = np.column_stack([np.ones(n), rng.uniform(-1, 1, (n, 2))])
+    y = aff @ rng.normal(0, 5, (3, 2)) + rng.normal(0, 0.5, (n, 2))
+    bad = rng.random(n) < 0.2
+    y[bad] += rng.uniform(5, 60, (n, 2))[bad] * rng.choice([-1, 1], (n, 2))[bad]
+    inl, scale, info = high_breakdown_start(aff, y, normal=True, n_subsets=subset_count(3))
+    inl_300, scale_300, _ = high_breakdown_start(aff, y, normal=True)
+    assert info["subsets"] == 59
+    np.testing.assert_array_equal(inl, inl_300)
+    assert not np.any(inl & bad) and scale == pytest.approx(scale_300, rel=1e-9)
 
 
 @pytest.mark.parametrize("solver", ["svd", "normal"])
