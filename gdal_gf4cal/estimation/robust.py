@@ -27,6 +27,7 @@ same terms on both axes), at the cost of one axis. A point is in or out as a who
 from __future__ import annotations
 
 import math
+from contextlib import nullcontext
 from functools import lru_cache
 from itertools import combinations
 from typing import Optional, Tuple
@@ -34,7 +35,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 from ..errors import DegenerateGeometryError
-from ..threads import matmul, rows_times
+from ..threads import blas_serial, rows_times
 from .lsq import gram
 
 #: Largest number of minimal subsets searched exhaustively; beyond it ``n_subsets`` random ones are drawn.
@@ -127,7 +128,6 @@ def _subsets(n: int, m: int, n_subsets: int, seed: int) -> np.ndarray:
     keys = np.random.default_rng(seed).random((n_subsets, n))
     # the m smallest of n uniform keys per row: a uniform random m-subset (argpartition: the same sets as a full
     # argsort, in O(n)); for the few points of a small subset, m argmin passes find the same sets 2-4x faster
-    # (in the order of their keys: only the sums of the normal evaluation see the order, to rounding)
     if m > _ARGMIN_SUBSET:
         return np.argpartition(keys, m - 1, axis=1)[:, :m]
     out = np.empty((n_subsets, m), dtype=np.intp)
@@ -154,22 +154,17 @@ def _normal_parts(a: np.ndarray, y: np.ndarray, w: np.ndarray, scale: np.ndarray
     return outer, rhs.reshape(n, -1)
 
 
-def _batched_fit(a: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray, scale: np.ndarray, parts=None,
-                 mm=np.matmul, sums=None):
+def _batched_fit(a: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray, scale: np.ndarray, parts=None):
     """Weighted LS for each row of ``mask`` (K, n) over the points it selects (:func:`_layout`'s arrays); returns
     (x (K, q, c), ok (K,)).
 
     The K normal matrices are one matrix product ``mask @ (per-point outer products)`` (BLAS), not a loop;
-    ``parts`` (:func:`_normal_parts`) avoids recomputing the per-point products; ``mm``: the matrix product
-    (:func:`~gdal_gf4cal.threads.matmul`: on the calling thread); ``sums``: the products already summed
-    (``(K, q*q)``, ``(K, q*c)``).
+    ``parts`` (:func:`_normal_parts`) avoids recomputing the per-point products.
     """
     n, g, q = a.shape
     c = y.shape[2]
     outer, rhs_pt = _normal_parts(a, y, w, scale) if parts is None else parts
-    if sums is None:
-        sums = mm(mask, outer), mm(mask, rhs_pt)
-    nmat, rhs = sums[0].reshape(-1, q, q), sums[1].reshape(-1, q, c)
+    nmat, rhs = (mask @ outer).reshape(-1, q, q), (mask @ rhs_pt).reshape(-1, q, c)
     # Regular subsets: the column-scaled normal matrix (diagonal <= 1) has a determinant well above zero (the c
     # axes of a shared design: the same test as on their block-diagonal joint matrix).
     sign, logdet = np.linalg.slogdet(nmat)
@@ -300,7 +295,7 @@ class _AllPoints:
         return np.maximum(np.where(fit_set, 1.0 - lev, 1.0 + lev), 1e-6)
 
 
-def _point_sq(a, y, w, x, mm=np.matmul):
+def _point_sq(a, y, w, x):
     """Weighted squared residual norm per point for each parameter set of ``x`` (K, q, c): (K, n).
 
     One (n, c K) matrix product per row of a point (g is 1 or 2): no (n, g, K) temporaries."""
@@ -308,7 +303,7 @@ def _point_sq(a, y, w, x, mm=np.matmul):
     xt = x.transpose(1, 2, 0).reshape(q, c * n_sets)                 # (q, c K): the K sets of each axis together
     out = None
     for j in range(a.shape[1]):
-        r = y[:, j, :, None] - mm(a[:, j, :], xt).reshape(-1, c, n_sets)    # (n, c, K)
+        r = y[:, j, :, None] - (a[:, j, :] @ xt).reshape(-1, c, n_sets)     # (n, c, K)
         r *= r
         r *= w[:, j, None, None]
         for i in range(c):
@@ -330,32 +325,30 @@ def _layout(design, obs, weights):
     return a, np.asarray(obs, dtype=float).reshape(n, k, 1), w
 
 
-def _search(a, y, w, scale, m: int, n_subsets: int, seed: int, chunk: int, normal: bool):
+def _search(a, y, w, scale, m: int, n_subsets: int, seed: int, chunk: int):
     """The subset search of :func:`high_breakdown_start` on the points given (:func:`_layout`'s arrays): every
     subset's fit improved by one concentration step (refit on its ``h`` best points). Returns ``(x (q, c) of
     the best or None, its trimmed criterion, subsets searched, per-point products)``."""
     n = a.shape[0]
     h = min(n, max((n + m + 1) // 2, m + 1))
     parts = _normal_parts(a, y, w, scale)
-    mm = matmul if normal else np.matmul
     subs = _subsets(n, m, n_subsets, seed)
     best_crit, best_x = math.inf, None
     for c0 in range(0, len(subs), chunk):
         sub = subs[c0:c0 + chunk]
         mask = np.zeros((len(sub), n))
         np.put_along_axis(mask, sub, 1.0, axis=1)
-        sums = (parts[0][sub].sum(axis=1), parts[1][sub].sum(axis=1)) if normal else None  # its points only
-        x, ok = _batched_fit(a, y, w, mask, scale, parts, mm, sums)
+        x, ok = _batched_fit(a, y, w, mask, scale, parts)
         if not ok.any():
             continue
         x = x[ok]
-        r2 = _point_sq(a, y, w, x, mm)
+        r2 = _point_sq(a, y, w, x)
         keep = np.argpartition(r2, h - 1, axis=1)[:, :h]
         mask = np.zeros((len(x), n))
         np.put_along_axis(mask, keep, 1.0, axis=1)
-        x2, ok2 = _batched_fit(a, y, w, mask, scale, parts, mm)
+        x2, ok2 = _batched_fit(a, y, w, mask, scale, parts)
         x = np.where(ok2[:, None, None], x2, x)
-        r2 = _point_sq(a, y, w, x, mm)
+        r2 = _point_sq(a, y, w, x)
         crit = np.sum(np.partition(r2, h - 1, axis=1)[:, :h], axis=1)
         i = int(np.argmin(crit))
         if crit[i] < best_crit:
@@ -367,9 +360,6 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
                          seed: int = 0, chunk: int = 512, max_search: int = 120,
                          normal: bool = False) -> Tuple[np.ndarray, float, dict]:
     """High-breakdown start (least trimmed squares from minimal subsets), see the module docstring.
-
-    (Long by design: one algorithm in coupled steps, the subset search (:func:`_search`), concentration on all
-    points, the LTS scale and the reweighting with its all-points comparison, sharing a dozen arrays.)
 
     Parameters
     ----------
@@ -388,9 +378,10 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
         subset is near-certain up to 40 % blunders (P(miss) ~ 1e-32 for 3-point subsets, ~ 1e-6 for 6-point ones),
         and 120 searched points keep the start's cost near the M-estimator start it replaced.
     normal : bool
-        One-set fits through :class:`_AllPoints`, subsets' sums of their points' products, BLAS on the calling
-        thread: 3x less CPU on 10,000 points, the same sets to rounding. Default: the per-point outer products
-        (the pan-MS crops' start depends on their rounding).
+        One-set fits through :class:`_AllPoints`, BLAS on the calling thread
+        (:func:`~gdal_gf4cal.threads.blas_serial`: OpenBLAS's threads cost more in synchronisation than the
+        hundreds of small solves compute): 3x less CPU on 10,000 points, the same sets to rounding. Default: the
+        per-point outer products, BLAS as set (the pan-MS crops' start depends on their rounding).
 
     Returns
     -------
@@ -401,10 +392,20 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
         ``subsets`` (searched), ``exhaustive`` (bool), ``h``, ``lts_scale`` (the trimmed criterion's scale,
         corrected for the trimming; a floor for :func:`readmissible`).
     """
-    a, y, w = _layout(design, obs, weights)
+    with (blas_serial() if normal else nullcontext()):
+        return _lts_start(*_layout(design, obs, weights), np.ndim(design) == 2, min_points, n_subsets, seed, chunk,
+                          max_search, normal)
+
+
+def _lts_start(a, y, w, shared: bool, min_points, n_subsets: int, seed: int, chunk: int, max_search: int,
+               normal: bool):
+    """:func:`high_breakdown_start` on :func:`_layout`'s arrays (``shared``: a 2-D design was given).
+
+    (Long by design: one algorithm in coupled steps, the subset search (:func:`_search`), concentration on all
+    points, the LTS scale and the reweighting with its all-points comparison, sharing a dozen arrays.)"""
     n, g, q = a.shape
     k, p = g * y.shape[2], q * y.shape[2]                           # observations per point, parameters
-    m = int(min_points) if min_points else (q if np.ndim(design) == 2 else min_subset_points(a))
+    m = int(min_points) if min_points else (q if shared else min_subset_points(a))
     if n <= m:
         return np.ones(n, bool), math.nan, {"subsets": 0, "exhaustive": True, "h": n}
     h = min(n, max((n + m + 1) // 2, m + 1))
@@ -414,8 +415,7 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
     # then concentrated on all points.
     search = np.arange(n) if n <= max_search else np.sort(
         np.random.default_rng(seed + 1).choice(n, max_search, replace=False))
-    best_x, best_crit, n_subs, parts = _search(a[search], y[search], w[search], scale, m, n_subsets, seed, chunk,
-                                               normal)
+    best_x, best_crit, n_subs, parts = _search(a[search], y[search], w[search], scale, m, n_subsets, seed, chunk)
     info = {"subsets": int(n_subs), "exhaustive": bool(math.comb(search.size, m) <= MAX_EXHAUSTIVE), "h": int(h),
             "searched_points": int(search.size)}
     if best_x is None:
