@@ -47,22 +47,21 @@ def _table(gcps):
         raise GCPError(f"GCP table lacks column(s) {', '.join(missing)}; expected id, lon, lat, h, sample, line, role")
     if not isinstance(gcps, pd.DataFrame):
         tab = tab.reset_index(drop=True)
+    new = {}                         # the columns set, by one _set_columns (one insertion each cost more)
     if "id" not in tab.columns:
-        tab["id"] = [str(i + 1) for i in range(len(tab))]
-    if "role" not in tab.columns:
-        tab["role"] = "control"
-    tab["role"], roles = _normalised_labels(tab["role"])
+        new["id"] = [str(i + 1) for i in range(len(tab))]
+    new["role"], roles = _normalised_labels(tab["role"] if "role" in tab.columns else
+                                            pd.Series("control", index=tab.index, dtype=object))
     bad = sorted(roles - {"control", "check"})
     if bad:
         raise GCPError(f"GCP role must be 'control' or 'check', found {bad}")
-    if "sigma" not in tab.columns:
-        tab["sigma"] = 1.0
-    tab["sigma"] = tab["sigma"].astype(float).fillna(1.0)
-    if (tab["sigma"] <= 0).any():
+    new["sigma"] = (tab["sigma"].astype(float).fillna(1.0) if "sigma" in tab.columns else
+                    pd.Series(1.0, index=tab.index))
+    if (new["sigma"] <= 0).any():
         raise GCPError("GCP sigma must be > 0 px")
     if "h" not in tab.columns:
-        tab["h"] = np.nan
-    return tab
+        new["h"] = np.full(len(tab), np.nan)
+    return _set_columns(tab, new)
 
 
 def _normalised_labels(col):
@@ -357,17 +356,20 @@ def _residual_columns(pred, before, corr, norm) -> dict:
 
 
 def _set_columns(tab, cols: dict):
-    """``tab`` with ``cols`` set: the columns it has replaced in place, the new ones appended in order, as one
-    DataFrame built from the columns (one pandas insertion per column, or a concatenation, cost more than the
-    robust fit at 10,000 GCPs)."""
+    """``tab`` with ``cols`` set: the columns it has replaced in place, the new ones appended in order. A plain
+    DataFrame with unique names: one DataFrame built from the columns (one pandas insertion per column, or a
+    concatenation, cost more than the robust fit at 10,000 GCPs); else (a GeoDataFrame keeps its class) the
+    replaced columns set and the new ones concatenated."""
     import pandas as pd              # ~1 s to import: only when first needed (CLI, QGIS start-up)
-    if not tab.columns.is_unique:                   # repeated names in the caller's table: column by column
-        for k, v in cols.items():
-            tab[k] = v
+    if type(tab) is pd.DataFrame and tab.columns.is_unique:
+        out = {k: tab[k] for k in tab.columns}
+        out.update(cols)
+        return pd.DataFrame(out, index=tab.index, copy=False)
+    for k in [k for k in cols if k in tab.columns]:
+        tab[k] = cols.pop(k)
+    if not cols:
         return tab
-    out = {k: tab[k] for k in tab.columns}
-    out.update(cols)
-    return pd.DataFrame(out, index=tab.index, copy=False)
+    return pd.concat([tab, pd.DataFrame(cols, index=tab.index)], axis=1)
 
 
 def _leave_one_out(cols: dict, designs, n_invs, w0, used) -> None:
