@@ -13,8 +13,9 @@ from typing import Any, Optional, Sequence, Tuple
 import numpy as np
 
 from ..errors import DegenerateGeometryError, GCPError
-from ..estimation import Estimate, Snooping, robust_fit, weighted_lsq
+from ..estimation import Estimate, Snooping, robust_fit, subset_count, weighted_lsq
 from ..estimation.lsq import NORMAL_CONDITION, gram, weighted_lsq_many
+from ..threads import blas_serial
 from .model import CompensationModel, CompensationResult, _monomials
 from .outputs import check_point_warnings
 
@@ -46,22 +47,21 @@ def _table(gcps):
         raise GCPError(f"GCP table lacks column(s) {', '.join(missing)}; expected id, lon, lat, h, sample, line, role")
     if not isinstance(gcps, pd.DataFrame):
         tab = tab.reset_index(drop=True)
+    new = {}                         # the columns set, by one _set_columns (one insertion each cost more)
     if "id" not in tab.columns:
-        tab["id"] = [str(i + 1) for i in range(len(tab))]
-    if "role" not in tab.columns:
-        tab["role"] = "control"
-    tab["role"], roles = _normalised_labels(tab["role"])
+        new["id"] = [str(i + 1) for i in range(len(tab))]
+    new["role"], roles = _normalised_labels(tab["role"] if "role" in tab.columns else
+                                            pd.Series("control", index=tab.index, dtype=object))
     bad = sorted(roles - {"control", "check"})
     if bad:
         raise GCPError(f"GCP role must be 'control' or 'check', found {bad}")
-    if "sigma" not in tab.columns:
-        tab["sigma"] = 1.0
-    tab["sigma"] = tab["sigma"].astype(float).fillna(1.0)
-    if (tab["sigma"] <= 0).any():
+    new["sigma"] = (tab["sigma"].astype(float).fillna(1.0) if "sigma" in tab.columns else
+                    pd.Series(1.0, index=tab.index))
+    if (new["sigma"] <= 0).any():
         raise GCPError("GCP sigma must be > 0 px")
     if "h" not in tab.columns:
-        tab["h"] = np.nan
-    return tab
+        new["h"] = np.full(len(tab), np.nan)
+    return _set_columns(tab, new)
 
 
 def _normalised_labels(col):
@@ -144,7 +144,8 @@ class CompensationProblem:
     ``solver``: ``"normal"`` for the robust iterations (:func:`_robust_set`), ``"svd"`` for the final estimate
     and its covariance (:func:`~gdal_gf4cal.estimation.solve_normal_scaled`). The LTS start takes its ``normal``
     evaluation (:func:`~gdal_gf4cal.estimation.high_breakdown_start`; the same results, 3x less CPU at 10,000
-    GCPs)."""
+    GCPs), on the shared design ``(n, q)`` when both axes have the same terms (the same start as the
+    block-diagonal one, at the cost of one axis)."""
 
     start_normal = True
 
@@ -159,6 +160,8 @@ class CompensationProblem:
         return int(np.count_nonzero(mask)) - max(self.a_s.shape[1], self.a_l.shape[1])
 
     def start_design(self, idx):
+        if self.a_l is self.a_s:         # the same terms on both axes: the start's shared design (one axis' cost)
+            return self.a_s[idx], np.stack([self.y_s[idx], self.y_l[idx]], axis=1), self.w0[idx]
         p_s = self.a_s.shape[1]
         design = np.zeros((idx.size, 2, self.n_params))
         design[:, 0, :p_s], design[:, 1, p_s:] = self.a_s[idx], self.a_l[idx]
@@ -230,14 +233,7 @@ def fit_compensation(rpc, gcps, model="affine", *, order: Optional[int] = None, 
     pred = _predict(rpc, tab)
     problem, ctrl, cond = _problem(tab, model, fr, pred)
     snoop = Snooping(outlier_threshold, too_many=_TOO_MANY)
-    used, start_out, iterations, notes = _robust_set(problem, ctrl, robust, snoop, max_iter)
-    try:
-        if not np.array_equal(used, ctrl):       # else the check of _problem
-            _check_rank(*_axis_designs(problem.a_s, problem.a_l, used, model.terms), model, int(used.sum()))
-    except DegenerateGeometryError:
-        used = ctrl.copy()
-        notes.append("rejecting blunders would leave the model undetermined; all control points kept")
-    est = problem.fit(used)
+    est, used, start_out, iterations, notes = _estimate(problem, ctrl, model, robust, snoop, max_iter)
     norm_s, norm_l, cs, cl, ns, nl, sig_s, sig_l, red, dof = problem.parts
     outlier = ~used & ctrl
     if robust and red >= 2:
@@ -281,6 +277,24 @@ def _problem(tab, model: CompensationModel, fr, pred):
     return CompensationProblem(a_s, a_l, y_s, y_l, w0, model.min_gcps), ctrl, cond
 
 
+def _estimate(problem: CompensationProblem, ctrl, model: CompensationModel, robust: bool, snoop: Snooping,
+              max_iter: int):
+    """``(final Estimate, used, start_out, iterations, notes)``: :func:`_robust_set`, then the estimate on the
+    points it keeps (all control points when rejecting would leave the model undetermined). BLAS on the calling
+    thread (:func:`~gdal_gf4cal.threads.blas_serial`, as the CLI): hundreds of small LAPACK calls (the start's
+    subset solves) and a few tall products, where OpenBLAS's threads cost more in synchronisation than they
+    compute (10 us per 3 x 3 solve with 2 right-hand sides instead of 0.3)."""
+    with blas_serial():
+        used, start_out, iterations, notes = _robust_set(problem, ctrl, robust, snoop, max_iter)
+        try:
+            if not np.array_equal(used, ctrl):       # else the check of _problem
+                _check_rank(*_axis_designs(problem.a_s, problem.a_l, used, model.terms), model, int(used.sum()))
+        except DegenerateGeometryError:
+            used = ctrl.copy()
+            notes.append("rejecting blunders would leave the model undetermined; all control points kept")
+        return problem.fit(used), used, start_out, iterations, notes
+
+
 def _robust_set(problem: CompensationProblem, ctrl, robust: bool, snoop: Snooping, max_iter: int):
     """``(used, start_out, iterations, notes)``: the control points in the estimate after the robust driver
     (high-breakdown start, then data snooping); all control points when robust estimation is off or impossible."""
@@ -293,7 +307,7 @@ def _robust_set(problem: CompensationProblem, ctrl, robust: bool, snoop: Snoopin
     problem.solver = "normal"        # the iterations: normal equations; the final estimate (the caller's): SVD
     try:
         est = robust_fit(problem, norm=snoop, start="lts", candidates=ctrl, min_points=problem.min_points,
-                         max_iter=max_iter, on_degenerate="stop")
+                         n_subsets=subset_count(problem.min_points), max_iter=max_iter, on_degenerate="stop")
     finally:
         problem.solver = "svd"
     notes = list(est.notes)
@@ -342,9 +356,15 @@ def _residual_columns(pred, before, corr, norm) -> dict:
 
 
 def _set_columns(tab, cols: dict):
-    """``tab`` with ``cols`` set: the columns it has replaced in place, the new ones appended in order by one
-    concatenation (one pandas insertion per column cost more than the robust fit at 10,000 GCPs)."""
+    """``tab`` with ``cols`` set: the columns it has replaced in place, the new ones appended in order. A plain
+    DataFrame with unique names: one DataFrame built from the columns (one pandas insertion per column, or a
+    concatenation, cost more than the robust fit at 10,000 GCPs); else (a GeoDataFrame keeps its class) the
+    replaced columns set and the new ones concatenated."""
     import pandas as pd              # ~1 s to import: only when first needed (CLI, QGIS start-up)
+    if type(tab) is pd.DataFrame and tab.columns.is_unique:
+        out = {k: tab[k] for k in tab.columns}
+        out.update(cols)
+        return pd.DataFrame(out, index=tab.index, copy=False)
     for k in [k for k in cols if k in tab.columns]:
         tab[k] = cols.pop(k)
     if not cols:

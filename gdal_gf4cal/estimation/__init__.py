@@ -14,11 +14,11 @@ from .indexed import IndexedJacobian
 from .schur import solve_with_points
 from .lsq import sigma0_and_cov, unit_weight_sigma
 from .robust import critical_value, high_breakdown_start, min_subset_points, radial_huber_weights, readmissible, \
-    tukey_weights
+    subset_count, tukey_weights
 from .driver import (ESTIMATE_LEVELS, Huber, IRLSSolution, LinearProblem, RadialHuber, RobustState, Snooping, Tukey,
                      irls, robust_fit, robust_lsq)
 
 __all__ = ["Estimate", "Block", "weighted_lsq", "solve_with_points", "critical_value", "high_breakdown_start",
            "robust_lsq", "normal_solve", "irls", "IRLSSolution", "radial_huber_weights", "readmissible", "tukey_weights",
-           "min_subset_points", "sigma0_and_cov", "unit_weight_sigma", "robust_fit", "LinearProblem", "Snooping",
+           "min_subset_points", "subset_count", "sigma0_and_cov", "unit_weight_sigma", "robust_fit", "LinearProblem", "Snooping",
            "RadialHuber", "Huber", "Tukey", "RobustState", "ESTIMATE_LEVELS", "IndexedJacobian"]

@@ -2,8 +2,9 @@
 (the loop itself is the one robust driver, :func:`~gdal_gf4cal.estimation.robust_fit` in ``driver.py``).
 
 Observations come per *point* (a GCP gives a sample and a line observation; a tie point one pair per image):
-``design`` has shape ``(n_points, k, p)``, ``obs`` and ``weights`` ``(n_points, k)``. A point is in or out as a
-whole.
+``design`` has shape ``(n_points, k, p)``, ``obs`` and ``weights`` ``(n_points, k)``; or, for the start, a *shared*
+design ``(n_points, q)``: each of the ``k`` axes its own ``q`` parameters on the same row (a compensation with the
+same terms on both axes), at the cost of one axis. A point is in or out as a whole.
 
 1. **Start** (:func:`high_breakdown_start`): least trimmed squares over the ``h = (n + m + 1) // 2`` best points
    (``m`` the minimal number of points that determine the parameters), searched from every minimal subset when
@@ -26,6 +27,7 @@ whole.
 from __future__ import annotations
 
 import math
+from contextlib import nullcontext
 from functools import lru_cache
 from itertools import combinations
 from typing import Optional, Tuple
@@ -33,7 +35,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 from ..errors import DegenerateGeometryError
-from ..threads import matmul, rows_times
+from ..threads import blas_serial, rows_times
 from .lsq import gram
 
 #: Largest number of minimal subsets searched exhaustively; beyond it ``n_subsets`` random ones are drawn.
@@ -105,51 +107,76 @@ def min_subset_points(design) -> int:
     return int(max(math.ceil(p / k), int(own.sum(axis=1).max()) if k > 1 else p))
 
 
+#: Chance that every random subset of the search holds a blunder which :func:`subset_count` allows: that of the
+#: default 300 subsets of 6 points (poly2) at 40 % blunders, 6e-7.
+SEARCH_MISS = (1.0 - 0.6 ** 6) ** 300
+
+
+def subset_count(m: int, blunders: float = 0.4, most: int = 300) -> int:
+    """Random minimal subsets of ``m`` points that hold a clean one but with probability :data:`SEARCH_MISS` when
+    a share ``blunders`` of the points are blunders (``log(miss) / log(1 - (1 - blunders)^m)``, at most
+    ``most``): 59 for 3-point subsets (affine), 300 for 6 (poly2), the same guarantee at a fifth of the search."""
+    clean = (1.0 - blunders) ** int(m)
+    if clean >= 1.0:
+        return 1
+    return int(min(most, max(1, math.ceil(math.log(SEARCH_MISS) / math.log1p(-clean) - 1e-9))))
+
+
 def _subsets(n: int, m: int, n_subsets: int, seed: int) -> np.ndarray:
     if math.comb(n, m) <= MAX_EXHAUSTIVE:
         return np.array(list(combinations(range(n), m)), dtype=np.intp).reshape(-1, m)
-    rng = np.random.default_rng(seed)
+    keys = np.random.default_rng(seed).random((n_subsets, n))
     # the m smallest of n uniform keys per row: a uniform random m-subset (argpartition: the same sets as a full
-    # argsort, in O(n))
-    return np.argpartition(rng.random((n_subsets, n)), m - 1, axis=1)[:, :m]
+    # argsort, in O(n)); for the few points of a small subset, m argmin passes find the same sets 2-4x faster
+    if m > _ARGMIN_SUBSET:
+        return np.argpartition(keys, m - 1, axis=1)[:, :m]
+    out = np.empty((n_subsets, m), dtype=np.intp)
+    rows = np.arange(n_subsets)
+    for i in range(m):
+        out[:, i] = np.argmin(keys, axis=1)
+        keys[rows, out[:, i]] = np.inf
+    return out
+
+
+#: Largest minimal subset drawn by argmin passes (:func:`_subsets`).
+_ARGMIN_SUBSET = 8
 
 
 def _normal_parts(a: np.ndarray, y: np.ndarray, w: np.ndarray, scale: np.ndarray):
-    """Per-point outer products (n, p*p) and right-hand sides (n, p) of the column-scaled normal equations: computed
-    once per point set, shared by every :func:`_batched_fit` on it."""
-    n, k, p = a.shape
-    aw = a / scale                                                   # (n, k, p) column-scaled
+    """Per-point outer products (n, q*q) and right-hand sides (n, q*c) of the column-scaled normal equations
+    (``a`` (n, g, q), ``y`` (n, g, c), ``w`` (n, g): :func:`_layout`): computed once per point set, shared by every
+    :func:`_batched_fit` on it."""
+    n, g, q = a.shape
+    aw = a / scale                                                   # (n, g, q) column-scaled
     wa = aw * w[:, :, None]
-    outer = np.matmul(wa.transpose(0, 2, 1), aw).reshape(n, p * p)   # sum_k w a a^T per point
-    rhs = np.sum(wa * y[:, :, None], axis=1)                         # sum_k w a y per point
-    return outer, rhs
+    outer = np.matmul(wa.transpose(0, 2, 1), aw).reshape(n, q * q)   # sum_g w a a^T per point
+    rhs = np.sum(wa[:, :, :, None] * y[:, :, None, :], axis=1)       # sum_g w a y^T per point
+    return outer, rhs.reshape(n, -1)
 
 
-def _batched_fit(a: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray, scale: np.ndarray, parts=None,
-                 mm=np.matmul, sums=None):
-    """Weighted LS for each row of ``mask`` (K, n) over the points it selects; returns (x (K, p), ok (K,)).
+def _batched_fit(a: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray, scale: np.ndarray, parts=None):
+    """Weighted LS for each row of ``mask`` (K, n) over the points it selects (:func:`_layout`'s arrays); returns
+    (x (K, q, c), ok (K,)).
 
     The K normal matrices are one matrix product ``mask @ (per-point outer products)`` (BLAS), not a loop;
-    ``parts`` (:func:`_normal_parts`) avoids recomputing the per-point products; ``mm``: the matrix product
-    (:func:`~gdal_gf4cal.threads.matmul`: on the calling thread); ``sums``: the products already summed
-    (``(K, p*p)``, ``(K, p)``).
+    ``parts`` (:func:`_normal_parts`) avoids recomputing the per-point products.
     """
-    n, k, p = a.shape
+    n, g, q = a.shape
+    c = y.shape[2]
     outer, rhs_pt = _normal_parts(a, y, w, scale) if parts is None else parts
-    if sums is None:
-        sums = mm(mask, outer), mm(mask, rhs_pt)
-    nmat, rhs = sums[0].reshape(-1, p, p), sums[1]
-    # Regular subsets: the column-scaled normal matrix (diagonal <= 1) has a determinant well above zero.
+    nmat, rhs = (mask @ outer).reshape(-1, q, q), (mask @ rhs_pt).reshape(-1, q, c)
+    # Regular subsets: the column-scaled normal matrix (diagonal <= 1) has a determinant well above zero (the c
+    # axes of a shared design: the same test as on their block-diagonal joint matrix).
     sign, logdet = np.linalg.slogdet(nmat)
-    ok = (sign > 0) & (logdet > p * math.log(1e-10))
-    nmat = np.where(ok[:, None, None], nmat, np.eye(p))
+    ok = (sign > 0) & (logdet > q * math.log(1e-10))
+    nmat = np.where(ok[:, None, None], nmat, np.eye(q))
     try:
-        x = np.linalg.solve(nmat, rhs[:, :, None])[:, :, 0] / scale
+        x = np.linalg.solve(nmat, rhs) / scale[:, None]
     except np.linalg.LinAlgError:          # a subset singular despite its determinant (e.g. an empty piece)
-        x = np.zeros((len(nmat), p))
+        x = np.zeros((len(nmat), q, c))
         for i in np.flatnonzero(ok):
             try:
-                x[i] = np.linalg.solve(nmat[i], rhs[i]) / scale
+                x[i] = np.linalg.solve(nmat[i], rhs[i]) / scale[:, None]
             except np.linalg.LinAlgError:
                 ok[i] = False
     return x, ok
@@ -181,7 +208,8 @@ _FIT = object()
 class _OuterFits:
     """The start's fits of one point set from the per-point outer products (:func:`_batched_fit` of one mask) and
     the leverages from their own normal matrix (:func:`_inflation`): the default evaluation of
-    :func:`high_breakdown_start` (its numbers since issue 10; :class:`_AllPoints` is the faster one)."""
+    :func:`high_breakdown_start` (its numbers since issue 10; :class:`_AllPoints` is the faster one). Arrays as
+    :func:`_layout`'s, parameters ``x`` (q, c)."""
 
     def __init__(self, a: np.ndarray, y: np.ndarray, w: np.ndarray, scale: np.ndarray, parts):
         self.a, self.y, self.w, self.scale, self.parts = a, y, w, scale, parts
@@ -198,81 +226,134 @@ class _OuterFits:
 
 
 def _inflation(a: np.ndarray, w: np.ndarray, fit_set: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """Per point, the factor of sigma^2 in the expected squared residual norm over ``k``: ``1 - lev`` inside
-    ``fit_set``, ``1 + lev`` outside it (``lev`` the mean leverage of the point's observations)."""
-    n, k, p = a.shape
+    """Per point, the factor of sigma^2 in the expected squared residual norm over its observations: ``1 - lev``
+    inside ``fit_set``, ``1 + lev`` outside it (``lev`` the mean leverage of the point's observations; ``a``
+    (n, g, q), ``w`` (n, g): :func:`_layout`, the c axes of a shared row have its leverage)."""
+    n, g, q = a.shape
     aw = a / scale
-    rows = (aw * np.sqrt(w * fit_set[:, None])[:, :, None]).reshape(n * k, p)
+    rows = (aw * np.sqrt(w * fit_set[:, None])[:, :, None]).reshape(n * g, q)
     nmat = rows.T @ rows
     try:
         ninv = np.linalg.inv(nmat)
     except np.linalg.LinAlgError:
         return np.ones(n)
-    lev = np.sum(w * np.sum((aw @ ninv) * aw, axis=2), axis=1) / k
+    lev = np.sum(w * np.sum((aw @ ninv) * aw, axis=2), axis=1) / g
     return np.maximum(np.where(fit_set, 1.0 - lev, 1.0 + lev), 1e-6)
 
 
 class _AllPoints:
-    """Every point's observations as column-scaled rows ``(n * k, p)`` for the start's fits of one point set
-    (concentration, reweighting): one ``A^T W A`` (:func:`~gdal_gf4cal.estimation.lsq.gram`, BLAS on the calling
-    thread) per fit, its inverse shared with the leverages of the same set (:meth:`inflation`); no per-point
-    outer products."""
+    """Every point's rows as column-scaled rows ``(n * g, q)`` for the start's fits of one point set
+    (concentration, reweighting; arrays as :func:`_layout`'s, parameters ``x`` (q, c)): one ``A^T W A``
+    (:func:`~gdal_gf4cal.estimation.lsq.gram`, BLAS on the calling thread) per fit for all c axes, its inverse
+    shared with the leverages of the same set (:meth:`inflation`); no per-point outer products."""
 
     def __init__(self, a: np.ndarray, y: np.ndarray, w: np.ndarray, scale: np.ndarray):
-        n, k, p = a.shape
-        self.n, self.k, self.p, self.scale = n, k, p, scale
-        self.rows = (a / scale).reshape(n * k, p)
-        self.y, self.w = y.reshape(-1), np.ascontiguousarray(w).reshape(-1)
+        n, g, q = a.shape
+        self.n, self.g, self.q, self.scale = n, g, q, scale
+        self.rows = (a / scale).reshape(n * g, q)
+        self.y, self.w = y.reshape(n * g, -1), np.ascontiguousarray(w).reshape(-1)
 
     def fit(self, mask: np.ndarray):
         """``(x or None, column-scaled N^-1 or None)`` of the weighted LS over the points of ``mask`` (bool (n,)):
         ``x`` None when the set does not determine the parameters (the determinant test of :func:`_batched_fit`),
         ``N^-1`` None when ``N`` cannot be inverted."""
-        wa = self.rows * (self.w * np.repeat(mask, self.k))[:, None]
+        wa = self.rows * (self.w * np.repeat(mask, self.g))[:, None]
         nmat = gram(wa, self.rows)
-        rhs = gram(wa, self.y[:, None])[:, 0]
+        rhs = gram(wa, self.y)
         try:
             ninv = np.linalg.inv(nmat)
         except np.linalg.LinAlgError:
             ninv = None
         sign, logdet = np.linalg.slogdet(nmat)
-        if ninv is None or not (sign > 0 and logdet > self.p * math.log(1e-10)):
+        if ninv is None or not (sign > 0 and logdet > self.q * math.log(1e-10)):
             return None, ninv
         try:
-            return np.linalg.solve(nmat, rhs) / self.scale, ninv
+            return np.linalg.solve(nmat, rhs) / self.scale[:, None], ninv
         except np.linalg.LinAlgError:
             return None, ninv
 
     def sq(self, x: np.ndarray) -> np.ndarray:
-        """Weighted squared residual norm per point (n,) of the parameters ``x`` (p,)."""
-        r = self.y - rows_times(self.rows, x * self.scale)
-        return np.sum((self.w * r * r).reshape(self.n, self.k), axis=1)
+        """Weighted squared residual norm per point (n,) of the parameters ``x`` (q, c)."""
+        b = x * self.scale[:, None]
+        # one axis: the matrix-vector product (its own BLAS kernel, the numbers of the joint design since issue 23)
+        r = self.y - (rows_times(self.rows, b[:, 0])[:, None] if b.shape[1] == 1 else rows_times(self.rows, b))
+        if self.g == 1:                                  # a shared design: the row's weight times its axes' sum
+            return self.w * np.einsum("ij,ij->i", r, r)
+        return np.sum((self.w[:, None] * r * r).reshape(self.n, -1), axis=1)
 
     def inflation(self, fit_set: np.ndarray, ninv=_FIT) -> np.ndarray:
-        """Per point, the factor of sigma^2 in the expected squared residual norm over ``k``: ``1 - lev`` inside
-        ``fit_set``, ``1 + lev`` outside it (``lev`` the mean leverage of the point's observations; ``ninv`` from
-        :meth:`fit` on ``fit_set``, fitted here when not given; None: factor 1)."""
+        """Per point, the factor of sigma^2 in the expected squared residual norm over its observations:
+        ``1 - lev`` inside ``fit_set``, ``1 + lev`` outside it (``lev`` the mean leverage of the point's
+        observations; ``ninv`` from :meth:`fit` on ``fit_set``, fitted here when not given; None: factor 1)."""
         if ninv is _FIT:
             ninv = self.fit(fit_set)[1]
         if ninv is None:
             return np.ones(self.n)
-        lev = np.sum((self.w * np.sum(rows_times(self.rows, ninv) * self.rows, axis=1)).reshape(self.n, self.k),
-                     axis=1) / self.k
+        lev = self.w * np.einsum("ij,ij->i", rows_times(self.rows, ninv), self.rows)     # per row
+        if self.g > 1:
+            lev = np.sum(lev.reshape(self.n, self.g), axis=1) / self.g
         return np.maximum(np.where(fit_set, 1.0 - lev, 1.0 + lev), 1e-6)
 
 
-def _point_sq(a, y, w, x, mm=np.matmul):
-    """Weighted squared residual norm per point for each parameter row of ``x`` (K, p): (K, n).
+def _point_sq(a, y, w, x):
+    """Weighted squared residual norm per point for each parameter set of ``x`` (K, q, c): (K, n).
 
-    One (K, n) matrix product per observation axis (k is 1 or 2): no (n, k, K) temporaries."""
-    xt = np.asarray(x).T                                             # (p, K)
+    One (n, c K) matrix product per row of a point (g is 1 or 2): no (n, g, K) temporaries."""
+    n_sets, q, c = x.shape
+    xt = x.transpose(1, 2, 0).reshape(q, c * n_sets)                 # (q, c K): the K sets of each axis together
     out = None
     for j in range(a.shape[1]):
-        r = y[:, j, None] - mm(a[:, j, :], xt)                       # (n, K)
+        r = y[:, j, :, None] - (a[:, j, :] @ xt).reshape(-1, c, n_sets)     # (n, c, K)
         r *= r
-        r *= w[:, j, None]
-        out = r if out is None else out + r
+        r *= w[:, j, None, None]
+        for i in range(c):
+            out = r[:, i] if out is None else out + r[:, i]
     return out.T
+
+
+def _layout(design, obs, weights):
+    """``(a (n, g, q), y (n, g, c), w (n, g))`` of :func:`high_breakdown_start`'s input: a point's ``g`` design
+    rows, each with ``c`` observations of its own parameters (``x`` (q, c)). A design ``(n, k, p)``: ``g = k``,
+    ``c = 1``; a shared design ``(n, q)`` with ``obs`` (n, k), ``weights`` (n,): ``g = 1``, ``c = k``."""
+    a = np.asarray(design, dtype=float)
+    n = a.shape[0]
+    if a.ndim == 2:
+        w = np.ones(n) if weights is None else np.broadcast_to(np.asarray(weights, float), (n,))
+        return a[:, None, :], np.asarray(obs, dtype=float).reshape(n, 1, -1), w.reshape(n, 1)
+    k = a.shape[1]
+    w = np.ones((n, k)) if weights is None else np.broadcast_to(np.asarray(weights, float), (n, k))
+    return a, np.asarray(obs, dtype=float).reshape(n, k, 1), w
+
+
+def _search(a, y, w, scale, m: int, n_subsets: int, seed: int, chunk: int):
+    """The subset search of :func:`high_breakdown_start` on the points given (:func:`_layout`'s arrays): every
+    subset's fit improved by one concentration step (refit on its ``h`` best points). Returns ``(x (q, c) of
+    the best or None, its trimmed criterion, subsets searched, per-point products)``."""
+    n = a.shape[0]
+    h = min(n, max((n + m + 1) // 2, m + 1))
+    parts = _normal_parts(a, y, w, scale)
+    subs = _subsets(n, m, n_subsets, seed)
+    best_crit, best_x = math.inf, None
+    for c0 in range(0, len(subs), chunk):
+        sub = subs[c0:c0 + chunk]
+        mask = np.zeros((len(sub), n))
+        np.put_along_axis(mask, sub, 1.0, axis=1)
+        x, ok = _batched_fit(a, y, w, mask, scale, parts)
+        if not ok.any():
+            continue
+        x = x[ok]
+        r2 = _point_sq(a, y, w, x)
+        keep = np.argpartition(r2, h - 1, axis=1)[:, :h]
+        mask = np.zeros((len(x), n))
+        np.put_along_axis(mask, keep, 1.0, axis=1)
+        x2, ok2 = _batched_fit(a, y, w, mask, scale, parts)
+        x = np.where(ok2[:, None, None], x2, x)
+        r2 = _point_sq(a, y, w, x)
+        crit = np.sum(np.partition(r2, h - 1, axis=1)[:, :h], axis=1)
+        i = int(np.argmin(crit))
+        if crit[i] < best_crit:
+            best_crit, best_x = float(crit[i]), x[i]
+    return best_x, best_crit, len(subs), parts
 
 
 def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int] = None, n_subsets: int = 300,
@@ -280,16 +361,15 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
                          normal: bool = False) -> Tuple[np.ndarray, float, dict]:
     """High-breakdown start (least trimmed squares from minimal subsets), see the module docstring.
 
-    (Long by design: one algorithm in four tightly coupled steps, subset search, concentration on all points, the
-    LTS scale and the reweighting with its all-points comparison, sharing a dozen arrays; split, each part would
-    take most of them as arguments.)
-
     Parameters
     ----------
-    design : ndarray (n_points, k, p)
+    design : ndarray (n_points, k, p), or (n_points, q)
+        A 2-D design is *shared*: each of the ``k`` axes of ``obs`` has its own ``q`` parameters on the same row
+        (a compensation with the same terms on both axes; ``weights`` (n_points,)), the start of the
+        block-diagonal ``(n_points, k, k q)`` design at the cost of one axis.
     obs, weights : ndarray (n_points, k)
     min_points : int, optional
-        Points in a minimal subset (default :func:`min_subset_points`).
+        Points in a minimal subset (default :func:`min_subset_points`; ``q`` for a shared design).
     n_subsets : int
         Random subsets when ``C(n, m)`` exceeds :data:`MAX_EXHAUSTIVE` (seeded with ``seed``).
     max_search : int
@@ -298,9 +378,10 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
         subset is near-certain up to 40 % blunders (P(miss) ~ 1e-32 for 3-point subsets, ~ 1e-6 for 6-point ones),
         and 120 searched points keep the start's cost near the M-estimator start it replaced.
     normal : bool
-        One-set fits through :class:`_AllPoints`, subsets' sums of their points' products, BLAS on the calling
-        thread: 3x less CPU on 10,000 points, the same sets to rounding. Default: the per-point outer products
-        (the pan-MS crops' start depends on their rounding).
+        One-set fits through :class:`_AllPoints`, BLAS on the calling thread
+        (:func:`~gdal_gf4cal.threads.blas_serial`: OpenBLAS's threads cost more in synchronisation than the
+        hundreds of small solves compute): 3x less CPU on 10,000 points, the same sets to rounding. Default: the
+        per-point outer products, BLAS as set (the pan-MS crops' start depends on their rounding).
 
     Returns
     -------
@@ -311,54 +392,35 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
         ``subsets`` (searched), ``exhaustive`` (bool), ``h``, ``lts_scale`` (the trimmed criterion's scale,
         corrected for the trimming; a floor for :func:`readmissible`).
     """
-    a = np.asarray(design, dtype=float)
-    n, k, p = a.shape
-    y = np.asarray(obs, dtype=float).reshape(n, k)
-    w = np.ones((n, k)) if weights is None else np.broadcast_to(np.asarray(weights, float), (n, k))
-    m = int(min_points) if min_points else min_subset_points(a)
+    with (blas_serial() if normal else nullcontext()):
+        return _lts_start(*_layout(design, obs, weights), np.ndim(design) == 2, min_points, n_subsets, seed, chunk,
+                          max_search, normal)
+
+
+def _lts_start(a, y, w, shared: bool, min_points, n_subsets: int, seed: int, chunk: int, max_search: int,
+               normal: bool):
+    """:func:`high_breakdown_start` on :func:`_layout`'s arrays (``shared``: a 2-D design was given).
+
+    (Long by design: one algorithm in coupled steps, the subset search (:func:`_search`), concentration on all
+    points, the LTS scale and the reweighting with its all-points comparison, sharing a dozen arrays.)"""
+    n, g, q = a.shape
+    k, p = g * y.shape[2], q * y.shape[2]                           # observations per point, parameters
+    m = int(min_points) if min_points else (q if shared else min_subset_points(a))
     if n <= m:
         return np.ones(n, bool), math.nan, {"subsets": 0, "exhaustive": True, "h": n}
     h = min(n, max((n + m + 1) // 2, m + 1))
-    scale = np.sqrt(np.einsum("nkp,nk,nkp->p", a, w, a))
+    scale = np.sqrt(np.einsum("ngq,ng,ngq->q", a, w, a))
     scale = np.where(scale > 0, scale, 1.0)
     # Large sets: search on a seeded sample of ``max_search`` points (nested subsets, as FAST-LTS); the winner is
     # then concentrated on all points.
     search = np.arange(n) if n <= max_search else np.sort(
         np.random.default_rng(seed + 1).choice(n, max_search, replace=False))
-    a_full, y_full, w_full, n_full, h_full = a, y, w, n, h
-    a, y, w, n = a[search], y[search], w[search], search.size
-    h = min(n, max((n + m + 1) // 2, m + 1))
-    parts = _normal_parts(a, y, w, scale)
-    mm = matmul if normal else np.matmul
-    subs = _subsets(n, m, n_subsets, seed)
-    best_crit, best_x = math.inf, None
-    for c0 in range(0, len(subs), chunk):
-        sub = subs[c0:c0 + chunk]
-        mask = np.zeros((len(sub), n))
-        np.put_along_axis(mask, sub, 1.0, axis=1)
-        sums = (parts[0][sub].sum(axis=1), parts[1][sub].sum(axis=1)) if normal else None  # its points only
-        x, ok = _batched_fit(a, y, w, mask, scale, parts, mm, sums)
-        if not ok.any():
-            continue
-        x = x[ok]
-        # one concentration step: refit on the h points that fit best
-        r2 = _point_sq(a, y, w, x, mm)
-        keep = np.argpartition(r2, h - 1, axis=1)[:, :h]
-        mask = np.zeros((len(x), n))
-        np.put_along_axis(mask, keep, 1.0, axis=1)
-        x2, ok2 = _batched_fit(a, y, w, mask, scale, parts, mm)
-        x = np.where(ok2[:, None], x2, x)
-        r2 = _point_sq(a, y, w, x, mm)
-        crit = np.sum(np.partition(r2, h - 1, axis=1)[:, :h], axis=1)
-        i = int(np.argmin(crit))
-        if crit[i] < best_crit:
-            best_crit, best_x = float(crit[i]), x[i]
-    info = {"subsets": int(len(subs)), "exhaustive": bool(math.comb(n, m) <= MAX_EXHAUSTIVE), "h": int(h_full),
-            "searched_points": int(n)}
+    best_x, best_crit, n_subs, parts = _search(a[search], y[search], w[search], scale, m, n_subsets, seed, chunk)
+    info = {"subsets": int(n_subs), "exhaustive": bool(math.comb(search.size, m) <= MAX_EXHAUSTIVE), "h": int(h),
+            "searched_points": int(search.size)}
     if best_x is None:
         raise DegenerateGeometryError("no subset of the points determines the parameters; spread the points over "
                                       "the image or estimate fewer parameters")
-    a, y, w, n, h = a_full, y_full, w_full, n_full, h_full
     pts = _AllPoints(a, y, w, scale) if normal else _OuterFits(
         a, y, w, scale, _normal_parts(a, y, w, scale) if search.size < n else parts)
     r2 = pts.sq(best_x)
@@ -373,44 +435,45 @@ def high_breakdown_start(design, obs, weights=None, *, min_points: Optional[int]
         best_crit = float(np.sum(np.partition(r2, h - 1)[:h]))
     # LTS scale: E[chi2_k | chi2_k <= q] = k F_{k+2}(q) / F_k(q), q the h/n quantile.
     corr = _lts_consistency(h, n, k)
-    dof_h = max(h * k - p, 1)
-    s2 = best_crit / max(corr * h, 1e-300) * (h * k) / dof_h
+    s2 = best_crit / max(corr * h, 1e-300) * (h * k) / max(h * k - p, 1)
     info["lts_scale"] = float(math.sqrt(max(s2, 0.0)))
-    cut = _chi2_ppf(0.999, k)
-    tiny = 1e-18 * max(float(np.median(np.sum(w * y * y, axis=1))), 1e-300)
+    tiny = 1e-18 * max(float(np.median(np.sum((w[:, :, None] * y * y).reshape(n, -1), axis=1))), 1e-300)
     fit_set = np.zeros(n, bool)
     fit_set[np.argpartition(r2, h - 1)[:h]] = True
-    inl = r2 / pts.inflation(fit_set) <= cut * max(s2, tiny)
-    # Reweighting: LS on the inliers, plain scale; residuals normalised by their own variance (a point outside the
-    # fit has variance sigma^2 (1 + leverage), inside sigma^2 (1 - leverage)), until the inlier set is stable.
-    def settle(inl, s2):
-        for _ in range(10):
-            if inl.sum() <= m:
-                break
-            x, ninv = pts.fit(inl)
-            if x is None:
-                break
-            r2 = pts.sq(x)
-            s2 = float(np.sum(r2[inl]) / max(int(inl.sum()) * k - p, 1))
-            new = r2 / pts.inflation(inl, ninv) <= cut * max(s2, tiny)
-            if np.array_equal(new, inl):
-                break
-            inl = new
-        return inl, s2
-
-    inl, s2 = settle(inl, s2)
+    inl = r2 / pts.inflation(fit_set) <= _chi2_ppf(0.999, k) * max(s2, tiny)
+    inl, s2 = _settle(pts, inl, s2, m, k, p, tiny)
     if search.size < n:
         # A large set: the trimmed half has ample redundancy, so the start cannot have over-fitted it.
         return inl, float(math.sqrt(max(s2, 0.0))), info
     # The same from all points: when its set is larger and its scale is not significantly larger (F test, 1 %),
     # the start only over-fitted a trimmed half (little redundancy) and the larger consensus is kept.
-    all_inl, all_s2 = settle(np.ones(n, bool), s2)
+    all_inl, all_s2 = _settle(pts, np.ones(n, bool), s2, m, k, p, tiny)
     if all_inl.sum() > inl.sum():
         d1, d2 = max(int(all_inl.sum()) * k - p, 1), max(int(inl.sum()) * k - p, 1)
         if all_s2 <= _f_ppf(0.99, d1, d2) * max(s2, tiny):
             inl, s2 = all_inl, all_s2
             info["from_all_points"] = True
     return inl, float(math.sqrt(max(s2, 0.0))), info
+
+
+def _settle(pts, inl, s2: float, m: int, k: int, p: int, tiny: float):
+    """Reweighting of :func:`high_breakdown_start`: LS on the inliers ``inl``, plain scale; residuals normalised by
+    their own variance (a point outside the fit has variance sigma^2 (1 + leverage), inside sigma^2
+    (1 - leverage)), until the inlier set is stable. Returns ``(inliers, scale^2)``."""
+    cut = _chi2_ppf(0.999, k)
+    for _ in range(10):
+        if inl.sum() <= m:
+            break
+        x, ninv = pts.fit(inl)
+        if x is None:
+            break
+        r2 = pts.sq(x)
+        s2 = float(np.sum(r2[inl]) / max(int(inl.sum()) * k - p, 1))
+        new = r2 / pts.inflation(inl, ninv) <= cut * max(s2, tiny)
+        if np.array_equal(new, inl):
+            break
+        inl = new
+    return inl, s2
 
 
 #: Median of ``|r| / sigma`` for a 2-D normal residual (Rayleigh), the consistency factor of the radial scale.

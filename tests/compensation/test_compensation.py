@@ -369,3 +369,23 @@ def test_small_control_sets_do_not_flag_good_points(wv3):
     gcps = simulate_gcps(truth, wv3, 10, 0.5, np.random.default_rng(12), 10)
     gcps.loc[4, "sample"] += 40.0
     assert list(fit_compensation(wv3, gcps, "affine").outliers["id"]) == ["g4"]
+
+
+def test_output_table_keeps_the_input_class_columns_and_leaves_the_input_alone(wv3):
+    """The output table (built in one go, issue 23): a GeoDataFrame stays one (its CRS and geometry), the input's
+    columns keep their order and values, the new columns follow, the caller's table is unchanged."""
+    gpd = pytest.importorskip("geopandas")
+    truth = true_model(wv3, "affine")
+    gcps = simulate_gcps(truth, wv3, 60, 0.5, np.random.default_rng(8), 60).drop(columns=["role"], errors="ignore")
+    gcps.index = np.arange(len(gcps))[::-1] * 2                    # an index that is not 0..n-1
+    geo = gpd.GeoDataFrame(gcps.copy(), geometry=gpd.points_from_xy(gcps.lon, gcps.lat), crs=4326)
+    before = geo.copy()
+    for table, cls in ((gcps, pd.DataFrame), (geo, gpd.GeoDataFrame)):
+        out = fit_compensation(wv3, table, "affine").gcps
+        assert type(out) is cls
+        assert list(out.columns[:len(table.columns)]) == list(table.columns)
+        assert {"role", "sigma", "res_sample_after", "outlier", "used"} <= set(out.columns)
+        np.testing.assert_array_equal(out["sample"].to_numpy(), table["sample"].to_numpy())
+        assert (out["role"] == "control").all() and list(out.index) == list(range(len(table)))
+    assert out.crs == geo.crs and out.geometry.name == "geometry"
+    pd.testing.assert_frame_equal(geo, before)

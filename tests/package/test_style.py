@@ -49,8 +49,6 @@ def test_no_private_name_imported_across_packages():
 
 #: Functions over 80 lines that stay, at most 10, each with the reason (issue 21).
 LONG_ALLOWED = {
-    ("gdal_gf4cal/estimation/robust.py", "high_breakdown_start"):
-        "the LTS search, its concentration on all points and the reweighting read as one algorithm (FAST-LTS)",
     ("gdal_gf4cal/estimation/schur.py", "solve_with_points"):
         "the point elimination with its three reduced-system paths (dense, sparse, indexed) side by side",
 }
