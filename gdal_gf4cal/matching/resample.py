@@ -214,16 +214,13 @@ def read_boxes(band, width: int, height: int, nodata, x0, y0, size: int, decimat
     d = max(int(decimation), 1)
     m = -(-size // d)
     n = x0.size
+    if d == 1 and n > 1:
+        ux0, uy0 = int(x0.min()), int(y0.min())
+        uw, uh = int(x0.max()) - ux0 + size, int(y0.max()) - uy0 + size
+        if uw * uh <= n * size * size:
+            union = read_block(band, width, height, nodata, ux0, uy0, uw, uh)
+            return np.lib.stride_tricks.sliding_window_view(union, (size, size))[y0 - uy0, x0 - ux0]
     out = np.empty((n, m, m), dtype=np.float32)
-    if n == 0:
-        return out
-    ux0, uy0 = int(x0.min()), int(y0.min())
-    uw, uh = int(x0.max()) - ux0 + size, int(y0.max()) - uy0 + size
-    if d == 1 and n > 1 and uw * uh <= n * size * size:
-        union = read_block(band, width, height, nodata, ux0, uy0, uw, uh)
-        boxes = np.lib.stride_tricks.sliding_window_view(union, (size, size))
-        out[...] = boxes[y0 - uy0, x0 - ux0]
-        return out
     for i in range(n):  # one windowed read per box far apart: I/O, not arithmetic
         out[i] = read_block(band, width, height, nodata, int(x0[i]), int(y0[i]), size, size, d)
     return out
