@@ -153,11 +153,25 @@ def panms_case(workdir: Path):
 
     def run(k):
         out = folder / f"out_{k}"
-        register_pan_ms(str(folder / "pan" / "scene.tif"), str(folder / "ms" / "scene.tif"),
-                        dem=str(folder / "dem.tif"), out=str(out), overwrite=True)
+        rep = register_pan_ms(str(folder / "pan" / "scene.tif"), str(folder / "ms" / "scene.tif"),
+                              dem=str(folder / "dem.tif"), out=str(out), overwrite=True)
+        STAGES.setdefault(k, []).append(rep["timings_s"])
         return [gdal.Open(str(out / f)).ReadAsArray() for f in ("correction.tif", "ms_on_pan.tif")]
 
     return {"panms": ("register-pan-ms (GF7)", run, _arrays_equal)}
+
+
+#: register-pan-ms: the report's stage times (wall, s) of every run, per thread count.
+STAGES: dict = {}
+
+
+def _print_stages():
+    """register-pan-ms per stage (the report's ``timings_s``), the median over the runs of each thread count (the
+    first 1-thread run, the warm-up, left out)."""
+    for k, laps in sorted(STAGES.items()):
+        laps = laps[1:] if k == 1 and len(laps) > 1 else laps
+        print(f"  register-pan-ms {k} thread(s) by stage: " + ", ".join(
+            f"{name} {statistics.median(lap[name] for lap in laps):.2f} s" for name in laps[0]))
 
 
 def main():
@@ -184,6 +198,7 @@ def main():
     _compare(args.threads, [found[c] for c in wanted if c in found], args.repeat)
     if "round_trip" in wanted:
         serial_share()
+    _print_stages()
 
 
 if __name__ == "__main__":

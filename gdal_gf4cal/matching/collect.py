@@ -56,7 +56,7 @@ from ..progress import report
 from ..rpc import RPCModel
 from .correlate import correlate_spectra, phase_correlate, spectra, window_measures
 from .filters import reject_outliers
-from .resample import RawReference, ReferenceImage, read_block, reference_on_grids
+from .resample import RawReference, ReferenceImage, cut_boxes, read_block, read_boxes, reference_on_grids
 
 __all__ = ["TileSpec", "STATUS", "collect_gcps", "plan_tiles", "match_tile", "assemble_gcps", "run_tiles"]
 
@@ -131,15 +131,9 @@ def _dem_spec(dem) -> Tuple:
 
 def _read_boxes(ds, band: int, nodata, x0: np.ndarray, y0: np.ndarray, size: int, decimation: int = 1) -> np.ndarray:
     """Stack of ``size x size`` raw blocks with top-left corners ``(x0, y0)`` (ints), averaged by ``decimation``
-    while reading (:func:`.resample.read_block`); outside/no-data -> NaN. float32 ``(N, size/d, size/d)``."""
-    b = ds.GetRasterBand(band)
-    W, H = ds.RasterXSize, ds.RasterYSize
-    d = max(int(decimation), 1)
-    m = -(-size // d)
-    out = np.empty((x0.size, m, m), dtype=np.float32)
-    for i in range(x0.size):  # one windowed read per window: I/O, not arithmetic
-        out[i] = read_block(b, W, H, nodata, int(x0[i]), int(y0[i]), size, size, d)
-    return out
+    while reading (:func:`.resample.read_boxes`: dense boxes in one read); outside/no-data -> NaN. float32
+    ``(N, size/d, size/d)``."""
+    return read_boxes(ds.GetRasterBand(band), ds.RasterXSize, ds.RasterYSize, nodata, x0, y0, size, decimation)
 
 
 #: Smallest quarter (px) in which a change on the ground is told from a cover (see :func:`_quadrant_ok`).
@@ -523,15 +517,12 @@ class _FinePasses:
         if self.block is None:
             return _read_boxes(self.ds, self.spec.band, self.spec.image_nodata, x0, y0, w)
         bx, by, pix = self.block
-        out = np.empty((x0.size, w, w), dtype=np.float32)
-        for i in range(x0.size):  # slices of one block: a copy each
-            out[i] = pix[y0[i] - by:y0[i] - by + w, x0[i] - bx:x0[i] - bx + w]
-        return out
+        return cut_boxes(pix, bx, by, x0, y0, w)
 
     def passes(self, active):
         """Up to three passes over windows ``active``: read the raw window at the current offset, correlate,
         move by the integer part of the residual; only windows still moving are re-read and re-correlated."""
-        ox, oy, lim, w = self.ox, self.oy, self.lim, self.w
+        ox, oy, lim = self.ox, self.oy, self.lim
         for it in range(3):
             axo, ayo = ox[active], oy[active]
             out_a = (np.abs(axo) > lim) | (np.abs(ayo) > lim)

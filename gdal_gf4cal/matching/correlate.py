@@ -238,7 +238,7 @@ class Peaks:
         n = idx.size
         h, w = self.surf.shape[-2:]
         sigma = self.sigma
-        dx, dy, iy, ix, c0 = self.dx[idx], self.dy[idx], self.iy[idx], self.ix[idx], self.c0[idx]
+        dx, dy, c0 = self.dx[idx], self.dy[idx], self.c0[idx]
         if n == 0:
             e = np.zeros(0)
             return CorrelationResult(dx, dy, self.peak[idx], e, e, e)

@@ -17,7 +17,8 @@ With ``image`` = MS and reference = pan that is exactly METHODS §9's ``∇ = p'
 Windows whose footprint is not wholly inside the reference are ``outside_image`` (status 5), and the window grid is
 first restricted to the part of ``image`` the reference covers, so only the overlap of two CCDs is ever read.
 
-- :func:`match_raw` one row per window (DataFrame);
+- :func:`match_raw` one row per window (DataFrame); :func:`match_raw_bands` the same for several bands at once
+  (their tiles in one queue of the pool);
 - :func:`match_ties` tie points between two images in the long observation table (:mod:`gdal_gf4cal.observations`);
 - :func:`pan_ms_cells` dense pan-MS matches averaged robustly on a regular MS grid (METHODS §9 observations).
 """
@@ -25,7 +26,7 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Optional, Sequence, Tuple
+from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import pandas as pd
@@ -38,8 +39,8 @@ from .collect import STATUS, _dem_from_spec, _dem_spec, _image_info, plan_tiles,
 from .filters import reject_outliers
 from .resample import RawReference
 
-__all__ = ["match_raw", "match_ties", "pan_ms_cells", "cells_from_matches", "cell_edges", "overlap_region",
-           "RAW_COLUMNS", "CELL_COLUMNS"]
+__all__ = ["match_raw", "match_raw_bands", "match_ties", "pan_ms_cells", "cells_from_matches", "cell_edges",
+           "overlap_region", "RAW_COLUMNS", "CELL_COLUMNS"]
 
 #: Columns of :func:`match_raw`'s table, in order.
 RAW_COLUMNS = ("sample", "line", "pred_sample", "pred_line", "ref_sample", "ref_line", "lon", "lat", "h",
@@ -132,20 +133,61 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
     ``outlier``. ``df.attrs``: ``windows`` (counts by status), ``scale`` (reference px per image px), ``region``
     (the box matched).
     """
-    path, W, H, _ = _image_info(image, band)
+    return match_raw_bands(image, model, reference_image, reference_model, dem, bands=[band], spacing_px=spacing_px,
+                           window_px=window_px, search_px=search_px, reference_band=reference_band, region=region,
+                           executor=executor, workers=workers, progress=progress, tile_windows=tile_windows,
+                           outlier_model=outlier_model, outlier_threshold_px=outlier_threshold_px, seed=seed,
+                           margin_px=margin_px, min_sigma_px=min_sigma_px, **params)[band]
+
+
+def match_raw_bands(image, model, reference_image, reference_model, dem, *, bands: Sequence[int],
+                    spacing_px: Union[int, Sequence[int]] = 64, window_px: int = 32, search_px: float = 8,
+                    reference_band: int = 1, region: Optional[Sequence[float]] = None, executor=None,
+                    workers: Optional[int] = None, progress=None, tile_windows: int = 256,
+                    outlier_model: Optional[str] = "affine", outlier_threshold_px: float = 3.0, seed: int = 0,
+                    margin_px: Optional[int] = None, min_sigma_px: float = MIN_SIGMA_PX, **params) -> Dict[int, Any]:
+    """:func:`match_raw` of several bands of ``image`` against one reference band: ``{band: table}``, each table
+    the one :func:`match_raw` gives for that band (``spacing_px``: one step, or one per band).
+
+    The tiles of every band go into one queue of the pool (:func:`.collect.run_tiles`): the threads never wait at
+    the end of a band for its last tile, and the overlap with the reference is found once. Tiles are fixed by each
+    band's window grid, never by the threads: the same numbers as band after band, whatever the threads.
+    """
+    bands = [int(b) for b in bands]
+    path = _image_info(image, bands[0])[0]
+    for b in bands[1:]:
+        _image_info(path, b)                                  # refused here when the image has no such band
+    steps = [int(spacing_px)] * len(bands) if np.ndim(spacing_px) == 0 else [int(v) for v in spacing_px]
     ref_path = os.fspath(reference_image)
     if not os.path.exists(ref_path) and not ref_path.startswith("/vsi"):
         raise Gf4calError(f"reference image not found: {ref_path}")
     model = _model_or_rpc(model, path, "image")
     reference_model = _model_or_rpc(reference_model, ref_path, "reference image")
-    box, scale = overlap_region(path, model, ref_path, reference_model, dem, band=band,
+    box, scale = overlap_region(path, model, ref_path, reference_model, dem, band=bands[0],
                                 reference_band=reference_band, step_px=max(16, min(int(window_px), 64)))
     box = _within_region(box, region, path, ref_path)
-    specs, ctx = plan_tiles(path, model, ref_path, dem, spacing_px, window_px, search_px=search_px,
-                            tile_windows=tile_windows, band=band, reference_band=reference_band,
-                            reference_model=reference_model, region=box, margin_px=margin_px, **params)
-    report(progress, 0.0, f"matching {ctx['n_windows']} windows in {len(specs)} tiles")
+    plans = [plan_tiles(path, model, ref_path, dem, step, window_px, search_px=search_px, tile_windows=tile_windows,
+                        band=b, reference_band=reference_band, reference_model=reference_model, region=box,
+                        margin_px=margin_px, **params) for b, step in zip(bands, steps)]
+    specs = [spec for band_specs, _ in plans for spec in band_specs]
+    report(progress, 0.0, f"matching {sum(ctx['n_windows'] for _, ctx in plans)} windows in {len(specs)} tiles")
     results = run_tiles(specs, executor, workers=workers, progress=progress, stop=0.97)
+    tables, k = {}, 0
+    for b, step, (band_specs, _) in zip(bands, steps, plans):
+        t = _raw_table(results[k:k + len(band_specs)], outlier_model, outlier_threshold_px, seed, min_sigma_px)
+        k += len(band_specs)
+        t.attrs.update(scale=scale, region=tuple(box), image=path, reference=ref_path, window_px=int(window_px),
+                       spacing_px=step)
+        tables[b] = t
+    counts = [t.attrs["windows"] for t in tables.values()]
+    report(progress, 1.0, f"{sum(c['accepted'] for c in counts)} matches of {sum(c['total'] for c in counts)} windows "
+           f"({sum(c['outliers'] for c in counts)} outliers)")
+    return tables
+
+
+def _raw_table(results, outlier_model: Optional[str], outlier_threshold_px: float, seed: int, min_sigma_px: float):
+    """The tiles' results of one band as :func:`match_raw`'s table (row-major; outliers flagged; counts in
+    ``attrs['windows']``)."""
     r = {k: np.concatenate([np.atleast_1d(t[k]) for t in results]) for k in results[0]}
     order = np.lexsort((r["center_sample"], r["center_line"]))
     r = {k: v[order] for k, v in r.items()}
@@ -165,9 +207,7 @@ def match_raw(image, model, reference_image, reference_model, dem, *, spacing_px
     counts = {name: int(np.count_nonzero(st == code)) for code, name in STATUS.items()}
     counts["outliers"] = int(outlier.sum())
     counts["total"] = int(st.size)
-    df.attrs.update(windows=counts, scale=scale, region=tuple(box), image=path, reference=ref_path,
-                    window_px=int(window_px), spacing_px=int(spacing_px))
-    report(progress, 1.0, f"{counts['accepted']} matches of {st.size} windows ({counts['outliers']} outliers)")
+    df.attrs.update(windows=counts)
     return df
 
 

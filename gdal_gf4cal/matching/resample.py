@@ -30,7 +30,7 @@ from scipy import ndimage
 from .._gdal import with_gdal_exceptions
 from ..errors import Gf4calError
 
-__all__ = ["ReferenceImage", "RawReference", "grid_nodes", "read_block", "reference_on_grids"]
+__all__ = ["ReferenceImage", "RawReference", "cut_boxes", "grid_nodes", "read_block", "read_boxes", "reference_on_grids"]
 
 #: Standard deviation (in grid spacings) of the anti-alias low-pass applied to a finer reference: about the
 #: Gaussian equivalent of a pixel's box integration (1/sqrt(12) ~= 0.29) plus optics.
@@ -199,6 +199,40 @@ def read_block(band, width: int, height: int, nodata, x0: int, y0: int, nx: int,
     return out
 
 
+def read_boxes(band, width: int, height: int, nodata, x0, y0, size: int, decimation: int = 1) -> np.ndarray:
+    """Stack of ``size x size`` blocks of a GDAL band with top-left corners ``(x0, y0)`` (ints), averaged by
+    ``decimation`` while reading: float32 ``(N, size/d, size/d)``, NaN outside the raster and on ``nodata``
+    (:func:`read_block` of each box).
+
+    Dense boxes (at full resolution, their union no larger than the pixels they hold: overlapping matching
+    windows) are read in one :func:`read_block` of their union and cut out of it (the same values: a box of the
+    union is the box read alone); others one read per box. A tile of pan-MS windows every 4 px is one GDAL call
+    instead of hundreds, each holding the GIL for its Python wrapper longer than for the read itself.
+    """
+    x0 = np.asarray(x0, dtype=np.int64).ravel()
+    y0 = np.asarray(y0, dtype=np.int64).ravel()
+    d = max(int(decimation), 1)
+    m = -(-size // d)
+    n = x0.size
+    if d == 1 and n > 1:
+        ux0, uy0 = int(x0.min()), int(y0.min())
+        uw, uh = int(x0.max()) - ux0 + size, int(y0.max()) - uy0 + size
+        if uw * uh <= n * size * size:
+            return cut_boxes(read_block(band, width, height, nodata, ux0, uy0, uw, uh), ux0, uy0, x0, y0, size)
+    out = np.empty((n, m, m), dtype=np.float32)
+    for i in range(n):  # one windowed read per box far apart: I/O, not arithmetic
+        out[i] = read_block(band, width, height, nodata, int(x0[i]), int(y0[i]), size, size, d)
+    return out
+
+
+def cut_boxes(block: np.ndarray, bx: int, by: int, x0, y0, size: int) -> np.ndarray:
+    """The ``size x size`` boxes with top-left corners ``(x0, y0)`` (ints, inside the block) cut out of ``block``
+    (2-D, its top-left corner at ``(bx, by)``) in one fancy index: a new ``(N, size, size)`` array."""
+    x0 = np.asarray(x0, dtype=np.int64).ravel()
+    y0 = np.asarray(y0, dtype=np.int64).ravel()
+    return np.lib.stride_tricks.sliding_window_view(block, (size, size))[y0 - by, x0 - bx]
+
+
 def grid_nodes(n: int, step: int) -> np.ndarray:
     """Indices ``0, step, 2 step, ..., n - 1`` of the exact-geometry nodes along an axis of ``n`` samples."""
     nodes = np.arange(0, n, max(int(step), 1))
@@ -322,11 +356,8 @@ def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, s
         np.all(y0 == np.round(y0)) else None
     if t is not None:
         band = reference._open().GetRasterBand(reference.band)
-        out = np.empty((n, size, size))
-        for k in range(n):  # one windowed read per window: I/O, not arithmetic
-            out[k] = read_block(band, reference.width, reference.height, reference.nodata, int(x0[k]) + t[0],
-                                int(y0[k]) + t[1], size, size)
-        return out
+        return read_boxes(band, reference.width, reference.height, reference.nodata, x0.astype(int) + t[0],
+                          y0.astype(int) + t[1], size).astype(np.float64)
     ok_win = np.all(np.isfinite(rx) & np.isfinite(ry), axis=(1, 2))
     if not ok_win.any():
         return np.full((n, size, size), np.nan)

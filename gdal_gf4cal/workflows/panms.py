@@ -2,10 +2,10 @@
 
 Each image's RPC (:func:`gdal_gf4cal.crop.image_rpc`: own, given, or a ``.geom`` beside it; crops shifted) ->
 :func:`pair_geometry` (ratio, overlap, line-of-sight angle from the RPCs) -> dense window matches of every MS band
-against the pan (``matching.match_raw``) -> sub-CCD edges (options, or ``panms.detect_breaks``) -> cells of a size
-from the data (:func:`choose_cell`) -> :func:`gdal_gf4cal.panms.estimate` on the reference band, every other band
-compared with it (:func:`_every_band`) -> every output under one :class:`~gdal_gf4cal.outputs.OutputSet` (all or
-nothing).
+against the pan (``matching.raw.match_raw_bands``: all bands' tiles in one queue of the pool) -> sub-CCD edges
+(options, or ``panms.detect_breaks``) -> cells of a size from the data (:func:`choose_cell`) ->
+:func:`gdal_gf4cal.panms.estimate` on the reference band, every other band compared with it (:func:`_every_band`)
+-> every output under one :class:`~gdal_gf4cal.outputs.OutputSet` (all or nothing).
 """
 from __future__ import annotations
 
@@ -30,7 +30,8 @@ from ..dem import DEM
 from ..errors import Gf4calError
 from ..estimation import weighted_lsq
 from ..geodesy import metres_per_degree
-from ..matching import cells_from_matches, match_raw, pan_ms_cells
+from ..matching import cells_from_matches, pan_ms_cells
+from ..matching.raw import match_raw_bands
 from ..outputs import OutputSet, check_raster, check_vector
 from ..panms import LINEAR_ORDER, PanMSError, linear_design, residual_spectrum, row_means, step_residuals
 from ..report import write_report_json, write_residuals_gpkg
@@ -370,18 +371,14 @@ def _match_every_band(pan, ms, pan_model, ms_model, dem_obj, ms_size, n_bands, c
     sub-CCD edges (``user_breaks``, else from the data, with a note) and the cells of every band:
     ``(band_matches, ref, n_matches, breaks, cell_px, cells of ref, {band: cells})``."""
     mw, mh = ms_size
-    band_matches: Dict[int, Any] = {}
     spacing = _spacing((mw, mh), cell)
-    share = 0.48 / n_bands
-    for b in range(1, n_bands + 1):
-        # a large image (step at its 16 px cap): the other bands at twice the step (their difference from
-        # the first is smooth), a quarter of the windows
-        step = spacing if b == 1 or spacing < 16 else 2 * spacing
-        band_matches[b] = match_raw(ms, ms_model, pan, pan_model, dem_obj, spacing_px=step,
-                                    window_px=WINDOW_PX, search_px=8, band=b, reference_band=1,
-                                    workers=workers, margin_px=4, outlier_model=None,
-                                    progress=_progress.scaled(progress, 0.02 + share * (b - 1),
-                                                              0.02 + share * b))
+    # a large image (step at its 16 px cap): the other bands at twice the step (their difference from the first
+    # is smooth), a quarter of the windows; every band's tiles in one queue of the pool
+    band_matches = match_raw_bands(ms, ms_model, pan, pan_model, dem_obj, bands=range(1, n_bands + 1),
+                                   spacing_px=[spacing if b == 1 or spacing < 16 else 2 * spacing
+                                               for b in range(1, n_bands + 1)],
+                                   window_px=WINDOW_PX, search_px=8, reference_band=1, workers=workers, margin_px=4,
+                                   outlier_model=None, progress=_progress.scaled(progress, 0.02, 0.5))
     threads.run_tasks([functools.partial(_screen, t) for t in band_matches.values()])    # each band's in place
     # the reference band: the one whose matches correlate best with the pan
     nccs = {b: _median_ncc(t) for b, t in band_matches.items()}
