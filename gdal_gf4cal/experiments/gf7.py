@@ -110,7 +110,7 @@ def run(out_dir, *, seed: int = 0, progress=None, cell_px: int = CELL_PX, cell_n
             first = model
             model.info["source"] = f"simulated GF7 scene seed {sd + seed}"
             if write_files:
-                model.to_json(os.path.join(out_dir, "model.json"))
+                model.to_json(os.path.join(out_dir, "model.json"), overwrite=True)
     for i, sd in enumerate(REUSE_SEEDS):
         _report(progress, (len(SOLVE_SEEDS) + i) / n_steps, f"Table 3: scene {sd + seed}")
         scene = make_gf7_scene(seed=sd + seed)

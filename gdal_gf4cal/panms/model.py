@@ -12,6 +12,7 @@ import numpy as np
 
 from ..basis import trigonometric
 from ..errors import Gf4calError
+from ..outputs import atomic_output, check_output_path
 
 AXES = ("sample", "line")
 ORDER = 4
@@ -151,9 +152,14 @@ class PanMSModel:
                    piecewise=np.asarray(d["piecewise"], float), jitter=d.get("jitter", {}),
                    steps=d.get("steps", []), mode=d.get("mode", "solve"), info=d.get("info", {}))
 
-    def to_json(self, path) -> str:
-        path = os.fspath(path)
-        with open(path, "w") as fh:
+    def to_json(self, path, overwrite: bool = False) -> str:
+        """Write the model file atomically (temporary file in the same folder, then ``os.replace``), as
+        :meth:`~gdal_gf4cal.camera.LookAngleModel.to_json`.
+
+        Raises :class:`~gdal_gf4cal.errors.InputOverwriteError` if ``path`` exists and ``overwrite`` is false.
+        """
+        path = check_output_path(path, overwrite=overwrite)
+        with atomic_output(path) as tmp, open(tmp, "w") as fh:
             json.dump(self.to_dict(), fh, indent=1, default=_json_default)
         return path
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from gdal_gf4cal import panms
-from gdal_gf4cal.errors import Gf4calError
+from gdal_gf4cal.errors import Gf4calError, InputOverwriteError
 from gdal_gf4cal.simulate.gf7 import make_gf7_scene
 from panmssim import synth_cells, truth_grid
 
@@ -93,6 +93,18 @@ def test_json_round_trip(solved, tmp_path):
     s, l = np.meshgrid(np.linspace(1, 7679, 37), np.linspace(1, 7679, 29))
     assert np.allclose(m2.predict(s, l), m.predict(s, l), atol=1e-12)
     assert m2.steps[-1]["p_le_0.25"] == m.steps[-1]["p_le_0.25"]
+
+
+def test_json_never_overwrites_unless_asked(solved, tmp_path):
+    """An existing file is refused and left as it was (no temporary left behind); ``overwrite=True`` replaces it."""
+    _, m = solved
+    path = tmp_path / "model.json"
+    path.write_text("precious")
+    with pytest.raises(InputOverwriteError, match="model.json"):
+        m.to_json(path)
+    assert path.read_text() == "precious" and sorted(p.name for p in tmp_path.iterdir()) == ["model.json"]
+    m.to_json(path, overwrite=True)
+    assert panms.PanMSModel.from_json(path).steps == panms.PanMSModel.from_json(m.to_json(tmp_path / "b.json")).steps
 
 
 def test_reuse_mode_with_200_sparse_cells(solved):
