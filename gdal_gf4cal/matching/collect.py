@@ -357,7 +357,7 @@ def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
     if idx.size == 0:
         return out
     ref_f = reference_on_grids(rpc, dem, ref, wx0[idx], wy0[idx], w, spacing=1.0, geometry_step=step,
-                               shared=True)
+                               shared=True, dtype=np.float32)
     size = np.full(idx.size, w) if raw_ref else _shrunk_sizes(ref_f, fits[idx], w)
     # A window cut by the reference's edge or no-data is matched on the largest centred square inside them
     # (smaller stacks, starting at the full windows' offsets); one left with too little is no-data.
@@ -366,8 +366,10 @@ def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
     for s in np.unique(size[size > 0])[::-1]:
         k = (w - s) // 2
         sel = size == s
-        guide = _fine_level(spec, ds, c, idx[sel], ref_f[sel, k:k + s, k:k + s], shift_x, shift_y, lim,
-                            near_edge, out, guide)
+        # The fine passes take their reference windows over (zeroing those with no-data): the whole stack when
+        # every window has the full size, else a copy of those of this size.
+        sub = ref_f if s == w and sel.all() else ref_f[sel, k:k + s, k:k + s]
+        guide = _fine_level(spec, ds, c, idx[sel], sub, shift_x, shift_y, lim, near_edge, out, guide)
     return out
 
 
@@ -486,7 +488,7 @@ class _FinePasses:
         m = wx0.size
         w = ref_f.shape[-1]
         self.spec, self.ds, self.wx0, self.wy0, self.lim, self.sigma, self.w = spec, ds, wx0, wy0, lim, sigma, w
-        self.a = ref_f.astype(np.float32)
+        self.a = ref_f.astype(np.float32, copy=False)  # taken over from the caller (float32 already)
         self.nan_ref = np.isnan(self.a).any(axis=(1, 2))
         self.a[self.nan_ref] = 0.0
         self.Fs = spectra(self.a)

@@ -41,6 +41,11 @@ ANTIALIAS_SIGMA = 0.45
 #: orthos of one tiling: interpolating at whole pixels returns the pixels, to this fraction of their gradient).
 IDENTITY_TOL = 1e-4
 
+#: The whole-pixel test (:data:`IDENTITY_TOL`) first localises every this-many-th exact node only (and the last):
+#: a mapping that is not one whole-pixel translation shows it there already, and one that is is then read at
+#: once without localising the rest (about ``1 / PROBE_EVERY**2`` of the nodes).
+PROBE_EVERY = 4
+
 #: Extra cells read around each block of the batched path so that the spline prefilter's (mirror) boundary stays
 #: away from the samples: its influence decays as 0.27^k.
 _PAD = 4
@@ -276,7 +281,20 @@ def _whole_pixel_shift(dx: np.ndarray, dy: np.ndarray):
     return int(tx), int(ty)
 
 
-def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int, oversample: float):
+def _probe_nodes(nodes: np.ndarray) -> np.ndarray:
+    """Every :data:`PROBE_EVERY`-th of the exact-geometry ``nodes`` along an axis, and the last."""
+    sub = nodes[::PROBE_EVERY]
+    return sub if sub[-1] == nodes[-1] else np.append(sub, nodes[-1])
+
+
+def _probe_shift(rpc, dem, reference, S: np.ndarray, L: np.ndarray):
+    """:func:`_whole_pixel_shift` at the raw positions ``S, L`` (a subset of the exact nodes, localised here)."""
+    lon, lat, h = rpc.localize_dem(S, L, dem)
+    rx, ry = (np.asarray(v, dtype=float).reshape(S.shape) for v in reference.ground_to_pixel(lon, lat, h))
+    return _whole_pixel_shift(rx - S, ry - L)
+
+
+def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int, oversample: float, dtype):
     """:func:`reference_on_grids` of dense, overlapping windows (pixel spacing, whole-pixel corners) as one grid
     over their union, resampled once and cut into the windows; None when the windows are not dense."""
     ix0, iy0 = np.round(x0).astype(int), np.round(y0).astype(int)
@@ -287,18 +305,20 @@ def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int
     if Wu * Hu > 0.8 * x0.size * size * size:
         return None
     nx, ny = grid_nodes(Wu, step), grid_nodes(Hu, step)
-    S = np.broadcast_to(ux0 + nx[None, :] + 0.5, (ny.size, nx.size))
-    L = np.broadcast_to(uy0 + ny[:, None] + 0.5, (ny.size, nx.size))
-    lon, lat, h = rpc.localize_dem(S, L, dem)
-    rx, ry = (np.asarray(v, dtype=float).reshape(S.shape) for v in reference.ground_to_pixel(lon, lat, h))
-    r = np.arange(size)
-    cut = ((iy0 - uy0)[:, None, None] + r[None, :, None], (ix0 - ux0)[:, None, None] + r[None, None, :])
-    t = _whole_pixel_shift(rx - S, ry - L)
+    px, py = _probe_nodes(nx), _probe_nodes(ny)
+    t = _probe_shift(rpc, dem, reference, *np.meshgrid(ux0 + px + 0.5, uy0 + py + 0.5))
+    if t is None:  # not one whole-pixel translation: every node (the dense test kept as it was)
+        S = np.broadcast_to(ux0 + nx[None, :] + 0.5, (ny.size, nx.size))
+        L = np.broadcast_to(uy0 + ny[:, None] + 0.5, (ny.size, nx.size))
+        lon, lat, h = rpc.localize_dem(S, L, dem)
+        rx, ry = (np.asarray(v, dtype=float).reshape(S.shape) for v in reference.ground_to_pixel(lon, lat, h))
+        t = _whole_pixel_shift(rx - S, ry - L)
     if t is not None:
-        return reference.read(ux0 + t[0], uy0 + t[1], Wu, Hu)[cut].astype(np.float64)
+        return cut_boxes(reference.read(ux0 + t[0], uy0 + t[1], Wu, Hu), ux0, uy0, ix0, iy0, size).astype(
+            dtype, copy=False)
     fin = np.isfinite(rx) & np.isfinite(ry)
     if not fin.any():
-        return np.full((x0.size, size, size), np.nan)
+        return np.full((x0.size, size, size), np.nan, dtype=dtype)
     Mx, My = _interp_matrix(Wu, nx), _interp_matrix(Hu, ny)
     fx = My @ np.where(fin, rx, 0.0) @ Mx.T
     fy = My @ np.where(fin, ry, 0.0) @ Mx.T
@@ -310,18 +330,19 @@ def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int
         fx[bad], fy[bad] = float(np.mean(fx[~bad])), float(np.mean(fy[~bad]))
     vals = _sample_reference(reference, fx, fy, dec, sigma, margin, order)
     vals[bad] = np.nan
-    return vals[cut]
+    return cut_boxes(vals.astype(dtype, copy=False), 0, 0, ix0 - ux0, iy0 - uy0, size)
 
 
 def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, spacing: float = 1.0, *,
                        geometry_step: int = 4, order: int = 3, lonlat=None, oversample: float = 2.0,
-                       shared: bool = False) -> np.ndarray:
+                       shared: bool = False, dtype=np.float64) -> np.ndarray:
     """The reference resampled on ``N`` square grids of the raw image (METHODS §1 localisation, §2 DEM).
 
     Grid ``i`` has ``size x size`` nodes at raw positions ``(x0[i] + spacing * (j + 0.5), y0[i] + spacing *
     (k + 0.5))`` (GDAL convention; ``x0, y0`` are the grids' top-left corners), i.e. the centres of
-    ``spacing x spacing`` blocks of raw pixels. Returns float64 ``(N, size, size)``, NaN where the DEM, the
-    localisation or the reference has no value.
+    ``spacing x spacing`` blocks of raw pixels. Returns ``(N, size, size)`` of ``dtype`` (float64, or float32:
+    the float64 values rounded, without a float64 copy), NaN where the DEM, the localisation or the reference has
+    no value.
 
     ``reference`` is an orthophoto (:class:`ReferenceImage`) or another raw image with its sensor model
     (:class:`RawReference`): either maps the localised ground points to its pixels (``ground_to_pixel``).
@@ -338,29 +359,28 @@ def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, s
     y0 = np.atleast_1d(np.asarray(y0, dtype=float))
     n = x0.size
     if shared and lonlat is None and n > 1 and spacing == 1.0:
-        vals = _on_union_grid(rpc, dem, reference, x0, y0, size, geometry_step, order, oversample)
+        vals = _on_union_grid(rpc, dem, reference, x0, y0, size, geometry_step, order, oversample, dtype)
         if vals is not None:
             return vals
     nodes = grid_nodes(size, geometry_step)
-    pos = spacing * (nodes + 0.5)
-    S = x0[:, None, None] + pos[None, None, :] + 0 * pos[None, :, None]
-    L = y0[:, None, None] + pos[None, :, None] + 0 * pos[None, None, :]
-    if lonlat is None:
-        lon, lat, h = rpc.localize_dem(S, L, dem)
-    else:
-        lon, lat, h = lonlat
-    rx, ry = reference.ground_to_pixel(lon, lat, h)
-    rx = np.asarray(rx, dtype=float).reshape(n, nodes.size, nodes.size)
-    ry = np.asarray(ry, dtype=float).reshape(n, nodes.size, nodes.size)
-    t = _whole_pixel_shift(rx - S, ry - L) if spacing == 1.0 and np.all(x0 == np.round(x0)) and \
-        np.all(y0 == np.round(y0)) else None
+    whole = spacing == 1.0 and np.all(x0 == np.round(x0)) and np.all(y0 == np.round(y0))
+    # A whole-pixel translation is first looked for on a subset of the nodes (see PROBE_EVERY).
+    t = _probe_shift(rpc, dem, reference, *_node_grid(x0, y0, _probe_nodes(nodes) + 0.5)) \
+        if whole and lonlat is None else None
+    if t is None:
+        S, L = _node_grid(x0, y0, spacing * (nodes + 0.5))
+        lon, lat, h = rpc.localize_dem(S, L, dem) if lonlat is None else lonlat
+        rx, ry = reference.ground_to_pixel(lon, lat, h)
+        rx = np.asarray(rx, dtype=float).reshape(n, nodes.size, nodes.size)
+        ry = np.asarray(ry, dtype=float).reshape(n, nodes.size, nodes.size)
+        t = _whole_pixel_shift(rx - S, ry - L) if whole else None
     if t is not None:
         band = reference._open().GetRasterBand(reference.band)
         return read_boxes(band, reference.width, reference.height, reference.nodata, x0.astype(int) + t[0],
-                          y0.astype(int) + t[1], size).astype(np.float64)
+                          y0.astype(int) + t[1], size).astype(dtype, copy=False)
     ok_win = np.all(np.isfinite(rx) & np.isfinite(ry), axis=(1, 2))
     if not ok_win.any():
-        return np.full((n, size, size), np.nan)
+        return np.full((n, size, size), np.nan, dtype=dtype)
     M = _interp_matrix(size, nodes)
     # Full-resolution reference coordinates of every grid node: M @ nodes @ M.T per window.
     fx = M @ np.where(np.isfinite(rx), rx, 0.0) @ M.T
@@ -368,25 +388,37 @@ def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, s
     # Reference pixels per grid spacing (median over windows): decides decimation and low-pass.
     step_len = np.hypot(np.diff(rx, axis=2), np.diff(ry, axis=2)) / (np.diff(nodes)[None, None, :])
     ratio = float(np.nanmedian(step_len[ok_win])) if np.isfinite(step_len[ok_win]).any() else 1.0
-    dec, sigma, margin = _lowpass(ratio, oversample)
     ok_idx = np.flatnonzero(ok_win)
     if ok_idx.size < n:
         fx, fy = fx[ok_idx], fy[ok_idx]
+    vals = _sample_windows(reference, fx, fy, *_lowpass(ratio, oversample), order).astype(dtype, copy=False)
+    if ok_idx.size == n:
+        return vals
+    out = np.full((n, size, size), np.nan, dtype=dtype)
+    out[ok_idx] = vals
+    return out
+
+
+def _node_grid(x0: np.ndarray, y0: np.ndarray, pos: np.ndarray):
+    """Raw positions ``(S, L)``, each ``(N, m, m)``, of the nodes ``pos`` (offsets along both axes) of the grids
+    with top-left corners ``x0, y0``."""
+    S = x0[:, None, None] + pos[None, None, :] + 0 * pos[None, :, None]
+    L = y0[:, None, None] + pos[None, :, None] + 0 * pos[None, None, :]
+    return S, L
+
+
+def _sample_windows(reference, fx: np.ndarray, fy: np.ndarray, dec: int, sigma: float, margin: int, order: int):
+    """The reference at ``fx, fy`` (``(N, size, size)``, one grid per window): dense windows share one read of
+    their union; sparse ones are read (and filtered) one by one, so the work is proportional to the windows' area
+    and not to the area they are spread over."""
     lo_x = np.floor(fx.min(axis=(1, 2))).astype(int) - margin
     hi_x = np.ceil(fx.max(axis=(1, 2))).astype(int) + margin
     lo_y = np.floor(fy.min(axis=(1, 2))).astype(int) - margin
     hi_y = np.ceil(fy.max(axis=(1, 2))).astype(int) + margin
     own = float(np.sum((hi_x - lo_x) * (hi_y - lo_y)))
     union = float((hi_x.max() - lo_x.min()) * (hi_y.max() - lo_y.min()))
-    # Dense windows share one read of their union; sparse ones are read (and filtered) one by one, so the work
-    # is proportional to the windows' area and not to the area they are spread over.
-    sample = _sample_reference if union <= 2.0 * own or ok_idx.size == 1 else _sample_reference_each
-    vals = sample(reference, fx, fy, dec, sigma, margin, order)
-    if ok_idx.size == n:
-        return vals
-    out = np.full((n, size, size), np.nan)
-    out[ok_idx] = vals
-    return out
+    sample = _sample_reference if union <= 2.0 * own or fx.shape[0] == 1 else _sample_reference_each
+    return sample(reference, fx, fy, dec, sigma, margin, order)
 
 
 def _sample_reference(reference: ReferenceImage, fx: np.ndarray, fy: np.ndarray, dec: int, sigma: float,

@@ -78,6 +78,36 @@ def test_reference_on_the_raw_grid_is_read_not_resampled(tmp_path, monkeypatch):
                                                   shared=True), dense, atol=1e-3)
 
 
+def test_float32_grids_and_the_whole_pixel_probe(tmp_path, monkeypatch):
+    """``dtype=np.float32`` gives the float64 values rounded (read and resampled, window by window and shared), and
+    the whole-pixel probe (a subset of the nodes) does not take a mapping off a translation by 1e-3 px over a window
+    for one: that is resampled exactly as when every node is tested."""
+    image, ref, rpc = _pair(tmp_path, 100, 80, 320, 256)
+    x0, y0 = np.array([0.0, 64.0, 200.0]), np.array([0.0, 100.0, 150.0])
+    r = ReferenceImage(ref)
+    for tol in (resample.IDENTITY_TOL, -1.0):   # whole-pixel read, then resampling forced
+        monkeypatch.setattr(resample, "IDENTITY_TOL", tol)
+        for xs, ys, shared in ((x0, y0, False), ([0, 32], [0, 0], True)):
+            f64 = reference_on_grids(rpc, HEIGHT, r, xs, ys, 64, shared=shared)
+            f32 = reference_on_grids(rpc, HEIGHT, r, xs, ys, 64, shared=shared, dtype=np.float32)
+            assert f64.dtype == np.float64 and f32.dtype == np.float32
+            np.testing.assert_array_equal(f32, f64.astype(np.float32))
+    monkeypatch.setattr(resample, "IDENTITY_TOL", 1e-4)
+    # The reference's pixels 1 + 1.6e-5 times larger about the first node (raw (0.5, 0.5), reference column
+    # 100.5): 0 px off there, 1e-3 px 63 px further, more than IDENTITY_TOL only beyond 6 px.
+    a = GT[1] * (1 + 1.6e-5)
+    gt = (GT[0] + 100.5 * (GT[1] - a), a, 0.0, GT[3], 0.0, GT[5])
+    off = write_tif(tmp_path / "off.tif", gdal.Open(ref).ReadAsArray(), gt=gt, epsg=UTM31, nodata=0)
+    pix = gdal.Open(off).ReadAsArray().astype(np.float64)
+    for xs, ys, shared in ((x0, y0, False), ([0, 32], [0, 0], True)):
+        got = reference_on_grids(rpc, HEIGHT, ReferenceImage(off), xs, ys, 64, shared=shared)
+        assert not np.array_equal(got[0], pix[80 + int(ys[0]):144 + int(ys[0]), 100 + int(xs[0]):164 + int(xs[0])])
+        monkeypatch.setattr(resample, "PROBE_EVERY", 1)   # every node tested, as before the probe
+        np.testing.assert_array_equal(got, reference_on_grids(rpc, HEIGHT, ReferenceImage(off), xs, ys, 64,
+                                                              shared=shared))
+        monkeypatch.setattr(resample, "PROBE_EVERY", 4)
+
+
 def test_windows_cut_by_the_reference_edge_or_nodata_shrink(tmp_path):
     """Raw crop at reference pixel (300, 200), 320 x 320: the reference ends at raw x = 240 (no data beyond its
     column 540) and has a no-data triangle over the crop's top-left corner (raw x + y < 90)."""
