@@ -41,10 +41,11 @@ import numpy as np
 import scipy.linalg as sla
 
 from .errors import DegenerateGeometryError, GCPError
+from .estimation import weighted_lsq
 from .progress import ProgressCallback, report, scaled
 from .rpc import GDAL_PIXEL_OFFSET, RPCModel, monomials
 
-__all__ = ["FitErrors", "FitReport", "fit_rpc", "fit_rpc_from_model"]
+__all__ = ["FitErrors", "FitReport", "fit_rpc", "fit_rpc_from_model", "refit_numerators"]
 
 #: Number of unknowns per image axis (numerator 20 + denominator 19).
 N_UNKNOWNS = 39
@@ -569,6 +570,34 @@ def _localize_layers(model, S: np.ndarray, Lg: np.ndarray, heights: np.ndarray,
     pts = [np.concatenate(c) for c in zip(*out)]
     ok = np.isfinite(pts[0]) & np.isfinite(pts[1])
     return [p[ok] for p in pts], int(np.count_nonzero(~ok)), ok.size
+
+
+def refit_numerators(rpc: RPCModel, lon, lat, h, sample, line, *, pixel_convention: str = "gdal") -> RPCModel:
+    """``rpc`` with its two numerators refitted to ground <-> image correspondences, its offsets, scales and
+    denominators kept: a small image-space correction carried into the RPC (the pan-MS approximate RPC).
+
+    With the denominators fixed the image error ``N / D - t`` is linear in the 20 numerator coefficients: one
+    weighted least-squares solve per axis (rows ``m / D``), no iteration and no pole to chase. A free rational
+    refit (:func:`fit_rpc`) of a field with steps (sub-CCD edges) moves its denominators to fit them; whether
+    it stays above the guard then depends on rounding (the BLAS kernel), and the result with it.
+
+    Raises :class:`~gdal_gf4cal.errors.DegenerateGeometryError` when the points do not determine the numerators
+    (condition number, through :func:`~gdal_gf4cal.estimation.weighted_lsq`).
+    """
+    lon = _as_points("lon", lon)
+    lat, h, sample, line = (_as_points(k, v, lon.size) for k, v in
+                            (("lat", lat), ("h", h), ("sample", sample), ("line", line)))
+    shift = GDAL_PIXEL_OFFSET if pixel_convention == "gdal" else 0.0
+    M = monomials(*rpc._normalise_ground(lon, lat, h))                     # (20, n)
+    num = {}
+    for axis, values, off, scale, den in (("samp", sample, rpc.samp_off, rpc.samp_scale, rpc.samp_den),
+                                          ("line", line, rpc.line_off, rpc.line_scale, rpc.line_den)):
+        D = den @ M
+        if not np.all(np.abs(D) > 1e-12):
+            raise DegenerateGeometryError(f"refit_numerators: the RPC's {axis} denominator vanishes at a point")
+        est = weighted_lsq((M / D).T, (values - shift - off) / scale, hint=f"the {axis} numerator refit")
+        num[f"{axis}_num"] = est.x
+    return rpc.replace(**num)
 
 
 def fit_rpc_from_model(model, *, size: Optional[Sequence[float]] = None, window: Optional[Sequence[float]] = None,

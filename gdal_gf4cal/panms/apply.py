@@ -16,7 +16,7 @@ from .. import threads
 from .._gdal import gdal_exceptions, with_gdal_exceptions
 from ..matching.correlate import block_reduce, phase_correlate
 from ..progress import report
-from ..rpc_fit import fit_rpc
+from ..rpc_fit import refit_numerators
 from .model import PanMSError, PanMSModel
 
 def _tiles(W: int, H: int, tile: int) -> List[Tuple[int, int, int, int]]:
@@ -205,7 +205,9 @@ def _set_ms_on_pan_rpc(out, pan, ratio, pan_rpc=None):
 def approximate_rpc(model: PanMSModel, ms_rpc, *, n: int = 41, n_heights: int = 7,
                     terms: Sequence[str] = ("linear", "piecewise", "jitter")):
     """Refit the MS RPC so that it predicts ``p' = p'' + delta(p')`` (METHODS §9): a smooth approximation of
-    the model, which an RPC cannot carry exactly (the sub-CCD jumps). Returns ``(rpc, errors)`` with the refit's
+    the model, which an RPC cannot carry exactly (the sub-CCD jumps). Its numerators are refitted, its
+    denominators kept (:func:`~gdal_gf4cal.rpc_fit.refit_numerators`: one linear solve; a free rational refit
+    chased the jumps with its denominators, and rounding decided whether it passed). Returns ``(rpc, errors)`` with the refit's
     RMS and max error (MS px) against the full model on an ``n x n`` grid x ``n_heights`` heights. ``terms``: the
     model terms the RPC is fitted to (the errors are always against the full model)."""
     W, H = model.ms_size
@@ -219,7 +221,7 @@ def approximate_rpc(model: PanMSModel, ms_rpc, *, n: int = 41, n_heights: int = 
         lons.append(lon), lats.append(lat), hs.append(np.full(s.shape, h)), ss.append(s), ls.append(l)
     lon, lat, hh, S, L = (np.concatenate(v) for v in (lons, lats, hs, ss, ls))
     ok = np.isfinite(lon) & np.isfinite(lat)
-    rpc, fit = fit_rpc(lon[ok], lat[ok], hh[ok], S[ok], L[ok])
+    rpc = refit_numerators(ms_rpc, lon[ok], lat[ok], hh[ok], S[ok], L[ok])
     ps, pl = rpc.project(lon[ok], lat[ok], hh[ok])
     es, el = S[ok] - ps, L[ok] - pl
     if tuple(terms) != ("linear", "piecewise", "jitter"):       # errors against the full model

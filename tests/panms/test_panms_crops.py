@@ -81,6 +81,10 @@ def test_defaults_give_the_true_field_and_edges(crop, full, tmp_path, capsys):
     away = np.all(np.abs(cols[:, None] - np.array(edges + [-99.0])[None, :]) > 2.0, axis=1)
     e = (corr - truth)[:, :, away]
     assert np.sqrt(np.mean(e[0] ** 2 + e[1] ** 2)) <= 0.05
+    # ms_approx.RPB carries the whole model (its numerators refitted): no fallback to the linear term, whatever
+    # rounding, and within a fraction of a pixel of it (it cannot carry the jumps)
+    assert not any("linear term only" in n for n in rep["notes"]), rep["notes"]
+    assert rep["ms_approx_rpc"]["rms_px"] <= 0.2 and rep["ms_approx_rpc"]["max_px"] <= 0.6
 
 
 #: (--cell, --jitter) pairs per place: together every cell size from 4 to 128 and jitter from 0 to 20.
