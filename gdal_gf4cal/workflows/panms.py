@@ -409,21 +409,14 @@ def _match_every_band(pan, ms, pan_model, ms_model, dem_obj, ms_size, n_bands, c
     return band_matches, ref, n_matches, breaks_, cell_used, cells, band_cells
 
 
-def _approximate_ms_rpc(model, ms_model, notes):
-    """``panms.approximate_rpc`` of the full model, else of its linear term with a note (the sub-CCD jumps and
-    jitter of a small crop can defeat the refit); :class:`PanMSError` when neither fits."""
+def _approximate_ms_rpc(model, ms_model):
+    """``panms.approximate_rpc`` of the full model (its numerators refitted: the same design whatever the
+    terms, so no smaller model to fall back to); :class:`PanMSError` when the grid does not determine it."""
     try:
-        approx, approx_err = panms.approximate_rpc(model, ms_model)
-    except Gf4calError:
-        try:            # the sub-CCD jumps and jitter of a small crop can defeat the refit: the linear term
-            approx, approx_err = panms.approximate_rpc(model, ms_model, terms=("linear",))
-            notes.append("ms_approx.RPB carries the linear term only (the RPC refit of the full model is "
-                         f"singular on this image); its error against the full model: rms "
-                         f"{approx_err['rms_px']:.3f} px")
-        except Gf4calError as exc:
-            raise panms.PanMSError(f"the approximate MS RPC could not be fitted ({exc}); the other outputs "
-                                   "need it too: check the MS RPC") from None
-    return approx, approx_err
+        return panms.approximate_rpc(model, ms_model)
+    except Gf4calError as exc:
+        raise panms.PanMSError(f"the approximate MS RPC could not be fitted ({exc}); the other outputs "
+                               "need it too: check the MS RPC") from None
 
 
 @dataclass
@@ -531,7 +524,7 @@ def _write_products(outs, pair: _Pair, meas: _Measured, model, band_models, band
     _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC, cells and plots")
     # independent outputs over the thread pool (threads.run_tasks), the longest first
     approx_err, n_cells, *_ = threads.run_tasks(
-        [lambda: _write_ms_rpc(model, pair.ms_model, notes, outs.tmp("ms_rpc")),
+        [lambda: _write_ms_rpc(model, pair.ms_model, outs.tmp("ms_rpc")),
          lambda: _write_cells(meas.cells, model, pair.ms_model, pair.dem, outs.tmp("cells"))]
         + _plot_tasks(meas.cells, model, outs))
     outs.set_check("cells", check_vector({"gcps": n_cells}))
@@ -539,9 +532,9 @@ def _write_products(outs, pair: _Pair, meas: _Measured, model, band_models, band
     return approx_err
 
 
-def _write_ms_rpc(model, ms_model, notes, path):
+def _write_ms_rpc(model, ms_model, path):
     """ms_approx.RPB (:func:`_approximate_ms_rpc`); its errors against the full model."""
-    approx, approx_err = _approximate_ms_rpc(model, ms_model, notes)
+    approx, approx_err = _approximate_ms_rpc(model, ms_model)
     write_rpb(approx, path, overwrite=True)
     return approx_err
 
