@@ -217,7 +217,9 @@ class RPCModel(SensorModelMixin):
         return np.vstack([self.samp_num, self.samp_den, self.line_num, self.line_den])
 
     # ------------------------------------------------------------------ normalisation
-    def _normalise_ground(self, lon, lat, h):
+    def normalise_ground(self, lon, lat, h):
+        """Normalised ``(L, P, H)`` of ground points (METHODS §1): offsets subtracted, scales divided out,
+        longitudes taken modulo 360 about ``LONG_OFF`` (scenes across the antimeridian)."""
         dlon = np.asarray(lon, dtype=float) - self.long_off
         # Longitudes are compared modulo 360 so that scenes across the antimeridian work.
         dlon = np.where(np.abs(dlon) > 180.0, (dlon + 180.0) % 360.0 - 180.0, dlon)
@@ -366,7 +368,7 @@ class RPCModel(SensorModelMixin):
 
     def _project_jacobian_flat(self, lon, lat, h, shift: float):
         """Sample, line and the six Jacobian entries (s_lon, s_lat, s_h, l_lon, l_lat, l_h) of flat arrays."""
-        d = self._normalised_jacobian(*self._normalise_ground(lon, lat, h))
+        d = self._normalised_jacobian(*self.normalise_ground(lon, lat, h))
         ss, ls = self.samp_scale, self.line_scale
         return (d["x"] * ss + (self.samp_off + shift), d["y"] * ls + (self.line_off + shift),
                 d["x_L"] * ss / self.long_scale, d["x_P"] * ss / self.lat_scale, d["x_H"] * ss / self.height_scale,

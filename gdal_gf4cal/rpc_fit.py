@@ -588,7 +588,7 @@ def refit_numerators(rpc: RPCModel, lon, lat, h, sample, line, *, pixel_conventi
     lat, h, sample, line = (_as_points(k, v, lon.size) for k, v in
                             (("lat", lat), ("h", h), ("sample", sample), ("line", line)))
     shift = GDAL_PIXEL_OFFSET if pixel_convention == "gdal" else 0.0
-    M = monomials(*rpc._normalise_ground(lon, lat, h))                     # (20, n)
+    M = monomials(*rpc.normalise_ground(lon, lat, h))                     # (20, n)
     num = {}
     for axis, values, off, scale, den in (("samp", sample, rpc.samp_off, rpc.samp_scale, rpc.samp_den),
                                           ("line", line, rpc.line_off, rpc.line_scale, rpc.line_den)):

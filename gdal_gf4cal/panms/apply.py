@@ -207,9 +207,9 @@ def approximate_rpc(model: PanMSModel, ms_rpc, *, n: int = 41, n_heights: int = 
     """Refit the MS RPC so that it predicts ``p' = p'' + delta(p')`` (METHODS §9): a smooth approximation of
     the model, which an RPC cannot carry exactly (the sub-CCD jumps). Its numerators are refitted, its
     denominators kept (:func:`~gdal_gf4cal.rpc_fit.refit_numerators`: one linear solve; a free rational refit
-    chased the jumps with its denominators, and rounding decided whether it passed). Returns ``(rpc, errors)`` with the refit's
-    RMS and max error (MS px) against the full model on an ``n x n`` grid x ``n_heights`` heights. ``terms``: the
-    model terms the RPC is fitted to (the errors are always against the full model)."""
+    chased the jumps with its denominators, and rounding decided whether it passed). Returns ``(rpc, errors)``
+    with the refit's RMS and max error (MS px) against the full model on an ``n x n`` grid x ``n_heights``
+    heights. ``terms``: the model terms the RPC is fitted to (the errors are always against the full model)."""
     W, H = model.ms_size
     s, l = np.meshgrid((np.arange(n) + 0.5) * W / n, (np.arange(n) + 0.5) * H / n)
     s, l = s.ravel(), l.ravel()
