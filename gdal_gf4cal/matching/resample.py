@@ -287,10 +287,16 @@ def _probe_nodes(nodes: np.ndarray) -> np.ndarray:
     return sub if sub[-1] == nodes[-1] else np.append(sub, nodes[-1])
 
 
-def _probe_shift(rpc, dem, reference, S: np.ndarray, L: np.ndarray):
-    """:func:`_whole_pixel_shift` at the raw positions ``S, L`` (a subset of the exact nodes, localised here)."""
+def _reference_pixels(rpc, dem, reference, S: np.ndarray, L: np.ndarray):
+    """Reference pixel coordinates ``(rx, ry)`` (shape of ``S``) of the raw positions ``S, L`` localised on the
+    DEM."""
     lon, lat, h = rpc.localize_dem(S, L, dem)
-    rx, ry = (np.asarray(v, dtype=float).reshape(S.shape) for v in reference.ground_to_pixel(lon, lat, h))
+    return tuple(np.asarray(v, dtype=float).reshape(S.shape) for v in reference.ground_to_pixel(lon, lat, h))
+
+
+def _probe_shift(rpc, dem, reference, S: np.ndarray, L: np.ndarray):
+    """:func:`_whole_pixel_shift` at the raw positions ``S, L`` (a subset of the exact nodes)."""
+    rx, ry = _reference_pixels(rpc, dem, reference, S, L)
     return _whole_pixel_shift(rx - S, ry - L)
 
 
@@ -310,8 +316,7 @@ def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int
     if t is None:  # not one whole-pixel translation: every node (the dense test kept as it was)
         S = np.broadcast_to(ux0 + nx[None, :] + 0.5, (ny.size, nx.size))
         L = np.broadcast_to(uy0 + ny[:, None] + 0.5, (ny.size, nx.size))
-        lon, lat, h = rpc.localize_dem(S, L, dem)
-        rx, ry = (np.asarray(v, dtype=float).reshape(S.shape) for v in reference.ground_to_pixel(lon, lat, h))
+        rx, ry = _reference_pixels(rpc, dem, reference, S, L)
         t = _whole_pixel_shift(rx - S, ry - L)
     if t is not None:
         return cut_boxes(reference.read(ux0 + t[0], uy0 + t[1], Wu, Hu), ux0, uy0, ix0, iy0, size).astype(
