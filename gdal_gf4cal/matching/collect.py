@@ -191,14 +191,28 @@ def _quadrant_ok(ref: np.ndarray, raw: np.ndarray, min_ncc: float) -> np.ndarray
 def _quarter_gradient(win: np.ndarray) -> np.ndarray:
     """Mean absolute difference along each axis (between pixels of one quarter), summed, of every quarter of
     the windows ``(n, 2 hh, 2 hw) -> (n, 4)`` (quarters in row order): differences of whole rows and columns
-    summed per half (contiguous reductions), the pairs straddling the middle left out."""
+    summed per half (contiguous reductions), the pairs straddling the middle left out. A few windows at a time
+    (:data:`QUARTER_BYTES`: the differences stay in cache; twice as fast on 256-px windows as whole stacks; the
+    same sums)."""
     n, h2, w2 = win.shape
     hh, hw = h2 // 2, w2 // 2
-    cx = np.abs(np.diff(win, axis=-1)).reshape(n, 2, hh, w2 - 1).sum(axis=2)     # (n, 2 halves in y, w2 - 1)
-    gx = np.stack([cx[..., :hw - 1].sum(axis=-1), cx[..., hw:].sum(axis=-1)], axis=-1) / (hh * (hw - 1))
-    ry = np.abs(np.diff(win, axis=-2)).reshape(n, h2 - 1, 2, hw).sum(axis=-1)    # (n, h2 - 1, 2 halves in x)
-    gy = np.stack([ry[:, :hh - 1].sum(axis=1), ry[:, hh:].sum(axis=1)], axis=1) / ((hh - 1) * hw)
-    return (gx + gy).reshape(n, 4)
+    out = np.empty((n, 4), dtype=np.result_type(win.dtype, np.float32))
+    step = max(1, QUARTER_BYTES // (4 * h2 * w2))
+    for k in range(0, n, step):
+        c = win[k:k + step]
+        m = c.shape[0]
+        d = np.subtract(c[..., 1:], c[..., :-1])
+        cx = np.abs(d, out=d).reshape(m, 2, hh, w2 - 1).sum(axis=2)     # (m, 2 halves in y, w2 - 1)
+        gx = np.stack([cx[..., :hw - 1].sum(axis=-1), cx[..., hw:].sum(axis=-1)], axis=-1) / (hh * (hw - 1))
+        d = np.subtract(c[..., 1:, :], c[..., :-1, :])
+        ry = np.abs(d, out=d).reshape(m, h2 - 1, 2, hw).sum(axis=-1)    # (m, h2 - 1, 2 halves in x)
+        gy = np.stack([ry[:, :hh - 1].sum(axis=1), ry[:, hh:].sum(axis=1)], axis=1) / ((hh - 1) * hw)
+        out[k:k + step] = (gx + gy).reshape(m, 4)
+    return out
+
+
+#: Bytes of float32 windows per chunk of :func:`_quarter_gradient`.
+QUARTER_BYTES = 1 << 19
 
 
 def _predict_offsets(cp, dxp, dyp, resp, okp, cr, p):
@@ -387,25 +401,10 @@ def _fine_level(spec: TileSpec, ds, c, idx, ref_f, shift_x, shift_y, lim: int, n
     wy0 = np.round(c[idx, 1] - w / 2).astype(int)
     fine = _FinePasses(spec, ds, ref_f, wx0, wy0, shift_x[idx], shift_y[idx], lim, sigma)
     if guide is not None:
-        pred = _predict_offsets(*guide, c[idx], p)
-        if pred is not None:
-            fine.ox[:] = np.clip(np.round(pred[0]), -lim, lim).astype(int)
-            fine.oy[:] = np.clip(np.round(pred[1]), -lim, lim).astype(int)
+        _start_at(fine, np.arange(m), _predict_offsets(*guide, c[idx], p))
         fine.passes(np.arange(m))
     elif int(spec.factor) == 1 and m >= 16:
-        # Without a coarse level every window would start at offset 0 and most would need a second pass once
-        # their offset is found. Pilots (every 4th window) go first; where they agree on a smooth (affine)
-        # offset field, the others start at its prediction and mostly finish in one pass.
-        pilots = np.arange(0, m, 4)
-        fine.passes(pilots)
-        rest = np.setdiff1d(np.arange(m), pilots)
-        res = {k: v[pilots] for k, v in fine.res.items()}
-        pred = _predict_offsets(c[idx[pilots]], fine.ox[pilots] + res["dx"], fine.oy[pilots] + res["dy"], res,
-                                ~(fine.nan_ref | fine.nan_raw)[pilots], c[idx[rest]], p)
-        if pred is not None:
-            fine.ox[rest] = np.clip(np.round(pred[0]), -lim, lim).astype(int)
-            fine.oy[rest] = np.clip(np.round(pred[1]), -lim, lim).astype(int)
-        fine.passes(rest)
+        _pilot_passes(fine, c[idx], p)
     else:
         fine.passes(np.arange(m))
     ox, oy, res = fine.ox, fine.oy, fine.res
@@ -427,6 +426,61 @@ def _fine_level(spec: TileSpec, ds, c, idx, ref_f, shift_x, shift_y, lim: int, n
     if guide is not None:
         return guide
     return c[idx], ox + res["dx"], oy + res["dy"], res, okw
+
+
+def _start_at(fine, which, pred) -> None:
+    """Windows ``which`` start at the predicted offsets ``pred`` (rounded, within the search range), if any."""
+    if pred is not None:
+        fine.ox[which] = np.clip(np.round(pred[0]), -fine.lim, fine.lim).astype(int)
+        fine.oy[which] = np.clip(np.round(pred[1]), -fine.lim, fine.lim).astype(int)
+
+
+def _pilot_passes(fine, c, p) -> None:
+    """The fine passes of windows centred on ``c`` without a coarse level. Every window would start at offset 0
+    and most would need a second pass once their offset is found. Pilots (every 4th window) go first; where they
+    agree on a smooth (affine) offset field, the others start at its prediction and mostly finish in one pass.
+    The pilots are first probed on 2 x 2 block means of their windows (:func:`_probe_pilots`: a quarter of the
+    pixels): when the probes agree, every window, pilots included, starts at the prediction (the pilots' second
+    passes of full size saved); else the pilots go through full passes first."""
+    m = c.shape[0]
+    # Probes are cheap: every other window of a small tile (at least 8 probes).
+    pred = _probe_pilots(fine, np.arange(0, m, 2 if m < 32 else 4), c, p)
+    if pred is not None:
+        _start_at(fine, np.arange(m), pred)
+        fine.passes(np.arange(m))
+        return
+    pilots = np.arange(0, m, 4)
+    fine.passes(pilots)
+    rest = np.setdiff1d(np.arange(m), pilots)
+    res = {k: v[pilots] for k, v in fine.res.items()}
+    _start_at(fine, rest, _predict_offsets(c[pilots], fine.ox[pilots] + res["dx"], fine.oy[pilots] + res["dy"],
+                                           res, ~(fine.nan_ref | fine.nan_raw)[pilots], c[rest], p))
+    fine.passes(rest)
+
+
+#: Smallest window (px) whose pilots are probed on 2 x 2 block means (:func:`_probe_pilots`): 64-px probes.
+PROBE_MIN_PX = 128
+
+
+def _probe_pilots(fine, pilots, c, p):
+    """Offsets of every window (centres ``c``) predicted from the ``pilots``' probes (:func:`_predict_offsets`), or
+    None: each pilot's reference window and raw window at its starting offset, as 2 x 2 block means, phase-
+    correlated. The probe only has to find the integer offset where the full-size pass starts (the prediction
+    is rounded; a window that starts a pixel off takes a second pass, as without the probe): its measurements
+    are never results."""
+    w = fine.w
+    if w < PROBE_MIN_PX:
+        return None
+    ox, oy, lim = fine.ox[pilots], fine.oy[pilots], fine.lim
+    b = fine._read(fine.wx0[pilots] + np.clip(ox, -lim, lim), fine.wy0[pilots] + np.clip(oy, -lim, lim))
+    ok = ~(fine.nan_ref[pilots] | np.isnan(b).any(axis=(1, 2))) & (np.abs(ox) <= lim) & (np.abs(oy) <= lim)
+    b[~ok] = 0.0
+    h = w // 2
+    a2, b2 = (v.reshape(v.shape[0], h, 2, h, 2).mean(axis=(2, 4)) for v in (fine.a[pilots], b))
+    r = phase_correlate(a2, b2, sigma_px=fine.sigma)
+    dx, dy = ox + 2.0 * r.dx, oy + 2.0 * r.dy
+    res = dict(peak=r.peak, peak_ratio=r.peak_ratio, ncc=r.ncc, dx=dx - np.round(dx), dy=dy - np.round(dy))
+    return _predict_offsets(c[pilots], dx, dy, res, ok, c, p)
 
 
 def _coarse_offsets(spec: TileSpec, ds, rpc, dem, ref, wx0, wy0, live, step: int, sigma: float):

@@ -224,3 +224,39 @@ def test_image_rewritten_at_the_same_path_is_reread(builtin_scene, tmp_path):
     os.replace(blank, img)
     again = match_tile(specs[0])
     assert np.all(again["status"] == 1), again["status"]
+
+
+def test_pilot_probes_start_every_window_where_the_full_pilots_would(tmp_path, monkeypatch):
+    """Without a coarse level (128-px windows, 8 px of search) the pilots of a tile are first probed on 2 x 2
+    block means; when the probes agree every window starts at their prediction. The accepted GCPs are the same
+    bits as with full-size pilot passes (the probe only picks where the full-size pass starts), they are as
+    accurate against the truth, and the windows needing a second full-size pass (the pilots' from offset 0) are
+    gone: the offsets here are ~(+2.6, -1.7) px, so every pilot started at 0 moved."""
+    from gdal_gf4cal.matching import collect
+    sc = build_scene(tmp_path, texture="builtin", size=(384, 384), error=error_affine(shift=(-2.6, 1.7)), seed=2)
+    specs, _ = plan_tiles(sc.image, sc.rpc, sc.reference, sc.dem, 16, 128, search_px=8)
+    assert specs[0].factor == 1 and specs[0].centers.shape[0] == 64
+    calls = []
+    real = collect.correlate_spectra
+
+    def counted(F, G, sigma):
+        calls.append(F.S.shape[0])
+        return real(F, G, sigma)
+
+    monkeypatch.setattr(collect, "correlate_spectra", counted)
+    runs = {}
+    for name, probe in (("probe", collect.PROBE_MIN_PX), ("full", 10 ** 6)):
+        monkeypatch.setattr(collect, "PROBE_MIN_PX", probe)
+        calls.clear()
+        runs[name] = match_tile(specs[0]), sum(calls)
+    (r_p, n_p), (r_f, n_f) = runs["probe"], runs["full"]
+    ok = r_f["status"] == 0
+    assert ok.sum() >= 60
+    np.testing.assert_array_equal(r_p["status"], r_f["status"])
+    for k in ("dsample", "dline", "peak", "peak_ratio", "ncc", "precision_px", "texture"):
+        np.testing.assert_array_equal(r_p[k][ok], r_f[k][ok])
+    ts, tl = sc.truth(r_p["lon"][ok], r_p["lat"][ok], r_p["h"][ok])
+    err = np.hypot(r_p["center_sample"][ok] + r_p["dsample"][ok] - ts, r_p["center_line"][ok] + r_p["dline"][ok] - tl)
+    assert err.max() < 0.1, np.sort(err)[-3:]
+    # 64 windows: full pilots take 64 + 16 correlations (the 16 pilots twice), probes 64 and a few.
+    assert n_f >= 80 and n_p <= 68, (n_p, n_f)
