@@ -415,7 +415,7 @@ def _fine_level(spec: TileSpec, ds, c, idx, ref_f, shift_x, shift_y, lim: int, n
     fx0, fy0 = wx0 + ox, wy0 + oy
     beyond = fine.outside | (fx0 < 0) | (fy0 < 0) | (fx0 + w > W) | (fy0 + w > H) | near_edge[idx]
     st[~okw] = np.where(beyond[~okw], 5, 1)
-    tex, flat = _flag_windows(st, fine.a, fine.b, res, p)
+    tex, flat = _flag_windows(st, fine.a, fine.b, res, p, okw)
     status[idx] = st
     out["dsample"][idx] = ox + res["dx"]
     out["dline"][idx] = oy + res["dy"]
@@ -639,17 +639,20 @@ PASS_BYTES = 1 << 20
 LARGE_WINDOW_PX = 128
 
 
-def _flag_windows(st, a, b, res, p):
+def _flag_windows(st, a, b, res, p, okw):
     """Status codes of the windows still 0 (2 flat, 3 weak peak, 4 quadrant check failed), in place; returns their
-    texture and flat fraction."""
+    texture and flat fraction. Windows without a usable pair (not ``okw``: zeroed) are not measured: texture 0
+    and flat share 1, what the measures give on zero windows."""
     w = a.shape[-1]
     # Texture over the whole window, and no more than half of its central half flat: a GCP is the window centre,
     # so a window centred on water or on a flat cloud is skipped even when a shoreline elsewhere would correlate.
     q0, q1 = w // 4, w - w // 4
-    tex_a, flat_a = window_measures(a, (q0, q1))
-    tex_b, flat_b = window_measures(b, (q0, q1))
-    tex = np.minimum(tex_a, tex_b)
-    flat = np.maximum(flat_a, flat_b)
+    tex, flat = np.zeros(okw.size), np.ones(okw.size)
+    live = slice(None) if okw.all() else np.flatnonzero(okw)
+    tex_a, flat_a = window_measures(a[live], (q0, q1))
+    tex_b, flat_b = window_measures(b[live], (q0, q1))
+    tex[live] = np.minimum(tex_a, tex_b)
+    flat[live] = np.maximum(flat_a, flat_b)
     st[(st == 0) & ((tex < p["min_texture"]) | (flat > 0.5))] = 2
     # The NCC guards small windows against a peak that is chance or other ground; from LARGE_WINDOW_PX on, an
     # unambiguous peak (twice the ratio asked) is enough (see LARGE_WINDOW_PX).
