@@ -255,12 +255,14 @@ class Peaks:
         K1, K2, _, fy, fx = _quality_weights(h, w, float(sigma))
         phase = (np.exp((2j * np.pi) * fy[None] * dy[:, None, None].astype(np.float32)).astype(np.complex64)
                  * np.exp((2j * np.pi) * fx[None] * dx[:, None, None].astype(np.float32)).astype(np.complex64))
-        z = self.cross[idx] * phase         # |cross| times the unit phasor of the residual phase
+        every = n == self.dx.size and np.array_equal(idx, np.arange(n))  # no copies of the whole stack
+        # |cross| times the unit phasor of the residual phase (into the phases' array)
+        z = np.multiply(self.cross if every else self.cross[idx], phase, out=phase)
         K = h * fx.size
-        inv = self.inv[idx].reshape(n, K)
+        inv = (self.inv if every else self.inv[idx]).reshape(n, K)
         zr = np.ascontiguousarray(z.real).reshape(n, K)
         zc = zr * inv                        # cos(res)
-        zs = np.ascontiguousarray(z.imag).reshape(n, K) * inv  # sin(res)
+        zs = np.multiply(z.imag.reshape(n, K), inv)  # sin(res)
         # |cross| cos(res) summed with the multiplicity: the cross term of Parseval.
         num = _dot(zr, K1[:, 0]).astype(np.float64)
         c1 = _dot(zc, K1[:, 1:]).astype(np.float64)            # sum W (2 pi f)^2 m cos(res), per axis
