@@ -597,7 +597,8 @@ class _FinePasses:
             nan_a = np.isnan(raw_a).any(axis=(1, 2)) | out_a
             okw = ~(self.nan_ref[active] | nan_a)
             raw_a[~okw] = 0.0
-            Fa = Fs.take(pos)
+            # The chunk's spectra themselves in the first pass (a window zeroed below is done: never used again)
+            Fa = Fs if pos.size == Fs.S.shape[0] else Fs.take(pos)
             if not okw.all():
                 # A window without a usable pair correlates two zero windows (shift 0): it stops moving and is
                 # flagged below, exactly as any other no-data window.

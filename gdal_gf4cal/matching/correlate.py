@@ -146,7 +146,8 @@ def spectra(a: np.ndarray, window: str = "hann") -> Spectra:
     n, h, w = a.shape
     win, wflat, wsum = _taper32(h, w, window)
     mean = _dot(a.reshape(n, h * w), wflat) / wsum
-    p = (a - mean[:, None, None]) * win
+    p = np.subtract(a, mean[:, None, None])
+    p *= win
     energy = np.einsum("nij,nij->n", p, p, dtype=np.float64)
     return Spectra(sfft.rfft2(p, workers=1), energy, (h, w))
 
