@@ -503,8 +503,9 @@ def _coarse_offsets(spec: TileSpec, ds, rpc, dem, ref, wx0, wy0, live, step: int
     idx = np.flatnonzero(live)
     # The coarse level only has to land within a few pixels: the reference is read decimated to about the
     # coarse spacing (4 times fewer pixels to read, filter and interpolate than the fine level's 2 per spacing).
+    # float32, as the fine level (the correlation transforms float32 anyway).
     ref_c = reference_on_grids(rpc, dem, ref, cx0[idx], cy0[idx], w, spacing=f, geometry_step=step,
-                               oversample=1.0)
+                               oversample=1.0, dtype=np.float32)
     # Decimated reads: GDAL averages f x f blocks while reading (or uses overviews), so the coarse level
     # holds w x w pixels per window, not the (w f)^2 full-resolution footprint.
     raw_c = _read_boxes(ds, spec.band, spec.image_nodata, cx0[idx], cy0[idx], cw, decimation=f)
