@@ -650,9 +650,9 @@ def _flag_windows(st, a, b, res, p, okw):
     # so a window centred on water or on a flat cloud is skipped even when a shoreline elsewhere would correlate.
     q0, q1 = w // 4, w - w // 4
     tex, flat = np.zeros(okw.size), np.ones(okw.size)
-    live = slice(None) if okw.all() else np.flatnonzero(okw)
-    tex_a, flat_a = window_measures(a[live], (q0, q1))
-    tex_b, flat_b = window_measures(b[live], (q0, q1))
+    live = np.flatnonzero(okw)
+    tex_a, flat_a = window_measures(a, (q0, q1), which=live)
+    tex_b, flat_b = window_measures(b, (q0, q1), which=live)
     tex[live] = np.minimum(tex_a, tex_b)
     flat[live] = np.maximum(flat_a, flat_b)
     st[(st == 0) & ((tex < p["min_texture"]) | (flat > 0.5))] = 2

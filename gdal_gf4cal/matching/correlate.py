@@ -462,21 +462,26 @@ def _flat(a, gx, gy, sigma, region=None, box: int = 5, ratio: float = 0.05, nois
     return below / float(counted.shape[-1] * counted.shape[-2])
 
 
-def window_measures(windows: np.ndarray, region=None):
+def window_measures(windows: np.ndarray, region=None, *, which=None):
     """``(texture_strength(windows), flat_fraction(windows, region))`` sharing the gradients and the noise
     estimate, computed in float32 (the thresholds they feed are coarse; the ratio of two gradient energies
     does not need double precision), a few windows at a time: each chunk's temporaries (gradients, the local
     energy, the Laplacian) stay in the CPU cache instead of streaming stacks of them through memory (3 times
-    faster on 256-px windows than whole stacks). Every window's measures depend on that window alone, so the chunk size does
-    not change them."""
-    a = np.asarray(windows, dtype=np.float32)
+    faster on 256-px windows than whole stacks). Every window's measures depend on that window alone, so the
+    chunk size does not change them. ``which``: indices of the windows of a stack ``(N, h, w)`` to measure (one
+    result each; no copy of the stack)."""
+    a = np.asarray(windows)
     lead, (h, w) = a.shape[:-2], a.shape[-2:]
     a = a.reshape((-1, h, w))
-    tex = np.empty(a.shape[0])
-    flat = np.empty(a.shape[0])
+    if which is not None:
+        which = np.asarray(which, dtype=np.intp).ravel()
+        lead = which.shape
+    n = a.shape[0] if which is None else which.size
+    tex = np.empty(n)
+    flat = np.empty(n)
     step = max(1, _MEASURE_BYTES // (4 * h * w))
-    for k in range(0, a.shape[0], step):
-        c = a[k:k + step]
+    for k in range(0, n, step):
+        c = np.asarray(a[k:k + step] if which is None else a[which[k:k + step]], dtype=np.float32)
         gx, gy = _gradients(c)
         sigma = _noise_sigma(c)
         std = _std(c)

@@ -141,3 +141,29 @@ def test_staged_correlation_equals_phase_correlate():
     # A zero window pair correlates to a zero surface: no shift, no peak, no overflow warning.
     z = phase_correlate(np.zeros((2, 32, 32)), np.zeros((2, 32, 32)))
     assert np.all(z.dx == 0) and np.all(z.peak == 0)
+
+
+def test_a_window_gives_the_same_bits_in_any_stack():
+    """The fine level correlates its windows a few at a time and re-correlates single windows: a window's results
+    must not depend on the stack it is in (nor on the threads: the tiles are fixed, their chunks too), nor its
+    texture measures on the chunk or on ``which=`` (the windows measured in place, without a copy)."""
+    from gdal_gf4cal.matching.correlate import window_measures
+    f, m, dx, dy = _pairs(7, 64, 2.0, noise=0.05, seed=4)
+    whole = phase_correlate(f, m)
+    for k in range(7):
+        one = phase_correlate(f[k:k + 1], m[k:k + 1])
+        for name in ("dx", "dy", "peak", "peak_ratio", "ncc", "precision_px"):
+            assert getattr(one, name)[0] == getattr(whole, name)[k], (k, name)
+    pair = phase_correlate(f[2:4], m[2:4])
+    assert np.array_equal(pair.ncc, whole.ncc[2:4]) and np.array_equal(pair.dx, whole.dx[2:4])
+    tex, flat = window_measures(f, (16, 48))
+    assert np.all(tex > 10)                                   # textured windows: the measures are not trivial
+    idx = np.array([5, 0, 3])
+    t_w, f_w = window_measures(f, (16, 48), which=idx)
+    np.testing.assert_array_equal(t_w, tex[idx])
+    np.testing.assert_array_equal(f_w, flat[idx])
+    t_1, f_1 = window_measures(f[3:4], (16, 48))
+    assert t_1[0] == tex[3] and f_1[0] == flat[3]
+    # Zero windows (no usable pair) measure texture 0, flat 1: what collect gives them without measuring.
+    t0, f0 = window_measures(np.zeros((2, 64, 64)), (16, 48))
+    assert np.all(t0 == 0) and np.all(f0 == 1)
