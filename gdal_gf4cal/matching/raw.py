@@ -154,8 +154,10 @@ def match_raw_bands(image, model, reference_image, reference_model, dem, *, band
     the one :func:`match_raw` gives for that band (``spacing_px``: one step, or one per band).
 
     The tiles of every band go into one queue of the pool (:func:`.collect.run_tiles`): the threads never wait at
-    the end of a band for its last tile, and the overlap with the reference is found once. Tiles are fixed by each
-    band's window grid, never by the threads: the same numbers as band after band, whatever the threads.
+    the end of a band for its last tile, and the overlap with the reference is found once. The tiles of every band at
+    the same windows are one unit of the queue (:func:`match_tiles`: their ground points, footprints and resampled
+    reference once) when there are at least two such units per thread. Tiles are fixed by each band's window grid,
+    never by the threads: the same numbers as band after band, whatever the threads.
     """
     bands = [int(b) for b in bands]
     path = _image_info(image, bands[0])[0]
@@ -176,6 +178,9 @@ def match_raw_bands(image, model, reference_image, reference_model, dem, *, band
     specs = [spec for band_specs, _ in plans for spec in band_specs]
     report(progress, 0.0, f"matching {sum(ctx['n_windows'] for _, ctx in plans)} windows in {len(specs)} tiles")
     groups = _same_windows(specs)
+    if executor is None and len(groups) < 2 * threads.pool_workers(workers, len(specs)):
+        # too few groups to keep the threads busy (a small crop): every tile its own unit (the same bits)
+        groups = [_TileGroup([sp], [i]) for i, sp in enumerate(specs)]
     done = run_tiles(groups, executor, workers=workers, progress=progress, stop=0.97, fn=_match_tiles_serial)
     results = [None] * len(specs)
     for group, res in zip(groups, done):
