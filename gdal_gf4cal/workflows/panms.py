@@ -9,7 +9,6 @@ against the pan (``matching.raw.match_raw_bands``: all bands' tiles in one queue
 """
 from __future__ import annotations
 
-import concurrent.futures as cf
 import copy
 import functools
 import math
@@ -505,65 +504,32 @@ def _check_cells(meas: _Measured) -> None:
                          "clearer scene of the same camera and use --reuse MODEL.json")
 
 
-def _write_products(outs, pair: _Pair, meas: _Measured, model, band_models, bands, notes, clock, progress,
-                    workers=None):
+def _write_products(outs, pair: _Pair, meas: _Measured, model, band_models, bands, notes, clock, progress):
     """model.json, correction.tif (a pair of bands more per band with its own correction), ms_on_pan.tif, the
-    approximate MS RPC, cells.gpkg and the plots into the OutputSet's temporary paths; the RPC refit's errors.
-    With more than one thread the plots (matplotlib: Python that holds the GIL) are drawn on a thread of their
-    own while the rasters, the RPC and the cells are written (GDAL releases the GIL)."""
+    approximate MS RPC, cells.gpkg and the plots into the OutputSet's temporary paths; the RPC refit's errors."""
     n_bands = pair.n_bands
     _progress.report(progress, 0.6, "pan-MS: writing correction.tif")
     model.to_json(outs.tmp("model"))
-    plots = _plot_tasks(meas.cells, model, outs)
-    with _Beside(threads.pool_workers(workers, 2) > 1, plots) as drawn:
-        own = {b: m for b, m in band_models.items() if m is not model}
-        panms.write_correction(model, outs.tmp("correction"), progress=_progress.scaled(progress, 0.6, 0.65),
-                               rpc=pair.ms_model, band_models={f"band {b} ({bands[b - 1]['name']})": m
-                                                               for b, m in own.items()})
-        outs.set_check("correction", check_raster(2 + 2 * len(own)))
-        panms.resample_ms_on_pan([band_models.get(b, model) for b in range(1, n_bands + 1)], pair.pan, pair.ms,
-                                 outs.tmp("ms_on_pan"), pan_rpc=pair.pan_model, ms_rpc=pair.ms_model, dem=pair.dem,
-                                 ratio=pair.ratio, progress=_progress.scaled(progress, 0.65, 0.9),
-                                 band_names=_band_names(pair.ms, n_bands, pair.ms_rpc))
-        outs.set_check("ms_on_pan", check_raster(n_bands))
-        clock.lap("correction_and_ms_on_pan")
-        _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC, cells and plots")
-        # independent outputs over the thread pool (threads.run_tasks), the longest first
-        approx_err, n_cells, *_ = threads.run_tasks(
-            [lambda: _write_ms_rpc(model, pair.ms_model, outs.tmp("ms_rpc")),
-             lambda: _write_cells(meas.cells, model, pair.ms_model, pair.dem, outs.tmp("cells"))]
-            + ([] if drawn else plots))
+    own = {b: m for b, m in band_models.items() if m is not model}
+    panms.write_correction(model, outs.tmp("correction"), progress=_progress.scaled(progress, 0.6, 0.65),
+                           rpc=pair.ms_model, band_models={f"band {b} ({bands[b - 1]['name']})": m
+                                                           for b, m in own.items()})
+    outs.set_check("correction", check_raster(2 + 2 * len(own)))
+    panms.resample_ms_on_pan([band_models.get(b, model) for b in range(1, n_bands + 1)], pair.pan, pair.ms,
+                             outs.tmp("ms_on_pan"), pan_rpc=pair.pan_model, ms_rpc=pair.ms_model, dem=pair.dem,
+                             ratio=pair.ratio, progress=_progress.scaled(progress, 0.65, 0.9),
+                             band_names=_band_names(pair.ms, n_bands, pair.ms_rpc))
+    outs.set_check("ms_on_pan", check_raster(n_bands))
+    clock.lap("correction_and_ms_on_pan")
+    _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC, cells and plots")
+    # independent outputs over the thread pool (threads.run_tasks), the longest first
+    approx_err, n_cells, *_ = threads.run_tasks(
+        [lambda: _write_ms_rpc(model, pair.ms_model, outs.tmp("ms_rpc")),
+         lambda: _write_cells(meas.cells, model, pair.ms_model, pair.dem, outs.tmp("cells"))]
+        + _plot_tasks(meas.cells, model, outs))
     outs.set_check("cells", check_vector({"gcps": n_cells}))
     clock.lap("rpc_cells_plots")
     return approx_err
-
-
-class _Beside:
-    """``with _Beside(on, tasks) as started:`` runs ``tasks`` one after the other on a thread of their own while
-    the block runs (``started`` True), else nothing (``started`` False: the caller runs them); on leaving, waits
-    for them (also when the block fails: nothing is left writing) and raises their first exception."""
-
-    def __init__(self, on: bool, tasks):
-        self._pool = cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix="gf4cal-plots") if on else None
-        self._tasks = tasks
-        self._future = None
-
-    def __enter__(self) -> bool:
-        if self._pool is not None:
-            self._future = self._pool.submit(self._run)
-        return self._pool is not None
-
-    def _run(self):
-        with threads.serial():
-            for task in self._tasks:
-                task()
-
-    def __exit__(self, *exc) -> None:
-        if self._pool is None:
-            return
-        self._pool.shutdown(wait=True)
-        if exc[0] is None:
-            self._future.result()
 
 
 def _write_ms_rpc(model, ms_model, path):
@@ -671,8 +637,7 @@ def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] 
         bands, band_models = _every_band(meas.band_cells, meas.ref, model,
                                          _band_names(ms, pair.n_bands, ms_rpc), notes)
         clock.lap("estimate")
-        approx_err = _write_products(outs, pair, meas, model, band_models, bands, notes, clock, progress,
-                                     workers)
+        approx_err = _write_products(outs, pair, meas, model, band_models, bands, notes, clock, progress)
         breaks_from = ("options" if user_breaks is not None else "reuse model" if reuse_model is not None
                        else "data")
         rep = _report(_inputs_entry(pan, ms, dem, geoid, reuse, pan_rpc, ms_rpc), pair, meas, model, bands,

@@ -12,15 +12,12 @@ import json
 import os
 import subprocess
 import sys
-import threading
-import time
 
 import numpy as np
 import pytest
 from osgeo import gdal, ogr
 
 from gdal_gf4cal import threads
-from gdal_gf4cal.workflows.panms import _Beside
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "data")
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
@@ -78,32 +75,3 @@ def test_outputs_are_the_same_with_1_and_2_threads(runs):
     # and the registration is the one the accuracy test pins (tests/panms/test_panms_ventoux.py)
     assert r1["steps"][-1]["rms_sample_px"] < 0.1 and r1["steps"][-1]["rms_line_px"] < 0.1
 
-
-def test_plots_beside_the_writes_wait_and_raise():
-    """The plots' thread (_Beside): its tasks run while the block runs and are done on leaving; its error is raised
-    when the block succeeded; a failing block's own error wins, once the plots have ended (nothing left writing);
-    off (one thread): nothing runs, the caller runs the tasks."""
-    done, ran_on = [], []
-
-    def slow():
-        time.sleep(0.2)
-        ran_on.append(threading.current_thread().name)
-        done.append(1)
-
-    with _Beside(True, [slow, slow]) as started:
-        assert started
-    assert done == [1, 1] and all(n.startswith("gf4cal-plots") for n in ran_on)
-
-    def boom():
-        raise ValueError("plot failed")
-
-    with pytest.raises(ValueError, match="plot failed"):
-        with _Beside(True, [boom]):
-            pass
-    done.clear()
-    with pytest.raises(KeyError):
-        with _Beside(True, [slow, boom]):
-            raise KeyError("write failed")
-    assert done == [1]
-    with _Beside(False, [boom]) as started:
-        assert not started
