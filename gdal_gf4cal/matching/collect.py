@@ -799,8 +799,10 @@ def assemble_gcps(results: Sequence[Dict[str, np.ndarray]], ctx: Dict[str, Any],
 
 
 def run_tiles(specs: Sequence[TileSpec], executor: Optional[cf.Executor] = None, *, workers: Optional[int] = None,
-              progress=None, stop: float = 0.95) -> List[Dict[str, np.ndarray]]:
+              progress=None, stop: float = 0.95, fn=None) -> List[Dict[str, np.ndarray]]:
     """:func:`match_tile` on every spec, results in submission order (deterministic whatever the executor).
+    ``fn``: another function of a spec run the same way (serial kernels and BLAS inside; default
+    :func:`match_tile`'s).
 
     Without ``executor``: a thread pool of ``workers`` threads (default: ``GF4CAL_NUM_THREADS``, or the caller's
     :func:`gdal_gf4cal.threads.limit`, else the machine's cores; 1 runs in the calling thread), each tile with
@@ -810,7 +812,7 @@ def run_tiles(specs: Sequence[TileSpec], executor: Optional[cf.Executor] = None,
     """
     own = None
     # Every tile with serial kernels and BLAS on its thread, on any executor (its numbers depend on BLAS's threads)
-    fn = _match_tile_serial
+    fn = _match_tile_serial if fn is None else fn
     if executor is None:
         nw = threads.pool_workers(workers, len(specs))
         if nw > 1:

@@ -29,6 +29,14 @@ def _save(fig, path: PathLike) -> Path:
     return path
 
 
+def _few_ticks(ax, nbins: int = 5) -> None:
+    """At most ``nbins`` intervals of round ticks on both axes: matplotlib builds every tick as a set of artists
+    (~2 ms each here), which made most of a small figure's drawing time."""
+    from matplotlib.ticker import MaxNLocator
+    ax.xaxis.set_major_locator(MaxNLocator(nbins, steps=[1, 2, 5, 10]))
+    ax.yaxis.set_major_locator(MaxNLocator(nbins, steps=[1, 2, 5, 10]))
+
+
 def _nice_scale(v: float) -> float:
     """1, 2 or 5 x 10^k, not above v (the scale arrow's length in px)."""
     if not math.isfinite(v) or v <= 0:
@@ -326,6 +334,7 @@ def plot_step_residual_maps(sample, line, steps, path: PathLike, *, image_size, 
         ax.set_aspect("equal")
         ax.set_title(f"{name}\nrms {rms_s:.3f} / {rms_l:.3f} px, P(<=0.25) {100 * p_le:.1f} %", fontsize=9)
         ax.tick_params(labelsize=7)
+        _few_ticks(ax, 4)
     fig.suptitle(f"{title} (arrows x {k:.0f}; grey: cells left out)", fontsize=10)
     return _save(fig, path)
 
@@ -341,6 +350,7 @@ def plot_line_profiles(series, path: PathLike, *, title: str = "residual along t
         for label, (lc, ys, yl) in series.items():
             ax.plot(lc, (ys, yl)[k], label=label, lw=1)
         ax.set_ylabel(f"{axis} (MS px)")
+        _few_ticks(ax)
         ax.axhline(0, color="0.6", lw=0.5)
         ax.legend(fontsize=8)
     ax.set_xlabel("MS line")
@@ -361,6 +371,7 @@ def plot_spectrum(amplitudes, path: PathLike, *, chosen=None, unit: str = "Hz",
         for c in (chosen or {}).get(axis, []):
             ax.axvline(c, color="tab:red", lw=0.8, ls="--")
         ax.set_ylabel(f"{axis} amplitude (px)")
+        _few_ticks(ax)
     ax.set_xlabel(f"frequency ({unit}); dashed: accepted jitter components")
     fig.suptitle(title, fontsize=10)
     return _save(fig, path)

@@ -20,7 +20,7 @@ from gdal_gf4cal.executors import SerialExecutor
 from gdal_gf4cal.rpc import RPCModel
 from gdal_gf4cal.matching import (RawReference, cells_from_matches, match_raw, match_tile, match_ties, pan_ms_cells,
                                   plan_tiles, reference_on_grids)
-from gdal_gf4cal.matching.raw import CELL_COLUMNS, RAW_COLUMNS
+from gdal_gf4cal.matching.raw import CELL_COLUMNS, RAW_COLUMNS, _same_windows, match_tiles
 from gdal_gf4cal.simulate import write_scene
 from gdal_gf4cal.simulate.gf7 import cover_weights, true_misregistration, write_gf7_scene
 
@@ -249,6 +249,34 @@ def test_union_grid_resampling_equals_per_window_and_specs_pickle(gf7_small):
     again = match_tile(pickle.loads(pickle.dumps(specs[0])))
     for k in ("dsample", "dline", "ref_sample", "status"):
         np.testing.assert_array_equal(direct[k], again[k])
+
+
+def test_bands_at_the_same_windows_share_their_geometry_with_the_same_bits(gf7_small):
+    """match_tiles (the unit of match_raw_bands: one tile per band at the same windows, the ground points, footprints
+    and the resampled pan once) gives every band exactly what match_tile gives it alone, also through pickle (process
+    pools, Dask); tiles at other windows are not grouped."""
+    out, _ = gf7_small
+    pan, ms = str(out / "pan" / "scene.tif"), str(out / "ms" / "scene.tif")
+    dem = DEM.from_user_input(str(out / "dem.tif"))
+    pm, mm = RPCModel.from_file(pan), RPCModel.from_file(ms)
+    plans = [plan_tiles(ms, mm, pan, dem, 8, 32, search_px=8, reference_model=pm, tile_windows=64, band=b)[0]
+             for b in (1, 2, 3, 4)]
+    groups = _same_windows([s for p in plans for s in p])
+    assert len(groups) == len(plans[0]) and all(len(g) == 4 for g in groups)
+    assert [g.index for g in groups][:2] == [(0, len(plans[0]), 2 * len(plans[0]), 3 * len(plans[0])),
+                                            (1, len(plans[0]) + 1, 2 * len(plans[0]) + 1, 3 * len(plans[0]) + 1)]
+    g = pickle.loads(pickle.dumps(groups[0]))
+    assert g.index == groups[0].index
+    together = match_tiles(g)
+    alone = [match_tile(s) for s in groups[0]]
+    assert len(together) == 4 and (alone[0]["status"] == 0).sum() > 20
+    assert not np.array_equal(alone[0]["dsample"], alone[1]["dsample"], equal_nan=True)  # the bands differ
+    for a, b in zip(alone, together):
+        assert list(a) == list(b)
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k])
+    other = plan_tiles(ms, mm, pan, dem, 12, 32, search_px=8, reference_model=pm, tile_windows=64, band=2)[0]
+    assert len(_same_windows(plans[0] + other)) == len(plans[0]) + len(other)
 
 
 def test_region_and_no_overlap_errors(gf7_small):

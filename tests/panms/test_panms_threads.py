@@ -74,3 +74,4 @@ def test_outputs_are_the_same_with_1_and_2_threads(runs):
     assert r1 == r2
     # and the registration is the one the accuracy test pins (tests/panms/test_panms_ventoux.py)
     assert r1["steps"][-1]["rms_sample_px"] < 0.1 and r1["steps"][-1]["rms_line_px"] < 0.1
+
