@@ -12,10 +12,11 @@
 
 Each case runs under ``threads.limit(1)`` and ``threads.limit(k)`` alternately (--repeat times): the median wall
 and CPU, then the ratio of the minima and the voluntary context switches per run (medians); results must be the
-same bits in both (printed). With the round trip, one more line: the share of a block's CPU spent in
+same bits in both (printed). With the round trip, two more lines: the share of a block's CPU spent in
 Python dispatching NumPy calls (a 16-point round trip against a block's: what holds the GIL, the serial part) and the
-2-thread bound it sets. On a shared machine the ratios are low: measure when it is idle (the
-load average is printed before and after each case).
+2-thread bound it sets; the same round trip in k processes (half the points each: no GIL shared), the bound the
+machine itself sets (cores, caches, memory), against one thread in the same run. On a shared machine the ratios
+are low: measure when it is idle (the load average is printed before and after each case).
 
 Run: .venv/bin/python bench/bench_threads.py [--points N] [--repeat R (default: 7 point cases, 3 others)]
      [--threads 2] [--workdir DIR] [--cases round_trip,localize_dem,collect,panms]
@@ -23,6 +24,7 @@ Run: .venv/bin/python bench/bench_threads.py [--points N] [--repeat R (default: 
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
 import resource
 import statistics
@@ -108,6 +110,46 @@ def serial_share():
     print(f"round trip: {small * 1e6:.0f} us of NumPy calls per block against {block * 1e6:.0f} us CPU for {b:,} "
           f"points: {100 * share:.0f} % in Python (Amdahl: 2 threads <= {2 / (1 + share):.2f}x); load "
           f"{os.getloadavg()[0]:.1f}", flush=True)
+
+
+def process_bound(n, k, repeat):
+    """The round trip of ``n`` points in ``k`` forked processes (``n / k`` each, one thread, started together at a
+    barrier) against one thread on all of them, alternately ``repeat`` times: no GIL shared, only the cores, their
+    caches and memory: the bound of ``k`` threads on this machine, measured in the same run."""
+    rpc, s, l, hh = _points(n)
+    ctx = multiprocessing.get_context("fork")
+    parts = [slice(i * n // k, (i + 1) * n // k) for i in range(k)]
+
+    def child(sl, barrier, queue):
+        with threads.limit(1):
+            _round_trip(rpc, s[sl], l[sl], hh[sl])                 # warm (inverse fit, scratch buffers)
+            barrier.wait()
+            w = time.perf_counter()
+            _round_trip(rpc, s[sl], l[sl], hh[sl])
+            queue.put(time.perf_counter() - w)
+
+    def in_processes():
+        barrier, queue = ctx.Barrier(k), ctx.Queue()
+        procs = [ctx.Process(target=child, args=(sl, barrier, queue)) for sl in parts]
+        for p in procs:
+            p.start()
+        wall = max(queue.get() for _ in procs)
+        for p in procs:
+            p.join()
+        return wall
+
+    one, many = [], []
+    with threads.limit(1):
+        _round_trip(rpc, s, l, hh)
+        for _ in range(repeat):
+            w = time.perf_counter()
+            _round_trip(rpc, s, l, hh)
+            one.append(time.perf_counter() - w)
+            many.append(in_processes())
+    print(f"round trip in {k} processes (no GIL shared): 1 thread {statistics.median(one):6.2f} s, {k} processes "
+          f"{statistics.median(many):6.2f} s: ratio {statistics.median(one) / statistics.median(many):4.2f}x (minima "
+          f"{min(one) / min(many):4.2f}x): the machine's bound for {k} threads; load {os.getloadavg()[0]:.1f}",
+          flush=True)
 
 
 def point_cases(n):
@@ -211,6 +253,7 @@ def main():
             _compare(args.threads, [found[c]], args.repeat or REPEAT.get(c, 3))
     if "round_trip" in wanted:
         serial_share()
+        process_bound(args.points, args.threads, args.repeat or REPEAT["round_trip"])
     _print_stages()
 
 
