@@ -567,14 +567,15 @@ class _LocalizeKernel(NamedTuple):
 
 #: Rows of the work buffer of :func:`_localize_chunk` (:class:`_LocViews`); the [[1, -1], [-1, 1]] signs of a 2x2
 #: adjugate.
-_LOC_ROWS = 49
+_LOC_ROWS = 41
 _LOC_SIGN = np.array([[1.0, -1.0], [-1.0, 1.0]])[:, :, None]
 
 
 class _LocViews:
     """The arrays of :func:`_localize_chunk` as views of one (:data:`_LOC_ROWS`, k) buffer: its first 13 rows are
     a point's whole state (target, residual, inverse Jacobian, determinant, the monomials' 1, L, P, h), gathered
-    in one call when converged points leave (:meth:`compacted`)."""
+    in one call when converged points leave (:meth:`compacted`); the temporaries live in the polynomials' rows
+    (dead once the Jacobian is inverted): a smaller buffer stays in cache."""
     __slots__ = ("buf", "state", "T", "q", "Inv", "det", "M", "V", "J", "d", "a")
 
     def __init__(self, buf: np.ndarray, k: int):
@@ -583,7 +584,7 @@ class _LocViews:
         self.T, self.q = b[0:2], b[2:4]                  # target (px offsets); values, then residual
         self.Inv, self.det = b[4:8].reshape(2, 2, k), b[8]
         self.M, self.V = b[9:29], b[29:41]               # monomials (rows 1-2: the unknowns L, P); polynomials
-        self.J, self.d, self.a = b[41:45].reshape(2, 2, k), b[45:47], b[47:49]
+        self.J, self.d, self.a = b[33:37].reshape(2, 2, k), b[37:39], b[39:41]     # V[4:8], V[8:10], V[10:12]
 
     def compacted(self, cols: np.ndarray) -> "_LocViews":
         """The views on the points ``cols`` only, their state moved to the first columns."""
@@ -664,10 +665,10 @@ def _loc_jacobian(rows: np.ndarray, w: _LocViews) -> None:
     V = poly_product(rows, w.M, out=w.V)
     k = V.shape[1]
     q = np.divide(V[0:2], V[2:4], out=w.q)
-    J = np.multiply(V[8:12].reshape(2, 2, k), q, out=w.J)
-    np.subtract(V[4:8].reshape(2, 2, k), J, out=J)
+    dens = np.multiply(V[8:12].reshape(2, 2, k), q, out=V[8:12].reshape(2, 2, k))
+    J = np.subtract(w.J, dens, out=w.J)                          # the numerators' derivatives, in place
     np.divide(J, V[2:4], out=J)
-    p = np.multiply(J[0], J[1, ::-1], out=w.a)                  # s_L l_P, l_L s_P
+    p = np.multiply(J[0], J[1, ::-1], out=w.d)                  # s_L l_P, l_L s_P
     np.subtract(p[0], p[1], out=w.det)
     np.divide(_LOC_SIGN, w.det, out=w.Inv)
     np.multiply(w.Inv, J[::-1, ::-1], out=w.Inv)
