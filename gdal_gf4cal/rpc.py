@@ -23,7 +23,7 @@ from typing import Dict, NamedTuple, Optional, Tuple, Union
 import numpy as np
 
 from ._rpc_poly import (_CHUNK, _EXPONENTS, DERIVATIVE_MATRICES, TERMS, fill_monomials,  # noqa: F401
-                        monomial_chunks, monomial_derivatives, monomials, poly_product, scratch)
+                        monomial_chunks, monomial_derivatives, monomial_views, monomials, poly_product, scratch)
 from .errors import RPCFormatError
 from .rpc_io import read_rpc_metadata, write_rpb, write_rpc_txt
 from .sensor import GDAL_PIXEL_OFFSET, LocalizationStats, SensorModelMixin, pixel_shift  # noqa: F401
@@ -452,7 +452,7 @@ class RPCModel(SensorModelMixin):
         J = (v[4:8].reshape(2, 2) - q * v[8:12].reshape(2, 2)) / v[2:4]
         kernel = _LocalizeKernel(
             offsets=(self.samp_off + key, self.line_off + key, self.height_off), start=start,
-            lo=bounds[:, 0].copy(), hi=bounds[:, 1].copy(), frame=(cx, sx, cy, sy), affine=affine,
+            lo=tuple(bounds[:, 0].tolist()), hi=tuple(bounds[:, 1].tolist()), frame=(cx, sx, cy, sy), affine=affine,
             scales=(ss, ls, hs), rows=rows, values=rows[0:4].copy(),
             ground=np.array([[self.long_scale], [self.lat_scale]]), ground_off=np.array([[self.long_off],
                                                                                           [self.lat_off]]),
@@ -553,8 +553,8 @@ class _LocalizeKernel(NamedTuple):
     """:meth:`RPCModel._localize_kernel`: what :func:`_localize_chunk` solves with."""
     offsets: tuple               # subtracted from (sample, line, h): the raw offsets the monomials hold
     start: np.ndarray            # (2, 20) start cubic of the raw offsets
-    lo: np.ndarray               # (3,) its frame (raw offsets): inside it the cubic, outside the affine
-    hi: np.ndarray
+    lo: tuple                    # its frame (raw offsets of sample, line, h): inside it the cubic, outside the affine
+    hi: tuple
     frame: tuple                 # (cx, sx, cy, sy) of :attr:`RPCModel._inverse_fit` and its affine (2, 4)
     affine: np.ndarray
     scales: tuple                # samp, line and height scales
@@ -576,7 +576,7 @@ class _LocViews:
     a point's whole state (target, residual, inverse Jacobian, determinant, the monomials' 1, L, P, h), gathered
     in one call when converged points leave (:meth:`compacted`); the temporaries live in the polynomials' rows
     (dead once the Jacobian is inverted): a smaller buffer stays in cache."""
-    __slots__ = ("buf", "state", "T", "q", "Inv", "det", "M", "V", "J", "d", "a")
+    __slots__ = ("buf", "state", "T", "q", "Inv", "det", "M", "V", "J", "d", "a", "fill")
 
     def __init__(self, buf: np.ndarray, k: int):
         b = buf[:, :k]
@@ -585,6 +585,7 @@ class _LocViews:
         self.Inv, self.det = b[4:8].reshape(2, 2, k), b[8]
         self.M, self.V = b[9:29], b[29:41]               # monomials (rows 1-2: the unknowns L, P); polynomials
         self.J, self.d, self.a = b[33:37].reshape(2, 2, k), b[37:39], b[39:41]     # V[4:8], V[8:10], V[10:12]
+        self.fill = monomial_views(self.M)               # the monomials are filled three times a chunk
 
     def compacted(self, cols: np.ndarray) -> "_LocViews":
         """The views on the points ``cols`` only, their state moved to the first columns."""
@@ -644,10 +645,11 @@ def _loc_start(K: _LocalizeKernel, w: _LocViews) -> None:
     image of the ground cube (within a small fraction of a pixel), the ground-cube affine outside it (cropped
     RPCs, points off the image; tested chunk-wise first: two reductions when every point is inside)."""
     D = w.M[1:4]
-    lo, hi = D.min(axis=1), D.max(axis=1)
-    fill_monomials(w.M)
+    lo, hi = D.min(axis=1).tolist(), D.max(axis=1).tolist()
+    fill_monomials(w.M, w.fill)
     S = poly_product(K.start, w.M, out=w.V[0:2])
-    if not (np.all(lo >= K.lo) and np.all(hi <= K.hi)):
+    if not (lo[0] >= K.lo[0] and lo[1] >= K.lo[1] and lo[2] >= K.lo[2] and hi[0] <= K.hi[0] and hi[1] <= K.hi[1]
+            and hi[2] <= K.hi[2]):                        # NaN: never inside
         inside = ((D[0] >= K.lo[0]) & (D[0] <= K.hi[0]) & (D[1] >= K.lo[1]) & (D[1] <= K.hi[1])
                   & (D[2] >= K.lo[2]) & (D[2] <= K.hi[2]))
         out = np.flatnonzero(~inside)
@@ -661,7 +663,7 @@ def _loc_start(K: _LocalizeKernel, w: _LocViews) -> None:
 def _loc_jacobian(rows: np.ndarray, w: _LocViews) -> None:
     """Values (px) and the inverse Jacobian d(L, P)/d(s, l) with its determinant at the monomials' (L, P): one
     product, nine stacked calls (J[k, i] = d(s, l)_i / d(L, P)_k; its inverse from the adjugate)."""
-    fill_monomials(w.M)
+    fill_monomials(w.M, w.fill)
     V = poly_product(rows, w.M, out=w.V)
     k = V.shape[1]
     q = np.divide(V[0:2], V[2:4], out=w.q)
@@ -676,7 +678,7 @@ def _loc_jacobian(rows: np.ndarray, w: _LocViews) -> None:
 
 def _loc_project(values: np.ndarray, w: _LocViews) -> None:
     """The values (px) at the monomials' (L, P): one product, one division."""
-    fill_monomials(w.M)
+    fill_monomials(w.M, w.fill)
     V = poly_product(values, w.M, out=w.V[0:4])
     np.divide(V[0:2], V[2:4], out=w.q)
 
