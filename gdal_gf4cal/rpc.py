@@ -283,16 +283,18 @@ class RPCModel(SensorModelMixin):
         """The chunk loop of :meth:`_project_into` in the buffers ``m`` (20, chunk) and ``v`` (4, chunk)."""
         n, c = lon.size, m.shape[1]
         step = c if blas_is_serial() else _PROJECT_GEMM
+        views = monomial_views(m)
         for i in range(0, n, c):
             j = min(i + c, n)
             if j - i < c:
                 m, v = m[:, :j - i], v[:, :j - i]
+                views = monomial_views(m)
             dlon = np.subtract(lon[i:j], off[0], out=m[1])
             if dlon.min() < -180.0 or dlon.max() > 180.0:    # across the antimeridian: longitudes modulo 360
                 np.copyto(dlon, np.where(np.abs(dlon) > 180.0, (dlon + 180.0) % 360.0 - 180.0, dlon))
             np.subtract(lat[i:j], off[1], out=m[2])
             np.subtract(h[i:j], off[2], out=m[3])
-            fill_monomials(m)
+            fill_monomials(m, views)
             for a in range(0, j - i, step):
                 b = min(a + step, j - i)
                 a = max(0, min(a, b - 2))                # never a one-column product (BLAS takes another kernel)
