@@ -48,7 +48,7 @@ _MAX_EXTRAPOLATION = 100.0
 
 
 #: Points per Newton solve of :meth:`RPCModel.localize` (a block of the thread pool is solved in such chunks,
-#: :func:`_localize_chunk`): its buffer (41 rows, 5.4 MB) stays in the last-level cache: as fast per point as 8192 and 5 %
+#: :func:`_localize_chunk`): its buffer (41 rows, 5.4 MB) stays in the last-level cache: as fast as 8192 and 5 %
 #: faster than 32768 (107, 108, 114 ms per 1e6 points, least CPU of 11 runs of one thread on the loaded machine),
 #: while its Python (~0.1 ms a solve: ~50 NumPy calls, which hold the GIL) stays a twentieth of the solve's ~2 ms.
 #: Every point is solved on its own: the same bits for any size.
@@ -58,11 +58,13 @@ LOCALIZE_CHUNK = 16384
 #: computes on the calling thread (:data:`~gdal_gf4cal.threads.BLAS_SERIAL_SIZE`: 80 k <= 4 x 65536); inside one
 #: (:func:`~gdal_gf4cal.threads.blas_is_serial`) a chunk is one product: the same bits, fewer calls.
 _PROJECT_GEMM = BLAS_SERIAL_SIZE // 80
-#: Points per chunk of the projection kernel (five products): larger than L2 (the (20, chunk) monomials take 2.6 MB)
-#: but ~2x faster than 3276-point chunks on the loaded 2-core machine (NumPy's per-call cost, ~1.5 us there, weighs on
-#: small chunks), as fast as 8192 with half the calls per block (calls hold the GIL). A divisor of
-#: :data:`~gdal_gf4cal.threads.BLOCK`: split or not, a point lies in the same product.
-PROJECT_CHUNK = 16384
+#: Points per chunk of the projection kernel (five products): a whole block of the thread pool, one chunk (12 NumPy
+#: calls, which hold the GIL): larger than L2 (the (20, chunk) monomials take 5.2 MB) but ~2x faster than 3276-point
+#: chunks on the loaded 2-core machine (NumPy's per-call cost, ~1.5 us there, weighs on small chunks), as fast per
+#: point as 16384 with 2 threads waking each other 20-25 % less often than with it (1,026 / 1,315 and 1,065 / 1,469
+#: voluntary switches per 2e6-point round trip, two idle moments). A divisor of :data:`~gdal_gf4cal.threads.BLOCK`:
+#: split or not, a point lies in the same product.
+PROJECT_CHUNK = 32768
 
 
 def _as_float_array(x) -> np.ndarray:
