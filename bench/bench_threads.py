@@ -10,19 +10,23 @@
   ms_on_pan.tif, ms_approx.RPB, report) on a simulated GF7 crop (pan 1024 x 1024, MS 256 x 256, across the first
   MS sub-CCD edge; rendered once into --workdir, ~1 min); goal >= 1.5x.
 
-Each case runs under ``threads.limit(1)`` and ``threads.limit(k)`` alternately (--repeat times, median); results
-must be the same bits in both (printed). With the round trip, one more line: the share of a block's CPU spent in
+Each case runs under ``threads.limit(1)`` and ``threads.limit(k)`` alternately (--repeat times): the median wall
+and CPU, then the ratio of the minima and the voluntary context switches per run (medians); results must be the
+same bits in both (printed). With the round trip, two more lines: the share of a block's CPU spent in
 Python dispatching NumPy calls (a 16-point round trip against a block's: what holds the GIL, the serial part) and the
-2-thread bound it sets. On a shared machine the ratios are low: measure when it is idle (the
-load average is printed before and after each case).
+2-thread bound it sets; the same round trip in k processes (half the points each: no GIL shared), the bound the
+machine itself sets (cores, caches, memory), against one thread in the same run. On a shared machine the ratios
+are low: measure when it is idle (the load average is printed before and after each case).
 
-Run: .venv/bin/python bench/bench_threads.py [--points N] [--repeat R] [--threads 2] [--workdir DIR]
-     [--cases round_trip,localize_dem,collect,panms]
+Run: .venv/bin/python bench/bench_threads.py [--points N] [--repeat R (default: 7 point cases, 3 others)]
+     [--threads 2] [--workdir DIR] [--cases round_trip,localize_dem,collect,panms]
 """
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
+import resource
 import statistics
 import sys
 import time
@@ -35,28 +39,36 @@ from gdal_gf4cal import DEM, RPCModel, threads
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT / "tests" / "data"
 CASES = ("round_trip", "localize_dem", "collect", "panms")
+#: Default runs of each thread count per case (--repeat): the point cases take a second each, seven give a
+#: median and a minimum on a shared machine.
+REPEAT = {"round_trip": 7, "localize_dem": 7}
 
 
 def _compare(k, cases, repeat):
-    """Every case under 1 thread and under ``k``, alternately ``repeat`` times: one line each."""
+    """Every case under 1 thread and under ``k``, alternately ``repeat`` times: one line each (medians), then the
+    minima's ratio (timeit's convention: the run least disturbed by the rest of a shared machine) and the
+    voluntary context switches per run (a thread that finds the GIL held sleeps: what a second thread costs)."""
     for name, fn, same in cases:
         fn(1)                                            # warm caches (inverse fit, DEM in memory, GDAL cache)
         load0 = os.getloadavg()[0]
-        times = {1: [], k: []}
-        cpus = {1: [], k: []}
+        runs = {1: [], k: []}                            # (wall, cpu, voluntary switches) of every run
         outs = {}
         for _ in range(repeat):
             for t in (1, k):
                 with threads.limit(t):
-                    c, w = time.process_time(), time.perf_counter()
+                    r, c, w = resource.getrusage(resource.RUSAGE_SELF).ru_nvcsw, time.process_time(), \
+                        time.perf_counter()
                     outs[t] = fn(t)
-                    times[t].append(time.perf_counter() - w)
-                    cpus[t].append(time.process_time() - c)
-        w1, wk = statistics.median(times[1]), statistics.median(times[k])
-        c1, ck = statistics.median(cpus[1]), statistics.median(cpus[k])
+                    runs[t].append((time.perf_counter() - w, time.process_time() - c,
+                                    resource.getrusage(resource.RUSAGE_SELF).ru_nvcsw - r))
+        (w1, c1, s1), (wk, ck, sk) = ([statistics.median(x[i] for x in runs[t]) for i in range(3)] for t in (1, k))
         print(f"{name:22s} 1 thread {w1:6.2f} s (cpu {c1:5.2f})   {k} threads {wk:6.2f} s (cpu {ck:5.2f})   "
               f"ratio {w1 / wk:4.2f}x   same bits: {same(outs[1], outs[k])}   load {load0:.1f} -> "
               f"{os.getloadavg()[0]:.1f}", flush=True)
+        m1, mk = (min(x[0] for x in runs[t]) for t in (1, k))
+        print(f"{'':22s} minima: 1 thread {m1:6.2f} s   {k} threads {mk:6.2f} s   ratio {m1 / mk:4.2f}x (median "
+              f"{w1 / wk:4.2f}x, {repeat} runs each)   voluntary context switches per run: {s1:.0f} | {sk:.0f}   "
+              f"cpu {k} threads / 1: {ck / c1:4.2f}", flush=True)
 
 
 def _arrays_equal(a, b):
@@ -98,6 +110,46 @@ def serial_share():
     print(f"round trip: {small * 1e6:.0f} us of NumPy calls per block against {block * 1e6:.0f} us CPU for {b:,} "
           f"points: {100 * share:.0f} % in Python (Amdahl: 2 threads <= {2 / (1 + share):.2f}x); load "
           f"{os.getloadavg()[0]:.1f}", flush=True)
+
+
+def process_bound(n, k, repeat):
+    """The round trip of ``n`` points in ``k`` forked processes (``n / k`` each, one thread, started together at a
+    barrier) against one thread on all of them, alternately ``repeat`` times: no GIL shared, only the cores, their
+    caches and memory: the bound of ``k`` threads on this machine, measured in the same run."""
+    rpc, s, l, hh = _points(n)
+    ctx = multiprocessing.get_context("fork")
+    parts = [slice(i * n // k, (i + 1) * n // k) for i in range(k)]
+
+    def child(sl, barrier, queue):
+        with threads.limit(1):
+            _round_trip(rpc, s[sl], l[sl], hh[sl])                 # warm (inverse fit, scratch buffers)
+            barrier.wait()
+            w = time.perf_counter()
+            _round_trip(rpc, s[sl], l[sl], hh[sl])
+            queue.put(time.perf_counter() - w)
+
+    def in_processes():
+        barrier, queue = ctx.Barrier(k), ctx.Queue()
+        procs = [ctx.Process(target=child, args=(sl, barrier, queue)) for sl in parts]
+        for p in procs:
+            p.start()
+        wall = max(queue.get() for _ in procs)
+        for p in procs:
+            p.join()
+        return wall
+
+    one, many = [], []
+    with threads.limit(1):
+        _round_trip(rpc, s, l, hh)
+        for _ in range(repeat):
+            w = time.perf_counter()
+            _round_trip(rpc, s, l, hh)
+            one.append(time.perf_counter() - w)
+            many.append(in_processes())
+    print(f"round trip in {k} processes (no GIL shared): 1 thread {statistics.median(one):6.2f} s, {k} processes "
+          f"{statistics.median(many):6.2f} s: ratio {statistics.median(one) / statistics.median(many):4.2f}x (minima "
+          f"{min(one) / min(many):4.2f}x): the machine's bound for {k} threads; load {os.getloadavg()[0]:.1f}",
+          flush=True)
 
 
 def point_cases(n):
@@ -177,7 +229,8 @@ def _print_stages():
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, default=2_000_000)
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=None, help="runs of each thread count (default: 7 for the point "
+                    "cases, 3 for the others)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--workdir", default="/tmp/gf4cal_bench_threads")
     ap.add_argument("--cases", default=",".join(CASES))
@@ -195,9 +248,12 @@ def main():
     print(f"{args.points:,} points ({args.points // 4:,} for localize_dem), blocks of {threads.BLOCK:,} "
           f"({threads.DEM_BLOCK:,} for localize_dem); {threads.machine_cores()} cores; load average "
           f"{os.getloadavg()[0]:.1f}")
-    _compare(args.threads, [found[c] for c in wanted if c in found], args.repeat)
+    for c in wanted:
+        if c in found:
+            _compare(args.threads, [found[c]], args.repeat or REPEAT.get(c, 3))
     if "round_trip" in wanted:
         serial_share()
+        process_bound(args.points, args.threads, args.repeat or REPEAT["round_trip"])
     _print_stages()
 
 

@@ -60,19 +60,27 @@ def monomials(L: np.ndarray, P: np.ndarray, H: np.ndarray) -> np.ndarray:
     return m
 
 
-def fill_monomials(m: np.ndarray) -> np.ndarray:
+def fill_monomials(m: np.ndarray, views: Optional[tuple] = None) -> np.ndarray:
     """Rows 4..19 of the monomial matrix ``m`` (20, N) from its rows 1..3 (L, P, H), in place (row 0 is the
     caller's: 1), in 5 broadcast products (NumPy's per-call cost dominates a cache-sized chunk): a kernel can keep
     one buffer per chunk instead of allocating one. Each monomial is the same product of the same factors whatever
-    the call grouping (``L3 = L * L2``, ``L2P = P * L2``, ``PLH = LP * H``...): the same bits."""
-    lph = m[1:4]                                         # L, P, H
-    np.multiply(m[1], m[2:4], out=m[4:6])                # LP, LH
-    np.multiply(m[2], m[3], out=m[6])                    # PH
-    np.multiply(lph, lph, out=m[7:10])                   # L2, P2, H2
-    np.multiply(m[4], m[3], out=m[10])                   # PLH
-    # [L, P, H] x [L2, P2, H2]: L3, LP2, LH2, L2P, P3, PH2, L2H, P2H, H3 (splitting an axis: a view, never a copy)
-    np.multiply(lph[:, None], m[7:10], out=m[11:20].reshape(3, 3, m.shape[1]))
+    the call grouping (``L3 = L * L2``, ``L2P = P * L2``, ``PLH = LP * H``...): the same bits. ``views``: the
+    operands of the products, :func:`monomial_views` of ``m``, for a kernel filling one buffer several times."""
+    v = monomial_views(m) if views is None else views
+    for a, b, out in v:
+        np.multiply(a, b, out=out)
     return m
+
+
+def monomial_views(m: np.ndarray) -> tuple:
+    """The operands of :func:`fill_monomials`' five products in ``m`` (20, N), in order."""
+    lph = m[1:4]                                         # L, P, H
+    return ((m[1], m[2:4], m[4:6]),                      # LP, LH
+            (m[2], m[3], m[6]),                          # PH
+            (lph, lph, m[7:10]),                         # L2, P2, H2
+            (m[4], m[3], m[10]),                         # PLH
+            # [L, P, H] x [L2, P2, H2]: L3, LP2, LH2, L2P, P3, PH2, L2H, P2H, H3 (splitting an axis: a view)
+            (lph[:, None], m[7:10], m[11:20].reshape(3, 3, m.shape[1])))
 
 
 #: Largest scratch buffer (columns) a thread keeps between calls (:func:`scratch`).

@@ -18,12 +18,12 @@ import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Dict, Optional, Tuple, Union
+from typing import Dict, NamedTuple, Optional, Tuple, Union
 
 import numpy as np
 
 from ._rpc_poly import (_CHUNK, _EXPONENTS, DERIVATIVE_MATRICES, TERMS, fill_monomials,  # noqa: F401
-                        monomial_chunks, monomial_derivatives, monomials, poly_product, scratch)
+                        monomial_chunks, monomial_derivatives, monomial_views, monomials, poly_product, scratch)
 from .errors import RPCFormatError
 from .rpc_io import read_rpc_metadata, write_rpb, write_rpc_txt
 from .sensor import GDAL_PIXEL_OFFSET, LocalizationStats, SensorModelMixin, pixel_shift  # noqa: F401
@@ -47,21 +47,24 @@ ArrayLike = Union[float, np.ndarray]
 _MAX_EXTRAPOLATION = 100.0
 
 
-#: Points per Newton solve of :meth:`RPCModel.localize` (a block of the thread pool is solved in such chunks): the
-#: solver's state (~30 arrays) stays within the cache: 1.5x less CPU per point than solving 32768 points at once
-#: (230 against 360 ns per point, one run on the loaded machine), while its per-solve cost (~0.2 ms of NumPy calls,
-#: which hold the GIL) stays a twentieth of the solve. Every point is solved on its own: the same bits for any size.
+#: Points per Newton solve of :meth:`RPCModel.localize` (a block of the thread pool is solved in such chunks,
+#: :func:`_localize_chunk`): its buffer (41 rows, 5.4 MB) stays in the last-level cache: as fast as 8192 and 5 %
+#: faster than 32768 (107, 108, 114 ms per 1e6 points, least CPU of 11 runs of one thread on the loaded machine),
+#: while its Python (~0.1 ms a solve: ~50 NumPy calls, which hold the GIL) stays a twentieth of the solve's ~2 ms.
+#: Every point is solved on its own: the same bits for any size.
 LOCALIZE_CHUNK = 16384
 
 #: Columns of one (4, 20) x (20, k) product of the projection kernel outside a BLAS-serial scope: the most OpenBLAS
 #: computes on the calling thread (:data:`~gdal_gf4cal.threads.BLAS_SERIAL_SIZE`: 80 k <= 4 x 65536); inside one
 #: (:func:`~gdal_gf4cal.threads.blas_is_serial`) a chunk is one product: the same bits, fewer calls.
 _PROJECT_GEMM = BLAS_SERIAL_SIZE // 80
-#: Points per chunk of the projection kernel (five products): larger than L2 (the (20, chunk) monomials take 2.6 MB)
-#: but ~2x faster than 3276-point chunks on the loaded 2-core machine (NumPy's per-call cost, ~1.5 us there, weighs on
-#: small chunks), as fast as 8192 with half the calls per block (calls hold the GIL). A divisor of
-#: :data:`~gdal_gf4cal.threads.BLOCK`: split or not, a point lies in the same product.
-PROJECT_CHUNK = 16384
+#: Points per chunk of the projection kernel (five products): a whole block of the thread pool, one chunk (12 NumPy
+#: calls, which hold the GIL): larger than L2 (the (20, chunk) monomials take 5.2 MB) but ~2x faster than 3276-point
+#: chunks on the loaded 2-core machine (NumPy's per-call cost, ~1.5 us there, weighs on small chunks), as fast per
+#: point as 16384 with 2 threads waking each other 20-25 % less often than with it (1,026 / 1,315 and 1,065 / 1,469
+#: voluntary switches per 2e6-point round trip, two idle moments). A divisor of :data:`~gdal_gf4cal.threads.BLOCK`:
+#: split or not, a point lies in the same product.
+PROJECT_CHUNK = 32768
 
 
 def _as_float_array(x) -> np.ndarray:
@@ -282,16 +285,18 @@ class RPCModel(SensorModelMixin):
         """The chunk loop of :meth:`_project_into` in the buffers ``m`` (20, chunk) and ``v`` (4, chunk)."""
         n, c = lon.size, m.shape[1]
         step = c if blas_is_serial() else _PROJECT_GEMM
+        views = monomial_views(m)
         for i in range(0, n, c):
             j = min(i + c, n)
             if j - i < c:
                 m, v = m[:, :j - i], v[:, :j - i]
+                views = monomial_views(m)
             dlon = np.subtract(lon[i:j], off[0], out=m[1])
             if dlon.min() < -180.0 or dlon.max() > 180.0:    # across the antimeridian: longitudes modulo 360
                 np.copyto(dlon, np.where(np.abs(dlon) > 180.0, (dlon + 180.0) % 360.0 - 180.0, dlon))
             np.subtract(lat[i:j], off[1], out=m[2])
             np.subtract(h[i:j], off[2], out=m[3])
-            fill_monomials(m)
+            fill_monomials(m, views)
             for a in range(0, j - i, step):
                 b = min(a + step, j - i)
                 a = max(0, min(a, b - 2))                # never a one-column product (BLAS takes another kernel)
@@ -426,110 +431,39 @@ class RPCModel(SensorModelMixin):
                     T[j, index[(i, k, c)]] += wa * wb
         return cubic @ T
 
-    def _start_normalised(self, x, y, H):
-        """Newton start ``(L, P)`` for flat normalised image points: the cubic inverse inside the image of the
-        ground cube (within a small fraction of a pixel), the ground-cube affine outside it."""
+    def _localize_kernel(self, shift: float) -> "_LocalizeKernel":
+        """The coefficients of :meth:`localize`'s chunk solver (:func:`_localize_chunk`) for a pixel shift, in the
+        raw offsets ``(s - SAMP_OFF - shift, l - LINE_OFF - shift, h - HEIGHT_OFF)`` the solver's monomials hold
+        (the scales folded into the coefficients: no normalising pass over the points): the start cubic
+        (:attr:`_approximate_inverse`) and its frame, and the (12, 20) rows of the sample and line numerators times
+        their image scales (pixels), the denominators, and their d/dL and d/dP (normalised L, P; heights in metres)."""
+        key = float(shift)
+        cache = self.__dict__.setdefault("_localize_kernel_cache", {})
+        if key in cache:
+            return cache[key]
+        e = np.array(_EXPONENTS, dtype=float)
+        ss, ls, hs = self.samp_scale, self.line_scale, self.height_scale
         (cx, sx, cy, sy), _, affine = self._inverse_fit
-        A = self._approximate_inverse
-        n = x.size
-        L, P = np.empty(n), np.empty(n)
-        x_lo, x_hi, y_lo, y_hi = cx - 1.25 * sx, cx + 1.25 * sx, cy - 1.25 * sy, cy + 1.25 * sy
-        for i, j, m in monomial_chunks(x, y, H):
-            xs, ys, hs = x[i:j], y[i:j], H[i:j]
-            L[i:j], P[i:j] = poly_product(A, m)
-            # Chunk-wise bounds first: the common case (every point inside) costs six reductions.
-            if (xs.min(initial=x_lo) >= x_lo and xs.max(initial=x_hi) <= x_hi and ys.min(initial=y_lo) >= y_lo
-                    and ys.max(initial=y_hi) <= y_hi and np.abs(hs).max(initial=0.0) <= 1.5):
-                continue
-            out = np.flatnonzero(~((xs >= x_lo) & (xs <= x_hi) & (ys >= y_lo) & (ys <= y_hi) & (np.abs(hs) <= 1.5)))
-            uo, vo, ho = (xs[out] - cx) / sx, (ys[out] - cy) / sy, hs[out]
-            L[i + out] = affine[0, 0] + affine[0, 1] * uo + affine[0, 2] * vo + affine[0, 3] * ho
-            P[i + out] = affine[1, 0] + affine[1, 1] * uo + affine[1, 2] * vo + affine[1, 3] * ho
-        return L, P
-
-    def _localize_normalised(self, x, y, H, tol, max_iter):
-        """Solve x(L, P, H) = x, y(L, P, H) = y for (L, P); returns L, P, converged mask, iterations.
-
-        Started from the ground domain (:meth:`_start_normalised`). Chord-Newton: the Jacobian is evaluated at the
-        starting point (within a fraction of a pixel of the solution inside the image of the ground cube) and
-        refreshed every third step, every step after the third (points started outside the cube, cropped RPCs),
-        so most steps cost a single projection. Steps are damped in ground space: at most half a normalised unit,
-        or half the distance from the cube's centre when the point lies farther out. A solution is accepted
-        within ``_MAX_EXTRAPOLATION`` normalised units of the cube and with the cube's orientation (the sign of
-        the Jacobian determinant at its centre): other roots are polynomial artefacts.
-        """
-        L, P = self._start_normalised(x, y, H)
-        n = x.size
-        converged = np.zeros(n, dtype=bool)
-        det_sign = None             # the orientation, checked for the points that need more than two steps
-        tol_x = tol / abs(self.samp_scale)   # tolerances in pixels -> normalised units per axis
-        tol_y = tol / abs(self.line_scale)
-        active = np.arange(n)
-        iterations = 0
-        with np.errstate(all="ignore"):
-            d = self._normalised_jacobian(L, P, H, with_h=False)
-            cx, cy = d["x"], d["y"]
-            a, b, c, e = d["x_L"], d["x_P"], d["y_L"], d["y_P"]
-            for iterations in range(1, max_iter + 1):
-                full = active.size == n              # every point still active: plain arrays, no gather/scatter
-                rx = (x if full else x[active]) - cx
-                ry = (y if full else y[active]) - cy
-                done = (np.abs(rx) <= tol_x) & (np.abs(ry) <= tol_y)
-                if full:                             # no gather and scatter of the indices
-                    np.logical_or(converged, done, out=converged)
-                else:
-                    converged[active[done]] = True
-                if iterations > 2:
-                    if det_sign is None:
-                        det_sign = np.full(n, self._orientation)
-                    det_sign[active[done]] = np.sign(a[done] * e[done] - b[done] * c[done])
-                if full and done.all():              # the common end: every point settled at once
-                    active = active[:0]
-                    break
-                keep = ~done & np.isfinite(rx) & np.isfinite(ry)
-                kept = np.count_nonzero(keep)
-                if not kept:
-                    active = active[:0]
-                    break
-                if kept < keep.size:
-                    active, rx, ry = active[keep], rx[keep], ry[keep]
-                    a, b, c, e = a[keep], b[keep], c[keep], e[keep]
-                    full = False
-                det = a * e - b * c
-                dL_ = (e * rx - b * ry) / det
-                dP_ = (a * ry - c * rx) / det
-                step = np.maximum(np.abs(dL_), np.abs(dP_))
-                big = np.flatnonzero(step > 0.5)
-                if big.size:   # damping, in ground space: rare, so only these points pay for it
-                    ab = active[big]
-                    limit = 0.5 * np.maximum(1.0, np.maximum(np.abs(L[ab]), np.abs(P[ab])))
-                    f = np.minimum(1.0, limit / step[big])
-                    dL_[big] *= f
-                    dP_[big] *= f
-                if full:
-                    L += dL_
-                    P += dP_
-                    La, Pa, Ha = L, P, H
-                else:
-                    L[active] += dL_
-                    P[active] += dP_
-                    La, Pa, Ha = L[active], P[active], H[active]
-                if iterations % 3 == 0 or iterations > 3:
-                    d = self._normalised_jacobian(La, Pa, Ha, with_h=False)
-                    cx, cy = d["x"], d["y"]
-                    a, b, c, e = d["x_L"], d["x_P"], d["y_L"], d["y_P"]
-                else:
-                    cx, cy = self._project_normalised(La, Pa, Ha)
-        converged &= (np.abs(L) <= _MAX_EXTRAPOLATION) & (np.abs(P) <= _MAX_EXTRAPOLATION)
-        if det_sign is not None:
-            converged &= det_sign == self._orientation
-        return L, P, converged, iterations
-
-    @cached_property
-    def _orientation(self) -> float:
-        """Sign of ``det d(x, y)/d(L, P)`` at the ground cube's centre (+1 or -1)."""
-        d = self._normalised_jacobian(np.zeros(1), np.zeros(1), np.zeros(1), with_h=False)
-        return float(np.sign(d["x_L"][0] * d["y_P"][0] - d["x_P"][0] * d["y_L"][0]))
+        start = self._approximate_inverse / np.prod(np.array([ss, ls, hs]) ** e, axis=1)
+        bounds = np.array([[(cx - 1.25 * sx) * ss, (cx + 1.25 * sx) * ss], [(cy - 1.25 * sy) * ls,
+                           (cy + 1.25 * sy) * ls], [-1.5 * abs(hs), 1.5 * abs(hs)]])
+        bounds.sort(axis=1)                                      # negative scales swap a frame's bounds
+        C = self._coeffs
+        values = np.vstack([C[0] * ss, C[2] * ls, C[1], C[3]])   # sample and line numerators in pixels, dens
+        dL, dP = values @ DERIVATIVE_MATRICES[0], values @ DERIVATIVE_MATRICES[1]
+        rows = np.vstack([values, dL[0:2], dP[0:2], dL[2:4], dP[2:4]]) / hs ** e[:, 2]
+        v = rows[:, 0]                                           # at the cube's centre: its orientation
+        q = v[0:2] / v[2:4]
+        J = (v[4:8].reshape(2, 2) - q * v[8:12].reshape(2, 2)) / v[2:4]
+        kernel = _LocalizeKernel(
+            offsets=(self.samp_off + key, self.line_off + key, self.height_off), start=start,
+            lo=tuple(bounds[:, 0].tolist()), hi=tuple(bounds[:, 1].tolist()), frame=(cx, sx, cy, sy), affine=affine,
+            scales=(ss, ls, hs), rows=rows, values=rows[0:4].copy(),
+            ground=np.array([[self.long_scale], [self.lat_scale]]), ground_off=np.array([[self.long_off],
+                                                                                          [self.lat_off]]),
+            orientation=float(np.sign(J[0, 0] * J[1, 1] - J[1, 0] * J[0, 1])))
+        cache[key] = kernel
+        return kernel
 
     def localize(self, sample: ArrayLike, line: ArrayLike, h: ArrayLike, *, pixel_convention: str = "gdal",
                  tol_px: float = 1e-8, max_iter: int = 20, full_output: bool = False):
@@ -537,35 +471,29 @@ class RPCModel(SensorModelMixin):
 
         Vectorised Newton iteration on the 2x2 system, started from the ground domain: a cubic inverse fitted over
         the RPC's ground cube inside its image, the cube's affine inverse outside it (cropped RPCs whose offsets
-        lie far from the image), damped in ground space.
+        lie far from the image), damped in ground space (:func:`_localize_chunk`).
         Points that do not converge to ``tol_px`` within ``max_iter`` steps are returned as NaN and counted
         (logged, and returned as :class:`LocalizationStats` when ``full_output=True``).
         """
         sample, line, h = np.broadcast_arrays(_as_float_array(sample), _as_float_array(line), _as_float_array(h))
         shape = sample.shape
         shift = self._pixel_shift(pixel_convention)
+        kernel = self._localize_kernel(shift)
         s_, l_, h_ = sample.ravel(), line.ravel(), h.ravel()
-        lon, lat, ok = np.empty(s_.size), np.empty(s_.size), np.empty(s_.size, dtype=bool)
+        lonlat, ok = np.empty((2, s_.size)), np.empty(s_.size, dtype=bool)
         iterations = []
 
         def block(sl):
-            """Solve the points ``sl`` chunk by chunk, into their places in lon, lat, ok (no per-block arrays:
+            """Solve the points ``sl`` chunk by chunk into their columns of lonlat and ok (no per-block arrays:
             fresh ones faulted in 1,700 pages per 200k points here, 12 % of the CPU)."""
             for i in range(sl.start, max(sl.stop, 1), LOCALIZE_CHUNK):
                 c = slice(i, min(i + LOCALIZE_CHUNK, sl.stop))
-                x = (s_[c] - shift - self.samp_off) / self.samp_scale
-                y = (l_[c] - shift - self.line_off) / self.line_scale
-                H = (h_[c] - self.height_off) / self.height_scale
-                L, P, ok[c], iters = self._localize_normalised(x, y, H, tol_px, max_iter)
-                iterations.append(iters)
-                np.add(np.multiply(L, self.long_scale, out=L), self.long_off, out=lon[c])
-                np.add(np.multiply(P, self.lat_scale, out=P), self.lat_off, out=lat[c])
-                if not ok[c].all():
-                    lon[c][~ok[c]] = np.nan
-                    lat[c][~ok[c]] = np.nan
+                iterations.append(_localize_chunk(kernel, s_[c], l_[c], h_[c], lonlat[:, c], ok[c], tol_px,
+                                                  max_iter))
 
         map_blocks(block, s_.size)
         iters = max(iterations)
+        lon, lat = lonlat
         n_failed = ok.size - int(np.count_nonzero(ok))
         if n_failed:
             log.info("RPC localisation: %d of %d points did not converge (NaN)", n_failed, ok.size)
@@ -624,6 +552,204 @@ class RPCModel(SensorModelMixin):
                 f"{abs(self.lat_scale):.4f}, h={self.height_off:.1f}±{abs(self.height_scale):.1f}, "
                 f"size~{self.image_size[0]}x{self.image_size[1]}" + (f", source={self.source!r})" if self.source
                                                                     else ")"))
+
+
+class _LocalizeKernel(NamedTuple):
+    """:meth:`RPCModel._localize_kernel`: what :func:`_localize_chunk` solves with."""
+    offsets: tuple               # subtracted from (sample, line, h): the raw offsets the monomials hold
+    start: np.ndarray            # (2, 20) start cubic of the raw offsets
+    lo: tuple                    # its frame (raw offsets of sample, line, h): inside it the cubic, outside the affine
+    hi: tuple
+    frame: tuple                 # (cx, sx, cy, sy) of :attr:`RPCModel._inverse_fit` and its affine (2, 4)
+    affine: np.ndarray
+    scales: tuple                # samp, line and height scales
+    rows: np.ndarray             # (12, 20): numerators (px) and denominators, their d/dL, d/dP
+    values: np.ndarray           # rows[0:4], contiguous
+    ground: np.ndarray           # (2, 1) long and lat scales, and offsets
+    ground_off: np.ndarray
+    orientation: float           # sign of det d(s, l)/d(L, P) at the cube's centre
+
+
+#: Rows of the work buffer of :func:`_localize_chunk` (:class:`_LocViews`); the [[1, -1], [-1, 1]] signs of a 2x2
+#: adjugate.
+_LOC_ROWS = 41
+_LOC_SIGN = np.array([[1.0, -1.0], [-1.0, 1.0]])[:, :, None]
+
+
+class _LocViews:
+    """The arrays of :func:`_localize_chunk` as views of one (:data:`_LOC_ROWS`, k) buffer: its first 13 rows are
+    a point's whole state (target, residual, inverse Jacobian, determinant, the monomials' 1, L, P, h), gathered
+    in one call when converged points leave (:meth:`compacted`); the temporaries live in the polynomials' rows
+    (dead once the Jacobian is inverted): a smaller buffer stays in cache."""
+    __slots__ = ("buf", "state", "T", "q", "Inv", "det", "M", "V", "J", "d", "a", "fill")
+
+    def __init__(self, buf: np.ndarray, k: int):
+        b = buf[:, :k]
+        self.buf, self.state = buf, b[0:13]
+        self.T, self.q = b[0:2], b[2:4]                  # target (px offsets); values, then residual
+        self.Inv, self.det = b[4:8].reshape(2, 2, k), b[8]
+        self.M, self.V = b[9:29], b[29:41]               # monomials (rows 1-2: the unknowns L, P); polynomials
+        self.J, self.d, self.a = b[33:37].reshape(2, 2, k), b[37:39], b[39:41]     # V[4:8], V[8:10], V[10:12]
+        self.fill = monomial_views(self.M)               # the monomials are filled three times a chunk
+
+    def compacted(self, cols: np.ndarray) -> "_LocViews":
+        """The views on the points ``cols`` only, their state moved to the first columns."""
+        self.buf[0:13, :cols.size] = self.state[:, cols]
+        return _LocViews(self.buf, cols.size)
+
+
+def _localize_chunk(K: _LocalizeKernel, s, l, h, out, ok, tol: float, max_iter: int) -> int:
+    """:meth:`RPCModel.localize` of the flat points ``s, l, h`` into ``out`` (2, n: lon, lat; NaN where not
+    converged) and ``ok``; returns the iterations. Chord Newton in one reused buffer of the thread
+    (:func:`scratch`), every step on stacked (2, n) and (2, 2, n) arrays (each NumPy call holds the GIL, the cost a
+    second thread pays for; ~50 calls per chunk where every point settles in two iterations, the common case).
+
+    Started from the ground domain (:func:`_loc_start`). The Jacobian is evaluated at the start (within a
+    fraction of a pixel of the solution inside the image of the ground cube) and refreshed every third step, every
+    step after the third (points started outside the cube, cropped RPCs), so most steps cost a single projection.
+    The start is always stepped once; from the second iteration a point whose residual is within ``tol`` px on
+    both axes settles there (:func:`_loc_settle`). Steps are damped in ground space (:func:`_loc_damp`). A
+    solution is accepted within ``_MAX_EXTRAPOLATION`` normalised units of the cube and, after more than two
+    steps, with the cube's orientation (the sign of the Jacobian determinant at its centre): other roots are
+    polynomial artefacts. Every point is solved on its own: the same bits in any chunk."""
+    n = s.size
+    if n == 0:
+        return 1
+    with scratch(_LOC_ROWS, n) as buf:
+        w = _LocViews(buf, n)
+        np.subtract(s, K.offsets[0], out=w.M[1])
+        np.subtract(l, K.offsets[1], out=w.M[2])
+        np.subtract(h, K.offsets[2], out=w.M[3])
+        np.copyto(w.T, w.M[1:3])
+        w.M[0] = 1.0
+        _loc_start(K, w)
+        _loc_jacobian(K.rows, w)
+        idx = None                  # the chunk's points still solved (None: all, in place)
+        for it in range(1, max_iter + 1):
+            np.subtract(w.T, w.q, out=w.q)                       # the residual (px)
+            if it > 1 or max_iter == 1:
+                if idx is None and np.abs(w.q, out=w.a).max() <= tol:     # the common end: all settle at once
+                    _loc_accept_all(K, w, out, ok, it)
+                    return it
+                w, idx = _loc_settle(K, w, idx, out, ok, tol, it)
+                if w is None:
+                    return it
+            _loc_step(w)
+            if it % 3 == 0 or it > 3:
+                _loc_jacobian(K.rows, w)
+            else:
+                _loc_project(K.values, w)
+        if idx is None:
+            out[:] = np.nan
+            ok[:] = False
+        return max_iter
+
+
+def _loc_start(K: _LocalizeKernel, w: _LocViews) -> None:
+    """Newton start (L, P) into the monomials' rows 1-2 from the raw offsets there: the cubic inverse inside the
+    image of the ground cube (within a small fraction of a pixel), the ground-cube affine outside it (cropped
+    RPCs, points off the image; tested chunk-wise first: two reductions when every point is inside)."""
+    D = w.M[1:4]
+    lo, hi = D.min(axis=1).tolist(), D.max(axis=1).tolist()
+    fill_monomials(w.M, w.fill)
+    S = poly_product(K.start, w.M, out=w.V[0:2])
+    if not (lo[0] >= K.lo[0] and lo[1] >= K.lo[1] and lo[2] >= K.lo[2] and hi[0] <= K.hi[0] and hi[1] <= K.hi[1]
+            and hi[2] <= K.hi[2]):                        # NaN: never inside
+        inside = ((D[0] >= K.lo[0]) & (D[0] <= K.hi[0]) & (D[1] >= K.lo[1]) & (D[1] <= K.hi[1])
+                  & (D[2] >= K.lo[2]) & (D[2] <= K.hi[2]))
+        out = np.flatnonzero(~inside)
+        (cx, sx, cy, sy), A = K.frame, K.affine
+        uo, vo = (D[0, out] / K.scales[0] - cx) / sx, (D[1, out] / K.scales[1] - cy) / sy
+        ho = D[2, out] / K.scales[2]
+        S[:, out] = A[:, 0:1] + A[:, 1:2] * uo + A[:, 2:3] * vo + A[:, 3:4] * ho
+    np.copyto(w.M[1:3], S)
+
+
+def _loc_jacobian(rows: np.ndarray, w: _LocViews) -> None:
+    """Values (px) and the inverse Jacobian d(L, P)/d(s, l) with its determinant at the monomials' (L, P): one
+    product, nine stacked calls (J[k, i] = d(s, l)_i / d(L, P)_k; its inverse from the adjugate)."""
+    fill_monomials(w.M, w.fill)
+    V = poly_product(rows, w.M, out=w.V)
+    k = V.shape[1]
+    q = np.divide(V[0:2], V[2:4], out=w.q)
+    dens = np.multiply(V[8:12].reshape(2, 2, k), q, out=V[8:12].reshape(2, 2, k))
+    J = np.subtract(w.J, dens, out=w.J)                          # the numerators' derivatives, in place
+    np.divide(J, V[2:4], out=J)
+    p = np.multiply(J[0], J[1, ::-1], out=w.d)                  # s_L l_P, l_L s_P
+    np.subtract(p[0], p[1], out=w.det)
+    np.divide(_LOC_SIGN, w.det, out=w.Inv)
+    np.multiply(w.Inv, J[::-1, ::-1], out=w.Inv)
+
+
+def _loc_project(values: np.ndarray, w: _LocViews) -> None:
+    """The values (px) at the monomials' (L, P): one product, one division."""
+    fill_monomials(w.M, w.fill)
+    V = poly_product(values, w.M, out=w.V[0:4])
+    np.divide(V[0:2], V[2:4], out=w.q)
+
+
+def _loc_step(w: _LocViews) -> None:
+    """One Newton step of (L, P) from the residual (in ``w.q``) with the inverse Jacobian, damped when any
+    component exceeds half a normalised unit (:func:`_loc_damp`)."""
+    t = np.multiply(w.Inv, w.q[None], out=w.J)
+    d = np.add(t[:, 0], t[:, 1], out=w.d)
+    if d.max() > 0.5 or d.min() < -0.5:
+        _loc_damp(w.M[1:3], d)
+    np.add(w.M[1:3], d, out=w.M[1:3])
+
+
+def _loc_damp(LP: np.ndarray, d: np.ndarray) -> None:
+    """Steps damped in ground space, in place: at most half a normalised unit, or half the distance from the
+    cube's centre when the point lies farther out (rare: only these points pay for it)."""
+    step = np.maximum(np.abs(d[0]), np.abs(d[1]))
+    big = np.flatnonzero(step > 0.5)
+    limit = 0.5 * np.maximum(1.0, np.maximum(np.abs(LP[0, big]), np.abs(LP[1, big])))
+    d[:, big] *= np.minimum(1.0, limit / step[big])
+
+
+def _loc_settle(K, w: _LocViews, idx, out, ok, tol: float, it: int):
+    """Settle the points whose residual (``w.q``) is within ``tol`` on both axes (:func:`_loc_accept`), drop the
+    non-finite ones, keep solving the rest: returns their views (None: none left) and their columns in the
+    chunk. The first time a point leaves, the chunk's outputs are set to NaN, False."""
+    amax = np.maximum(np.abs(w.q[0]), np.abs(w.q[1]))
+    done = amax <= tol
+    keep = ~done & np.isfinite(amax)
+    if keep.all():
+        return w, idx
+    if idx is None:
+        out[:] = np.nan
+        ok[:] = False
+        idx = np.arange(amax.size)
+    cols = np.flatnonzero(done)
+    if cols.size:
+        _loc_accept(K, w, cols, idx[cols], out, ok, it)
+    kept = np.flatnonzero(keep)
+    if kept.size == 0:
+        return None, idx
+    return w.compacted(kept), idx[kept]
+
+
+def _loc_accept(K, w: _LocViews, cols, where, out, ok, it: int) -> None:
+    """The settled points ``cols`` of the views into ``out`` and ``ok`` at ``where``: accepted within
+    ``_MAX_EXTRAPOLATION`` of the cube and, after more than two steps, with its orientation; else NaN."""
+    LP = w.M[1:3, cols]
+    good = np.maximum(np.abs(LP[0]), np.abs(LP[1])) <= _MAX_EXTRAPOLATION
+    if it > 2:
+        good &= np.sign(w.det[cols]) == K.orientation
+    out[:, where] = np.where(good, LP * K.ground + K.ground_off, np.nan)
+    ok[where] = good
+
+
+def _loc_accept_all(K, w: _LocViews, out, ok, it: int) -> None:
+    """Every point of the chunk settled at once: lon, lat in two calls, and accepted in two reductions unless a
+    point lies farther than ``_MAX_EXTRAPOLATION`` or took more than two steps (:func:`_loc_accept`)."""
+    LP = w.M[1:3]
+    np.add(np.multiply(LP, K.ground, out=out), K.ground_off, out=out)
+    if it <= 2 and LP.max() <= _MAX_EXTRAPOLATION and LP.min() >= -_MAX_EXTRAPOLATION:
+        ok[:] = True
+    else:
+        cols = np.arange(LP.shape[1])
+        _loc_accept(K, w, cols, cols, out, ok, it)
 
 
 #: Plausibility limits of :func:`validate_rpc` (METHODS §1): generous, they only refuse what no sensor produces.

@@ -48,7 +48,7 @@ __all__ = ["ENV", "BLOCK", "DEM_BLOCK", "ThreadSettingError", "machine_cores", "
 ENV = "GF4CAL_NUM_THREADS"
 
 #: Points per block of a split kernel: larger inputs are split (below it a pool does not pay). A multiple of the
-#: kernels' own cache chunks (4096, 8192 and 16384 points), so a block evaluates exactly the chunks the serial path does
+#: kernels' own cache chunks (8192 to 32768 points), so a block evaluates exactly the chunks the serial path does
 #: (project and localize give the same bits for any such block size: each point is computed on its own). 32768
 #: points keep a block's working set (the (16, n) Jacobian rows, the Newton state: ~8 MB) small enough that the
 #: blocks of two threads share the last-level cache instead of streaming from memory.

@@ -229,6 +229,29 @@ def test_far_outside_points_come_back_nan_and_counted(real_rpc):
     assert np.isfinite(lon[0]) and np.isnan(lon[1]) and stats.n_failed == 1
 
 
+def test_localize_settles_each_point_on_its_own(real_rpc):
+    """The chunk solver (issue 23) settles a chunk whose points all converge together in a few calls and takes
+    its per-point path otherwise (a point without solution, one that needs damping or the orientation check):
+    a point gets the same bits either way, and the same pixels to 1e-8 px. max_iter=1 accepts the start (the cubic
+    inverse) at a loose tolerance; a tight one gives NaN."""
+    s, l = _image_grid(real_rpc, 12)
+    h = np.full(s.size, real_rpc.height_off)
+    w, hh = real_rpc.image_size
+    *together, stats = real_rpc.localize(s, l, h, full_output=True)
+    assert stats.n_failed == 0                  # Pleiades, WorldView-3, IKONOS, SPOT-6: all settle at the 2nd
+    odd = [(np.nan, 0.0), (1e9, -1e9), (-3.0 * w, 4.0 * hh)]        # no solution, far, a damped start
+    mixed = real_rpc.localize(np.r_[s, [p[0] for p in odd]], np.r_[l, [p[1] for p in odd]],
+                              np.r_[h, h[:len(odd)]], full_output=True)
+    assert mixed[2].max_iterations > 2 and np.isnan(mixed[0][s.size:s.size + 2]).all()
+    assert np.array_equal(mixed[0][:s.size], together[0]) and np.array_equal(mixed[1][:s.size], together[1])
+    ps, pl = real_rpc.project(*together, h)
+    assert np.max(np.hypot(ps - s, pl - l)) <= 1e-8 * 1.5
+    start = real_rpc.localize(s, l, h, tol_px=1e4, max_iter=1)       # SkySat's cubic start: 2,000 px off
+    ps, pl = real_rpc.project(*start, h)
+    assert 1e-8 < np.max(np.hypot(ps - s, pl - l)) < 1e4
+    assert np.isnan(real_rpc.localize(s, l, h, max_iter=1)[0]).all()
+
+
 # ---------------------------------------------------------------------------------------------- corrections
 @pytest.mark.parametrize("convention", ["gdal", "rpc"])
 def test_with_image_affine_folds_shift_and_scale_exactly(real_rpc, convention):
