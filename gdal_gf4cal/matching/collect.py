@@ -310,27 +310,38 @@ def match_tile(spec: TileSpec) -> Dict[str, np.ndarray]:
     peak_ratio, ncc, precision_px, texture``, ``flat`` (flat share of the window's central half, the larger of
     the two images': water, flat cloud) and ``status`` (see :data:`STATUS`).
     """
-    c = np.asarray(spec.centers, dtype=float).reshape(-1, 2)
-    n = c.shape[0]
-    out = {k: np.full(n, np.nan) for k in ("lon", "lat", "h", "dsample", "dline", "peak", "peak_ratio", "ncc",
-                                          "precision_px", "texture", "flat")}
-    out["center_sample"], out["center_line"] = c[:, 0].copy(), c[:, 1].copy()
-    status = np.zeros(n, dtype=np.int8)
-    out["status"] = status
-    if n == 0:
-        return out
-    rpc = spec.rpc
-    dem = _dem_from_spec(spec.dem)
-    if spec.reference_model is None:
-        ref = _cached(("ref", spec.reference_band) + _file_key(spec.reference),
-                      lambda: ReferenceImage(spec.reference, spec.reference_band))
-    else:
-        ref = _cached(("rawref", spec.reference_band) + _file_key(spec.reference),
-                      lambda: RawReference(spec.reference, spec.reference_model, spec.reference_band))
-        ref = ref.with_model(spec.reference_model)
-    ds = _cached(("img",) + _file_key(spec.image), lambda: gdal.Open(spec.image))
+    return match_tiles([spec])[0]
+
+
+#: :func:`match_tile`'s float fields, filled per window.
+_TILE_FIELDS = ("lon", "lat", "h", "dsample", "dline", "peak", "peak_ratio", "ncc", "precision_px", "texture",
+                "flat")
+
+
+@with_gdal_exceptions
+def match_tiles(specs: Sequence[TileSpec]) -> List[Dict[str, np.ndarray]]:
+    """:func:`match_tile` of every spec, the same numbers: tiles of one image over one reference at the same window
+    centres, one per band (as :func:`~gdal_gf4cal.matching.raw.match_raw_bands` groups them). What does not depend
+    on the band is done once: the windows' ground points, their footprints in the reference and the reference
+    resampled onto them (a third of a tile's work)."""
+    sp = specs[0]
+    c = np.asarray(sp.centers, dtype=float).reshape(-1, 2)
+    geo = {k: np.full(c.shape[0], np.nan) for k in _TILE_FIELDS}
+    geo["center_sample"], geo["center_line"] = c[:, 0].copy(), c[:, 1].copy()
+    geo["status"] = np.zeros(c.shape[0], dtype=np.int8)
+    if c.shape[0] == 0:
+        return [{k: v.copy() for k, v in geo.items()} for _ in specs]
+    rpc, dem, ref = sp.rpc, _dem_from_spec(sp.dem), _tile_reference(sp)
+    ds = _cached(("img",) + _file_key(sp.image), lambda: gdal.Open(sp.image))
     try:
-        return _match_windows(spec, c, out, status, rpc, dem, ref, ds)
+        near_edge, fits = _tile_footprint(sp, c, geo, rpc, dem, ref, ds)
+        idx = np.flatnonzero(geo["status"] == 0)
+        ref_f = _fine_reference(sp, c, idx, rpc, dem, ref)
+        last = len(specs) - 1
+        # The fine passes take their reference windows over (zeroing those with no-data): a copy for every band
+        # but the last.
+        return [_match_band(s, c, {k: v.copy() for k, v in geo.items()}, rpc, dem, ref, ds, near_edge, fits, idx,
+                            ref_f if ref_f is None or i == last else ref_f.copy()) for i, s in enumerate(specs)]
     finally:
         # Every window of a tile is read here, by this thread, and tiles hardly share raster blocks: drop them
         # from GDAL's block cache (else each thread's handles keep up to GDAL_CACHEMAX of the scene in memory).
@@ -338,41 +349,62 @@ def match_tile(spec: TileSpec) -> Dict[str, np.ndarray]:
         ref._open().FlushCache()
 
 
-def _match_windows(spec: TileSpec, c, out, status, rpc, dem, ref, ds):
-    """The body of :func:`match_tile` on opened datasets."""
-    p = spec.params
-    w = int(spec.window_px)
-    f = int(spec.factor)
-    n = c.shape[0]
+def _tile_reference(spec: TileSpec):
+    """The tile's reference (cached per thread): an ortho, or a raw image with its model."""
+    if spec.reference_model is None:
+        return _cached(("ref", spec.reference_band) + _file_key(spec.reference),
+                       lambda: ReferenceImage(spec.reference, spec.reference_band))
+    ref = _cached(("rawref", spec.reference_band) + _file_key(spec.reference),
+                  lambda: RawReference(spec.reference, spec.reference_model, spec.reference_band))
+    return ref.with_model(spec.reference_model)
+
+
+def _tile_footprint(spec: TileSpec, c, out, rpc, dem, ref, ds):
+    """The windows' ground points (``lon, lat, h`` into ``out``; status 1 where there is none) and their footprints
+    in the reference: ``(near_edge, fits)`` (a raw reference's windows near its edge; an ortho's: the size that
+    fits in it, else None)."""
+    status = out["status"]
     lon, lat, h = rpc.localize_dem(c[:, 0], c[:, 1], dem)
     out["lon"], out["lat"], out["h"] = np.atleast_1d(lon), np.atleast_1d(lat), np.atleast_1d(h)
     status[~np.isfinite(out["lon"]) | ~np.isfinite(out["h"])] = 1
-    step = int(p.get("geometry_step", 4))
-    near_edge = np.zeros(n, dtype=bool)
-    W, H = ds.RasterXSize, ds.RasterYSize
-    raw_ref = isinstance(ref, RawReference)
-    if raw_ref:
-        near_edge = _raw_reference_footprint(ref, rpc, dem, c, w, out, status)
-    else:
-        fits = _ortho_footprint(ref, rpc, dem, c, w, W, H, out, status)
+    w = int(spec.window_px)
+    if isinstance(ref, RawReference):
+        return _raw_reference_footprint(ref, rpc, dem, c, w, out, status), None
+    fits = _ortho_footprint(ref, rpc, dem, c, w, ds.RasterXSize, ds.RasterYSize, out, status)
+    return np.zeros(c.shape[0], dtype=bool), fits
 
-    # ---- search range of the fine window (as when it was cut from one pre-read block per window): beyond it
-    # the window is flagged, never read far away.
-    search = int(math.ceil(p["search_px"]))
-    lim = max(w * f // 2, w // 2 + search + 2) - w // 2
+
+def _fine_reference(spec: TileSpec, c, idx, rpc, dem, ref):
+    """The reference resampled onto the fine windows ``idx`` (float32), None without any."""
+    if idx.size == 0:
+        return None
+    w = int(spec.window_px)
     # Window corners: centres are placed so that c - w/2 is integer (see plan_tiles).
-    wx0 = np.round(c[:, 0] - w / 2).astype(int)
-    wy0 = np.round(c[:, 1] - w / 2).astype(int)
-    sigma = p.get("sigma_px", 1.0)
-    shift_x, shift_y = _coarse_offsets(spec, ds, rpc, dem, ref, wx0, wy0, status == 0, step, sigma)
+    wx0 = np.round(c[idx, 0] - w / 2).astype(int)
+    wy0 = np.round(c[idx, 1] - w / 2).astype(int)
+    return reference_on_grids(rpc, dem, ref, wx0, wy0, w, spacing=1.0,
+                              geometry_step=int(spec.params.get("geometry_step", 4)), shared=True,
+                              dtype=np.float32)
 
-    # ---- fine level: the reference window at c, the raw window at c + the integer offset found so far.
-    idx = np.flatnonzero(status == 0)
+
+def _match_band(spec: TileSpec, c, out, rpc, dem, ref, ds, near_edge, fits, idx, ref_f):
+    """One band of :func:`match_tiles` on the tile's footprint (``out`` filled so far, the live windows ``idx`` and
+    their reference windows ``ref_f``): coarse offsets, then the fine level, into ``out``."""
     if idx.size == 0:
         return out
-    ref_f = reference_on_grids(rpc, dem, ref, wx0[idx], wy0[idx], w, spacing=1.0, geometry_step=step,
-                               shared=True, dtype=np.float32)
-    size = np.full(idx.size, w) if raw_ref else _shrunk_sizes(ref_f, fits[idx], w)
+    p = spec.params
+    w = int(spec.window_px)
+    status = out["status"]
+    # ---- search range of the fine window (as when it was cut from one pre-read block per window): beyond it
+    # the window is flagged, never read far away.
+    lim = max(w * int(spec.factor) // 2, w // 2 + int(math.ceil(p["search_px"])) + 2) - w // 2
+    wx0 = np.round(c[:, 0] - w / 2).astype(int)
+    wy0 = np.round(c[:, 1] - w / 2).astype(int)
+    shift_x, shift_y = _coarse_offsets(spec, ds, rpc, dem, ref, wx0, wy0, status == 0,
+                                       int(p.get("geometry_step", 4)), p.get("sigma_px", 1.0))
+
+    # ---- fine level: the reference window at c, the raw window at c + the integer offset found so far.
+    size = np.full(idx.size, w) if fits is None else _shrunk_sizes(ref_f, fits[idx], w)
     # A window cut by the reference's edge or no-data is matched on the largest centred square inside them
     # (smaller stacks, starting at the full windows' offsets); one left with too little is no-data.
     status[idx[size == 0]] = 1

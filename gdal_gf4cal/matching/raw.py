@@ -30,18 +30,15 @@ from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import pandas as pd
-from osgeo import gdal
 
 from .. import threads
-from .._gdal import with_gdal_exceptions
 from ..errors import Gf4calError
 from ..progress import report
 from ..rpc import RPCModel
 from ..stats import grouped_trimmed_mean
-from .collect import (STATUS, TileSpec, _cached, _coarse_offsets, _dem_from_spec, _dem_spec, _file_key, _fine_level,
-                      _image_info, _raw_reference_footprint, match_tile, plan_tiles, run_tiles)
+from .collect import STATUS, TileSpec, _dem_from_spec, _dem_spec, _image_info, match_tiles, plan_tiles, run_tiles
 from .filters import reject_outliers
-from .resample import RawReference, reference_on_grids
+from .resample import RawReference
 
 __all__ = ["match_raw", "match_raw_bands", "match_ties", "pan_ms_cells", "cells_from_matches", "cell_edges",
            "overlap_region", "RAW_COLUMNS", "CELL_COLUMNS"]
@@ -155,7 +152,7 @@ def match_raw_bands(image, model, reference_image, reference_model, dem, *, band
 
     The tiles of every band go into one queue of the pool (:func:`.collect.run_tiles`): the threads never wait at
     the end of a band for its last tile, and the overlap with the reference is found once. The tiles of every band at
-    the same windows are one unit of the queue (:func:`match_tiles`: their ground points, footprints and resampled
+    the same windows are one unit of the queue (:func:`.collect.match_tiles`: their ground points, footprints and resampled
     reference once) when there are at least two such units per thread. Tiles are fixed by each band's window grid,
     never by the threads: the same numbers as band after band, whatever the threads.
     """
@@ -224,65 +221,9 @@ def _same_windows(specs: Sequence[TileSpec]):
 
 
 def _match_tiles_serial(group) -> list:
-    """:func:`match_tiles` of a group on a pool thread (serial kernels and BLAS: :func:`threads.serial`)."""
+    """:func:`.collect.match_tiles` of a group on a pool thread (serial kernels and BLAS: :func:`threads.serial`)."""
     with threads.serial():
         return match_tiles(group)
-
-
-@with_gdal_exceptions
-def match_tiles(specs: Sequence[TileSpec]) -> list:
-    """:func:`.collect.match_tile` of every spec (tiles of one raw image over one raw reference at the same window
-    centres, one per band), the same numbers; what does not depend on the band (the windows' ground points, their
-    footprints in the reference, the reference resampled onto them: a third of a tile's work) is done once."""
-    sp = specs[0]
-    if len(specs) == 1 or sp.reference_model is None:
-        return [match_tile(s) for s in specs]
-    c = np.asarray(sp.centers, dtype=float).reshape(-1, 2)
-    w = int(sp.window_px)
-    rpc, dem = sp.rpc, _dem_from_spec(sp.dem)
-    ref = _cached(("rawref", sp.reference_band) + _file_key(sp.reference),
-                  lambda: RawReference(sp.reference, sp.reference_model, sp.reference_band)).with_model(
-        sp.reference_model)
-    ds = _cached(("img",) + _file_key(sp.image), lambda: gdal.Open(sp.image))
-    try:
-        geo = {k: np.full(c.shape[0], np.nan) for k in _TILE_FIELDS}
-        geo["center_sample"], geo["center_line"] = c[:, 0].copy(), c[:, 1].copy()
-        geo["status"] = np.zeros(c.shape[0], dtype=np.int8)
-        if c.shape[0] == 0:
-            return [{k: v.copy() for k, v in geo.items()} for _ in specs]
-        lon, lat, h = rpc.localize_dem(c[:, 0], c[:, 1], dem)
-        geo["lon"], geo["lat"], geo["h"] = np.atleast_1d(lon), np.atleast_1d(lat), np.atleast_1d(h)
-        geo["status"][~np.isfinite(geo["lon"]) | ~np.isfinite(geo["h"])] = 1
-        near_edge = _raw_reference_footprint(ref, rpc, dem, c, w, geo, geo["status"])
-        idx = np.flatnonzero(geo["status"] == 0)
-        step = int(sp.params.get("geometry_step", 4))
-        ref_f = reference_on_grids(rpc, dem, ref, np.round(c[idx, 0] - w / 2).astype(int),
-                                   np.round(c[idx, 1] - w / 2).astype(int), w, spacing=1.0, geometry_step=step,
-                                   shared=True, dtype=np.float32) if idx.size else None
-        return [_fine_band(s, ds, c, geo, near_edge, idx, ref_f if k == len(specs) - 1 else ref_f.copy(), ref)
-                if idx.size else {k_: v.copy() for k_, v in geo.items()} for k, s in enumerate(specs)]
-    finally:
-        ds.FlushCache()                                  # as match_tile: the tile's blocks out of GDAL's cache
-        ref._open().FlushCache()
-
-
-#: :func:`.collect.match_tile`'s float fields filled per window.
-_TILE_FIELDS = ("lon", "lat", "h", "dsample", "dline", "peak", "peak_ratio", "ncc", "precision_px", "texture", "flat")
-
-
-def _fine_band(spec: TileSpec, ds, c, geo, near_edge, idx, ref_f, ref):
-    """One band of :func:`match_tiles`: its coarse offsets and fine level on the shared geometry ``geo`` (a copy
-    of it filled), as :func:`.collect.match_tile` does after the footprint."""
-    out = {k: v.copy() for k, v in geo.items()}
-    w, search = int(spec.window_px), int(math.ceil(spec.params["search_px"]))
-    lim = max(w * int(spec.factor) // 2, w // 2 + search + 2) - w // 2
-    wx0 = np.round(c[:, 0] - w / 2).astype(int)
-    wy0 = np.round(c[:, 1] - w / 2).astype(int)
-    dem = _dem_from_spec(spec.dem)
-    shift_x, shift_y = _coarse_offsets(spec, ds, spec.rpc, dem, ref, wx0, wy0, out["status"] == 0,
-                                       int(spec.params.get("geometry_step", 4)), spec.params.get("sigma_px", 1.0))
-    _fine_level(spec, ds, c, idx, ref_f, shift_x, shift_y, lim, near_edge, out, None)
-    return out
 
 
 def _raw_table(results, outlier_model: Optional[str], outlier_threshold_px: float, seed: int, min_sigma_px: float):
