@@ -867,6 +867,12 @@ def _match_tile_serial(spec: TileSpec) -> Dict[str, np.ndarray]:
         return match_tile(spec)
 
 
+def _match_tiles_serial(specs: Sequence[TileSpec]) -> List[Dict[str, np.ndarray]]:
+    """:func:`match_tiles` as :func:`_match_tile_serial` runs one tile (the unit of a band group's work)."""
+    with threads.serial():
+        return match_tiles(specs)
+
+
 def collect_gcps(image, rpc, reference, dem, spacing_px: int = 256, window_px: int = 64, *,
                  workers: Optional[int] = None, executor: Optional[cf.Executor] = None, min_peak: float = 0.2,
                  min_peak_ratio: float = 2.0, min_ncc: float = 0.3, min_texture: float = 1.5,

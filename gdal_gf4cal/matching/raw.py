@@ -36,7 +36,8 @@ from ..errors import Gf4calError
 from ..progress import report
 from ..rpc import RPCModel
 from ..stats import grouped_trimmed_mean
-from .collect import STATUS, TileSpec, _dem_from_spec, _dem_spec, _image_info, match_tiles, plan_tiles, run_tiles
+from .collect import (STATUS, TileSpec, _dem_from_spec, _dem_spec, _image_info, _match_tiles_serial, plan_tiles,
+                      run_tiles)
 from .filters import reject_outliers
 from .resample import RawReference
 
@@ -151,9 +152,9 @@ def match_raw_bands(image, model, reference_image, reference_model, dem, *, band
     the one :func:`match_raw` gives for that band (``spacing_px``: one step, or one per band).
 
     The tiles of every band go into one queue of the pool (:func:`.collect.run_tiles`): the threads never wait at
-    the end of a band for its last tile, and the overlap with the reference is found once. The tiles of every band at
-    the same windows are one unit of the queue (:func:`.collect.match_tiles`: their ground points, footprints and resampled
-    reference once) when there are at least two such units per thread. Tiles are fixed by each band's window grid,
+    the end of a band for its last tile, and the overlap with the reference is found once. The tiles of every band
+    at the same windows are one unit of the queue (:func:`.collect.match_tiles`: their ground points, footprints
+    and resampled reference once) when there are at least two such units per thread. Tiles are fixed by each band's window grid,
     never by the threads: the same numbers as band after band, whatever the threads.
     """
     bands = [int(b) for b in bands]
@@ -218,12 +219,6 @@ def _same_windows(specs: Sequence[TileSpec]):
                id(sp.reference_model))
         keys.setdefault(key, []).append(i)
     return [_TileGroup([specs[i] for i in idx], idx) for idx in keys.values()]
-
-
-def _match_tiles_serial(group) -> list:
-    """:func:`.collect.match_tiles` of a group on a pool thread (serial kernels and BLAS: :func:`threads.serial`)."""
-    with threads.serial():
-        return match_tiles(group)
 
 
 def _raw_table(results, outlier_model: Optional[str], outlier_threshold_px: float, seed: int, min_sigma_px: float):

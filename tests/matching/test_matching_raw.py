@@ -20,7 +20,8 @@ from gdal_gf4cal.executors import SerialExecutor
 from gdal_gf4cal.rpc import RPCModel
 from gdal_gf4cal.matching import (RawReference, cells_from_matches, match_raw, match_tile, match_ties, pan_ms_cells,
                                   plan_tiles, reference_on_grids)
-from gdal_gf4cal.matching.raw import CELL_COLUMNS, RAW_COLUMNS, _same_windows, match_tiles
+from gdal_gf4cal.matching.collect import match_tiles
+from gdal_gf4cal.matching.raw import CELL_COLUMNS, RAW_COLUMNS, _same_windows
 from gdal_gf4cal.simulate import write_scene
 from gdal_gf4cal.simulate.gf7 import cover_weights, true_misregistration, write_gf7_scene
 
