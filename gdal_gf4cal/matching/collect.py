@@ -50,11 +50,11 @@ from .. import threads
 from .._gdal import with_gdal_exceptions
 from ..dem import DEM
 from ..errors import Gf4calError
-from ..executors import map_ordered
+from ..executors import heap_kept, map_ordered
 from ..gcp import make_gcps
 from ..progress import report
 from ..rpc import RPCModel
-from .correlate import correlate_spectra, phase_correlate, spectra, window_measures
+from .correlate import correlate_spectra, null_result, phase_correlate, spectra, window_measures
 from .filters import reject_outliers
 from .resample import RawReference, ReferenceImage, cut_boxes, read_block, read_boxes, reference_on_grids
 
@@ -619,10 +619,12 @@ class _FinePasses:
     def _chunk_passes(self, active):
         """Up to three passes over windows ``active``: read the raw window at the current offset, correlate,
         move by the integer part of the residual; only windows still moving are re-read and re-correlated (the
-        reference windows' spectra are computed once: they do not move)."""
+        reference windows' spectra are computed once: they do not move). A window without a usable pair (no-data
+        or outside the raster in either window) stops there with the results of a pair of zero windows
+        (:func:`.correlate.null_result`), without being transformed, and is flagged in :func:`_fine_level`."""
         ox, oy, lim = self.ox, self.oy, self.lim
-        Fs = spectra(self.a[active])
-        pos = np.arange(active.size)   # of the windows still moving, in Fs
+        Fs = spectra(self.a[active[~self.nan_ref[active]]])
+        pos = np.cumsum(~self.nan_ref[active]) - 1   # of the windows still moving, in Fs (with a reference)
         for it in range(3):
             axo, ayo = ox[active], oy[active]
             out_a = (np.abs(axo) > lim) | (np.abs(ayo) > lim)
@@ -630,24 +632,23 @@ class _FinePasses:
             nan_a = np.isnan(raw_a).any(axis=(1, 2)) | out_a
             okw = ~(self.nan_ref[active] | nan_a)
             raw_a[~okw] = 0.0
-            # The chunk's spectra themselves in the first pass (a window zeroed below is done: never used again)
-            Fa = Fs if pos.size == Fs.S.shape[0] else Fs.take(pos)
-            if not okw.all():
-                # A window without a usable pair correlates two zero windows (shift 0): it stops moving and is
-                # flagged below, exactly as any other no-data window.
-                Fa.S[~okw] = 0
-            Gs = spectra(raw_a)
-            pk = correlate_spectra(Fa, Gs, self.sigma)
-            jump_x = np.where(okw & (np.abs(pk.dx) > 0.5), np.round(pk.dx), 0).astype(int)
-            jump_y = np.where(okw & (np.abs(pk.dy) > 0.5), np.round(pk.dy), 0).astype(int)
+            live = np.flatnonzero(okw)
+            jump_x, jump_y = np.zeros(active.size, int), np.zeros(active.size, int)
+            if live.size:
+                # The chunk's spectra themselves while every window has a pair (one without is done)
+                Fa = Fs if live.size == Fs.S.shape[0] else Fs.take(pos[live])
+                Gs = spectra(raw_a[live])
+                pk = correlate_spectra(Fa, Gs, self.sigma)
+                jump_x[live] = np.where(np.abs(pk.dx) > 0.5, np.round(pk.dx), 0)
+                jump_y[live] = np.where(np.abs(pk.dy) > 0.5, np.round(pk.dy), 0)
             # The last pass must not move the raw window: the measurement (and a, b, outside) belong to the
             # alignment they were made at, and ox + dx is only right for that one. A window still oscillating
             # about a half pixel keeps its last |residual| <= 0.75 px (accepted, consistent) or is flagged weak.
             done = np.ones(active.size, bool) if it == 2 else ~((jump_x != 0) | (jump_y != 0))
-            q = pk.quality(Fa, Gs, np.flatnonzero(done))
+            if live.size:
+                self._store(active[done & okw], pk.quality(Fa, Gs, np.flatnonzero(done[live])))
+            self._store(active[done & ~okw], null_result(raw_a.shape[1:], self.sigma))
             sel = active[done]
-            for k in self.FIELDS:
-                self.res[k][sel] = getattr(q, k)
             self.b[sel] = raw_a[done]
             self.nan_raw[sel] = nan_a[done]
             self.outside[sel] = out_a[done]
@@ -656,6 +657,11 @@ class _FinePasses:
             active, pos = active[~done], pos[~done]
             if active.size == 0:
                 break
+
+    def _store(self, sel, q) -> None:
+        """Results ``q`` (a :class:`.correlate.CorrelationResult`) of the windows ``sel``."""
+        for k in self.FIELDS:
+            self.res[k][sel] = getattr(q, k)
 
 
 #: Bytes of float32 windows per chunk of the fine passes (:meth:`_FinePasses.passes`): 4 windows of 256 px, 64 of
@@ -853,8 +859,10 @@ def run_tiles(specs: Sequence[TileSpec], executor: Optional[cf.Executor] = None,
             # process pool paid ~0.3 s of start-up and pickling on a 10240^2 scene for no gain in throughput.
             own = executor = cf.ThreadPoolExecutor(max_workers=nw, thread_name_prefix="gf4cal-tile")
     try:
-        # Results in submission order whatever the executor (gdal_gf4cal.executors, issue 14).
-        return map_ordered(fn, specs, executor, progress=progress, stop=stop, label="tile")
+        # Results in submission order whatever the executor (gdal_gf4cal.executors, issue 14); tile-sized arrays
+        # kept on this process's heap (heap_kept: no page faults and unmaps at every window stack).
+        with heap_kept():
+            return map_ordered(fn, specs, executor, progress=progress, stop=stop, label="tile")
     finally:
         if own is not None:
             own.shutdown(wait=True, cancel_futures=True)

@@ -59,7 +59,7 @@ _MEASURE_BYTES = 1 << 19
 _TINY = np.float32(1e-30)
 
 __all__ = ["CorrelationResult", "phase_correlate", "taper", "texture_strength", "flat_fraction", "block_reduce",
-           "window_measures", "spectra", "correlate_spectra", "Spectra", "Peaks"]
+           "window_measures", "spectra", "correlate_spectra", "Spectra", "Peaks", "null_result"]
 
 
 @dataclass(frozen=True)
@@ -348,6 +348,15 @@ def phase_correlate(fixed: np.ndarray, moving: np.ndarray, *, window: str = "han
         parts.append(correlate_spectra(F, G, sigma_px).quality(F, G, exclude_px=exclude_px))
     return CorrelationResult(*(np.concatenate([getattr(q, f) for q in parts]).reshape(lead)
                                for f in ("dx", "dy", "peak", "peak_ratio", "ncc", "precision_px")))
+
+
+@lru_cache(maxsize=16)
+def null_result(shape: Tuple[int, int], sigma_px: float = 1.0) -> CorrelationResult:
+    """What :func:`phase_correlate` gives for a pair of zero windows of ``shape`` (one window: shift 0, peak 0,
+    peak ratio inf, NCC NaN, precision inf): the results of a pair without data, which need not be
+    transformed (also when only one of the two is zero: the cross-power spectrum is zero either way)."""
+    z = spectra(np.zeros((1,) + tuple(int(v) for v in shape), dtype=np.float32))
+    return correlate_spectra(z, z, float(sigma_px)).quality(z, z)
 
 
 def texture_strength(windows: np.ndarray, noise_floor=None) -> np.ndarray:

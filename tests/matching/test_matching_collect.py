@@ -7,9 +7,11 @@ Truth of a GCP: ``true_rpc.project(lon, lat, h)``.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import json
 import os
 import pickle
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -260,3 +262,41 @@ def test_pilot_probes_start_every_window_where_the_full_pilots_would(tmp_path, m
     assert err.max() < 0.1, np.sort(err)[-3:]
     # 64 windows: full pilots take 64 + 16 correlations (the 16 pilots twice), probes 64 and a few.
     assert n_f >= 80 and n_p <= 68, (n_p, n_f)
+
+
+_HEAP_PROBE = """
+import json, resource, sys
+import numpy as np
+from gdal_gf4cal import executors
+from gdal_gf4cal.matching import run_tiles
+
+def faults(_=None):
+    # A tile's pattern: two stacks of 2 MB alive at once, then freed (windows and their spectra).
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(20):
+        a = np.ones(1 << 18)
+        b = np.ones(1 << 18)
+        del a, b
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r
+
+before = faults()
+in_tiles = run_tiles([0, 1, 2], workers=1, fn=faults)
+print(json.dumps({"before": before, "in_tiles": in_tiles, "set": executors._heap["set"] is not None}))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc thresholds")
+@pytest.mark.parametrize("env", [False, True])
+def test_tiles_keep_their_stacks_on_the_heap(env):
+    """Tiles run inside executors.heap_kept: glibc's defaults page-fault every 2 MB stack in afresh (a fault per
+    4 KB page, ~20,000 for this pattern); inside, after the first tile, none. Thresholds the environment sets are
+    left alone (then they are what keeps the stacks on the heap)."""
+    environ = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    if env:
+        environ.update(MALLOC_TRIM_THRESHOLD_="67108864", MALLOC_MMAP_THRESHOLD_="33554432")
+    r = subprocess.run([sys.executable, "-c", _HEAP_PROBE], capture_output=True, text=True, env=environ, check=True)
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    if not env:
+        assert out["before"] > 10000, out      # the cost heap_kept removes (else this test proves nothing)
+    assert out["set"] is not env
+    assert max(out["in_tiles"][1:]) < 50, out
