@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
-from gdal_gf4cal.matching.correlate import block_reduce, phase_correlate, taper, texture_strength
+from gdal_gf4cal.matching.correlate import (block_reduce, correlate_spectra, null_result, phase_correlate, spectra, taper,
+                                           texture_strength)
 
 
 class Texture:
@@ -168,3 +170,22 @@ def test_a_window_gives_the_same_bits_in_any_stack():
     # Zero windows (no usable pair) measure texture 0, flat 1: what collect gives them without measuring.
     t0, f0 = window_measures(np.zeros((2, 64, 64)), (16, 48))
     assert np.all(t0 == 0) and np.all(f0 == 1)
+
+
+@pytest.mark.parametrize("shape, sigma", [((64, 64), 1.0), ((96, 128), 0.7)])
+def test_null_result_is_what_a_pair_without_data_gives(shape, sigma):
+    """The fine passes stop a window without a usable pair at null_result instead of transforming it: the results
+    of the transform of that pair (the reference's spectrum zeroed, its energy kept; the raw window zero) inside a
+    stack of real windows, field by field (NaN NCC, infinite peak ratio and precision, shift 0)."""
+    rng = np.random.default_rng(5)
+    ref = ndimage.gaussian_filter(rng.normal(size=(3,) + shape), (0, 2, 2)).astype(np.float32)
+    raw = np.roll(ref, (1, 2), axis=(1, 2))
+    raw[1] = 0.0                                   # window 1: no raw data (as zeroed by the fine passes)
+    F, G = spectra(ref), spectra(raw)
+    F.S[1] = 0
+    q = correlate_spectra(F, G, sigma).quality(F, G)
+    null = null_result(shape, sigma)
+    for k in ("dx", "dy", "peak", "peak_ratio", "ncc", "precision_px"):
+        assert np.array_equal(getattr(q, k)[1:2], getattr(null, k), equal_nan=True), k
+    assert null.peak[0] == 0 and np.isnan(null.ncc[0]) and np.isinf(null.peak_ratio[0])
+    assert abs(q.dx[0] - 2) < 0.2 and abs(q.dy[0] - 1) < 0.2    # the real windows were measured (wrapped)
