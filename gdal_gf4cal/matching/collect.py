@@ -507,12 +507,21 @@ def _probe_pilots(fine, pilots, c, p):
     b = fine._read(fine.wx0[pilots] + np.clip(ox, -lim, lim), fine.wy0[pilots] + np.clip(oy, -lim, lim))
     ok = ~(fine.nan_ref[pilots] | np.isnan(b).any(axis=(1, 2))) & (np.abs(ox) <= lim) & (np.abs(oy) <= lim)
     b[~ok] = 0.0
-    h = w // 2
-    a2, b2 = (v.reshape(v.shape[0], h, 2, h, 2).mean(axis=(2, 4)) for v in (fine.a[pilots], b))
+    a2, b2 = _means_2x2(fine.a[pilots]), _means_2x2(b)
     r = phase_correlate(a2, b2, sigma_px=fine.sigma)
     dx, dy = ox + 2.0 * r.dx, oy + 2.0 * r.dy
     res = dict(peak=r.peak, peak_ratio=r.peak_ratio, ncc=r.ncc, dx=dx - np.round(dx), dy=dy - np.round(dy))
     return _predict_offsets(c[pilots], dx, dy, res, ok, c, p)
+
+
+def _means_2x2(v: np.ndarray) -> np.ndarray:
+    """2 x 2 block means of a float32 stack ``(n, 2 h, 2 w)``: the bits of ``v.reshape(n, h, 2, w, 2).mean(axis=(2,
+    4))`` (NumPy adds each block's two row pairs, then the pairs' sums; / 4 is exact) in four whole-stack additions,
+    ten times faster than its reduction over two strided length-2 axes."""
+    s = v[:, 0::2, 0::2] + v[:, 0::2, 1::2]
+    s += v[:, 1::2, 0::2] + v[:, 1::2, 1::2]
+    s *= np.float32(0.25)
+    return s
 
 
 def _coarse_offsets(spec: TileSpec, ds, rpc, dem, ref, wx0, wy0, live, step: int, sigma: float):

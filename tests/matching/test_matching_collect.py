@@ -300,3 +300,19 @@ def test_tiles_keep_their_stacks_on_the_heap(env):
         assert out["before"] > 10000, out      # the cost heap_kept removes (else this test proves nothing)
     assert out["set"] is not env
     assert max(out["in_tiles"][1:]) < 50, out
+
+
+@pytest.mark.parametrize("n, w", [(1, 128), (5, 192), (16, 256)])
+def test_probe_means_are_the_bits_of_numpys_block_mean(n, w):
+    """The pilots' 2 x 2 block means (_means_2x2: four whole-stack additions) are the bits of NumPy's mean over the
+    two length-2 axes, which sums each block's row pairs, then their sums; another order (row by row) differs in
+    about a quarter of the blocks, so the probes (and every window's start) would change."""
+    from gdal_gf4cal.matching.collect import _means_2x2
+    rng = np.random.default_rng(n)
+    v = (rng.normal(size=(n, w, w)) * 10.0 ** rng.uniform(-3, 4)).astype(np.float32)
+    h = w // 2
+    ref = v.reshape(n, h, 2, h, 2).mean(axis=(2, 4))
+    got = _means_2x2(v)
+    assert got.dtype == ref.dtype == np.float32 and np.array_equal(got, ref)
+    rowwise = ((v[:, 0::2, 0::2] + v[:, 0::2, 1::2]) + v[:, 1::2, 0::2]) + v[:, 1::2, 1::2]
+    assert not np.array_equal(rowwise * np.float32(0.25), ref)      # the order matters on these values
