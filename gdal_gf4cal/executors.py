@@ -44,42 +44,33 @@ WORKER_ENV = {"MALLOC_MMAP_THRESHOLD_": 32 * 2 ** 20, "MALLOC_TRIM_THRESHOLD_": 
 #: glibc's ``mallopt`` parameters of the two thresholds of :data:`WORKER_ENV` (``malloc.h``).
 _MALLOPT = {"MALLOC_TRIM_THRESHOLD_": -1, "MALLOC_MMAP_THRESHOLD_": -3}
 _heap_lock = threading.Lock()
-_heap = {"set": None, "scopes": 0}      # set: the thresholds in force (None: not tried yet)
+_heap: dict = {}                    # "set": whether the thresholds are in force (absent: not tried yet)
 
 
-@contextlib.contextmanager
-def heap_kept() -> Iterator[None]:
-    """Within the ``with`` block this process's glibc malloc keeps tile-sized arrays on its heap: the thresholds of
+def keep_heap() -> bool:
+    """This process's glibc malloc keeps tile-sized arrays on its heap from now on: the thresholds of
     :data:`WORKER_ENV` (what a Dask worker gets from its environment) set once through ``mallopt``, unless the
     environment sets them. With glibc's defaults a matching tile's stacks of windows and spectra (1-4 MB) were
-    fresh mmaps, page-faulted in and unmapped again at every call (~5 us a page on a KVM guest; 28,000 faults
-    per run of the collect-gcps thread bench, an inverse FFT of 4 windows of 256 px 4x slower), and an unmap
-    interrupts the process's other threads. When the last scope ends the free heap goes back to the OS
-    (``malloc_trim``). Not glibc (macOS, Windows, musl): nothing changes."""
+    fresh mmaps, page-faulted in and unmapped again call after call (~6 us a page on a KVM guest: 17,000-30,000
+    faults per run of collect-gcps on the Sentinel-2 pair or the thread bench's scene, an inverse FFT of 4 windows
+    of 256 px 4x slower), and every unmap interrupts the process's other threads. The heap then keeps up to the
+    trim threshold (64 MB) free for the next tile instead of handing it back. Returns whether the thresholds are
+    in force; not glibc (macOS, Windows, musl): nothing changes."""
     with _heap_lock:
-        if _heap["set"] is None:
+        if "set" not in _heap:
             _heap["set"] = _set_heap_thresholds()
-        _heap["scopes"] += 1
-    try:
-        yield
-    finally:
-        with _heap_lock:
-            _heap["scopes"] -= 1
-            if _heap["scopes"] == 0 and _heap["set"]:
-                _heap["set"].malloc_trim(0)
+        return _heap["set"]
 
 
-def _set_heap_thresholds():
-    """glibc's C library with :data:`WORKER_ENV`'s malloc thresholds set (None: not glibc, or not set)."""
+def _set_heap_thresholds() -> bool:
+    """:data:`WORKER_ENV`'s malloc thresholds set in glibc (False: not glibc, or the environment sets them)."""
     if not sys.platform.startswith("linux") or any(k in os.environ for k in _MALLOPT):
-        return None
+        return False
     try:
-        libc = ctypes.CDLL(None)
-        libc.malloc_trim  # noqa: B018 - glibc has it (musl's mallopt is a stub without it)
-        ok = all(libc.mallopt(_MALLOPT[k], int(WORKER_ENV[k])) == 1 for k in _MALLOPT)
+        mallopt = ctypes.CDLL(None).mallopt
     except (OSError, AttributeError):
-        return None
-    return libc if ok else None
+        return False
+    return all(mallopt(_MALLOPT[k], int(WORKER_ENV[k])) == 1 for k in _MALLOPT)   # musl's mallopt: 0
 
 
 class ExecutorError(Gf4calError, ConnectionError):

@@ -50,7 +50,7 @@ from .. import threads
 from .._gdal import with_gdal_exceptions
 from ..dem import DEM
 from ..errors import Gf4calError
-from ..executors import heap_kept, map_ordered
+from ..executors import keep_heap, map_ordered
 from ..gcp import make_gcps
 from ..progress import report
 from ..rpc import RPCModel
@@ -868,10 +868,10 @@ def run_tiles(specs: Sequence[TileSpec], executor: Optional[cf.Executor] = None,
             # process pool paid ~0.3 s of start-up and pickling on a 10240^2 scene for no gain in throughput.
             own = executor = cf.ThreadPoolExecutor(max_workers=nw, thread_name_prefix="gf4cal-tile")
     try:
-        # Results in submission order whatever the executor (gdal_gf4cal.executors, issue 14); tile-sized arrays
-        # kept on this process's heap (heap_kept: no page faults and unmaps at every window stack).
-        with heap_kept():
-            return map_ordered(fn, specs, executor, progress=progress, stop=stop, label="tile")
+        # Tile-sized arrays kept on this process's heap (keep_heap: no page faults and unmaps at every stack of
+        # windows); results in submission order whatever the executor (gdal_gf4cal.executors, issue 14).
+        keep_heap()
+        return map_ordered(fn, specs, executor, progress=progress, stop=stop, label="tile")
     finally:
         if own is not None:
             own.shutdown(wait=True, cancel_futures=True)

@@ -281,15 +281,15 @@ def faults(_=None):
 
 before = faults()
 in_tiles = run_tiles([0, 1, 2], workers=1, fn=faults)
-print(json.dumps({"before": before, "in_tiles": in_tiles, "set": executors._heap["set"] is not None}))
+print(json.dumps({"before": before, "in_tiles": in_tiles, "set": executors._heap["set"]}))
 """
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc thresholds")
 @pytest.mark.parametrize("env", [False, True])
 def test_tiles_keep_their_stacks_on_the_heap(env):
-    """Tiles run inside executors.heap_kept: glibc's defaults page-fault every 2 MB stack in afresh (a fault per
-    4 KB page, ~20,000 for this pattern); inside, after the first tile, none. Thresholds the environment sets are
+    """Tiles run after executors.keep_heap: glibc's defaults page-fault every 2 MB stack in afresh (a fault per
+    4 KB page, ~20,000 for this pattern); then, after the first tile, none. Thresholds the environment sets are
     left alone (then they are what keeps the stacks on the heap)."""
     environ = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
     if env:
@@ -297,7 +297,7 @@ def test_tiles_keep_their_stacks_on_the_heap(env):
     r = subprocess.run([sys.executable, "-c", _HEAP_PROBE], capture_output=True, text=True, env=environ, check=True)
     out = json.loads(r.stdout.strip().splitlines()[-1])
     if not env:
-        assert out["before"] > 10000, out      # the cost heap_kept removes (else this test proves nothing)
+        assert out["before"] > 10000, out      # the cost keep_heap removes (else this test proves nothing)
     assert out["set"] is not env
     assert max(out["in_tiles"][1:]) < 50, out
 
