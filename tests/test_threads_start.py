@@ -10,17 +10,19 @@ from gdal_gf4cal import threads
 
 
 def test_start_runs_beside_the_caller_with_two_threads():
-    go = threading.Event()
+    started, go = threading.Event(), threading.Event()
     seen = {}
 
     def task():
         seen["thread"] = threading.get_ident()
         seen["serial"] = threads.num_threads()
-        # waits for the caller, which sets the event only after start returned: run in join it would time out
+        started.set()
+        # waits for the caller, which lets it go only once it has begun: run in start or in join it would time out
         return go.wait(10)
 
     with threads.limit(2):
         join = threads.start(task)
+        assert started.wait(10)            # begun while the caller goes on
         go.set()
         assert join() is True
     assert seen["thread"] != threading.get_ident()

@@ -31,7 +31,7 @@ from ..errors import Gf4calError
 from ..estimation import weighted_lsq
 from ..geodesy import metres_per_degree
 from ..matching import cells_from_matches, pan_ms_cells
-from ..matching.raw import match_raw_bands
+from ..matching.raw import match_raw_bands, thread_dem
 from ..outputs import OutputSet, check_raster, check_vector
 from ..panms import LINEAR_ORDER, PanMSError, linear_design, residual_spectrum, row_means, step_residuals
 from ..report import write_report_json, write_residuals_gpkg
@@ -444,7 +444,7 @@ def _open_pair(pan, ms, *, dem, geoid, pan_rpc, ms_rpc, notes) -> _Pair:
     pan_model, note_p = image_rpc(pan, pan_rpc)
     ms_model, note_m = image_rpc(ms, ms_rpc)
     notes += [n for n in (note_p, note_m) if n]
-    dem_obj = DEM.from_user_input(dem, geoid=geoid)
+    dem_obj = thread_dem(DEM.from_user_input(dem, geoid=geoid))     # the matcher's, on this thread
     geo = pair_geometry(pan_model, ms_model, pan_size, ms_size, dem_obj)
     ratio = int(round(geo["scale"]))
     if abs(geo["scale"] - ratio) > 0.05 * ratio:
