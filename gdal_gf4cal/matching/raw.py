@@ -190,6 +190,9 @@ def match_raw_bands(image, model, reference_image, reference_model, dem, *, band
     if executor is None and len(groups) < 2 * threads.pool_workers(workers, len(specs)):
         # too few groups to keep the threads busy (a small crop): every tile its own unit (the same bits)
         groups = [_TileGroup([sp], [i]) for i, sp in enumerate(specs)]
+    # the largest units first (a grid's edge tiles are smaller): the threads end together; each unit's results go
+    # to its tiles' places, so the order changes no number
+    groups.sort(key=lambda g: -len(g) * len(g[0].centers))
     done = run_tiles(groups, executor, workers=workers, progress=progress, stop=0.97, fn=_match_tiles_serial)
     results = [None] * len(specs)
     for group, res in zip(groups, done):
