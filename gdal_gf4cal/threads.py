@@ -24,6 +24,7 @@ the pool's for the cores, and no number depends on how many threads OpenBLAS wou
 """
 from __future__ import annotations
 
+import functools
 import os
 import sys
 import threading
@@ -42,7 +43,8 @@ from .errors import Gf4calError
 
 __all__ = ["ENV", "BLOCK", "DEM_BLOCK", "ThreadSettingError", "machine_cores", "num_threads", "limit",
            "block_slices", "map_blocks", "split_points", "serial", "pool_workers", "matmul", "BLAS_SERIAL_SIZE",
-           "SERIAL_ENV", "blas_serial", "blas_is_serial", "blas_threads", "run_tasks", "PerThread", "rows_times"]
+           "SERIAL_ENV", "blas_serial", "blas_is_serial", "blas_threads", "run_tasks", "start", "PerThread",
+           "rows_times"]
 
 #: The environment variable of the thread setting.
 ENV = "GF4CAL_NUM_THREADS"
@@ -242,6 +244,16 @@ def run_tasks(tasks: Sequence[Callable[[], T]]) -> List[T]:
     kernels and BLAS inside, a lone task too: the same numbers for any count; results in order, the first failing
     task's exception raised). Put the longest first."""
     return map_blocks(lambda sl: _in_block(lambda _: tasks[sl.start](), sl), len(tasks), block=1) if tasks else []
+
+
+def start(task: Callable[[], T]) -> Callable[[], T]:
+    """``task()`` begun on a pool thread (serial kernels inside, as a :func:`run_tasks` task) while the caller goes
+    on, e.g. GIL-bound plotting beside GDAL writing; returns ``join()``, which gives its result (or raises its
+    exception) once it has ended. With one thread, or when no pool thread has taken it by then, the task runs in
+    ``join`` on the calling thread: the same numbers for any count."""
+    run = functools.partial(_in_block, lambda _: task(), None)
+    future = _submit(run, 1)[0] if num_threads() > 1 else None
+    return lambda: run() if future is None or future.cancel() else future.result()
 
 
 class PerThread:

@@ -338,10 +338,12 @@ def match_tiles(specs: Sequence[TileSpec]) -> List[Dict[str, np.ndarray]]:
         idx = np.flatnonzero(geo["status"] == 0)
         ref_f = _fine_reference(sp, c, idx, rpc, dem, ref)
         last = len(specs) - 1
+        # Several bands, full windows (a raw reference): the reference windows' texture measures once (panms3)
+        ref_m = _reference_measures(ref_f) if last and fits is None and ref_f is not None else None
         # The fine passes take their reference windows over (zeroing those with no-data): a copy for every band
         # but the last.
         return [_match_band(s, c, {k: v.copy() for k, v in geo.items()}, rpc, dem, ref, ds, near_edge, fits, idx,
-                            ref_f if ref_f is None or i == last else ref_f.copy()) for i, s in enumerate(specs)]
+                            ref_f if ref_f is None or i == last else ref_f.copy(), ref_m) for i, s in enumerate(specs)]
     finally:
         # Every window of a tile is read here, by this thread, and tiles hardly share raster blocks: drop them
         # from GDAL's block cache (else each thread's handles keep up to GDAL_CACHEMAX of the scene in memory).
@@ -387,9 +389,20 @@ def _fine_reference(spec: TileSpec, c, idx, rpc, dem, ref):
                               dtype=np.float32)
 
 
-def _match_band(spec: TileSpec, c, out, rpc, dem, ref, ds, near_edge, fits, idx, ref_f):
+def _reference_measures(ref_f):
+    """:func:`_flag_windows`'s texture measures of the reference windows ``ref_f`` without no-data (NaN for the
+    others), for every band of a group: each window's measures depend on that window alone."""
+    w = ref_f.shape[-1]
+    tex, flat = np.full(ref_f.shape[0], np.nan), np.full(ref_f.shape[0], np.nan)
+    ok = np.flatnonzero(~np.isnan(ref_f).any(axis=(1, 2)))
+    tex[ok], flat[ok] = window_measures(ref_f, (w // 4, w - w // 4), which=ok)
+    return tex, flat
+
+
+def _match_band(spec: TileSpec, c, out, rpc, dem, ref, ds, near_edge, fits, idx, ref_f, ref_m=None):
     """One band of :func:`match_tiles` on the tile's footprint (``out`` filled so far, the live windows ``idx`` and
-    their reference windows ``ref_f``): coarse offsets, then the fine level, into ``out``."""
+    their reference windows ``ref_f``, their texture measures ``ref_m`` if known): coarse offsets, then the fine
+    level, into ``out``."""
     if idx.size == 0:
         return out
     p = spec.params
@@ -414,12 +427,14 @@ def _match_band(spec: TileSpec, c, out, rpc, dem, ref, ds, near_edge, fits, idx,
         sel = size == s
         # The fine passes take their reference windows over (zeroing those with no-data): the whole stack when
         # every window has the full size, else a copy of those of this size.
-        sub = ref_f if s == w and sel.all() else ref_f[sel, k:k + s, k:k + s]
-        guide = _fine_level(spec, ds, c, idx[sel], sub, shift_x, shift_y, lim, near_edge, out, guide)
+        whole = s == w and sel.all()
+        sub = ref_f if whole else ref_f[sel, k:k + s, k:k + s]
+        guide = _fine_level(spec, ds, c, idx[sel], sub, shift_x, shift_y, lim, near_edge, out, guide,
+                            ref_m if whole else None)
     return out
 
 
-def _fine_level(spec: TileSpec, ds, c, idx, ref_f, shift_x, shift_y, lim: int, near_edge, out, guide):
+def _fine_level(spec: TileSpec, ds, c, idx, ref_f, shift_x, shift_y, lim: int, near_edge, out, guide, ref_m=None):
     """Fine level of windows ``idx`` (their reference windows ``ref_f``, all of one size): the raw window at ``c``
     + the integer offset found so far; results and status into ``out``. ``guide`` (centres, offsets, results and
     usability of windows already matched, as returned) predicts where these windows start; without it, pilots
@@ -447,7 +462,7 @@ def _fine_level(spec: TileSpec, ds, c, idx, ref_f, shift_x, shift_y, lim: int, n
     fx0, fy0 = wx0 + ox, wy0 + oy
     beyond = fine.outside | (fx0 < 0) | (fy0 < 0) | (fx0 + w > W) | (fy0 + w > H) | near_edge[idx]
     st[~okw] = np.where(beyond[~okw], 5, 1)
-    tex, flat = _flag_windows(st, fine.a, fine.b, res, p, okw)
+    tex, flat = _flag_windows(st, fine.a, fine.b, res, p, okw, ref_m)
     status[idx] = st
     out["dsample"][idx] = ox + res["dx"]
     out["dline"][idx] = oy + res["dy"]
@@ -688,7 +703,7 @@ PASS_BYTES = 1 << 20
 LARGE_WINDOW_PX = 128
 
 
-def _flag_windows(st, a, b, res, p, okw):
+def _flag_windows(st, a, b, res, p, okw, ref_m=None):
     """Status codes of the windows still 0 (2 flat, 3 weak peak, 4 quadrant check failed), in place; returns their
     texture and flat fraction. Windows without a usable pair (not ``okw``: zeroed) are not measured: texture 0
     and flat share 1, what the measures give on zero windows."""
@@ -698,7 +713,7 @@ def _flag_windows(st, a, b, res, p, okw):
     q0, q1 = w // 4, w - w // 4
     tex, flat = np.zeros(okw.size), np.ones(okw.size)
     live = np.flatnonzero(okw)
-    tex_a, flat_a = window_measures(a, (q0, q1), which=live)
+    tex_a, flat_a = window_measures(a, (q0, q1), which=live) if ref_m is None else (ref_m[0][live], ref_m[1][live])
     tex_b, flat_b = window_measures(b, (q0, q1), which=live)
     tex[live] = np.minimum(tex_a, tex_b)
     flat[live] = np.maximum(flat_a, flat_b)

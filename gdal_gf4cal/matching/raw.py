@@ -32,6 +32,7 @@ import numpy as np
 import pandas as pd
 
 from .. import threads
+from ..dem import DEM
 from ..errors import Gf4calError
 from ..progress import report
 from ..rpc import RPCModel
@@ -42,7 +43,7 @@ from .filters import reject_outliers
 from .resample import RawReference
 
 __all__ = ["match_raw", "match_raw_bands", "match_ties", "pan_ms_cells", "cells_from_matches", "cell_edges",
-           "overlap_region", "RAW_COLUMNS", "CELL_COLUMNS"]
+           "overlap_region", "thread_dem", "RAW_COLUMNS", "CELL_COLUMNS"]
 
 #: Columns of :func:`match_raw`'s table, in order.
 RAW_COLUMNS = ("sample", "line", "pred_sample", "pred_line", "ref_sample", "ref_line", "lon", "lat", "h",
@@ -65,6 +66,16 @@ def _model_or_rpc(model, path: str, what: str):
         return RPCModel.from_file(path)
     except Gf4calError as exc:
         raise Gf4calError(f"{what} {path}: no sensor model given and {exc}") from None
+
+
+def thread_dem(dem):
+    """``dem`` (a :class:`~gdal_gf4cal.DEM` or a path, opened with its own geoid and no-data policy, band 1) as the
+    matcher's per-thread cache holds it (:func:`match_raw_bands` on this thread uses it): a caller that works with
+    the DEM before matching (the pan-MS geometry) reads it once instead of twice, and a long-lived process (QGIS)
+    once per version of the file. Anything else (a constant height, another band) as it is."""
+    if not isinstance(dem, DEM) or dem.is_constant or dem.path is None or getattr(dem, "_band_index", 1) != 1:
+        return dem
+    return _dem_from_spec(_dem_spec(dem))
 
 
 def overlap_region(image, model, reference, reference_model, dem, *, band: int = 1, reference_band: int = 1,
@@ -179,6 +190,9 @@ def match_raw_bands(image, model, reference_image, reference_model, dem, *, band
     if executor is None and len(groups) < 2 * threads.pool_workers(workers, len(specs)):
         # too few groups to keep the threads busy (a small crop): every tile its own unit (the same bits)
         groups = [_TileGroup([sp], [i]) for i, sp in enumerate(specs)]
+    # the largest units first (a grid's edge tiles are smaller): the threads end together; each unit's results go
+    # to its tiles' places, so the order changes no number
+    groups.sort(key=lambda g: -len(g) * len(g[0].centers))
     done = run_tiles(groups, executor, workers=workers, progress=progress, stop=0.97, fn=_match_tiles_serial)
     results = [None] * len(specs)
     for group, res in zip(groups, done):

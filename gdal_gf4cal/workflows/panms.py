@@ -31,7 +31,7 @@ from ..errors import Gf4calError
 from ..estimation import weighted_lsq
 from ..geodesy import metres_per_degree
 from ..matching import cells_from_matches, pan_ms_cells
-from ..matching.raw import match_raw_bands
+from ..matching.raw import match_raw_bands, thread_dem
 from ..outputs import OutputSet, check_raster, check_vector
 from ..panms import LINEAR_ORDER, PanMSError, linear_design, residual_spectrum, row_means, step_residuals
 from ..report import write_report_json, write_residuals_gpkg
@@ -444,7 +444,7 @@ def _open_pair(pan, ms, *, dem, geoid, pan_rpc, ms_rpc, notes) -> _Pair:
     pan_model, note_p = image_rpc(pan, pan_rpc)
     ms_model, note_m = image_rpc(ms, ms_rpc)
     notes += [n for n in (note_p, note_m) if n]
-    dem_obj = DEM.from_user_input(dem, geoid=geoid)
+    dem_obj = thread_dem(DEM.from_user_input(dem, geoid=geoid))     # the matcher's, on this thread
     geo = pair_geometry(pan_model, ms_model, pan_size, ms_size, dem_obj)
     ratio = int(round(geo["scale"]))
     if abs(geo["scale"] - ratio) > 0.05 * ratio:
@@ -506,7 +506,27 @@ def _check_cells(meas: _Measured) -> None:
 
 def _write_products(outs, pair: _Pair, meas: _Measured, model, band_models, bands, notes, clock, progress):
     """model.json, correction.tif (a pair of bands more per band with its own correction), ms_on_pan.tif, the
-    approximate MS RPC, cells.gpkg and the plots into the OutputSet's temporary paths; the RPC refit's errors."""
+    approximate MS RPC, cells.gpkg and the plots into the OutputSet's temporary paths; the RPC refit's errors.
+    The plots (matplotlib: they hold the GIL) are begun on the pool first (:func:`gdal_gf4cal.threads.start`) and
+    drawn while this thread writes the rest (GDAL and NumPy, which release it)."""
+    joins = [threads.start(task) for task in _plot_tasks(meas.cells, model, outs)]
+    try:
+        approx_err = _write_rest(outs, pair, meas, model, band_models, bands, clock, progress)
+    except BaseException:
+        for join in joins:          # nothing left writing into the outputs being removed
+            try:
+                join()
+            except BaseException:   # noqa: BLE001 - the first error is the one raised
+                pass
+        raise
+    for join in reversed(joins):    # those no pool thread took yet run here, then the running ones are awaited
+        join()
+    clock.lap("rpc_cells_plots")
+    return approx_err
+
+
+def _write_rest(outs, pair: _Pair, meas: _Measured, model, band_models, bands, clock, progress):
+    """Every output but the plots (:func:`_write_products`); the RPC refit's errors."""
     n_bands = pair.n_bands
     _progress.report(progress, 0.6, "pan-MS: writing correction.tif")
     model.to_json(outs.tmp("model"))
@@ -522,13 +542,9 @@ def _write_products(outs, pair: _Pair, meas: _Measured, model, band_models, band
     outs.set_check("ms_on_pan", check_raster(n_bands))
     clock.lap("correction_and_ms_on_pan")
     _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC, cells and plots")
-    # independent outputs over the thread pool (threads.run_tasks), the longest first
-    approx_err, n_cells, *_ = threads.run_tasks(
-        [lambda: _write_ms_rpc(model, pair.ms_model, outs.tmp("ms_rpc")),
-         lambda: _write_cells(meas.cells, model, pair.ms_model, pair.dem, outs.tmp("cells"))]
-        + _plot_tasks(meas.cells, model, outs))
+    approx_err = _write_ms_rpc(model, pair.ms_model, outs.tmp("ms_rpc"))
+    n_cells = _write_cells(meas.cells, model, pair.ms_model, pair.dem, outs.tmp("cells"))
     outs.set_check("cells", check_vector({"gcps": n_cells}))
-    clock.lap("rpc_cells_plots")
     return approx_err
 
 

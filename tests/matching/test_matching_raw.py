@@ -21,7 +21,7 @@ from gdal_gf4cal.rpc import RPCModel
 from gdal_gf4cal.matching import (RawReference, cells_from_matches, match_raw, match_tile, match_ties, pan_ms_cells,
                                   plan_tiles, reference_on_grids)
 from gdal_gf4cal.matching.collect import match_tiles
-from gdal_gf4cal.matching.raw import CELL_COLUMNS, RAW_COLUMNS, _same_windows
+from gdal_gf4cal.matching.raw import CELL_COLUMNS, RAW_COLUMNS, _same_windows, match_raw_bands
 from gdal_gf4cal.simulate import write_scene
 from gdal_gf4cal.simulate.gf7 import cover_weights, true_misregistration, write_gf7_scene
 
@@ -278,6 +278,27 @@ def test_bands_at_the_same_windows_share_their_geometry_with_the_same_bits(gf7_s
             np.testing.assert_array_equal(a[k], b[k])
     other = plan_tiles(ms, mm, pan, dem, 12, 32, search_px=8, reference_model=pm, tile_windows=64, band=2)[0]
     assert len(_same_windows(plans[0] + other)) == len(plans[0]) + len(other)
+
+
+def test_units_run_largest_first_and_every_band_gets_its_own_results(gf7_small):
+    """match_raw_bands runs its units (band groups or tiles) largest first (issue 23: a grid's smaller edge tiles
+    last, the threads end together) and puts every unit's results in its tiles' places: each band's table is the
+    one match_raw gives that band alone, with 1 or 2 threads."""
+    out, _ = gf7_small
+    pan, ms = str(out / "pan" / "scene.tif"), str(out / "ms" / "scene.tif")
+    dem = DEM.from_user_input(str(out / "dem.tif"))
+    pm, mm = RPCModel.from_file(pan), RPCModel.from_file(ms)
+    kw = dict(window_px=32, search_px=8, tile_windows=25, margin_px=4, outlier_model=None)
+    sizes = [len(s.centers) for s in plan_tiles(ms, mm, pan, dem, 8, 32, search_px=8, reference_model=pm,
+                                                tile_windows=25, margin_px=4)[0]]
+    assert len(set(sizes)) > 1 and sizes != sorted(sizes, reverse=True)      # the order does change
+    for workers in (1, 2):
+        together = match_raw_bands(ms, mm, pan, pm, dem, bands=[1, 2, 3], spacing_px=[8, 8, 12], workers=workers,
+                                   **kw)
+        for b, step in ((1, 8), (2, 8), (3, 12)):
+            alone = match_raw(ms, mm, pan, pm, dem, spacing_px=step, band=b, workers=1, **kw)
+            assert (alone["status"] == 0).sum() > 20
+            pd.testing.assert_frame_equal(together[b], alone)
 
 
 def test_region_and_no_overlap_errors(gf7_small):
