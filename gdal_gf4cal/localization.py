@@ -688,8 +688,8 @@ def _rpc_localize_dem_fast(rpc, s, l, dem, shift, tol_m, ray_iter: int = 12, pol
        around a scene start height h0; one Newton step with the exact Jacobian (incl. d/dH) at h0 corrects
        its value and slope, so the cubic ray is exact at h0 and within ~1e-3 px over 1.5 normalised heights.
     2. *Height on the ray* with DEM samples only: Newton on f(h) = DEM(ray(h)) - h with the slopes of
-       :meth:`DEM.sample_with_gradient` when they are analytic (secant steps otherwise: reprojected or
-       geoid-corrected DEMs).
+       :meth:`DEM.newton_sampler` (geoid-corrected DEMs: the geoid's own lattice, no PROJ call; secant steps on
+       :meth:`DEM.sample` where there is none: reprojected DEMs).
     3. *Polish:* exact localisation at h by chord Newton (1e-8 px), DEM check |DEM - h| <= tol_m; points that
        miss it take a Newton step in h on the ray re-anchored at the exact point, and are polished again.
     """
@@ -697,11 +697,7 @@ def _rpc_localize_dem_fast(rpc, s, l, dem, shift, tol_m, ray_iter: int = 12, pol
     out = np.full((3, n), np.nan)
     x = (s - shift - rpc.samp_off) / rpc.samp_scale
     y = (l - shift - rpc.line_off) / rpc.line_scale
-    if dem.gradient_is_analytic:
-        sampler = _gradient_sampler(dem)
-    else:
-        def sampler(lon, lat):
-            return _dem_height_nan(dem, lon, lat), None, None
+    sampler = _newton_sampler(dem)
     with np.errstate(all="ignore"):
         h0 = _dem_start_height(rpc, x, y, dem)
         basis = _ray_basis(rpc._approximate_inverse, (h0 - rpc.height_off) / rpc.height_scale)
@@ -726,11 +722,18 @@ def _rpc_localize_dem_fast(rpc, s, l, dem, shift, tol_m, ray_iter: int = 12, pol
     return out[0], out[1], out[2], ray_iter + polish_iter, missed
 
 
-def _gradient_sampler(dem: DEM):
-    """``(lon, lat) -> (h, dh/dlon, dh/dlat)`` with NaN off the DEM for the 'error'/'nan' policies."""
+def _newton_sampler(dem: DEM):
+    """``(lon, lat) -> (h, dh/dlon, dh/dlat)`` with NaN off the DEM for the 'error'/'nan' policies
+    (:meth:`DEM.newton_sampler`), or heights only (slopes None: secant steps) where the DEM has no such sampler."""
     if isinstance(dem.nodata_policy, str) and dem.nodata_policy != "nan":
         dem = dem.with_nodata("nan")
-    return dem.sample_with_gradient
+    sampler = dem.newton_sampler()
+    if sampler is not None:
+        return sampler
+
+    def heights(lon, lat):
+        return _dem_height_nan(dem, lon, lat), None, None
+    return heights
 
 
 #: Points per chunk of the DEM-intersection fast path. Small enough that its per-point state stays in cache and
