@@ -32,6 +32,10 @@ log = logging.getLogger(__name__)
 #: Named geoid grids (legacy names; :data:`gdal_gf4cal.geoid.GEOID_GRID_NAMES` has PROJ's current ones too).
 GEOID_GRIDS = {"egm96": "egm96_15.gtx", "egm2008": "egm08_25.gtx"}
 
+#: Largest difference (m) between :meth:`DEM.newton_sampler`'s heights and :meth:`DEM.sample`'s (checked when its
+#: geoid lattice is built; rounding only where the gradient is analytic).
+NEWTON_SAMPLER_TOL_M = 1e-6
+
 NodataPolicy = Union[str, float]
 
 
@@ -344,8 +348,9 @@ class DEM:
         Where :attr:`gradient_is_analytic`, :meth:`sample_with_gradient` itself. A geographic WGS84 DEM with a
         geoid: the stored bilinear surface plus the geoid's undulation interpolated bilinearly between PROJ's own
         values at the geoid grid's nodes over the DEM (:meth:`_geoid_lattice`: what ``vgridshift`` does, within
-        1e-6 m of :meth:`sample`, checked when built), with the exact slopes of both: no PROJ call per iteration
-        (PROJ's transform holds the GIL: ~40 % of a DEM intersection's CPU, the part threads cannot share)."""
+        :data:`NEWTON_SAMPLER_TOL_M` of :meth:`sample`, checked when built), with the exact slopes of both: no
+        PROJ call at all (PROJ's transform holds the GIL: ~40 % of a DEM intersection's CPU, the part threads
+        cannot share)."""
         if self.gradient_is_analytic:
             return self.sample_with_gradient
         if self._to_dem is not None or self._geoid_lattice() is None:
@@ -374,7 +379,7 @@ class DEM:
         """``(flat N, W, H, lon0, dlon, lat0, dlat)``: PROJ's undulation at the geoid grid's nodes over the DEM
         and one node around it (node (i, j) at lon0 + i dlon, lat0 + j dlat), built once; None when the grid
         cannot be read by GDAL, spans more than 2000 x 2000 nodes here, or the lattice misses PROJ by more than
-        1e-6 m at 400 points over the DEM."""
+        :data:`NEWTON_SAMPLER_TOL_M` at 400 points over the DEM."""
         with self._lock:
             if "lattice" not in self._geoid_nodes:
                 self._geoid_nodes["lattice"] = self._build_geoid_lattice()
@@ -407,7 +412,7 @@ class DEM:
         n_t = np.empty(400)
         _bilinear_flat(nodes, i.size, j.size, (lon_t - lattice[3]) / dx, (lat_t - lattice[5]) / dy, n_t)
         err = np.abs(n_t - self.geoid_undulation(lon_t, lat_t))
-        return lattice if np.all(np.isfinite(nodes)) and np.all(err <= 1e-6) else None
+        return lattice if np.all(np.isfinite(nodes)) and np.all(err <= NEWTON_SAMPLER_TOL_M) else None
 
     # ------------------------------------------------------------------ raster-space access (line-of-sight marches)
     def to_pixel(self, lon, lat):

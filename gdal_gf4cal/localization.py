@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._rpc_poly import _EXPONENTS, monomials, poly_product
-from .dem import DEM
+from .dem import DEM, NEWTON_SAMPLER_TOL_M
 from . import threads
 from .threads import matmul, split_points
 
@@ -690,14 +690,15 @@ def _rpc_localize_dem_fast(rpc, s, l, dem, shift, tol_m, ray_iter: int = 12, pol
     2. *Height on the ray* with DEM samples only: Newton on f(h) = DEM(ray(h)) - h with the slopes of
        :meth:`DEM.newton_sampler` (geoid-corrected DEMs: the geoid's own lattice, no PROJ call; secant steps on
        :meth:`DEM.sample` where there is none: reprojected DEMs).
-    3. *Polish:* exact localisation at h by chord Newton (1e-8 px), DEM check |DEM - h| <= tol_m; points that
+    3. *Polish:* exact localisation at h by chord Newton (1e-8 px), DEM check |DEM - h| <= tol_m (on the
+       Newton sampler's heights, with its NEWTON_SAMPLER_TOL_M off tol_m: no PROJ call); points that
        miss it take a Newton step in h on the ray re-anchored at the exact point, and are polished again.
     """
     n = s.size
     out = np.full((3, n), np.nan)
     x = (s - shift - rpc.samp_off) / rpc.samp_scale
     y = (l - shift - rpc.line_off) / rpc.line_scale
-    sampler = _newton_sampler(dem)
+    sampler, heights, tol_p = _newton_sampler(dem, tol_m)
     with np.errstate(all="ignore"):
         h0 = _dem_start_height(rpc, x, y, dem)
         basis = _ray_basis(rpc._approximate_inverse, (h0 - rpc.height_off) / rpc.height_scale)
@@ -718,22 +719,25 @@ def _rpc_localize_dem_fast(rpc, s, l, dem, shift, tol_m, ray_iter: int = 12, pol
         for i in range(0, n, _DEM_CHUNK):
             sl = slice(i, i + _DEM_CHUNK)
             out[:3, sl] = _dem_chunk_polish(rpc, x[sl], y[sl], R[:, sl], J[:, sl], u[sl], slope[sl], ready[sl],
-                                            bridged[sl], h0, dem, tol_m, polish_iter)
+                                            bridged[sl], h0, heights, tol_p, polish_iter)
     return out[0], out[1], out[2], ray_iter + polish_iter, missed
 
 
-def _newton_sampler(dem: DEM):
-    """``(lon, lat) -> (h, dh/dlon, dh/dlat)`` with NaN off the DEM for the 'error'/'nan' policies
-    (:meth:`DEM.newton_sampler`), or heights only (slopes None: secant steps) where the DEM has no such sampler."""
+def _newton_sampler(dem: DEM, tol_m: float):
+    """``(sampler, heights, tol)`` of the fast path: ``sampler(lon, lat) -> (h, dh/dlon, dh/dlat)`` of its height
+    steps (:meth:`DEM.newton_sampler`; slopes None where the DEM has none: secant steps), ``heights(lon, lat)`` of
+    the polish's check |DEM - h| <= tol: the sampler's own heights (within NEWTON_SAMPLER_TOL_M of
+    :meth:`DEM.sample`: tol is tol_m less that), else :meth:`DEM.sample`. NaN off the DEM for the 'error' and 'nan'
+    policies."""
     if isinstance(dem.nodata_policy, str) and dem.nodata_policy != "nan":
         dem = dem.with_nodata("nan")
     sampler = dem.newton_sampler()
     if sampler is not None:
-        return sampler
+        return sampler, lambda lon, lat: sampler(lon, lat)[0], max(tol_m - NEWTON_SAMPLER_TOL_M, 0.5 * tol_m)
 
-    def heights(lon, lat):
-        return _dem_height_nan(dem, lon, lat), None, None
-    return heights
+    def exact(lon, lat):
+        return _dem_height_nan(dem, lon, lat)
+    return lambda lon, lat: (exact(lon, lat), None, None), exact, tol_m
 
 
 #: Points per chunk of the DEM-intersection fast path (half a block of :data:`gdal_gf4cal.threads.DEM_BLOCK`): the
@@ -879,7 +883,7 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
     return R, J, G, u, slope, ready
 
 
-def _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, dem, tol_m, polish_iter):
+def _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, heights, tol_m, polish_iter):
     """Stage 3 of :func:`_rpc_localize_dem_fast` on one chunk: (3, m) lon, lat, h, NaN where unsettled;
     ``bridged`` heights (interpolated across a hole) are taken as they are once localised exactly."""
     out = np.full((3, x.size), np.nan)
@@ -924,7 +928,7 @@ def _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, dem, tol_m,
         lon = L * rpc.long_scale + rpc.long_off
         lat = P * rpc.lat_scale + rpc.lat_off
         h = up + h0
-        f = _dem_height_nan(dem, lon, lat) - h
+        f = heights(lon, lat) - h
         done = exact & ((np.abs(f) <= tol_m) | bp)          # bridged: the height interpolated across a hole
         j = idx[done]
         out[0, j], out[1, j], out[2, j] = lon[done], lat[done], h[done]
