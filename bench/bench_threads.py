@@ -15,9 +15,10 @@ and CPU, then the ratio of the minima and the voluntary context switches per run
 same bits in both (printed). With localize_dem, one more line: the share of a block's CPU spent in Python
 dispatching NumPy calls (64 points, every stage of a chunk, times the chunks of a block, against a block) and the
 2-thread bound it sets. With the round trip, two more lines: the same share for a round-trip block (a 16-point
-round trip against a block's: what holds the GIL, the serial part) and the 2-thread bound it sets; the same round trip in k processes (half the points each: no GIL shared), the bound the
-machine itself sets (cores, caches, memory), against one thread in the same run. On a shared machine the ratios
-are low: measure when it is idle (the load average is printed before and after each case).
+round trip against a block's: what holds the GIL, the serial part) and the 2-thread bound it sets; the same round
+trip in k processes (half the points each: no GIL shared), the bound the machine itself sets (cores, caches,
+memory), against one thread in the same run. On a shared machine the ratios are low: measure when it is idle (the
+load average is printed before and after each case).
 
 Run: .venv/bin/python bench/bench_threads.py [--points N] [--repeat R (default: 7 point cases, 3 others)]
      [--threads 2] [--workdir DIR] [--cases round_trip,localize_dem,collect,panms]
