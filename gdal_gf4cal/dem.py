@@ -380,10 +380,12 @@ class DEM:
         and one node around it (node (i, j) at lon0 + i dlon, lat0 + j dlat), built once; None when the grid
         cannot be read by GDAL, spans more than 2000 x 2000 nodes here, or the lattice misses PROJ by more than
         :data:`NEWTON_SAMPLER_TOL_M` at 400 points over the DEM."""
-        with self._lock:
-            if "lattice" not in self._geoid_nodes:
-                self._geoid_nodes["lattice"] = self._build_geoid_lattice()
-            return self._geoid_nodes["lattice"]
+        nodes = self._geoid_nodes
+        if "lattice" not in nodes:             # built once (the lock only then: sampling threads never wait)
+            with self._lock:
+                if "lattice" not in nodes:
+                    nodes["lattice"] = self._build_geoid_lattice()
+        return nodes["lattice"]
 
     def _build_geoid_lattice(self):
         """:meth:`_geoid_lattice`, with the lock held."""
