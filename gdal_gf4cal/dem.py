@@ -837,8 +837,11 @@ def _bilinear(block: np.ndarray, lx, ly, fx, fy) -> np.ndarray:
     return map_coordinates(block, coords, order=1, mode="nearest", prefilter=False)
 
 
-#: Points per chunk in :meth:`DEM._sample_whole` (keeps the temporaries in L1/L2 cache).
-_SAMPLE_CHUNK = 8192
+#: Points per chunk in :meth:`DEM._sample_whole`: one chunk per call of the DEM intersection's fast path (its chunks
+#: of 32768 points). Each point is interpolated on its own (the same bits for any chunk). Value and gradient at
+#: 32768 random points of SRTM, least CPU of 15 runs (loaded 2-core machine): 41, 36, 32, 30 ns per point for
+#: chunks of 4096, 8192, 16384, 32768 (the four gathers' cache misses dominate; fewer calls win).
+_SAMPLE_CHUNK = 32768
 
 
 def _fallback_with_zero_slope(z, gx, gy, policy) -> None:
