@@ -775,15 +775,19 @@ def _ray_basis(A: np.ndarray, Hm: float) -> np.ndarray:
 
     ``A`` is the (2, 20) approximate inverse (normalised x, y, H) -> (L, P); (Hm + t)^e is expanded binomially.
     """
-    col = {(ex, ey): k for k, (_, ex, ey) in enumerate(_XY_TERMS)}
-    B = np.zeros((8, 10))
-    for j, (ex, ey, eh) in enumerate(_EXPONENTS):
-        q = col[(ex, ey)]
-        for k in range(eh + 1):
-            w = math.comb(eh, k) * Hm ** (eh - k)
-            B[k, q] += A[0, j] * w
-            B[4 + k, q] += A[1, j] * w
-    return B
+    B = [[0.0] * 10 for _ in range(8)]         # Python floats: the same IEEE operations, no NumPy scalar calls
+    a0, a1 = A.tolist()
+    for j, q, k, c, p in _RAY_BASIS_TERMS:
+        w = c * Hm ** p
+        B[k][q] += a0[j] * w
+        B[4 + k][q] += a1[j] * w
+    return np.array(B)
+
+
+#: ``(j, q, k, comb(eh, k), eh - k)`` of :func:`_ray_basis`: term j of the RPC00B order (x, y, H exponents ex, ey,
+#: eh) adds to row k (power of t) of column q (its H-free term) its coefficient times comb(eh, k) Hm^(eh - k).
+_RAY_BASIS_TERMS = tuple((j, [(ex_, ey_) for _, ex_, ey_ in _XY_TERMS].index((ex, ey)), k, math.comb(eh, k), eh - k)
+                         for j, (ex, ey, eh) in enumerate(_EXPONENTS) for k in range(eh + 1))
 
 
 def _horner(c, u):
