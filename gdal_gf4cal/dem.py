@@ -208,6 +208,12 @@ class DEM:
         return self.constant_height is not None
 
     @property
+    def in_memory(self) -> bool:
+        """True for a raster small enough to be held in memory (read whole once): then :meth:`local_max` and
+        :meth:`local_max_slope` answer (None otherwise)."""
+        return not self.is_constant and self.width * self.height_px <= self._whole_limit
+
+    @property
     def is_geographic(self) -> bool:
         """True for a raster in a geographic CRS (longitudes compared modulo 360)."""
         return not self.is_constant and bool(self._lon_wrap)
@@ -452,7 +458,7 @@ class DEM:
         clipped into the raster; -inf where that window holds no data. ``radius_px`` may be a tuple of radii
         (then a list, one array per radius). None for a raster too large to hold in memory. The windowed maxima
         are computed once per radius (rounded up to a power of two) and kept."""
-        if self.is_constant or self.width * self.height_px > self._whole_limit:
+        if not self.in_memory:
             return None
         radii = radius_px if isinstance(radius_px, tuple) else (radius_px,)
         tables = [self._local_max_table(r) for r in radii]
@@ -467,7 +473,7 @@ class DEM:
     def local_max_slope(self, px, py, radius_px: int):
         """Steepest slope (m/m) of the bilinear surface within ``radius_px`` pixels of (px, py) (as
         :meth:`local_max`; no-data ignored). None for a raster too large to hold in memory."""
-        if self.is_constant or self.width * self.height_px > self._whole_limit:
+        if not self.in_memory:
             return None
         W, H = self.width, self.height_px
         i = np.fmin(np.fmax(np.asarray(py, dtype=float) + 0.5, 0.0), H - 1.0).astype(np.intp)

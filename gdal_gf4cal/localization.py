@@ -144,11 +144,11 @@ def _warn_implausible_heights(model, dem, hgt) -> None:
     """Log a warning when DEM heights lie far outside the RPC's height range (METHODS §2: a DEM in feet or in
     decimetres without its band scale, the wrong DEM): beyond HEIGHT_OFF ± 2 x HEIGHT_SCALE, 500 m at least."""
     height_range = getattr(model, "height_range", None)
-    if height_range is None or dem.is_constant or not np.any(np.isfinite(hgt)):
+    if height_range is None or dem.is_constant or hgt.size == 0:
         return
     lo, hi = height_range
     margin = max(0.5 * (hi - lo), 500.0)
-    h_min, h_max = float(np.nanmin(hgt)), float(np.nanmax(hgt))
+    h_min, h_max = float(np.fmin.reduce(hgt)), float(np.fmax.reduce(hgt))     # NaN ignored, NaN when all are
     if h_min < lo - margin or h_max > hi + margin:
         log.warning("DEM %s: heights %.0f..%.0f m lie far outside the RPC's height range %.0f..%.0f m; check the "
                     "DEM's units (band scale/offset), its vertical datum and that it covers the scene",
@@ -284,7 +284,7 @@ def _one_crossing_near(dem: DEM, G, h0) -> np.ndarray:
         return np.ones(G.shape[1], dtype=bool)
     h_lo, h_hi = _dem_height_bounds(dem)
     radius = float(np.max(tan_view)) * max(h_hi - h0, h0 - h_lo) / min(dem.pixel_size_m()) + 2.0
-    if not np.isfinite(radius) or radius > 512 or dem.local_max_slope(np.zeros(1), np.zeros(1), 1) is None:
+    if not np.isfinite(radius) or radius > 512 or not dem.in_memory:
         return _one_crossing(dem, tan_view)
     # Rays that never fly over the DEM: to the march, which drops them at once.
     near = np.flatnonzero(_near_footprint(dem, *_track_ends(G, h_lo - h0, h_hi - h0)))
@@ -541,7 +541,7 @@ def _march(ray, dem):
     S[known, 10] = np.maximum(S[known, 10] - S[known, 12], S[known, 11])
     hits = []
     steps = 0
-    jump = dem.local_max(np.zeros(1), np.zeros(1), 1) is not None
+    jump = dem.in_memory
     with np.errstate(invalid="ignore"):
         for i in range(0, S.shape[0], _MARCH_CHUNK):      # chunks: the state of a chunk stays in cache
             steps = max(steps, _march_chunk(S[i:i + _MARCH_CHUNK], dem, jump, hits))
@@ -937,8 +937,7 @@ def _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, heights, to
         j = idx[done]
         out[0, j], out[1, j], out[2, j] = lon[done], lat[done], h[done]
         keep = np.flatnonzero(~done & exact & np.isfinite(f))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            secant = (f - f_last) / (up - u_last)
+        secant = (f - f_last) / (up - u_last)                # (under the caller's errstate)
         sp = np.where(np.isfinite(secant) & (secant < 0), secant, sp)
         idx, Rp, Jp, xp, yp, sp = idx[keep], Rp[:, keep], Jp[:, keep], xp[keep], yp[keep], sp[keep]
         bp = bp[keep]
@@ -983,7 +982,7 @@ def _near_footprint(dem, lon0, lat0, lon1, lat1) -> np.ndarray:
     mx, my = 0.1 * (e - w) + 1e-6, 0.1 * (n - s_) + 1e-6
     if not dem.is_geographic and (e - w > 5.0 or n - s_ > 5.0 or max(abs(s_), abs(n)) > 80.0):
         return np.ones(np.shape(lon0), dtype=bool)     # a projected footprint its corners may not bound
-    if dem.is_geographic and not all(w <= np.min(v, initial=np.inf) and np.max(v, initial=-np.inf) < w + 360.0
+    if dem.is_geographic and not all(v.size == 0 or (w <= v.min() and v.max() < w + 360.0)
                                      for v in (lon0, lon1)):  # compared modulo 360 (as sampled), when needed
         lon0, lon1 = w + np.mod(lon0 - w, 360.0), w + np.mod(lon1 - w, 360.0)
     with np.errstate(invalid="ignore"):
