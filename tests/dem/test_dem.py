@@ -238,3 +238,20 @@ def test_newton_sampler_with_a_geoid_is_sample_and_its_slopes(srtm_path, data_di
     np.testing.assert_allclose(gx[interior], fx[interior], rtol=1e-4, atol=1e-3)
     np.testing.assert_allclose(gy[interior], fy[interior], rtol=1e-4, atol=1e-3)
     assert DEM.from_file(data_dir / "dem" / "N44E005_UTM.tif", geoid="egm96").newton_sampler() is None
+
+
+@pytest.mark.parametrize("geoid", [None, "egm96"])
+def test_a_small_call_without_outside_points_gives_the_masked_paths_bits(srtm_path, geoid):
+    """A call whose points all lie inside the DEM (and inside [west, west + 360)) skips the outside mask and the
+    longitude wrap (a small call's fixed cost): its values are bit for bit those of the same points in a call that
+    takes the masked paths (one point off the DEM, one NaN, one a turn west), for every sampler."""
+    dem = DEM.from_file(srtm_path, geoid=geoid, nodata="nan")
+    rng = np.random.default_rng(3)
+    lon, lat = rng.uniform(5.0, 6.0, 50), rng.uniform(44.0, 45.0, 50)
+    lon[:2], lat[:2] = (5.0 + 0.5 / 1200, 6.0 - 0.5 / 1200), (45.0 - 0.5 / 1200, 44.0 + 0.5 / 1200)  # edge cells
+    lon_m, lat_m = np.r_[lon, 7.5, np.nan, 5.5 - 360.0], np.r_[lat, 44.5, 44.5, 44.5]
+    for fn in (dem.sample, dem.sample_with_gradient, dem.newton_sampler()):
+        small, masked = np.array(fn(lon, lat)), np.array(fn(lon_m, lat_m))
+        assert np.isfinite(small).all() and np.isnan(np.atleast_2d(masked)[0, 50:52]).all()   # heights NaN
+        np.testing.assert_array_equal(small, masked[..., :50])
+        assert np.isfinite(masked[..., 52]).all()            # found a turn east (wrapped, its own rounding)
