@@ -323,63 +323,76 @@ class DEM:
             gx = (self._height(lon + step, lat, "nan") - self._height(lon - step, lat, "nan")) / (2 * step)
             gy = (self._height(lon, lat + step, "nan") - self._height(lon, lat - step, "nan")) / (2 * step)
         else:
-            z, gx, gy = self._stored_with_gradient(lon, lat)
+            return self._newton_sample(lon, lat)
         if numeric:
             _fallback_with_zero_slope(z, gx, gy, policy)
         return z, gx, gy
 
-    def _stored_with_gradient(self, lon, lat):
-        """Stored heights (no geoid) of a geographic WGS84 raster and their slopes in m/deg, bilinear; NaN off the
-        raster or next to no-data (flat float arrays in and out)."""
+    def _stored_with_gradient(self, x, lat, gradient: bool = True):
+        """Stored heights (no geoid) of a geographic WGS84 raster at longitudes ``x`` already wrapped
+        (:meth:`_wrap_lon`) and their slopes in m/deg (None, None without ``gradient``), bilinear; NaN off the raster
+        or next to no-data (flat float arrays in and out)."""
         gt = self._gt
-        x = self._wrap_lon(lon) if self._lon_wrap else lon
         px = x * (1.0 / gt[1])
         px += -gt[0] / gt[1] - 0.5
         py = lat * (1.0 / gt[5])
         py += -gt[3] / gt[5] - 0.5
-        if self.width * self.height_px <= self._whole_limit:
+        if self.width * self.height_px > self._whole_limit:
+            z, gx, gy = self._sample_tiles_gradient(px, py)
+        elif gradient:
             z, gx, gy = self._sample_whole(px, py, gradient=True)
         else:
-            z, gx, gy = self._sample_tiles_gradient(px, py)
+            return self._sample_whole(px, py), None, None
+        if not gradient:
+            return z, None, None
         gx *= 1.0 / gt[1]
         gy *= 1.0 / gt[5]
         return z, gx, gy
 
-    def newton_sampler(self):
+    def newton_sampler(self, gradient: bool = True):
         """``(lon, lat) -> (h, dh/dlon, dh/dlat)`` for Newton iterations whose result is checked with
         :meth:`sample` (the DEM intersection, METHODS §2), or None when there is none (a projected DEM whose
         gradient is not analytic: use secant steps on :meth:`sample`). NaN off the raster or next to no-data
         whatever the policy (a numeric policy: its height, zero slope), as :meth:`sample_with_gradient`.
 
-        Where :attr:`gradient_is_analytic`, :meth:`sample_with_gradient` itself. A geographic WGS84 DEM with a
+        Where :attr:`gradient_is_analytic`, :meth:`sample_with_gradient`'s values. A geographic WGS84 DEM with a
         geoid: the stored bilinear surface plus the geoid's undulation interpolated bilinearly between PROJ's own
         values at the geoid grid's nodes over the DEM (:meth:`_geoid_lattice`: what ``vgridshift`` does, within
         :data:`NEWTON_SAMPLER_TOL_M` of :meth:`sample`, checked when built), with the exact slopes of both: no
         PROJ call at all (PROJ's transform holds the GIL: ~40 % of a DEM intersection's CPU, the part threads
-        cannot share)."""
-        if self.gradient_is_analytic:
-            return self.sample_with_gradient
-        if self._to_dem is not None or self._geoid_lattice() is None:
+        cannot share). With ``gradient=False``, ``(lon, lat) -> h`` alone: the same heights, bit for bit, without the
+        slopes' NumPy calls (the checks of a Newton solution)."""
+        if self.is_constant:
+            return self.sample_with_gradient if gradient else (lambda lon, lat: self.sample_with_gradient(lon, lat)[0])
+        if self._to_dem is not None or (self._geoid is not None and self._geoid_lattice() is None):
             return None
-        return self._sample_with_geoid_lattice
+        return self._newton_sample if gradient else self._newton_heights
 
-    def _sample_with_geoid_lattice(self, lon, lat):
-        """:meth:`newton_sampler` of a geographic DEM with a geoid (flat arrays, see there)."""
+    def _newton_sample(self, lon, lat, gradient: bool = True):
+        """:meth:`newton_sampler` of a geographic WGS84 DEM, with its geoid's lattice when one applies (flat arrays,
+        see there): ``(h, dh/dlon, dh/dlat)``, or ``(h, None, None)`` without ``gradient``."""
         lon = np.asarray(lon, dtype=float).ravel()
         lat = np.asarray(lat, dtype=float).ravel()
-        z, gx, gy = self._stored_with_gradient(lon, lat)
-        flat, W, H, x0, dx, y0, dy = self._geoid_lattice()
         x = self._wrap_lon(lon) if self._lon_wrap else lon
-        n, nx, ny = np.empty(lon.size), np.empty(lon.size), np.empty(lon.size)
-        _bilinear_flat(flat, W, H, (x - x0) * (1.0 / dx), (lat - y0) * (1.0 / dy), n, nx, ny)
-        z += n
-        nx *= 1.0 / dx
-        gx += nx
-        ny *= 1.0 / dy
-        gy += ny
+        z, gx, gy = self._stored_with_gradient(x, lat, gradient)
+        if self._geoid is not None:
+            flat, W, H, x0, dx, y0, dy = self._geoid_lattice()
+            n = np.empty(lon.size)
+            nx, ny = (np.empty(lon.size), np.empty(lon.size)) if gradient else (None, None)
+            _bilinear_flat(flat, W, H, (x - x0) * (1.0 / dx), (lat - y0) * (1.0 / dy), n, nx, ny)
+            z += n
+            if gradient:
+                nx *= 1.0 / dx
+                gx += nx
+                ny *= 1.0 / dy
+                gy += ny
         if not isinstance(self.nodata_policy, str):
             _fallback_with_zero_slope(z, gx, gy, self.nodata_policy)
         return z, gx, gy
+
+    def _newton_heights(self, lon, lat):
+        """:meth:`newton_sampler` without gradient."""
+        return self._newton_sample(lon, lat, gradient=False)[0]
 
     def _geoid_lattice(self):
         """``(flat N, W, H, lon0, dlon, lat0, dlat)``: PROJ's undulation at the geoid grid's nodes over the DEM
@@ -857,8 +870,9 @@ def _fallback_with_zero_slope(z, gx, gy, policy) -> None:
     bad = ~np.isfinite(z)
     if np.any(bad):
         z[bad] = float(policy)
-        gx[bad] = 0.0
-        gy[bad] = 0.0
+        if gx is not None:
+            gx[bad] = 0.0
+            gy[bad] = 0.0
 
 
 def _outside(xy, x1: float, y1: float):

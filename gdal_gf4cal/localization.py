@@ -733,7 +733,7 @@ def _newton_sampler(dem: DEM, tol_m: float):
         dem = dem.with_nodata("nan")
     sampler = dem.newton_sampler()
     if sampler is not None:
-        return sampler, lambda lon, lat: sampler(lon, lat)[0], max(tol_m - NEWTON_SAMPLER_TOL_M, 0.5 * tol_m)
+        return sampler, dem.newton_sampler(gradient=False), max(tol_m - NEWTON_SAMPLER_TOL_M, 0.5 * tol_m)
 
     def exact(lon, lat):
         return _dem_height_nan(dem, lon, lat)

@@ -226,6 +226,7 @@ def test_newton_sampler_with_a_geoid_is_sample_and_its_slopes(srtm_path, data_di
     z, gx, gy = sampler(lon, lat)
     ref = dem.sample(lon, lat)
     assert ref[-1] == z[-1] == -5.0 and gx[-1] == gy[-1] == 0.0
+    np.testing.assert_array_equal(dem.newton_sampler(gradient=False)(lon, lat), z)    # heights alone: same bits
     n = dem.geoid_undulation(lon, lat)
     assert np.ptp(n[:-1]) > 0.5                               # the undulation varies over the tile
     assert np.nanmax(np.abs(z - ref)) <= 1e-6 and np.isfinite(z).all()
@@ -250,7 +251,7 @@ def test_a_small_call_without_outside_points_gives_the_masked_paths_bits(srtm_pa
     lon, lat = rng.uniform(5.0, 6.0, 50), rng.uniform(44.0, 45.0, 50)
     lon[:2], lat[:2] = (5.0 + 0.5 / 1200, 6.0 - 0.5 / 1200), (45.0 - 0.5 / 1200, 44.0 + 0.5 / 1200)  # edge cells
     lon_m, lat_m = np.r_[lon, 7.5, np.nan, 5.5 - 360.0], np.r_[lat, 44.5, 44.5, 44.5]
-    for fn in (dem.sample, dem.sample_with_gradient, dem.newton_sampler()):
+    for fn in (dem.sample, dem.sample_with_gradient, dem.newton_sampler(), dem.newton_sampler(gradient=False)):
         small, masked = np.array(fn(lon, lat)), np.array(fn(lon_m, lat_m))
         assert np.isfinite(small).all() and np.isnan(np.atleast_2d(masked)[0, 50:52]).all()   # heights NaN
         np.testing.assert_array_equal(small, masked[..., :50])
