@@ -595,7 +595,8 @@ class DEM:
         """:meth:`height` with an explicit no-data policy (iterations ask for NaN without touching the DEM)."""
         lon = np.asarray(lon, dtype=float)
         lat = np.asarray(lat, dtype=float)
-        lon, lat = np.broadcast_arrays(lon, lat)
+        if lon.shape != lat.shape:
+            lon, lat = np.broadcast_arrays(lon, lat)
         shape = lon.shape
         if self.is_constant:
             h = np.full(lon.size, self.constant_height)

@@ -812,8 +812,10 @@ def _dem_start_height(rpc, x, y, dem) -> float:
     A = rpc._approximate_inverse
     L, P = poly_product(A, monomials(xs, ys, np.full(xs.size, (mid - rpc.height_off) / rpc.height_scale)))
     z = _dem_height_nan(dem, L * rpc.long_scale + rpc.long_off, P * rpc.lat_scale + rpc.lat_off)
-    z = z[np.isfinite(z)]
-    return 0.5 * (float(z.min()) + float(z.max())) if z.size else mid
+    if z.size == 0:
+        return mid
+    z_lo, z_hi = float(np.fmin.reduce(z)), float(np.fmax.reduce(z))     # NaN ignored (off the DEM), NaN when all are
+    return 0.5 * (z_lo + z_hi) if z_lo == z_lo else mid
 
 
 def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
