@@ -12,11 +12,13 @@
 
 Each case runs under ``threads.limit(1)`` and ``threads.limit(k)`` alternately (--repeat times): the median wall
 and CPU, then the ratio of the minima and the voluntary context switches per run (medians); results must be the
-same bits in both (printed). With the round trip, two more lines: the share of a block's CPU spent in
-Python dispatching NumPy calls (a 16-point round trip against a block's: what holds the GIL, the serial part) and the
-2-thread bound it sets; the same round trip in k processes (half the points each: no GIL shared), the bound the
-machine itself sets (cores, caches, memory), against one thread in the same run. On a shared machine the ratios
-are low: measure when it is idle (the load average is printed before and after each case).
+same bits in both (printed). With localize_dem, one more line: the share of a block's CPU spent in Python
+dispatching NumPy calls (64 points, every stage of a chunk, times the chunks of a block, against a block) and the
+2-thread bound it sets. With the round trip, two more lines: the same share for a round-trip block (a 16-point
+round trip against a block's: what holds the GIL, the serial part) and the 2-thread bound it sets; the same round
+trip in k processes (half the points each: no GIL shared), the bound the machine itself sets (cores, caches,
+memory), against one thread in the same run. On a shared machine the ratios are low: measure when it is idle (the
+load average is printed before and after each case).
 
 Run: .venv/bin/python bench/bench_threads.py [--points N] [--repeat R (default: 7 point cases, 3 others)]
      [--threads 2] [--workdir DIR] [--cases round_trip,localize_dem,collect,panms]
@@ -34,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gdal_gf4cal import DEM, RPCModel, threads
+from gdal_gf4cal import DEM, RPCModel, localization, threads
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT / "tests" / "data"
@@ -109,6 +111,23 @@ def serial_share():
     share = small / block
     print(f"round trip: {small * 1e6:.0f} us of NumPy calls per block against {block * 1e6:.0f} us CPU for {b:,} "
           f"points: {100 * share:.0f} % in Python (Amdahl: 2 threads <= {2 / (1 + share):.2f}x); load "
+          f"{os.getloadavg()[0]:.1f}", flush=True)
+
+
+def serial_share_dem():
+    """The same for localize_dem on SRTM + EGM96: the least CPU of 64 points (every stage of a chunk on tiny
+    arrays: the NumPy calls dispatched) times the chunks of a block, against one block of
+    :data:`~gdal_gf4cal.threads.DEM_BLOCK` points, one thread."""
+    b = threads.DEM_BLOCK
+    rpc, s, l, _ = _points(b)
+    dem = DEM.from_file(DATA / "dem" / "N44E005.hgt", geoid="egm96", nodata="nan")
+    chunks = -(-b // localization._DEM_CHUNK)
+    with threads.limit(1):
+        small = _least_cpu(lambda: rpc.localize_dem(s[:64], l[:64], dem), 30)
+        block = _least_cpu(lambda: rpc.localize_dem(s, l, dem), 5)
+    share = small * chunks / block
+    print(f"localize_dem: {small * 1e3:.2f} ms of NumPy calls per chunk x {chunks} chunks against {block * 1e3:.1f} ms "
+          f"CPU for {b:,} points: {100 * share:.0f} % in Python (Amdahl: 2 threads <= {2 / (1 + share):.2f}x); load "
           f"{os.getloadavg()[0]:.1f}", flush=True)
 
 
@@ -251,6 +270,8 @@ def main():
     for c in wanted:
         if c in found:
             _compare(args.threads, [found[c]], args.repeat or REPEAT.get(c, 3))
+    if "localize_dem" in wanted:
+        serial_share_dem()
     if "round_trip" in wanted:
         serial_share()
         process_bound(args.points, args.threads, args.repeat or REPEAT["round_trip"])

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._rpc_poly import _EXPONENTS, monomials, poly_product
-from .dem import DEM
+from .dem import DEM, NEWTON_SAMPLER_TOL_M
 from . import threads
 from .threads import matmul, split_points
 
@@ -144,11 +144,11 @@ def _warn_implausible_heights(model, dem, hgt) -> None:
     """Log a warning when DEM heights lie far outside the RPC's height range (METHODS §2: a DEM in feet or in
     decimetres without its band scale, the wrong DEM): beyond HEIGHT_OFF ± 2 x HEIGHT_SCALE, 500 m at least."""
     height_range = getattr(model, "height_range", None)
-    if height_range is None or dem.is_constant or not np.any(np.isfinite(hgt)):
+    if height_range is None or dem.is_constant or hgt.size == 0:
         return
     lo, hi = height_range
     margin = max(0.5 * (hi - lo), 500.0)
-    h_min, h_max = float(np.nanmin(hgt)), float(np.nanmax(hgt))
+    h_min, h_max = float(np.fmin.reduce(hgt)), float(np.fmax.reduce(hgt))     # NaN ignored, NaN when all are
     if h_min < lo - margin or h_max > hi + margin:
         log.warning("DEM %s: heights %.0f..%.0f m lie far outside the RPC's height range %.0f..%.0f m; check the "
                     "DEM's units (band scale/offset), its vertical datum and that it covers the scene",
@@ -284,7 +284,7 @@ def _one_crossing_near(dem: DEM, G, h0) -> np.ndarray:
         return np.ones(G.shape[1], dtype=bool)
     h_lo, h_hi = _dem_height_bounds(dem)
     radius = float(np.max(tan_view)) * max(h_hi - h0, h0 - h_lo) / min(dem.pixel_size_m()) + 2.0
-    if not np.isfinite(radius) or radius > 512 or dem.local_max_slope(np.zeros(1), np.zeros(1), 1) is None:
+    if not np.isfinite(radius) or radius > 512 or not dem.in_memory:
         return _one_crossing(dem, tan_view)
     # Rays that never fly over the DEM: to the march, which drops them at once.
     near = np.flatnonzero(_near_footprint(dem, *_track_ends(G, h_lo - h0, h_hi - h0)))
@@ -439,7 +439,7 @@ class _LineOfSight:
     def pixel(self, i, t):
         """(px, py) of rays ``i`` at ``t``."""
         C = self.C[:, i]
-        return _horner(C[0:4], t), _horner(C[4:8], t)
+        return _horner_pair(C, t)
 
     def f(self, dem, i, t):
         """DEM minus ray height (m) of rays ``i`` at ``t``: < 0 above the surface; NaN off the DEM / in holes."""
@@ -541,7 +541,7 @@ def _march(ray, dem):
     S[known, 10] = np.maximum(S[known, 10] - S[known, 12], S[known, 11])
     hits = []
     steps = 0
-    jump = dem.local_max(np.zeros(1), np.zeros(1), 1) is not None
+    jump = dem.in_memory
     with np.errstate(invalid="ignore"):
         for i in range(0, S.shape[0], _MARCH_CHUNK):      # chunks: the state of a chunk stays in cache
             steps = max(steps, _march_chunk(S[i:i + _MARCH_CHUNK], dem, jump, hits))
@@ -581,7 +581,7 @@ def _march_chunk(S, dem, jump, hits) -> int:
         steps += 1
         T = S.T
         t = T[10]
-        px, py = _horner(T[0:4], t), _horner(T[4:8], t)
+        px, py = _horner_pair(T[0:8], t)
         z = dem.sample_pixel(px, py)
         f = z - (T[8] + T[9] * t)
         fin = np.isfinite(f)
@@ -688,20 +688,17 @@ def _rpc_localize_dem_fast(rpc, s, l, dem, shift, tol_m, ray_iter: int = 12, pol
        around a scene start height h0; one Newton step with the exact Jacobian (incl. d/dH) at h0 corrects
        its value and slope, so the cubic ray is exact at h0 and within ~1e-3 px over 1.5 normalised heights.
     2. *Height on the ray* with DEM samples only: Newton on f(h) = DEM(ray(h)) - h with the slopes of
-       :meth:`DEM.sample_with_gradient` when they are analytic (secant steps otherwise: reprojected or
-       geoid-corrected DEMs).
-    3. *Polish:* exact localisation at h by chord Newton (1e-8 px), DEM check |DEM - h| <= tol_m; points that
+       :meth:`DEM.newton_sampler` (geoid-corrected DEMs: the geoid's own lattice, no PROJ call; secant steps on
+       :meth:`DEM.sample` where there is none: reprojected DEMs).
+    3. *Polish:* exact localisation at h by chord Newton (1e-8 px), DEM check |DEM - h| <= tol_m (on the
+       Newton sampler's heights, with its NEWTON_SAMPLER_TOL_M off tol_m: no PROJ call); points that
        miss it take a Newton step in h on the ray re-anchored at the exact point, and are polished again.
     """
     n = s.size
     out = np.full((3, n), np.nan)
     x = (s - shift - rpc.samp_off) / rpc.samp_scale
     y = (l - shift - rpc.line_off) / rpc.line_scale
-    if dem.gradient_is_analytic:
-        sampler = _gradient_sampler(dem)
-    else:
-        def sampler(lon, lat):
-            return _dem_height_nan(dem, lon, lat), None, None
+    sampler, heights, tol_p = _newton_sampler(dem, tol_m)
     with np.errstate(all="ignore"):
         h0 = _dem_start_height(rpc, x, y, dem)
         basis = _ray_basis(rpc._approximate_inverse, (h0 - rpc.height_off) / rpc.height_scale)
@@ -722,21 +719,32 @@ def _rpc_localize_dem_fast(rpc, s, l, dem, shift, tol_m, ray_iter: int = 12, pol
         for i in range(0, n, _DEM_CHUNK):
             sl = slice(i, i + _DEM_CHUNK)
             out[:3, sl] = _dem_chunk_polish(rpc, x[sl], y[sl], R[:, sl], J[:, sl], u[sl], slope[sl], ready[sl],
-                                            bridged[sl], h0, dem, tol_m, polish_iter)
+                                            bridged[sl], h0, heights, tol_p, polish_iter)
     return out[0], out[1], out[2], ray_iter + polish_iter, missed
 
 
-def _gradient_sampler(dem: DEM):
-    """``(lon, lat) -> (h, dh/dlon, dh/dlat)`` with NaN off the DEM for the 'error'/'nan' policies."""
+def _newton_sampler(dem: DEM, tol_m: float):
+    """``(sampler, heights, tol)`` of the fast path: ``sampler(lon, lat) -> (h, dh/dlon, dh/dlat)`` of its height
+    steps (:meth:`DEM.newton_sampler`; slopes None where the DEM has none: secant steps), ``heights(lon, lat)`` of
+    the polish's check |DEM - h| <= tol: the sampler's own heights (within NEWTON_SAMPLER_TOL_M of
+    :meth:`DEM.sample`: tol is tol_m less that), else :meth:`DEM.sample`. NaN off the DEM for the 'error' and 'nan'
+    policies."""
     if isinstance(dem.nodata_policy, str) and dem.nodata_policy != "nan":
         dem = dem.with_nodata("nan")
-    return dem.sample_with_gradient
+    sampler = dem.newton_sampler()
+    if sampler is not None:
+        return sampler, dem.newton_sampler(gradient=False), max(tol_m - NEWTON_SAMPLER_TOL_M, 0.5 * tol_m)
+
+    def exact(lon, lat):
+        return _dem_height_nan(dem, lon, lat)
+    return lambda lon, lat: (exact(lon, lat), None, None), exact, tol_m
 
 
-#: Points per chunk of the DEM-intersection fast path. Small enough that its per-point state stays in cache and
-#: that the temporaries are recycled by malloc instead of being fresh mmap'ed pages (page faults cost more than
-#: the arithmetic on this kind of machine: 16384 was 30-100 % slower).
-_DEM_CHUNK = 8192
+#: Points per chunk of the DEM-intersection fast path (half a block of :data:`gdal_gf4cal.threads.DEM_BLOCK`): the
+#: fewest NumPy calls whose temporaries (256 KB each) still stay in this machine's L2 (512 KB a core). Measured on
+#: SRTM + EGM96, 500k points, one run, loaded 2-core machine: CPU per point 8192: 1.00, 16384: 0.96-1.07,
+#: 32768: 0.81-0.90, 65536: 1.01 (its temporaries no longer fit); 2-thread switches fall with the chunk count.
+_DEM_CHUNK = 32768
 
 #: Stage-2 (height on the ray) stopping value of |DEM - h| in metres: the Newton step still taken after it makes the
 #: height exact to ~1e-6 m within a DEM cell, and the polish checks the real tolerance anyway.
@@ -767,19 +775,25 @@ def _ray_basis(A: np.ndarray, Hm: float) -> np.ndarray:
 
     ``A`` is the (2, 20) approximate inverse (normalised x, y, H) -> (L, P); (Hm + t)^e is expanded binomially.
     """
-    col = {(ex, ey): k for k, (_, ex, ey) in enumerate(_XY_TERMS)}
-    B = np.zeros((8, 10))
-    for j, (ex, ey, eh) in enumerate(_EXPONENTS):
-        q = col[(ex, ey)]
-        for k in range(eh + 1):
-            w = math.comb(eh, k) * Hm ** (eh - k)
-            B[k, q] += A[0, j] * w
-            B[4 + k, q] += A[1, j] * w
-    return B
+    B = [[0.0] * 10 for _ in range(8)]         # Python floats: the same IEEE operations, no NumPy scalar calls
+    a0, a1 = A.tolist()
+    for j, q, k, c, p in _RAY_BASIS_TERMS:
+        w = c * Hm ** p
+        B[k][q] += a0[j] * w
+        B[4 + k][q] += a1[j] * w
+    return np.array(B)
 
 
-def _horner(c, u):
-    """c[0] + c[1] u + c[2] u² + c[3] u³ for rows c (4, N)."""
+#: ``(j, q, k, comb(eh, k), eh - k)`` of :func:`_ray_basis`: term j of the RPC00B order (x, y, H exponents ex, ey,
+#: eh) adds to row k (power of t) of column q (its H-free term) its coefficient times comb(eh, k) Hm^(eh - k).
+_RAY_BASIS_TERMS = tuple((j, [(ex_, ey_) for _, ex_, ey_ in _XY_TERMS].index((ex, ey)), k, math.comb(eh, k), eh - k)
+                         for j, (ex, ey, eh) in enumerate(_EXPONENTS) for k in range(eh + 1))
+
+
+def _horner_pair(C, u):
+    """Two cubics in u at once, rows 0..3 and 4..7 of C (8, N) (coefficients of u^0..u^3): (2, N), each row
+    c[0] + c[1] u + c[2] u² + c[3] u³ (the same operations as one at a time, half the NumPy calls)."""
+    c = C.reshape(2, 4, -1).transpose(1, 0, 2)              # c[k]: the u^k coefficients of both (views)
     r = c[3] * u
     r += c[2]
     r *= u
@@ -798,8 +812,10 @@ def _dem_start_height(rpc, x, y, dem) -> float:
     A = rpc._approximate_inverse
     L, P = poly_product(A, monomials(xs, ys, np.full(xs.size, (mid - rpc.height_off) / rpc.height_scale)))
     z = _dem_height_nan(dem, L * rpc.long_scale + rpc.long_off, P * rpc.lat_scale + rpc.lat_off)
-    z = z[np.isfinite(z)]
-    return 0.5 * (float(z.min()) + float(z.max())) if z.size else mid
+    if z.size == 0:
+        return mid
+    z_lo, z_hi = float(np.fmin.reduce(z)), float(np.fmax.reduce(z))     # NaN ignored (off the DEM), NaN when all are
+    return 0.5 * (z_lo + z_hi) if z_lo == z_lo else mid
 
 
 def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
@@ -814,8 +830,10 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
     L0, P0 = R[0], R[4]
     V = poly_product(rpc._coeffs_with_derivatives, monomials(L0, P0, np.full(m, Hm)))
     xe, ye = V[0] / V[1], V[2] / V[3]
-    xL, xP, xH = (V[4] - xe * V[5]) / V[1], (V[8] - xe * V[9]) / V[1], (V[12] - xe * V[13]) / V[1]
-    yL, yP, yH = (V[6] - ye * V[7]) / V[3], (V[10] - ye * V[11]) / V[3], (V[14] - ye * V[15]) / V[3]
+    # d(x, y)/d(L, P, H): rows xL, xP, xH from V[4, 8, 12] and V[5, 9, 13], yL, yP, yH from V[6, 10, 14] and
+    # V[7, 11, 15] (strided views: three rows per NumPy call, each row the same operations as one by one).
+    xL, xP, xH = (V[4::4] - xe * V[5::4]) / V[1]
+    yL, yP, yH = (V[6::4] - ye * V[7::4]) / V[3]
     det = xL * yP - xP * yL
     # Inverse Jacobian d(L, P)/d(x, y), reused for every chord-Newton step of the polish.
     J = np.empty((4, m))
@@ -824,15 +842,10 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
     np.divide(-yL, det, out=J[2])
     np.divide(xL, det, out=J[3])
     rx, ry = x - xe, y - ye
-    L0 += J[0] * rx + J[1] * ry
-    P0 += J[2] * rx + J[3] * ry
-    R[1] = -(J[0] * xH + J[1] * yH)                        # exact d(L, P)/dH along the line of sight
-    R[5] = -(J[2] * xH + J[3] * yH)
+    R[0::4] += J[0::2] * rx + J[1::2] * ry                  # L0, P0 (rows 0, 4)
+    R[1::4] = -(J[0::2] * xH + J[1::2] * yH)                # exact d(L, P)/dH along the line of sight (rows 1, 5)
     # The ray as cubics of (lon, lat) in u = h - h0 metres.
-    G = np.empty((8, m))
-    for k in range(4):
-        G[k] = R[k] * (rpc.long_scale / hs ** k)
-        G[4 + k] = R[4 + k] * (rpc.lat_scale / hs ** k)
+    G = R * np.array([[rpc.long_scale / hs ** k] for k in range(4)] + [[rpc.lat_scale / hs ** k] for k in range(4)])
     G[0] += rpc.long_off
     G[4] += rpc.lat_off
 
@@ -850,7 +863,7 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
     for it in range(ray_iter):
         if idx.size == 0:
             break
-        z, zp, zq = sample(_horner(Ga[0:4], uu), _horner(Ga[4:8], uu))
+        z, zp, zq = sample(*_horner_pair(Ga, uu))
         f = z - uu
         f -= h0
         if zp is not None:
@@ -875,7 +888,7 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
     return R, J, G, u, slope, ready
 
 
-def _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, dem, tol_m, polish_iter):
+def _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, heights, tol_m, polish_iter):
     """Stage 3 of :func:`_rpc_localize_dem_fast` on one chunk: (3, m) lon, lat, h, NaN where unsettled;
     ``bridged`` heights (interpolated across a hole) are taken as they are once localised exactly."""
     out = np.full((3, x.size), np.nan)
@@ -897,7 +910,7 @@ def _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, dem, tol_m,
             break
         t = up / hs
         H = t + Hm
-        Lr, Pr = _horner(Rp[0:4], t), _horner(Rp[4:8], t)
+        Lr, Pr = _horner_pair(Rp, t)
         L, P = Lr + dL, Pr + dP
         # Chord Newton on the points not yet within 1e-8 px (L, P hold the last evaluated position of each point).
         act = np.arange(idx.size)
@@ -920,13 +933,12 @@ def _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, dem, tol_m,
         lon = L * rpc.long_scale + rpc.long_off
         lat = P * rpc.lat_scale + rpc.lat_off
         h = up + h0
-        f = _dem_height_nan(dem, lon, lat) - h
+        f = heights(lon, lat) - h
         done = exact & ((np.abs(f) <= tol_m) | bp)          # bridged: the height interpolated across a hole
         j = idx[done]
         out[0, j], out[1, j], out[2, j] = lon[done], lat[done], h[done]
         keep = np.flatnonzero(~done & exact & np.isfinite(f))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            secant = (f - f_last) / (up - u_last)
+        secant = (f - f_last) / (up - u_last)                # (under the caller's errstate)
         sp = np.where(np.isfinite(secant) & (secant < 0), secant, sp)
         idx, Rp, Jp, xp, yp, sp = idx[keep], Rp[:, keep], Jp[:, keep], xp[keep], yp[keep], sp[keep]
         bp = bp[keep]
@@ -944,7 +956,7 @@ def _march_rpc_ray(G, h0, dem, todo, u, slope, ready, bridged, missed):
 
     def lonlat_at(h):
         uu = h - h0
-        return _horner(G[0:4], uu), _horner(G[4:8], uu)
+        return _horner_pair(G, uu)
 
     near = _near_footprint(dem, *lonlat_at(h_lo), *lonlat_at(h_hi))
     missed[todo[~near]] = True
@@ -971,7 +983,7 @@ def _near_footprint(dem, lon0, lat0, lon1, lat1) -> np.ndarray:
     mx, my = 0.1 * (e - w) + 1e-6, 0.1 * (n - s_) + 1e-6
     if not dem.is_geographic and (e - w > 5.0 or n - s_ > 5.0 or max(abs(s_), abs(n)) > 80.0):
         return np.ones(np.shape(lon0), dtype=bool)     # a projected footprint its corners may not bound
-    if dem.is_geographic and not all(w <= np.min(v, initial=np.inf) and np.max(v, initial=-np.inf) < w + 360.0
+    if dem.is_geographic and not all(v.size == 0 or (w <= v.min() and v.max() < w + 360.0)
                                      for v in (lon0, lon1)):  # compared modulo 360 (as sampled), when needed
         lon0, lon1 = w + np.mod(lon0 - w, 360.0), w + np.mod(lon1 - w, 360.0)
     with np.errstate(invalid="ignore"):

@@ -208,3 +208,51 @@ def test_local_max_and_slopes(tmp_path):
     assert z1[0] == -np.inf and z8[0] == 0.0
     np.testing.assert_allclose(dem.local_max_slope(np.array([20.0, 40.0]), np.array([10.0, 40.0]), 2), [5.0, 0.0])
     assert dem.max_step_px() == (50.0, 50.0) and dem.pixel_size_m() == (10.0, 10.0)
+
+
+@pytest.mark.parametrize("tiled", [False, True])
+def test_newton_sampler_with_a_geoid_is_sample_and_its_slopes(srtm_path, data_dir, tiled):
+    """SRTM + EGM96: the DEM intersection's Newton sampler (stored surface + the geoid between its grid's nodes, no
+    PROJ call) gives sample()'s heights to 1e-6 m and the slopes of its own surface; none for a projected DEM."""
+    dem = DEM.from_file(srtm_path, geoid="egm96", nodata=-5.0)
+    if tiled:
+        dem._whole_limit = 0          # the windowed tile reads of a large DEM, on this small tile
+        dem._tile = 256
+    assert not dem.gradient_is_analytic
+    sampler = dem.newton_sampler()
+    rng = np.random.default_rng(7)
+    lon = np.r_[rng.uniform(5.02, 5.98, 2000), 7.5]          # the last one off the DEM: the numeric policy
+    lat = np.r_[rng.uniform(44.02, 44.98, 2000), 44.5]
+    z, gx, gy = sampler(lon, lat)
+    ref = dem.sample(lon, lat)
+    assert ref[-1] == z[-1] == -5.0 and gx[-1] == gy[-1] == 0.0
+    np.testing.assert_array_equal(dem.newton_sampler(gradient=False)(lon, lat), z)    # heights alone: same bits
+    n = dem.geoid_undulation(lon, lat)
+    assert np.ptp(n[:-1]) > 0.5                               # the undulation varies over the tile
+    assert np.nanmax(np.abs(z - ref)) <= 1e-6 and np.isfinite(z).all()
+    e = 1e-6                                                  # central differences within a DEM cell
+    fx = (sampler(lon + e, lat)[0] - sampler(lon - e, lat)[0]) / (2 * e)
+    fy = (sampler(lon, lat + e)[0] - sampler(lon, lat - e)[0]) / (2 * e)
+    fx_px, fy_px = ((lon - 5.0) * 1200.0) % 1.0, ((45.0 - lat) * 1200.0) % 1.0
+    interior = (np.minimum(fx_px, 1 - fx_px) > 0.01) & (np.minimum(fy_px, 1 - fy_px) > 0.01) & (ref != -5.0)
+    assert interior.sum() > 1500
+    np.testing.assert_allclose(gx[interior], fx[interior], rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(gy[interior], fy[interior], rtol=1e-4, atol=1e-3)
+    assert DEM.from_file(data_dir / "dem" / "N44E005_UTM.tif", geoid="egm96").newton_sampler() is None
+
+
+@pytest.mark.parametrize("geoid", [None, "egm96"])
+def test_a_small_call_without_outside_points_gives_the_masked_paths_bits(srtm_path, geoid):
+    """A call whose points all lie inside the DEM (and inside [west, west + 360)) skips the outside mask and the
+    longitude wrap (a small call's fixed cost): its values are bit for bit those of the same points in a call that
+    takes the masked paths (one point off the DEM, one NaN, one a turn west), for every sampler."""
+    dem = DEM.from_file(srtm_path, geoid=geoid, nodata="nan")
+    rng = np.random.default_rng(3)
+    lon, lat = rng.uniform(5.0, 6.0, 50), rng.uniform(44.0, 45.0, 50)
+    lon[:2], lat[:2] = (5.0 + 0.5 / 1200, 6.0 - 0.5 / 1200), (45.0 - 0.5 / 1200, 44.0 + 0.5 / 1200)  # edge cells
+    lon_m, lat_m = np.r_[lon, 7.5, np.nan, 5.5 - 360.0], np.r_[lat, 44.5, 44.5, 44.5]
+    for fn in (dem.sample, dem.sample_with_gradient, dem.newton_sampler(), dem.newton_sampler(gradient=False)):
+        small, masked = np.array(fn(lon, lat)), np.array(fn(lon_m, lat_m))
+        assert np.isfinite(small).all() and np.isnan(np.atleast_2d(masked)[0, 50:52]).all()   # heights NaN
+        np.testing.assert_array_equal(small, masked[..., :50])
+        assert np.isfinite(masked[..., 52]).all()            # found a turn east (wrapped, its own rounding)

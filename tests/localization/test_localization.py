@@ -140,3 +140,21 @@ def test_localize_dem_across_the_antimeridian_on_a_world_dem(tmp_path):
     s2, l2 = rpc.project(lon, lat, h)
     assert np.max(np.hypot(s2 - s.ravel(), l2 - l.ravel())) <= 1e-6
     assert np.max(np.abs(dem.height(lon, lat) - h)) <= 1e-3
+
+
+def test_ray_basis_is_the_binomial_expansion_bit_for_bit(ventoux):
+    """The fast path's ray basis (Python floats, a table of terms) is bit for bit the binomial expansion of the
+    approximate inverse at Hm written out with NumPy scalars, term by term in RPC00B order."""
+    import math
+
+    import gdal_gf4cal.localization as localization
+    A = ventoux._approximate_inverse
+    col = {(ex, ey): k for k, (_, ex, ey) in enumerate(localization._XY_TERMS)}
+    for Hm in (-0.37, 0.0, 0.81234567):
+        B = np.zeros((8, 10))
+        for j, (ex, ey, eh) in enumerate(localization._EXPONENTS):
+            for k in range(eh + 1):
+                w = math.comb(eh, k) * Hm ** (eh - k)
+                B[k, col[(ex, ey)]] += A[0, j] * w
+                B[4 + k, col[(ex, ey)]] += A[1, j] * w
+        np.testing.assert_array_equal(localization._ray_basis(A, Hm), B)
