@@ -279,7 +279,7 @@ def _ortho_footprint(ref: ReferenceImage, rpc, dem, c, w: int, W: int, H: int, o
     r = np.minimum.reduce([c[:, 0], W - c[:, 0], c[:, 1], H - c[:, 1]])
     inside = ref.inside(np.atleast_1d(xc), np.atleast_1d(yc), margin) & (r > 0)
     status[(status == 0) & ~inside] = 5
-    return np.clip(2 * np.floor(np.nan_to_num(r)), 0, w).astype(int)
+    return np.minimum(np.maximum(2 * np.floor(np.nan_to_num(r)), 0), w).astype(int)
 
 
 def _shrunk_sizes(ref_f: np.ndarray, fits: np.ndarray, w: int) -> np.ndarray:
@@ -478,8 +478,8 @@ def _fine_level(spec: TileSpec, ds, c, idx, ref_f, shift_x, shift_y, lim: int, n
 def _start_at(fine, which, pred) -> None:
     """Windows ``which`` start at the predicted offsets ``pred`` (rounded, within the search range), if any."""
     if pred is not None:
-        fine.ox[which] = np.clip(np.round(pred[0]), -fine.lim, fine.lim).astype(int)
-        fine.oy[which] = np.clip(np.round(pred[1]), -fine.lim, fine.lim).astype(int)
+        fine.ox[which] = np.minimum(np.maximum(np.round(pred[0]), -fine.lim), fine.lim).astype(int)
+        fine.oy[which] = np.minimum(np.maximum(np.round(pred[1]), -fine.lim), fine.lim).astype(int)
 
 
 def _pilot_passes(fine, c, p) -> None:
@@ -519,7 +519,8 @@ def _probe_pilots(fine, pilots, c, p):
     if w < PROBE_MIN_PX:
         return None
     ox, oy, lim = fine.ox[pilots], fine.oy[pilots], fine.lim
-    b = fine._read(fine.wx0[pilots] + np.clip(ox, -lim, lim), fine.wy0[pilots] + np.clip(oy, -lim, lim))
+    b = fine._read(fine.wx0[pilots] + np.minimum(np.maximum(ox, -lim), lim),
+                   fine.wy0[pilots] + np.minimum(np.maximum(oy, -lim), lim))
     ok = ~(fine.nan_ref[pilots] | np.isnan(b).any(axis=(1, 2))) & (np.abs(ox) <= lim) & (np.abs(oy) <= lim)
     b[~ok] = 0.0
     a2, b2 = _means_2x2(fine.a[pilots]), _means_2x2(b)
@@ -554,8 +555,8 @@ def _coarse_offsets(spec: TileSpec, ds, rpc, dem, ref, wx0, wy0, live, step: int
     cw = w * f
     # The coarse footprint is kept inside the image where possible (the error field is smooth, so the
     # offset found a little aside still guides the fine level); it can stick out of a small image.
-    cx0 = np.clip(wx0 + w // 2 - cw // 2, 0, max(W - cw, 0))
-    cy0 = np.clip(wy0 + w // 2 - cw // 2, 0, max(H - cw, 0))
+    cx0 = np.minimum(np.maximum(wx0 + w // 2 - cw // 2, 0), max(W - cw, 0))
+    cy0 = np.minimum(np.maximum(wy0 + w // 2 - cw // 2, 0), max(H - cw, 0))
     idx = np.flatnonzero(live)
     # The coarse level only has to land within a few pixels: the reference is read decimated to about the
     # coarse spacing (4 times fewer pixels to read, filter and interpolate than the fine level's 2 per spacing).
@@ -652,7 +653,8 @@ class _FinePasses:
         for it in range(3):
             axo, ayo = ox[active], oy[active]
             out_a = (np.abs(axo) > lim) | (np.abs(ayo) > lim)
-            raw_a = self._read(self.wx0[active] + np.clip(axo, -lim, lim), self.wy0[active] + np.clip(ayo, -lim, lim))
+            raw_a = self._read(self.wx0[active] + np.minimum(np.maximum(axo, -lim), lim),
+                               self.wy0[active] + np.minimum(np.maximum(ayo, -lim), lim))
             nan_a = np.isnan(raw_a).any(axis=(1, 2)) | out_a
             okw = ~(self.nan_ref[active] | nan_a)
             raw_a[~okw] = 0.0

@@ -198,7 +198,7 @@ def _logparabola(cm: np.ndarray, c0: np.ndarray, cp: np.ndarray) -> np.ndarray:
         den_p = cm - 2 * c0 + cp
         off_p = 0.5 * (cm - cp) / den_p
         off = np.where(pos & (den_g < 0), off_g, np.where(den_p < 0, off_p, 0.0))
-    return np.clip(off, -0.5, 0.5)
+    return np.minimum(np.maximum(off, -0.5), 0.5)
 
 
 @dataclass
@@ -272,7 +272,7 @@ class Peaks:
         ef = F.energy[idx] * (h * w)
         eg = G.energy[idx] * (h * w)
         with np.errstate(divide="ignore", invalid="ignore"):
-            ncc = np.clip(num / np.sqrt(ef * eg), -1.0, 1.0)
+            ncc = np.minimum(np.maximum(num / np.sqrt(ef * eg), -1.0), 1.0)
             # The peak maximises sum W cos(phi - 2 pi f.d); linearising at the optimum gives
             # var(d_x) = sum W^2 (2 pi f_x)^2 sin^2(res) / (sum W (2 pi f_x)^2 cos(res))^2, the sandwich variance
             # of a weighted phase regression. The taper correlates neighbouring frequencies, which

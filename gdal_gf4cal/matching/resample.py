@@ -250,7 +250,7 @@ def _interp_matrix(n: int, nodes: np.ndarray) -> np.ndarray:
     """(n, len(nodes)) linear interpolation weights from node values to every index 0..n-1."""
     m = np.zeros((n, nodes.size))
     i = np.arange(n)
-    k = np.clip(np.searchsorted(nodes, i, side="right") - 1, 0, nodes.size - 2) if nodes.size > 1 else 0
+    k = np.minimum(np.maximum(np.searchsorted(nodes, i, side="right") - 1, 0), nodes.size - 2) if nodes.size > 1 else 0
     if nodes.size == 1:
         m[:, 0] = 1.0
         return m
@@ -454,8 +454,8 @@ def _sample_reference(reference: ReferenceImage, fx: np.ndarray, fy: np.ndarray,
         bad = ndimage.binary_dilation(bad, iterations=reach)
     inside = (coords[0] >= 0) & (coords[0] <= block.shape[0] - 1) & (coords[1] >= 0) & \
         (coords[1] <= block.shape[1] - 1)
-    ci = np.clip(np.rint(coords[0]).astype(int), 0, block.shape[0] - 1)
-    cj = np.clip(np.rint(coords[1]).astype(int), 0, block.shape[1] - 1)
+    ci = np.minimum(np.maximum(np.rint(coords[0]).astype(int), 0), block.shape[0] - 1)
+    cj = np.minimum(np.maximum(np.rint(coords[1]).astype(int), 0), block.shape[1] - 1)
     return np.where(inside & ~bad[ci, cj], vals, np.nan).reshape(fx.shape)
 
 
@@ -511,8 +511,8 @@ def _sample_reference_each(reference: ReferenceImage, fx: np.ndarray, fy: np.nda
     cy, cx = coords[0], coords[1]
     if any_bad:
         bad = ndimage.binary_dilation(~valid, structure=_plane_cross(), iterations=reach)
-        ci = np.clip(np.rint(cy).astype(int), 0, bh - 1)
-        cj = np.clip(np.rint(cx).astype(int), 0, bw - 1)
+        ci = np.minimum(np.maximum(np.rint(cy).astype(int), 0), bh - 1)
+        cj = np.minimum(np.maximum(np.rint(cx).astype(int), 0), bw - 1)
         bad_sample = bad[np.arange(n)[:, None, None], ci, cj]
     cy += (np.arange(n) * bh)[:, None, None]  # row in the stack viewed as one tall 2-D array
     vals = ndimage.map_coordinates(blocks.reshape(n * bh, bw), coords.reshape(2, -1), order=order,
