@@ -392,11 +392,16 @@ def _fine_reference(spec: TileSpec, c, idx, rpc, dem, ref):
 def _reference_measures(ref_f):
     """:func:`_flag_windows`'s texture measures of the reference windows ``ref_f`` without no-data (NaN for the
     others), for every band of a group: each window's measures depend on that window alone."""
-    w = ref_f.shape[-1]
     tex, flat = np.full(ref_f.shape[0], np.nan), np.full(ref_f.shape[0], np.nan)
     ok = np.flatnonzero(~np.isnan(ref_f).any(axis=(1, 2)))
-    tex[ok], flat[ok] = window_measures(ref_f, (w // 4, w - w // 4), which=ok)
+    tex[ok], flat[ok] = window_measures(ref_f, _central_half(ref_f.shape[-1]), which=ok)
     return tex, flat
+
+
+def _central_half(w: int):
+    """The rows/columns ``(q0, q1)`` of a ``w`` px window's central half, where :func:`_flag_windows` measures
+    the flat share: a GCP is the window centre."""
+    return w // 4, w - w // 4
 
 
 def _match_band(spec: TileSpec, c, out, rpc, dem, ref, ds, near_edge, fits, idx, ref_f, ref_m=None):
@@ -709,10 +714,10 @@ def _flag_windows(st, a, b, res, p, okw, ref_m=None):
     """Status codes of the windows still 0 (2 flat, 3 weak peak, 4 quadrant check failed), in place; returns their
     texture and flat fraction. Windows without a usable pair (not ``okw``: zeroed) are not measured: texture 0
     and flat share 1, what the measures give on zero windows."""
-    w = a.shape[-1]
     # Texture over the whole window, and no more than half of its central half flat: a GCP is the window centre,
     # so a window centred on water or on a flat cloud is skipped even when a shoreline elsewhere would correlate.
-    q0, q1 = w // 4, w - w // 4
+    w = a.shape[-1]
+    q0, q1 = _central_half(w)
     tex, flat = np.zeros(okw.size), np.ones(okw.size)
     live = np.flatnonzero(okw)
     tex_a, flat_a = window_measures(a, (q0, q1), which=live) if ref_m is None else (ref_m[0][live], ref_m[1][live])
