@@ -559,17 +559,23 @@ def _coarse_offsets(spec: TileSpec, ds, rpc, dem, ref, wx0, wy0, live, step: int
         return shift_x, shift_y
     cw = w * f
     # The coarse footprint is kept inside the image where possible (the error field is smooth, so the
-    # offset found a little aside still guides the fine level); it can stick out of a small image.
+    # offset found a little aside still guides the fine level); it can stick out of a small image. Its corner
+    # is on the image's lattice of f x f blocks (at most f - 1 px aside): the windows of a tile are cells of
+    # one coarse grid, resampled and read once for them all.
     cx0 = np.minimum(np.maximum(wx0 + w // 2 - cw // 2, 0), max(W - cw, 0))
     cy0 = np.minimum(np.maximum(wy0 + w // 2 - cw // 2, 0), max(H - cw, 0))
+    cx0 -= cx0 % f
+    cy0 -= cy0 % f
     idx = np.flatnonzero(live)
     # The coarse level only has to land within a few pixels: the reference is read decimated to about the
-    # coarse spacing (4 times fewer pixels to read, filter and interpolate than the fine level's 2 per spacing).
-    # float32, as the fine level (the correlation transforms float32 anyway).
+    # coarse spacing (4 times fewer pixels to read, filter and interpolate than the fine level's 2 per spacing)
+    # and resampled once on the grid of the windows' union (shared: a window of the default 64-px grid every
+    # 256 px covers 4 x 4 of its neighbours' coarse cells). float32, as the fine level (the correlation
+    # transforms float32 anyway).
     ref_c = reference_on_grids(rpc, dem, ref, cx0[idx], cy0[idx], w, spacing=f, geometry_step=step,
-                               oversample=1.0, dtype=np.float32)
+                               oversample=1.0, shared=True, dtype=np.float32)
     # Decimated reads: GDAL averages f x f blocks while reading (or uses overviews), so the coarse level
-    # holds w x w pixels per window, not the (w f)^2 full-resolution footprint.
+    # holds w x w pixels per window, not the (w f)^2 full-resolution footprint; dense windows in one read.
     raw_c = _read_boxes(ds, spec.band, spec.image_nodata, cx0[idx], cy0[idx], cw, decimation=f)
     # The coarse level only has to land within a few pixels: fill small gaps instead of giving up.
     bad_ref = np.isnan(ref_c).mean(axis=(1, 2))

@@ -209,9 +209,9 @@ def read_boxes(band, width: int, height: int, nodata, x0, y0, size: int, decimat
     ``decimation`` while reading: float32 ``(N, size/d, size/d)``, NaN outside the raster and on ``nodata``
     (:func:`read_block` of each box).
 
-    Dense boxes (at full resolution, their union no larger than the pixels they hold: overlapping matching
-    windows) are read in one :func:`read_block` of their union and cut out of it (the same values: a box of the
-    union is the box read alone); others one read per box. A tile of pan-MS windows every 4 px is one GDAL call
+    Dense boxes (their union no larger than the pixels they hold: overlapping matching windows; decimated, their
+    corners on one lattice of the decimation) are read in one :func:`read_block` of their union and cut out of it
+    (the same values: a box of the union is the box read alone); others one read per box. A tile of pan-MS windows every 4 px is one GDAL call
     instead of hundreds, each holding the GIL for its Python wrapper longer than for the read itself.
     """
     x0 = np.asarray(x0, dtype=np.int64).ravel()
@@ -219,11 +219,12 @@ def read_boxes(band, width: int, height: int, nodata, x0, y0, size: int, decimat
     d = max(int(decimation), 1)
     m = -(-size // d)
     n = x0.size
-    if d == 1 and n > 1:
+    if n > 1:
         ux0, uy0 = int(x0.min()), int(y0.min())
         uw, uh = int(x0.max()) - ux0 + size, int(y0.max()) - uy0 + size
-        if uw * uh <= n * size * size:
-            return cut_boxes(read_block(band, width, height, nodata, ux0, uy0, uw, uh), ux0, uy0, x0, y0, size)
+        if uw * uh <= n * size * size and not (np.any((x0 - ux0) % d) or np.any((y0 - uy0) % d)):
+            return cut_boxes(read_block(band, width, height, nodata, ux0, uy0, uw, uh, d), 0, 0, (x0 - ux0) // d,
+                             (y0 - uy0) // d, m)
     out = np.empty((n, m, m), dtype=np.float32)
     for i in range(n):  # one windowed read per box far apart: I/O, not arithmetic
         out[i] = read_block(band, width, height, nodata, int(x0[i]), int(y0[i]), size, size, d)
@@ -300,24 +301,30 @@ def _probe_shift(rpc, dem, reference, S: np.ndarray, L: np.ndarray):
     return _whole_pixel_shift(rx - S, ry - L)
 
 
-def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int, oversample: float, dtype):
-    """:func:`reference_on_grids` of dense, overlapping windows (pixel spacing, whole-pixel corners) as one grid
-    over their union, resampled once and cut into the windows; None when the windows are not dense."""
+def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int, oversample: float, dtype,
+                   spacing: int = 1):
+    """:func:`reference_on_grids` of dense, overlapping windows (whole-pixel corners on one lattice of the grid
+    ``spacing``) as one grid over their union, resampled once and cut into the windows; None when the windows
+    are not dense. A whole-pixel translation is looked for at pixel spacing only."""
     ix0, iy0 = np.round(x0).astype(int), np.round(y0).astype(int)
     if not (np.array_equal(ix0, x0) and np.array_equal(iy0, y0)):
         return None
     ux0, uy0 = int(ix0.min()), int(iy0.min())
-    Wu, Hu = int(ix0.max()) - ux0 + size, int(iy0.max()) - uy0 + size
+    if np.any((ix0 - ux0) % spacing) or np.any((iy0 - uy0) % spacing):
+        return None
+    Wu, Hu = (int(ix0.max()) - ux0) // spacing + size, (int(iy0.max()) - uy0) // spacing + size
     if Wu * Hu > 0.8 * x0.size * size * size:
         return None
     nx, ny = grid_nodes(Wu, step), grid_nodes(Hu, step)
-    px, py = _probe_nodes(nx), _probe_nodes(ny)
-    t = _probe_shift(rpc, dem, reference, *np.meshgrid(ux0 + px + 0.5, uy0 + py + 0.5))
+    t = None
+    if spacing == 1:
+        px, py = _probe_nodes(nx), _probe_nodes(ny)
+        t = _probe_shift(rpc, dem, reference, *np.meshgrid(ux0 + px + 0.5, uy0 + py + 0.5))
     if t is None:  # not one whole-pixel translation: every node (the dense test kept as it was)
-        S = np.broadcast_to(ux0 + nx[None, :] + 0.5, (ny.size, nx.size))
-        L = np.broadcast_to(uy0 + ny[:, None] + 0.5, (ny.size, nx.size))
+        S = np.broadcast_to(ux0 + spacing * (nx[None, :] + 0.5), (ny.size, nx.size))
+        L = np.broadcast_to(uy0 + spacing * (ny[:, None] + 0.5), (ny.size, nx.size))
         rx, ry = _reference_pixels(rpc, dem, reference, S, L)
-        t = _whole_pixel_shift(rx - S, ry - L)
+        t = _whole_pixel_shift(rx - S, ry - L) if spacing == 1 else None
     if t is not None:
         return cut_boxes(reference.read(ux0 + t[0], uy0 + t[1], Wu, Hu), ux0, uy0, ix0, iy0, size).astype(
             dtype, copy=False)
@@ -335,7 +342,7 @@ def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int
         fx[bad], fy[bad] = float(np.mean(fx[~bad])), float(np.mean(fy[~bad]))
     vals = _sample_reference(reference, fx, fy, dec, sigma, margin, order)
     vals[bad] = np.nan
-    return cut_boxes(vals.astype(dtype, copy=False), 0, 0, ix0 - ux0, iy0 - uy0, size)
+    return cut_boxes(vals.astype(dtype, copy=False), 0, 0, (ix0 - ux0) // spacing, (iy0 - uy0) // spacing, size)
 
 
 def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, spacing: float = 1.0, *,
@@ -356,15 +363,16 @@ def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, s
     ``oversample`` : a reference finer than the grid is read decimated down to about this many of its pixels per
     grid spacing (then low-passed). 2 (default) keeps the interpolation accurate to a small fraction of a pixel;
     1 reads 4 times fewer pixels and suits a coarse level, whose raw side is a plain block average anyway.
-    ``shared``: dense overlapping windows at pixel spacing (raw-to-raw pan-MS cells) are resampled once on the
-    grid of their union and cut out of it (up to 4 times less localisation and interpolation; geometry nodes every
+    ``shared``: dense overlapping windows at a whole spacing, their corners on one lattice of it (raw-to-raw pan-MS
+    cells, a coarse matching level) are resampled once on the grid of their union and cut out of it (up to 4 times less localisation and interpolation; geometry nodes every
     ``geometry_step`` pixels of the union instead of each window).
     """
     x0 = np.atleast_1d(np.asarray(x0, dtype=float))
     y0 = np.atleast_1d(np.asarray(y0, dtype=float))
     n = x0.size
-    if shared and lonlat is None and n > 1 and spacing == 1.0:
-        vals = _on_union_grid(rpc, dem, reference, x0, y0, size, geometry_step, order, oversample, dtype)
+    if shared and lonlat is None and n > 1 and spacing == int(spacing):
+        vals = _on_union_grid(rpc, dem, reference, x0, y0, size, geometry_step, order, oversample, dtype,
+                              int(spacing))
         if vals is not None:
             return vals
     nodes = grid_nodes(size, geometry_step)
