@@ -32,7 +32,8 @@ the GIL), a process pool, or as Dask tasks on a cluster::
 
 or simply ``collect_gcps(..., executor=client.get_executor())`` with a ``distributed.Client``. Memory per task is
 bounded by the tile (a few ``window x window`` float32 stacks of its windows; GDAL's block cache is flushed
-after each tile), whatever the image size and the search range.
+after each tile, or on :func:`run_tiles`' own threads when the next tile reads other rows or the cache passes
+:data:`KEEP_BLOCKS_BYTES`), whatever the image size and the search range.
 """
 from __future__ import annotations
 
@@ -333,6 +334,8 @@ def match_tiles(specs: Sequence[TileSpec]) -> List[Dict[str, np.ndarray]]:
         return [{k: v.copy() for k, v in geo.items()} for _ in specs]
     rpc, dem, ref = sp.rpc, _dem_from_spec(sp.dem), _tile_reference(sp)
     ds = _cached(("img",) + _file_key(sp.image), lambda: gdal.Open(sp.image))
+    rows = _tile_rows(sp, c)
+    _drop_held_blocks(rows)
     try:
         near_edge, fits = _tile_footprint(sp, c, geo, rpc, dem, ref, ds)
         idx = np.flatnonzero(geo["status"] == 0)
@@ -345,10 +348,60 @@ def match_tiles(specs: Sequence[TileSpec]) -> List[Dict[str, np.ndarray]]:
         return [_match_band(s, c, {k: v.copy() for k, v in geo.items()}, rpc, dem, ref, ds, near_edge, fits, idx,
                             ref_f if ref_f is None or i == last else ref_f.copy(), ref_m) for i, s in enumerate(specs)]
     finally:
-        # Every window of a tile is read here, by this thread, and tiles hardly share raster blocks: drop them
-        # from GDAL's block cache (else each thread's handles keep up to GDAL_CACHEMAX of the scene in memory).
-        ds.FlushCache()
-        ref._open().FlushCache()
+        _release_blocks((ds, ref._open()), rows)
+
+
+#: Bytes of GDAL's block cache (the whole process's) up to which the threads of :func:`run_tiles` keep their
+#: datasets' blocks from one tile to the next (see :func:`_release_blocks`).
+KEEP_BLOCKS_BYTES = 64 << 20
+
+#: Per thread: ``held`` (the dict of :func:`run_tiles`' threads keeping blocks between tiles), when it keeps them.
+_BLOCKS = threading.local()
+
+
+def _tile_rows(spec: TileSpec, c) -> Tuple[float, float]:
+    """The raw image's rows a tile may read (its coarse footprints and fine windows at any offset), about."""
+    w = int(spec.window_px)
+    reach = w * max(int(spec.factor), 1) / 2.0 + w / 2.0 + float(spec.params.get("search_px", 0.0)) + 8.0
+    return float(c[:, 1].min()) - reach, float(c[:, 1].max()) + reach
+
+
+def _drop_held_blocks(rows) -> None:
+    """Before a tile: this thread's datasets drop the blocks kept from its last tile unless the two tiles share
+    rows (the next tile of a row of tiles, or of a band of centres: the same strips)."""
+    held = getattr(_BLOCKS, "held", None)
+    last = None if held is None else held.get(threading.get_ident())
+    if last is not None and (last[1][1] < rows[0] or rows[1] < last[1][0]):
+        for d in last[0]:
+            d.FlushCache()
+        del held[threading.get_ident()]
+
+
+def _release_blocks(datasets, rows) -> None:
+    """After a tile: its blocks leave GDAL's block cache (each thread's handles would otherwise keep up to
+    GDAL_CACHEMAX of the scene), except on the threads of :func:`run_tiles` while the cache holds at most
+    :data:`KEEP_BLOCKS_BYTES`: neighbouring tiles read the same strips of a striped file (each decompressed
+    once per tile otherwise: twice in all on the Sentinel-2 pair at 256 px) and the windows of the tile rows they
+    share. :func:`run_tiles` flushes what its threads kept when it ends. Values never depend on the cache."""
+    held = getattr(_BLOCKS, "held", None)
+    if held is not None and gdal.GetCacheUsed() <= KEEP_BLOCKS_BYTES:
+        held[threading.get_ident()] = (datasets, rows)
+        return
+    for d in datasets:
+        d.FlushCache()
+    if held is not None:
+        held.pop(threading.get_ident(), None)
+
+
+def _keeping_blocks(fn, held):
+    """``fn`` of a tile on a thread of :func:`run_tiles` that keeps its blocks between tiles, noted in ``held``."""
+    def run(spec):
+        _BLOCKS.held = held
+        try:
+            return fn(spec)
+        finally:
+            _BLOCKS.held = None
+    return run
 
 
 def _tile_reference(spec: TileSpec):
@@ -888,7 +941,11 @@ def run_tiles(specs: Sequence[TileSpec], executor: Optional[cf.Executor] = None,
     own = None
     # Every tile with serial kernels and BLAS on its thread, on any executor (its numbers depend on BLAS's threads)
     fn = _match_tile_serial if fn is None else fn
+    held: Dict[int, Any] = {}
     if executor is None:
+        # Our own threads (or this one) keep their raster blocks from tile to tile (_release_blocks), flushed
+        # below; another executor's workers flush after every tile.
+        fn = _keeping_blocks(fn, held)
         nw = threads.pool_workers(workers, len(specs))
         if nw > 1:
             # Threads: every heavy step of match_tile (GDAL reads, FFTs, spline interpolation, NumPy on whole
@@ -903,6 +960,9 @@ def run_tiles(specs: Sequence[TileSpec], executor: Optional[cf.Executor] = None,
     finally:
         if own is not None:
             own.shutdown(wait=True, cancel_futures=True)
+        for datasets, _ in held.values():   # the threads are done with them
+            for d in datasets:
+                d.FlushCache()
 
 
 def _match_tile_serial(spec: TileSpec) -> Dict[str, np.ndarray]:
