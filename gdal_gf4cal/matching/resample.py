@@ -186,21 +186,24 @@ def read_block(band, width: int, height: int, nodata, x0: int, y0: int, nx: int,
     """
     d = max(int(decimation), 1)
     ox, oy = -(-nx // d), -(-ny // d)
-    out = np.full((oy, ox), np.nan, dtype=np.float32)
     # Snap the readable part to whole decimated cells so every output cell averages complete pixels.
     cx0 = -(x0 // d) if x0 < 0 else 0
     cy0 = -(y0 // d) if y0 < 0 else 0
     cx1 = min(ox, (width - x0) // d)
     cy1 = min(oy, (height - y0) // d)
+    inside = (cx0, cy0, cx1, cy1) == (0, 0, ox, oy)
+    out = np.empty((oy, ox), dtype=np.float32) if inside else np.full((oy, ox), np.nan, dtype=np.float32)
     if cx1 <= cx0 or cy1 <= cy0:
         return out
-    arr = band.ReadAsArray(int(x0 + cx0 * d), int(y0 + cy0 * d), int((cx1 - cx0) * d), int((cy1 - cy0) * d),
-                           buf_xsize=int(cx1 - cx0), buf_ysize=int(cy1 - cy0),
-                           resample_alg=gdal.GRIORA_Average if d > 1 else gdal.GRIORA_NearestNeighbour)
-    arr = arr.astype(np.float32)
+    part = out[cy0:cy1, cx0:cx1]
+    win = (int(x0 + cx0 * d), int(y0 + cy0 * d), int((cx1 - cx0) * d), int((cy1 - cy0) * d))
+    if d == 1:  # GDAL converts into the output itself (the values of astype, without two copies)
+        band.ReadAsArray(*win, buf_obj=part)
+    else:       # averaged in the band's own type, then converted
+        part[...] = band.ReadAsArray(*win, buf_xsize=int(cx1 - cx0), buf_ysize=int(cy1 - cy0),
+                                     resample_alg=gdal.GRIORA_Average)
     if nodata is not None and np.isfinite(nodata):
-        arr[arr == np.float32(nodata)] = np.nan
-    out[cy0:cy1, cx0:cx1] = arr
+        part[part == np.float32(nodata)] = np.nan
     return out
 
 
