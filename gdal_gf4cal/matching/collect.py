@@ -141,7 +141,7 @@ def _read_boxes(ds, band: int, nodata, x0: np.ndarray, y0: np.ndarray, size: int
 CHANGE_QUARTER_PX = 64
 
 
-def _quadrant_ok(ref: np.ndarray, raw: np.ndarray, min_ncc: float) -> np.ndarray:
+def _quadrant_ok(ref: np.ndarray, raw: np.ndarray, min_ncc: float, which=None) -> np.ndarray:
     """Every quarter of the window where the reference has texture must correlate with the raw image, unless the
     raw image keeps its texture there: a failing quarter counts only where it is *covered*.
 
@@ -154,15 +154,17 @@ def _quadrant_ok(ref: np.ndarray, raw: np.ndarray, min_ncc: float) -> np.ndarray
     AROSICS's) but different is a change on the ground, such as fields between two dates: the window's own
     correlation checks judge it. On a real Sentinel-2 pair ten days apart, the 256-px windows so admitted lie 0.05 px (median) from
     the pair's smooth offset field, the others 0.035 px; 64-px ones 0.17 px against 0.074 (hence the size); painted
-    clouds keep their quarters' ratios below 0.25.
+    clouds keep their quarters' ratios below 0.25. ``which``: indices of the windows of the stacks to judge (one
+    result each; no copy of the stacks).
     """
-    n, h, w = ref.shape
+    which = np.arange(ref.shape[0]) if which is None else np.asarray(which, dtype=np.intp).ravel()
+    n, (h, w) = which.size, ref.shape[1:]
     hh, hw = h // 2, w // 2
     ref, raw = ref[:, :2 * hh, :2 * hw], raw[:, :2 * hh, :2 * hw]
-    grad = _quarter_gradient(ref)
+    grad = _quarter_gradient(ref, which)
     textured = grad >= 0.25 * grad.mean(axis=1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
-        kept = _quarter_gradient(raw) / grad
+        kept = _quarter_gradient(raw, which) / grad
         # Against the median of the textured quarters: one quarter that *gained* texture (new structure on the
         # ground) does not make the others look covered, as against the maximum.
         use = textured & np.isfinite(kept)
@@ -178,8 +180,8 @@ def _quadrant_ok(ref: np.ndarray, raw: np.ndarray, min_ncc: float) -> np.ndarray
     sel = np.flatnonzero(judged.any(axis=1))
     if sel.size:
         # Quarters as views (m, 2, hh, 2, hw): axes 2 and 4 run inside a quarter; results (m, 2, 2) -> (m, 4).
-        q_ref = ref[sel].reshape(sel.size, 2, hh, 2, hw)
-        q_raw = raw[sel].reshape(sel.size, 2, hh, 2, hw)
+        q_ref = ref[which[sel]].reshape(sel.size, 2, hh, 2, hw)
+        q_raw = raw[which[sel]].reshape(sel.size, 2, hh, 2, hw)
         a = q_ref - q_ref.mean(axis=(2, 4), keepdims=True)
         b = q_raw - q_raw.mean(axis=(2, 4), keepdims=True)
         va, vb = np.einsum("nyixj,nyixj->nyx", a, a), np.einsum("nyixj,nyixj->nyx", b, b)
@@ -189,18 +191,19 @@ def _quadrant_ok(ref: np.ndarray, raw: np.ndarray, min_ncc: float) -> np.ndarray
     return ok
 
 
-def _quarter_gradient(win: np.ndarray) -> np.ndarray:
+def _quarter_gradient(win: np.ndarray, which) -> np.ndarray:
     """Mean absolute difference along each axis (between pixels of one quarter), summed, of every quarter of
-    the windows ``(n, 2 hh, 2 hw) -> (n, 4)`` (quarters in row order): differences of whole rows and columns
-    summed per half (contiguous reductions), the pairs straddling the middle left out. A few windows at a time
-    (:data:`QUARTER_BYTES`: the differences stay in cache; twice as fast on 256-px windows as whole stacks; the
-    same sums)."""
-    n, h2, w2 = win.shape
+    the windows ``which`` of a stack ``(N, 2 hh, 2 hw) -> (n, 4)`` (quarters in row order): differences of whole
+    rows and columns summed per half (contiguous reductions), the pairs straddling the middle left out. A few
+    windows at a time (:data:`QUARTER_BYTES`: the differences stay in cache, the windows taken there rather than
+    in a copy of the stacks: twice as fast on 256-px windows as whole stacks; the same sums)."""
+    n, (h2, w2) = which.size, win.shape[1:]
     hh, hw = h2 // 2, w2 // 2
     out = np.empty((n, 4), dtype=np.result_type(win.dtype, np.float32))
     step = max(1, QUARTER_BYTES // (4 * h2 * w2))
+    every = n == win.shape[0] and np.array_equal(which, np.arange(n))   # views, no copies
     for k in range(0, n, step):
-        c = win[k:k + step]
+        c = win[k:k + step] if every else win[which[k:k + step]]
         m = c.shape[0]
         d = np.subtract(c[..., 1:], c[..., :-1])
         cx = np.abs(d, out=d).reshape(m, 2, hh, w2 - 1).sum(axis=2)     # (m, 2 halves in y, w2 - 1)
@@ -793,7 +796,7 @@ def _flag_windows(st, a, b, res, p, okw, ref_m=None):
     # Quarter check at the integer alignment (the residual is < 1 px; the threshold is far from 1 anyway), on the
     # windows still accepted.
     live = np.flatnonzero(st == 0)
-    st[live[~_quadrant_ok(a[live], b[live], p["min_quadrant_ncc"])]] = 4
+    st[live[~_quadrant_ok(a, b, p["min_quadrant_ncc"], which=live)]] = 4
     return tex, flat
 
 
