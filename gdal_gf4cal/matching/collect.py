@@ -491,15 +491,17 @@ def _match_band(spec: TileSpec, c, out, rpc, dem, ref, ds, near_edge, fits, idx,
         whole = s == w and sel.all()
         sub = ref_f if whole else ref_f[sel, k:k + s, k:k + s]
         guide = _fine_level(spec, ds, c, idx[sel], sub, shift_x, shift_y, lim, near_edge, out, guide,
-                            ref_m if whole else None)
+                            ref_m if whole else None, nan_free=fits is not None)
     return out
 
 
-def _fine_level(spec: TileSpec, ds, c, idx, ref_f, shift_x, shift_y, lim: int, near_edge, out, guide, ref_m=None):
+def _fine_level(spec: TileSpec, ds, c, idx, ref_f, shift_x, shift_y, lim: int, near_edge, out, guide, ref_m=None,
+                nan_free: bool = False):
     """Fine level of windows ``idx`` (their reference windows ``ref_f``, all of one size): the raw window at ``c``
     + the integer offset found so far; results and status into ``out``. ``guide`` (centres, offsets, results and
     usability of windows already matched, as returned) predicts where these windows start; without it, pilots
-    do. Returns the guide for the next windows."""
+    do. Returns the guide for the next windows. ``nan_free``: the reference windows hold no no-data (an ortho's
+    windows, cut to squares free of it)."""
     m, w = idx.size, ref_f.shape[-1]
     p = spec.params
     sigma = p.get("sigma_px", 1.0)
@@ -507,7 +509,7 @@ def _fine_level(spec: TileSpec, ds, c, idx, ref_f, shift_x, shift_y, lim: int, n
     W, H = ds.RasterXSize, ds.RasterYSize
     wx0 = np.round(c[idx, 0] - w / 2).astype(int)
     wy0 = np.round(c[idx, 1] - w / 2).astype(int)
-    fine = _FinePasses(spec, ds, ref_f, wx0, wy0, shift_x[idx], shift_y[idx], lim, sigma)
+    fine = _FinePasses(spec, ds, ref_f, wx0, wy0, shift_x[idx], shift_y[idx], lim, sigma, nan_free)
     if guide is not None:
         _start_at(fine, np.arange(m), _predict_offsets(*guide, c[idx], p))
         fine.passes(np.arange(m))
@@ -663,12 +665,14 @@ class _FinePasses:
 
     FIELDS = ("dx", "dy", "peak", "peak_ratio", "ncc", "precision_px")
 
-    def __init__(self, spec: TileSpec, ds, ref_f, wx0, wy0, shift_x, shift_y, lim: int, sigma: float):
+    def __init__(self, spec: TileSpec, ds, ref_f, wx0, wy0, shift_x, shift_y, lim: int, sigma: float,
+                 nan_free: bool = False):
         m = wx0.size
         w = ref_f.shape[-1]
         self.spec, self.ds, self.wx0, self.wy0, self.lim, self.sigma, self.w = spec, ds, wx0, wy0, lim, sigma, w
         self.a = ref_f.astype(np.float32, copy=False)  # taken over from the caller (float32 already)
-        self.nan_ref = np.isnan(self.a).any(axis=(1, 2))
+        # Windows of an ortho are cut to squares free of no-data (_shrunk_sizes): no pass over the stack for them.
+        self.nan_ref = np.zeros(m, dtype=bool) if nan_free else np.isnan(self.a).any(axis=(1, 2))
         self.a[self.nan_ref] = 0.0
         self.ox = np.round(shift_x).astype(int)
         self.oy = np.round(shift_y).astype(int)
