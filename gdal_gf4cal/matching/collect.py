@@ -387,6 +387,10 @@ def _release_blocks(datasets, rows) -> None:
     once per tile otherwise: twice in all on the Sentinel-2 pair at 256 px) and the windows of the tile rows they
     share. :func:`run_tiles` flushes what its threads kept when it ends. Values never depend on the cache."""
     held = getattr(_BLOCKS, "held", None)
+    last = None if held is None else held.get(threading.get_ident())
+    if last is not None and any(a is not b for a, b in zip(last[0], datasets)):   # handles of another tile's files
+        for d in last[0]:
+            d.FlushCache()
     if held is not None and gdal.GetCacheUsed() <= KEEP_BLOCKS_BYTES:
         held[threading.get_ident()] = (datasets, rows)
         return
