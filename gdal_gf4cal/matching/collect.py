@@ -651,7 +651,7 @@ def _coarse_offsets(spec: TileSpec, ds, rpc, dem, ref, wx0, wy0, live, step: int
         cnt = (~gaps).sum(axis=(1, 2))
         mean = np.where(gaps, 0.0, arr).sum(axis=(1, 2)) / np.maximum(cnt, 1)
         arr[gaps] = np.broadcast_to(mean[:, None, None], arr.shape)[gaps]
-    rc = phase_correlate(ref_c, raw_c, sigma_px=sigma)
+    rc = phase_correlate(ref_c, raw_c, sigma_px=sigma, full=False)   # the peak alone: no NCC nor precision
     good = usable & (rc.peak_ratio >= p["min_peak_ratio"]) & (rc.peak >= p["min_peak"])
     shift_x[idx] = np.where(usable, rc.dx * f, 0.0)
     shift_y[idx] = np.where(usable, rc.dy * f, 0.0)

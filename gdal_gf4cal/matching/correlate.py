@@ -235,6 +235,12 @@ class Peaks:
         rowmax[rows, ly] = band.max(axis=-1)
         return rowmax.max(axis=1).astype(np.float64)
 
+    def peak_ratio(self, idx, exclude_px=None) -> np.ndarray:
+        """Peak over the surface's highest value outside the main lobe, of windows ``idx`` (:meth:`quality`'s)."""
+        second = self._second_peak(idx, exclude_px)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(second > 0, self.c0[idx] / np.maximum(second, 1e-12), np.inf)
+
     def quality(self, F: Spectra, G: Spectra, idx=None, exclude_px: float = None) -> CorrelationResult:
         """Full :class:`CorrelationResult` for windows ``idx`` (all by default); ``F, G`` the same spectra
         (full stacks) the peaks were measured from."""
@@ -244,13 +250,11 @@ class Peaks:
         n = idx.size
         h, w = self.surf.shape[-2:]
         sigma = self.sigma
-        dx, dy, c0 = self.dx[idx], self.dy[idx], self.c0[idx]
+        dx, dy = self.dx[idx], self.dy[idx]
         if n == 0:
             e = np.zeros(0)
             return CorrelationResult(dx, dy, self.peak[idx], e, e, e)
-        second = self._second_peak(idx, exclude_px)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            peak_ratio = np.where(second > 0, c0 / np.maximum(second, 1e-12), np.inf)
+        peak_ratio = self.peak_ratio(idx, exclude_px)
         # NCC of the tapered windows at the sub-pixel shift, by Parseval on the half spectrum, and the precision
         # from the residual phases. The phase ramp is separable: two 1-D exponentials, not one per frequency.
         K1, K2, _, fy, fx = _quality_weights(h, w, float(sigma))
@@ -315,7 +319,7 @@ def correlate_spectra(F: Spectra, G: Spectra, sigma_px: float = 1.0) -> Peaks:
 
 
 def phase_correlate(fixed: np.ndarray, moving: np.ndarray, *, window: str = "hann", sigma_px: float = 1.0,
-                    exclude_px: float = None) -> CorrelationResult:
+                    exclude_px: float = None, full: bool = True) -> CorrelationResult:
     """Sub-pixel shift of ``moving`` relative to ``fixed`` for a stack of windows (see module docstring).
 
     Parameters
@@ -326,6 +330,8 @@ def phase_correlate(fixed: np.ndarray, moving: np.ndarray, *, window: str = "han
     sigma_px : standard deviation (px) of the Gaussian correlation peak imposed by the spectral low-pass;
         about 1 px balances noise rejection and peak sharpness.
     exclude_px : radius of the main lobe excluded when looking for the second peak (default ``3 sigma_px + 1``).
+    full : False leaves ``ncc`` and ``precision_px`` NaN (not computed: a coarse search needs the peak alone); the
+        other fields are the same bits.
 
     Returns
     -------
@@ -345,7 +351,12 @@ def phase_correlate(fixed: np.ndarray, moving: np.ndarray, *, window: str = "han
     for k in range(0, max(fixed.shape[0], 1), _CHUNK):
         F = spectra(fixed[k:k + _CHUNK], window)
         G = spectra(moving[k:k + _CHUNK], window)
-        parts.append(correlate_spectra(F, G, sigma_px).quality(F, G, exclude_px=exclude_px))
+        pk = correlate_spectra(F, G, sigma_px)
+        if full:
+            parts.append(pk.quality(F, G, exclude_px=exclude_px))
+            continue
+        idx, nan = np.arange(pk.dx.size), np.full(pk.dx.size, np.nan)
+        parts.append(CorrelationResult(pk.dx, pk.dy, pk.peak, pk.peak_ratio(idx, exclude_px), nan, nan))
     return CorrelationResult(*(np.concatenate([getattr(q, f) for q in parts]).reshape(lead)
                                for f in ("dx", "dy", "peak", "peak_ratio", "ncc", "precision_px")))
 

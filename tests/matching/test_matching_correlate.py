@@ -189,3 +189,17 @@ def test_null_result_is_what_a_pair_without_data_gives(shape, sigma):
         assert np.array_equal(getattr(q, k)[1:2], getattr(null, k), equal_nan=True), k
     assert null.peak[0] == 0 and np.isnan(null.ncc[0]) and np.isinf(null.peak_ratio[0])
     assert abs(q.dx[0] - 2) < 0.2 and abs(q.dy[0] - 1) < 0.2    # the real windows were measured (wrapped)
+
+
+def test_peak_only_correlation_is_the_same_bits_without_ncc():
+    """``phase_correlate(full=False)`` (a coarse search: the peak alone) gives the shift, peak and peak ratio of the
+    full correlation bit for bit, and NaN for what it does not compute (NCC, precision)."""
+    rng = np.random.default_rng(5)
+    a = ndimage.gaussian_filter(rng.normal(size=(70, 96, 96)), 1.5)
+    b = ndimage.shift(a, (0, 1.3, -2.6), order=3, mode="wrap") + 0.05 * rng.normal(size=a.shape)
+    full = phase_correlate(a[:, 16:80, 16:80], b[:, 16:80, 16:80])
+    peak = phase_correlate(a[:, 16:80, 16:80], b[:, 16:80, 16:80], full=False)
+    for f in ("dx", "dy", "peak", "peak_ratio"):
+        np.testing.assert_array_equal(getattr(peak, f), getattr(full, f))
+    assert np.all(np.isnan(peak.ncc)) and np.all(np.isnan(peak.precision_px))
+    assert np.median(np.abs(full.dx + 2.6)) < 0.1 and np.median(full.ncc) > 0.5
