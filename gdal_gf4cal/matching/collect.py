@@ -57,7 +57,8 @@ from ..progress import report
 from ..rpc import RPCModel
 from .correlate import correlate_spectra, null_result, phase_correlate, spectra, window_measures
 from .filters import reject_outliers
-from .resample import RawReference, ReferenceImage, cut_boxes, read_block, read_boxes, reference_on_grids
+from .resample import (RawReference, ReferenceImage, cut_boxes, read_block, read_boxes, reference_on_grids,
+                       whole_pixel_shift)
 
 __all__ = ["TileSpec", "STATUS", "collect_gcps", "plan_tiles", "match_tile", "assemble_gcps", "run_tiles"]
 
@@ -247,9 +248,10 @@ def _predict_offsets(cp, dxp, dyp, resp, okp, cr, p):
 
 
 def _window_corners(ref, rpc, dem, c, w: int):
-    """Reference pixel positions ``(xs, ys)`` of the corners of the ``w x w`` windows centred on ``c`` and the
+    """Reference pixel positions ``(xs, ys)`` of the corners of the ``w x w`` windows centred on ``c``, the
     resampling margin (reference px: the anti-alias low-pass of a finer reference reaches ~3 of its pixels per
-    image pixel)."""
+    image pixel) and whether the corners may be one whole-pixel translation of the raw image's (False: they are
+    not, so neither are the windows' grids; unknown where a corner has no ground point)."""
     half = w / 2.0
     cs = c[:, 0][:, None] + np.array([-half, half, -half, half])[None, :]
     cl = c[:, 1][:, None] + np.array([-half, -half, half, half])[None, :]
@@ -257,28 +259,29 @@ def _window_corners(ref, rpc, dem, c, w: int):
     xs, ys = (np.asarray(v, dtype=float).reshape(cs.shape) for v in ref.ground_to_pixel(lon, lat, h))
     with np.errstate(invalid="ignore"):
         ratio = np.hypot(xs[:, 1] - xs[:, 0], ys[:, 1] - ys[:, 0]) / w
-    return xs, ys, 8.0 + 3.0 * np.nan_to_num(ratio, nan=1.0)
+    known = np.isfinite(xs).all() and np.isfinite(ys).all()
+    translated = not known or whole_pixel_shift(xs - cs, ys - cl) is not None
+    return xs, ys, 8.0 + 3.0 * np.nan_to_num(ratio, nan=1.0), translated
 
 
-def _raw_reference_footprint(ref: RawReference, rpc, dem, c, w: int, out, status):
+def _raw_reference_footprint(ref: RawReference, out, status, corners):
     """Raw reference: the homologous reference position of every window centre (``ref_sample, ref_line``) and
-    status ``outside_image`` for windows whose footprint (corners) is not wholly inside the reference raster, so
-    only the overlap of two images is matched. Returns the windows within the resampling margin of its edge
-    (no-data there means outside as well)."""
+    status ``outside_image`` for windows whose footprint (``corners``: :func:`_window_corners`) is not wholly
+    inside the reference raster, so only the overlap of two images is matched. Returns the windows within the
+    resampling margin of its edge (no-data there means outside as well)."""
     rs, rl = ref.ground_to_pixel(out["lon"], out["lat"], out["h"])
     out["ref_sample"], out["ref_line"] = np.atleast_1d(rs).astype(float), np.atleast_1d(rl).astype(float)
-    xs, ys, margin = _window_corners(ref, rpc, dem, c, w)
+    xs, ys, margin = corners[:3]
     inside = np.all(ref.inside(xs, ys), axis=1)
     status[(status == 0) & ~inside] = 5
     return ~np.all(ref.inside(xs, ys, margin[:, None]), axis=1)
 
 
-def _ortho_footprint(ref: ReferenceImage, rpc, dem, c, w: int, W: int, H: int, out, status) -> np.ndarray:
+def _ortho_footprint(ref: ReferenceImage, c, w: int, W: int, H: int, out, status, margin) -> np.ndarray:
     """Ortho reference, before anything is read or resampled: status ``outside_image`` for windows whose centre
-    is not inside the reference raster (by the resampling margin) or the ``W x H`` raw image, so they are never
-    resampled nor correlated. Returns the largest window size (even, <= ``w``) centred on each window that the raw
-    image holds."""
-    margin = _window_corners(ref, rpc, dem, c, w)[2]
+    is not inside the reference raster (by the resampling ``margin``) or the ``W x H`` raw image, so they are
+    never resampled nor correlated. Returns the largest window size (even, <= ``w``) centred on each window that
+    the raw image holds."""
     xc, yc = ref.ground_to_pixel(out["lon"], out["lat"], out["h"])
     r = np.minimum.reduce([c[:, 0], W - c[:, 0], c[:, 1], H - c[:, 1]])
     inside = ref.inside(np.atleast_1d(xc), np.atleast_1d(yc), margin) & (r > 0)
@@ -340,9 +343,9 @@ def match_tiles(specs: Sequence[TileSpec]) -> List[Dict[str, np.ndarray]]:
     rows = _tile_rows(sp, c)
     _drop_held_blocks(rows)
     try:
-        near_edge, fits = _tile_footprint(sp, c, geo, rpc, dem, ref, ds)
+        near_edge, fits, translated = _tile_footprint(sp, c, geo, rpc, dem, ref, ds)
         idx = np.flatnonzero(geo["status"] == 0)
-        ref_f = _fine_reference(sp, c, idx, rpc, dem, ref)
+        ref_f = _fine_reference(sp, c, idx, rpc, dem, ref, translated)
         last = len(specs) - 1
         # Several bands, full windows (a raw reference): the reference windows' texture measures once (panms3)
         ref_m = _reference_measures(ref_f) if last and fits is None and ref_f is not None else None
@@ -423,21 +426,23 @@ def _tile_reference(spec: TileSpec):
 
 def _tile_footprint(spec: TileSpec, c, out, rpc, dem, ref, ds):
     """The windows' ground points (``lon, lat, h`` into ``out``; status 1 where there is none) and their footprints
-    in the reference: ``(near_edge, fits)`` (a raw reference's windows near its edge; an ortho's: the size that
-    fits in it, else None)."""
+    in the reference: ``(near_edge, fits, translated)`` (a raw reference's windows near its edge; an ortho's: the
+    size that fits in it, else None; whether the reference may be the raw grid moved by whole pixels)."""
     status = out["status"]
     lon, lat, h = rpc.localize_dem(c[:, 0], c[:, 1], dem)
     out["lon"], out["lat"], out["h"] = np.atleast_1d(lon), np.atleast_1d(lat), np.atleast_1d(h)
     status[~np.isfinite(out["lon"]) | ~np.isfinite(out["h"])] = 1
     w = int(spec.window_px)
+    corners = _window_corners(ref, rpc, dem, c, w)
     if isinstance(ref, RawReference):
-        return _raw_reference_footprint(ref, rpc, dem, c, w, out, status), None
-    fits = _ortho_footprint(ref, rpc, dem, c, w, ds.RasterXSize, ds.RasterYSize, out, status)
-    return np.zeros(c.shape[0], dtype=bool), fits
+        return _raw_reference_footprint(ref, out, status, corners), None, corners[3]
+    fits = _ortho_footprint(ref, c, w, ds.RasterXSize, ds.RasterYSize, out, status, corners[2])
+    return np.zeros(c.shape[0], dtype=bool), fits, corners[3]
 
 
-def _fine_reference(spec: TileSpec, c, idx, rpc, dem, ref):
-    """The reference resampled onto the fine windows ``idx`` (float32), None without any."""
+def _fine_reference(spec: TileSpec, c, idx, rpc, dem, ref, translated: bool = True):
+    """The reference resampled onto the fine windows ``idx`` (float32), None without any. Not ``translated``
+    (the windows' corners are not one whole-pixel translation): no probe for one (a localisation saved)."""
     if idx.size == 0:
         return None
     w = int(spec.window_px)
@@ -446,7 +451,7 @@ def _fine_reference(spec: TileSpec, c, idx, rpc, dem, ref):
     wy0 = np.round(c[idx, 1] - w / 2).astype(int)
     return reference_on_grids(rpc, dem, ref, wx0, wy0, w, spacing=1.0,
                               geometry_step=int(spec.params.get("geometry_step", 4)), shared=True,
-                              dtype=np.float32)
+                              dtype=np.float32, probe=translated)
 
 
 def _reference_measures(ref_f):

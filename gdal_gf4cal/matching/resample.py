@@ -30,7 +30,8 @@ from scipy import ndimage
 from .._gdal import with_gdal_exceptions
 from ..errors import Gf4calError
 
-__all__ = ["ReferenceImage", "RawReference", "cut_boxes", "grid_nodes", "read_block", "read_boxes", "reference_on_grids"]
+__all__ = ["ReferenceImage", "RawReference", "cut_boxes", "grid_nodes", "read_block", "read_boxes", "reference_on_grids",
+           "whole_pixel_shift"]
 
 #: Standard deviation (in grid spacings) of the anti-alias low-pass applied to a finer reference: about the
 #: Gaussian equivalent of a pixel's box integration (1/sqrt(12) ~= 0.29) plus optics.
@@ -274,7 +275,7 @@ def _lowpass(ratio: float, oversample: float):
     return dec, sigma, margin
 
 
-def _whole_pixel_shift(dx: np.ndarray, dy: np.ndarray):
+def whole_pixel_shift(dx: np.ndarray, dy: np.ndarray):
     """``(tx, ty)`` when every offset ``dx, dy`` (reference position minus grid position at the exact nodes) is
     one whole-pixel translation to within :data:`IDENTITY_TOL`; else None."""
     if dx.size == 0 or not (np.all(np.isfinite(dx)) and np.all(np.isfinite(dy))):
@@ -299,13 +300,13 @@ def _reference_pixels(rpc, dem, reference, S: np.ndarray, L: np.ndarray):
 
 
 def _probe_shift(rpc, dem, reference, S: np.ndarray, L: np.ndarray):
-    """:func:`_whole_pixel_shift` at the raw positions ``S, L`` (a subset of the exact nodes)."""
+    """:func:`whole_pixel_shift` at the raw positions ``S, L`` (a subset of the exact nodes)."""
     rx, ry = _reference_pixels(rpc, dem, reference, S, L)
-    return _whole_pixel_shift(rx - S, ry - L)
+    return whole_pixel_shift(rx - S, ry - L)
 
 
 def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int, oversample: float, dtype,
-                   spacing: int = 1):
+                   spacing: int = 1, probe: bool = True):
     """:func:`reference_on_grids` of dense, overlapping windows (whole-pixel corners on one lattice of the grid
     ``spacing``) as one grid over their union, resampled once and cut into the windows; None when the windows
     are not dense. A whole-pixel translation is looked for at pixel spacing only."""
@@ -320,14 +321,14 @@ def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int
         return None
     nx, ny = grid_nodes(Wu, step), grid_nodes(Hu, step)
     t = None
-    if spacing == 1:
+    if spacing == 1 and probe:
         px, py = _probe_nodes(nx), _probe_nodes(ny)
         t = _probe_shift(rpc, dem, reference, *np.meshgrid(ux0 + px + 0.5, uy0 + py + 0.5))
     if t is None:  # not one whole-pixel translation: every node (the dense test kept as it was)
         S = np.broadcast_to(ux0 + spacing * (nx[None, :] + 0.5), (ny.size, nx.size))
         L = np.broadcast_to(uy0 + spacing * (ny[:, None] + 0.5), (ny.size, nx.size))
         rx, ry = _reference_pixels(rpc, dem, reference, S, L)
-        t = _whole_pixel_shift(rx - S, ry - L) if spacing == 1 else None
+        t = whole_pixel_shift(rx - S, ry - L) if spacing == 1 else None
     if t is not None:
         return cut_boxes(reference.read(ux0 + t[0], uy0 + t[1], Wu, Hu), ux0, uy0, ix0, iy0, size).astype(
             dtype, copy=False)
@@ -350,7 +351,7 @@ def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int
 
 def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, spacing: float = 1.0, *,
                        geometry_step: int = 4, order: int = 3, lonlat=None, oversample: float = 2.0,
-                       shared: bool = False, dtype=np.float64) -> np.ndarray:
+                       shared: bool = False, dtype=np.float64, probe: bool = True) -> np.ndarray:
     """The reference resampled on ``N`` square grids of the raw image (METHODS §1 localisation, §2 DEM).
 
     Grid ``i`` has ``size x size`` nodes at raw positions ``(x0[i] + spacing * (j + 0.5), y0[i] + spacing *
@@ -368,28 +369,30 @@ def reference_on_grids(rpc, dem, reference: ReferenceImage, x0, y0, size: int, s
     1 reads 4 times fewer pixels and suits a coarse level, whose raw side is a plain block average anyway.
     ``shared``: dense overlapping windows at a whole spacing, their corners on one lattice of it (raw-to-raw pan-MS
     cells, a coarse matching level) are resampled once on the grid of their union and cut out of it (up to 4 times less localisation and interpolation; geometry nodes every
-    ``geometry_step`` pixels of the union instead of each window).
+    ``geometry_step`` pixels of the union instead of each window). ``probe=False``: the caller knows the mapping is
+    no whole-pixel translation (e.g. from the windows' corners); every node is localised at once, without the
+    probe on a subset of them first (a translation is still recognised on all the nodes).
     """
     x0 = np.atleast_1d(np.asarray(x0, dtype=float))
     y0 = np.atleast_1d(np.asarray(y0, dtype=float))
     n = x0.size
     if shared and lonlat is None and n > 1 and spacing == int(spacing):
         vals = _on_union_grid(rpc, dem, reference, x0, y0, size, geometry_step, order, oversample, dtype,
-                              int(spacing))
+                              int(spacing), probe)
         if vals is not None:
             return vals
     nodes = grid_nodes(size, geometry_step)
     whole = spacing == 1.0 and np.all(x0 == np.round(x0)) and np.all(y0 == np.round(y0))
     # A whole-pixel translation is first looked for on a subset of the nodes (see PROBE_EVERY).
     t = _probe_shift(rpc, dem, reference, *_node_grid(x0, y0, _probe_nodes(nodes) + 0.5)) \
-        if whole and lonlat is None else None
+        if whole and lonlat is None and probe else None
     if t is None:
         S, L = _node_grid(x0, y0, spacing * (nodes + 0.5))
         lon, lat, h = rpc.localize_dem(S, L, dem) if lonlat is None else lonlat
         rx, ry = reference.ground_to_pixel(lon, lat, h)
         rx = np.asarray(rx, dtype=float).reshape(n, nodes.size, nodes.size)
         ry = np.asarray(ry, dtype=float).reshape(n, nodes.size, nodes.size)
-        t = _whole_pixel_shift(rx - S, ry - L) if whole else None
+        t = whole_pixel_shift(rx - S, ry - L) if whole else None
     if t is not None:
         band = reference._open().GetRasterBand(reference.band)
         return read_boxes(band, reference.width, reference.height, reference.nodata, x0.astype(int) + t[0],

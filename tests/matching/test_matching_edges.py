@@ -16,7 +16,7 @@ from osgeo import gdal
 from scipy import ndimage
 
 from gdal_gf4cal.matching import ReferenceImage, assemble_gcps, plan_tiles, reference_on_grids, run_tiles
-from gdal_gf4cal.matching import resample
+from gdal_gf4cal.matching import collect, resample
 from gdal_gf4cal.rpc_fit import fit_rpc
 
 from matchscene import UTM31, builtin_texture
@@ -190,3 +190,32 @@ def test_a_quarter_that_gained_texture_does_not_make_the_others_covered(tmp_path
     assert st[(128.0, 128.0)] == 0
     # Half of the window is other ground: its error is larger than the unchanged windows' (< 0.005 px).
     assert np.hypot(d[(128.0, 128.0)][0] - SHIFT[0], d[(128.0, 128.0)][1] - SHIFT[1]) < 0.06
+
+
+def test_probe_for_a_translation_only_where_the_corners_allow_one(tmp_path, monkeypatch):
+    """A tile whose windows' corners are no whole-pixel translation of the reference (here its pixels 0.1 % larger)
+    is resampled without probing a subset of the nodes for one first (a localisation saved per tile), the same bits
+    as with the probe; corners on the raw grid keep the probe, and a grid read with ``probe=False`` is still
+    recognised as a translation on every node."""
+    image, ref, rpc = _pair(tmp_path, 100, 80, 320, 256)
+    probes = []
+    real = resample._probe_shift
+    monkeypatch.setattr(resample, "_probe_shift", lambda *a: probes.append(1) or real(*a))
+    _collect(image, rpc, ref, 64, 64)
+    assert probes
+    pix = gdal.Open(ref).ReadAsArray()
+    a = GT[1] * 1.001
+    scaled = write_tif(tmp_path / "scaled.tif", pix, gt=(GT[0] + 100.5 * (GT[1] - a), a, 0.0, GT[3], 0.0, GT[5]),
+                       epsg=UTM31, nodata=0)
+    probes.clear()
+    got, g = _collect(image, rpc, scaled, 64, 64)
+    assert not probes and len(g) > 10
+    monkeypatch.setattr(collect, "whole_pixel_shift", lambda dx, dy: (0, 0))   # corners said translated: probe
+    again, _ = _collect(image, rpc, scaled, 64, 64)
+    assert probes
+    for k in ("dsample", "dline", "status"):
+        np.testing.assert_array_equal(got[k], again[k])
+    r = ReferenceImage(ref)
+    for xs, ys, shared in (([0.0, 64.0, 200.0], [0.0, 100.0, 150.0], False), ([0, 32], [0, 0], True)):
+        np.testing.assert_array_equal(reference_on_grids(rpc, HEIGHT, r, xs, ys, 64, shared=shared, probe=False),
+                                      reference_on_grids(rpc, HEIGHT, r, xs, ys, 64, shared=shared))
