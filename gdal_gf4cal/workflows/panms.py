@@ -770,7 +770,8 @@ def _write_cells(cells, model, ms_rpc, dem, path) -> int:
     write_residuals_gpkg(t, path, before=("res_sample_before", "res_line_before"),
                          after=(f"res_sample_{last}", f"res_line_{last}"), overwrite=True,
                          title="Pan-MS registration cells (MS px)",
-                         points_title="pan-MS cells: misregistration before/after (MS px)")
+                         points_title="pan-MS cells: misregistration before/after (MS px)",
+                         concurrent=True)    # written while the plots draw: rows bound in C (GIL)
     return len(t)
 
 
