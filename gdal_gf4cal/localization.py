@@ -190,6 +190,7 @@ def _localize_dem_generic(model, s, l, dem, pixel_convention, tol_m, max_iter, s
     """The generic height iteration (any model), flat arrays: ``(lon, lat, h, iterations)``."""
     n = s.size
     kw = {"pixel_convention": pixel_convention} if pixel_convention != "gdal" else {}
+    heights, tol_m = _terrain_heights(dem, tol_m)
 
     def loc(idx, h):
         lo, la = model.localize(s[idx], l[idx], h, **kw)
@@ -199,7 +200,7 @@ def _localize_dem_generic(model, s, l, dem, pixel_convention, tol_m, max_iter, s
         ok = np.isfinite(lo) & np.isfinite(la)
         out = np.full(lo.shape, np.nan)
         if np.any(ok):
-            out[ok] = _dem_height_nan(dem, lo[ok], la[ok])
+            out[ok] = heights(lo[ok], la[ok])
         return out
 
     lon = np.full(n, np.nan)
@@ -318,6 +319,17 @@ def _dem_height_nan(dem: DEM, lon, lat):
     without intersection is NaN, never an exception), the fallback height for a numeric policy."""
     policy = dem.nodata_policy
     return dem.sample(lon, lat, nodata="nan" if isinstance(policy, str) else policy)
+
+
+def _terrain_heights(dem: DEM, tol_m: float):
+    """``(heights(lon, lat), tol)`` of the generic path's checks |DEM - h| <= tol (and the fast path's start height):
+    on a DEM with a geoid, the Newton sampler's heights where it has one (:func:`_newton_sampler`: the geoid's lattice,
+    within NEWTON_SAMPLER_TOL_M of :meth:`DEM.sample`, tol is tol_m less that, as in the fast path's polish: no PROJ
+    call per height iteration, PROJ holds the GIL); :meth:`DEM.sample` (NaN off the DEM) otherwise, the same bits
+    as ever."""
+    if dem.geoid_applied is not None:
+        return _newton_sampler(dem, tol_m)[1:]
+    return (lambda lon, lat: _dem_height_nan(dem, lon, lat)), tol_m
 
 
 def _dem_height_bounds(dem: DEM):
