@@ -271,7 +271,10 @@ def _max_slope(dem: DEM) -> float:
 def _one_crossing(dem: DEM, tan_view) -> np.ndarray:
     """Whether a line of sight with this tangent of its view angle crosses the DEM once only (slope x tan(view)
     < 1 everywhere, with a margin for the two axes): then any root found is the first from the top."""
-    return _max_slope(dem) * np.sqrt(2.0) * np.asarray(tan_view) < 0.9
+    return _max_slope(dem) * _SQRT2 * np.asarray(tan_view) < 0.9
+
+
+_SQRT2 = math.sqrt(2.0)
 
 
 def _one_crossing_near(dem: DEM, G, h0) -> np.ndarray:
@@ -281,17 +284,17 @@ def _one_crossing_near(dem: DEM, G, h0) -> np.ndarray:
     tan_view = 1.1 * np.hypot(G[1] * 111320.0 * np.cos(np.radians(G[4])), G[5] * 110574.0)
     if G.shape[1] == 0:
         return np.zeros(0, dtype=bool)
-    if np.all(_one_crossing(dem, tan_view)):
+    if _one_crossing(dem, tan_view).all():
         return np.ones(G.shape[1], dtype=bool)
     h_lo, h_hi = _dem_height_bounds(dem)
-    radius = float(np.max(tan_view)) * max(h_hi - h0, h0 - h_lo) / min(dem.pixel_size_m()) + 2.0
-    if not np.isfinite(radius) or radius > 512 or not dem.in_memory:
+    radius = float(tan_view.max()) * max(h_hi - h0, h0 - h_lo) / min(dem.pixel_size_m()) + 2.0
+    if not math.isfinite(radius) or radius > 512 or not dem.in_memory:
         return _one_crossing(dem, tan_view)
     # Rays that never fly over the DEM: to the march, which drops them at once.
-    near = np.flatnonzero(_near_footprint(dem, *_track_ends(G, h_lo - h0, h_hi - h0)))
+    near = np.flatnonzero(_near_footprint(dem, _track_ends(G, h_lo - h0, h_hi - h0)))
     px, py = dem.to_pixel(G[0, near], G[4, near])
     once = np.zeros(G.shape[1], dtype=bool)
-    once[near] = dem.local_max_slope(px, py, int(np.ceil(radius))) * np.sqrt(2.0) * tan_view[near] < 0.9
+    once[near] = dem.local_max_slope(px, py, math.ceil(radius)) * _SQRT2 * tan_view[near] < 0.9
     return once
 
 
@@ -816,14 +819,16 @@ def _horner_pair(C, u):
 
 
 def _dem_start_height(rpc, x, y, dem) -> float:
-    """One start height for the scene: middle of the DEM heights under a subsample of the points (approximate)."""
+    """One start height for the scene: middle of the DEM heights under a subsample of the points (approximate; on
+    a geoid DEM the Newton sampler's heights, :func:`_terrain_heights`: no PROJ call, a small call's fixed cost)."""
     lo, hi = dem.height_range()
     mid = 0.5 * (lo + hi)
     step = max(1, x.size // 512)
     xs, ys = x[::step], y[::step]
     A = rpc._approximate_inverse
     L, P = poly_product(A, monomials(xs, ys, np.full(xs.size, (mid - rpc.height_off) / rpc.height_scale)))
-    z = _dem_height_nan(dem, L * rpc.long_scale + rpc.long_off, P * rpc.lat_scale + rpc.lat_off)
+    heights = _terrain_heights(dem, 0.0)[0]
+    z = heights(L * rpc.long_scale + rpc.long_off, P * rpc.lat_scale + rpc.lat_off)
     if z.size == 0:
         return mid
     z_lo, z_hi = float(np.fmin.reduce(z)), float(np.fmax.reduce(z))     # NaN ignored (off the DEM), NaN when all are
@@ -866,7 +871,9 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
     u = np.zeros(m)
     slope = np.full(m, -1.0)
     ready = np.zeros(m, dtype=bool)
-    idx = np.flatnonzero(np.isfinite(G[0]) & np.isfinite(G[4]) & np.isfinite(R[1]) & np.isfinite(R[5]))
+    finite = np.isfinite(G[0::4])                              # lon0, lat0, then their slopes: one row each
+    finite &= np.isfinite(R[1::4])
+    idx = np.flatnonzero(finite[0] & finite[1])
     idx = idx[_one_crossing_near(dem, G[:, idx], h0)]
     Ga = G[:, idx]
     uu = np.zeros(idx.size)
@@ -970,7 +977,7 @@ def _march_rpc_ray(G, h0, dem, todo, u, slope, ready, bridged, missed):
         uu = h - h0
         return _horner_pair(G, uu)
 
-    near = _near_footprint(dem, *lonlat_at(h_lo), *lonlat_at(h_hi))
+    near = _near_footprint(dem, np.concatenate([lonlat_at(h_lo), lonlat_at(h_hi)]))
     missed[todo[~near]] = True
     todo, G = todo[near], G[:, near]
     ray = _LineOfSight.from_lonlat(lonlat_at, dem, np.full(todo.size, h_lo), np.full(todo.size, h_hi))
@@ -988,20 +995,24 @@ def _march_rpc_ray(G, h0, dem, todo, u, slope, ready, bridged, missed):
     u[j], slope[j], ready[j], bridged[j] = hb[ok] - h0, sl[ok], True, br.bridged[ok]
 
 
-def _near_footprint(dem, lon0, lat0, lon1, lat1) -> np.ndarray:
-    """False for the rays whose ground track (lon0, lat0) -> (lon1, lat1) lies wholly beyond one side of the
-    DEM's lon/lat bounds widened by 10 % (they cannot cross it: known at once, before any fit or sample)."""
+def _near_footprint(dem, ends) -> np.ndarray:
+    """False for the rays whose ground track from (lon0, lat0) to (lon1, lat1), the rows of ``ends`` (4, n), lies
+    wholly beyond one side of the DEM's lon/lat bounds widened by 10 % (they cannot cross it: known at once, before
+    any fit or sample). Both ends against all four sides in two comparisons (a small call's fixed cost)."""
     w, s_, e, n = dem.bounds_lonlat()
     mx, my = 0.1 * (e - w) + 1e-6, 0.1 * (n - s_) + 1e-6
     if not dem.is_geographic and (e - w > 5.0 or n - s_ > 5.0 or max(abs(s_), abs(n)) > 80.0):
-        return np.ones(np.shape(lon0), dtype=bool)     # a projected footprint its corners may not bound
-    if dem.is_geographic and not all(v.size == 0 or (w <= v.min() and v.max() < w + 360.0)
-                                     for v in (lon0, lon1)):  # compared modulo 360 (as sampled), when needed
-        lon0, lon1 = w + np.mod(lon0 - w, 360.0), w + np.mod(lon1 - w, 360.0)
-    with np.errstate(invalid="ignore"):
-        beyond = ((lon0 < w - mx) & (lon1 < w - mx)) | ((lon0 > e + mx) & (lon1 > e + mx)) | \
-                 ((lat0 < s_ - my) & (lat1 < s_ - my)) | ((lat0 > n + my) & (lat1 > n + my))
-    return ~beyond
+        return np.ones(ends.shape[1], dtype=bool)     # a projected footprint its corners may not bound
+    lons = ends[0::2]
+    if dem.is_geographic and lons.size and not (w <= lons.min() and lons.max() < w + 360.0):
+        ends = ends.copy()                   # compared modulo 360 (as sampled), when needed
+        ends[0::2] = w + np.mod(lons - w, 360.0)
+    lo = ends < np.array([[w - mx], [s_ - my], [w - mx], [s_ - my]])      # NaN: False, as before
+    hi = ends > np.array([[e + mx], [n + my], [e + mx], [n + my]])
+    lo[:2] &= lo[2:]                         # both ends west of the DEM, south of it
+    hi[:2] &= hi[2:]
+    lo[:2] |= hi[:2]
+    return ~(lo[0] | lo[1])
 
 
 def _illinois_on_ray(ray, dem, i, a, b, fa, fb, tol, max_iter: int = 30):

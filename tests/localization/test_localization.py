@@ -96,6 +96,22 @@ def test_generic_path_on_a_geoid_dem_iterates_without_proj(ventoux, srtm_path, t
     assert np.max(np.hypot(s2 - s[ok], l2 - l[ok])) <= 1e-6
 
 
+@pytest.mark.parametrize("n", [1, 16, 2000])
+def test_fast_path_on_a_geoid_dem_makes_no_proj_call(ventoux, srtm_path, n):
+    """The RPC fast path on SRTM + EGM96, a small call as a large one: its start height, Newton steps and checks all
+    on the Newton sampler (the start height was DEM.sample's, a PROJ call: a small call's fixed cost); the results
+    within tol_m of DEM.sample (PROJ) and exact in the image."""
+    dem = DEM.from_file(srtm_path, geoid="egm96", nodata="nan")
+    assert dem.newton_sampler() is not None                  # the lattice, built (PROJ at its nodes) before counting
+    s, l = _points(ventoux, n, seed=6)
+    spy = dem._geoid = _CountingTransformer(dem._geoid)
+    lon, lat, h = ventoux.localize_dem(s, l, dem)
+    assert spy.points == 0 and np.isfinite(h).all()
+    assert np.max(np.abs(dem.sample(lon, lat) - h)) <= 1e-4
+    s2, l2 = ventoux.project(lon, lat, h)
+    assert np.max(np.hypot(s2 - s, l2 - l)) <= 1e-6
+
+
 def test_steep_oblique_terrain_uses_bracketing(tmp_path, monkeypatch):
     """A cliff seen obliquely makes the plain height iteration oscillate; bracketing must still find the surface."""
     # Oblique synthetic RPC: image sample depends strongly on height (about 1 px per metre).
