@@ -101,7 +101,9 @@ def localize_dem(model, sample, line, dem, *, pixel_convention: str = "gdal", to
     no-data policy is a number. With ``full_output=True`` a fourth item, :class:`LocalizationStats`.
     """
     dem = DEM.coerce(dem)
-    sample, line = np.broadcast_arrays(np.asarray(sample, dtype=float), np.asarray(line, dtype=float))
+    sample, line = np.asarray(sample, dtype=float), np.asarray(line, dtype=float)
+    if sample.shape != line.shape:           # (broadcast_arrays costs a small call ~10 us)
+        sample, line = np.broadcast_arrays(sample, line)
     shape = sample.shape
     s, l = sample.ravel(), line.ravel()
     iterations = []
@@ -710,17 +712,19 @@ def _rpc_localize_dem_fast(rpc, s, l, dem, shift, tol_m, ray_iter: int = 12, pol
        miss it take a Newton step in h on the ray re-anchored at the exact point, and are polished again.
     """
     n = s.size
-    out = np.full((3, n), np.nan)
     x = (s - shift - rpc.samp_off) / rpc.samp_scale
     y = (l - shift - rpc.line_off) / rpc.line_scale
     sampler, heights, tol_p = _newton_sampler(dem, tol_m)
     with np.errstate(all="ignore"):
         h0 = _dem_start_height(rpc, x, y, dem)
         basis = _ray_basis(rpc._approximate_inverse, (h0 - rpc.height_off) / rpc.height_scale)
-        R, J, G = np.empty((8, n)), np.empty((4, n)), np.empty((8, n))
-        u, slope = np.empty(n), np.empty(n)
-        ready = np.empty(n, dtype=bool)
-        for i in range(0, n, _DEM_CHUNK):
+        if n <= _DEM_CHUNK:                  # one chunk (a small call): its arrays as they are, no copies
+            R, J, G, u, slope, ready = _dem_chunk_ray(rpc, x, y, dem, sampler, h0, basis, tol_m, ray_iter)
+        else:
+            R, J, G = np.empty((8, n)), np.empty((4, n)), np.empty((8, n))
+            u, slope = np.empty(n), np.empty(n)
+            ready = np.empty(n, dtype=bool)
+        for i in range(0, n if n > _DEM_CHUNK else 0, _DEM_CHUNK):
             sl = slice(i, i + _DEM_CHUNK)
             R[:, sl], J[:, sl], G[:, sl], u[sl], slope[sl], ready[sl] = _dem_chunk_ray(
                 rpc, x[sl], y[sl], dem, sampler, h0, basis, tol_m, ray_iter)
@@ -731,10 +735,14 @@ def _rpc_localize_dem_fast(rpc, s, l, dem, shift, tol_m, ray_iter: int = 12, pol
         todo = np.flatnonzero(~ready)
         if todo.size:
             _march_rpc_ray(G[:, todo], h0, dem, todo, u, slope, ready, bridged, missed)
-        for i in range(0, n, _DEM_CHUNK):
+        if n <= _DEM_CHUNK:
+            out = _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, heights, tol_p, polish_iter)
+        else:
+            out = np.empty((3, n))
+        for i in range(0, n if n > _DEM_CHUNK else 0, _DEM_CHUNK):
             sl = slice(i, i + _DEM_CHUNK)
-            out[:3, sl] = _dem_chunk_polish(rpc, x[sl], y[sl], R[:, sl], J[:, sl], u[sl], slope[sl], ready[sl],
-                                            bridged[sl], h0, heights, tol_p, polish_iter)
+            out[:, sl] = _dem_chunk_polish(rpc, x[sl], y[sl], R[:, sl], J[:, sl], u[sl], slope[sl], ready[sl],
+                                           bridged[sl], h0, heights, tol_p, polish_iter)
     return out[0], out[1], out[2], ray_iter + polish_iter, missed
 
 
@@ -900,6 +908,9 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
         done = (af <= tol_a) & front
         good = ~done & front & ((af < np.abs(f_prev)) if it else np.isfinite(f))
         unew = uu - f / d                                       # also a free last step for the settled points
+        if good.all():                       # none settled, none dropped (a small call's usual step): no compaction
+            f_prev, u_prev, uu = f, uu, unew
+            continue
         j = idx[done]
         u[j], slope[j], ready[j] = unew[done], d[done], True
         keep = np.flatnonzero(good)
@@ -956,6 +967,8 @@ def _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, heights, to
         done = exact & ((np.abs(f) <= tol_m) | bp)          # bridged: the height interpolated across a hole
         j = idx[done]
         out[0, j], out[1, j], out[2, j] = lon[done], lat[done], h[done]
+        if j.size == idx.size:               # all settled (a small call's usual first step)
+            break
         keep = np.flatnonzero(~done & exact & np.isfinite(f))
         secant = (f - f_last) / (up - u_last)                # (under the caller's errstate)
         sp = np.where(np.isfinite(secant) & (secant < 0), secant, sp)
