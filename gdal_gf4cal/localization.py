@@ -293,7 +293,11 @@ def _one_crossing_near(dem: DEM, G, h0) -> np.ndarray:
     if not math.isfinite(radius) or radius > 512 or not dem.in_memory:
         return _one_crossing(dem, tan_view)
     # Rays that never fly over the DEM: to the march, which drops them at once.
-    near = np.flatnonzero(_near_footprint(dem, _track_ends(G, h_lo - h0, h_hi - h0)))
+    near = _near_footprint(dem, _track_ends(G, h_lo - h0, h_hi - h0))
+    if near.all():                           # the usual case: no compaction
+        px, py = dem.to_pixel(G[0], G[4])
+        return dem.local_max_slope(px, py, math.ceil(radius)) * _SQRT2 * tan_view < 0.9
+    near = np.flatnonzero(near)
     px, py = dem.to_pixel(G[0, near], G[4, near])
     once = np.zeros(G.shape[1], dtype=bool)
     once[near] = dem.local_max_slope(px, py, math.ceil(radius)) * _SQRT2 * tan_view[near] < 0.9
@@ -303,10 +307,9 @@ def _one_crossing_near(dem: DEM, G, h0) -> np.ndarray:
 def _track_ends(G, u0: float, u1: float) -> np.ndarray:
     """(4, n) lon, lat at ``u0``, then at ``u1`` of the cubic rays ``G`` (lon, lat in u = h - h0): one (4, 8) x
     (8, n) product instead of four Horner evaluations (24 NumPy calls)."""
-    E = np.zeros((4, 8))
-    for row, u in ((0, u0), (2, u1)):
-        E[row, 0:4] = E[row + 1, 4:8] = (1.0, u, u * u, u * u * u)
-    return poly_product(E, G)
+    p0, p1 = ((1.0, u, u * u, u * u * u) for u in (u0, u1))
+    z = (0.0,) * 4
+    return poly_product(np.array([p0 + z, z + p0, p1 + z, z + p1]), G)
 
 
 def _view_tangent(loc, n, h_lo, h_hi) -> float:
