@@ -341,3 +341,14 @@ def test_scratch_buffers_are_per_thread_and_never_shared_while_in_use():
     t.start()
     t.join()
     assert not np.shares_memory(seen[0], a)
+
+
+def test_small_normalised_projections_give_the_bits_of_a_large_one(real_rpc):
+    """Up to 64 points the localisations' normalised projection takes fresh arrays instead of the reused buffers
+    (a small call's fixed cost): each column is the same product, the same bits as inside a call of 3000 points
+    (from 2 points: one point is a matrix-vector product, BLAS's own rounding, with buffers or without)."""
+    rng = np.random.default_rng(2)
+    L, P, H = (rng.uniform(-1.2, 1.2, 3000) for _ in range(3))
+    large = np.array(real_rpc._project_normalised(L, P, H))
+    for a, b in ((1, 3), (1, 5), (7, 71), (100, 164), (200, 265)):
+        np.testing.assert_array_equal(np.array(real_rpc._project_normalised(L[a:b], P[a:b], H[a:b])), large[:, a:b])
