@@ -270,13 +270,14 @@ def _max_slope(dem: DEM) -> float:
     return max(sx / px, sy / py)
 
 
+#: sqrt(2) (the same double as np.sqrt(2.0), without a NumPy scalar call).
+_SQRT2 = math.sqrt(2.0)
+
+
 def _one_crossing(dem: DEM, tan_view) -> np.ndarray:
     """Whether a line of sight with this tangent of its view angle crosses the DEM once only (slope x tan(view)
     < 1 everywhere, with a margin for the two axes): then any root found is the first from the top."""
     return _max_slope(dem) * _SQRT2 * np.asarray(tan_view) < 0.9
-
-
-_SQRT2 = math.sqrt(2.0)
 
 
 def _one_crossing_near(dem: DEM, G, h0) -> np.ndarray:
@@ -727,10 +728,10 @@ def _rpc_localize_dem_fast(rpc, s, l, dem, shift, tol_m, ray_iter: int = 12, pol
             R, J, G = np.empty((8, n)), np.empty((4, n)), np.empty((8, n))
             u, slope = np.empty(n), np.empty(n)
             ready = np.empty(n, dtype=bool)
-        for i in range(0, n if n > _DEM_CHUNK else 0, _DEM_CHUNK):
-            sl = slice(i, i + _DEM_CHUNK)
-            R[:, sl], J[:, sl], G[:, sl], u[sl], slope[sl], ready[sl] = _dem_chunk_ray(
-                rpc, x[sl], y[sl], dem, sampler, h0, basis, tol_m, ray_iter)
+            for i in range(0, n, _DEM_CHUNK):
+                sl = slice(i, i + _DEM_CHUNK)
+                R[:, sl], J[:, sl], G[:, sl], u[sl], slope[sl], ready[sl] = _dem_chunk_ray(
+                    rpc, x[sl], y[sl], dem, sampler, h0, basis, tol_m, ray_iter)
         # 2b. The others (several crossings possible, holes, Newton failures): the first crossing from the top,
         # all at once (a march is a few cheap steps over many rays).
         bridged = np.zeros(n, dtype=bool)
@@ -742,10 +743,10 @@ def _rpc_localize_dem_fast(rpc, s, l, dem, shift, tol_m, ray_iter: int = 12, pol
             out = _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, heights, tol_p, polish_iter)
         else:
             out = np.empty((3, n))
-        for i in range(0, n if n > _DEM_CHUNK else 0, _DEM_CHUNK):
-            sl = slice(i, i + _DEM_CHUNK)
-            out[:, sl] = _dem_chunk_polish(rpc, x[sl], y[sl], R[:, sl], J[:, sl], u[sl], slope[sl], ready[sl],
-                                           bridged[sl], h0, heights, tol_p, polish_iter)
+            for i in range(0, n, _DEM_CHUNK):
+                sl = slice(i, i + _DEM_CHUNK)
+                out[:, sl] = _dem_chunk_polish(rpc, x[sl], y[sl], R[:, sl], J[:, sl], u[sl], slope[sl], ready[sl],
+                                               bridged[sl], h0, heights, tol_p, polish_iter)
     return out[0], out[1], out[2], ray_iter + polish_iter, missed
 
 
