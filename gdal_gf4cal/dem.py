@@ -489,14 +489,30 @@ class DEM:
             return self._sample_whole(px, py)
         return self._sample_tiles_gradient(px, py)[0]
 
-    def geoid_undulation(self, lon, lat):
-        """Ellipsoidal minus stored height at (lon, lat): the geoid undulation N when a geoid applies, else 0."""
+    def geoid_undulation(self, lon, lat, *, exact: bool = True):
+        """Ellipsoidal minus stored height at (lon, lat): the geoid undulation N when a geoid applies, else 0.
+
+        PROJ's values; with ``exact=False`` those of the lattice of :meth:`newton_sampler` where it has one and
+        covers the point (a geographic DEM and one geoid node around it: within :data:`NEWTON_SAMPLER_TOL_M` of
+        PROJ, no PROJ call: the line-of-sight march's one value per ray), PROJ's elsewhere."""
         lon = np.asarray(lon, dtype=float).ravel()
         lat = np.asarray(lat, dtype=float).ravel()
         if self._geoid is None:
             return np.zeros(lon.size)
-        _, _, n = self._geoid.transform(lon, lat, np.zeros(lon.size))
-        return np.asarray(n, dtype=float)
+        lattice = None if exact or self._to_dem is not None else self._geoid_lattice()
+        if lattice is None:
+            _, _, n = self._geoid.transform(lon, lat, np.zeros(lon.size))
+            return np.asarray(n, dtype=float)
+        uv = np.empty((1, 2, lon.size))
+        uv[0, 0] = self._wrap_lon(lon) if self._lon_wrap else lon
+        uv[0, 1] = lat
+        uv[0] -= lattice[3]                  # as in _newton_sample
+        uv[0] *= lattice[4]
+        n = _bilinear_stack((lattice[:3],), uv, np.empty((1, lon.size)))[0]
+        off = np.flatnonzero(np.isnan(n))    # beyond the lattice (or NaN): PROJ's
+        if off.size:
+            n[off] = self.geoid_undulation(lon[off], lat[off])
+        return n
 
     def local_max(self, px, py, radius_px):
         """Largest stored height (m) within ``radius_px`` pixels (a square) of the pixels nearest to (px, py),

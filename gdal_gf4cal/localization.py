@@ -447,7 +447,7 @@ class _LineOfSight:
         ok = np.isfinite(lon_c) & np.isfinite(lat_c)
         n_geoid = np.zeros(np.size(h_mid))
         if np.any(ok):
-            n_geoid[ok] = dem.geoid_undulation(lon_c[ok], lat_c[ok])
+            n_geoid[ok] = dem.geoid_undulation(lon_c[ok], lat_c[ok], exact=False)      # the lattice's: no PROJ
         return cls(C, np.broadcast_to(h_mid, n_geoid.shape).copy(), np.broadcast_to(h_half, n_geoid.shape).copy(),
                    n_geoid)
 

@@ -229,6 +229,7 @@ def test_newton_sampler_with_a_geoid_is_sample_and_its_slopes(srtm_path, data_di
     np.testing.assert_array_equal(dem.newton_sampler(gradient=False)(lon, lat), z)    # heights alone: same bits
     n = dem.geoid_undulation(lon, lat)
     assert np.ptp(n[:-1]) > 0.5                               # the undulation varies over the tile
+    assert np.max(np.abs(dem.geoid_undulation(lon, lat, exact=False) - n)) <= 1e-6     # the lattice's (no PROJ)
     assert np.nanmax(np.abs(z - ref)) <= 1e-6 and np.isfinite(z).all()
     e = 1e-6                                                  # central differences within a DEM cell
     fx = (sampler(lon + e, lat)[0] - sampler(lon - e, lat)[0]) / (2 * e)
