@@ -293,6 +293,28 @@ def test_project_kernel_chunks_and_antimeridian(data_dir):
     assert rpc.project(np.zeros(0), np.zeros(0), np.zeros(0))[0].shape == (0,)
 
 
+def test_project_chunk_size_keeps_the_bits(data_dir, monkeypatch):
+    """PROJECT_CHUNK changes no bit (issue 23: the chunk is a cache/speed choice only): chunks of 1000 points (a
+    last partial one of 17, and one of 2 columns that is never a one-column product) give the bits of one chunk
+    of the whole array, with and without thread blocks (BLOCK 2000: blocks not a multiple of the chunk)."""
+    from gdal_gf4cal import rpc as rpc_module
+    from gdal_gf4cal import threads
+    rpc = RPCModel.from_file(data_dir / "rpc" / "RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML")
+    rng = np.random.default_rng(5)
+    n = 3 * 1000 + 17
+    g = [o + sc * rng.uniform(-1.2, 1.2, n) for o, sc in ((rpc.long_off, rpc.long_scale),
+                                                           (rpc.lat_off, rpc.lat_scale),
+                                                           (rpc.height_off, rpc.height_scale))]
+    monkeypatch.setattr(rpc_module, "PROJECT_CHUNK", 10 ** 9)
+    whole = rpc.project(*g)
+    for chunk, block, t in ((1000, threads.BLOCK, 1), (1000, 2000, 2), (3015, threads.BLOCK, 1)):
+        monkeypatch.setattr(rpc_module, "PROJECT_CHUNK", chunk)
+        monkeypatch.setattr(threads, "BLOCK", block)
+        with threads.limit(t):
+            chunked = rpc.project(*g)
+        assert np.array_equal(chunked[0], whole[0]) and np.array_equal(chunked[1], whole[1]), (chunk, block, t)
+
+
 def test_monomial_buffers_and_localize_chunks_keep_the_bits(data_dir, monkeypatch):
     """The kernels' reused buffers change no bit (issue 23): fill_monomials' grouped products and the chunks of
     monomial_chunks are the products of monomials() term by term; localize solved in chunks of LOCALIZE_CHUNK
