@@ -49,21 +49,25 @@ REPEAT = {"round_trip": 7, "localize_dem": 7}
 def _compare(k, cases, repeat):
     """Every case under 1 thread and under ``k``, alternately ``repeat`` times: one line each (medians), then the
     minima's ratio (timeit's convention: the run least disturbed by the rest of a shared machine) and the
-    voluntary context switches per run (a thread that finds the GIL held sleeps: what a second thread costs)."""
+    voluntary context switches per run (a thread that finds the GIL held sleeps: what a second thread costs), the
+    minor page faults and system CPU per run (fresh outputs and temporaries faulted in: kernel work the threads do not
+    share well, and counts that survive a loaded machine)."""
     for name, fn, same in cases:
         fn(1)                                            # warm caches (inverse fit, DEM in memory, GDAL cache)
         load0 = os.getloadavg()[0]
-        runs = {1: [], k: []}                            # (wall, cpu, voluntary switches) of every run
+        runs = {1: [], k: []}            # (wall, cpu, voluntary switches, minor faults, system cpu) of every run
         outs = {}
         for _ in range(repeat):
             for t in (1, k):
                 with threads.limit(t):
-                    r, c, w = resource.getrusage(resource.RUSAGE_SELF).ru_nvcsw, time.process_time(), \
-                        time.perf_counter()
+                    r, c, w = resource.getrusage(resource.RUSAGE_SELF), time.process_time(), time.perf_counter()
                     outs[t] = fn(t)
-                    runs[t].append((time.perf_counter() - w, time.process_time() - c,
-                                    resource.getrusage(resource.RUSAGE_SELF).ru_nvcsw - r))
-        (w1, c1, s1), (wk, ck, sk) = ([statistics.median(x[i] for x in runs[t]) for i in range(3)] for t in (1, k))
+                    wall, cpu, r1 = time.perf_counter() - w, time.process_time() - c, \
+                        resource.getrusage(resource.RUSAGE_SELF)
+                    runs[t].append((wall, cpu, r1.ru_nvcsw - r.ru_nvcsw, r1.ru_minflt - r.ru_minflt,
+                                    r1.ru_stime - r.ru_stime))
+        (w1, c1, s1, f1, y1), (wk, ck, sk, fk, yk) = ([statistics.median(x[i] for x in runs[t]) for i in range(5)]
+                                                      for t in (1, k))
         print(f"{name:22s} 1 thread {w1:6.2f} s (cpu {c1:5.2f})   {k} threads {wk:6.2f} s (cpu {ck:5.2f})   "
               f"ratio {w1 / wk:4.2f}x   same bits: {same(outs[1], outs[k])}   load {load0:.1f} -> "
               f"{os.getloadavg()[0]:.1f}", flush=True)
@@ -71,6 +75,8 @@ def _compare(k, cases, repeat):
         print(f"{'':22s} minima: 1 thread {m1:6.2f} s   {k} threads {mk:6.2f} s   ratio {m1 / mk:4.2f}x (median "
               f"{w1 / wk:4.2f}x, {repeat} runs each)   voluntary context switches per run: {s1:.0f} | {sk:.0f}   "
               f"cpu {k} threads / 1: {ck / c1:4.2f}", flush=True)
+        print(f"{'':22s} minor page faults per run: {f1:.0f} | {fk:.0f}   system cpu: {y1:.3f} s | {yk:.3f} s",
+              flush=True)
 
 
 def _arrays_equal(a, b):

@@ -11,7 +11,9 @@ EPSG:4326+5773, as GDAL's RPC transformer does by default); ``geoid=False`` uses
 from __future__ import annotations
 
 import copy
+import functools
 import logging
+import math
 import os
 import threading
 from collections import OrderedDict
@@ -131,8 +133,7 @@ class DEM:
         self._west = min(gt[0], gt[0] + gt[1] * self.width)
         # A DEM of up to 16 Mpx (128 MB as float64) is read once and sampled without tiling.
         self._whole = None
-        self._max_step = None
-        self._xy_poly = None
+        self._max_step = self._affine = self._pixel_size = self._xy_poly = None     # kept once computed
         self._local_max = {}
         self._height_range = None
         self._bounds_lonlat = None
@@ -325,29 +326,47 @@ class DEM:
         else:
             return self._newton_sample(lon, lat)
         if numeric:
-            _fallback_with_zero_slope(z, gx, gy, policy)
+            g = np.array([gx, gy])
+            _fallback_with_zero_slope(z, g, policy)
+            gx, gy = g
         return z, gx, gy
 
-    def _stored_with_gradient(self, x, lat, gradient: bool = True):
-        """Stored heights (no geoid) of a geographic WGS84 raster at longitudes ``x`` already wrapped
-        (:meth:`_wrap_lon`) and their slopes in m/deg (None, None without ``gradient``), bilinear; NaN off the raster
-        or next to no-data (flat float arrays in and out)."""
-        gt = self._gt
-        px = x * (1.0 / gt[1])
-        px += -gt[0] / gt[1] - 0.5
-        py = lat * (1.0 / gt[5])
-        py += -gt[3] / gt[5] - 0.5
-        if self.width * self.height_px > self._whole_limit:
-            z, gx, gy = self._sample_tiles_gradient(px, py)
-        elif gradient:
-            z, gx, gy = self._sample_whole(px, py, gradient=True)
-        else:
-            return self._sample_whole(px, py), None, None
-        if not gradient:
-            return z, None, None
-        gx *= 1.0 / gt[1]
-        gy *= 1.0 / gt[5]
-        return z, gx, gy
+    def _surfaces(self, xy, lattice, gradient: bool):
+        """Stored heights and, with a geoid ``lattice``, undulations at pixel coordinates ``xy`` (R, 2, n) of the
+        raster (row 0) and of the lattice (row 1) (overwritten: scratch): ``(z, g)``, z (R, n), g (R, 2, n) the
+        slopes in m/px (None without ``gradient``); NaN off the raster or next to no-data. A raster held in memory
+        and the lattice go through one bilinear pass (:func:`_bilinear_stack`, half the NumPy calls)."""
+        R, n = xy.shape[0], xy.shape[2]
+        z = np.empty((R, n))
+        g = np.empty((R, 2, n)) if gradient else None
+        stack = (lattice[:3],) if lattice is not None else ()
+        if self.width * self.height_px <= self._whole_limit and self.width > 1 and self.height_px > 1:
+            if self._whole is None:
+                self._load_whole()
+            stack = ((self._whole.ravel(), self.width, self.height_px),) + stack
+        else:                                # windowed tile reads (or a degenerate raster) for the stored heights
+            z0, gx, gy = (self._sample_tiles_gradient if self.width * self.height_px > self._whole_limit
+                          else functools.partial(self._sample_whole, gradient=True))(xy[0, 0], xy[0, 1])
+            z[0] = z0
+            if gradient:
+                g[0, 0], g[0, 1] = gx, gy
+        # A small call: all rasters in one pass; a larger one: one raster at a time (the temporaries of one stay in
+        # cache). The same operations on each point either way.
+        r0 = R - len(stack)
+        for a, b in ((r0, R),) if n <= _STACK_POINTS and stack else ((r, r + 1) for r in range(r0, R)):
+            for i in range(0, n, _SAMPLE_CHUNK):
+                sl = slice(i, i + _SAMPLE_CHUNK)
+                _bilinear_stack(stack[a - r0:b - r0], xy[a:b, :, sl], z[a:b, sl], None if g is None else g[a:b, :, sl])
+        return z, g
+
+    def _pixel_affine(self):
+        """``(scale, shift)``, (2, 1) arrays: pixel coordinates (centres at integers) = (lon, lat) x scale + shift."""
+        affine = self._affine
+        if affine is None:
+            gt = self._gt
+            affine = self._affine = (np.array([[1.0 / gt[1]], [1.0 / gt[5]]]),
+                                     np.array([[-gt[0] / gt[1] - 0.5], [-gt[3] / gt[5] - 0.5]]))
+        return affine
 
     def newton_sampler(self, gradient: bool = True):
         """``(lon, lat) -> (h, dh/dlon, dh/dlat)`` for Newton iterations whose result is checked with
@@ -373,30 +392,41 @@ class DEM:
         see there): ``(h, dh/dlon, dh/dlat)``, or ``(h, None, None)`` without ``gradient``."""
         lon = np.asarray(lon, dtype=float).ravel()
         lat = np.asarray(lat, dtype=float).ravel()
-        x = self._wrap_lon(lon) if self._lon_wrap else lon
-        z, gx, gy = self._stored_with_gradient(x, lat, gradient)
-        if self._geoid is not None:
-            flat, W, H, x0, dx, y0, dy = self._geoid_lattice()
-            n = np.empty(lon.size)
-            nx, ny = (np.empty(lon.size), np.empty(lon.size)) if gradient else (None, None)
-            _bilinear_flat(flat, W, H, (x - x0) * (1.0 / dx), (lat - y0) * (1.0 / dy), n, nx, ny)
-            z += n
-            if gradient:
-                nx *= 1.0 / dx
-                gx += nx
-                ny *= 1.0 / dy
-                gy += ny
+        lattice = self._geoid_lattice() if self._geoid is not None else None
+        # (lon, lat) as the rows of one array, twice with a geoid: the raster's and the lattice's coordinates.
+        xy = np.empty((1 if lattice is None else 2, 2, lon.size))
+        xy[:, 0] = self._wrap_lon(lon) if self._lon_wrap else lon
+        xy[:, 1] = lat
+        scale, shift = self._pixel_affine()
+        xy[0] *= scale                       # px = lon (1 / gt[1]) + (-gt[0] / gt[1] - 0.5), py alike
+        xy[0] += shift
+        if lattice is not None:
+            xy[1] -= lattice[3]              # (lon - lon0) (1 / dlon), (lat - lat0) (1 / dlat)
+            xy[1] *= lattice[4]
+        z, g = self._surfaces(xy, lattice, gradient)
+        if gradient:
+            g *= scale if lattice is None else self._slope_scales()      # m/px -> m/deg
+            g = g[0] if lattice is None else np.add(g[0], g[1], out=g[0])
+        z = z[0] if lattice is None else np.add(z[0], z[1], out=z[0])
         if not isinstance(self.nodata_policy, str):
-            _fallback_with_zero_slope(z, gx, gy, self.nodata_policy)
-        return z, gx, gy
+            _fallback_with_zero_slope(z, g, self.nodata_policy)
+        return (z, None, None) if g is None else (z, g[0], g[1])
+
+    def _slope_scales(self):
+        """(2, 2, 1): the raster's and the geoid lattice's pixels per degree (lon, lat), kept."""
+        nodes = self._geoid_nodes
+        if "scales" not in nodes:
+            nodes["scales"] = np.array([self._pixel_affine()[0], self._geoid_lattice()[4]])
+        return nodes["scales"]
 
     def _newton_heights(self, lon, lat):
         """:meth:`newton_sampler` without gradient."""
         return self._newton_sample(lon, lat, gradient=False)[0]
 
     def _geoid_lattice(self):
-        """``(flat N, W, H, lon0, dlon, lat0, dlat)``: PROJ's undulation at the geoid grid's nodes over the DEM
-        and one node around it (node (i, j) at lon0 + i dlon, lat0 + j dlat), built once; None when the grid
+        """``(flat N, W, H, origin, inv)``: PROJ's undulation at the geoid grid's nodes over the DEM and one node
+        around it (node (i, j) at lon0 + i dlon, lat0 + j dlat: origin [[lon0], [lat0]], inv [[1 / dlon],
+        [1 / dlat]]), built once; None when the grid
         cannot be read by GDAL, spans more than 2000 x 2000 nodes here, or the lattice misses PROJ by more than
         :data:`NEWTON_SAMPLER_TOL_M` at 400 points over the DEM."""
         nodes = self._geoid_nodes
@@ -425,13 +455,15 @@ class DEM:
         lon_n = lon_n[None, :].repeat(lat_n.size, axis=0)
         lat_n = np.clip(lat_n, -90.0, 90.0)[:, None].repeat(i.size, axis=1)
         nodes = self.geoid_undulation(lon_n.ravel(), lat_n.ravel())
-        lattice = (nodes, i.size, j.size, x0n + i[0] * dx, dx, y0n + j[0] * dy, dy)
+        lattice = (nodes, i.size, j.size, np.array([[x0n + i[0] * dx], [y0n + j[0] * dy]]),
+                   np.array([[1.0 / dx], [1.0 / dy]]))
         # Check it against PROJ over the DEM (an odd grid, a convention PROJ reads otherwise: not used).
         u = (np.arange(400) * 0.6180339887) % 1.0
         v = (np.arange(400) * 0.7548776662 + 0.1) % 1.0
         lon_t, lat_t = xs[0] + u * (xs[1] - xs[0]), ys[0] + v * (ys[1] - ys[0])
         n_t = np.empty(400)
-        _bilinear_flat(nodes, i.size, j.size, (lon_t - lattice[3]) / dx, (lat_t - lattice[5]) / dy, n_t)
+        uv = (np.array([lon_t, lat_t]) - lattice[3]) * lattice[4]       # as in _newton_sample
+        _bilinear_stack(((nodes, i.size, j.size),), uv[None], n_t[None])
         err = np.abs(n_t - self.geoid_undulation(lon_t, lat_t))
         return lattice if np.all(np.isfinite(nodes)) and np.all(err <= NEWTON_SAMPLER_TOL_M) else None
 
@@ -457,14 +489,30 @@ class DEM:
             return self._sample_whole(px, py)
         return self._sample_tiles_gradient(px, py)[0]
 
-    def geoid_undulation(self, lon, lat):
-        """Ellipsoidal minus stored height at (lon, lat): the geoid undulation N when a geoid applies, else 0."""
+    def geoid_undulation(self, lon, lat, *, exact: bool = True):
+        """Ellipsoidal minus stored height at (lon, lat): the geoid undulation N when a geoid applies, else 0.
+
+        PROJ's values; with ``exact=False`` those of the lattice of :meth:`newton_sampler` where it has one and
+        covers the point (a geographic DEM and one geoid node around it: within :data:`NEWTON_SAMPLER_TOL_M` of
+        PROJ, no PROJ call: the line-of-sight march's one value per ray), PROJ's elsewhere."""
         lon = np.asarray(lon, dtype=float).ravel()
         lat = np.asarray(lat, dtype=float).ravel()
         if self._geoid is None:
             return np.zeros(lon.size)
-        _, _, n = self._geoid.transform(lon, lat, np.zeros(lon.size))
-        return np.asarray(n, dtype=float)
+        lattice = None if exact or self._to_dem is not None else self._geoid_lattice()
+        if lattice is None:
+            _, _, n = self._geoid.transform(lon, lat, np.zeros(lon.size))
+            return np.asarray(n, dtype=float)
+        uv = np.empty((1, 2, lon.size))
+        uv[0, 0] = self._wrap_lon(lon) if self._lon_wrap else lon
+        uv[0, 1] = lat
+        uv[0] -= lattice[3]                  # as in _newton_sample
+        uv[0] *= lattice[4]
+        n = _bilinear_stack((lattice[:3],), uv, np.empty((1, lon.size)))[0]
+        off = np.flatnonzero(np.isnan(n))    # beyond the lattice (or NaN): PROJ's
+        if off.size:
+            n[off] = self.geoid_undulation(lon[off], lat[off])
+        return n
 
     def local_max(self, px, py, radius_px):
         """Largest stored height (m) within ``radius_px`` pixels (a square) of the pixels nearest to (px, py),
@@ -495,7 +543,7 @@ class DEM:
 
     def _local_max_table(self, radius_px: int, slope: bool = False) -> np.ndarray:
         """Windowed maxima (flat) of the heights, or of the cell slopes, radius rounded up to a power of two."""
-        r = 1 << max(0, int(np.ceil(np.log2(max(radius_px, 1)))))
+        r = 1 << (max(math.ceil(radius_px), 1) - 1).bit_length()      # 2 ** ceil(log2(radius)), 1 at least
         key = (r, slope)
         table = self._local_max.get(key)
         if table is not None:
@@ -531,11 +579,15 @@ class DEM:
         """Approximate pixel size in metres (x, y) at the raster's centre (projected CRS: its units, metres)."""
         if self.is_constant:
             return (np.inf, np.inf)
-        gt = self._gt
-        if self._lon_wrap:
-            lat = gt[3] + gt[5] * self.height_px / 2
-            return (abs(gt[1]) * 111320.0 * max(np.cos(np.radians(lat)), 1e-6), abs(gt[5]) * 110574.0)
-        return (abs(gt[1]), abs(gt[5]))
+        if self._pixel_size is None:         # kept (a small call's fixed cost)
+            gt = self._gt
+            if self._lon_wrap:
+                lat = gt[3] + gt[5] * self.height_px / 2
+                self._pixel_size = (abs(gt[1]) * 111320.0 * max(np.cos(np.radians(lat)), 1e-6),
+                                    abs(gt[5]) * 110574.0)
+            else:
+                self._pixel_size = (abs(gt[1]), abs(gt[5]))
+        return self._pixel_size
 
     def max_step_px(self) -> Tuple[float, float]:
         """Largest height difference (m) between neighbouring pixels along x and along y: bounds of the bilinear
@@ -585,10 +637,10 @@ class DEM:
             bh, bw = block.shape
             lx = pxi[sel] - tile_x * T
             ly = pyi[sel] - tile_y * T
-            zz, gg, hh = np.empty(sel.size), np.empty(sel.size), np.empty(sel.size)
-            _bilinear_flat(block.ravel(), bw, bh, lx, ly, zz, gg, hh)
+            zz, gg = np.empty((1, sel.size)), np.empty((1, 2, sel.size))
+            _bilinear_stack(((block.ravel(), bw, bh),), np.array([[lx, ly]]), zz, gg)
             j = idx[sel]
-            z[j], gx[j], gy[j] = zz, gg, hh
+            z[j], gx[j], gy[j] = zz[0], gg[0, 0], gg[0, 1]
         return z, gx, gy
 
     def _height(self, lon, lat, policy: NodataPolicy) -> np.ndarray:
@@ -762,15 +814,29 @@ class DEM:
             with np.errstate(invalid="ignore"):
                 out[~((px >= -0.5) & (py >= -0.5) & (px <= W - 0.5) & (py <= H - 0.5))] = np.nan
             return (out, np.zeros(n), np.zeros(n)) if gradient else out
-        flat = self._whole.ravel()
+        xy = np.empty((2, n))
+        xy[0] = px
+        xy[1] = py
+        z, g = self._sample_whole_xy(xy, gradient)
+        return (z, g[0], g[1]) if gradient else z
+
+    def _sample_whole_xy(self, xy, gradient: bool = False):
+        """:meth:`_sample_whole` at pixel coordinates ``xy`` (2, n) (overwritten: scratch): ``(z, g)``, g the
+        (2, n) derivatives in m/px (None without ``gradient``)."""
+        if self._whole is None:
+            self._load_whole()
+        W, H = self.width, self.height_px
+        n = xy.shape[1]
+        if W < 2 or H < 2:
+            z, gx, gy = self._sample_whole(xy[0], xy[1], gradient=True)
+            return z, (np.array([gx, gy]) if gradient else None)
+        stack = ((self._whole.ravel(), W, H),)
         z = np.empty(n)
-        gx = np.empty(n) if gradient else None
-        gy = np.empty(n) if gradient else None
+        g = np.empty((2, n)) if gradient else None
         for i in range(0, n, _SAMPLE_CHUNK):
             sl = slice(i, i + _SAMPLE_CHUNK)
-            _bilinear_flat(flat, W, H, px[sl], py[sl], z[sl], None if gx is None else gx[sl],
-                           None if gy is None else gy[sl])
-        return (z, gx, gy) if gradient else z
+            _bilinear_stack(stack, xy[None, :, sl], z[None, sl], None if g is None else g[None, :, sl])
+        return z, g
 
     @property
     def geoid_applied(self):
@@ -865,66 +931,90 @@ def _bilinear(block: np.ndarray, lx, ly, fx, fy) -> np.ndarray:
 #: chunks of 4096, 8192, 16384, 32768 (the four gathers' cache misses dominate; fewer calls win).
 _SAMPLE_CHUNK = 32768
 
+#: Points up to which :meth:`DEM._surfaces` samples the raster and the geoid's lattice in one pass (fewer NumPy calls);
+#: above, one at a time (a stacked pass of 32768 points was 4x slower: its temporaries leave the cache).
+_STACK_POINTS = 1024
 
-def _fallback_with_zero_slope(z, gx, gy, policy) -> None:
-    """A numeric no-data policy in a sampler's output: its height and zero slope where z is NaN. In place."""
+
+def _fallback_with_zero_slope(z, g, policy) -> None:
+    """A numeric no-data policy in a sampler's output: its height and zero slopes (the rows of g, or None) where z
+    is NaN. In place."""
     bad = ~np.isfinite(z)
     if np.any(bad):
         z[bad] = float(policy)
-        if gx is not None:
-            gx[bad] = 0.0
-            gy[bad] = 0.0
+        if g is not None:
+            g[:, bad] = 0.0
 
 
-def _outside(xy, x1: float, y1: float):
-    """Mask of the points (columns of ``xy``, rows x, y) outside ``[-0.5, x1] x [-0.5, y1]`` (or NaN), None when
-    there is none (two reductions tell, without the mask's NumPy calls: a small call's fixed cost)."""
-    if xy.shape[1]:
-        (x_lo, y_lo), (x_hi, y_hi) = xy.min(axis=1).tolist(), xy.max(axis=1).tolist()
-        if -0.5 <= x_lo and x_hi <= x1 and -0.5 <= y_lo and y_hi <= y1:
+def _outside(xy, bounds, top):
+    """Mask (R, n) of the points (columns of ``xy`` (R, 2, n): rows x, y in raster r) outside ``[-0.5, x1] x
+    [-0.5, y1]`` of their raster (``bounds``: (x1, y1) per raster; ``top``: the same as an (R, 2, 1) array) or NaN,
+    None when there is none (two reductions tell, without the mask's NumPy calls: a small call's fixed cost)."""
+    if xy.shape[2]:
+        lo, hi = xy.min(axis=2).tolist(), xy.max(axis=2).tolist()
+        if all(-0.5 <= x_lo and -0.5 <= y_lo and x_hi <= x1 and y_hi <= y1
+               for (x_lo, y_lo), (x_hi, y_hi), (x1, y1) in zip(lo, hi, bounds)):
             return None
     with np.errstate(invalid="ignore"):
-        return ~((xy[0] >= -0.5) & (xy[1] >= -0.5) & (xy[0] <= x1) & (xy[1] <= y1))
+        inside = (xy >= -0.5) & (xy <= top)
+    return ~(inside[:, 0] & inside[:, 1])
 
 
-def _bilinear_flat(flat, W, H, px, py, z, gx=None, gy=None):
-    """Bilinear value (and gradient) of the (H, W) raster ``flat`` (raveled) at pixel coordinates px, py.
+@functools.lru_cache(maxsize=64)
+def _raster_constants(shapes):
+    """The constants of :func:`_bilinear_stack` on rasters of ``shapes`` ((W, H), ...), kept (a small call's fixed
+    cost): (R, ...) arrays of the last pixel centres [[W - 1], [H - 1]], the last cells' corners as integers, the
+    flat offsets of the four corners, the widths; the bounds (W - 0.5, H - 0.5) as floats and as an array."""
+    hi = np.array([[[W - 1.0], [H - 1.0]] for W, H in shapes])
+    bounds = tuple((W - 0.5, H - 0.5) for W, H in shapes)
+    return (hi, hi.astype(np.intp) - 1, np.array([[[0], [1], [W], [W + 1]] for W, _ in shapes]),
+            np.array([[W] for W, _ in shapes]), bounds, np.array(bounds)[:, :, None])
 
-    Writes into ``z`` (and ``gx``, ``gy``). Outside ``[-0.5, W - 0.5] x [-0.5, H - 0.5]`` (or NaN input) the result
-    is NaN; between the outermost pixel centre and the raster edge the edge value holds (coordinates clipped),
-    like ``map_coordinates(mode="nearest")``. A no-data (NaN) corner makes the result NaN. x and y go through
-    the same steps as the rows of one array, the four corners through one gather (the same operations on each
-    point as one by one, half the NumPy calls: what a small call costs).
+
+def _bilinear_stack(rasters, xy, z, g=None):
+    """Bilinear values (and gradients) of R rasters ``rasters`` ((flat, W, H), ...: (H, W) rasters raveled) at
+    pixel coordinates ``xy`` (R, 2, n) (rows x, y per raster; overwritten: scratch), into ``z`` (R, n) (and ``g``
+    (R, 2, n): d/dx, d/dy per pixel).
+
+    Outside ``[-0.5, W - 0.5] x [-0.5, H - 0.5]`` (or NaN input) the result is NaN; between the outermost pixel
+    centre and the raster edge the edge value holds (coordinates clipped), like ``map_coordinates(mode="nearest")``.
+    A no-data (NaN) corner makes the result NaN. x and y, and the rasters, go through the same steps as the rows of
+    one array, the four corners through one gather per raster (the same operations on each point as one by one, a
+    fraction of the NumPy calls: what a small call costs).
     """
-    xy = np.empty((2, px.size))
-    xy[0] = px
-    xy[1] = py
-    outside = _outside(xy, W - 0.5, H - 0.5)
-    hi = np.array([[W - 1.0], [H - 1.0]])
+    hi, last_cell, corners, width, bounds, top = _raster_constants(tuple((W, H) for _, W, H in rasters))
+    outside = _outside(xy, bounds, top)
     np.minimum(xy, hi, out=xy)                # np.clip with scalars is several times slower
     np.maximum(xy, 0.0, out=xy)
     if outside is not None:
-        xy[:, outside] = 0.0
-    c0 = np.minimum(xy.astype(np.intp), hi.astype(np.intp) - 1)       # the cell's corner (x0, y0)
+        np.copyto(xy, 0.0, where=outside[:, None, :])
+    c0 = np.minimum(xy.astype(np.intp), last_cell)                   # the cells' corners (x0, y0)
     xy -= c0                                  # fractions in [0, 1]
-    x, y = xy
-    k = c0[1] * W
-    k += c0[0]
-    zc = flat.take(k + np.array([[0], [1], [W], [W + 1]]))           # z00, z01, z10, z11
-    zc[1::2] -= zc[0::2]                      # d/dx along the top and the bottom edge
-    tb = x * zc[1::2]
-    tb += zc[0::2]                            # top, bottom
-    top, bottom = tb
+    x, y = xy[:, 0], xy[:, 1]
+    k = c0[:, 1] * width
+    k += c0[:, 0]
+    k = k[:, None, :] + corners
+    if len(rasters) == 1:
+        zc = rasters[0][0].take(k)            # z00, z01, z10, z11
+    else:
+        zc = np.empty(k.shape)
+        for r, (flat, _, _) in enumerate(rasters):
+            flat.take(k[r], out=zc[r], mode="clip")      # the indices are inside (clip: an unbuffered out)
+    zc[:, 1::2] -= zc[:, 0::2]                # d/dx along the top and the bottom edge
+    tb = x[:, None] * zc[:, 1::2]
+    tb += zc[:, 0::2]                         # top, bottom
+    top, bottom = tb[:, 0], tb[:, 1]
     bottom -= top                             # d/dy
     np.multiply(y, bottom, out=z)
     z += top
     if outside is not None:
         z[outside] = np.nan
-    if gx is not None:
-        np.subtract(zc[3], zc[1], out=gx)
+    if g is not None:
+        gx = g[:, 0]
+        np.subtract(zc[:, 3], zc[:, 1], out=gx)
         gx *= y
-        gx += zc[1]
-        gy[:] = bottom
+        gx += zc[:, 1]
+        g[:, 1] = bottom
     return z
 
 

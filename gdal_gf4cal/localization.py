@@ -101,7 +101,9 @@ def localize_dem(model, sample, line, dem, *, pixel_convention: str = "gdal", to
     no-data policy is a number. With ``full_output=True`` a fourth item, :class:`LocalizationStats`.
     """
     dem = DEM.coerce(dem)
-    sample, line = np.broadcast_arrays(np.asarray(sample, dtype=float), np.asarray(line, dtype=float))
+    sample, line = np.asarray(sample, dtype=float), np.asarray(line, dtype=float)
+    if sample.shape != line.shape:           # (broadcast_arrays costs a small call ~10 us)
+        sample, line = np.broadcast_arrays(sample, line)
     shape = sample.shape
     s, l = sample.ravel(), line.ravel()
     iterations = []
@@ -190,6 +192,7 @@ def _localize_dem_generic(model, s, l, dem, pixel_convention, tol_m, max_iter, s
     """The generic height iteration (any model), flat arrays: ``(lon, lat, h, iterations)``."""
     n = s.size
     kw = {"pixel_convention": pixel_convention} if pixel_convention != "gdal" else {}
+    heights, tol_m = _terrain_heights(dem, tol_m)
 
     def loc(idx, h):
         lo, la = model.localize(s[idx], l[idx], h, **kw)
@@ -199,7 +202,7 @@ def _localize_dem_generic(model, s, l, dem, pixel_convention, tol_m, max_iter, s
         ok = np.isfinite(lo) & np.isfinite(la)
         out = np.full(lo.shape, np.nan)
         if np.any(ok):
-            out[ok] = _dem_height_nan(dem, lo[ok], la[ok])
+            out[ok] = heights(lo[ok], la[ok])
         return out
 
     lon = np.full(n, np.nan)
@@ -267,10 +270,14 @@ def _max_slope(dem: DEM) -> float:
     return max(sx / px, sy / py)
 
 
+#: sqrt(2) (the same double as np.sqrt(2.0), without a NumPy scalar call).
+_SQRT2 = math.sqrt(2.0)
+
+
 def _one_crossing(dem: DEM, tan_view) -> np.ndarray:
     """Whether a line of sight with this tangent of its view angle crosses the DEM once only (slope x tan(view)
     < 1 everywhere, with a margin for the two axes): then any root found is the first from the top."""
-    return _max_slope(dem) * np.sqrt(2.0) * np.asarray(tan_view) < 0.9
+    return _max_slope(dem) * _SQRT2 * np.asarray(tan_view) < 0.9
 
 
 def _one_crossing_near(dem: DEM, G, h0) -> np.ndarray:
@@ -280,27 +287,30 @@ def _one_crossing_near(dem: DEM, G, h0) -> np.ndarray:
     tan_view = 1.1 * np.hypot(G[1] * 111320.0 * np.cos(np.radians(G[4])), G[5] * 110574.0)
     if G.shape[1] == 0:
         return np.zeros(0, dtype=bool)
-    if np.all(_one_crossing(dem, tan_view)):
+    if _one_crossing(dem, tan_view).all():
         return np.ones(G.shape[1], dtype=bool)
     h_lo, h_hi = _dem_height_bounds(dem)
-    radius = float(np.max(tan_view)) * max(h_hi - h0, h0 - h_lo) / min(dem.pixel_size_m()) + 2.0
-    if not np.isfinite(radius) or radius > 512 or not dem.in_memory:
+    radius = float(tan_view.max()) * max(h_hi - h0, h0 - h_lo) / min(dem.pixel_size_m()) + 2.0
+    if not math.isfinite(radius) or radius > 512 or not dem.in_memory:
         return _one_crossing(dem, tan_view)
     # Rays that never fly over the DEM: to the march, which drops them at once.
-    near = np.flatnonzero(_near_footprint(dem, *_track_ends(G, h_lo - h0, h_hi - h0)))
+    near = _near_footprint(dem, _track_ends(G, h_lo - h0, h_hi - h0))
+    if near.all():                           # the usual case: no compaction
+        px, py = dem.to_pixel(G[0], G[4])
+        return dem.local_max_slope(px, py, math.ceil(radius)) * _SQRT2 * tan_view < 0.9
+    near = np.flatnonzero(near)
     px, py = dem.to_pixel(G[0, near], G[4, near])
     once = np.zeros(G.shape[1], dtype=bool)
-    once[near] = dem.local_max_slope(px, py, int(np.ceil(radius))) * np.sqrt(2.0) * tan_view[near] < 0.9
+    once[near] = dem.local_max_slope(px, py, math.ceil(radius)) * _SQRT2 * tan_view[near] < 0.9
     return once
 
 
 def _track_ends(G, u0: float, u1: float) -> np.ndarray:
     """(4, n) lon, lat at ``u0``, then at ``u1`` of the cubic rays ``G`` (lon, lat in u = h - h0): one (4, 8) x
     (8, n) product instead of four Horner evaluations (24 NumPy calls)."""
-    E = np.zeros((4, 8))
-    for row, u in ((0, u0), (2, u1)):
-        E[row, 0:4] = E[row + 1, 4:8] = (1.0, u, u * u, u * u * u)
-    return poly_product(E, G)
+    p0, p1 = ((1.0, u, u * u, u * u * u) for u in (u0, u1))
+    z = (0.0,) * 4
+    return poly_product(np.array([p0 + z, z + p0, p1 + z, z + p1]), G)
 
 
 def _view_tangent(loc, n, h_lo, h_hi) -> float:
@@ -318,6 +328,17 @@ def _dem_height_nan(dem: DEM, lon, lat):
     without intersection is NaN, never an exception), the fallback height for a numeric policy."""
     policy = dem.nodata_policy
     return dem.sample(lon, lat, nodata="nan" if isinstance(policy, str) else policy)
+
+
+def _terrain_heights(dem: DEM, tol_m: float):
+    """``(heights(lon, lat), tol)`` of the generic path's checks |DEM - h| <= tol (and the fast path's start height):
+    on a DEM with a geoid, the Newton sampler's heights where it has one (:func:`_newton_sampler`: the geoid's lattice,
+    within NEWTON_SAMPLER_TOL_M of :meth:`DEM.sample`, tol is tol_m less that, as in the fast path's polish: no PROJ
+    call per height iteration, PROJ holds the GIL); :meth:`DEM.sample` (NaN off the DEM) otherwise, the same bits
+    as ever."""
+    if dem.geoid_applied is not None:
+        return _newton_sampler(dem, tol_m)[1:]
+    return (lambda lon, lat: _dem_height_nan(dem, lon, lat)), tol_m
 
 
 def _dem_height_bounds(dem: DEM):
@@ -426,7 +447,7 @@ class _LineOfSight:
         ok = np.isfinite(lon_c) & np.isfinite(lat_c)
         n_geoid = np.zeros(np.size(h_mid))
         if np.any(ok):
-            n_geoid[ok] = dem.geoid_undulation(lon_c[ok], lat_c[ok])
+            n_geoid[ok] = dem.geoid_undulation(lon_c[ok], lat_c[ok], exact=False)      # the lattice's: no PROJ
         return cls(C, np.broadcast_to(h_mid, n_geoid.shape).copy(), np.broadcast_to(h_half, n_geoid.shape).copy(),
                    n_geoid)
 
@@ -695,20 +716,22 @@ def _rpc_localize_dem_fast(rpc, s, l, dem, shift, tol_m, ray_iter: int = 12, pol
        miss it take a Newton step in h on the ray re-anchored at the exact point, and are polished again.
     """
     n = s.size
-    out = np.full((3, n), np.nan)
     x = (s - shift - rpc.samp_off) / rpc.samp_scale
     y = (l - shift - rpc.line_off) / rpc.line_scale
     sampler, heights, tol_p = _newton_sampler(dem, tol_m)
     with np.errstate(all="ignore"):
         h0 = _dem_start_height(rpc, x, y, dem)
         basis = _ray_basis(rpc._approximate_inverse, (h0 - rpc.height_off) / rpc.height_scale)
-        R, J, G = np.empty((8, n)), np.empty((4, n)), np.empty((8, n))
-        u, slope = np.empty(n), np.empty(n)
-        ready = np.empty(n, dtype=bool)
-        for i in range(0, n, _DEM_CHUNK):
-            sl = slice(i, i + _DEM_CHUNK)
-            R[:, sl], J[:, sl], G[:, sl], u[sl], slope[sl], ready[sl] = _dem_chunk_ray(
-                rpc, x[sl], y[sl], dem, sampler, h0, basis, tol_m, ray_iter)
+        if n <= _DEM_CHUNK:                  # one chunk (a small call): its arrays as they are, no copies
+            R, J, G, u, slope, ready = _dem_chunk_ray(rpc, x, y, dem, sampler, h0, basis, tol_m, ray_iter)
+        else:
+            R, J, G = np.empty((8, n)), np.empty((4, n)), np.empty((8, n))
+            u, slope = np.empty(n), np.empty(n)
+            ready = np.empty(n, dtype=bool)
+            for i in range(0, n, _DEM_CHUNK):
+                sl = slice(i, i + _DEM_CHUNK)
+                R[:, sl], J[:, sl], G[:, sl], u[sl], slope[sl], ready[sl] = _dem_chunk_ray(
+                    rpc, x[sl], y[sl], dem, sampler, h0, basis, tol_m, ray_iter)
         # 2b. The others (several crossings possible, holes, Newton failures): the first crossing from the top,
         # all at once (a march is a few cheap steps over many rays).
         bridged = np.zeros(n, dtype=bool)
@@ -716,10 +739,14 @@ def _rpc_localize_dem_fast(rpc, s, l, dem, shift, tol_m, ray_iter: int = 12, pol
         todo = np.flatnonzero(~ready)
         if todo.size:
             _march_rpc_ray(G[:, todo], h0, dem, todo, u, slope, ready, bridged, missed)
-        for i in range(0, n, _DEM_CHUNK):
-            sl = slice(i, i + _DEM_CHUNK)
-            out[:3, sl] = _dem_chunk_polish(rpc, x[sl], y[sl], R[:, sl], J[:, sl], u[sl], slope[sl], ready[sl],
-                                            bridged[sl], h0, heights, tol_p, polish_iter)
+        if n <= _DEM_CHUNK:
+            out = _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, heights, tol_p, polish_iter)
+        else:
+            out = np.empty((3, n))
+            for i in range(0, n, _DEM_CHUNK):
+                sl = slice(i, i + _DEM_CHUNK)
+                out[:, sl] = _dem_chunk_polish(rpc, x[sl], y[sl], R[:, sl], J[:, sl], u[sl], slope[sl], ready[sl],
+                                               bridged[sl], h0, heights, tol_p, polish_iter)
     return out[0], out[1], out[2], ray_iter + polish_iter, missed
 
 
@@ -804,14 +831,16 @@ def _horner_pair(C, u):
 
 
 def _dem_start_height(rpc, x, y, dem) -> float:
-    """One start height for the scene: middle of the DEM heights under a subsample of the points (approximate)."""
+    """One start height for the scene: middle of the DEM heights under a subsample of the points (approximate; on
+    a geoid DEM the Newton sampler's heights, :func:`_terrain_heights`: no PROJ call, a small call's fixed cost)."""
     lo, hi = dem.height_range()
     mid = 0.5 * (lo + hi)
     step = max(1, x.size // 512)
     xs, ys = x[::step], y[::step]
     A = rpc._approximate_inverse
     L, P = poly_product(A, monomials(xs, ys, np.full(xs.size, (mid - rpc.height_off) / rpc.height_scale)))
-    z = _dem_height_nan(dem, L * rpc.long_scale + rpc.long_off, P * rpc.lat_scale + rpc.lat_off)
+    heights = _terrain_heights(dem, 0.0)[0]
+    z = heights(L * rpc.long_scale + rpc.long_off, P * rpc.lat_scale + rpc.lat_off)
     if z.size == 0:
         return mid
     z_lo, z_hi = float(np.fmin.reduce(z)), float(np.fmax.reduce(z))     # NaN ignored (off the DEM), NaN when all are
@@ -854,7 +883,9 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
     u = np.zeros(m)
     slope = np.full(m, -1.0)
     ready = np.zeros(m, dtype=bool)
-    idx = np.flatnonzero(np.isfinite(G[0]) & np.isfinite(G[4]) & np.isfinite(R[1]) & np.isfinite(R[5]))
+    finite = np.isfinite(G[0::4])                              # lon0, lat0, then their slopes: one row each
+    finite &= np.isfinite(R[1::4])
+    idx = np.flatnonzero(finite[0] & finite[1])
     idx = idx[_one_crossing_near(dem, G[:, idx], h0)]
     Ga = G[:, idx]
     uu = np.zeros(idx.size)
@@ -881,6 +912,9 @@ def _dem_chunk_ray(rpc, x, y, dem, sample, h0, basis, tol_m, ray_iter):
         done = (af <= tol_a) & front
         good = ~done & front & ((af < np.abs(f_prev)) if it else np.isfinite(f))
         unew = uu - f / d                                       # also a free last step for the settled points
+        if good.all():                       # none settled, none dropped (a small call's usual step): no compaction
+            f_prev, u_prev, uu = f, uu, unew
+            continue
         j = idx[done]
         u[j], slope[j], ready[j] = unew[done], d[done], True
         keep = np.flatnonzero(good)
@@ -937,6 +971,8 @@ def _dem_chunk_polish(rpc, x, y, R, J, u, slope, ready, bridged, h0, heights, to
         done = exact & ((np.abs(f) <= tol_m) | bp)          # bridged: the height interpolated across a hole
         j = idx[done]
         out[0, j], out[1, j], out[2, j] = lon[done], lat[done], h[done]
+        if j.size == idx.size:               # all settled (a small call's usual first step)
+            break
         keep = np.flatnonzero(~done & exact & np.isfinite(f))
         secant = (f - f_last) / (up - u_last)                # (under the caller's errstate)
         sp = np.where(np.isfinite(secant) & (secant < 0), secant, sp)
@@ -958,7 +994,7 @@ def _march_rpc_ray(G, h0, dem, todo, u, slope, ready, bridged, missed):
         uu = h - h0
         return _horner_pair(G, uu)
 
-    near = _near_footprint(dem, *lonlat_at(h_lo), *lonlat_at(h_hi))
+    near = _near_footprint(dem, np.concatenate([lonlat_at(h_lo), lonlat_at(h_hi)]))
     missed[todo[~near]] = True
     todo, G = todo[near], G[:, near]
     ray = _LineOfSight.from_lonlat(lonlat_at, dem, np.full(todo.size, h_lo), np.full(todo.size, h_hi))
@@ -976,20 +1012,24 @@ def _march_rpc_ray(G, h0, dem, todo, u, slope, ready, bridged, missed):
     u[j], slope[j], ready[j], bridged[j] = hb[ok] - h0, sl[ok], True, br.bridged[ok]
 
 
-def _near_footprint(dem, lon0, lat0, lon1, lat1) -> np.ndarray:
-    """False for the rays whose ground track (lon0, lat0) -> (lon1, lat1) lies wholly beyond one side of the
-    DEM's lon/lat bounds widened by 10 % (they cannot cross it: known at once, before any fit or sample)."""
+def _near_footprint(dem, ends) -> np.ndarray:
+    """False for the rays whose ground track from (lon0, lat0) to (lon1, lat1), the rows of ``ends`` (4, n), lies
+    wholly beyond one side of the DEM's lon/lat bounds widened by 10 % (they cannot cross it: known at once, before
+    any fit or sample). Both ends against all four sides in two comparisons (a small call's fixed cost)."""
     w, s_, e, n = dem.bounds_lonlat()
     mx, my = 0.1 * (e - w) + 1e-6, 0.1 * (n - s_) + 1e-6
     if not dem.is_geographic and (e - w > 5.0 or n - s_ > 5.0 or max(abs(s_), abs(n)) > 80.0):
-        return np.ones(np.shape(lon0), dtype=bool)     # a projected footprint its corners may not bound
-    if dem.is_geographic and not all(v.size == 0 or (w <= v.min() and v.max() < w + 360.0)
-                                     for v in (lon0, lon1)):  # compared modulo 360 (as sampled), when needed
-        lon0, lon1 = w + np.mod(lon0 - w, 360.0), w + np.mod(lon1 - w, 360.0)
-    with np.errstate(invalid="ignore"):
-        beyond = ((lon0 < w - mx) & (lon1 < w - mx)) | ((lon0 > e + mx) & (lon1 > e + mx)) | \
-                 ((lat0 < s_ - my) & (lat1 < s_ - my)) | ((lat0 > n + my) & (lat1 > n + my))
-    return ~beyond
+        return np.ones(ends.shape[1], dtype=bool)     # a projected footprint its corners may not bound
+    lons = ends[0::2]
+    if dem.is_geographic and lons.size and not (w <= lons.min() and lons.max() < w + 360.0):
+        ends = ends.copy()                   # compared modulo 360 (as sampled), when needed
+        ends[0::2] = w + np.mod(lons - w, 360.0)
+    lo = ends < np.array([[w - mx], [s_ - my], [w - mx], [s_ - my]])      # NaN: False, as before
+    hi = ends > np.array([[e + mx], [n + my], [e + mx], [n + my]])
+    lo[:2] &= lo[2:]                         # both ends west of the DEM, south of it
+    hi[:2] &= hi[2:]
+    lo[:2] |= hi[:2]
+    return ~(lo[0] | lo[1])
 
 
 def _illinois_on_ray(ray, dem, i, a, b, fa, fb, tol, max_iter: int = 30):

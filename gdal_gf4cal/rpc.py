@@ -51,6 +51,9 @@ _MAX_EXTRAPOLATION = 100.0
 #: :func:`_localize_chunk`): its buffer (41 rows, 5.4 MB) stays in the last-level cache: as fast as 8192 and 5 %
 #: faster than 32768 (107, 108, 114 ms per 1e6 points, least CPU of 11 runs of one thread on the loaded machine),
 #: while its Python (~0.1 ms a solve: ~50 NumPy calls, which hold the GIL) stays a twentieth of the solve's ~2 ms.
+#: Chunks small enough for a core's 512 KB L2 (<= ~1,400 points at ~370 bytes a point) do not pay: 1-4k points
+#: cost 1.7-2.6x CPU per point on one thread, and 2 threads inflate them more (GIL hand-offs per NumPy call);
+#: beside a twin process 16384 cost ~1.1x its CPU alone, 2-4k ~1.04x (bench/bench_chunks.py, loaded machine).
 #: Every point is solved on its own: the same bits for any size.
 LOCALIZE_CHUNK = 16384
 
@@ -237,8 +240,12 @@ class RPCModel(SensorModelMixin):
 
     # ------------------------------------------------------------------ ground -> image
     def _project_normalised(self, L, P, H):
-        """Normalised (x, y) = (sample, line) ratios for flat normalised inputs, chunked."""
+        """Normalised (x, y) = (sample, line) ratios for flat normalised inputs, chunked (one chunk: fresh arrays,
+        without the reused buffers' context managers, a small call's fixed cost; the same product on each column)."""
         n = L.size
+        if n <= 64:
+            v = poly_product(self._coeffs, monomials(L, P, H))
+            return v[0] / v[1], v[2] / v[3]
         x = np.empty(n)
         y = np.empty(n)
         C = self._coeffs

@@ -31,7 +31,8 @@ def add_parser(parser):
                         "shifted by the crop origin its geotransform states)")
     parser.add_argument("--ms-rpc", metavar="FILE", help="the MS image's RPC when not in the image (as --pan-rpc)")
     parser.add_argument("--jitter", default="auto", metavar="auto|none|N",
-                        help="jitter components per axis: auto (while significant), none, or N")
+                        help="jitter components per axis: auto (while significant), none, or N (at most N; refused beyond "
+                             "what the usable cell rows resolve)")
     parser.add_argument("--reuse", metavar="MODEL.json",
                         help="keep the sub-CCD term of this model (another scene of the same camera); solve only "
                              "the linear term from <= 200 sparse matches (cloudy or watery scenes)")

@@ -27,7 +27,7 @@ from .apply import approximate_rpc, edge_misregistration, resample_ms_on_pan, wr
 from .breaks import (JUMP_FAP, JUMP_SMOOTH_ORDER, RAMP_SHARE, column_profile, default_breaks, detect_breaks,
                      merge_breaks, pan_edges_in_ms)
 from .design import LINEAR_ORDER, linear_design
-from .jitter import JITTER_FAP, MAX_JITTER_COMPONENTS
+from .jitter import JITTER_FAP, MAX_JITTER_COMPONENTS, supported_sines
 from .model import (AXES, GF7_LOOK_TIME_S, GF7_MS_IFOV_RAD, GF7_MS_LINE_TIME_S, ORDER, P_THRESHOLD_PX, PanMSError,
                     PanMSModel)
 from .screen import SCREEN_FLOOR_PX, SCREEN_GROSS_PX, SCREEN_K, SCREEN_ROWS, screen_matches
@@ -40,4 +40,4 @@ __all__ = ["PanMSModel", "estimate", "default_breaks", "screen_matches", "detect
            "step_residuals", "row_means", "residual_spectrum", "spectrum_peaks", "linear_design", "LINEAR_ORDER",
            "JUMP_FAP", "JUMP_SMOOTH_ORDER", "RAMP_SHARE", "JITTER_FAP", "MAX_JITTER_COMPONENTS", "AXES", "ORDER",
            "P_THRESHOLD_PX", "SCREEN_FLOOR_PX", "SCREEN_GROSS_PX", "SCREEN_K", "SCREEN_ROWS", "REUSE_MAX_FLOOR_RATIO",
-           "REUSE_MAX_OUTLIER_SHARE", "REUSE_MAX_RMS_PX"]
+           "REUSE_MAX_OUTLIER_SHARE", "REUSE_MAX_RMS_PX", "supported_sines"]

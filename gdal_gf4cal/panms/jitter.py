@@ -12,7 +12,7 @@ from ..basis import trigonometric
 from ..errors import DegenerateGeometryError
 from ..estimation import Block, normal_solve, weighted_lsq
 from .design import _set_values, _values
-from .model import AXES
+from .model import AXES, PanMSError
 from .spectrum import _freq_grid, _row_series, _sine_power, _within_row_variance
 
 #: What a singular fit of the jitter series tells the user.
@@ -22,9 +22,23 @@ JITTER_FAP = 1e-3
 MAX_JITTER_COMPONENTS = 8
 
 
-def _select_frequencies(lines, r, w, n_fixed):
+def supported_sines(lines, r, w):
+    """``(k, rows, span)``: how many sines the residual's row series resolves, from its ``rows`` cell rows over
+    ``span`` MS lines. Each sine takes 3 unknowns (sine and cosine amplitudes, frequency) besides the series' mean,
+    with 3 rows left to check the fit (``k <= (rows - 4) // 3``), and no more than the independent frequencies
+    ``1/span`` apart in the band searched (below 0.45 cycles per row: ``_freq_grid``); 0 without such a band."""
+    lc, _, _ = _row_series(lines, r, w)
+    freqs, span = _freq_grid(lc)
+    if freqs.size == 0:
+        return 0, int(lc.size), span
+    k = min((lc.size - 4) // 3, int((freqs[-1] - freqs[0]) * span))
+    return max(0, int(k)), int(lc.size), span
+
+
+def _select_frequencies(lines, r, w, limit, n_fixed):
     """Greedy: strongest peak of the residual's row spectrum, refined, kept while significant (F-test with a
-    false-alarm probability over the independent frequencies searched) or exactly ``n_fixed``."""
+    false-alarm probability over the independent frequencies searched) or exactly ``n_fixed``; at most ``limit``
+    (:func:`supported_sines`)."""
     lc, y, sw = _row_series(lines, r, w)
     freqs, span = _freq_grid(lc)
     s2, dof = _within_row_variance(lines, r, w)
@@ -32,7 +46,6 @@ def _select_frequencies(lines, r, w, n_fixed):
     if freqs.size == 0:
         return chosen
     n_indep = max(1.0, (freqs[-1] - freqs[0]) * span)
-    limit = MAX_JITTER_COMPONENTS if n_fixed is None else int(n_fixed)
     df = freqs[1] - freqs[0]
 
     def design(fs):
@@ -43,26 +56,34 @@ def _select_frequencies(lines, r, w, n_fixed):
         v = (y - A @ normal_solve(A, y, sw, JITTER_HINT)[0]) * np.sqrt(sw)
         return float(v @ v)
 
+    def trial(fs):
+        # the optimisers' objective: a trial the design cannot separate (two frequencies clipped to the same
+        # band edge: identical columns) is no candidate, not a failure
+        try:
+            return rss(fs)
+        except DegenerateGeometryError:
+            return math.inf
+
     while len(chosen) < limit:
-        p1 = 1 + 2 * (len(chosen) + 1) + len(chosen) + 1
-        if lc.size - p1 < 3:
-            break
         base = rss(chosen)
         A = design(chosen)
         resid = y - A @ normal_solve(A, y, sw, JITTER_HINT)[0]
         gain, _, _ = _sine_power(lc, resid, sw, freqs)
         f0 = float(freqs[int(np.argmax(gain))])
-        opt = optimize.minimize_scalar(lambda f: rss(chosen + [f]), bounds=(max(freqs[0], f0 - 2 * df),
+        opt = optimize.minimize_scalar(lambda f: trial(chosen + [f]), bounds=(max(freqs[0], f0 - 2 * df),
                                                                              min(freqs[-1], f0 + 2 * df)),
                                     method="bounded")
         f_new = float(opt.x)
-        new = rss(chosen + [f_new])
+        new = trial(chosen + [f_new])
+        if not math.isfinite(new):
+            break                     # the peak is a component already taken
         if n_fixed is None:
             # the noise of the row means from the cells' scatter within their rows (not from the rows left
             # over, which on a short crop -- 12 rows, < 1 jitter cycle -- still hold the next components' signal)
             if s2 is not None:
                 F, dof2 = ((base - new) / 3.0) / s2, dof
             else:
+                p1 = 1 + 3 * (len(chosen) + 1)          # the mean, then amplitudes and frequency per sine
                 F, dof2 = ((base - new) / 3.0) / (new / (lc.size - p1)), lc.size - p1
             p = float(stats.f.sf(F, 3, dof2))
             fap = 1.0 - (1.0 - p) ** n_indep if p > 1e-12 else p * n_indep
@@ -73,7 +94,7 @@ def _select_frequencies(lines, r, w, n_fixed):
         chosen.append(f_new)
         if len(chosen) > 1:           # joint refinement of every frequency, kept inside the searched band
             lo, hi = freqs[0], freqs[-1]
-            res = optimize.minimize(lambda fs: rss(list(np.clip(fs, lo, hi))), np.array(chosen),
+            res = optimize.minimize(lambda fs: trial(list(np.clip(fs, lo, hi))), np.array(chosen),
                                     method="Nelder-Mead", options={"xatol": df * 1e-3, "fatol": 1e-12,
                                                                    "maxiter": 400})
             refined = sorted(float(v) for v in np.clip(res.x, lo, hi))
@@ -99,13 +120,38 @@ def _jitter_design(model, l, sn):
     return np.concatenate(parts, axis=2) if parts else np.zeros((n, 2, 0))
 
 
-def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn, keep):
+def _frequencies(model, c, inl, w, n_fixed):
+    """Each axis' jitter frequencies on the residual of the linear and piecewise terms, as many as the cell rows
+    resolve (:func:`supported_sines`): a fixed count beyond that is refused (:class:`PanMSError`, nothing
+    solved), ``auto`` stops there with a note; a fixed count the data give fewer of is noted."""
     ps, pl = model.predict(c["sample"], c["line"], terms=("linear", "piecewise"))
     res = np.stack([c["d_sample"] - ps, c["d_line"] - pl], axis=1)
-    for k, ax in enumerate(AXES):
-        fs = _select_frequencies(c["line"], res[:, k], np.where(inl, w[:, k], 0.0), n_fixed)
+    series = [(c["line"], res[:, k], np.where(inl, w[:, k], 0.0)) for k in range(len(AXES))]
+    cap, rows, span = min(supported_sines(*sr) for sr in series)
+    if n_fixed is not None and n_fixed > cap:
+        use = f"--jitter {cap} or fewer, auto, or" if cap else "--jitter none, auto, or"
+        raise PanMSError(f"--jitter {n_fixed}: the usable cells lie on {rows} rows over {span:.0f} MS lines, enough "
+                         f"for {cap} sine(s) per axis (3 rows each and 4 for the mean and the fit's check, their "
+                         f"frequencies 1/{span:.0f} cycles per line apart); use {use} a smaller --cell")
+    limit = MAX_JITTER_COMPONENTS if n_fixed is None else n_fixed
+    notes = model.info.setdefault("notes", [])
+    for ax, sr in zip(AXES, series):
+        fs = _select_frequencies(*sr, min(limit, cap), n_fixed)
         model.jitter[ax] = {"b": 0.0, "components": [{"frequency_cycles_per_line": f, "sin": 0.0, "cos": 0.0}
                                                      for f in fs]}
+        if n_fixed is None and cap == 0:
+            notes.append(f"jitter {ax}: not estimated: {rows} usable cell rows resolve no sine (7 needed); a "
+                         "smaller --cell gives more rows")
+        elif n_fixed is None and len(fs) == cap < limit:
+            notes.append(f"jitter {ax}: stopped at {cap} sine(s), all that the {rows} usable cell rows resolve "
+                         "(the last still significant); a smaller --cell gives more rows")
+        elif n_fixed is not None and len(fs) < n_fixed:
+            notes.append(f"jitter {ax}: {len(fs)} of the {n_fixed} sines asked for: the next one is not resolved "
+                         f"from those taken over {span:.0f} MS lines (or lies at the edge of the band searched)")
+
+
+def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn, keep):
+    _frequencies(model, c, inl, w, n_fixed)
     if not any(model.jitter[ax]["components"] for ax in AXES):
         return
     yy = np.where(np.isfinite(y), y, 0.0)
@@ -127,6 +173,8 @@ def _solve_jitter(model, c, a, y, w, inl, blocks, n_fixed, sn, keep):
             # on the axis with the most components and solve again
             ax = max(AXES, key=lambda x_: len(model.jitter[x_]["components"]))
             model.jitter[ax]["components"].pop()
+            model.info["notes"].append(f"jitter {ax}: one sine fewer, the amplitudes' solve could not separate it "
+                                       "(from the line terms or another sine)")
             if not any(model.jitter[a]["components"] for a in AXES):
                 return
             continue

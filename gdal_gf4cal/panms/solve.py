@@ -191,8 +191,9 @@ def estimate(cells, *, ms_size, breaks=None, n_sub_ccds: int = 3, jitter="auto",
         are left out of the estimate but keep their residuals).
     ms_size : (width, height) of the MS image.
     breaks : list of MS samples of the sub-CCD edges; default ``n_sub_ccds`` equal pieces of the MS width.
-    jitter : ``"auto"`` (components while significant, false-alarm probability < 1e-3), ``"none"`` or an int
-        (exactly that many per axis).
+    jitter : ``"auto"`` (components while significant, false-alarm probability < 1e-3, at most what the cell
+        rows resolve), ``"none"`` or an int (that many per axis where the data resolve them, fewer with a note;
+        more than the cell rows resolve, :func:`~gdal_gf4cal.panms.jitter.supported_sines`, is refused).
     reuse : :class:`PanMSModel` or path of its JSON: keep its piecewise term, solve only the linear term.
     line_time_s, look_time_s, ifov_rad : MS line period, pan-MS look-time difference and MS IFOV, to report the
         jitter in Hz and the attitude jitter it implies (gain ``2 |sin(pi f dt)|``).
@@ -205,7 +206,7 @@ def estimate(cells, *, ms_size, breaks=None, n_sub_ccds: int = 3, jitter="auto",
     Raises
     ------
     PanMSError
-        No usable cell, a reuse model of another camera, bad breakpoints.
+        No usable cell, a reuse model of another camera, bad breakpoints, more jitter sines than the rows resolve.
     """
     c = _cell_arrays(cells)
     W, H = int(ms_size[0]), int(ms_size[1])

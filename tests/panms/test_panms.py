@@ -186,3 +186,50 @@ def test_jitter_found_on_a_short_crop():
     ts, tl = true_misregistration(sc, s.ravel(), l.ravel())
     ps, pl = m.predict(s.ravel(), l.ravel())
     assert np.sqrt(np.mean((ps - ts) ** 2)) <= 0.02 and np.sqrt(np.mean((pl - tl) ** 2)) <= 0.02
+
+
+@pytest.fixture(scope="module")
+def short_crop():
+    """A 256-line MS crop (under one cycle of the 1-3 Hz jitter) in 6 px cells: 42 cell rows."""
+    sc = make_gf7_scene(seed=3, jitter=True, size=(1024, 1024), crop_center_ms_px=2720)
+    return sc, synth_cells(sc, cell=6, sigma=0.015, seed=3)
+
+
+def test_fixed_jitter_count_on_a_short_crop_does_not_end_in_a_singular_solve(short_crop):
+    """``jitter=2`` on a crop whose residual wants its second sine below the lowest frequency searched: the joint
+    refinement of the frequencies tried two of them clipped to the band's edge (identical columns) and the run
+    ended in "condition number inf (singular normal matrix)". Such a trial is no candidate: the sines the rows
+    resolve are kept, a note says how many of those asked for, and the field is the truth's within the noise."""
+    from gdal_gf4cal.simulate.gf7 import true_misregistration
+    sc, cells = short_crop
+    W, H = sc.image("ms").size
+    m = panms.estimate(cells, ms_size=(W, H), jitter=2)
+    counts = [len(m.jitter[ax]["components"]) for ax in panms.AXES]
+    assert 1 <= min(counts) and max(counts) <= 2
+    for ax, n in zip(panms.AXES, counts):
+        assert (n == 2) != any(nt.startswith(f"jitter {ax}: {n} of the 2 sines") for nt in m.info["notes"])
+    s, l = np.meshgrid(np.arange(2, W, 4) + 0.5, np.arange(2, H, 4) + 0.5)
+    ts, tl = true_misregistration(sc, s.ravel(), l.ravel())
+    ps, pl = m.predict(s.ravel(), l.ravel())
+    m0 = panms.estimate(cells, ms_size=(W, H), jitter="none")
+    ps0, pl0 = m0.predict(s.ravel(), l.ravel())
+    rms = [np.sqrt(np.mean(v ** 2)) for v in (ps - ts, pl - tl, ps0 - ts, pl0 - tl)]
+    # the sines take what the linear and piecewise terms leave of the jitter (0.004 px in sample here)
+    assert rms[0] <= 0.003 and rms[1] <= 0.008 and rms[0] < 0.6 * rms[2] and rms[1] <= rms[3], rms
+
+
+def test_fixed_jitter_count_beyond_what_the_rows_resolve_is_refused(short_crop):
+    """42 cell rows resolve 12 sines per axis (3 rows each, 4 for the mean and the fit's check): 12 is solved,
+    13 is refused before anything is solved, with the rows and what to do; ``auto`` stays within the cap."""
+    sc, cells = short_crop
+    size = sc.image("ms").size
+    assert panms.supported_sines(cells["line"].to_numpy(float), cells["d_sample"].to_numpy(float),
+                                 cells["usable"].to_numpy(float))[:2] == (12, 42)
+    m = panms.estimate(cells, ms_size=size, jitter=12)
+    assert 1 <= len(m.jitter["sample"]["components"]) <= 12
+    with pytest.raises(panms.PanMSError, match=r"--jitter 13: the usable cells lie on 42 rows .* enough for 12 "
+                                               r"sine\(s\) per axis .* use --jitter 12 or fewer, auto, or a smaller "
+                                               r"--cell$"):
+        panms.estimate(cells, ms_size=size, jitter=13)
+    auto = panms.estimate(cells, ms_size=size)
+    assert all(len(auto.jitter[ax]["components"]) <= 12 for ax in panms.AXES)

@@ -10,6 +10,7 @@ The crops are rendered alone (seconds each); the truth comes from the simulator'
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -102,6 +103,22 @@ def test_cell_and_jitter_never_end_in_a_solver_failure(crop, tmp_path, capsys):
         if not _clean_exit(rc, err):
             failures.append((cell, jitter, rc, err.strip()[-300:]))
     assert not failures, failures
+
+
+@pytest.mark.parametrize("crop", ["across_first"], indirect=True)
+def test_more_jitter_sines_than_the_cell_rows_resolve_is_refused(crop, tmp_path, capsys):
+    """``--cell 6 --jitter 20`` on a 256-line crop: ~37 usable cell rows resolve 11 sines per axis (3 rows each, 4 for
+    the mean and the fit's check), not 20. Refused in one line naming the rows and what to do, nothing written (it
+    ended in exit 0 with 1 and 3 sines and no word of it, or, with other matching tiles, in a singular solve)."""
+    _, d = crop
+    out = tmp_path / "out"
+    rc = register(d, out, "--cell", "6", "--jitter", "20")
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and _clean_exit(rc, err), err
+    m = re.search(r"--jitter 20: the usable cells lie on (\d+) rows .* use --jitter (\d+) or fewer, auto, or a "
+                  r"smaller --cell$", err)
+    assert m and 30 <= int(m.group(1)) <= 43 and int(m.group(2)) == (int(m.group(1)) - 4) // 3, err
+    assert not out.exists()
 
 
 def test_breaks_a_pixel_off_the_true_edges_still_register(crop, full, tmp_path, capsys):

@@ -337,3 +337,29 @@ def test_gpkg_through_ogr_or_in_bulk_passes_gdal_validator(tmp_path, n, bulk):
     assert writes_in_bulk(3 * n - 3) is bulk and OGR_MAX_ROWS == 100_000
     test_bulk_written_gpkg_is_valid_with_spatial_index_styles_and_nulls(tmp_path, n)
     check(str(tmp_path / "bulk.gpkg"), abort_at_first_error=True)       # raises on the first violation
+
+
+def test_concurrent_writer_takes_the_bulk_path_with_the_same_layers(tmp_path, gcps):
+    """A caller writing while its other threads compute (register-pan-ms's cells, issue 23) asks for the bulk writer
+    at any size: the same layers in the same order, the same features (fields, types, values, geometries),
+    metadata, titles and styles as the OGR path, and GDAL's validator passes."""
+    from osgeo_utils.samples.validate_gpkg import check
+    from gdal_gf4cal.report.gpkg import writes_in_bulk
+    assert not writes_in_bulk(3 * len(gcps)) and writes_in_bulk(3 * len(gcps), concurrent=True)
+    kw = dict(footprint=box(100, 29, 101, 30), before=("ds0", "dl0"), points_title="cells")
+    paths = [write_residuals_gpkg(gcps, tmp_path / f"{c}.gpkg", concurrent=c, **kw) for c in (False, True)]
+    names = []
+    for p in paths:
+        ds = ogr.Open(str(p))
+        names.append([ds.GetLayer(i).GetName() for i in range(ds.GetLayerCount())])
+    assert names[0] == names[1] and len(names[0]) == 5
+    for layer in names[0]:
+        (ra, fa, ma, sa), (rb, fb, mb, sb) = (_layer_rows(p, layer) for p in paths)
+        assert fa == fb and ma == mb and (sa is None) == (sb is None), layer
+        key = lambda r: str(r.get("id", r.get("f_table_name")))     # noqa: E731 - the rows' own order may differ
+        for a, b in zip(sorted(ra, key=key), sorted(rb, key=key), strict=True):
+            ga, gb = a.pop("_geom"), b.pop("_geom")
+            a.pop("update_time", None), b.pop("update_time", None)
+            assert a == b and (ga is None and gb is None or ga.Equals(gb)), (layer, a)
+    assert layer_titles(paths[0]) == layer_titles(paths[1])
+    check(str(paths[1]), abort_at_first_error=True)

@@ -293,6 +293,28 @@ def test_project_kernel_chunks_and_antimeridian(data_dir):
     assert rpc.project(np.zeros(0), np.zeros(0), np.zeros(0))[0].shape == (0,)
 
 
+def test_project_chunk_size_keeps_the_bits(data_dir, monkeypatch):
+    """PROJECT_CHUNK changes no bit (issue 23: the chunk is a cache/speed choice only): chunks of 1000 points (a
+    last partial one of 17, and one of 2 columns that is never a one-column product) give the bits of one chunk
+    of the whole array, with and without thread blocks (BLOCK 2000: blocks not a multiple of the chunk)."""
+    from gdal_gf4cal import rpc as rpc_module
+    from gdal_gf4cal import threads
+    rpc = RPCModel.from_file(data_dir / "rpc" / "RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML")
+    rng = np.random.default_rng(5)
+    n = 3 * 1000 + 17
+    g = [o + sc * rng.uniform(-1.2, 1.2, n) for o, sc in ((rpc.long_off, rpc.long_scale),
+                                                           (rpc.lat_off, rpc.lat_scale),
+                                                           (rpc.height_off, rpc.height_scale))]
+    monkeypatch.setattr(rpc_module, "PROJECT_CHUNK", 10 ** 9)
+    whole = rpc.project(*g)
+    for chunk, block, t in ((1000, threads.BLOCK, 1), (1000, 2000, 2), (3015, threads.BLOCK, 1)):
+        monkeypatch.setattr(rpc_module, "PROJECT_CHUNK", chunk)
+        monkeypatch.setattr(threads, "BLOCK", block)
+        with threads.limit(t):
+            chunked = rpc.project(*g)
+        assert np.array_equal(chunked[0], whole[0]) and np.array_equal(chunked[1], whole[1]), (chunk, block, t)
+
+
 def test_monomial_buffers_and_localize_chunks_keep_the_bits(data_dir, monkeypatch):
     """The kernels' reused buffers change no bit (issue 23): fill_monomials' grouped products and the chunks of
     monomial_chunks are the products of monomials() term by term; localize solved in chunks of LOCALIZE_CHUNK
@@ -341,3 +363,14 @@ def test_scratch_buffers_are_per_thread_and_never_shared_while_in_use():
     t.start()
     t.join()
     assert not np.shares_memory(seen[0], a)
+
+
+def test_small_normalised_projections_give_the_bits_of_a_large_one(real_rpc):
+    """Up to 64 points the localisations' normalised projection takes fresh arrays instead of the reused buffers
+    (a small call's fixed cost): each column is the same product, the same bits as inside a call of 3000 points
+    (from 2 points: one point is a matrix-vector product, BLAS's own rounding, with buffers or without)."""
+    rng = np.random.default_rng(2)
+    L, P, H = (rng.uniform(-1.2, 1.2, 3000) for _ in range(3))
+    large = np.array(real_rpc._project_normalised(L, P, H))
+    for a, b in ((1, 3), (1, 5), (7, 71), (100, 164), (200, 265)):
+        np.testing.assert_array_equal(np.array(real_rpc._project_normalised(L[a:b], P[a:b], H[a:b])), large[:, a:b])
