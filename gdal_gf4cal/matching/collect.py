@@ -994,6 +994,7 @@ def _match_tiles_serial(specs: Sequence[TileSpec]) -> List[Dict[str, np.ndarray]
         return match_tiles(specs)
 
 
+@threads.blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def collect_gcps(image, rpc, reference, dem, spacing_px: int = 256, window_px: int = 64, *,
                  workers: Optional[int] = None, executor: Optional[cf.Executor] = None, min_peak: float = 0.2,
                  min_peak_ratio: float = 2.0, min_ncc: float = 0.3, min_texture: float = 1.5,

@@ -611,6 +611,7 @@ def _user_breaks(pair: _Pair, spec, n_sub_ccds) -> Optional[list]:
     return br
 
 
+@threads.blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def register_pan_ms(pan, ms, *, dem, out, geoid=None, n_sub_ccds: Optional[int] = None, breaks=None,
                     cell: Optional[int] = None, jitter="auto", reuse=None, overwrite: bool = False, cells=None,
                     workers: Optional[int] = None, progress=None, pan_rpc=None, ms_rpc=None) -> Dict[str, Any]:

@@ -15,6 +15,7 @@ from osgeo import gdal
 
 from gdal_gf4cal.matching import ReferenceImage, collect_gcps, match_tile, plan_tiles, reference_on_grids
 from gdal_gf4cal.matching import collect, resample
+from gdal_gf4cal import threads
 from gdal_gf4cal.matching.correlate import phase_correlate
 
 from matchscene import build_scene, error_affine
@@ -180,3 +181,17 @@ def test_a_thread_drops_the_blocks_of_rows_its_next_tile_does_not_read(scene):
     seen = cache_after(0, 1, far)
     assert 0 < seen[0] <= seen[1] and alone > 0
     assert seen[2] == alone                      # the first row's blocks dropped before the far tile read its own
+
+
+@pytest.mark.skipif(threads.blas_threads() is None, reason="NumPy's BLAS is not OpenBLAS")
+def test_collect_gcps_computes_blas_on_the_calling_thread(scene):
+    """``collect_gcps`` called from Python (no ``gf4cal`` command, no ``threads.limit``) holds BLAS on the calling
+    thread from start to end, as the command does, not only inside each tile: the outlier fit after the tiles woke
+    OpenBLAS's own thread, which then spun ~0.1 s on the other core. Every progress report (between tiles too) comes
+    from inside that scope, and the scope is closed afterwards."""
+    assert not threads.blas_is_serial()
+    seen = []
+    collect_gcps(scene.image, scene.rpc, scene.reference, scene.dem, spacing_px=48, window_px=64, tile_windows=4,
+                 workers=1, progress=lambda f, m="": seen.append(threads.blas_is_serial()))
+    assert len(seen) > 3 and all(seen)
+    assert not threads.blas_is_serial()

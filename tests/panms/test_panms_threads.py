@@ -75,3 +75,20 @@ def test_outputs_are_the_same_with_1_and_2_threads(runs):
     # and the registration is the one the accuracy test pins (tests/panms/test_panms_ventoux.py)
     assert r1["steps"][-1]["rms_sample_px"] < 0.1 and r1["steps"][-1]["rms_line_px"] < 0.1
 
+
+
+@pytest.mark.skipif(threads.blas_threads() is None, reason="NumPy's BLAS is not OpenBLAS")
+def test_the_python_api_computes_blas_on_the_calling_thread(ventoux_pair, tmp_path):
+    """``register_pan_ms`` called from Python (no ``gf4cal`` command, no ``threads.limit`` around it) holds BLAS on
+    the calling thread from start to end, as the command does: a product computed on OpenBLAS's own threads wakes
+    them, and they then spin ~0.1 s on another core (0.4 s of CPU per run on the GF7 bench crop), beside the pool's
+    threads. Every progress report comes from inside that scope, and the scope is closed afterwards."""
+    from gdal_gf4cal.workflows.panms import register_pan_ms
+    d = ventoux_pair
+    assert not threads.blas_is_serial()
+    seen = []
+    register_pan_ms(str(d / "left_image.tif"), str(d / "lowres_color_image.tif"),
+                    dem=os.path.join(DATA, "dem", "N44E005.hgt"), geoid="egm96", out=str(tmp_path / "out"),
+                    progress=lambda f, m="": seen.append(threads.blas_is_serial()))
+    assert len(seen) > 3 and all(seen)
+    assert not threads.blas_is_serial()
