@@ -19,13 +19,14 @@ import os
 import statistics
 import subprocess
 import sys
-import tarfile
 import tempfile
 import time
-from io import BytesIO
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
+sys.path.insert(0, HERE)
+from _timing import extract_tree, interleaved, start_child  # noqa: E402
+
 CASES = [("affine", 1000), ("affine", 10000), ("poly2", 1000), ("poly2", 10000)]
 
 
@@ -38,17 +39,8 @@ def pre_core_commit() -> str:
                           check=True).stdout.strip()
 
 
-def extract(commit: str, dest: str) -> str:
-    data = subprocess.run(["git", "-C", ROOT, "archive", commit, "gdal_gf4cal"], capture_output=True,
-                          check=True).stdout
-    with tarfile.open(fileobj=BytesIO(data)) as tar:
-        tar.extractall(dest)
-    return dest
-
-
 def child() -> None:
     """One tree: reads ``model n`` lines, answers ``{"t": seconds, "outliers": [...]}`` per fit."""
-    sys.path.insert(0, HERE)
     from bench_compensation import make_case
     from gdal_gf4cal.compensation import fit_compensation
     cases = {}
@@ -67,20 +59,6 @@ def child() -> None:
               flush=True)
 
 
-def start(tree: str) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONPATH=tree)
-    p = subprocess.Popen([sys.executable, os.path.abspath(__file__), "--child"], stdin=subprocess.PIPE,
-                         stdout=subprocess.PIPE, text=True, env=env, cwd=HERE)
-    json.loads(p.stdout.readline())
-    return p
-
-
-def ask(p: subprocess.Popen, model: str, n: int) -> dict:
-    p.stdin.write(f"{model} {n}\n")
-    p.stdin.flush()
-    return json.loads(p.stdout.readline())
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=7)
@@ -95,20 +73,15 @@ def main() -> None:
     print(f"old tree: {old[:10]} ({what}); new tree: {ROOT}; load average "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (a shared machine: read the ratios, not the times)")
     with tempfile.TemporaryDirectory() as tmp:
-        procs = {"old": start(extract(old, tmp)), "new": start(ROOT)}
+        procs = {name: start_child(__file__, tree, HERE) for name, tree in (("old", extract_tree(ROOT, old, tmp)),
+                                                                             ("new", ROOT))}
         times = {(k, c): [] for k in procs for c in CASES}
         cpu = {(k, c): [] for k in procs for c in CASES}
         flagged = {}
-        for r in range(a.repeat):
-            for case in CASES:
-                for k in (("old", "new") if r % 2 == 0 else ("new", "old")):
-                    ans = ask(procs[k], *case)
-                    times[(k, case)].append(ans["t"])
-                    cpu[(k, case)].append(ans["cpu"])
-                    flagged[(k, case)] = ans["outliers"]
-        for p in procs.values():
-            p.stdin.close()
-            p.wait()
+        for key, ans in interleaved(procs, CASES, a.repeat):
+            times[key].append(ans["t"])
+            cpu[key].append(ans["cpu"])
+            flagged[key] = ans["outliers"]
     print(f"{'model':>8} {'GCPs':>6} {'old min s':>10} {'new min s':>10} {'old med s':>10} {'new med s':>10} "
           f"{'new/old (min)':>14} {'(median)':>9} {'(min CPU)':>10}  same outliers")
     for case in CASES:

@@ -21,26 +21,18 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
-import tarfile
 import tempfile
 import time
-from io import BytesIO
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 DATA = os.path.join(ROOT, "tests", "data")
+sys.path.insert(0, HERE)
+from _timing import extract_tree, interleaved, start_child  # noqa: E402
+
 CASES = [("rpc", 1, "egm96"), ("rpc", 4, "egm96"), ("rpc", 16, "egm96"), ("rpc", 256, "egm96"),
          ("rpc", 4, "none"), ("rpc", 256, "none"), ("generic", 20000, "egm96"), ("rpc-generic", 20000, "egm96")]
-
-
-def extract(commit: str, dest: str) -> str:
-    data = subprocess.run(["git", "-C", ROOT, "archive", commit, "gdal_gf4cal"], capture_output=True,
-                          check=True).stdout
-    with tarfile.open(fileobj=BytesIO(data)) as tar:
-        tar.extractall(dest)
-    return dest
 
 
 def _setup(kind: str, n: int, geoid: str):
@@ -84,20 +76,6 @@ def child() -> None:
               flush=True)
 
 
-def start(tree: str) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONPATH=tree, GF4CAL_NUM_THREADS="1")
-    p = subprocess.Popen([sys.executable, os.path.abspath(__file__), "--child"], stdin=subprocess.PIPE,
-                         stdout=subprocess.PIPE, text=True, env=env, cwd=tree)
-    json.loads(p.stdout.readline())
-    return p
-
-
-def ask(p: subprocess.Popen, case) -> dict:
-    p.stdin.write(" ".join(map(str, case)) + "\n")
-    p.stdin.flush()
-    return json.loads(p.stdout.readline())
-
-
 def main() -> None:
     import numpy as np
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -108,18 +86,12 @@ def main() -> None:
     if args.child:
         return child()
     with tempfile.TemporaryDirectory() as tmp:
-        procs = {"old": start(extract(args.old, tmp)), "new": start(ROOT)}
-        best = {}
-        last = {}
-        for _ in range(args.repeat):                   # interleaved rounds
-            for case in CASES:
-                for name in ("old", "new") if len(best) % 2 == 0 else ("new", "old"):
-                    r = ask(procs[name], case)
-                    best[(name, case)] = min(best.get((name, case), np.inf), r["t"])
-                    last[(name, case)] = r
-        for p in procs.values():
-            p.stdin.close()
-            p.wait()
+        procs = {name: start_child(__file__, tree, tree, GF4CAL_NUM_THREADS="1")
+                 for name, tree in (("old", extract_tree(ROOT, args.old, tmp)), ("new", ROOT))}
+        best, last = {}, {}
+        for key, r in interleaved(procs, CASES, args.repeat):
+            best[key] = min(best.get(key, np.inf), r["t"])
+            last[key] = r
     print(f"load average {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f}; old = {args.old}, CPU ms per call "
           f"(least of {args.repeat})")
     for case in CASES:
