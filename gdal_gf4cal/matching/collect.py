@@ -55,7 +55,7 @@ from ..executors import keep_heap, map_ordered
 from ..gcp import make_gcps
 from ..progress import report
 from ..rpc import RPCModel
-from .correlate import correlate_spectra, null_result, phase_correlate, spectra, window_measures
+from .correlate import chunks, correlate_spectra, null_result, phase_correlate, spectra, window_measures
 from .filters import reject_outliers
 from .resample import (RawReference, ReferenceImage, cut_boxes, read_block, read_boxes, reference_on_grids,
                        whole_pixel_shift)
@@ -142,7 +142,7 @@ def _read_boxes(ds, band: int, nodata, x0: np.ndarray, y0: np.ndarray, size: int
 CHANGE_QUARTER_PX = 64
 
 
-def _quadrant_ok(ref: np.ndarray, raw: np.ndarray, min_ncc: float, which=None) -> np.ndarray:
+def _quadrant_ok(ref: np.ndarray, raw: np.ndarray, min_ncc: float, which=None, shared=None) -> np.ndarray:
     """Every quarter of the window where the reference has texture must correlate with the raw image, unless the
     raw image keeps its texture there: a failing quarter counts only where it is *covered*.
 
@@ -156,13 +156,14 @@ def _quadrant_ok(ref: np.ndarray, raw: np.ndarray, min_ncc: float, which=None) -
     correlation checks judge it. On a real Sentinel-2 pair ten days apart, the 256-px windows so admitted lie 0.05 px (median) from
     the pair's smooth offset field, the others 0.035 px; 64-px ones 0.17 px against 0.074 (hence the size); painted
     clouds keep their quarters' ratios below 0.25. ``which``: indices of the windows of the stacks to judge (one
-    result each; no copy of the stacks).
+    result each; no copy of the stacks). ``shared``: the reference side already computed
+    (:class:`_GroupReference`, for windows of the stacks' size).
     """
     which = np.arange(ref.shape[0]) if which is None else np.asarray(which, dtype=np.intp).ravel()
     n, (h, w) = which.size, ref.shape[1:]
     hh, hw = h // 2, w // 2
     ref, raw = ref[:, :2 * hh, :2 * hw], raw[:, :2 * hh, :2 * hw]
-    grad = _quarter_gradient(ref, which)
+    grad = _quarter_gradient(ref, which) if shared is None else shared.grad[which]
     textured = grad >= 0.25 * grad.mean(axis=1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         kept = _quarter_gradient(raw, which) / grad
@@ -181,15 +182,24 @@ def _quadrant_ok(ref: np.ndarray, raw: np.ndarray, min_ncc: float, which=None) -
     sel = np.flatnonzero(judged.any(axis=1))
     if sel.size:
         # Quarters as views (m, 2, hh, 2, hw): axes 2 and 4 run inside a quarter; results (m, 2, 2) -> (m, 4).
-        q_ref = ref[which[sel]].reshape(sel.size, 2, hh, 2, hw)
-        q_raw = raw[which[sel]].reshape(sel.size, 2, hh, 2, hw)
-        a = q_ref - q_ref.mean(axis=(2, 4), keepdims=True)
-        b = q_raw - q_raw.mean(axis=(2, 4), keepdims=True)
-        va, vb = np.einsum("nyixj,nyixj->nyx", a, a), np.einsum("nyixj,nyixj->nyx", b, b)
+        rows = which[sel]
+        a, va = _centred_quarters(ref, rows) if shared is None else (shared.quarters[0][rows],
+                                                                     shared.quarters[1][rows])
+        b, vb = _centred_quarters(raw, rows)
         with np.errstate(invalid="ignore", divide="ignore"):
             ncc = (np.einsum("nyixj,nyixj->nyx", a, b) / np.sqrt(va * vb)).reshape(sel.size, 4)
         ok[sel] = np.all(~judged[sel] | (np.nan_to_num(ncc, nan=-1.0) >= min_ncc), axis=1)
     return ok
+
+
+def _centred_quarters(win: np.ndarray, rows):
+    """The quarters of the windows ``rows`` of a stack ``(N, 2 hh, 2 hw)`` (or more rows and columns: an odd last
+    one left out) minus their means, as views ``(n, 2, hh, 2, hw)`` (axes 2 and 4 run inside a quarter), and their
+    sums of squares ``(n, 2, 2)`` (:func:`_quadrant_ok`)."""
+    hh, hw = win.shape[1] // 2, win.shape[2] // 2
+    q = win[rows, :2 * hh, :2 * hw].reshape(len(rows), 2, hh, 2, hw)
+    a = q - q.mean(axis=(2, 4), keepdims=True)
+    return a, np.einsum("nyixj,nyixj->nyx", a, a)
 
 
 def _quarter_gradient(win: np.ndarray, which) -> np.ndarray:
@@ -201,10 +211,9 @@ def _quarter_gradient(win: np.ndarray, which) -> np.ndarray:
     n, (h2, w2) = which.size, win.shape[1:]
     hh, hw = h2 // 2, w2 // 2
     out = np.empty((n, 4), dtype=np.result_type(win.dtype, np.float32))
-    step = max(1, QUARTER_BYTES // (4 * h2 * w2))
     every = n == win.shape[0] and np.array_equal(which, np.arange(n))   # views, no copies
-    for k in range(0, n, step):
-        c = win[k:k + step] if every else win[which[k:k + step]]
+    for sl in chunks(n, QUARTER_BYTES // (4 * h2 * w2)):
+        c = win[sl] if every else win[which[sl]]
         m = c.shape[0]
         d = np.subtract(c[..., 1:], c[..., :-1])
         cx = np.abs(d, out=d).reshape(m, 2, hh, w2 - 1).sum(axis=2)     # (m, 2 halves in y, w2 - 1)
@@ -212,12 +221,13 @@ def _quarter_gradient(win: np.ndarray, which) -> np.ndarray:
         d = np.subtract(c[..., 1:, :], c[..., :-1, :])
         ry = np.abs(d, out=d).reshape(m, h2 - 1, 2, hw).sum(axis=-1)    # (m, h2 - 1, 2 halves in x)
         gy = np.stack([ry[:, :hh - 1].sum(axis=1), ry[:, hh:].sum(axis=1)], axis=1) / ((hh - 1) * hw)
-        out[k:k + step] = (gx + gy).reshape(m, 4)
+        out[sl] = (gx + gy).reshape(m, 4)
     return out
 
 
-#: Bytes of float32 windows per chunk of :func:`_quarter_gradient`.
-QUARTER_BYTES = 1 << 19
+#: Bytes of float32 windows per chunk of :func:`_quarter_gradient` (about: :func:`.correlate.chunks`; as
+#: :data:`.correlate._MEASURE_BYTES`).
+QUARTER_BYTES = 1 << 20
 
 
 def _predict_offsets(cp, dxp, dyp, resp, okp, cr, p):
@@ -455,12 +465,38 @@ def _fine_reference(spec: TileSpec, c, idx, rpc, dem, ref, translated: bool = Tr
 
 
 def _reference_measures(ref_f):
-    """:func:`_flag_windows`'s texture measures of the reference windows ``ref_f`` without no-data (NaN for the
-    others), for every band of a group: each window's measures depend on that window alone."""
-    tex, flat = np.full(ref_f.shape[0], np.nan), np.full(ref_f.shape[0], np.nan)
-    ok = np.flatnonzero(~np.isnan(ref_f).any(axis=(1, 2)))
-    tex[ok], flat[ok] = window_measures(ref_f, _central_half(ref_f.shape[-1]), which=ok)
-    return tex, flat
+    """The reference windows' quantities that every band of a group (:func:`match_tiles`: one tile per band at the
+    same windows) would compute alike (:class:`_GroupReference`)."""
+    return _GroupReference(ref_f)
+
+
+class _GroupReference:
+    """Reference-side quantities of a tile's fine windows ``ref_f`` (full size), computed once for every band of a
+    group instead of once per band: :func:`_flag_windows`' texture measures ``tex, flat`` and :func:`_quadrant_ok`'s
+    quarter gradients ``grad`` and centred quarters (of the windows without no-data; NaN for the others), and the
+    spectra of every chunk of the fine passes (:meth:`spectra`: the chunks' windows are the same for every band, the
+    reference windows do not move). Each window's quantities depend on that window alone: the same bits as each
+    band's own (tests/matching/test_matching_fine.py)."""
+
+    def __init__(self, ref_f):
+        m, w = ref_f.shape[0], ref_f.shape[-1]
+        self.tex, self.flat = np.full(m, np.nan), np.full(m, np.nan)
+        ok = np.flatnonzero(~np.isnan(ref_f).any(axis=(1, 2)))
+        self.tex[ok], self.flat[ok] = window_measures(ref_f, _central_half(w), which=ok)
+        self.grad = np.full((m, 4), np.nan, dtype=np.float32)
+        self.grad[ok] = _quarter_gradient(ref_f[:, :w // 2 * 2, :w // 2 * 2], ok)
+        a, va = _centred_quarters(ref_f, ok)
+        self.quarters = np.zeros((m,) + a.shape[1:], dtype=a.dtype), np.full((m,) + va.shape[1:], np.nan, va.dtype)
+        self.quarters[0][ok], self.quarters[1][ok] = a, va
+        self._spectra: Dict[bytes, Any] = {}
+
+    def spectra(self, a, rows):
+        """:func:`.correlate.spectra` of the reference windows ``a[rows]`` (once per group and chunk)."""
+        key = rows.tobytes()
+        got = self._spectra.get(key)
+        if got is None:
+            got = self._spectra[key] = spectra(a[rows])
+        return got
 
 
 def _central_half(w: int):
@@ -471,8 +507,8 @@ def _central_half(w: int):
 
 def _match_band(spec: TileSpec, c, out, rpc, dem, ref, ds, near_edge, fits, idx, ref_f, ref_m=None):
     """One band of :func:`match_tiles` on the tile's footprint (``out`` filled so far, the live windows ``idx`` and
-    their reference windows ``ref_f``, their texture measures ``ref_m`` if known): coarse offsets, then the fine
-    level, into ``out``."""
+    their reference windows ``ref_f``, their quantities shared by the bands of a group ``ref_m`` if known:
+    :class:`_GroupReference`): coarse offsets, then the fine level, into ``out``."""
     if idx.size == 0:
         return out
     p = spec.params
@@ -518,7 +554,7 @@ def _fine_level(spec: TileSpec, ds, c, idx, ref_f, shift_x, shift_y, lim: int, n
     W, H = ds.RasterXSize, ds.RasterYSize
     wx0 = np.round(c[idx, 0] - w / 2).astype(int)
     wy0 = np.round(c[idx, 1] - w / 2).astype(int)
-    fine = _FinePasses(spec, ds, ref_f, wx0, wy0, shift_x[idx], shift_y[idx], lim, sigma, nan_free)
+    fine = _FinePasses(spec, ds, ref_f, wx0, wy0, shift_x[idx], shift_y[idx], lim, sigma, nan_free, ref_m)
     if guide is not None:
         _start_at(fine, np.arange(m), _predict_offsets(*guide, c[idx], p))
         fine.passes(np.arange(m))
@@ -675,7 +711,7 @@ class _FinePasses:
     FIELDS = ("dx", "dy", "peak", "peak_ratio", "ncc", "precision_px")
 
     def __init__(self, spec: TileSpec, ds, ref_f, wx0, wy0, shift_x, shift_y, lim: int, sigma: float,
-                 nan_free: bool = False):
+                 nan_free: bool = False, shared=None):
         m = wx0.size
         w = ref_f.shape[-1]
         self.spec, self.ds, self.wx0, self.wy0, self.lim, self.sigma, self.w = spec, ds, wx0, wy0, lim, sigma, w
@@ -689,7 +725,9 @@ class _FinePasses:
         self.b = np.zeros((m, w, w), dtype=np.float32)
         self.nan_raw = np.zeros(m, dtype=bool)
         self.outside = np.zeros(m, dtype=bool)
-        self.res = {k: np.full(m, np.nan) for k in self.FIELDS}
+        self._res = np.full((len(self.FIELDS), m), np.nan)         # the results, one row per field
+        self.res = dict(zip(self.FIELDS, self._res))
+        self.shared = shared     # a _GroupReference: the reference windows' spectra once for the group's bands
 
     def _union_block(self, m: int, w: int):
         """``(x0, y0, pixels)`` of the raw block holding every window at every offset it may take (within
@@ -717,9 +755,8 @@ class _FinePasses:
         spectra, cross-power spectra and surfaces stay in the CPU cache through its passes instead of streaming
         stacks of them through memory (1.5 times faster on 256-px windows). Every window's passes depend on that
         window alone, so the chunks do not change the results."""
-        step = max(1, PASS_BYTES // (4 * self.w * self.w))
-        for k in range(0, active.size, step):
-            self._chunk_passes(active[k:k + step])
+        for sl in chunks(active.size, PASS_BYTES // (4 * self.w * self.w)):
+            self._chunk_passes(active[sl])
 
     def _chunk_passes(self, active):
         """Up to three passes over windows ``active``: read the raw window at the current offset, correlate,
@@ -728,7 +765,8 @@ class _FinePasses:
         or outside the raster in either window) stops there with the results of a pair of zero windows
         (:func:`.correlate.null_result`), without being transformed, and is flagged in :func:`_fine_level`."""
         ox, oy, lim = self.ox, self.oy, self.lim
-        Fs = spectra(self.a[active[~self.nan_ref[active]]])
+        rows = active[~self.nan_ref[active]]
+        Fs = spectra(self.a[rows]) if self.shared is None else self.shared.spectra(self.a, rows)
         pos = np.cumsum(~self.nan_ref[active]) - 1   # of the windows still moving, in Fs (with a reference)
         for it in range(3):
             axo, ayo = ox[active], oy[active]
@@ -743,7 +781,7 @@ class _FinePasses:
             if live.size:
                 # The chunk's spectra themselves while every window has a pair (one without is done)
                 Fa = Fs if live.size == Fs.S.shape[0] else Fs.take(pos[live])
-                Gs = spectra(raw_a[live])
+                Gs = spectra(raw_a if live.size == active.size else raw_a[live])
                 pk = correlate_spectra(Fa, Gs, self.sigma)
                 jump_x[live] = np.where(np.abs(pk.dx) > 0.5, np.round(pk.dx), 0)
                 jump_y[live] = np.where(np.abs(pk.dy) > 0.5, np.round(pk.dy), 0)
@@ -766,8 +804,7 @@ class _FinePasses:
 
     def _store(self, sel, q) -> None:
         """Results ``q`` (a :class:`.correlate.CorrelationResult`) of the windows ``sel``."""
-        for k in self.FIELDS:
-            self.res[k][sel] = getattr(q, k)
+        self._res[:, sel] = np.array([getattr(q, k) for k in self.FIELDS])
 
 
 #: Bytes of float32 windows per chunk of the fine passes (:meth:`_FinePasses.passes`): 4 windows of 256 px, 64 of
@@ -795,7 +832,8 @@ def _flag_windows(st, a, b, res, p, okw, ref_m=None):
     q0, q1 = _central_half(w)
     tex, flat = np.zeros(okw.size), np.ones(okw.size)
     live = np.flatnonzero(okw)
-    tex_a, flat_a = window_measures(a, (q0, q1), which=live) if ref_m is None else (ref_m[0][live], ref_m[1][live])
+    tex_a, flat_a = window_measures(a, (q0, q1), which=live) if ref_m is None else (ref_m.tex[live],
+                                                                                    ref_m.flat[live])
     tex_b, flat_b = window_measures(b, (q0, q1), which=live)
     tex[live] = np.minimum(tex_a, tex_b)
     flat[live] = np.maximum(flat_a, flat_b)
@@ -809,7 +847,7 @@ def _flag_windows(st, a, b, res, p, okw, ref_m=None):
     # Quarter check at the integer alignment (the residual is < 1 px; the threshold is far from 1 anyway), on the
     # windows still accepted.
     live = np.flatnonzero(st == 0)
-    st[live[~_quadrant_ok(a, b, p["min_quadrant_ncc"], which=live)]] = 4
+    st[live[~_quadrant_ok(a, b, p["min_quadrant_ncc"], which=live, shared=ref_m)]] = 4
     return tex, flat
 
 
