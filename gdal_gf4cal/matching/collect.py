@@ -165,18 +165,10 @@ def _quadrant_ok(ref: np.ndarray, raw: np.ndarray, min_ncc: float, which=None, s
     ref, raw = ref[:, :2 * hh, :2 * hw], raw[:, :2 * hh, :2 * hw]
     grad = _quarter_gradient(ref, which) if shared is None else shared.grad[which]
     textured = grad >= 0.25 * grad.mean(axis=1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        kept = _quarter_gradient(raw, which) / grad
-        # Against the median of the textured quarters: one quarter that *gained* texture (new structure on the
-        # ground) does not make the others look covered, as against the maximum.
-        use = textured & np.isfinite(kept)
-        srt = np.sort(np.where(use, kept, np.inf), axis=1)  # the quarters judged first
-        k = use.sum(axis=1)
-        lo, hi = (np.take_along_axis(srt, np.maximum(j, 0)[:, None], axis=1) for j in ((k - 1) // 2, k // 2))
-        typical = np.where(k[:, None] > 0, 0.5 * (lo + hi), -np.inf)
-        covered = ~(kept >= 0.5 * typical)
-    covered |= min(hh, hw) < CHANGE_QUARTER_PX
-    judged = textured & covered
+    if min(hh, hw) < CHANGE_QUARTER_PX:
+        judged = textured          # quarters too small to tell a change from a cover: every textured one judged
+    else:
+        judged = textured & _covered(_quarter_gradient(raw, which), grad, textured)
     ok = np.ones(n, dtype=bool)
     # The quarters' NCC only for the windows with a quarter to judge (at 256 px, few: most pass on gradients).
     sel = np.flatnonzero(judged.any(axis=1))
@@ -190,6 +182,21 @@ def _quadrant_ok(ref: np.ndarray, raw: np.ndarray, min_ncc: float, which=None, s
             ncc = (np.einsum("nyixj,nyixj->nyx", a, b) / np.sqrt(va * vb)).reshape(sel.size, 4)
         ok[sel] = np.all(~judged[sel] | (np.nan_to_num(ncc, nan=-1.0) >= min_ncc), axis=1)
     return ok
+
+
+def _covered(raw_grad, grad, textured) -> np.ndarray:
+    """The quarters (``n, 4``) of :func:`_quadrant_ok` that may be covered: whose raw-to-reference gradient ratio
+    is below half the typical one (the median of the textured quarters')."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        kept = raw_grad / grad
+        # Against the median of the textured quarters: one quarter that *gained* texture (new structure on the
+        # ground) does not make the others look covered, as against the maximum.
+        use = textured & np.isfinite(kept)
+        srt = np.sort(np.where(use, kept, np.inf), axis=1)  # the quarters judged first
+        k = use.sum(axis=1)
+        lo, hi = (np.take_along_axis(srt, np.maximum(j, 0)[:, None], axis=1) for j in ((k - 1) // 2, k // 2))
+        typical = np.where(k[:, None] > 0, 0.5 * (lo + hi), -np.inf)
+        return ~(kept >= 0.5 * typical)
 
 
 def _centred_quarters(win: np.ndarray, rows):
