@@ -800,7 +800,7 @@ class _FinePasses:
                 self._store(active[done & okw], pk.quality(Fa, Gs, np.flatnonzero(done[live])))
             self._store(active[done & ~okw], null_result(raw_a.shape[1:], self.sigma))
             sel = active[done]
-            self.b[sel] = raw_a[done]
+            self.b[sel] = raw_a if sel.size == active.size else raw_a[done]     # no copy of the chunk
             self.nan_raw[sel] = nan_a[done]
             self.outside[sel] = out_a[done]
             ox[active[~done]] += jump_x[~done]
