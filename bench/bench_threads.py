@@ -17,11 +17,12 @@ dispatching NumPy calls (64 points, every stage of a chunk, times the chunks of 
 2-thread bound it sets. With the round trip, two more lines: the same share for a round-trip block (a 16-point
 round trip against a block's: what holds the GIL, the serial part) and the 2-thread bound it sets; the same round
 trip in k processes (half the points each: no GIL shared), the bound the machine itself sets (cores, caches,
-memory), against one thread in the same run. On a shared machine the ratios are low: measure when it is idle (the
-load average is printed before and after each case).
+memory), against one thread in the same run. With --bound, the same for collect-gcps and register-pan-ms: k whole
+runs in k processes against one run on one thread. On a shared machine the ratios are low: measure when it is idle
+(the load average is printed before and after each case).
 
 Run: .venv/bin/python bench/bench_threads.py [--points N] [--repeat R (default: 7 point cases, 3 others)]
-     [--threads 2] [--workdir DIR] [--cases round_trip,localize_dem,collect,panms]
+     [--threads 2] [--workdir DIR] [--cases round_trip,localize_dem,collect,panms] [--bound]
 """
 from __future__ import annotations
 
@@ -137,25 +138,24 @@ def serial_share_dem():
           f"{os.getloadavg()[0]:.1f}", flush=True)
 
 
-def process_bound(n, k, repeat):
-    """The round trip of ``n`` points in ``k`` forked processes (``n / k`` each, one thread, started together at a
-    barrier) against one thread on all of them, alternately ``repeat`` times: no GIL shared, only the cores, their
-    caches and memory: the bound of ``k`` threads on this machine, measured in the same run."""
-    rpc, s, l, hh = _points(n)
+def process_bound(label, work, k, repeat, *, split: bool):
+    """``work`` in ``k`` forked processes (one thread each, started together at a barrier) against one thread in
+    this process, alternately ``repeat`` times: no GIL shared, only the cores, their caches and memory: the bound of
+    ``k`` threads on this machine, measured in the same run. ``work(i)``: the share ``i`` of the job when ``split``
+    (``work(None)``: all of it), else one whole run (each process does one: ``k`` runs against one)."""
     ctx = multiprocessing.get_context("fork")
-    parts = [slice(i * n // k, (i + 1) * n // k) for i in range(k)]
 
-    def child(sl, barrier, queue):
+    def child(i, barrier, queue):
         with threads.limit(1):
-            _round_trip(rpc, s[sl], l[sl], hh[sl])                 # warm (inverse fit, scratch buffers)
+            work(i)                                                  # warm (inverse fit, scratch buffers, outputs)
             barrier.wait()
             w = time.perf_counter()
-            _round_trip(rpc, s[sl], l[sl], hh[sl])
+            work(i)
             queue.put(time.perf_counter() - w)
 
     def in_processes():
         barrier, queue = ctx.Barrier(k), ctx.Queue()
-        procs = [ctx.Process(target=child, args=(sl, barrier, queue)) for sl in parts]
+        procs = [ctx.Process(target=child, args=(i, barrier, queue)) for i in range(k)]
         for p in procs:
             p.start()
         wall = max(queue.get() for _ in procs)
@@ -164,17 +164,29 @@ def process_bound(n, k, repeat):
         return wall
 
     one, many = [], []
+    runs = 1 if split else k                          # the work of the k processes, in runs of the one thread
     with threads.limit(1):
-        _round_trip(rpc, s, l, hh)
+        work(None)
         for _ in range(repeat):
             w = time.perf_counter()
-            _round_trip(rpc, s, l, hh)
+            work(None)
             one.append(time.perf_counter() - w)
             many.append(in_processes())
-    print(f"round trip in {k} processes (no GIL shared): 1 thread {statistics.median(one):6.2f} s, {k} processes "
-          f"{statistics.median(many):6.2f} s: ratio {statistics.median(one) / statistics.median(many):4.2f}x (minima "
-          f"{min(one) / min(many):4.2f}x): the machine's bound for {k} threads; load {os.getloadavg()[0]:.1f}",
-          flush=True)
+    print(f"{label} in {k} processes (no GIL shared): 1 thread {statistics.median(one):6.2f} s, {k} processes "
+          f"{statistics.median(many):6.2f} s{'' if split else f' for {k} runs'}: ratio "
+          f"{runs * statistics.median(one) / statistics.median(many):4.2f}x (minima {runs * min(one) / min(many):4.2f}x):"
+          f" the machine's bound for {k} threads; load {os.getloadavg()[0]:.1f}", flush=True)
+
+
+def round_trip_bound(n, k, repeat):
+    """:func:`process_bound` of the round trip of ``n`` points, ``n / k`` per process."""
+    rpc, s, l, hh = _points(n)
+    parts = [slice(i * n // k, (i + 1) * n // k) for i in range(k)]
+
+    def work(i):
+        sl = slice(None) if i is None else parts[i]
+        _round_trip(rpc, s[sl], l[sl], hh[sl])
+    process_bound("round trip", work, k, repeat, split=True)
 
 
 def point_cases(n):
@@ -204,7 +216,7 @@ def collect_case(workdir: Path):
     rpc = affine_rpc(synthetic_rpc(size, 10.0), error)
     dem = DEM.from_file(ROOT / "tests" / "data" / "matching" / "srtm_ventoux_crop.tif")
 
-    def run(_):
+    def run(_, tag=None):
         g = collect_gcps(str(folder / "raw.tif"), rpc, str(folder / "reference.tif"), dem, spacing_px=32,
                          window_px=64)
         return g
@@ -228,11 +240,14 @@ def panms_case(workdir: Path):
         print(f"(GF7 crop rendered in {time.perf_counter() - t:.0f} s)")
     gdal.UseExceptions()                      # a script: process-wide GDAL state is ours
 
-    def run(k):
-        out = folder / f"out_{k}"
+    def run(k, tag=None):
+        """One run at ``k`` threads; ``tag``: another output folder, its stage times not kept (a process of
+        :func:`process_bound`)."""
+        out = folder / f"out_{k if tag is None else tag}"
         rep = register_pan_ms(str(folder / "pan" / "scene.tif"), str(folder / "ms" / "scene.tif"),
                               dem=str(folder / "dem.tif"), out=str(out), overwrite=True)
-        STAGES.setdefault(k, []).append(rep["timings_s"])
+        if tag is None:
+            STAGES.setdefault(k, []).append(rep["timings_s"])
         return [gdal.Open(str(out / f)).ReadAsArray() for f in ("correction.tif", "ms_on_pan.tif")]
 
     return {"panms": ("register-pan-ms (GF7)", run, _arrays_equal)}
@@ -259,6 +274,8 @@ def main():
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--workdir", default="/tmp/gf4cal_bench_threads")
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--bound", action="store_true", help="collect and register-pan-ms also in k processes, one run "
+                    "each (the machine's bound for k threads; the round trip always has it)")
     args = ap.parse_args()
     wanted = [c.strip() for c in args.cases.split(",") if c.strip()]
     workdir = Path(args.workdir)
@@ -280,7 +297,11 @@ def main():
         serial_share_dem()
     if "round_trip" in wanted:
         serial_share()
-        process_bound(args.points, args.threads, args.repeat or REPEAT["round_trip"])
+        round_trip_bound(args.points, args.threads, args.repeat or REPEAT["round_trip"])
+    for c in ("collect", "panms"):
+        if c in wanted and args.bound:
+            label, fn, _ = found[c]
+            process_bound(label, lambda i, fn=fn: fn(1, tag=f"process_{i}"), args.threads, args.repeat or 3, split=False)
     _print_stages()
 
 

@@ -17,10 +17,12 @@ from ..outputs import OutputSet, scene_stem
 from ..report import write_report_json
 from ..rpc_fit import fit_rpc_from_model
 from ..rpc_io import rpc_file_format, write_rpb, write_rpc_vrt
+from ..threads import blas_serial
 from ._common import _open_image, cancel_check, collect_warnings, finish_report
 from .block import image_keys
 
 
+@blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: bool = False,
                       progress=None, rpcs=None) -> Dict[str, Any]:
     """Recalibrate the RPCs of other scenes made with camera ``current`` for camera ``new`` (METHODS §5 step 4).
@@ -92,6 +94,7 @@ def apply_calibration(current, new, scenes: Sequence, out_dir, *, overwrite: boo
     return rep
 
 
+@blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def apply_block_calibration(calibration, scenes: Sequence, out_dir, *, overwrite: bool = False,
                             progress=None, rpcs=None) -> Dict[str, Any]:
     """Recalibrate other scenes of a block-calibrated camera group (METHODS §8 outputs, as §5 step 4).

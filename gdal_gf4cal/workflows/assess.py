@@ -16,10 +16,12 @@ from ..plausibility import check_gcps_against
 from ..progress import report as _report
 from ..report import plot_residuals, write_report_json, write_residuals_gpkg
 from ..rpc import RPCModel
+from ..threads import blas_serial
 from ._common import declare_report_outputs, cancel_check, collect_warnings, finish_report, is_path
 from .ortho import scene_footprint
 
 
+@blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def assess_accuracy(source, gcps, *, dem=None, geoid=None, gcp_layer: Optional[str] = None,
                     gcp_columns: Optional[str] = None, gcp_pixel_convention: Optional[str] = None, residuals=None,
                     plot=None, report=None, image_size: Optional[Tuple[int, int]] = None, overwrite: bool = False,

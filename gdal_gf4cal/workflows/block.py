@@ -30,6 +30,7 @@ from ..report import plot_seams, write_points_layer, write_report_json, write_re
 from ..rpc_fit import fit_rpc_from_model
 from ..rpc_io import write_rpb
 from ..stats import accuracy_by_role
+from ..threads import blas_serial
 from ._common import _open_image, cancel_check, collect_warnings, finish_report
 
 __all__ = ["block_adjust", "check_observations", "image_keys", "parse_bands_of", "summary_lines"]
@@ -339,6 +340,7 @@ def _write_outputs(outs: OutputSet, grp: _Group, est, seams, rep, progress) -> N
     write_report_json(rep, outs.tmp("report"))
 
 
+@blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def block_adjust(images: Sequence, *, dem, out, geoid=None, gcps=None, ties=None, match_ties: bool = False,
                  reference_ortho=None, bands_of=None, solver: str = "simultaneous", reference_ccd=None,
                  overwrite: bool = False, progress=None, check_plausibility: bool = True,

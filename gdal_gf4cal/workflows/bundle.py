@@ -35,6 +35,7 @@ from ..errors import Gf4calError, GCPError
 from ..observations import write_observations
 from ..outputs import OutputSet
 from ..rpc import RPCModel
+from ..threads import blas_serial
 from . import block as _block
 from ._common import _open_image, cancel_check, collect_warnings, declare_report_outputs, finish_report
 
@@ -323,6 +324,7 @@ def _declare(views: Views, out, overwrite: bool, progress, matched: bool) -> Out
     return outs
 
 
+@blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def bundle_adjust(images: Sequence, *, out, ties=None, match_ties: bool = False, dem=None, geoid=None, gcps=None,
                   model: str = "affine", max_pairs: Optional[int] = None, rpcs=None,
                   prior_sigma_px: Optional[float] = None, dem_sigma_m: Optional[float] = None,

@@ -18,6 +18,7 @@ from ..outputs import OutputSet, check_vector, scene_stem
 from ..plausibility import check_gcps_against
 from ..report import footprint_from_rpc, plot_residuals, write_report_json, write_residuals_gpkg
 from ..rpc_io import write_rpb, write_rpc_vrt
+from ..threads import blas_serial
 from ._common import cancel_check, collect_warnings, finish_report, is_path
 
 
@@ -79,6 +80,7 @@ def _output_set(rpc_path, gcps_path, camera_path, image, dem, out: str, stem: st
     return outs
 
 
+@blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def calibrate_lookangle_files(rpc_path, gcps_path, camera_path, out_dir, *, image=None, dem=None, geoid=None,
                               gcp_layer=None, gcp_columns=None, gcp_pixel_convention=None, robust: bool = True,
                               max_condition=None, overwrite: bool = False, progress=None,

@@ -11,11 +11,13 @@ from ..errors import Gf4calError
 from ..gcp import write_gcps
 from ..matching import collect_gcps
 from ..outputs import OutputSet, check_vector
+from ..threads import blas_serial
 from ._common import cancel_check, collect_warnings, finish_report
 
 _EXTS = (".gpkg", ".csv", ".geojson", ".json")
 
 
+@blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def collect_gcps_file(image, reference, dem, out, *, rpc=None, geoid=None, keep_outliers: bool = False,
                       overwrite: bool = False, progress=None, **options) -> Dict[str, Any]:
     """Collect GCPs on ``image`` (its RPC, or the RPC file ``rpc``) against ``reference`` + ``dem`` and write them

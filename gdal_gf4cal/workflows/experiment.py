@@ -10,6 +10,7 @@ from typing import Any, Dict, List
 from .. import experiments
 from ..errors import Gf4calError
 from ..outputs import OutputSet
+from ..threads import blas_serial
 from ._common import cancel_check, collect_warnings, finish_report
 
 
@@ -18,6 +19,7 @@ def available() -> List[str]:
     return sorted(m.name for m in pkgutil.iter_modules(experiments.__path__) if not m.name.startswith("_"))
 
 
+@blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def run_experiment(name: str, out_dir, *, overwrite: bool = False, progress=None, **options) -> Dict[str, Any]:
     """Run experiment ``name`` (``gdal_gf4cal.experiments.<name>.run``) into ``out_dir``; its report dict with
     ``warnings``. The folder must be new or empty unless ``overwrite``; files of a failed run are removed."""

@@ -16,6 +16,7 @@ from ..gcp import write_gcps
 from ..intersection import ground_errors_m, intersect, intersection_accuracy
 from ..outputs import OutputSet, check_vector
 from ..report import write_report_json
+from ..threads import blas_serial
 from ._common import cancel_check, collect_warnings, finish_report
 
 
@@ -74,6 +75,7 @@ def read_tie_points(path, n_images: int, names: Sequence[str] = ()):
     return list(df["id"].astype(str)), pts, truth
 
 
+@blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def intersect_files(rpc_paths: Sequence[str], points_path: str, *, out: Optional[str] = None, sigma_px: float = 1.0,
                     report: Optional[str] = None, overwrite: bool = False, progress=None) -> Dict[str, Any]:
     """``gf4cal intersect``: read RPCs and tie points, intersect (METHODS §7), write points and a report.

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import CancelledError, DEMError, Gf4calError
 from ..outputs import OutputSet, check_raster
-from ..threads import num_threads, split_points
+from ..threads import blas_serial, num_threads, split_points
 from ._common import _open_image, cancel_check, collect_warnings, finish_report
 
 #: Resampling names accepted by :func:`orthorectify` (GDAL's ``-r`` names).
@@ -307,6 +307,7 @@ def _warp_failure(exc: BaseException, out_path: str) -> Gf4calError:
 FULL_DISK_BYTES = 64 * 1024 * 1024
 
 
+@blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def orthorectify(image, *, dem, out, rpc=None, geoid="auto", crs="utm", res_m: Optional[float] = None,
                  resampling: str = "bilinear", overwrite: bool = False, force: bool = False,
                  progress=None) -> Dict[str, Any]:

@@ -24,6 +24,7 @@ from ..outputs import (OutputSet, check_not_a_shadowing_sidecar, check_raster, c
 from ..plausibility import MAX_UNCERTAINTY_PX, check_gcps_against, check_precision, correction_precision
 from ..report import plot_residuals, write_report_json, write_residuals_gpkg
 from ..rpc_io import write_rpb, write_rpc_txt, write_rpc_vrt
+from ..threads import blas_serial
 from ._common import Scene, cancel_check, collect_warnings, declare_report_outputs, finish_report, is_path
 from .ortho import check_ortho_options, scene_footprint, warp_ortho
 
@@ -83,6 +84,7 @@ def check_refine_options(*, max_uncertainty_px: Optional[float] = None, gcp_colu
         parse_columns(gcp_columns)
 
 
+@blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def refine_rpc(source, gcps, model="affine", *, out, order: Optional[int] = None,
                along: Optional[str] = None, ccd_axis: str = "sample", dem=None, geoid=None, gcp_crs=None,
                gcp_layer: Optional[str] = None, check_fraction: Optional[float] = None, seed: int = 0,

@@ -6,9 +6,11 @@ import os
 
 from ..outputs import OutputSet
 from ..simulate import write_scene
+from ..threads import blas_serial
 from ._common import cancel_check, collect_warnings, finish_report
 
 
+@blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
 def simulate_scene(sensor: str, out_dir, *, overwrite: bool = False, dem=None, reference=None, progress=None,
                    **options):
     """Run :func:`gdal_gf4cal.simulate.write_scene` into ``out_dir`` under the output policy.

@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from gdal_gf4cal import CancelledError, InputOverwriteError, RPCModel
+from gdal_gf4cal import CancelledError, InputOverwriteError, RPCModel, threads
 from gdal_gf4cal.cli import main
 from gdal_gf4cal.outputs import OutputSet
 
@@ -166,6 +166,23 @@ def test_cancel_after_all_outputs_were_written_leaves_no_file(gf4, zy3, tmp_path
         _workflow_calls(gf4, zy3, out)[command](_CancelAtCommit())
     assert _snapshot(tmp_path) == before == {}
     assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.skipif(threads.blas_threads() is None, reason="NumPy's BLAS is not OpenBLAS")
+@pytest.mark.parametrize("command", COMMANDS + ["assess", "ortho"])
+def test_workflows_compute_blas_on_the_calling_thread(gf4, zy3, tmp_path, command):
+    """Every workflow called from Python (no ``gf4cal`` command, no ``threads.limit``) holds BLAS on the calling
+    thread from start to end, as its command does: the same numbers as the command, and no OpenBLAS thread left
+    spinning on another core after a product. Every progress report comes from inside that scope, closed after."""
+    from gdal_gf4cal import workflows as wf
+    calls = dict(_workflow_calls(gf4, zy3, tmp_path / "out"),
+                 ortho=lambda p: wf.orthorectify(gf4 / "scene.tif", dem=gf4 / "dem.tif", out=tmp_path / "o.tif",
+                                                 progress=p))
+    assert not threads.blas_is_serial()
+    seen = []
+    calls[command](lambda f, m="": seen.append(threads.blas_is_serial()))
+    assert len(seen) >= 2 and all(seen)
+    assert not threads.blas_is_serial()
 
 
 @pytest.mark.parametrize("command", ["refine", "calibrate-lookangle", "assess"])
