@@ -70,9 +70,10 @@ def _model_or_rpc(model, path: str, what: str):
 
 def thread_dem(dem):
     """``dem`` (a :class:`~gdal_gf4cal.DEM` or a path, opened with its own geoid and no-data policy, band 1) as the
-    matcher's per-thread cache holds it (:func:`match_raw_bands` on this thread uses it): a caller that works with
-    the DEM before matching (the pan-MS geometry) reads it once instead of twice, and a long-lived process (QGIS)
-    once per version of the file. Anything else (a constant height, another band) as it is."""
+    matcher's cache holds it (:func:`match_raw_bands` uses it, on every thread: a DEM opens a GDAL handle per thread
+    itself): a caller that works with the DEM before matching (the pan-MS geometry) reads it once instead of once
+    more per pool thread, and a long-lived process (QGIS) once per version of the file.
+    Anything else (a constant height, another band) as it is."""
     if not isinstance(dem, DEM) or dem.is_constant or dem.path is None or getattr(dem, "_band_index", 1) != 1:
         return dem
     return _dem_from_spec(_dem_spec(dem))
