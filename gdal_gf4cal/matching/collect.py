@@ -650,12 +650,12 @@ def _coarse_offsets(spec: TileSpec, ds, rpc, dem, ref, wx0, wy0, live, step: int
     usable = (bad_ref < 0.5) & (bad_raw < 0.5)
     # Gaps are filled with the window mean in *both* images at the same places, so a no-data border does
     # not become a one-sided edge that would attract the peak.
-    gaps_both = np.isnan(ref_c) | np.isnan(raw_c)
-    for arr in (ref_c, raw_c):
-        gaps = gaps_both
+    if bad_ref.any() or bad_raw.any():          # none in the usual tile: its whole-stack passes saved
+        gaps = np.isnan(ref_c) | np.isnan(raw_c)
         cnt = (~gaps).sum(axis=(1, 2))
-        mean = np.where(gaps, 0.0, arr).sum(axis=(1, 2)) / np.maximum(cnt, 1)
-        arr[gaps] = np.broadcast_to(mean[:, None, None], arr.shape)[gaps]
+        for arr in (ref_c, raw_c):
+            mean = np.where(gaps, 0.0, arr).sum(axis=(1, 2)) / np.maximum(cnt, 1)
+            arr[gaps] = np.broadcast_to(mean[:, None, None], arr.shape)[gaps]
     rc = phase_correlate(ref_c, raw_c, sigma_px=sigma, full=False)   # the peak alone: no NCC nor precision
     good = usable & (rc.peak_ratio >= p["min_peak_ratio"]) & (rc.peak >= p["min_peak"])
     shift_x[idx] = np.where(usable, rc.dx * f, 0.0)
