@@ -591,7 +591,9 @@ def _write_ms_rpc(model, ms_model, path):
 
 def _report(inputs, pair: _Pair, meas: _Measured, model, bands, breaks_from: str, approx_err, clock, outs,
             notes) -> Dict[str, Any]:
-    """report.json's content (before the warnings)."""
+    """report.json's content (before the warnings). ``n_usable``: the cells usable for the fit, the outliers among
+    them included (model.json's ``info.n_usable``); ``n_outliers``: those of them the robust fit rejected
+    (``info.n_outliers``; cells.gpkg's ``outlier``); the steps' statistics are over the rest."""
     (pw, ph), ratio = pair.pan_size, pair.ratio
     return {"command": "register-pan-ms", "inputs": inputs,
             "sizes": {"pan": [pw, ph], "ms": list(pair.ms_size), "ratio": ratio,
@@ -805,9 +807,11 @@ def _write_cells(cells, model, ms_rpc, dem, path) -> int:
 
 def _plot_tasks(cells, model, outs) -> list:
     """The three plots (residual maps per step, row means along the line, spectrum) as tasks for
-    :func:`gdal_gf4cal.threads.run_tasks` (each its own matplotlib Figure); the residuals computed here."""
+    :func:`gdal_gf4cal.threads.run_tasks` (each its own matplotlib Figure); the residuals computed here. The
+    cells the plots show (usable, not outliers) are their own array: cells.gpkg and the report read the cells'
+    ``usable`` column (outliers included) after them."""
     s, l = np.asarray(cells["sample"], float), np.asarray(cells["line"], float)
-    used = np.asarray(cells["usable"], bool)
+    used = np.array(cells["usable"], bool)          # a copy: ``&=`` on asarray's view rewrote the cells' column
     if model.cell_outlier is not None:
         used &= ~model.cell_outlier
     res = {}
