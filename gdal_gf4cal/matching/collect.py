@@ -267,16 +267,11 @@ def _predict_offsets(cp, dxp, dyp, resp, okp, cr, p):
     return pred[:, 0], pred[:, 1]
 
 
-def _window_corners(ref, rpc, dem, c, w: int):
-    """Reference pixel positions ``(xs, ys)`` of the corners of the ``w x w`` windows centred on ``c``, the
-    resampling margin (reference px: the anti-alias low-pass of a finer reference reaches ~3 of its pixels per
-    image pixel) and whether the corners may be one whole-pixel translation of the raw image's (False: they are
-    not, so neither are the windows' grids; unknown where a corner has no ground point)."""
-    half = w / 2.0
-    cs = c[:, 0][:, None] + np.array([-half, half, -half, half])[None, :]
-    cl = c[:, 1][:, None] + np.array([-half, -half, half, half])[None, :]
-    lon, lat, h = rpc.localize_dem(cs, cl, dem)
-    xs, ys = (np.asarray(v, dtype=float).reshape(cs.shape) for v in ref.ground_to_pixel(lon, lat, h))
+def _window_corners(xs, ys, cs, cl, w: int):
+    """From the reference pixel positions ``(xs, ys)`` of the corners ``(cs, cl)`` of the ``w x w`` windows (``(N,
+    4)`` each): ``(xs, ys)``, the resampling margin (reference px: the anti-alias low-pass of a finer reference
+    reaches ~3 of its pixels per image pixel) and whether the corners may be one whole-pixel translation of the raw
+    image's (False: they are not, so neither are the windows' grids; unknown where a corner has no ground point)."""
     with np.errstate(invalid="ignore"):
         ratio = np.hypot(xs[:, 1] - xs[:, 0], ys[:, 1] - ys[:, 0]) / w
     known = np.isfinite(xs).all() and np.isfinite(ys).all()
@@ -284,27 +279,26 @@ def _window_corners(ref, rpc, dem, c, w: int):
     return xs, ys, 8.0 + 3.0 * np.nan_to_num(ratio, nan=1.0), translated
 
 
-def _raw_reference_footprint(ref: RawReference, out, status, corners):
-    """Raw reference: the homologous reference position of every window centre (``ref_sample, ref_line``) and
-    status ``outside_image`` for windows whose footprint (``corners``: :func:`_window_corners`) is not wholly
-    inside the reference raster, so only the overlap of two images is matched. Returns the windows within the
-    resampling margin of its edge (no-data there means outside as well)."""
-    rs, rl = ref.ground_to_pixel(out["lon"], out["lat"], out["h"])
-    out["ref_sample"], out["ref_line"] = np.atleast_1d(rs).astype(float), np.atleast_1d(rl).astype(float)
+def _raw_reference_footprint(ref: RawReference, out, status, corners, centre_px):
+    """Raw reference: the homologous reference position of every window centre (``ref_sample, ref_line``:
+    ``centre_px``) and status ``outside_image`` for windows whose footprint (``corners``: :func:`_window_corners`)
+    is not wholly inside the reference raster, so only the overlap of two images is matched. Returns the windows
+    within the resampling margin of its edge (no-data there means outside as well)."""
+    out["ref_sample"], out["ref_line"] = (np.array(v, dtype=float) for v in centre_px)
     xs, ys, margin = corners[:3]
     inside = np.all(ref.inside(xs, ys), axis=1)
     status[(status == 0) & ~inside] = 5
     return ~np.all(ref.inside(xs, ys, margin[:, None]), axis=1)
 
 
-def _ortho_footprint(ref: ReferenceImage, c, w: int, W: int, H: int, out, status, margin) -> np.ndarray:
+def _ortho_footprint(ref: ReferenceImage, c, w: int, W: int, H: int, status, margin, centre_px) -> np.ndarray:
     """Ortho reference, before anything is read or resampled: status ``outside_image`` for windows whose centre
-    is not inside the reference raster (by the resampling ``margin``) or the ``W x H`` raw image, so they are
-    never resampled nor correlated. Returns the largest window size (even, <= ``w``) centred on each window that
-    the raw image holds."""
-    xc, yc = ref.ground_to_pixel(out["lon"], out["lat"], out["h"])
+    (``centre_px`` in the reference) is not inside the reference raster (by the resampling ``margin``) or the ``W x
+    H`` raw image, so they are never resampled nor correlated. Returns the largest window size (even, <= ``w``)
+    centred on each window that the raw image holds."""
+    xc, yc = centre_px
     r = np.minimum.reduce([c[:, 0], W - c[:, 0], c[:, 1], H - c[:, 1]])
-    inside = ref.inside(np.atleast_1d(xc), np.atleast_1d(yc), margin) & (r > 0)
+    inside = ref.inside(xc, yc, margin) & (r > 0)
     status[(status == 0) & ~inside] = 5
     return np.minimum(np.maximum(2 * np.floor(np.nan_to_num(r)), 0), w).astype(int)
 
@@ -447,16 +441,21 @@ def _tile_reference(spec: TileSpec):
 def _tile_footprint(spec: TileSpec, c, out, rpc, dem, ref, ds):
     """The windows' ground points (``lon, lat, h`` into ``out``; status 1 where there is none) and their footprints
     in the reference: ``(near_edge, fits, translated)`` (a raw reference's windows near its edge; an ortho's: the
-    size that fits in it, else None; whether the reference may be the raw grid moved by whole pixels)."""
+    size that fits in it, else None; whether the reference may be the raw grid moved by whole pixels). The centres
+    and the windows' corners are localised in one call and mapped into the reference in one: a tile's two smallest
+    kernel calls, each ~300 NumPy calls whatever its size (each handing the GIL over to a waiting thread)."""
     status = out["status"]
-    lon, lat, h = rpc.localize_dem(c[:, 0], c[:, 1], dem)
-    out["lon"], out["lat"], out["h"] = np.atleast_1d(lon), np.atleast_1d(lat), np.atleast_1d(h)
-    status[~np.isfinite(out["lon"]) | ~np.isfinite(out["h"])] = 1
     w = int(spec.window_px)
-    corners = _window_corners(ref, rpc, dem, c, w)
+    S = c[:, 0][:, None] + np.array([0.0, -w / 2.0, w / 2.0, -w / 2.0, w / 2.0])[None, :]
+    L = c[:, 1][:, None] + np.array([0.0, -w / 2.0, -w / 2.0, w / 2.0, w / 2.0])[None, :]
+    lon, lat, h = (np.asarray(v, dtype=float).reshape(S.shape) for v in rpc.localize_dem(S, L, dem))
+    out["lon"], out["lat"], out["h"] = lon[:, 0].copy(), lat[:, 0].copy(), h[:, 0].copy()
+    status[~np.isfinite(out["lon"]) | ~np.isfinite(out["h"])] = 1
+    xs, ys = (np.asarray(v, dtype=float).reshape(S.shape) for v in ref.ground_to_pixel(lon, lat, h))
+    corners = _window_corners(xs[:, 1:], ys[:, 1:], S[:, 1:], L[:, 1:], w)
     if isinstance(ref, RawReference):
-        return _raw_reference_footprint(ref, out, status, corners), None, corners[3]
-    fits = _ortho_footprint(ref, c, w, ds.RasterXSize, ds.RasterYSize, out, status, corners[2])
+        return _raw_reference_footprint(ref, out, status, corners, (xs[:, 0], ys[:, 0])), None, corners[3]
+    fits = _ortho_footprint(ref, c, w, ds.RasterXSize, ds.RasterYSize, status, corners[2], (xs[:, 0], ys[:, 0]))
     return np.zeros(c.shape[0], dtype=bool), fits, corners[3]
 
 
@@ -696,12 +695,12 @@ def _coarse_offsets(spec: TileSpec, ds, rpc, dem, ref, wx0, wy0, live, step: int
     usable = (bad_ref < 0.5) & (bad_raw < 0.5)
     # Gaps are filled with the window mean in *both* images at the same places, so a no-data border does
     # not become a one-sided edge that would attract the peak.
-    gaps_both = np.isnan(ref_c) | np.isnan(raw_c)
-    for arr in (ref_c, raw_c):
-        gaps = gaps_both
+    if bad_ref.any() or bad_raw.any():          # none in the usual tile: its whole-stack passes saved
+        gaps = np.isnan(ref_c) | np.isnan(raw_c)
         cnt = (~gaps).sum(axis=(1, 2))
-        mean = np.where(gaps, 0.0, arr).sum(axis=(1, 2)) / np.maximum(cnt, 1)
-        arr[gaps] = np.broadcast_to(mean[:, None, None], arr.shape)[gaps]
+        for arr in (ref_c, raw_c):
+            mean = np.where(gaps, 0.0, arr).sum(axis=(1, 2)) / np.maximum(cnt, 1)
+            arr[gaps] = np.broadcast_to(mean[:, None, None], arr.shape)[gaps]
     rc = phase_correlate(ref_c, raw_c, sigma_px=sigma, full=False)   # the peak alone: no NCC nor precision
     good = usable & (rc.peak_ratio >= p["min_peak_ratio"]) & (rc.peak >= p["min_peak"])
     shift_x[idx] = np.where(usable, rc.dx * f, 0.0)

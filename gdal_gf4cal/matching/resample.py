@@ -338,14 +338,16 @@ def _on_union_grid(rpc, dem, reference, x0, y0, size: int, step: int, order: int
     Mx, My = _interp_matrix(Wu, nx), _interp_matrix(Hu, ny)
     fx = My @ np.where(fin, rx, 0.0) @ Mx.T
     fy = My @ np.where(fin, ry, 0.0) @ Mx.T
-    bad = (My @ (~fin).astype(float) @ Mx.T) > 0
+    # Pixels near a node without a ground point (none in the usual tile: its whole-grid passes saved)
+    bad = None if fin.all() else (My @ (~fin).astype(float) @ Mx.T) > 0
     step_len = np.hypot(np.diff(rx, axis=1), np.diff(ry, axis=1)) / np.diff(nx)[None, :]
     ok = np.isfinite(step_len)
     dec, sigma, margin = _lowpass(float(np.median(step_len[ok])) if ok.any() else 1.0, oversample)
-    if bad.any():
+    if bad is not None and bad.any():
         fx[bad], fy[bad] = float(np.mean(fx[~bad])), float(np.mean(fy[~bad]))
     vals = _sample_reference(reference, fx, fy, dec, sigma, margin, order)
-    vals[bad] = np.nan
+    if bad is not None:
+        vals[bad] = np.nan
     return cut_boxes(vals.astype(dtype, copy=False), 0, 0, (ix0 - ux0) // spacing, (iy0 - uy0) // spacing, size)
 
 
@@ -453,24 +455,25 @@ def _sample_reference(reference: ReferenceImage, fx: np.ndarray, fy: np.ndarray,
     by0 -= by0 % dec
     block = reference.read(bx0, by0, bx1 - bx0, by1 - by0, dec).astype(np.float64)
     valid = np.isfinite(block)
-    if not valid.any():
+    full = valid.all()          # the usual block: no gap to fill nor to look up (whole-block passes saved)
+    if not full and not valid.any():
         return out
-    filled = np.where(valid, block, float(np.mean(block[valid])))
+    filled = block if full else np.where(valid, block, float(np.mean(block[valid])))
     if sigma > 0:
         filled = ndimage.gaussian_filter(filled, sigma, mode="nearest")
     # Continuous pixel coordinate x (GDAL) -> index in the decimated block: cell i is centred at x0 + (i + 0.5) d.
     coords = np.stack([((fy - by0) / dec - 0.5).ravel(), ((fx - bx0) / dec - 0.5).ravel()])
     vals = ndimage.map_coordinates(filled, coords, order=order, mode="nearest", prefilter=True)
-    # A sample is invalid when any no-data cell (or the outside) is within the interpolation support.
-    reach = (2 if order >= 2 else 1) + int(math.ceil(3 * sigma))
-    bad = ~valid
-    if bad.any():
-        bad = ndimage.binary_dilation(bad, iterations=reach)
     inside = (coords[0] >= 0) & (coords[0] <= block.shape[0] - 1) & (coords[1] >= 0) & \
         (coords[1] <= block.shape[1] - 1)
-    ci = np.minimum(np.maximum(np.rint(coords[0]).astype(int), 0), block.shape[0] - 1)
-    cj = np.minimum(np.maximum(np.rint(coords[1]).astype(int), 0), block.shape[1] - 1)
-    return np.where(inside & ~bad[ci, cj], vals, np.nan).reshape(fx.shape)
+    if not full:
+        # A sample is invalid when any no-data cell (or the outside) is within the interpolation support.
+        reach = (2 if order >= 2 else 1) + int(math.ceil(3 * sigma))
+        bad = ndimage.binary_dilation(~valid, iterations=reach)
+        ci = np.minimum(np.maximum(np.rint(coords[0]).astype(int), 0), block.shape[0] - 1)
+        cj = np.minimum(np.maximum(np.rint(coords[1]).astype(int), 0), block.shape[1] - 1)
+        inside &= ~bad[ci, cj]
+    return np.where(inside, vals, np.nan).reshape(fx.shape)
 
 
 def _sample_reference_each(reference: ReferenceImage, fx: np.ndarray, fy: np.ndarray, dec: int, sigma: float,

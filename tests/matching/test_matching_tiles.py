@@ -111,6 +111,19 @@ def test_coarse_level_keeps_accuracy_with_offsets_beyond_the_fine_search(scene):
     assert ok.sum() >= 60 and np.sqrt(np.mean(err ** 2)) <= 0.1
 
 
+@pytest.fixture
+def room_in_the_cache():
+    """GDAL's block cache emptied of the blocks earlier tests left in it (datasets still open: a pool thread's own,
+    a module fixture's; above KEEP_BLOCKS_BYTES no thread keeps its blocks, as after tests/panms/test_panms_crops.py)
+    and at least 4 x KEEP_BLOCKS_BYTES large (the kept blocks are not evicted by GDAL); its size restored after."""
+    size = gdal.GetCacheMax()
+    gdal.SetCacheMax(0)                        # evicts every block no one is reading
+    gdal.SetCacheMax(max(size, 4 * collect.KEEP_BLOCKS_BYTES))
+    assert gdal.GetCacheUsed() <= collect.KEEP_BLOCKS_BYTES // 4
+    yield
+    gdal.SetCacheMax(size)
+
+
 def _cache_by_tile(scene, **kw):
     """GDAL's block cache (beyond what it held before) after every tile of a collect run (progress runs between
     tiles) and after the run. A first run opens the threads' datasets and DEM (the DEM's own blocks are not the
@@ -126,7 +139,7 @@ def _cache_by_tile(scene, **kw):
     return g, used[1:-1], gdal.GetCacheUsed() - base
 
 
-def test_threads_keep_the_blocks_a_row_of_tiles_shares_and_release_them(scene, monkeypatch):
+def test_threads_keep_the_blocks_a_row_of_tiles_shares_and_release_them(scene, monkeypatch, room_in_the_cache):
     """run_tiles' threads keep their raster blocks from one tile to the next (a row of tiles reads the same strips:
     decompressed once instead of once per tile) while GDAL's cache holds at most KEEP_BLOCKS_BYTES, and flush them
     when the run ends; a tile run on its own (another executor's worker, Dask) flushes them at once, as every tile
@@ -151,7 +164,7 @@ def test_threads_keep_the_blocks_a_row_of_tiles_shares_and_release_them(scene, m
         np.testing.assert_array_equal(g["line"].to_numpy(), other["line"].to_numpy())
 
 
-def test_a_thread_drops_the_blocks_of_rows_its_next_tile_does_not_read(scene):
+def test_a_thread_drops_the_blocks_of_rows_its_next_tile_does_not_read(scene, room_in_the_cache):
     """Tiles of rows of tiles far apart: the blocks kept from one tile are dropped before the next tile, which then
     holds its own blocks only, so the cache holds about a row of tiles per thread, never the scene."""
     specs, _ = plan_tiles(scene.image, scene.rpc, scene.reference, scene.dem, 96, 64, tile_windows=1, search_px=8)
@@ -195,3 +208,32 @@ def test_collect_gcps_computes_blas_on_the_calling_thread(scene):
                  workers=1, progress=lambda f, m="": seen.append(threads.blas_is_serial()))
     assert len(seen) > 3 and all(seen)
     assert not threads.blas_is_serial()
+
+
+def test_a_tiles_centres_and_corners_are_one_localisation(scene, monkeypatch):
+    """A tile localises its windows' centres and corners on the DEM in one call (each call of the DEM intersection is
+    ~300 NumPy calls whatever its size, each handing the GIL to a waiting thread): with a coarse level, three calls a
+    tile (footprints, coarse grid, fine grid), not four. The GCPs' ground points are those of the centres localised
+    alone to within the intersection's own convergence (1e-4 m in height), and on the truth as before."""
+    specs, ctx = plan_tiles(scene.image, scene.rpc, scene.reference, scene.dem, 32, 64)
+    assert specs[0].factor > 1
+    calls = []
+    real = type(scene.rpc).localize_dem
+
+    def counted(self, *a, **k):
+        calls.append(np.size(a[0]))
+        return real(self, *a, **k)
+    monkeypatch.setattr(type(scene.rpc), "localize_dem", counted)
+    res = [match_tile(sp) for sp in specs]
+    assert len(calls) == 3 * len(specs)
+    assert calls[0] == 5 * len(specs[0].centers)
+    monkeypatch.undo()
+    g = collect.assemble_gcps(res, ctx)
+    lon, lat, h = scene.rpc.localize_dem(g["sample"].to_numpy() - g["dsample"].to_numpy(),
+                                         g["line"].to_numpy() - g["dline"].to_numpy(), scene.dem)
+    assert np.abs(g["lon"].to_numpy() - lon).max() < 1e-10 and np.abs(g["lat"].to_numpy() - lat).max() < 1e-10
+    assert np.abs(g["h"].to_numpy() - h).max() < 1e-4
+    ts, tl = scene.truth(g["lon"].to_numpy(), g["lat"].to_numpy(), g["h"].to_numpy())
+    ok = ~g["outlier"].to_numpy()
+    assert ok.sum() >= 60 and np.sqrt(np.mean(np.hypot(g["sample"].to_numpy() - ts, g["line"].to_numpy() - tl)[ok]
+                                              ** 2)) <= 0.1

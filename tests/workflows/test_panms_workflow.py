@@ -59,6 +59,29 @@ def test_workflow_with_a_measured_cell_table(inputs, tmp_path):
     assert rep["steps"][-1]["rms_sample_px"] <= 1.1 * 0.03 and rep["steps"][-1]["rms_line_px"] <= 1.1 * 0.03
 
 
+def test_outlier_cells_marked_and_counted_alike(inputs, tmp_path):
+    """Cells with planted blunders (3 MS px on 6 clear cells of a measured table from the truth): cells.gpkg marks
+    exactly those as outliers (role control, usable, ``outlier`` true: red crosses, as collect-gcps' outlier GCPs),
+    and report.json, model.json and cells.gpkg count the same usable cells and outliers (before: the plots'
+    mask rewrote the cells' ``usable`` column, so no cell was marked and the report counted one cell fewer)."""
+    import geopandas as gpd
+    from gdal_gf4cal.workflows import register_pan_ms
+    pan, ms, dem = inputs
+    cells = synth_cells(make_gf7_scene(**KW), cell=32, sigma=0.03)
+    planted = np.flatnonzero(cells["usable"].to_numpy(bool))[10::37][:6]
+    cells.loc[planted, "d_sample"] += 3.0
+    rep = register_pan_ms(pan, ms, dem=dem, out=tmp_path / "o", breaks=[256.0], cells=cells)
+    info = json.loads((tmp_path / "o" / "model.json").read_text())["info"]
+    g = gpd.read_file(tmp_path / "o" / "cells.gpkg", layer="gcps")
+    out = g["outlier"].to_numpy(bool)
+    assert sorted(g["id"][out]) == sorted(f"c{i}" for i in planted)
+    assert (g["role"][out] == "control").all() and (g["usable"][out] == 1).all()
+    n_usable = int(cells["usable"].sum())
+    assert rep["n_usable"] == info["n_usable"] == int((g["usable"] == 1).sum()) == n_usable
+    assert rep["n_outliers"] == info["n_outliers"] == len(planted)
+    assert rep["steps"][-1]["rms_sample_px"] <= 1.1 * 0.03 and rep["steps"][-1]["rms_line_px"] <= 1.1 * 0.03
+
+
 def test_breaks_words_resolved_through_the_rpcs(inputs, tmp_path):
     """``--breaks 256,pan``: the MS column and the pan's three equal pieces of this crop mapped into the MS through
     the RPCs and the DEM (pan columns 682.7 and 1365.3 -> MS ~170.7 and ~341.3)."""
@@ -119,7 +142,7 @@ def test_cell_rms_at_the_noise_floor(registered):
     from gdal_gf4cal.simulate.gf7 import true_misregistration
     out, rep = registered
     g = gpd.read_file(out / "cells.gpkg", layer="gcps")
-    g = g[g["usable"] == 1]
+    g = g[(g["usable"] == 1) & ~g["outlier"].astype(bool)]       # the cells the steps' statistics are over
     ts, tl = true_misregistration(make_gf7_scene(**KW), g["sample"].to_numpy(), g["line"].to_numpy())
     floor_s = np.sqrt(np.mean((g["res_sample_before"] - ts) ** 2))
     floor_l = np.sqrt(np.mean((g["res_line_before"] - tl) ** 2))
