@@ -27,7 +27,7 @@ from ._rpc_poly import (_CHUNK, _EXPONENTS, DERIVATIVE_MATRICES, TERMS, fill_mon
 from .errors import RPCFormatError
 from .rpc_io import read_rpc_metadata, write_rpb, write_rpc_txt
 from .sensor import GDAL_PIXEL_OFFSET, LocalizationStats, SensorModelMixin, pixel_shift  # noqa: F401
-from .threads import BLAS_SERIAL_SIZE, blas_is_serial, map_blocks, split_points
+from .threads import BLAS_SERIAL_SIZE, COLUMN_GROUP, blas_is_serial, map_blocks, product_into, split_points
 
 log = logging.getLogger(__name__)
 
@@ -59,8 +59,9 @@ LOCALIZE_CHUNK = 16384
 
 #: Columns of one (4, 20) x (20, k) product of the projection kernel outside a BLAS-serial scope: the most OpenBLAS
 #: computes on the calling thread (:data:`~gdal_gf4cal.threads.BLAS_SERIAL_SIZE`: 80 k <= 4 x 65536); inside one
-#: (:func:`~gdal_gf4cal.threads.blas_is_serial`) a chunk is one product: the same bits, fewer calls.
-_PROJECT_GEMM = BLAS_SERIAL_SIZE // 80
+#: (:func:`~gdal_gf4cal.threads.blas_is_serial`) a chunk is one product: the same bits (every product a
+#: :func:`~gdal_gf4cal.threads.product_into`, in whole column groups), fewer calls.
+_PROJECT_GEMM = BLAS_SERIAL_SIZE // 80 // COLUMN_GROUP * COLUMN_GROUP
 #: Points per chunk of the projection kernel (five products): a whole block of the thread pool, one chunk (12 NumPy
 #: calls, which hold the GIL): larger than L2 (the (20, chunk) monomials take 5.2 MB) but ~2x faster than 3276-point
 #: chunks on the loaded 2-core machine (NumPy's per-call cost, ~1.5 us there, weighs on small chunks), as fast per
@@ -305,9 +306,7 @@ class RPCModel(SensorModelMixin):
             np.subtract(h[i:j], off[2], out=m[3])
             fill_monomials(m, views)
             for a in range(0, j - i, step):
-                b = min(a + step, j - i)
-                a = max(0, min(a, b - 2))                # never a one-column product (BLAS takes another kernel)
-                np.matmul(C, m[:, a:b], out=v[:, a:b])
+                product_into(C, m[:, a:a + step], v[:, a:a + step])
             np.divide(v[0::2], v[1::2], out=out[:, i:j])
 
     def _project_coeffs(self, shift: float) -> np.ndarray:

@@ -44,7 +44,7 @@ from .errors import Gf4calError
 __all__ = ["ENV", "BLOCK", "DEM_BLOCK", "ThreadSettingError", "machine_cores", "num_threads", "limit",
            "block_slices", "map_blocks", "split_points", "serial", "pool_workers", "matmul", "BLAS_SERIAL_SIZE",
            "SERIAL_ENV", "blas_serial", "blas_is_serial", "blas_threads", "run_tasks", "start", "PerThread",
-           "rows_times"]
+           "rows_times", "rounds", "product_into", "COLUMN_GROUP"]
 
 #: The environment variable of the thread setting.
 ENV = "GF4CAL_NUM_THREADS"
@@ -246,6 +246,15 @@ def run_tasks(tasks: Sequence[Callable[[], T]]) -> List[T]:
     return map_blocks(lambda sl: _in_block(lambda _: tasks[sl.start](), sl), len(tasks), block=1) if tasks else []
 
 
+def rounds(items: Sequence[T]) -> Iterator[Sequence[T]]:
+    """``items`` in consecutive slices of :func:`num_threads` items: work that is computed over the pool a round at a
+    time (:func:`run_tasks`) and then written in order by the calling thread, e.g. a raster's tiles: every thread
+    has a tile, and one round's results are in memory, not the raster's. One thread: one item a round."""
+    step = max(1, num_threads())
+    for i in range(0, len(items), step):
+        yield items[i:i + step]
+
+
 def start(task: Callable[[], T]) -> Callable[[], T]:
     """``task()`` begun on a pool thread (serial kernels inside, as a :func:`run_tasks` task) while the caller goes
     on, e.g. GIL-bound plotting beside GDAL writing; returns ``join()``, which gives its result (or raises its
@@ -311,19 +320,37 @@ BLAS_SERIAL_SIZE = 4 * 65536
 def matmul(a: np.ndarray, b: np.ndarray, out: Optional[np.ndarray] = None) -> np.ndarray:
     """``a @ b`` (2-D, ``a`` small) in column slices of ``b`` that BLAS computes on the calling thread: the same
     numbers on any number of cores and with any BLAS thread setting, and no BLAS threads competing with the pool's
-    (the point kernels' polynomial evaluations). ``out``: a (rows, n) array to write into (a reused buffer)."""
+    (the point kernels' polynomial evaluations). ``out``: a (rows, n) array to write into (a reused buffer). Each
+    slice is a :func:`product_into`: every column the bits it has in any other product of ``a``."""
     rows, k = a.shape
     n = b.shape[1]
-    step = max(2, BLAS_SERIAL_SIZE // max(rows * k, 1))
-    if n <= step:
-        return a @ b if out is None else np.matmul(a, b, out=out)
     if out is None:
         out = np.empty((rows, n), dtype=np.result_type(a, b))
+    step = max(COLUMN_GROUP, BLAS_SERIAL_SIZE // max(rows * k, 1) // COLUMN_GROUP * COLUMN_GROUP)
     for i in range(0, n, step):
-        j = min(i + step, n)
-        if j - i == 1:                  # never a one-column product (BLAS takes another kernel for a vector)
-            i -= 1
-        np.matmul(a, b[:, i:j], out=out[:, i:j])
+        product_into(a, b[:, i:i + step], out[:, i:i + step])
+    return out
+
+
+#: Columns of ``b`` that :func:`product_into` hands to BLAS together: OpenBLAS's AVX-512 dgemm (SkylakeX and
+#: Cooperlake kernels) computes the last 1 to 4 columns of a product whose width is not a multiple of 8 with
+#: another kernel, whose rounding differs from the same column's in a wider product (1 ulp).
+COLUMN_GROUP = 8
+
+
+def product_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """``np.matmul(a, b, out=out)`` (2-D) with every column of the result the bits it has in any other product of
+    ``a`` with columns of the same values, whatever the BLAS kernel: the columns in whole groups of
+    :data:`COLUMN_GROUP` in one product, the rest in one more, padded with zero columns to a group (also what keeps
+    a single column off BLAS's matrix-vector kernels)."""
+    n = b.shape[1]
+    whole = n - n % COLUMN_GROUP
+    if whole:
+        np.matmul(a, b[:, :whole], out=out[:, :whole])
+    if whole < n:
+        padded = np.zeros((b.shape[0], COLUMN_GROUP), dtype=b.dtype)
+        padded[:, :n - whole] = b[:, whole:]
+        out[:, whole:] = np.matmul(a, padded)[:, :n - whole]
     return out
 
 

@@ -35,7 +35,10 @@ def ecef_to_geodetic(xyz):
     between the Earth's centre region and geostationary altitude.
     """
     xyz = np.asarray(xyz, dtype=float)
-    x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
+    # Contiguous coordinates: on AVX-512 CPUs NumPy computes arctan2, sin, exp ... with SIMD code (SVML) unless a
+    # strided input's span (stride x length, past its buffer's end) touches the output's memory, where it falls back
+    # to libm, 1 ulp away: on strided columns the bits then depended on where the allocator put the output.
+    x, y, z = (np.ascontiguousarray(xyz[..., k]) for k in range(3))
     p = np.hypot(x, y)
     lon = np.degrees(np.arctan2(y, x))
     beta = np.arctan2(z * WGS84_A, p * WGS84_B)

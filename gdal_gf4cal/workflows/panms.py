@@ -537,12 +537,20 @@ def _check_cells(meas: _Measured) -> None:
 def _write_products(outs, pair: _Pair, meas: _Measured, model, band_models, bands, notes, clock, progress):
     """model.json, correction.tif (a pair of bands more per band with its own correction), ms_on_pan.tif, the
     approximate MS RPC, cells.gpkg and the plots into the OutputSet's temporary paths; the RPC refit's errors.
-    The plots (matplotlib: they hold the GIL) are begun on the pool first (:func:`gdal_gf4cal.threads.start`) and
-    drawn while this thread writes the rest (GDAL and NumPy, which release it). The writes then wait for the GIL
-    at each of their short releases (a convoy: correction.tif and ms_on_pan.tif 0.07 s alone, 0.2 s beside the
-    plots on the GF7 bench crop), but the plots are the longer path and lose only the writes' own GIL time: 0.36 s
-    for both against 0.39 s one after the other (2 threads, load ~1.1, medians of 8; 4,000 more context switches,
-    0.1 s more CPU)."""
+
+    ms_on_pan.tif first, on every thread (its tiles and bands over the pool, GDAL and SciPy releasing the GIL). Then
+    the plots (matplotlib: they hold the GIL) are begun on the pool (:func:`gdal_gf4cal.threads.start`) and drawn
+    while this thread writes the rest. Work that releases the GIL often waits for it beside the plots (a convoy):
+    on a 4096-px GF7 pan crop at 2 threads ms_on_pan.tif took 0.50 s beside them (its bands per tile over the pool),
+    0.35-0.40 s first (rounds of tiles); what is beside them (correction.tif, the RPC, cells.gpkg) is short, and
+    the plots are the longer path."""
+    n_bands = pair.n_bands
+    _progress.report(progress, 0.6, "pan-MS: writing ms_on_pan.tif")
+    panms.resample_ms_on_pan([band_models.get(b, model) for b in range(1, n_bands + 1)], pair.pan, pair.ms,
+                             outs.tmp("ms_on_pan"), pan_rpc=pair.pan_model, ms_rpc=pair.ms_model, dem=pair.dem,
+                             ratio=pair.ratio, progress=_progress.scaled(progress, 0.6, 0.85),
+                             band_names=_band_names(pair.ms, n_bands, pair.ms_rpc))
+    outs.set_check("ms_on_pan", check_raster(n_bands))
     joins = [threads.start(task) for task in _plot_tasks(meas.cells, model, outs)]
     try:
         approx_err = _write_rest(outs, pair, meas, model, band_models, bands, clock, progress)
@@ -560,20 +568,14 @@ def _write_products(outs, pair: _Pair, meas: _Measured, model, band_models, band
 
 
 def _write_rest(outs, pair: _Pair, meas: _Measured, model, band_models, bands, clock, progress):
-    """Every output but the plots (:func:`_write_products`); the RPC refit's errors."""
-    n_bands = pair.n_bands
-    _progress.report(progress, 0.6, "pan-MS: writing correction.tif")
+    """Every output but ms_on_pan.tif and the plots (:func:`_write_products`); the RPC refit's errors."""
+    _progress.report(progress, 0.85, "pan-MS: writing correction.tif")
     model.to_json(outs.tmp("model"))
     own = {b: m for b, m in band_models.items() if m is not model}
-    panms.write_correction(model, outs.tmp("correction"), progress=_progress.scaled(progress, 0.6, 0.65),
+    panms.write_correction(model, outs.tmp("correction"), progress=_progress.scaled(progress, 0.85, 0.9),
                            rpc=pair.ms_model, band_models={f"band {b} ({bands[b - 1]['name']})": m
                                                            for b, m in own.items()})
     outs.set_check("correction", check_raster(2 + 2 * len(own)))
-    panms.resample_ms_on_pan([band_models.get(b, model) for b in range(1, n_bands + 1)], pair.pan, pair.ms,
-                             outs.tmp("ms_on_pan"), pan_rpc=pair.pan_model, ms_rpc=pair.ms_model, dem=pair.dem,
-                             ratio=pair.ratio, progress=_progress.scaled(progress, 0.65, 0.9),
-                             band_names=_band_names(pair.ms, n_bands, pair.ms_rpc))
-    outs.set_check("ms_on_pan", check_raster(n_bands))
     clock.lap("correction_and_ms_on_pan")
     _progress.report(progress, 0.9, "pan-MS: refitting the MS RPC, cells and plots")
     approx_err = _write_ms_rpc(model, pair.ms_model, outs.tmp("ms_rpc"))

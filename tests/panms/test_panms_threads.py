@@ -92,3 +92,47 @@ def test_the_python_api_computes_blas_on_the_calling_thread(ventoux_pair, tmp_pa
                     progress=lambda f, m="": seen.append(threads.blas_is_serial()))
     assert len(seen) > 3 and all(seen)
     assert not threads.blas_is_serial()
+
+
+@pytest.fixture(scope="module")
+def tiled_writes(runs, ventoux_pair):
+    """correction.tif and ms_on_pan.tif of the registered Ventoux pair written again by the appliers in 32-px tiles
+    (25 and 16 tiles: rounds of 1, 2 or 3 tiles) under 1, 2 and 3 threads, and each in one tile; with the progress
+    of correction.tif."""
+    from gdal_gf4cal import DEM
+    from gdal_gf4cal.crop import image_rpc
+    from gdal_gf4cal.panms import PanMSModel, resample_ms_on_pan, write_correction
+    d = ventoux_pair
+    model = PanMSModel.from_json(runs["1"] / "model.json")
+    pan_rpc, ms_rpc = image_rpc(d / "left_image.tif")[0], image_rpc(d / "lowres_color_image.tif")[0]
+    dem = DEM.from_user_input(os.path.join(DATA, "dem", "N44E005.hgt"), geoid="egm96")
+    out, seen = {}, {}
+    for k in (1, 2, 3):
+        with threads.limit(k):
+            seen[k] = []
+            write_correction(model, d / f"corr{k}.tif", tile=32, rpc=ms_rpc,
+                             progress=lambda f, m="", k=k: seen[k].append(f))
+            resample_ms_on_pan(model, d / "left_image.tif", d / "lowres_color_image.tif", d / f"mop{k}.tif",
+                               pan_rpc=pan_rpc, ms_rpc=ms_rpc, dem=dem, ratio=4, tile=32)
+            out[k] = [gdal.Open(str(d / f"{name}{k}.tif")).ReadAsArray() for name in ("corr", "mop")]
+    write_correction(model, d / "corr_whole.tif", rpc=ms_rpc)
+    resample_ms_on_pan(model, d / "left_image.tif", d / "lowres_color_image.tif", d / "mop_whole.tif",
+                       pan_rpc=pan_rpc, ms_rpc=ms_rpc, dem=dem, ratio=4)
+    return out, seen, [gdal.Open(str(d / f"{name}_whole.tif")).ReadAsArray() for name in ("corr", "mop")]
+
+
+def test_tiled_appliers_give_the_same_bits_with_any_thread_count(tiled_writes):
+    """The appliers compute a round of tiles over the pool and write them in order (issue 23): every tile is the
+    one thread's, with 1, 2 or 3 threads; correction.tif's pixels do not depend on the tiles at all (one tile or
+    sixteen), and ms_on_pan.tif's in 32-px tiles are those of one tile within its node grid's interpolation."""
+    out, seen, whole = tiled_writes
+    (corr1, mop1) = out[1]
+    assert corr1.shape == (2, 145, 145) and mop1.shape == (4, 125, 125)
+    for k in (2, 3):
+        assert np.array_equal(out[k][0], corr1, equal_nan=True) and np.array_equal(out[k][1], mop1), k
+    assert np.array_equal(corr1, whole[0], equal_nan=True)
+    diff = np.abs(mop1.astype(float) - whole[1])
+    shifted = np.abs(np.diff(whole[1].astype(float), axis=-1))     # what a tile one pixel off would give
+    assert np.median(diff) <= 1e-3 * np.median(shifted) and diff.max() <= 0.01 * shifted.max()
+    for k in (1, 2, 3):                      # one report per tile, in order, whatever the rounds
+        assert seen[k] == [i / 25 for i in range(1, 26)], k

@@ -188,6 +188,16 @@ def test_blocks_are_fixed_and_nested_kernels_stay_serial(monkeypatch):
     assert threads.num_threads() == 3                   # the caller's setting is back
 
 
+def test_rounds_give_every_thread_an_item_in_order():
+    items = list(range(7))
+    for k, sizes in ((1, [1] * 7), (2, [2, 2, 2, 1]), (3, [3, 3, 1])):
+        with threads.limit(k):
+            rounds = list(threads.rounds(items))
+        assert [len(r) for r in rounds] == sizes and [i for r in rounds for i in r] == items
+    with threads.limit(2):
+        assert list(threads.rounds([])) == []
+
+
 def test_the_first_failing_block_is_raised(monkeypatch):
     monkeypatch.setenv(threads.ENV, "2")
 
