@@ -306,3 +306,18 @@ def test_block_size_does_not_change_project_and_localize(ventoux, monkeypatch):
     whole = ventoux.localize(s, l, h) + ventoux.project(s * 1e-5 + 5.2, l * 1e-5 + 44.1, h)
     _assert_bit_identical([tuple(split), tuple(whole)])
     assert np.isfinite(whole[0]).mean() > 0.9
+
+
+def test_a_product_gives_each_column_the_bits_of_any_wider_product():
+    """threads.product_into: a (4, 20) x (20, n) product of the point kernels gives every column the bits it has in
+    the product of all 4099 columns, for every width and offset: OpenBLAS's AVX-512 dgemm (SkylakeX, Cooperlake)
+    computes a tail of 1 to 4 columns with another kernel (1 ulp off), which np.matmul alone shows there."""
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(4, 20)), rng.normal(size=(20, 4099))
+    with threads.serial():                              # BLAS on this thread, as in every block
+        whole = threads.product_into(a, b, np.empty((4, 4099)))
+        for start in (0, 3, 8):
+            for n in list(range(1, 41)) + [1001, 4091]:
+                part = threads.product_into(a, b[:, start:start + n], np.empty((4, n)))
+                assert np.array_equal(part, whole[:, start:start + n]), (start, n)
+        assert np.array_equal(threads.matmul(a, b), whole)
