@@ -23,7 +23,7 @@ MS image shows the ground point predicted at ``p''`` at ``p' = p'' + delta(p')``
 """
 from __future__ import annotations
 
-from .apply import approximate_rpc, edge_misregistration, resample_ms_on_pan, write_correction
+from .apply import TILE_PX, approximate_rpc, edge_misregistration, resample_ms_on_pan, write_correction
 from .breaks import (JUMP_FAP, JUMP_SMOOTH_ORDER, RAMP_SHARE, column_profile, default_breaks, detect_breaks,
                      merge_breaks, pan_edges_in_ms)
 from .design import LINEAR_ORDER, linear_design
@@ -40,4 +40,4 @@ __all__ = ["PanMSModel", "estimate", "default_breaks", "screen_matches", "detect
            "step_residuals", "row_means", "residual_spectrum", "spectrum_peaks", "linear_design", "LINEAR_ORDER",
            "JUMP_FAP", "JUMP_SMOOTH_ORDER", "RAMP_SHARE", "JITTER_FAP", "MAX_JITTER_COMPONENTS", "AXES", "ORDER",
            "P_THRESHOLD_PX", "SCREEN_FLOOR_PX", "SCREEN_GROSS_PX", "SCREEN_K", "SCREEN_ROWS", "REUSE_MAX_FLOOR_RATIO",
-           "REUSE_MAX_OUTLIER_SHARE", "REUSE_MAX_RMS_PX", "supported_sines"]
+           "REUSE_MAX_OUTLIER_SHARE", "REUSE_MAX_RMS_PX", "supported_sines", "TILE_PX"]

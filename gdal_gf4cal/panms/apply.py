@@ -24,13 +24,16 @@ from .model import PanMSError, PanMSModel
 #: 0.06 s, 3.05 -> 3.27 MB; ms_on_pan.tif 0.07 -> 0.04 s, 2.91 -> 3.01 MB (the PNGs' choice, report/plot.py).
 ZLEVEL = 1
 
+#: Tile size (px) of correction.tif and ms_on_pan.tif: their blocks, and the unit of their rounds over the pool.
+TILE_PX = 512
+
 
 def _tiles(W: int, H: int, tile: int) -> List[Tuple[int, int, int, int]]:
     """``(x0, y0, w, h)`` of the ``tile`` x ``tile`` blocks of a ``W`` x ``H`` grid, row by row."""
     return [(x0, y0, min(tile, W - x0), min(tile, H - y0)) for y0 in range(0, H, tile) for x0 in range(0, W, tile)]
 
 
-def write_correction(model: PanMSModel, path, *, tile: int = 512, progress=None, rpc=None,
+def write_correction(model: PanMSModel, path, *, tile: int = TILE_PX, progress=None, rpc=None,
                      band_models: Optional[Dict[str, PanMSModel]] = None) -> str:
     """Write ``correction.tif``: float32 bands delta sample / delta line (MS px) at every MS pixel centre (GDAL
     convention), on the MS image grid as given, tile by tile (METHODS §9): the model's, then a pair per entry of
@@ -105,7 +108,7 @@ def _predicted_grid(pan_rpc, ms_rpc, dem, ratio, x0, y0, w, h, step):
 
 
 def resample_ms_on_pan(model, pan_path, ms_path, path, *, pan_rpc, ms_rpc, dem, ratio: int,
-                       tile: int = 512, node_step: int = 8, progress=None, band_names=None) -> str:
+                       tile: int = TILE_PX, node_step: int = 8, progress=None, band_names=None) -> str:
     """Write ``ms_on_pan.tif``: every MS band resampled onto the pan's raw grid at MS resolution (pan size /
     ``ratio``, same extent as the pan) so that ``gdal_pansharpen.py PAN ms_on_pan.tif fused.tif`` fuses without
     halos (METHODS §9). Output pixel ``(x, y)`` covers pan pixels ``[x r, (x+1) r)``: its centre, localised with

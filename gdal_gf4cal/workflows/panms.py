@@ -538,21 +538,17 @@ def _write_products(outs, pair: _Pair, meas: _Measured, model, band_models, band
     """model.json, correction.tif (a pair of bands more per band with its own correction), ms_on_pan.tif, the
     approximate MS RPC, cells.gpkg and the plots into the OutputSet's temporary paths; the RPC refit's errors.
 
-    ms_on_pan.tif first, on every thread (its tiles and bands over the pool, GDAL and SciPy releasing the GIL). Then
-    the plots (matplotlib: they hold the GIL) are begun on the pool (:func:`gdal_gf4cal.threads.start`) and drawn
-    while this thread writes the rest. Work that releases the GIL often waits for it beside the plots (a convoy):
-    on a 4096-px GF7 pan crop at 2 threads ms_on_pan.tif took 0.50 s beside them (its bands per tile over the pool),
-    0.35-0.40 s first (rounds of tiles); what is beside them (correction.tif, the RPC, cells.gpkg) is short, and
-    the plots are the longer path."""
-    n_bands = pair.n_bands
-    _progress.report(progress, 0.6, "pan-MS: writing ms_on_pan.tif")
-    panms.resample_ms_on_pan([band_models.get(b, model) for b in range(1, n_bands + 1)], pair.pan, pair.ms,
-                             outs.tmp("ms_on_pan"), pan_rpc=pair.pan_model, ms_rpc=pair.ms_model, dem=pair.dem,
-                             ratio=pair.ratio, progress=_progress.scaled(progress, 0.6, 0.85),
-                             band_names=_band_names(pair.ms, n_bands, pair.ms_rpc))
-    outs.set_check("ms_on_pan", check_raster(n_bands))
+    The plots (matplotlib: they hold the GIL) are begun on the pool (:func:`gdal_gf4cal.threads.start`) and drawn
+    while this thread writes the rest. Work that releases the GIL often waits for it beside them (a convoy): what
+    hides behind the plots is put there (correction.tif, the RPC, cells.gpkg, and ms_on_pan.tif when it is one
+    round of tiles); a larger ms_on_pan.tif is written first, on every thread (:func:`_ms_on_pan_first`)."""
+    first = _ms_on_pan_first(pair)
+    if first:
+        _write_ms_on_pan(outs, pair, model, band_models, progress)
     joins = [threads.start(task) for task in _plot_tasks(meas.cells, model, outs)]
     try:
+        if not first:
+            _write_ms_on_pan(outs, pair, model, band_models, progress)
         approx_err = _write_rest(outs, pair, meas, model, band_models, bands, clock, progress)
     except BaseException:
         for join in joins:          # nothing left writing into the outputs being removed
@@ -565,6 +561,26 @@ def _write_products(outs, pair: _Pair, meas: _Measured, model, band_models, band
         join()
     clock.lap("rpc_cells_plots")
     return approx_err
+
+
+def _ms_on_pan_first(pair: _Pair) -> bool:
+    """Whether ms_on_pan.tif is written before the plots begin: when it has more tiles than one round of the pool
+    (:func:`gdal_gf4cal.threads.rounds`). Beside the plots its tiles wait for the GIL: on a 4096-px GF7 pan crop
+    at 2 threads (16 tiles) it took 0.50 s there, 0.35-0.40 s first; one round (the 1024-px bench crop, one tile)
+    ends behind the plots, where first it would add its time to theirs."""
+    (pw, ph), r = pair.pan_size, pair.ratio
+    tiles = -(-pw // (r * panms.TILE_PX)) * -(-ph // (r * panms.TILE_PX))
+    return tiles > threads.num_threads()
+
+
+def _write_ms_on_pan(outs, pair: _Pair, model, band_models, progress) -> None:
+    n_bands = pair.n_bands
+    _progress.report(progress, 0.6, "pan-MS: writing ms_on_pan.tif")
+    panms.resample_ms_on_pan([band_models.get(b, model) for b in range(1, n_bands + 1)], pair.pan, pair.ms,
+                             outs.tmp("ms_on_pan"), pan_rpc=pair.pan_model, ms_rpc=pair.ms_model, dem=pair.dem,
+                             ratio=pair.ratio, progress=_progress.scaled(progress, 0.6, 0.85),
+                             band_names=_band_names(pair.ms, n_bands, pair.ms_rpc))
+    outs.set_check("ms_on_pan", check_raster(n_bands))
 
 
 def _write_rest(outs, pair: _Pair, meas: _Measured, model, band_models, bands, clock, progress):

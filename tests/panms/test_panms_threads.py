@@ -136,3 +136,32 @@ def test_tiled_appliers_give_the_same_bits_with_any_thread_count(tiled_writes):
     assert np.median(diff) <= 1e-3 * np.median(shifted) and diff.max() <= 0.01 * shifted.max()
     for k in (1, 2, 3):                      # one report per tile, in order, whatever the rounds
         assert seen[k] == [i / 25 for i in range(1, 26)], k
+
+
+@pytest.mark.parametrize("first", [True, False])
+def test_ms_on_pan_before_or_beside_the_plots_gives_the_same_outputs(ventoux_pair, runs, tmp_path, monkeypatch,
+                                                                     first):
+    """register-pan-ms writes ms_on_pan.tif before the plots begin when it has more tiles than a round of the pool,
+    else beside them (workflows.panms._ms_on_pan_first): either order gives the command's outputs, to the byte."""
+    from gdal_gf4cal.workflows import panms as wp
+    monkeypatch.setattr(wp, "_ms_on_pan_first", lambda pair: first)
+    monkeypatch.chdir(ventoux_pair)                     # the inputs named as the command run names them
+    with threads.limit(2):
+        wp.register_pan_ms("left_image.tif", "lowres_color_image.tif", dem=os.path.join(DATA, "dem", "N44E005.hgt"),
+                           geoid="egm96", out=str(tmp_path / "out"))
+    for name in ("correction.tif", "ms_on_pan.tif"):
+        assert np.array_equal(_raster(tmp_path / "out" / name)[0], _raster(runs["2"] / name)[0], equal_nan=True)
+    for name in ("model.json", "ms_approx.RPB", "residual_maps.png", "residual_along_line.png", "spectrum.png"):
+        assert (tmp_path / "out" / name).read_bytes() == (runs["2"] / name).read_bytes(), name
+    assert _features(tmp_path / "out" / "cells.gpkg") == _features(runs["2"] / "cells.gpkg")
+
+
+def test_ms_on_pan_goes_first_when_it_has_more_tiles_than_a_round():
+    from types import SimpleNamespace
+    from gdal_gf4cal.workflows.panms import _ms_on_pan_first
+    bench_crop, crop_4096 = SimpleNamespace(pan_size=(1024, 1024), ratio=4), SimpleNamespace(pan_size=(4096, 4096),
+                                                                                           ratio=4)
+    with threads.limit(2):
+        assert not _ms_on_pan_first(bench_crop) and _ms_on_pan_first(crop_4096)       # 1 and 4 tiles of 512 px
+    with threads.limit(4):
+        assert not _ms_on_pan_first(crop_4096)
