@@ -8,7 +8,8 @@
   window 64 px every 32 px (~900 windows); goal >= 1.5x;
 - register-pan-ms: the whole workflow (``register_pan_ms``: matching of every band, model, correction.tif,
   ms_on_pan.tif, ms_approx.RPB, report) on a simulated GF7 crop (pan 1024 x 1024, MS 256 x 256, across the first
-  MS sub-CCD edge; rendered once into --workdir, ~1 min); goal >= 1.5x.
+  MS sub-CCD edge; rendered once into --workdir, ~1 min; --panms-size 4096: a 4096 x 4096 pan crop, where the
+  matching is most of a run, not the fixed cost of three plots); goal >= 1.5x.
 
 Each case runs under ``threads.limit(1)`` and ``threads.limit(k)`` alternately (--repeat times): the median wall
 and CPU, then the ratio of the minima and the voluntary context switches per run (medians); results must be the
@@ -22,7 +23,7 @@ runs in k processes against one run on one thread. On a shared machine the ratio
 (the load average is printed before and after each case).
 
 Run: .venv/bin/python bench/bench_threads.py [--points N] [--repeat R (default: 7 point cases, 3 others)]
-     [--threads 2] [--workdir DIR] [--cases round_trip,localize_dem,collect,panms] [--bound]
+     [--threads 2] [--workdir DIR] [--cases round_trip,localize_dem,collect,panms] [--bound] [--panms-size PX]
 """
 from __future__ import annotations
 
@@ -228,15 +229,15 @@ def collect_case(workdir: Path):
     return {"collect": ("collect-gcps", run, same)}
 
 
-def panms_case(workdir: Path):
-    """register_pan_ms on a simulated GF7 crop, pan 1024 x 1024 (rendered once in ``workdir``)."""
+def panms_case(workdir: Path, size: int = 1024):
+    """register_pan_ms on a simulated GF7 crop, pan ``size`` x ``size`` (rendered once in ``workdir``)."""
     from osgeo import gdal
     from gdal_gf4cal.simulate.gf7 import write_gf7_scene
     from gdal_gf4cal.workflows.panms import register_pan_ms
-    folder = workdir / "gf7_1024"
+    folder = workdir / f"gf7_{size}"
     if not (folder / "ms" / "misregistration_truth.tif").exists():
         t = time.perf_counter()
-        write_gf7_scene(str(folder), seed=0, size=(1024, 1024), crop_center_ms_px=2560, n_gcps=10)
+        write_gf7_scene(str(folder), seed=0, size=(size, size), crop_center_ms_px=2560, n_gcps=10)
         print(f"(GF7 crop rendered in {time.perf_counter() - t:.0f} s)")
     gdal.UseExceptions()                      # a script: process-wide GDAL state is ours
 
@@ -250,7 +251,7 @@ def panms_case(workdir: Path):
             STAGES.setdefault(k, []).append(rep["timings_s"])
         return [gdal.Open(str(out / f)).ReadAsArray() for f in ("correction.tif", "ms_on_pan.tif")]
 
-    return {"panms": ("register-pan-ms (GF7)", run, _arrays_equal)}
+    return {"panms": (f"register-pan-ms (GF7 {size})", run, _arrays_equal)}
 
 
 #: register-pan-ms: the report's stage times (wall, s) of every run, per thread count.
@@ -274,6 +275,8 @@ def main():
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--workdir", default="/tmp/gf4cal_bench_threads")
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--panms-size", type=int, default=1024, help="pan size of the GF7 crop of register-pan-ms (px; "
+                    "4096: 4 ms_on_pan tiles, ~7 s a run on one thread)")
     ap.add_argument("--bound", action="store_true", help="collect and register-pan-ms also in k processes, one run "
                     "each (the machine's bound for k threads; the round trip always has it)")
     args = ap.parse_args()
@@ -286,7 +289,7 @@ def main():
     if "collect" in wanted:
         found.update(collect_case(workdir))
     if "panms" in wanted:
-        found.update(panms_case(workdir))
+        found.update(panms_case(workdir, args.panms_size))
     print(f"{args.points:,} points ({args.points // 4:,} for localize_dem), blocks of {threads.BLOCK:,} "
           f"({threads.DEM_BLOCK:,} for localize_dem); {threads.machine_cores()} cores; load average "
           f"{os.getloadavg()[0]:.1f}")

@@ -340,9 +340,9 @@ COLUMN_GROUP = 8
 
 def product_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> np.ndarray:
     """``np.matmul(a, b, out=out)`` (2-D) with every column of the result the bits it has in any other product of
-    ``a`` with columns of the same values, whatever the BLAS kernel: the columns in whole groups of
-    :data:`COLUMN_GROUP` in one product, the rest in one more, padded with zero columns to a group (also what keeps
-    a single column off BLAS's matrix-vector kernels)."""
+    ``a`` with columns of the same values, on OpenBLAS's Haswell, Zen, SkylakeX and Cooperlake kernels (the suite
+    runs on each): the columns in whole groups of :data:`COLUMN_GROUP` in one product, the rest in one more, padded
+    with zero columns to a group (also what keeps a single column off BLAS's matrix-vector kernels)."""
     n = b.shape[1]
     whole = n - n % COLUMN_GROUP
     if whole:

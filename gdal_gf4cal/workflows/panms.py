@@ -566,7 +566,7 @@ def _write_products(outs, pair: _Pair, meas: _Measured, model, band_models, band
 def _ms_on_pan_first(pair: _Pair) -> bool:
     """Whether ms_on_pan.tif is written before the plots begin: when it has more tiles than one round of the pool
     (:func:`gdal_gf4cal.threads.rounds`). Beside the plots its tiles wait for the GIL: on a 4096-px GF7 pan crop
-    at 2 threads (16 tiles) it took 0.50 s there, 0.35-0.40 s first; one round (the 1024-px bench crop, one tile)
+    at 2 threads (4 tiles) it took 0.50 s there, 0.35-0.40 s first; one round (the 1024-px bench crop, one tile)
     ends behind the plots, where first it would add its time to theirs."""
     (pw, ph), r = pair.pan_size, pair.ratio
     tiles = -(-pw // (r * panms.TILE_PX)) * -(-ph // (r * panms.TILE_PX))
