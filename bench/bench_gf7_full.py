@@ -7,11 +7,15 @@
    time and peak memory (``ru_maxrss`` of that child; goal <= 10 min and <= 3 GB on 2 cores), the stage times of
    its report and the correction's RMS against the true field (the same measurement as bench_panms.py's sizes).
 
+``--ratio``: the same registration on one thread too (``GF4CAL_NUM_THREADS=1``, right after, on the same cached
+scene): the 2-thread / 1-thread ratio of issue 23 on a whole product, where the matching is most of the run (the
+bench_threads.py crops are mostly fixed costs). Another ~2.5 min.
+
 ``--strip ROWS``: instead, time the rendering of a full-width pan strip (30720 x ROWS) and the MS strip of the
 same ground (7680 x ROWS/4): the quick profile of the renderer. The load average is printed with every number
 (the machine is shared: compare numbers of one run only).
 
-Usage: python bench/bench_gf7_full.py [--workdir DIR] [--workers N] [--strip ROWS] [--render-only]
+Usage: python bench/bench_gf7_full.py [--workdir DIR] [--workers N] [--ratio] [--strip ROWS] [--render-only]
 """
 from __future__ import annotations
 
@@ -61,6 +65,7 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--strip", type=int, default=None, metavar="ROWS", help="only time a full-width strip render")
     ap.add_argument("--render-only", action="store_true", help="render (or reuse) the scene, do not register")
+    ap.add_argument("--ratio", action="store_true", help="also register on one thread: the threads' ratio")
     a = ap.parse_args(argv)
     if a.strip:
         return strip(a.strip, a.workers)
@@ -71,16 +76,23 @@ def main(argv=None) -> int:
     print(f"render: {render_s:.0f} s wall, {_cpu_s() - c:.0f} s CPU (nan = reused); {_load()}", flush=True)
     if a.render_only:
         return 0
-    print(f"register-pan-ms, default options: {_load()}", flush=True)
-    row = run_size(a.workdir, 30720, a.workers)
-    print(json.dumps(row, indent=1))
-    if "wall_s" not in row:
-        print(f"register-pan-ms failed: {row['error']}")
-        return 1
-    print(f"full GF7 scene (pan 30720², MS 7680²): register-pan-ms {row['wall_s']:.0f} s wall (goal 600), "
-          f"{row['cpu_s']:.0f} s CPU, peak "
-          f"{row['peak_memory_gb']:.2f} GB (goal 3), correction vs truth RMS {row['correction_vs_truth_rms_px']} px; "
-          f"{_load()}")
+    rows = {}
+    for threads in ([a.workers, 1] if a.ratio else [a.workers]):
+        print(f"register-pan-ms, default options, {threads} thread(s): {_load()}", flush=True)
+        row = rows[threads] = run_size(a.workdir, 30720, a.workers, threads=threads)
+        print(json.dumps(row, indent=1))
+        if "wall_s" not in row:
+            print(f"register-pan-ms failed: {row['error']}")
+            return 1
+        print(f"full GF7 scene (pan 30720², MS 7680²), {threads} thread(s): register-pan-ms {row['wall_s']:.0f} s "
+              f"wall ({row['wall_s'] / 60:.1f} min; goal 10 min), {row['cpu_s']:.0f} s CPU, peak "
+              f"{row['peak_memory_gb']:.2f} GB (goal 3), correction vs truth RMS {row['correction_vs_truth_rms_px']} "
+              f"px; {_load()}", flush=True)
+    if a.ratio:
+        many, one = rows[a.workers], rows[1]
+        print(f"full GF7 scene: register-pan-ms {a.workers} threads / 1: ratio {one['wall_s'] / many['wall_s']:.2f}x "
+              f"({one['wall_s']:.0f} s / {many['wall_s']:.0f} s wall; CPU {many['cpu_s'] / one['cpu_s']:.2f}x one "
+              f"thread's; goal >= 1.5x)")
     return 0
 
 

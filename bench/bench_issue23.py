@@ -37,7 +37,14 @@ def _rows(pattern: str, label: str, goal: str, ok):
 BENCHES = {
     "threads": ("bench_threads.py", [], ["--points", "400000", "--repeat", "1"], [
         _rows(rf"^localize \+ project.*ratio\s+{NUM}x", "2 threads / 1, localise + project", ">= 1.6x",
-              lambda r: r >= 1.6)]),
+              lambda r: r >= 1.6),
+        _rows(rf"^collect-gcps .*ratio\s+{NUM}x", "2 threads / 1, collect-gcps 1024-px scene", ">= 1.5x",
+              lambda r: r >= 1.5),
+        _rows(rf"^register-pan-ms \(GF7 .*ratio\s+{NUM}x", "2 threads / 1, register-pan-ms GF7 1024-px crop",
+              ">= 1.5x", lambda r: r >= 1.5)]),
+    "matching": ("bench_matching.py", ["--workers", "2"], ["--workers", "2", "--repeat", "2"], [
+        _rows(rf"^ours 2 threads / 1: ratio {NUM}x", "2 threads / 1, collect-gcps 10240-px scene", ">= 1.5x",
+              lambda r: r >= 1.5)]),
     "fit_rpc_large": ("bench_fit_rpc_large.py", [], ["--n", "200000"], [
         _rows(rf"ratio\s+{NUM}x", "fit_rpc / one dense lstsq", "<= 3x", lambda r: r <= 3.0)]),
     "compensation_core": ("bench_compensation_core.py", [], ["--repeat", "3"], [
@@ -59,9 +66,11 @@ BENCHES = {
     "arosics": ("bench_arosics.py", [], ["--windows", "64", "--repeat", "1"], [
         _rows(rf"^window 64.*ratio\s+{NUM}x", "collect-gcps / AROSICS per valid tie, window 64", ">= 10x",
               lambda r: r >= 10.0)]),
-    "gf7": ("bench_gf7_full.py", [], ["--quick"], [
-        _rows(rf"register-pan-ms.*?{NUM}\s*min", "register-pan-ms full GF7 scene, min", "<= 10 min",
-              lambda r: r <= 10.0)]),
+    "gf7": ("bench_gf7_full.py", ["--ratio"], ["--quick"], [
+        _rows(rf"^full GF7 scene \(.*?, 2 thread.*?\({NUM} min", "register-pan-ms full GF7 scene, 2 threads, min",
+              "<= 10 min", lambda r: r <= 10.0),
+        _rows(rf"^full GF7 scene: register-pan-ms 2 threads / 1: ratio {NUM}x",
+              "2 threads / 1, register-pan-ms full GF7 scene", ">= 1.5x", lambda r: r >= 1.5)]),
 }
 
 

@@ -164,16 +164,18 @@ def _true_breaks(workdir) -> list:
     return ["--breaks", ",".join(f"{e:g}" for e in edges)] if edges else ["--sub-ccds", "1"]
 
 
-def run_size(workdir, size, workers, options=()) -> dict:
-    """One registration of the crop in a fresh child (its wall time and peak memory), its report and accuracy."""
+def run_size(workdir, size, workers, options=(), threads=None) -> dict:
+    """One registration of the crop in a fresh child (its wall time and peak memory), its report and accuracy;
+    ``threads``: its ``GF4CAL_NUM_THREADS`` (None: the environment's, else all cores)."""
     import numpy as np
     from osgeo import gdal
     render_s = build(workdir, size, workers)
     pan, ms, dem = (os.path.join(workdir, p) for p in ("pan/scene.tif", "ms/scene.tif", "dem.tif"))
     out = os.path.join(workdir, "out")
     options = [o for opt in options for o in (_true_breaks(workdir) if opt == "TRUE_BREAKS" else [opt])]
+    env = dict(os.environ, **({} if threads is None else {"GF4CAL_NUM_THREADS": str(threads)}))
     proc = subprocess.run([sys.executable, "-c", MEASURE, pan, ms, "--dem", dem, "--out", out, "--overwrite",
-                           *options], capture_output=True, text=True)
+                           *options], capture_output=True, text=True, env=env)
     res = json.loads(proc.stdout.strip().splitlines()[-1])
     if res["rc"] != 0:
         return {"pan_size": size, "error": res["stderr"].strip().splitlines()[-1:], "render_s": render_s}

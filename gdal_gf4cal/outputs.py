@@ -17,7 +17,8 @@ removed, and targets that were being replaced are restored. A temporary's name c
 (SIGKILL, power loss) left behind, recognised by that name and a process id that no longer runs (or, for the names
 of earlier versions without a pid, ``.gf4cal-<8 hex>-<name>``, by an age of over an hour).
 
-A raster whose size comes from user input (a resolution, a CRS) is checked before it is written
+Every GeoTIFF is created with :func:`gtiff_options` (tiled, DEFLATE, BigTIFF when needed). A raster whose size
+comes from user input (a resolution, a CRS) is checked before it is written
 (:func:`check_raster_size`: a pixel limit, passed with ``force``, and the free space of the output's disk); a
 written raster with no valid pixel is refused (:func:`check_raster` ``require_data=True``).
 
@@ -260,6 +261,21 @@ def check_raster_size(width: float, height: float, *, bands: int, bytes_per_samp
         raise Gf4calError(f"the output raster would be {size} {what}, {_human_bytes(need)} uncompressed, and "
                           f"{folder} has {_human_bytes(free)} free; free space, choose another folder, or pass "
                           f"{force_option} if compression will make it fit")
+
+
+def gtiff_options(*, tile: Optional[int] = None, predictor: Optional[int] = None, zlevel: Optional[int] = None,
+                  threads: Optional[int] = None, extra: Sequence[str] = ()) -> List[str]:
+    """GTiff creation options of every raster the project writes: tiled (``tile`` x ``tile`` blocks, GDAL's 256
+    when None), DEFLATE (level ``zlevel``, GDAL's 6 when None; ``predictor`` 2 for integers, 3 for floats),
+    BigTIFF when the file may pass 4 GB (GDAL's IF_SAFER), blocks compressed on ``threads`` threads; ``extra``: the
+    writer's own (interleave, photometric, sparse)."""
+    opts = ["TILED=YES"] + ([f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}"] if tile is not None else [])
+    opts.append("COMPRESS=DEFLATE")
+    opts += [f"ZLEVEL={zlevel}"] if zlevel is not None else []
+    opts += [f"PREDICTOR={predictor}"] if predictor is not None else []
+    opts.append("BIGTIFF=IF_SAFER")
+    opts += [f"NUM_THREADS={threads}"] if threads is not None else []
+    return opts + list(extra)
 
 
 _TMP_RE = re.compile(r"^\.gf4cal-(?:(?P<pid>\d+)x[0-9a-f]{6}|(?P<legacy>[0-9a-f]{8}))-(?:old-)?(?P<name>.+)$")

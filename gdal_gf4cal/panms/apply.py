@@ -15,6 +15,7 @@ from scipy import ndimage
 from .. import threads
 from .._gdal import gdal_exceptions, with_gdal_exceptions
 from ..matching.correlate import block_reduce, phase_correlate
+from ..outputs import gtiff_options
 from ..progress import report
 from ..rpc_fit import refit_numerators
 from .model import PanMSError, PanMSModel
@@ -43,9 +44,8 @@ def write_correction(model: PanMSModel, path, *, tile: int = TILE_PX, progress=N
     path = os.fspath(path)
     pairs = [("", model)] + [(f" {k}", m) for k, m in (band_models or {}).items()]
     with gdal_exceptions():
-        ds = gdal.GetDriverByName("GTiff").Create(path, W, H, 2 * len(pairs), gdal.GDT_Float32, [
-            "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", f"ZLEVEL={ZLEVEL}",
-            "PREDICTOR=3", "BIGTIFF=IF_SAFER", "INTERLEAVE=BAND", f"NUM_THREADS={threads.num_threads()}"])   # blocks compressed in parallel
+        ds = gdal.GetDriverByName("GTiff").Create(path, W, H, 2 * len(pairs), gdal.GDT_Float32, gtiff_options(
+            tile=tile, zlevel=ZLEVEL, predictor=3, threads=threads.num_threads(), extra=["INTERLEAVE=BAND"]))
         for i, (label, _) in enumerate(pairs):
             ds.GetRasterBand(2 * i + 1).SetDescription(f"delta_sample_ms_px{label}")
             ds.GetRasterBand(2 * i + 2).SetDescription(f"delta_line_ms_px{label}")
@@ -127,9 +127,8 @@ def resample_ms_on_pan(model, pan_path, ms_path, path, *, pan_rpc, ms_rpc, dem, 
         W, H = -(-PW // ratio), -(-PH // ratio)
         models = list(model) if isinstance(model, (list, tuple)) else [model] * nb
         dt = ms.GetRasterBand(1).DataType
-        out = gdal.GetDriverByName("GTiff").Create(path, W, H, nb, dt, [
-            "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", f"ZLEVEL={ZLEVEL}",
-            "INTERLEAVE=BAND", "BIGTIFF=IF_SAFER", f"NUM_THREADS={threads.num_threads()}"])     # blocks compressed in parallel
+        out = gdal.GetDriverByName("GTiff").Create(path, W, H, nb, dt, gtiff_options(
+            tile=tile, zlevel=ZLEVEL, threads=threads.num_threads(), extra=["INTERLEAVE=BAND"]))
         nodata = ms.GetRasterBand(1).GetNoDataValue()
         fill = 0.0 if nodata is None else nodata
         for b in range(nb):

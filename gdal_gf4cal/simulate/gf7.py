@@ -42,6 +42,7 @@ from scipy.interpolate import RectBivariateSpline
 
 from .._gdal import with_gdal_exceptions
 from ..atomic import atomic_output
+from ..outputs import gtiff_options
 from ..progress import report, scaled
 from .building import SENSORS, SensorSpec, SimImage, _align_orbit, _linear_camera, _pushbroom, _scale_size
 from .building import _center_time, _probe, SimulationError
@@ -550,9 +551,8 @@ def write_misregistration_truth(scene, path, *, step: float = 8.0, tile: int = 5
     splines = [(a - wx, b - wx, _spline(c, r, ds), _spline(c, r, dl)) for _, a, b, c, r, ds, dl in nodes]
     path = os.fspath(path)
     with atomic_output(path) as tmp:
-        ds_ = gdal.GetDriverByName("GTiff").Create(tmp, W, H, 2, gdal.GDT_Float32, [
-            "TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "PREDICTOR=3",
-            "BIGTIFF=IF_SAFER"])
+        ds_ = gdal.GetDriverByName("GTiff").Create(tmp, W, H, 2, gdal.GDT_Float32,
+                                               gtiff_options(tile=tile, predictor=3))
         for band, desc in ((1, "delta_sample_ms_px"), (2, "delta_line_ms_px")):
             ds_.GetRasterBand(band).SetDescription(desc)
         ds_.SetMetadataItem("GF4CAL_TRUTH", "true pan-MS misregistration delta = MS image point - pan/DEM/MS-RPC "
@@ -674,9 +674,7 @@ def render_gf7_image(scene, name: str, path, *, reference=None, mask_path=None, 
                 mask[rows] = cover_class(scene, lon[rows], lat[rows])
         return x0, y0, arr, mask
 
-    opts = ["TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"]
-    if nb > 1:
-        opts += ["PHOTOMETRIC=MINISBLACK", "ALPHA=NO", "INTERLEAVE=BAND"]
+    opts = gtiff_options(tile=tile, extra=["PHOTOMETRIC=MINISBLACK", "ALPHA=NO", "INTERLEAVE=BAND"] if nb > 1 else [])
     tiles = [(x, y, min(tile, W - x), min(tile, H - y)) for y in range(0, H, tile) for x in range(0, W, tile)]
     path = os.fspath(path)
     with atomic_output(path) as tmp, _maybe_atomic(mask_path) as tmpm:

@@ -26,6 +26,7 @@ from scipy.ndimage import map_coordinates
 
 from .._gdal import with_gdal_exceptions
 from ..atomic import atomic_output, fix_mode
+from ..outputs import gtiff_options
 from ..dem import DEM
 from ..errors import DEMError, Gf4calError
 from ..progress import report
@@ -177,7 +178,7 @@ def create_ortho_tif(path, nx: int, ny: int, top_left, resolution_deg: float):
     """A new tiled DEFLATE Byte GeoTIFF in EPSG:4326 (``top_left = (lon, lat)`` of the outer corner), open for
     writing block by block (call ``FlushCache()`` after each block to keep memory at a block)."""
     ds = gdal.GetDriverByName("GTiff").Create(os.fspath(path), nx, ny, 1, gdal.GDT_Byte,
-                                              ["TILED=YES", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"])
+                                              gtiff_options())
     ds.SetGeoTransform((top_left[0], resolution_deg, 0.0, top_left[1], 0.0, -resolution_deg))
     srs = osr.SpatialReference()
     srs.ImportFromEPSG(4326)
@@ -549,7 +550,7 @@ def render_image(model, dem, path, *, reference=None, seed: int = 0, gsd_m: Opti
     do_tile = functools.partial(_render_tile, model, demgrid, ref, seed, gsd_m, threshold)
     path = os.fspath(path)
     tmps = []
-    opts = ["TILED=YES", f"BLOCKXSIZE={tile}", f"BLOCKYSIZE={tile}", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"]
+    opts = gtiff_options(tile=tile)
     try:
         ds = _create_byte_tiff(path, ".render-", W, H, opts, tmps)
         band = ds.GetRasterBand(1)

@@ -19,6 +19,7 @@ from osgeo import gdal
 
 from .._gdal import with_gdal_exceptions
 from ..atomic import atomic_output
+from ..outputs import gtiff_options
 from ..dem import DEM
 from ..errors import CancelledError, Gf4calError
 from ..gcp import make_gcps, write_gcps
@@ -155,9 +156,8 @@ def write_placeholder_tif(path: str, size, dtype: str = "Byte", *, bands: int = 
     with atomic_output(path) as tmp:
         ds = gdal.GetDriverByName("GTiff").Create(tmp, int(size[0]), int(size[1]), int(bands),
                                                   gdal.GetDataTypeByName(dtype),
-                                                  ["TILED=YES", "BLOCKXSIZE=512", "BLOCKYSIZE=512", "SPARSE_OK=TRUE",
-                                                   "COMPRESS=DEFLATE"] + (["PHOTOMETRIC=MINISBLACK", "ALPHA=NO"]
-                                                                          if bands > 1 else []))
+                                                  gtiff_options(tile=512, extra=["SPARSE_OK=TRUE"] + (
+                                                      ["PHOTOMETRIC=MINISBLACK", "ALPHA=NO"] if bands > 1 else [])))
         for k in range(int(bands)):
             ds.GetRasterBand(k + 1).SetNoDataValue(0)
         ds.SetMetadataItem("GF4CAL_PLACEHOLDER", "YES: pixels not rendered (gf4cal simulate --render renders them)")

@@ -12,6 +12,7 @@ from osgeo import gdal, osr
 
 from .._gdal import with_gdal_exceptions
 from ..atomic import atomic_output
+from ..outputs import gtiff_options
 
 
 def fractal_surface(shape: Tuple[int, int], seed: int, beta: float = 3.2) -> np.ndarray:
@@ -60,7 +61,7 @@ def write_dem_tif(path: str, heights: np.ndarray, geotransform) -> str:
     ny, nx = heights.shape
     with atomic_output(path) as target:
         ds = gdal.GetDriverByName("GTiff").Create(target, nx, ny, 1, gdal.GDT_Float32,
-                                                  ["TILED=YES", "COMPRESS=DEFLATE", "PREDICTOR=3"])
+                                                  gtiff_options(predictor=3))
         ds.SetGeoTransform(geotransform)
         ds.SetProjection(srs.ExportToWkt())
         band = ds.GetRasterBand(1)

@@ -19,14 +19,14 @@ from typing import Any, Dict, Optional, Tuple
 import numpy as np
 
 from ..errors import CancelledError, DEMError, Gf4calError
-from ..outputs import OutputSet, check_raster
+from ..outputs import OutputSet, check_raster, gtiff_options
 from ..threads import blas_serial, num_threads, split_points
 from ._common import _open_image, cancel_check, collect_warnings, finish_report
 
 #: Resampling names accepted by :func:`orthorectify` (GDAL's ``-r`` names).
 RESAMPLING = ("near", "bilinear", "cubic", "cubicspline", "lanczos", "average", "mode")
 #: Creation options of the ortho: tiled, compressed, BigTIFF when needed (COG-friendly layout).
-CREATION_OPTIONS = ["TILED=YES", "BLOCKXSIZE=512", "BLOCKYSIZE=512", "COMPRESS=DEFLATE", "BIGTIFF=IF_SAFER"]
+CREATION_OPTIONS = gtiff_options(tile=512)
 #: Overviews are built (factors 2, 4, 8, ...) until the smaller side is at most this many pixels.
 OVERVIEW_MIN_SIZE = 256
 
@@ -174,7 +174,7 @@ def write_ellipsoidal_dem(dem_path: str, grid: str, bounds_lonlat, out_path: str
     if not np.all(np.isfinite(h[ok])):
         raise DEMError(f"the geoid grid {grid} does not cover the DEM around the image; use a global grid")
     ds = gdal.GetDriverByName("GTiff").Create(out_path, x1 - x0, y1 - y0, 1, gdal.GDT_Float32,
-                                              ["TILED=YES", "COMPRESS=DEFLATE"])
+                                              gtiff_options())
     ds.SetGeoTransform((gt[0] + x0 * gt[1], gt[1], 0.0, gt[3] + y0 * gt[5], 0.0, gt[5]))
     ds.SetProjection(srs.ExportToWkt())
     ob = ds.GetRasterBand(1)
