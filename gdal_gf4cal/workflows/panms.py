@@ -76,12 +76,14 @@ def _parse_breaks(breaks) -> Optional[list]:
 
 #: Matching windows (MS px) and the cell sizes tried when ``cell`` is not given, largest first.
 WINDOW_PX = 32
-#: Matching windows per tile (a unit of the thread pool; match_raw_bands' default). 384 against 256 (issue 23, bench
-#: GF7 crop, load 0.8): matching 1 thread 1.53 -> 1.37 s CPU, 2 threads 0.99 -> 0.90 s wall, context switches
-#: 14,800 -> 9,300; the crops' accuracy kept (bench crop against the truth 0.053 -> 0.040 px RMS). It changes which
-#: windows pass near a crop's edges (a tile's ground points, footprints and resampled reference are computed per
-#: tile), so the numbers differ from 256's a little.
-TILE_WINDOWS = 384
+#: Matching windows per tile (a unit of the thread pool). Larger tiles, fewer and longer NumPy calls: fewer GIL
+#: hand-offs between the threads. Issue 23, AVX-512 2-core VM: 1024 against 384 on the 4096-px GF7 crop, 1 thread
+#: 7.8-8.2 -> 6.4-6.9 s, 2 threads 5.7-6.0 -> 4.3-4.8 s, context switches 34,000 -> 18,500 (2048: no fewer);
+#: the full GF7 scene 82-88 -> 72 s at 2 threads (2 threads / 1: 1.62x), the correction against the truth
+#: 0.013 / 0.017 px RMS either way; the 1024-px crop unchanged (its few tiles). It changes which windows pass near a
+#: crop's edges (a tile's ground points, footprints and resampled reference are computed per tile), so the numbers
+#: differ from 384's a little (the 4096-px crop: 0.021 / 0.016 -> 0.017 / 0.013 px RMS, no spurious sub-CCD edge).
+TILE_WINDOWS = 1024
 AUTO_CELLS = (64, 48, 32, 24, 16, 12, 8, 6, 4)
 #: A cell size is enough when every sub-CCD piece has usable cells in this many columns (a quartic and its check)
 #: and the image in this many rows.
