@@ -26,9 +26,9 @@ from scipy.ndimage import map_coordinates
 
 from .._gdal import with_gdal_exceptions
 from ..atomic import atomic_output, fix_mode
-from ..outputs import gtiff_options
 from ..dem import DEM
 from ..errors import DEMError, Gf4calError
+from ..outputs import gtiff_options
 from ..progress import report
 
 _M_PER_DEG = 111320.0

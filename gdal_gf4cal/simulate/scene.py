@@ -19,11 +19,11 @@ from osgeo import gdal
 
 from .._gdal import with_gdal_exceptions
 from ..atomic import atomic_output
-from ..outputs import gtiff_options
 from ..dem import DEM
 from ..errors import CancelledError, Gf4calError
 from ..gcp import make_gcps, write_gcps
 from ..geodesy import metres_per_degree
+from ..outputs import gtiff_options
 from ..progress import report, scaled
 from ..rpc_fit import fit_rpc_from_model
 from .cameras import write_json_atomic
