@@ -77,7 +77,7 @@ def main(argv=None) -> int:
     if a.render_only:
         return 0
     rows = {}
-    for threads in ([a.workers, 1] if a.ratio else [a.workers]):
+    for threads in dict.fromkeys([a.workers, 1] if a.ratio else [a.workers]):     # --workers 1: one run
         print(f"register-pan-ms, default options, {threads} thread(s): {_load()}", flush=True)
         row = rows[threads] = run_size(a.workdir, 30720, a.workers, threads=threads)
         print(json.dumps(row, indent=1))

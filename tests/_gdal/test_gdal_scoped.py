@@ -5,22 +5,14 @@ from __future__ import annotations
 import ast
 import subprocess
 import sys
-from pathlib import Path
 
-import gdal_gf4cal
-
-PKG = Path(gdal_gf4cal.__file__).parent
+from engine_source import engine_nodes
 
 
 def test_no_use_exceptions_call_in_the_engine():
-    calls = []
-    for path in sorted(PKG.rglob("*.py")):
-        if path.name == "_gdal.py":
-            continue
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and \
-                    node.func.attr in ("UseExceptions", "DontUseExceptions"):
-                calls.append(f"{path.relative_to(PKG)}:{node.lineno}")
+    calls = [where for where, node in engine_nodes(skip=("_gdal.py",))
+             if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+             and node.func.attr in ("UseExceptions", "DontUseExceptions")]
     assert calls == []
 
 

@@ -3,29 +3,22 @@ layout or compression option (an AST scan of gdal_gf4cal/), and what it asks for
 from __future__ import annotations
 
 import ast
-from pathlib import Path
 
 import numpy as np
+from engine_source import engine_nodes
 from osgeo import gdal
 
-import gdal_gf4cal
 from gdal_gf4cal.outputs import gtiff_options
 from gdal_gf4cal.simulate.terrain import write_dem_tif
 
-PKG = Path(gdal_gf4cal.__file__).parent
 #: Options that only gtiff_options may spell.
 LAYOUT = ("TILED=", "BLOCKXSIZE=", "BLOCKYSIZE=", "COMPRESS=", "PREDICTOR=", "ZLEVEL=", "BIGTIFF=")
 
 
 def test_no_engine_module_spells_gtiff_layout_options():
-    found = []
-    for path in sorted(PKG.rglob("*.py")):
-        if path.name == "outputs.py":
-            continue
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            if isinstance(node, ast.Constant) and isinstance(node.value, str) and \
-                    any(node.value.upper().startswith(k) for k in LAYOUT):
-                found.append(f"{path.relative_to(PKG)}:{node.lineno}: {node.value!r}")
+    found = [f"{where}: {node.value!r}" for where, node in engine_nodes(skip=("outputs.py",))
+             if isinstance(node, ast.Constant) and isinstance(node.value, str)
+             and any(node.value.upper().startswith(k) for k in LAYOUT)]
     assert found == []
 
 
