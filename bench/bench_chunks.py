@@ -89,6 +89,7 @@ def measure(pts, configs, repeat):
     for _ in range(repeat):
         for c in random.sample(configs, len(configs)):
             rpc_module.LOCALIZE_CHUNK, rpc_module.PROJECT_CHUNK, threads.BLOCK = c
+            rpc_module.SERIAL_PROJECT_CHUNK = rpc_module.PROJECT_CHUNK    # the same chunk on 1 and 2 threads
             for mode in ("1t", "2t", "2p"):
                 RECORDS.clear()
                 cpu, wall = time.process_time(), time.perf_counter()

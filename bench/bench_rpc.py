@@ -36,7 +36,7 @@ import numpy as np
 from osgeo import gdal
 
 from gdal_gf4cal import DEM, RPCModel
-from gdal_gf4cal.rpc import PROJECT_CHUNK, fill_monomials, monomials
+from gdal_gf4cal.rpc import SERIAL_PROJECT_CHUNK, fill_monomials, monomials
 from gdal_gf4cal.threads import limit
 
 gdal.UseExceptions()
@@ -90,7 +90,7 @@ def numpy_floor(rpc: RPCModel, lon, lat, hh):
     one product and one division per chunk in reused buffers."""
     C = rpc._project_coeffs(0.5)                     # ours: the pixel affine and ground scales folded in
     off = (rpc.long_off, rpc.lat_off, rpc.height_off)
-    n, c = lon.size, PROJECT_CHUNK
+    n, c = lon.size, SERIAL_PROJECT_CHUNK
     mono = monomials(lon[:c] - off[0], lat[:c] - off[1], hh[:c] - off[2])
     v, out, m = np.empty((4, c)), np.empty((2, n)), np.empty((20, c))
     m[0] = 1.0
@@ -143,7 +143,7 @@ def measure(n: int = 200_000, repeat: int = 5) -> dict:
         ps, pl = t["ours"][1]
         rows["project"] = {"ours": t["ours"][0], "gdal": t["gdal"][0], "rpcm": t["rpcm"][0] if rm else None,
                            "err": float(np.max(np.hypot(ps - s, pl - l))), "faults": t["ours"][2]}
-        m = n - n % PROJECT_CHUNK                          # the floors evaluate whole chunks only
+        m = n - n % SERIAL_PROJECT_CHUNK                       # the floors evaluate whole chunks only
         for key, label in (("floor_minimal", "floor: minimal"), ("floor_product", "floor: product")):
             rows[label] = {"ours": t[key][0] * n / m, "gdal": t["gdal"][0], "rpcm": t["rpcm"][0] if rm else None,
                            "err": float("nan"), "faults": t[key][2]}

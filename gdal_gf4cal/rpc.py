@@ -27,7 +27,8 @@ from ._rpc_poly import (_CHUNK, _EXPONENTS, DERIVATIVE_MATRICES, TERMS, fill_mon
 from .errors import RPCFormatError
 from .rpc_io import read_rpc_metadata, write_rpb, write_rpc_txt
 from .sensor import GDAL_PIXEL_OFFSET, LocalizationStats, SensorModelMixin, pixel_shift  # noqa: F401
-from .threads import BLAS_SERIAL_SIZE, COLUMN_GROUP, blas_is_serial, map_blocks, product_into, split_points
+from .threads import (BLAS_SERIAL_SIZE, COLUMN_GROUP, blas_is_serial, block_slices, map_blocks, num_threads,
+                      product_into, split_points)
 
 log = logging.getLogger(__name__)
 
@@ -62,13 +63,18 @@ LOCALIZE_CHUNK = 16384
 #: (:func:`~gdal_gf4cal.threads.blas_is_serial`) a chunk is one product: the same bits (every product a
 #: :func:`~gdal_gf4cal.threads.product_into`, in whole column groups), fewer calls.
 _PROJECT_GEMM = BLAS_SERIAL_SIZE // 80 // COLUMN_GROUP * COLUMN_GROUP
-#: Points per chunk of the projection kernel (five products): a whole block of the thread pool, one chunk (12 NumPy
-#: calls, which hold the GIL): larger than L2 (the (20, chunk) monomials take 5.2 MB) but ~2x faster than 3276-point
-#: chunks on the loaded 2-core machine (NumPy's per-call cost, ~1.5 us there, weighs on small chunks), as fast per
-#: point as 16384 with 2 threads waking each other 20-25 % less often than with it (1,026 / 1,315 and 1,065 / 1,469
-#: voluntary switches per 2e6-point round trip, two idle moments). A divisor of :data:`~gdal_gf4cal.threads.BLOCK`:
-#: split or not, a point lies in the same product.
+#: Points per chunk of the projection kernel (five products) when its blocks run over the thread pool: a whole block
+#: of the pool, one chunk (12 NumPy calls, which hold the GIL): larger than L2 (the (20, chunk) monomials take 5.2 MB)
+#: but with 2 threads 1.3-1.5x the speed of 8192-point chunks (2e6 points: 2 threads / 1 thread 1.57-1.62x against
+#: 1.09-1.22x; the threads wait for each other's NumPy calls, four times as many). A divisor of
+#: :data:`~gdal_gf4cal.threads.BLOCK`: split or not, a point lies in the same product.
 PROJECT_CHUNK = 32768
+#: Points per chunk of the projection kernel on one thread (``GF4CAL_NUM_THREADS=1``, a Dask worker, a block or a
+#: tile already on the pool, fewer points than a block): the (20, chunk) monomials (1.3 MB) stay near L2 and every
+#: product is at least NumPy's buffer size (``np.getbufsize()``, 8192: below it a broadcast product is copied through
+#: buffers, 2-4x the cost per element): 1.2-2x the one-thread speed of 32768-point chunks (2e6 and 2e5 points), 4096
+#: 0.6x of 8192. A divisor of :data:`PROJECT_CHUNK`.
+SERIAL_PROJECT_CHUNK = 8192
 
 
 def _as_float_array(x) -> np.ndarray:
@@ -270,19 +276,21 @@ class RPCModel(SensorModelMixin):
         lon, lat, h = lon.ravel(), lat.ravel(), h.ravel()
         out = np.empty((2, lon.size))
         C = self._project_coeffs(self._pixel_shift(pixel_convention))
+        threaded = len(block_slices(lon.size)) > 1 and num_threads() > 1
+        chunk = PROJECT_CHUNK if threaded else SERIAL_PROJECT_CHUNK
         # Each block writes its own columns of ``out`` (no per-block results joined afterwards).
-        map_blocks(lambda sl: self._project_into(lon[sl], lat[sl], h[sl], C, out[:, sl]), lon.size)
+        map_blocks(lambda sl: self._project_into(lon[sl], lat[sl], h[sl], C, out[:, sl], chunk), lon.size)
         return _shape_out(out[0], shape), _shape_out(out[1], shape)
 
-    def _project_into(self, lon, lat, h, C, out) -> None:
+    def _project_into(self, lon, lat, h, C, out, chunk: int) -> None:
         """:meth:`project` of flat arrays into ``out`` (2, n) with the coefficients of :meth:`_project_coeffs`: per
-        chunk of :data:`PROJECT_CHUNK` points, in one reused (20, chunk) monomial buffer, the ground offsets
+        chunk of ``chunk`` points (:data:`PROJECT_CHUNK` over the pool, :data:`SERIAL_PROJECT_CHUNK` alone), in one reused (20, chunk) monomial buffer, the ground offsets
         subtracted into its rows 1-3 (longitudes modulo 360 when a chunk spans the antimeridian), the monomials in
         place (:func:`fill_monomials`), the (4, 20) x (20, chunk) product into a reused (4, chunk) buffer (in
         slices of :data:`_PROJECT_GEMM` columns unless BLAS is held on the calling thread, :func:`blas_is_serial`),
         one division: 12 NumPy calls per chunk in two buffers the thread keeps (:func:`scratch`), the same bits
         (the same pixels as normalising whole arrays to 1e-11 px)."""
-        c = max(1, min(lon.size, PROJECT_CHUNK))
+        c = max(1, min(lon.size, chunk))
         off = (self.long_off, self.lat_off, self.height_off)
         with scratch(20, c) as m, scratch(4, c) as v:
             m[0] = 1.0

@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 from osgeo import gdal
 
-from gdal_gf4cal import RPCFormatError, RPCModel
-from gdal_gf4cal.rpc import DERIVATIVE_MATRICES, PROJECT_CHUNK, monomial_derivatives, monomials
+from gdal_gf4cal import RPCFormatError, RPCModel, threads
+from gdal_gf4cal.rpc import (DERIVATIVE_MATRICES, PROJECT_CHUNK, SERIAL_PROJECT_CHUNK, monomial_derivatives,
+                             monomials)
 
 gdal.UseExceptions()
 
@@ -142,7 +143,6 @@ def test_jacobian_matches_finite_differences(real_rpc):
 def test_project_with_jacobian_is_project_and_its_jacobian(real_rpc, convention):
     """One evaluation gives both: the pixels of ``project`` (to 1e-9 px) and the Jacobian of ``project_jacobian``
     (the same bits), over several thread blocks and in the input's shape."""
-    from gdal_gf4cal import threads
     rng = np.random.default_rng(3)
     n = 3 * threads.BLOCK + 17
     g = [o + sc * rng.uniform(-0.9, 0.9, n) for o, sc in ((real_rpc.long_off, real_rpc.long_scale),
@@ -273,8 +273,12 @@ def test_project_kernel_chunks_and_antimeridian(data_dir):
     lon = rpc.long_off + rng.uniform(-1, 1, n) * rpc.long_scale
     lat = rpc.lat_off + rng.uniform(-1, 1, n) * rpc.lat_scale
     h = rpc.height_off + rng.uniform(-1, 1, n) * rpc.height_scale
-    s, l = rpc.project(lon, lat, h)
-    for i in (0, PROJECT_CHUNK - 1, PROJECT_CHUNK, n - 1):
+    with threads.limit(2):                               # two blocks over the pool: chunks of PROJECT_CHUNK
+        s, l = rpc.project(lon, lat, h)
+    with threads.limit(1):                               # one thread: chunks of SERIAL_PROJECT_CHUNK, the same bits
+        alone = rpc.project(lon, lat, h)
+    assert np.array_equal(alone[0], s) and np.array_equal(alone[1], l)
+    for i in (0, SERIAL_PROJECT_CHUNK - 1, SERIAL_PROJECT_CHUNK, PROJECT_CHUNK - 1, PROJECT_CHUNK, n - 1):
         si, li = rpc.project(lon[i], lat[i], h[i])
         assert abs(si - s[i]) < 1e-9 and abs(li - l[i]) < 1e-9
     # the polynomial in the RPC's own normalisation (the definition) gives the same pixels to 1e-9 px
@@ -294,21 +298,23 @@ def test_project_kernel_chunks_and_antimeridian(data_dir):
 
 
 def test_project_chunk_size_keeps_the_bits(data_dir, monkeypatch):
-    """PROJECT_CHUNK changes no bit (issue 23: the chunk is a cache/speed choice only): chunks of 1000 points (a
-    last partial one of 17, and one of 2 columns that is never a one-column product) give the bits of one chunk
-    of the whole array, with and without thread blocks (BLOCK 2000: blocks not a multiple of the chunk)."""
+    """PROJECT_CHUNK and SERIAL_PROJECT_CHUNK change no bit (issue 23: the chunks are a cache/speed choice only):
+    chunks of 1000 points (a last partial one of 17, and one of 2 columns that is never a one-column product) give
+    the bits of one chunk of the whole array, with and without thread blocks (BLOCK 2000: blocks not a multiple of
+    the chunk)."""
     from gdal_gf4cal import rpc as rpc_module
-    from gdal_gf4cal import threads
     rpc = RPCModel.from_file(data_dir / "rpc" / "RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML")
     rng = np.random.default_rng(5)
     n = 3 * 1000 + 17
     g = [o + sc * rng.uniform(-1.2, 1.2, n) for o, sc in ((rpc.long_off, rpc.long_scale),
                                                            (rpc.lat_off, rpc.lat_scale),
                                                            (rpc.height_off, rpc.height_scale))]
-    monkeypatch.setattr(rpc_module, "PROJECT_CHUNK", 10 ** 9)
+    for name in ("PROJECT_CHUNK", "SERIAL_PROJECT_CHUNK"):
+        monkeypatch.setattr(rpc_module, name, 10 ** 9)
     whole = rpc.project(*g)
     for chunk, block, t in ((1000, threads.BLOCK, 1), (1000, 2000, 2), (3015, threads.BLOCK, 1)):
-        monkeypatch.setattr(rpc_module, "PROJECT_CHUNK", chunk)
+        for name in ("PROJECT_CHUNK", "SERIAL_PROJECT_CHUNK"):
+            monkeypatch.setattr(rpc_module, name, chunk)
         monkeypatch.setattr(threads, "BLOCK", block)
         with threads.limit(t):
             chunked = rpc.project(*g)
