@@ -66,8 +66,8 @@ BENCHES = {
               "<= 1.1x", lambda r: r <= 1.1),
         _rows(rf"{NUM} \(min CPU", "refine --ortho / (gdalwarp + refine), CPU", "<= 1.1x", lambda r: r <= 1.1)]),
     "bundle": ("bench_bundle.py", [], ["--ties", "2000"], [
-        _rows(rf"^\s*100000\s+\d+\s+{NUM}\s", "bundle 10 views x 100k ties, s", "< 10 s", lambda r: r < 10.0),
-        _rows(rf"^\s*2000\s+\d+\s+{NUM}\s", "bundle 10 views x 2k ties, s", "(indication)", None)]),
+        _rows(rf"^\s*100000\s+\S+\s+\d+\s+{NUM}\s", "bundle 10 views x 100k ties, s", "< 10 s", lambda r: r < 10.0),
+        _rows(rf"^\s*2000\s+\S+\s+\d+\s+{NUM}\s", "bundle 10 views x 2k ties, s", "(indication)", None)]),
     "arosics": ("bench_arosics.py", [], ["--windows", "64", "--repeat", "1"], [
         _rows(rf"^window 64.*ratio\s+{NUM}x", "collect-gcps / AROSICS per valid tie, window 64", ">= 10x",
               lambda r: r >= 10.0)]),

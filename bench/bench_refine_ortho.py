@@ -42,7 +42,8 @@ def data_dir() -> Path:
         if d and (Path(d) / "qb2_basic1b.tif").exists():
             return Path(d)
     raise SystemExit("QuickBird-2 crop not found: set GF4CAL_QB2_DIR to a folder with orthority's "
-                     "tests/data/rpc/qb2_basic1b.tif, gcps.geojson and tests/data/ngi/dem.tif")
+                     "tests/data/rpc/qb2_basic1b.tif, gcps.geojson and tests/data/ngi/dem.tif (from a clone of "
+                     "https://github.com/leftfield-geospatial/orthority)")
 
 
 def run_refine(d: Path, tmp: str, tag: str, ortho: bool) -> dict:
