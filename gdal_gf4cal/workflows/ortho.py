@@ -14,6 +14,7 @@ equals ``gdalwarp -rpc -to RPC_DEM=<ellipsoidal DEM>`` with the same grid.
 from __future__ import annotations
 
 import os
+import warnings
 from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
@@ -43,8 +44,8 @@ def overview_factors(width: int, height: int, min_size: int = OVERVIEW_MIN_SIZE)
 
 def _write_ortho(warped, out_path: str, resampling: str, callback) -> Dict[str, Any]:
     """The warped VRT (image bands + alpha) written as the ortho GeoTIFF: tiled, compressed, the image bands with a
-    no-data value (the source's, else 0) and the alpha as an internal per-dataset mask (QGIS and GDAL draw no
-    collar), internal overviews of the bands and the mask. Returns ``res_m``, ``size_px``, ``nodata``,
+    no-data value (the source's, else 0; valid pixels equal to it lifted, :func:`lift_valid_nodata`) and the alpha as
+    an internal per-dataset mask (QGIS and GDAL draw no collar), internal overviews of the bands and the mask. Returns ``res_m``, ``size_px``, ``nodata``,
     ``overviews`` and ``empty`` (no valid pixel)."""
     from osgeo import gdal
     from ..outputs import raster_has_data
@@ -61,6 +62,11 @@ def _write_ortho(warped, out_path: str, resampling: str, callback) -> Dict[str, 
                             callback=lambda f, m, d: callback(0.9 * f, m, d))
         if ds is None:
             raise Gf4calError("writing the ortho failed without a message")
+        lifted, value = lift_valid_nodata(ds, nodata)
+        if lifted:
+            warnings.warn(f"{lifted} valid pixel(s) of the ortho equal to its no-data value {nodata:g} were written "
+                          f"as {value:g} (GIS software hides a pixel with the no-data value even where the mask "
+                          "says valid)")
         factors = overview_factors(ds.RasterXSize, ds.RasterYSize)
         if factors:
             method = {"near": "NEAREST", "mode": "MODE"}.get(resampling, "AVERAGE")
@@ -72,6 +78,44 @@ def _write_ortho(warped, out_path: str, resampling: str, callback) -> Dict[str, 
     finally:
         gdal.SetThreadLocalConfigOption("GDAL_TIFF_INTERNAL_MASK", prev)
     return out
+
+
+def lift_valid_nodata(ds, nodata: float) -> Tuple[int, float]:
+    """Valid pixels (inside the mask) of ``ds``'s bands equal to the no-data value, set to the next value above it
+    (below it at the type's maximum), as GDAL's warper does from 3.11: QGIS hides a pixel equal to the no-data value
+    even where the mask says valid, and a dark 0 of an image without a no-data value (0 is the ortho's then) would
+    show as a hole. Block by block (the mask read only for a block holding the value, a block written only when one
+    of its valid pixels does). Returns ``(pixels changed, the value they got)``."""
+    from osgeo import gdal_array
+    band1 = ds.GetRasterBand(1)
+    dtype = np.dtype(gdal_array.GDALTypeCodeToNumericTypeCode(band1.DataType))
+    if dtype.kind not in "uif" or not np.isfinite(nodata):
+        return 0, nodata
+    nd = dtype.type(nodata)
+    if dtype.kind == "f":
+        value = np.nextafter(nd, dtype.type(np.inf))
+    else:
+        value = nd + 1 if nd < np.iinfo(dtype).max else nd - 1
+    (bx, by), W, H = band1.GetBlockSize(), ds.RasterXSize, ds.RasterYSize
+    lifted = 0
+    for y in range(0, H, by):
+        for x in range(0, W, bx):
+            w, h = min(bx, W - x), min(by, H - y)
+            valid = None
+            for i in range(1, ds.RasterCount + 1):
+                band = ds.GetRasterBand(i)
+                a = band.ReadAsArray(x, y, w, h)
+                hit = a == nd
+                if not hit.any():
+                    continue
+                if valid is None:
+                    valid = band1.GetMaskBand().ReadAsArray(x, y, w, h) > 0
+                hit &= valid
+                if hit.any():
+                    a[hit] = value
+                    band.WriteArray(a, x, y)
+                    lifted += int(hit.sum())
+    return lifted, float(value)
 
 
 def utm_epsg(lon_deg: float, lat_deg: float) -> int:

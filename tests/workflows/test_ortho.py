@@ -196,3 +196,38 @@ def test_residual_arrows_are_rpc_ground_offsets_in_metres(refined):
     before = np.array([f["res_m_before"] for f in gcps.values()])
     after = np.array([f["res_m_after"] for f in gcps.values()])
     assert np.sqrt(np.mean(after ** 2)) < 0.3 * np.sqrt(np.mean(before ** 2))     # the gain, in metres
+
+
+def test_valid_pixels_equal_to_nodata_are_lifted_not_hidden(scene, tmp_path):
+    """An image without a no-data value gets 0 as the ortho's; its own dark 0 pixels inside the footprint are
+    written as 1 (the next value), as GDAL's warper does from 3.11, and the run says so: QGIS would draw a pixel
+    equal to the no-data value transparent even where the mask says valid. The collar stays 0 and masked."""
+    src = gdal.Open(str(scene / "s" / "scene.tif"))
+    image = tmp_path / "dark.tif"
+    ds = gdal.GetDriverByName("GTiff").CreateCopy(str(image), src)
+    ds.GetRasterBand(1).DeleteNoDataValue()                     # the simulator declares 0; a product may not
+    data = ds.GetRasterBand(1).ReadAsArray()
+    assert data.min() > 0
+    data[100:140, 100:140] = 0                                   # a dark patch inside the scene
+    ds.GetRasterBand(1).WriteArray(data)
+    ds = None
+    rep = orthorectify(image, dem=scene / "dem_egm96.tif", out=tmp_path / "o.tif", res_m=RES_M, resampling="near")
+    o = gdal.Open(str(tmp_path / "o.tif"))
+    band = o.GetRasterBand(1)
+    values, valid = band.ReadAsArray(), band.GetMaskBand().ReadAsArray() > 0
+    assert band.GetNoDataValue() == 0.0 and rep["nodata"] == 0.0
+    assert not np.any(values[valid] == 0)                        # no valid pixel reads as no-data
+    assert np.all(values[~valid] == 0) and (~valid).any()        # the collar: 0 and masked
+    lifted = int(np.sum(values[valid] == 1))
+    assert any(f"{lifted} valid pixel(s) of the ortho equal to its no-data value 0 were written as 1" in w
+               for w in rep["warnings"]), rep["warnings"]
+    # the rest of the ortho is the ortho of the image without the patch
+    ds = gdal.GetDriverByName("GTiff").CreateCopy(str(tmp_path / "plain.tif"), src)
+    ds.GetRasterBand(1).DeleteNoDataValue()
+    ds = None
+    plain = orthorectify(tmp_path / "plain.tif", dem=scene / "dem_egm96.tif", out=tmp_path / "p.tif", res_m=RES_M,
+                         resampling="near")
+    assert not any("no-data value" in w for w in plain["warnings"])
+    p = gdal.Open(str(tmp_path / "p.tif")).ReadAsArray()
+    changed = values != p                                       # the patch, now 1 instead of 0
+    assert np.all(values[changed] == 1) and int(changed.sum()) == lifted > 100
