@@ -284,12 +284,13 @@ class RPCModel(SensorModelMixin):
 
     def _project_into(self, lon, lat, h, C, out, chunk: int) -> None:
         """:meth:`project` of flat arrays into ``out`` (2, n) with the coefficients of :meth:`_project_coeffs`: per
-        chunk of ``chunk`` points (:data:`PROJECT_CHUNK` over the pool, :data:`SERIAL_PROJECT_CHUNK` alone), in one reused (20, chunk) monomial buffer, the ground offsets
-        subtracted into its rows 1-3 (longitudes modulo 360 when a chunk spans the antimeridian), the monomials in
-        place (:func:`fill_monomials`), the (4, 20) x (20, chunk) product into a reused (4, chunk) buffer (in
-        slices of :data:`_PROJECT_GEMM` columns unless BLAS is held on the calling thread, :func:`blas_is_serial`),
-        one division: 12 NumPy calls per chunk in two buffers the thread keeps (:func:`scratch`), the same bits
-        (the same pixels as normalising whole arrays to 1e-11 px)."""
+        chunk of ``chunk`` points (:data:`PROJECT_CHUNK` over the pool, :data:`SERIAL_PROJECT_CHUNK` alone), in one
+        reused (20, chunk) monomial buffer, the ground offsets subtracted into its rows 1-3 (longitudes modulo 360
+        when a chunk spans the antimeridian), the monomials in place (:func:`fill_monomials`), the (4, 20) x (20,
+        chunk) product into a reused (4, chunk) buffer (in slices of :data:`_PROJECT_GEMM` columns unless BLAS is
+        held on the calling thread, :func:`blas_is_serial`), one division: 12 NumPy calls per chunk in two buffers
+        the thread keeps (:func:`scratch`), the same bits (the same pixels as normalising whole arrays to 1e-11
+        px)."""
         c = max(1, min(lon.size, chunk))
         off = (self.long_off, self.lat_off, self.height_off)
         with scratch(20, c) as m, scratch(4, c) as v:

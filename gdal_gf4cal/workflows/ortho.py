@@ -45,8 +45,8 @@ def overview_factors(width: int, height: int, min_size: int = OVERVIEW_MIN_SIZE)
 def _write_ortho(warped, out_path: str, resampling: str, callback) -> Dict[str, Any]:
     """The warped VRT (image bands + alpha) written as the ortho GeoTIFF: tiled, compressed, the image bands with a
     no-data value (the source's, else 0; valid pixels equal to it lifted, :func:`lift_valid_nodata`) and the alpha as
-    an internal per-dataset mask (QGIS and GDAL draw no collar), internal overviews of the bands and the mask. Returns ``res_m``, ``size_px``, ``nodata``,
-    ``overviews`` and ``empty`` (no valid pixel)."""
+    an internal per-dataset mask (QGIS and GDAL draw no collar), internal overviews of the bands and the mask.
+    Returns ``res_m``, ``size_px``, ``nodata``, ``overviews`` and ``empty`` (no valid pixel)."""
     from osgeo import gdal
     from ..outputs import raster_has_data
     if warped is None:
@@ -91,11 +91,15 @@ def lift_valid_nodata(ds, nodata: float) -> Tuple[int, float]:
     dtype = np.dtype(gdal_array.GDALTypeCodeToNumericTypeCode(band1.DataType))
     if dtype.kind not in "uif" or not np.isfinite(nodata):
         return 0, nodata
-    nd = dtype.type(nodata)
     if dtype.kind == "f":
+        nd = dtype.type(nodata)
         value = np.nextafter(nd, dtype.type(np.inf))
     else:
-        value = nd + 1 if nd < np.iinfo(dtype).max else nd - 1
+        info = np.iinfo(dtype)
+        if nodata != round(nodata) or not info.min <= nodata <= info.max:
+            return 0, nodata                                      # no pixel can hold it
+        nd = dtype.type(nodata)
+        value = nd + 1 if nd < info.max else nd - 1
     (bx, by), W, H = band1.GetBlockSize(), ds.RasterXSize, ds.RasterYSize
     lifted = 0
     for y in range(0, H, by):

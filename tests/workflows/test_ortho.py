@@ -231,3 +231,34 @@ def test_valid_pixels_equal_to_nodata_are_lifted_not_hidden(scene, tmp_path):
     p = gdal.Open(str(tmp_path / "p.tif")).ReadAsArray()
     changed = values != p                                       # the patch, now 1 instead of 0
     assert np.all(values[changed] == 1) and int(changed.sum()) == lifted > 100
+
+
+@pytest.mark.parametrize("gdal_type, nodata, expected", [
+    (gdal.GDT_Byte, 255, 254),
+    (gdal.GDT_UInt16, 0, 1),
+    (gdal.GDT_Float32, 0.0, float(np.nextafter(np.float32(0), np.float32(1)))),   # 1.4e-45
+    (gdal.GDT_Int16, 1e10, None)])
+def test_lift_valid_nodata_next_value_of_the_type(tmp_path, gdal_type, nodata, expected):
+    """The next value of the band's type (the one below at its maximum; the smallest step for floats); a no-data
+    value no pixel of the type can hold changes nothing. Masked pixels keep the no-data value."""
+    from gdal_gf4cal.workflows.ortho import lift_valid_nodata
+    ds = gdal.GetDriverByName("GTiff").Create(str(tmp_path / "b.tif"), 600, 5, 2, gdal_type,
+                                              ["TILED=YES", "BLOCKXSIZE=256", "BLOCKYSIZE=256"])
+    ds.CreateMaskBand(gdal.GMF_PER_DATASET)
+    fill = 0 if expected is None else nodata
+    a = np.full((5, 600), fill)
+    a[:, ::2] = 7
+    mask = np.full((5, 600), 255, np.uint8)
+    mask[0] = 0
+    for i in (1, 2):
+        ds.GetRasterBand(i).WriteArray(a)
+    ds.GetRasterBand(1).GetMaskBand().WriteArray(mask)
+    n, value = lift_valid_nodata(ds, nodata)
+    if expected is None:
+        assert n == 0
+        return
+    assert n == 2 * 4 * 300 and value == expected
+    for i in (1, 2):
+        b = ds.GetRasterBand(i).ReadAsArray()
+        assert np.all(b[1:, 1::2] == np.asarray(expected, b.dtype)) and np.all(b[0, 1::2] == nodata)
+        assert np.all(b[:, ::2] == 7)
