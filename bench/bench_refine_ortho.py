@@ -2,7 +2,8 @@
 """``refine --ortho`` against plain ``gdalwarp -rpc`` plus the refine alone, on a real QuickBird-2 crop (issue 23).
 
 Data: orthority's QuickBird-2 basic 1B crop (850 x 1450 px), its 5 field-surveyed GCPs and the DEM of its tests
-(``/work/shared/data/real/orthority_qb2``, or ``GF4CAL_QB2_DIR``; see its PROVENANCE). Everything runs in this
+(``GF4CAL_QB2_DIR``, else ``/work/shared/data/real/orthority_qb2``: the three files from a clone of orthority,
+https://github.com/leftfield-geospatial/orthority, tests/data/). Everything runs in this
 process, interleaved (refine, gdalwarp, refine --ortho, then again in another order) so that the load of a shared
 machine falls on all alike:
 
