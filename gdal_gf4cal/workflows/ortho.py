@@ -26,8 +26,22 @@ from ._common import _open_image, cancel_check, collect_warnings, finish_report
 
 #: Resampling names accepted by :func:`orthorectify` (GDAL's ``-r`` names).
 RESAMPLING = ("near", "bilinear", "cubic", "cubicspline", "lanczos", "average", "mode")
-#: Creation options of the ortho: tiled, compressed, BigTIFF when needed (COG-friendly layout).
-CREATION_OPTIONS = gtiff_options(tile=512)
+
+
+def creation_options(data_type: int) -> list:
+    """Creation options of an ortho of GDAL type ``data_type``: 512-px tiles, DEFLATE level 1 with the predictor of
+    the type (2 for integers, 3 for floats; none for complex), BigTIFF when needed (COG-friendly layout). Against
+    GDAL's level 6 without a predictor (before): the QuickBird-2 ortho of bench_refine_ortho (Byte) 17 % smaller in
+    70 % of the compression CPU, a 11,048 x 9,552 UInt16 raster 3 % smaller in 62 %, the real Pleiades Ventoux crop's
+    ortho (UInt16) 9 % smaller in the same CPU."""
+    from osgeo import gdal
+    if gdal.DataTypeIsComplex(data_type):
+        predictor = None
+    else:
+        predictor = 3 if data_type in (gdal.GDT_Float32, gdal.GDT_Float64) else 2
+    return gtiff_options(tile=512, predictor=predictor, zlevel=1)
+
+
 #: Overviews are built (factors 2, 4, 8, ...) until the smaller side is at most this many pixels.
 OVERVIEW_MIN_SIZE = 256
 
@@ -58,7 +72,7 @@ def _write_ortho(warped, out_path: str, resampling: str, callback) -> Dict[str, 
     gdal.SetThreadLocalConfigOption("GDAL_TIFF_INTERNAL_MASK", "YES")
     try:
         ds = gdal.Translate(out_path, warped, format="GTiff", bandList=list(range(1, n + 1)), maskBand=n + 1,
-                            noData=nodata, creationOptions=CREATION_OPTIONS,
+                            noData=nodata, creationOptions=creation_options(warped.GetRasterBand(1).DataType),
                             callback=lambda f, m, d: callback(0.9 * f, m, d))
         if ds is None:
             raise Gf4calError("writing the ortho failed without a message")

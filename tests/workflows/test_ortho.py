@@ -262,3 +262,13 @@ def test_lift_valid_nodata_next_value_of_the_type(tmp_path, gdal_type, nodata, e
         b = ds.GetRasterBand(i).ReadAsArray()
         assert np.all(b[1:, 1::2] == np.asarray(expected, b.dtype)) and np.all(b[0, 1::2] == nodata)
         assert np.all(b[:, ::2] == 7)
+
+
+def test_ortho_deflate_predictor_by_type(refined):
+    """The ortho's DEFLATE has the predictor of its type: horizontal differencing for integers (the rendered scene),
+    the floating-point one for floats, none for complex (GDAL has none)."""
+    from gdal_gf4cal.workflows.ortho import creation_options
+    structure = gdal.Open(str(refined / "ortho.tif")).GetMetadata("IMAGE_STRUCTURE")
+    assert structure["COMPRESSION"] == "DEFLATE" and structure["PREDICTOR"] == "2"
+    assert "PREDICTOR=3" in creation_options(gdal.GDT_Float64) and "PREDICTOR=2" in creation_options(gdal.GDT_UInt16)
+    assert not any(o.startswith("PREDICTOR=") for o in creation_options(gdal.GDT_CFloat32))
