@@ -150,7 +150,9 @@ def spectra(a: np.ndarray, window: str = "hann") -> Spectra:
     mean = _dot(a.reshape(n, h * w), wflat) / wsum
     p = np.subtract(a, mean[:, None, None])
     p *= win
-    energy = np.einsum("nij,nij->n", p, p, dtype=np.float64)
+    # Row sums in float32, then their float64 sum (no cast inside a reduction: no buffers whose bounds depend on the
+    # stack): the same bits for any stack; 5x faster than one float64 einsum, which casts every element.
+    energy = np.einsum("nij,nij->ni", p, p).astype(np.float64).sum(axis=-1)
     return Spectra(sfft.rfft2(p, workers=1), energy, (h, w))
 
 
