@@ -106,6 +106,8 @@ def lift_valid_nodata(ds, nodata: float) -> Tuple[int, float]:
     if dtype.kind not in "uif" or not np.isfinite(nodata):
         return 0, nodata
     if dtype.kind == "f":
+        if abs(nodata) > np.finfo(dtype).max:
+            return 0, nodata                                      # beyond the type's range: no pixel can hold it
         nd = dtype.type(nodata)
         value = np.nextafter(nd, dtype.type(np.inf))
     else:

@@ -237,7 +237,8 @@ def test_valid_pixels_equal_to_nodata_are_lifted_not_hidden(scene, tmp_path):
     (gdal.GDT_Byte, 255, 254),
     (gdal.GDT_UInt16, 0, 1),
     (gdal.GDT_Float32, 0.0, float(np.nextafter(np.float32(0), np.float32(1)))),   # 1.4e-45
-    (gdal.GDT_Int16, 1e10, None)])
+    (gdal.GDT_Int16, 1e10, None),
+    (gdal.GDT_Float32, 1e40, None)])                 # inf in float32: an infinite pixel is not no-data
 def test_lift_valid_nodata_next_value_of_the_type(tmp_path, gdal_type, nodata, expected):
     """The next value of the band's type (the one below at its maximum; the smallest step for floats); a no-data
     value no pixel of the type can hold changes nothing. Masked pixels keep the no-data value."""
@@ -245,7 +246,7 @@ def test_lift_valid_nodata_next_value_of_the_type(tmp_path, gdal_type, nodata, e
     ds = gdal.GetDriverByName("GTiff").Create(str(tmp_path / "b.tif"), 600, 5, 2, gdal_type,
                                               ["TILED=YES", "BLOCKXSIZE=256", "BLOCKYSIZE=256"])
     ds.CreateMaskBand(gdal.GMF_PER_DATASET)
-    fill = 0 if expected is None else nodata
+    fill = nodata if expected is not None else (np.inf if gdal_type == gdal.GDT_Float32 else 0)
     a = np.full((5, 600), fill)
     a[:, ::2] = 7
     mask = np.full((5, 600), 255, np.uint8)
