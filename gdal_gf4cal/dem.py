@@ -27,6 +27,7 @@ from scipy.ndimage import map_coordinates, maximum_filter
 from ._gdal import with_gdal_exceptions
 from .errors import DEMError
 from .estimation import normal_solve
+from .geodesy import crs_transformer
 from .geoid import declared_geoid, grid_path, proj_search_dirs
 
 log = logging.getLogger(__name__)
@@ -126,7 +127,7 @@ class DEM:
         self._to_dem = None
         geographic_wgs84 = srs.IsGeographic() and srs.GetAuthorityCode("GEOGCS") == "4326"
         if not geographic_wgs84:
-            self._to_dem = pyproj.Transformer.from_crs("EPSG:4326", pyproj.CRS.from_wkt(wkt), always_xy=True)
+            self._to_dem = crs_transformer("EPSG:4326", wkt)
         # Geographic DEMs: longitudes are compared modulo 360 (see :meth:`_wrap_lon`), so a DEM in the 0..360
         # convention or one crossing the antimeridian serves points given in -180..180, and the reverse.
         self._lon_wrap = srs.IsGeographic() == 1

@@ -47,6 +47,7 @@ from osgeo import gdal
 from ._gdal import with_gdal_exceptions
 from .atomic import atomic_output
 from .errors import GCPError
+from .geodesy import crs_transformer
 from .observations import (
     _resolve_image,
     fill_heights,
@@ -83,7 +84,7 @@ def _to_lonlat(x, y, crs):
     crs = _crs(crs)
     if crs.is_geographic and crs.equals(pyproj.CRS.from_epsg(4326), ignore_axis_order=True):
         return np.asarray(x, float), np.asarray(y, float)
-    tf = pyproj.Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+    tf = crs_transformer(crs, "EPSG:4326")
     lon, lat = tf.transform(np.asarray(x, float), np.asarray(y, float))
     return np.asarray(lon, float), np.asarray(lat, float)
 

@@ -24,11 +24,11 @@ from typing import Tuple
 
 import numpy as np
 from osgeo import gdal
-import pyproj
 from scipy import ndimage
 
 from .._gdal import with_gdal_exceptions
 from ..errors import Gf4calError
+from ..geodesy import crs_transformer
 
 __all__ = ["ReferenceImage", "RawReference", "cut_boxes", "grid_nodes", "read_block", "read_boxes", "reference_on_grids",
            "whole_pixel_shift"]
@@ -104,8 +104,7 @@ class ReferenceImage:
     @property
     def transformer(self):
         if self._transformer is None:
-            self._transformer = pyproj.Transformer.from_crs("EPSG:4326", pyproj.CRS.from_wkt(self.crs_wkt),
-                                                            always_xy=True)
+            self._transformer = crs_transformer("EPSG:4326", self.crs_wkt)
         return self._transformer
 
     def lonlat_to_pixel(self, lon, lat) -> Tuple[np.ndarray, np.ndarray]:

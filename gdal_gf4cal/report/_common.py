@@ -9,9 +9,10 @@ from pathlib import Path
 from typing import Optional, Tuple, Union
 
 import numpy as np
-from pyproj import CRS, Transformer
+from pyproj import CRS
 
 from ..errors import GCPError
+from ..geodesy import crs_transformer
 
 STANDARD_BEFORE = ("res_sample_before", "res_line_before")
 STANDARD_AFTER = ("res_sample_after", "res_line_after")
@@ -85,7 +86,7 @@ def _transformer(crs):
     crs = CRS.from_user_input(crs)
     if crs.equals(CRS.from_epsg(4326)):
         return crs, None
-    return crs, Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+    return crs, crs_transformer("EPSG:4326", crs)
 
 
 def _pixel_size(x, y, sample, line, fallback) -> Tuple[float, float, str]:

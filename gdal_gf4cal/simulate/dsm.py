@@ -11,9 +11,9 @@ from typing import Optional
 
 import numpy as np
 from osgeo import gdal, osr
-import pyproj
 
 from .._gdal import with_gdal_exceptions
+from ..geodesy import crs_transformer
 
 NODATA = -9999.0
 
@@ -83,7 +83,7 @@ def urban_dsm(path, terrain, center, *, size_px: int = 400, res_m: float = 0.5, 
     """
     rng = np.random.default_rng(seed)
     epsg = _utm_epsg(*center)
-    to_utm = pyproj.Transformer.from_crs("EPSG:4326", f"EPSG:{epsg}", always_xy=True)
+    to_utm = crs_transformer("EPSG:4326", f"EPSG:{epsg}")
     cx, cy = to_utm.transform(*center)
     half = 0.5 * size_px * res_m
     gt = (cx - half, res_m, 0.0, cy + half, 0.0, -res_m)

@@ -20,7 +20,6 @@ from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from typing import Optional
 
 import numpy as np
-import pyproj
 from osgeo import gdal, osr
 from scipy.ndimage import map_coordinates
 
@@ -28,6 +27,7 @@ from .._gdal import with_gdal_exceptions
 from ..atomic import atomic_output, fix_mode
 from ..dem import DEM
 from ..errors import DEMError, Gf4calError
+from ..geodesy import crs_transformer
 from ..outputs import gtiff_options
 from ..progress import report
 
@@ -328,7 +328,7 @@ class _Reference:
         self.lo, self.hi = float(lo), float(max(hi, lo + 1e-9))
         srs = osr.SpatialReference(wkt=wkt)
         self.geographic = bool(srs.IsGeographic())
-        self.tr = pyproj.Transformer.from_crs("EPSG:4326", pyproj.CRS.from_wkt(wkt), always_xy=True)
+        self.tr = crs_transformer("EPSG:4326", wkt)
         ref_m = abs(gt[1]) * (_M_PER_DEG if self.geographic else 1.0)
         # Average the reference down to about the image's resolution (anti-aliasing).
         self.factor = max(1.0, image_gsd_m / ref_m / 1.5)
