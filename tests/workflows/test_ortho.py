@@ -316,3 +316,25 @@ def test_real_crop_ortho_equals_gdalwarp_whatever_the_chunks(tmp_path, res_facto
             with limit(2):
                 orthorectify(image, dem=SRTM, out=tmp_path / f"{image.stem}_2t.tif", geoid="none")
             np.testing.assert_array_equal(_read(tmp_path / f"{image.stem}_2t.tif")[0], ortho)
+
+
+@pytest.mark.parametrize("dst", [(49, 71), (48, 50), (50, 33), (120, 97), (26, 100)])
+def test_kernel_scales_are_gdals_for_one_chunk(dst):
+    """``kernel_scales`` gives the scales GDAL's warp kernel computes for a one-chunk warp (a textured 100 x 100
+    image downsampled or upsampled onto ``dst`` px): passing them as XSCALE / YSCALE changes no pixel, and the
+    unsnapped ratio does where GDAL snaps it (1 / r within 0.05 of an integer) below 0.95."""
+    from gdal_gf4cal.workflows.ortho import kernel_scales
+    rng = np.random.default_rng(5)
+    src = gdal.GetDriverByName("MEM").Create("", 100, 100, 1, gdal.GDT_Float32)
+    src.SetGeoTransform((0.0, 1.0, 0.0, 100.0, 0.0, -1.0))
+    src.GetRasterBand(1).WriteArray(rng.normal(size=(100, 100)).astype(np.float32))
+
+    def warp(options):
+        return gdal.Warp("", src, format="MEM", outputBounds=(0, 0, 100, 100), width=dst[0], height=dst[1],
+                         resampleAlg="bilinear", warpOptions=options).ReadAsArray()
+
+    scales = kernel_scales(dst, (100, 100))
+    np.testing.assert_array_equal(warp([f"XSCALE={scales[0]!r}", f"YSCALE={scales[1]!r}"]), warp([]))
+    raw = (dst[0] / 100, dst[1] / 100)
+    if scales != raw and min(raw) < 0.95:          # from 0.95 up bilinear takes 4 samples whatever the scale
+        assert not np.array_equal(warp([f"XSCALE={raw[0]!r}", f"YSCALE={raw[1]!r}"]), warp([]))
