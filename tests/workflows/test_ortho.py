@@ -275,11 +275,12 @@ def test_ortho_deflate_predictor_by_type(refined):
     assert not any(o.startswith("PREDICTOR=") for o in creation_options(gdal.GDT_CFloat32))
 
 
-@pytest.mark.parametrize("res_factor", [1.0, 2.0, 3.3])
-def test_real_crop_ortho_equals_gdalwarp_whatever_the_chunks(tmp_path, res_factor):
+@pytest.mark.parametrize("res_factor, resampling", [(1.0, "bilinear"), (2.0, "bilinear"), (3.3, "bilinear"),
+                                                    (1.0, "cubic"), (2.0, "lanczos")])
+def test_real_crop_ortho_equals_gdalwarp_whatever_the_chunks(tmp_path, res_factor, resampling):
     """The real Pleiades crops as delivered (each beside its .geom, SRTM heights as they are): ``gf4cal ortho``
-    equals ``gdalwarp -rpc`` of the same image and RPC on its grid pixel for pixel, at GDAL's resolution and coarser
-    (the resampling kernel's scale is the whole ortho's, not each warped block's: 512 x 128 blocks had widened the
+    equals ``gdalwarp -rpc`` of the same image and RPC on its grid pixel for pixel, at GDAL's resolution and coarser,
+    bilinear, cubic and lanczos (the resampling kernel's scale is the whole ortho's, not each warped block's: 512 x 128 blocks had widened the
     bilinear kernel along y, 16-27 % of the pixels off by up to 17 DN)."""
     from ventouxpair import SRTM, pair
     from gdal_gf4cal.crop import image_rpc
@@ -287,11 +288,11 @@ def test_real_crop_ortho_equals_gdalwarp_whatever_the_chunks(tmp_path, res_facto
     for image in pair(tmp_path / "in"):
         model, _ = image_rpc(str(image), None)                 # the product's RPC moved to the crop
         out = tmp_path / f"{image.stem}.tif"
-        orthorectify(image, dem=SRTM, out=out, geoid="none")
+        orthorectify(image, dem=SRTM, out=out, geoid="none", resampling=resampling)
         if res_factor != 1.0:                                  # coarser than GDAL's choice: the kernel widens
             res = round(res_factor * _read(out)[1][1], 3)
             out = tmp_path / f"{image.stem}_{res_factor}.tif"
-            orthorectify(image, dem=SRTM, out=out, geoid="none", res_m=res)
+            orthorectify(image, dem=SRTM, out=out, geoid="none", res_m=res, resampling=resampling)
         ortho, gt, epsg = _read(out)
         ny, nx = ortho.shape
         src = tmp_path / f"{image.stem}_rpc.vrt"
@@ -300,7 +301,7 @@ def test_real_crop_ortho_equals_gdalwarp_whatever_the_chunks(tmp_path, res_facto
         vrt.SetMetadata(model.to_gdal_metadata(), "RPC")
         vrt = None
         ref_path = tmp_path / f"{image.stem}_{res_factor}_gdalwarp.tif"
-        gdal.Warp(str(ref_path), str(src), rpc=True, dstSRS=f"EPSG:{epsg}", resampleAlg="bilinear",
+        gdal.Warp(str(ref_path), str(src), rpc=True, dstSRS=f"EPSG:{epsg}", resampleAlg=resampling,
                   outputBounds=(gt[0], gt[3] + gt[5] * ny, gt[0] + gt[1] * nx, gt[3]), xRes=gt[1], yRes=-gt[5],
                   transformerOptions=[f"RPC_DEM={SRTM}", "RPC_DEMINTERPOLATION=bilinear",
                                       "RPC_DEM_APPLY_VDATUM_SHIFT=FALSE"])
@@ -314,7 +315,8 @@ def test_real_crop_ortho_equals_gdalwarp_whatever_the_chunks(tmp_path, res_facto
         assert not bad.any(), (image.stem, res_factor, ny, bad.mean(), np.abs(ortho - ref)[valid].max())
         if res_factor == 1.0:                                  # GDAL's warp on two threads: the same pixels
             with limit(2):
-                orthorectify(image, dem=SRTM, out=tmp_path / f"{image.stem}_2t.tif", geoid="none")
+                orthorectify(image, dem=SRTM, out=tmp_path / f"{image.stem}_2t.tif", geoid="none",
+                             resampling=resampling)
             np.testing.assert_array_equal(_read(tmp_path / f"{image.stem}_2t.tif")[0], ortho)
 
 
