@@ -453,14 +453,16 @@ def kernel_scales(dst_size: Tuple[int, int], src_size: Tuple[int, int]) -> Tuple
     return scales[0], scales[1]
 
 
-def whole_ortho_kernel(warped, vrt_path: str, src_size: Tuple[int, int]):
-    """The warped VRT ``warped`` (written at ``vrt_path``; its source image has ``src_size`` px) reopened with the
-    resampling kernel's scales of the whole ortho (:func:`kernel_scales`) in its warp options. Without them GDAL
+def whole_ortho_kernel(warped, vrt_path: str, src_path: str):
+    """The warped VRT ``warped`` (written at ``vrt_path``, warping ``src_path``) reopened with the resampling kernel's
+    scales of the whole ortho (:func:`kernel_scales`) in its warp options. Without them GDAL
     estimates the scales for each block it warps from that block's source window: a 512 x 128 block of a slanted
     scene needs more source lines than it has rows, the bilinear or cubic kernel widened along y and the ortho came
     out softer than ``gdalwarp -rpc``'s (57 % of the pixels of a real Pleiades crop, up to 50 DN off), differently in
     blocks of another shape. With them every block uses the scales gdalwarp uses when the ortho is one chunk: the
-    same pixels as gdalwarp, whatever the blocks and threads."""
+    same pixels as gdalwarp, whatever the blocks and threads. The source is the raster GDAL warps from: for an ortho
+    coarser than the image, the image's overview gdalwarp chose (``-ovr AUTO``, the VRT's ``OVERVIEW_LEVEL`` open
+    option), opened with the VRT's own open options."""
     import xml.etree.ElementTree as ET
     from osgeo import gdal
     if warped is None:
@@ -469,6 +471,10 @@ def whole_ortho_kernel(warped, vrt_path: str, src_size: Tuple[int, int]):
     warped = None                                            # written to vrt_path
     tree = ET.parse(vrt_path)
     options = tree.getroot().find("GDALWarpOptions")
+    source = gdal.OpenEx(src_path, gdal.OF_RASTER, open_options=[f"{o.get('key')}={o.text}" for o in
+                                                                 options.iterfind("OpenOptions/OOI")])
+    src_size = (source.RasterXSize, source.RasterYSize)
+    source = None
     for name, scale in zip(("XSCALE", "YSCALE"), kernel_scales(dst_size, src_size)):
         ET.SubElement(options, "Option", name=name).text = repr(scale)
     tree.write(vrt_path)
@@ -510,12 +516,11 @@ def warp_ortho(image: str, image_size, model, dem: str, grid: Optional[str], out
         else:
             dem_used = dem
         rep["crs"] = dst_srs
-        src_path, src = image, open_raster(image, what="image")
-        src_size = (src.RasterXSize, src.RasterYSize)
+        src_path = image
         if model is not None:                   # the image's pixels with the given RPC
             src_path = os.path.join(tmpdir, "source.vrt")
             with gdal_exceptions():
-                gdal.Translate(src_path, src, format="VRT")
+                gdal.Translate(src_path, open_raster(image, what="image"), format="VRT")
                 vrt = gdal.Open(src_path, gdal.GA_Update)
                 vrt.SetMetadata(model.to_gdal_metadata(), "RPC")
                 vrt = None
@@ -539,7 +544,7 @@ def warp_ortho(image: str, image_size, model, dem: str, grid: Optional[str], out
         try:
             with gdal_exceptions():
                 vrt_path = os.path.join(tmpdir, "warped.vrt")
-                warped = whole_ortho_kernel(gdal.Warp(vrt_path, src_path, **opts), vrt_path, src_size)
+                warped = whole_ortho_kernel(gdal.Warp(vrt_path, src_path, **opts), vrt_path, src_path)
                 rep.update(_write_ortho(warped, out_path, resampling, _cb))
         except RuntimeError as exc:
             if cancelled:
