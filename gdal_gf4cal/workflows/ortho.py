@@ -455,14 +455,15 @@ def kernel_scales(dst_size: Tuple[int, int], src_size: Tuple[int, int]) -> Tuple
 
 def whole_ortho_kernel(warped, vrt_path: str, src_path: str):
     """The warped VRT ``warped`` (written at ``vrt_path``, warping ``src_path``) reopened with the resampling kernel's
-    scales of the whole ortho (:func:`kernel_scales`) in its warp options. Without them GDAL
-    estimates the scales for each block it warps from that block's source window: a 512 x 128 block of a slanted
-    scene needs more source lines than it has rows, the bilinear or cubic kernel widened along y and the ortho came
-    out softer than ``gdalwarp -rpc``'s (57 % of the pixels of a real Pleiades crop, up to 50 DN off), differently in
-    blocks of another shape. With them every block uses the scales gdalwarp uses when the ortho is one chunk: the
-    same pixels as gdalwarp, whatever the blocks and threads. The source is the raster GDAL warps from: for an ortho
-    coarser than the image, the image's overview gdalwarp chose (``-ovr AUTO``, the VRT's ``OVERVIEW_LEVEL`` open
-    option), opened with the VRT's own open options."""
+    scales of the whole ortho (:func:`kernel_scales`) in its warp options.
+
+    Without them GDAL estimates the scales for each block it warps from that block's source window: a 512 x 128
+    block of a slanted scene needs more source lines than it has rows, the bilinear or cubic kernel widened along y
+    and the ortho came out softer than ``gdalwarp -rpc``'s (57 % of the pixels of a real Pleiades crop, up to 50 DN
+    off), differently in blocks of another shape. With them every block uses the scales gdalwarp uses when the ortho
+    is one chunk: the same pixels as gdalwarp, whatever the blocks and threads. The source is the raster GDAL warps
+    from: for an ortho coarser than the image, the image's overview gdalwarp chose (``-ovr AUTO``, the VRT's
+    ``OVERVIEW_LEVEL`` open option), opened with the VRT's own open options."""
     import xml.etree.ElementTree as ET
     from osgeo import gdal
     if warped is None:
