@@ -64,7 +64,9 @@ BENCHES = {
     "refine_ortho": ("bench_refine_ortho.py", [], ["--repeat", "3"], [
         _rows(rf"\(gdalwarp \+ refine\): {NUM} \(min wall\)", "refine --ortho / (gdalwarp + refine), wall",
               "<= 1.1x", lambda r: r <= 1.1),
-        _rows(rf"{NUM} \(min CPU", "refine --ortho / (gdalwarp + refine), CPU", "<= 1.1x", lambda r: r <= 1.1)]),
+        _rows(rf"{NUM} \(min CPU", "refine --ortho / (gdalwarp + refine), CPU", "<= 1.1x", lambda r: r <= 1.1),
+        _rows(rf"differing from gdalwarp's: {NUM} of", "refine --ortho pixels differing from gdalwarp's", "0",
+              lambda r: r == 0)]),
     "bundle": ("bench_bundle.py", [], ["--ties", "2000"], [
         _rows(rf"^\s*100000\s+\S+\s+\d+\s+{NUM}\s", "bundle 10 views x 100k ties, s", "< 10 s", lambda r: r < 10.0),
         _rows(rf"^\s*2000\s+\S+\s+\d+\s+{NUM}\s", "bundle 10 views x 2k ties, s", "(indication)", None)]),
