@@ -104,7 +104,9 @@ def differing_valid_pixels(ortho: str, plain: str) -> tuple:
     import numpy as np
     a, b = gdal.Open(ortho), gdal.Open(plain)
     valid = a.GetRasterBand(1).GetMaskBand().ReadAsArray() > 0
-    diff = np.any(np.atleast_3d(a.ReadAsArray().T != b.ReadAsArray().T), axis=-1).T
+    diff = a.ReadAsArray() != b.ReadAsArray()
+    if diff.ndim == 3:                                           # bands first: a pixel differs in any band
+        diff = diff.any(axis=0)
     return int(np.count_nonzero(diff & valid)), int(np.count_nonzero(valid))
 
 
