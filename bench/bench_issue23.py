@@ -38,6 +38,9 @@ BENCHES = {
     "threads": ("bench_threads.py", [], ["--points", "400000", "--repeat", "1"], [
         _rows(rf"^localize \+ project.*ratio\s+{NUM}x", "2 threads / 1, localise + project", ">= 1.6x",
               lambda r: r >= 1.6),
+        # the process-pool alternative to threads for the point kernels, measured in the same run
+        _rows(rf"^round trip on a pool .*: ratio\s+{NUM}x", "pool of 2 processes / 1 thread, localise + project",
+              "(indication)", None),
         # one-second runs of small crops: their fixed costs (tile planning, plots, one output tile) are most of a run;
         # the goal is read on whole scenes (the "matching" and "gf7" rows)
         _rows(rf"^collect-gcps .*ratio\s+{NUM}x", "2 threads / 1, collect-gcps 1024-px crop", "(indication)", None),

@@ -15,12 +15,13 @@ Each case runs under ``threads.limit(1)`` and ``threads.limit(k)`` alternately (
 and CPU, then the ratio of the minima and the voluntary context switches per run (medians); results must be the
 same bits in both (printed). With localize_dem, one more line: the share of a block's CPU spent in Python
 dispatching NumPy calls (64 points, every stage of a chunk, times the chunks of a block, against a block) and the
-2-thread bound it sets. With the round trip, two more lines: the same share for a round-trip block (a 16-point
+2-thread bound it sets. With the round trip, three more lines: the same share for a round-trip block (a 16-point
 round trip against a block's: what holds the GIL, the serial part) and the 2-thread bound it sets; the same round
 trip in k processes (half the points each: no GIL shared), the bound the machine itself sets (cores, caches,
-memory), against one thread in the same run. With --bound, the same for collect-gcps and register-pan-ms: k whole
-runs in k processes against one run on one thread. On a shared machine the ratios are low: measure when it is idle
-(the load average is printed before and after each case).
+memory), against one thread in the same run; and on a pool of k processes that copies the caller's points in and the
+results out through shared memory (what a process pool would give the API). With --bound, the same for
+collect-gcps and register-pan-ms: k whole runs in k processes against one run on one thread. On a shared
+machine the ratios are low: measure when it is idle (the load average is printed before and after each case).
 
 Run: .venv/bin/python bench/bench_threads.py [--points N] [--repeat R (default: 7 point cases, 3 others)]
      [--threads 2] [--workdir DIR] [--cases round_trip,localize_dem,collect,panms] [--bound] [--panms-size PX]
@@ -190,6 +191,58 @@ def round_trip_bound(n, k, repeat):
     process_bound("round trip", work, k, repeat, split=True)
 
 
+#: :func:`round_trip_pool`: the points and the RPC a forked worker inherits, (5, n) columns of shared memory (sample,
+#: line, h in; sample, line out).
+_POOL: dict = {}
+
+
+def _pool_round_trip(a: int, b: int) -> None:
+    """A worker of :func:`round_trip_pool`: the round trip of the points ``a:b`` of the shared columns, one thread."""
+    rpc, cols = _POOL["rpc"], _POOL["cols"]
+    with threads.limit(1):
+        cols[3:5, a:b] = _round_trip(rpc, cols[0, a:b], cols[1, a:b], cols[2, a:b])[2:]
+
+
+def round_trip_pool(n, k, repeat):
+    """The round trip as a process pool would serve the API: ``k`` forked workers (kept between calls) share the
+    points' memory; a call copies the caller's arrays in, waits for the ``k`` shares and copies the results out, against
+    one thread in this process, alternately ``repeat`` times (session 17: 1.42-1.56x on 2 cores, the 2-thread range:
+    the copies cost what the GIL does)."""
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import shared_memory
+    rpc, s, l, hh = _points(n)
+    shm = shared_memory.SharedMemory(create=True, size=5 * n * 8)
+    try:
+        _POOL.update(rpc=rpc, cols=np.ndarray((5, n), buffer=shm.buf))
+        cols, bounds = _POOL["cols"], [i * n // k for i in range(k + 1)]
+        with ProcessPoolExecutor(k, mp_context=multiprocessing.get_context("fork")) as pool:
+            def pooled():
+                cols[0], cols[1], cols[2] = s, l, hh
+                for f in [pool.submit(_pool_round_trip, a, b) for a, b in zip(bounds, bounds[1:])]:
+                    f.result()
+                return cols[3].copy(), cols[4].copy()
+
+            def alone():
+                with threads.limit(1):
+                    return _round_trip(rpc, s, l, hh)[2:]
+
+            one, many = [], []
+            same = _arrays_equal(pooled(), alone())
+            for _ in range(repeat):
+                for fn, laps in ((alone, one), (pooled, many)):
+                    w = time.perf_counter()
+                    fn()
+                    laps.append(time.perf_counter() - w)
+    finally:
+        _POOL.clear()
+        shm.close()
+        shm.unlink()
+    print(f"round trip on a pool of {k} processes (points copied through shared memory): 1 thread "
+          f"{statistics.median(one):6.2f} s, pool {statistics.median(many):6.2f} s: ratio "
+          f"{statistics.median(one) / statistics.median(many):4.2f}x (minima {min(one) / min(many):4.2f}x), same bits: "
+          f"{same}; load {os.getloadavg()[0]:.1f}", flush=True)
+
+
 def point_cases(n):
     """localize + project of ``n`` points and localize_dem of ``n / 4`` on the real Ventoux RPC and SRTM."""
     rpc, s, l, hh = _points(n)
@@ -301,6 +354,7 @@ def main():
     if "round_trip" in wanted:
         serial_share()
         round_trip_bound(args.points, args.threads, args.repeat or REPEAT["round_trip"])
+        round_trip_pool(args.points, args.threads, args.repeat or REPEAT["round_trip"])
     for c in ("collect", "panms"):
         if c in wanted and args.bound:
             label, fn, _ = found[c]
