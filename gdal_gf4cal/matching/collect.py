@@ -865,6 +865,23 @@ DEFAULTS = dict(min_peak=0.2, min_peak_ratio=2.0, min_ncc=0.3, min_texture=1.5, 
                 sigma_px=1.0, geometry_step=4)
 
 
+#: Grid step of the windows on a large image (px) and the fewest windows a default grid puts across the image's
+#: shorter side (:func:`default_spacing`).
+DEFAULT_SPACING_PX = 256
+MIN_WINDOWS_ACROSS = 8
+
+
+def default_spacing(width: int, height: int, window_px: int, margin_px: Optional[int] = None) -> int:
+    """The grid step when none is given: :data:`DEFAULT_SPACING_PX`, or finer on a small image (a crop) so that
+    :data:`MIN_WINDOWS_ACROSS` windows fit across its shorter side, never closer than a window (windows that
+    overlap measure the same texture twice). 256 px on a 10,000 px scene, 128 px on 1024 px, 64 px on a 500 px crop
+    (where 256 px gave 4 windows, and one or two GCPs)."""
+    w = int(window_px)
+    margin = w // 2 if margin_px is None else int(margin_px)
+    span = min(width, height) - 2 * margin - w                # where window centres may lie
+    return int(min(DEFAULT_SPACING_PX, max(w, span // (MIN_WINDOWS_ACROSS - 1))))
+
+
 @with_gdal_exceptions
 def _image_info(image, band: int):
     path = image.GetDescription() if hasattr(image, "GetDescription") else os.fspath(image)
@@ -877,15 +894,17 @@ def _image_info(image, band: int):
     return path, ds.RasterXSize, ds.RasterYSize, ds.GetRasterBand(band).GetNoDataValue()
 
 
-def plan_tiles(image, rpc, reference, dem, spacing_px: int = 256, window_px: int = 64, *, search_px: float = 64,
+def plan_tiles(image, rpc, reference, dem, spacing_px: Optional[int] = None, window_px: int = 64, *,
+               search_px: float = 64,
                tile_windows: int = 64, band: int = 1, reference_band: int = 1, margin_px: Optional[int] = None,
                reference_model: Any = None, region: Optional[Sequence[float]] = None,
                **params) -> Tuple[List[TileSpec], Dict[str, Any]]:
     """The window grid and its tiles: ``(specs, context)`` for :func:`match_tile` and :func:`assemble_gcps`.
 
-    Window centres form a regular grid of step ``spacing_px`` kept ``margin_px`` (default half a window) from
-    the image edges; they are grouped into square tiles of about ``tile_windows`` windows. ``region`` =
-    ``(sample0, line0, sample1, line1)`` keeps only the centres inside that box (the grid itself does not move).
+    Window centres form a regular grid of step ``spacing_px`` (default :func:`default_spacing`) kept
+    ``margin_px`` (default half a window) from the image edges; they are grouped into square tiles of about
+    ``tile_windows`` windows. ``region`` = ``(sample0, line0, sample1, line1)`` keeps only the centres inside that
+    box (the grid itself does not move).
     ``reference_model`` (a sensor model) makes ``reference`` a raw image seen through it
     (:class:`.resample.RawReference`) instead of an orthophoto.
     """
@@ -900,7 +919,7 @@ def plan_tiles(image, rpc, reference, dem, spacing_px: int = 256, window_px: int
     w = int(window_px)
     if w < 16 or w % 2:
         raise Gf4calError(f"window must be an even number of pixels >= 16 (got {window_px})")
-    spacing = int(spacing_px)
+    spacing = default_spacing(W, H, w, margin_px) if spacing_px is None else int(spacing_px)
     if spacing < 1:
         raise Gf4calError(f"spacing must be a positive number of pixels (got {spacing_px})")
     ref_path = os.fspath(reference)
@@ -986,6 +1005,7 @@ def assemble_gcps(results: Sequence[Dict[str, np.ndarray]], ctx: Dict[str, Any],
                     dsample=sel.get("dsample", np.zeros(0)), dline=sel.get("dline", np.zeros(0)),
                     outlier=np.asarray(outlier, dtype=bool))
     gdf.attrs["windows"] = counts
+    gdf.attrs["spacing_px"] = int(ctx["spacing_px"])
     return gdf
 
 
@@ -1042,7 +1062,7 @@ def _match_tiles_serial(specs: Sequence[TileSpec]) -> List[Dict[str, np.ndarray]
 
 
 @threads.blas_serial()     # BLAS on the calling thread, as in the CLI and QGIS (threads.py)
-def collect_gcps(image, rpc, reference, dem, spacing_px: int = 256, window_px: int = 64, *,
+def collect_gcps(image, rpc, reference, dem, spacing_px: Optional[int] = None, window_px: int = 64, *,
                  workers: Optional[int] = None, executor: Optional[cf.Executor] = None, min_peak: float = 0.2,
                  min_peak_ratio: float = 2.0, min_ncc: float = 0.3, min_texture: float = 1.5,
                  search_px: float = 64, outlier_model: str = "affine", outlier_threshold_px: float = 3.0,
@@ -1059,7 +1079,8 @@ def collect_gcps(image, rpc, reference, dem, spacing_px: int = 256, window_px: i
         when it is much finer than the raw image).
     dem : :class:`gdal_gf4cal.DEM`, DEM path (ellipsoidal heights; give a ``DEM(geoid=...)`` otherwise) or a
         constant height in metres.
-    spacing_px, window_px : grid step and (even) window size, raw pixels.
+    spacing_px, window_px : grid step and (even) window size, raw pixels; the step by default
+        :func:`default_spacing` (256 px, finer on images under ~1,900 px: eight windows across the shorter side).
     workers : parallel threads (default: ``GF4CAL_NUM_THREADS``, else the machine's cores; 1 runs in the calling
         thread). ``executor`` : any
         :class:`concurrent.futures.Executor` (process pool, ``distributed.Client.get_executor()``...) instead.

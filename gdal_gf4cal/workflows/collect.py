@@ -24,8 +24,8 @@ def collect_gcps_file(image, reference, dem, out, *, rpc=None, geoid=None, keep_
     to ``out`` (``.gpkg``, ``.csv`` or ``.geojson``); ``options`` go to :func:`gdal_gf4cal.matching.collect_gcps`.
 
     ``dem`` is a DEM path or a constant height. The table is written only when matching succeeded, and never over
-    an input or (without ``overwrite``) an existing file. Returns ``{"windows", "n_gcps", "n_outliers", "output",
-    "gcps" (the GeoDataFrame, all rows), "table" (the rows written), "warnings"}``.
+    an input or (without ``overwrite``) an existing file. Returns ``{"windows", "spacing_px" (the grid step used),
+    "n_gcps", "n_outliers", "output", "gcps" (the GeoDataFrame, all rows), "table" (the rows written), "warnings"}``.
     """
     out = os.fspath(out)
     if os.path.splitext(out)[1].lower() not in _EXTS:
@@ -49,9 +49,9 @@ def collect_gcps_file(image, reference, dem, out, *, rpc=None, geoid=None, keep_
         write_gcps(table, outs.tmp("gcps"))
         if not out.lower().endswith(".csv"):
             outs.set_check("gcps", check_vector({"gcps": len(table)} if out.lower().endswith(".gpkg") else None))
-    rep = {"command": "collect-gcps", "windows": dict(w), "n_gcps": int(len(table)),
-           "n_outliers": int(gcps["outlier"].to_numpy(bool).sum()), "output": out, "outputs": {"gcps": out},
-           "gcps": gcps, "table": table}
+    rep = {"command": "collect-gcps", "windows": dict(w), "spacing_px": gcps.attrs["spacing_px"],
+           "n_gcps": int(len(table)), "n_outliers": int(gcps["outlier"].to_numpy(bool).sum()), "output": out,
+           "outputs": {"gcps": out}, "gcps": gcps, "table": table}
     if note:
         rep["notes"] = [note]
     return finish_report(rep, warns)

@@ -20,8 +20,9 @@ def add_matching_parameters(alg) -> None:
     """The matching parameters (SPACING, WINDOW, SEARCH, OUTLIER_MODEL, SEED) of ``alg``: one declaration for the
     single-scene and the batch algorithm."""
     Num = QgsProcessingParameterNumber
-    alg._add(Num(alg.SPACING, alg.tr("Grid spacing (px)"), Num.Integer, 256, minValue=8),
-             "Distance between window centres in raw image pixels.")
+    alg._add(Num(alg.SPACING, alg.tr("Grid spacing (px)"), Num.Integer, None, optional=True, minValue=8),
+             "Distance between window centres in raw image pixels. Empty: 256, finer on images under ~1,900 px "
+             "(eight windows across the shorter side, never closer than a window).")
     alg._add(Num(alg.WINDOW, alg.tr("Window size (px)"), Num.Integer, 64, minValue=16, maxValue=1024),
              "Matching window size in raw image pixels (even).")
     for p, text in ((Num(alg.SEARCH, alg.tr("Largest initial offset (px)"), Num.Double, 64.0, minValue=1.0),
@@ -36,7 +37,7 @@ def add_matching_parameters(alg) -> None:
 
 def matching_options(alg, parameters, context) -> dict:
     """The engine keywords of the parameters :func:`add_matching_parameters` declared."""
-    return dict(spacing_px=alg.parameterAsInt(parameters, alg.SPACING, context),
+    return dict(spacing_px=alg.parameterAsInt(parameters, alg.SPACING, context) or None,   # unset: 0, the default
                 window_px=alg.parameterAsInt(parameters, alg.WINDOW, context),
                 search_px=alg.parameterAsDouble(parameters, alg.SEARCH, context),
                 outlier_model=OUTLIER_MODELS[alg.parameterAsEnum(parameters, alg.OUTLIER_MODEL, context)],
@@ -107,9 +108,10 @@ class CollectGcps(Gf4calAlgorithm):
         self.push_warnings(feedback, rep)
         gcps, table, w = rep["gcps"], rep["table"], rep["windows"]
         inliers = ~gcps["outlier"].to_numpy(bool)
-        feedback.pushInfo(f"windows {w['total']}: accepted {w['accepted']}, featureless {w['featureless']}, weak "
-                          f"correlation {w['weak_correlation']}, cloud/change {w['cloud_or_change']}, no data "
-                          f"{w['nodata']}, outside {w['outside_image']}; outliers {w['outliers']}")
+        feedback.pushInfo(f"windows {w['total']} every {rep['spacing_px']} px: accepted {w['accepted']}, featureless "
+                          f"{w['featureless']}, weak correlation {w['weak_correlation']}, cloud/change "
+                          f"{w['cloud_or_change']}, no data {w['nodata']}, outside {w['outside_image']}; outliers "
+                          f"{w['outliers']}")
         self.load_on_completion(out, "GCPs (matched)", "vector")
         # dsample, dline: offset measured - RPC prediction (collect_gcps always returns them).
         ds, dl = gcps["dsample"].to_numpy()[inliers], gcps["dline"].to_numpy()[inliers]

@@ -10,8 +10,10 @@ from osgeo import gdal
 
 from gdal_gf4cal.cli import main
 from gdal_gf4cal.gcp import read_gcps
+from gdal_gf4cal.matching.collect import DEFAULT_SPACING_PX, MIN_WINDOWS_ACROSS, default_spacing
 from gdal_gf4cal.matching.correlate import phase_correlate
 
+import ventouxpair
 from matchscene import build_scene, error_affine
 
 SIZE = (320, 320)
@@ -99,3 +101,35 @@ def test_end_to_end_collect_refine_orthorectify(scene, tmp_path):
     err = np.hypot(after.dx, after.dy)
     assert np.all(after.ncc > 0.8)
     assert np.max(err) <= 0.2, err
+
+
+@pytest.mark.parametrize("size, window, spacing", [((10240, 10240), 64, 256), ((1920, 2500), 64, 256),
+                                                    ((1024, 1024), 64, 128), ((4000, 1000), 32, 133),
+                                                    ((500, 500), 64, 64), ((200, 200), 64, 64)])
+def test_default_spacing_puts_eight_windows_across_small_images(size, window, spacing):
+    """Without --spacing: 256 px on a scene, finer on a crop (eight windows across its shorter side, the most
+    the span between the margins holds at that step), never closer than a window."""
+    assert default_spacing(*size, window) == spacing
+    span = min(size) - 2 * window                     # centres lie a window from the edges (half a window margin)
+    across = span // spacing + 1
+    assert across >= MIN_WINDOWS_ACROSS or spacing in (window, DEFAULT_SPACING_PX)
+
+
+def test_cli_default_grid_finds_gcps_on_a_real_crop(tmp_path, capsys):
+    """The real Pleiades Ventoux left crop (500 x 500 px, its own .geom) against an ortho of the right crop of the
+    stereo pair, on SRTM above EGM96, as a user runs it: no --spacing. The old default step (256 px) laid 4 windows
+    on it and wrote one or two GCPs; the default grid is 64 px, 36 windows, several GCPs."""
+    left, right = ventouxpair.pair(tmp_path)
+    ref = tmp_path / "right_ortho.tif"
+    assert main(["ortho", str(right), *ventouxpair.dem_args(), "--out", str(ref)]) == 0
+    capsys.readouterr()
+    counts = {}
+    for name, extra in (("default", []), ("256", ["--spacing", "256"])):
+        out = tmp_path / f"gcps_{name}.gpkg"
+        assert main(["collect-gcps", str(left), "--reference", str(ref), *ventouxpair.dem_args(), "--out", str(out),
+                     *extra]) == 0
+        text = capsys.readouterr().out
+        counts[name] = (int(text.split("windows ")[1].split()[0]), len(read_gcps(out)))
+        assert f"every {64 if name == 'default' else 256} px" in text
+    assert counts["256"][0] == 4 and counts["256"][1] <= 2
+    assert counts["default"][0] == 36 and counts["default"][1] >= 5

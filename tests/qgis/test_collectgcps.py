@@ -42,6 +42,16 @@ def test_collectgcps_then_refinerpc(run_alg, rendered, tmp_path):
     assert ref["CONTROL_RMS_BEFORE"] > 1.0 and ref["CONTROL_RMS_AFTER"] < 0.25
 
 
+def test_collectgcps_spacing_left_empty_is_the_default_grid(run_alg, rendered, tmp_path):
+    """SPACING left empty (optional, as the dialog shows it): the engine's default grid, 64 px on this 256 px scene
+    (eight windows across, never closer than a window: 3 x 3 windows), not an error or a zero step."""
+    res, fb = run_alg("gf4cal:collectgcps", {"INPUT": rendered["image"], "REFERENCE": rendered["reference"],
+                                             "DEM": rendered["dem"], "THREADS": 1,
+                                             "OUTPUT": str(tmp_path / "gcps.gpkg")})
+    assert res["N_WINDOWS"] == 9 and res["N_GCPS"] >= 8
+    assert "windows 9 every 64 px" in fb.text()
+
+
 def test_collectgcps_without_overlap_fails_cleanly(run_alg, rendered, tmp_path):
     from qgis.core import QgsProcessingException
     with pytest.raises(QgsProcessingException, match="(?i)no GCP found"):
