@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 import math
 import os
 import threading
+import warnings
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -882,6 +883,38 @@ def default_spacing(width: int, height: int, window_px: int, margin_px: Optional
     return int(min(DEFAULT_SPACING_PX, max(w, span // (MIN_WINDOWS_ACROSS - 1))))
 
 
+#: Fewest reference pixels a window should span: below it matches turn weak and imprecise (a rendered scene under a
+#: reference 4x / 6x / 8x coarser than its pixels, 64-px windows: all kept, 0.31 px per axis / a third rejected,
+#: ~1 px / 3 of 64 kept).
+MIN_REFERENCE_PX_PER_WINDOW = 16
+
+
+def reference_coarseness(model, reference, width: int, height: int) -> float:
+    """Reference pixel size over the image's at the image centre (4.0: a 2 m reference under a 0.5 m image), from
+    the image's sensor model at its height offset and the reference's own geometry; NaN when that geometry fails."""
+    s = width / 2.0 + np.array([0.0, 1.0, 0.0])
+    l = height / 2.0 + np.array([0.0, 0.0, 1.0])
+    h = np.full(3, float(getattr(model, "height_off", 0.0)))
+    try:
+        lon, lat = model.localize(s, l, h)[:2]
+        x, y = reference.ground_to_pixel(lon, lat, h)
+    except Exception:                                # a diagnostic only: never the reason a run fails
+        return float("nan")
+    per_px = np.hypot(x[1:] - x[0], y[1:] - y[0])    # reference pixels per image pixel along sample, line
+    return float(1.0 / np.mean(per_px)) if np.all(per_px > 0) else float("nan")
+
+
+def coarse_reference_hint(coarseness: float, window_px: int) -> Optional[str]:
+    """What to do when a window spans fewer than :data:`MIN_REFERENCE_PX_PER_WINDOW` reference pixels (None:
+    enough)."""
+    if not coarseness > 0 or window_px / coarseness >= MIN_REFERENCE_PX_PER_WINDOW:
+        return None
+    better = 2 * math.ceil(MIN_REFERENCE_PX_PER_WINDOW * coarseness / 2.0)
+    return (f"the reference's pixels are {coarseness:.1f}x the image's: a {window_px}-px window spans "
+            f"{window_px / coarseness:.0f} of them, too few for firm matches; use --window {better} or more, or a "
+            "finer reference")
+
+
 @with_gdal_exceptions
 def _image_info(image, band: int):
     path = image.GetDescription() if hasattr(image, "GetDescription") else os.fspath(image)
@@ -925,10 +958,9 @@ def plan_tiles(image, rpc, reference, dem, spacing_px: Optional[int] = None, win
     ref_path = os.fspath(reference)
     if not os.path.exists(ref_path) and not ref_path.startswith("/vsi"):
         raise Gf4calError(f"reference not found: {ref_path}")
-    if reference_model is None:  # fail early with a clear message
-        ReferenceImage(ref_path, reference_band)
-    else:
-        RawReference(ref_path, reference_model, reference_band)
+    # fail early with a clear message
+    ref = (ReferenceImage(ref_path, reference_band) if reference_model is None
+           else RawReference(ref_path, reference_model, reference_band))
     dem_spec = _dem_spec(dem)
     if dem_spec[0] == "file" and not os.path.exists(str(dem_spec[1])) and not str(dem_spec[1]).startswith("/vsi"):
         raise Gf4calError(f"DEM not found: {dem_spec[1]}")
@@ -964,7 +996,8 @@ def plan_tiles(image, rpc, reference, dem, spacing_px: Optional[int] = None, win
                                   reference_band=reference_band, dem=dem_spec, centers=centers, window_px=w,
                                   factor=f, params=p, reference_model=reference_model))
     ctx = dict(rpc=rpc, image=path, reference=ref_path, n_windows=int(xs.size * ys.size), window_px=w,
-               spacing_px=spacing, factor=f, reference_model=reference_model)
+               spacing_px=spacing, factor=f, reference_model=reference_model,
+               reference_coarseness=reference_coarseness(rpc, ref, W, H))
     return specs, ctx
 
 
@@ -1006,6 +1039,8 @@ def assemble_gcps(results: Sequence[Dict[str, np.ndarray]], ctx: Dict[str, Any],
                     outlier=np.asarray(outlier, dtype=bool))
     gdf.attrs["windows"] = counts
     gdf.attrs["spacing_px"] = int(ctx["spacing_px"])
+    gdf.attrs["reference_coarseness"] = ctx.get("reference_coarseness", float("nan"))
+    gdf.attrs["window_px"] = int(ctx["window_px"])
     return gdf
 
 
@@ -1105,6 +1140,9 @@ def collect_gcps(image, rpc, reference, dem, spacing_px: Optional[int] = None, w
                             tile_windows=tile_windows, band=band, reference_band=reference_band,
                             min_peak=min_peak, min_peak_ratio=min_peak_ratio, min_ncc=min_ncc,
                             min_texture=min_texture, geometry_step=geometry_step)
+    hint = coarse_reference_hint(ctx["reference_coarseness"], ctx["window_px"])
+    if hint:
+        warnings.warn(hint, stacklevel=2)
     report(progress, 0.0, f"matching {ctx['n_windows']} windows in {len(specs)} tiles")
     results = run_tiles(specs, executor, workers=workers, progress=progress)
     gdf = assemble_gcps(results, ctx, outlier_model=outlier_model, outlier_threshold_px=outlier_threshold_px,

@@ -10,6 +10,7 @@ from ..dem import DEM
 from ..errors import Gf4calError
 from ..gcp import write_gcps
 from ..matching import collect_gcps
+from ..matching.collect import coarse_reference_hint
 from ..outputs import OutputSet, check_vector
 from ..threads import blas_serial
 from ._common import cancel_check, collect_warnings, finish_report
@@ -43,9 +44,10 @@ def collect_gcps_file(image, reference, dem, out, *, rpc=None, geoid=None, keep_
         w = gcps.attrs["windows"]
         table = gcps if keep_outliers else gcps[~gcps["outlier"].to_numpy(bool)]
         if len(table) == 0:
+            hint = coarse_reference_hint(gcps.attrs["reference_coarseness"], gcps.attrs["window_px"])
             raise Gf4calError(f"no GCP found in {w['total']} windows ({w['featureless']} featureless, "
                               f"{w['weak_correlation']} weak, {w['nodata'] + w['outside_image']} without data); "
-                              "check that the reference and DEM cover the image, or raise --search")
+                              + (hint or "check that the reference and DEM cover the image, or raise --search"))
         write_gcps(table, outs.tmp("gcps"))
         if not out.lower().endswith(".csv"):
             outs.set_check("gcps", check_vector({"gcps": len(table)} if out.lower().endswith(".gpkg") else None))

@@ -1,8 +1,10 @@
 """``gf4cal collect-gcps`` and the end-to-end chain collect -> refine -> gdalwarp -rpc -> ortho vs reference."""
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -10,6 +12,7 @@ from osgeo import gdal
 
 from gdal_gf4cal.cli import main
 from gdal_gf4cal.gcp import read_gcps
+from gdal_gf4cal.matching import collect_gcps
 from gdal_gf4cal.matching.collect import DEFAULT_SPACING_PX, MIN_WINDOWS_ACROSS, default_spacing
 from gdal_gf4cal.matching.correlate import phase_correlate
 
@@ -133,3 +136,34 @@ def test_cli_default_grid_finds_gcps_on_a_real_crop(tmp_path, capsys):
         assert f"every {64 if name == 'default' else 256} px" in text
     assert counts["256"][0] == 4 and counts["256"][1] <= 2
     assert counts["default"][0] == 36 and counts["default"][1] >= 5
+
+
+def _coarser(reference, folder, factor):
+    """The reference averaged ``factor`` x coarser (what a user has when the only ortho is, say, Sentinel-2)."""
+    gt = gdal.Open(reference).GetGeoTransform()
+    out = str(folder / f"reference_x{factor}.tif")
+    gdal.Warp(out, reference, xRes=gt[1] * factor, yRes=-gt[5] * factor, resampleAlg="average")
+    return out, gt[1] * factor
+
+
+def test_coarse_reference_named_with_what_to_do(scene, tmp_path, capsys):
+    """A reference 8x coarser than the image: a 64-px window spans 8 of its pixels, most matches are weak; the run
+    says so and which window would span 16 (a warning line beside its one GCP). At 16x nothing matches: exit 2,
+    one line naming that cause, not "raise --search", nothing written. At the image's resolution no warning."""
+    coarseness = {}
+    for factor in (8, 16):
+        ref, px = _coarser(scene.reference, tmp_path, factor)
+        coarseness[factor] = px / 30.0                                       # the scene's 30 m pixels
+        out = tmp_path / f"gcps_x{factor}.gpkg"
+        rc = main(["collect-gcps", scene.image, "--reference", ref, "--dem", scene.dem_path, "--out", str(out),
+                   "--workers", "1"])
+        err = capsys.readouterr().err.strip()
+        hint = (f"the reference's pixels are {coarseness[factor]:.1f}x the image's: a 64-px window spans "
+                f"{64 / coarseness[factor]:.0f} of them, too few for firm matches; use --window "
+                f"{2 * math.ceil(8 * coarseness[factor])} or more")
+        assert hint in err and "--search" not in err and err.count("\n") == 0, err
+        assert (rc, out.exists()) == ((0, True) if factor == 8 else (2, False)), err
+    assert 7.5 < coarseness[8] < 8.5
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(collect_gcps(scene.image, scene.rpc, scene.reference, scene.dem, workers=1)) > 0
