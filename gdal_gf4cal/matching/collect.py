@@ -928,10 +928,9 @@ def _image_info(image, band: int):
 
 
 def plan_tiles(image, rpc, reference, dem, spacing_px: Optional[int] = None, window_px: int = 64, *,
-               search_px: float = 64,
-               tile_windows: int = 64, band: int = 1, reference_band: int = 1, margin_px: Optional[int] = None,
-               reference_model: Any = None, region: Optional[Sequence[float]] = None,
-               **params) -> Tuple[List[TileSpec], Dict[str, Any]]:
+               search_px: float = 64, tile_windows: int = 64, band: int = 1, reference_band: int = 1,
+               margin_px: Optional[int] = None, reference_model: Any = None,
+               region: Optional[Sequence[float]] = None, **params) -> Tuple[List[TileSpec], Dict[str, Any]]:
     """The window grid and its tiles: ``(specs, context)`` for :func:`match_tile` and :func:`assemble_gcps`.
 
     Window centres form a regular grid of step ``spacing_px`` (default :func:`default_spacing`) kept
@@ -1039,7 +1038,7 @@ def assemble_gcps(results: Sequence[Dict[str, np.ndarray]], ctx: Dict[str, Any],
                     outlier=np.asarray(outlier, dtype=bool))
     gdf.attrs["windows"] = counts
     gdf.attrs["spacing_px"] = int(ctx["spacing_px"])
-    gdf.attrs["reference_coarseness"] = ctx.get("reference_coarseness", float("nan"))
+    gdf.attrs["reference_coarseness"] = ctx["reference_coarseness"]
     gdf.attrs["window_px"] = int(ctx["window_px"])
     return gdf
 
