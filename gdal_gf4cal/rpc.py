@@ -64,8 +64,8 @@ LOCALIZE_CHUNK = 16384
 #: :func:`~gdal_gf4cal.threads.product_into`, in whole column groups), fewer calls.
 _PROJECT_GEMM = BLAS_SERIAL_SIZE // 80 // COLUMN_GROUP * COLUMN_GROUP
 #: Points per chunk of the projection kernel (five products) when its blocks run over the thread pool: a whole block
-#: of the pool, one chunk (12 NumPy calls, which hold the GIL): larger than L2 (the (20, chunk) monomials take 5.2 MB)
-#: but with 2 threads 1.3-1.5x the speed of 8192-point chunks (2e6 points: 2 threads / 1 thread 1.57-1.62x against
+#: of the pool, one chunk (12-14 NumPy calls, which hold the GIL): larger than L2 (the (20, chunk) monomials take
+#: 5.2 MB) but with 2 threads 1.3-1.5x the speed of 8192-point chunks (2e6 points: 2 threads / 1 thread 1.57-1.62x against
 #: 1.09-1.22x; the threads wait for each other's NumPy calls, four times as many). A divisor of
 #: :data:`~gdal_gf4cal.threads.BLOCK`: split or not, a point lies in the same product.
 PROJECT_CHUNK = 32768
@@ -288,7 +288,8 @@ class RPCModel(SensorModelMixin):
         reused (20, chunk) monomial buffer, the ground offsets subtracted into its rows 1-3 (longitudes modulo 360
         when a chunk spans the antimeridian), the monomials in place (:func:`fill_monomials`), the (4, 20) x (20,
         chunk) product into a reused (4, chunk) buffer (in slices of :data:`_PROJECT_GEMM` columns unless BLAS is
-        held on the calling thread, :func:`blas_is_serial`), one division: 12 NumPy calls per chunk in two buffers
+        held on the calling thread, :func:`blas_is_serial`; :func:`~gdal_gf4cal.threads.product_into` keeps each
+        within BLAS's small-matrix kernel), one division: 12-14 NumPy calls per chunk in two buffers
         the thread keeps (:func:`scratch`), the same bits (the same pixels as normalising whole arrays to 1e-11
         px)."""
         c = max(1, min(lon.size, chunk))

@@ -338,15 +338,41 @@ def matmul(a: np.ndarray, b: np.ndarray, out: Optional[np.ndarray] = None) -> np
 COLUMN_GROUP = 8
 
 
+#: Multiply-adds (M x N x K) of the largest product OpenBLAS 0.3.21 computes with its small-matrix kernel on the
+#: cores of :data:`SMALL_GEMM_CORES` (no packing): a (4, 20) x (20, 32768) product of the projection costs 252 us in
+#: one call and 136 us in four of 8192 columns, a (12, 20) x (20, 16384) Jacobian 278 us against 235 us (a localise +
+#: project round trip 6-8 % less CPU on one thread; the Haswell and Zen kernels have no such kernel: there one call).
+SMALL_GEMM_MNK = 1_000_000
+#: OpenBLAS cores (threadpoolctl's ``architecture``, lower case) with small-matrix GEMM kernels: the AVX-512 ones.
+SMALL_GEMM_CORES = frozenset({"skylakex", "cooperlake", "sapphirerapids"})
+_small_gemm_seen: tuple = (None, False)      # (the BLAS controller looked at, whether it has small-matrix kernels)
+
+
+def _gemm_columns(rows: int, k: int) -> Optional[int]:
+    """Columns per product of a (rows, k) matrix that stay within the small-matrix kernel (whole column groups);
+    None: one product (a BLAS without such kernels, or none found)."""
+    global _small_gemm_seen
+    ctl = _blas_controller()
+    if ctl is not _small_gemm_seen[0]:
+        libs = ctl.lib_controllers if ctl is not None else []
+        archs = {str(getattr(c, "architecture", "")).lower() for c in libs}
+        _small_gemm_seen = (ctl, bool(archs) and archs <= SMALL_GEMM_CORES)
+    if not _small_gemm_seen[1]:
+        return None
+    return max(COLUMN_GROUP, SMALL_GEMM_MNK // max(rows * k, 1) // COLUMN_GROUP * COLUMN_GROUP)
+
+
 def product_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> np.ndarray:
     """``np.matmul(a, b, out=out)`` (2-D) with every column of the result the bits it has in any other product of
     ``a`` with columns of the same values, on OpenBLAS's Haswell, Zen, SkylakeX and Cooperlake kernels (the suite
-    runs on each): the columns in whole groups of :data:`COLUMN_GROUP` in one product, the rest in one more, padded
-    with zero columns to a group (also what keeps a single column off BLAS's matrix-vector kernels)."""
+    runs on each): the columns in whole groups of :data:`COLUMN_GROUP` (in products small enough for the
+    small-matrix kernel where BLAS has one, :func:`_gemm_columns`), the rest in one more, padded with zero columns
+    to a group (also what keeps a single column off BLAS's matrix-vector kernels)."""
     n = b.shape[1]
     whole = n - n % COLUMN_GROUP
-    if whole:
-        np.matmul(a, b[:, :whole], out=out[:, :whole])
+    step = _gemm_columns(*a.shape) or max(whole, 1)
+    for i in range(0, whole, step):
+        np.matmul(a, b[:, i:i + step], out=out[:, i:i + step])
     if whole < n:
         padded = np.zeros((b.shape[0], COLUMN_GROUP), dtype=b.dtype)
         padded[:, :n - whole] = b[:, whole:]

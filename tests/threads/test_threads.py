@@ -323,6 +323,22 @@ def test_a_product_gives_each_column_the_bits_of_any_wider_product():
         assert np.array_equal(threads.matmul(a, b), whole)
 
 
+@pytest.mark.parametrize("rows, n", [(4, 32768), (12, 16384), (16, 20000), (2, 4101)])
+def test_a_product_in_small_matrix_slices_gives_the_bits_of_one_product(rows, n):
+    """threads.product_into splits a product wider than the small-matrix kernel's reach (SkylakeX, Cooperlake:
+    M x N x K <= SMALL_GEMM_MNK) into column slices: every column the bits of the one np.matmul of all whole
+    column groups (BLAS's packed kernel there), on every kernel the suite runs under."""
+    rng = np.random.default_rng(rows)
+    a, b = rng.normal(size=(rows, 20)), rng.normal(size=(20, n))
+    whole = n - n % threads.COLUMN_GROUP
+    with threads.serial():
+        sliced = threads.product_into(a, b, np.empty((rows, n)))
+        one = np.matmul(a, b[:, :whole])
+    assert np.array_equal(sliced[:, :whole], one)
+    step = threads._gemm_columns(rows, 20)
+    assert step is None or (step % threads.COLUMN_GROUP == 0 and rows * 20 * step <= threads.SMALL_GEMM_MNK)
+
+
 def test_kernels_give_the_same_bits_whatever_the_allocator_did(sensor_model):
     """project, localize and localize_dem of every model kind give the same bits call after call while other
     arrays come and go between the calls: on AVX-512 CPUs NumPy computes transcendental ufuncs (arctan2, sin, exp ...)
