@@ -350,9 +350,12 @@ _small_gemm_seen: tuple = (None, False)      # (the BLAS controller looked at, w
 
 def _gemm_columns(rows: int, k: int) -> Optional[int]:
     """Columns per product of a (rows, k) matrix that stay within the small-matrix kernel (whole column groups);
-    None: one product (a BLAS without such kernels, or none found)."""
+    None: one product (a BLAS without such kernels, or none known yet). Reads the BLAS libraries :func:`blas_serial`
+    last found and never looks for them itself: threadpoolctl walks the loaded libraries holding the dynamic
+    loader's lock while its Python callback waits for the GIL, and a thread importing an extension module holds the
+    GIL waiting for that lock (a deadlock, seen: register-pan-ms importing PIL while a product looked)."""
     global _small_gemm_seen
-    ctl = _blas_controller()
+    ctl = _blas_seen[1]
     if ctl is not _small_gemm_seen[0]:
         libs = ctl.lib_controllers if ctl is not None else []
         archs = {str(getattr(c, "architecture", "")).lower() for c in libs}
