@@ -339,6 +339,20 @@ def test_a_product_in_small_matrix_slices_gives_the_bits_of_one_product(rows, n)
     assert step is None or (step % threads.COLUMN_GROUP == 0 and rows * 20 * step <= threads.SMALL_GEMM_MNK)
 
 
+def test_a_product_never_looks_for_the_blas_libraries(monkeypatch):
+    """product_into runs on pool threads while others import modules: it must not walk the loaded libraries
+    (threadpoolctl's scan holds the dynamic loader's lock and waits for the GIL; an import holds the GIL and waits
+    for that lock: register-pan-ms hung so). It uses what blas_serial found."""
+    def scan():
+        raise AssertionError("product_into looked for the BLAS libraries")
+    rng = np.random.default_rng(5)
+    a, b = rng.normal(size=(12, 20)), rng.normal(size=(20, 20000))
+    with threads.serial():
+        expected = np.matmul(a, b)
+    monkeypatch.setattr(threads, "_blas_controller", scan)
+    assert np.allclose(threads.product_into(a, b, np.empty((12, 20000))), expected, rtol=1e-13, atol=0)
+
+
 def test_kernels_give_the_same_bits_whatever_the_allocator_did(sensor_model):
     """project, localize and localize_dem of every model kind give the same bits call after call while other
     arrays come and go between the calls: on AVX-512 CPUs NumPy computes transcendental ufuncs (arctan2, sin, exp ...)
