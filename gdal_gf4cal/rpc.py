@@ -65,8 +65,8 @@ LOCALIZE_CHUNK = 16384
 _PROJECT_GEMM = BLAS_SERIAL_SIZE // 80 // COLUMN_GROUP * COLUMN_GROUP
 #: Points per chunk of the projection kernel (five products) when its blocks run over the thread pool: a whole block
 #: of the pool, one chunk (12-14 NumPy calls, which hold the GIL): larger than L2 (the (20, chunk) monomials take
-#: 5.2 MB) but with 2 threads 1.3-1.5x the speed of 8192-point chunks (2e6 points: 2 threads / 1 thread 1.57-1.62x against
-#: 1.09-1.22x; the threads wait for each other's NumPy calls, four times as many). A divisor of
+#: 5.2 MB) but with 2 threads 1.3-1.5x the speed of 8192-point chunks (2e6 points: 2 threads / 1 thread 1.57-1.62x
+#: against 1.09-1.22x; the threads wait for each other's NumPy calls, four times as many). A divisor of
 #: :data:`~gdal_gf4cal.threads.BLOCK`: split or not, a point lies in the same product.
 PROJECT_CHUNK = 32768
 #: Points per chunk of the projection kernel on one thread (``GF4CAL_NUM_THREADS=1``, a Dask worker, a block or a

@@ -341,7 +341,7 @@ COLUMN_GROUP = 8
 #: Multiply-adds (M x N x K) of the largest product OpenBLAS 0.3.21 computes with its small-matrix kernel on the
 #: cores of :data:`SMALL_GEMM_CORES` (no packing): a (4, 20) x (20, 32768) product of the projection costs 252 us in
 #: one call and 136 us in four of 8192 columns, a (12, 20) x (20, 16384) Jacobian 278 us against 235 us (a localise +
-#: project round trip 6-8 % less CPU on one thread; the Haswell and Zen kernels have no such kernel: there one call).
+#: project round trip 6-9 % less CPU on one thread; the Haswell and Zen kernels have no such kernel: there one call).
 SMALL_GEMM_MNK = 1_000_000
 #: OpenBLAS cores (threadpoolctl's ``architecture``, lower case) with small-matrix GEMM kernels: the AVX-512 ones.
 SMALL_GEMM_CORES = frozenset({"skylakex", "cooperlake", "sapphirerapids"})
