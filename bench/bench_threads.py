@@ -207,7 +207,8 @@ def round_trip_pool(n, k, repeat):
     """The round trip as a process pool would serve the API: ``k`` forked workers (kept between calls) share the
     points' memory; a call copies the caller's arrays in, waits for the ``k`` shares and copies the results out, against
     one thread in this process, alternately ``repeat`` times (session 17, a 2-core VM: medians 1.48-1.72x against the
-    threads' 1.19-1.37x in the same runs; the copies in and out cost about what the GIL does)."""
+    threads' 1.19-1.37x in the same busy runs, 1.65-1.73x quiet: a little more than threads, the copies in and out
+    eating most of what the GIL costs them)."""
     from concurrent.futures import ProcessPoolExecutor
     from multiprocessing import shared_memory
     rpc, s, l, hh = _points(n)
